@@ -1,0 +1,36 @@
+//! # coilscope-core
+//!
+//! The physics core of coilscope: parameter sets, the nonlinear electrodynamic transducer
+//! model, its normal form, the integrator and the excitation signals.
+//!
+//! ## Conventions (from `shared/spec/formats.md`)
+//!
+//! * SI units everywhere: metres, seconds, volts, amperes, ohms, henries, kilograms, newtons,
+//!   kelvin (temperatures are rises above ambient).
+//! * x > 0 is "coil out", away from the back plate.
+//! * Kms(x) is the secant stiffness: the suspension's restoring force is `Kms(x) x`.
+//! * Power series are ascending in x (metres): `f(x) = sum_j c_j x^j`.
+//! * The reluctance force is `+1/2 L'(x) i^2`; with it the model conserves energy.
+//!
+//! ## Where things are
+//!
+//! * [`params`]: parameter sets, validation, the embedded real drivers.
+//! * [`model`]: the model's equations — the one place they are written.
+//! * [`normal_form`]: the seed paper's normal form `x''' = f(z) + g(z) u` (Eqs. 5-9).
+//! * [`integrate`]: band-limited input interpolation and RK4 sub-stepping.
+//! * [`simulate`]: the virtual transducer driven by a sampled voltage.
+//! * [`excitation`]: seeded test signals (IEC 60268-1 noise, pink noise, sine, multitone,
+//!   sweep) and named RNGs.
+
+pub mod excitation;
+pub mod integrate;
+pub mod model;
+pub mod normal_form;
+pub mod params;
+pub mod poly;
+pub mod simulate;
+
+pub use model::{Model, State};
+pub use params::{embedded_driver, embedded_driver_names, ParamError, Parameters};
+pub use poly::Poly;
+pub use simulate::{simulate, SimError, SimOptions, Simulator, Trace};

@@ -1,0 +1,224 @@
+//! The nonlinear transducer model of the file contract — the one place it is written.
+//!
+//! States (SI): `[x, v, i, i2, Tv, Tm]` = displacement (m, + = coil out), velocity (m/s),
+//! voice-coil current (A), current in the L2 branch (A), voice-coil and magnet temperature
+//! rises above ambient (K). Input: terminal voltage u (V).
+//!
+//! ```text
+//! u  = Re(Tv) i + d(Le(x) i)/dt + Bl(x) v + R2(x) (i - i2)
+//! d(L2(x) i2)/dt = R2(x) (i - i2)
+//! Mms dv/dt = Bl(x) i - Rms v - Kms(x) x + 1/2 Le'(x) i^2 + 1/2 L2'(x) i2^2
+//! Ctv dTv/dt = Re(Tv) i^2 - (Tv - Tm)/Rtv
+//! Ctm dTm/dt = R2 (i - i2)^2 + (Tv - Tm)/Rtv - Tm/Rtm,      Re(T) = Re (1 + alpha T)
+//! ```
+//!
+//! The reluctance force is `+1/2 L'(x) i^2` (the seed paper's Eq. (1) prints the other sign;
+//! its Eq. (3) and the energy balance agree with this one). The model is generic over the
+//! scalar type `D` (f64, or `num_dual` dual numbers for exact Jacobians).
+
+use crate::params::Parameters;
+use crate::poly::Poly;
+use num_dual::DualNum;
+
+/// Number of states.
+pub const NSTATE: usize = 6;
+/// Index of each state in the state vector.
+pub mod idx {
+    pub const X: usize = 0;
+    pub const V: usize = 1;
+    pub const I: usize = 2;
+    pub const I2: usize = 3;
+    pub const TV: usize = 4;
+    pub const TM: usize = 5;
+}
+
+/// The state vector `[x, v, i, i2, Tv, Tm]`.
+pub type State<D> = [D; NSTATE];
+
+/// Thermal constants in the model's scalar type.
+#[derive(Clone, Debug)]
+pub struct ThermalModel<D> {
+    pub alpha: D,
+    pub rtv: D,
+    pub ctv: D,
+    pub rtm: D,
+    pub ctm: D,
+}
+
+/// The model's constants and power series, in scalar type `D`.
+#[derive(Clone, Debug)]
+pub struct Model<D> {
+    pub re: D,
+    pub le: Poly<D>,
+    pub l2r2: Option<(Poly<D>, Poly<D>)>,
+    pub bl: Poly<D>,
+    pub kms: Poly<D>,
+    pub mms: D,
+    pub rms: D,
+    pub thermal: Option<ThermalModel<D>>,
+}
+
+/// Instantaneous power flows (W) at one state: what the energy balance integrates.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Powers<D> {
+    /// Electrical input u i.
+    pub input: D,
+    /// Joule loss in Re(T).
+    pub re_loss: D,
+    /// Eddy-current loss in R2.
+    pub r2_loss: D,
+    /// Mechanical loss in Rms.
+    pub rms_loss: D,
+}
+
+impl Model<f64> {
+    /// The model of a parameter set.
+    pub fn new(p: &Parameters) -> Self {
+        Model::<f64>::lift_from(p)
+    }
+}
+
+impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
+    /// The model of a parameter set, with scalars of type `D` (zero derivative parts).
+    pub fn lift_from(p: &Parameters) -> Self {
+        Model {
+            re: D::from(p.re),
+            le: p.le.lift(),
+            l2r2: p.l2r2.as_ref().map(|(l2, r2)| (l2.lift(), r2.lift())),
+            bl: p.bl.lift(),
+            kms: p.kms.lift(),
+            mms: D::from(p.mms),
+            rms: D::from(p.rms),
+            thermal: p.thermal.as_ref().map(|t| ThermalModel {
+                alpha: D::from(t.alpha),
+                rtv: D::from(t.rtv),
+                ctv: D::from(t.ctv),
+                rtm: D::from(t.rtm),
+                ctm: D::from(t.ctm),
+            }),
+        }
+    }
+
+    /// Voice-coil resistance at the voice-coil temperature rise `tv` (K).
+    #[inline]
+    pub fn re_at(&self, tv: D) -> D {
+        match &self.thermal {
+            Some(t) => self.re * (t.alpha * tv + 1.0),
+            None => self.re,
+        }
+    }
+
+    /// Time derivative of the state for terminal voltage `u`.
+    #[inline]
+    pub fn deriv(&self, s: &State<D>, u: D) -> State<D> {
+        let [x, v, i, i2, tv, tm] = *s;
+        let (le, dle) = self.le.eval_d(x);
+        let bl = self.bl.eval(x);
+        let kms = self.kms.eval(x);
+        let re_t = self.re_at(tv);
+        // LR-2 branch: voltage across it, its inductance slope, and its current derivative.
+        let (u_l2r2, f_l2, di2, r2_loss) = match &self.l2r2 {
+            Some((l2p, r2p)) => {
+                let (l2, dl2) = l2p.eval_d(x);
+                let r2 = r2p.eval(x);
+                let u2 = r2 * (i - i2);
+                // d(L2 i2)/dt = u2  =>  L2 di2/dt = u2 - L2' v i2
+                let di2 = (u2 - dl2 * v * i2) / l2;
+                (u2, dl2 * i2 * i2 * 0.5, di2, u2 * (i - i2))
+            }
+            None => (D::zero(), D::zero(), D::zero(), D::zero()),
+        };
+        // d(Le i)/dt = u - Re i - Bl v - u_L2R2  =>  Le di/dt = ... - Le' v i
+        let di = (u - re_t * i - bl * v - u_l2r2 - dle * v * i) / le;
+        let force = bl * i - self.rms * v - kms * x + dle * i * i * 0.5 + f_l2;
+        let dv = force / self.mms;
+        let (dtv, dtm) = match &self.thermal {
+            Some(t) => {
+                let flow = (tv - tm) / t.rtv;
+                ((re_t * i * i - flow) / t.ctv, (r2_loss + flow - tm / t.rtm) / t.ctm)
+            }
+            None => (D::zero(), D::zero()),
+        };
+        [v, dv, di, di2, dtv, dtm]
+    }
+
+    /// Energy stored in the moving system (J): kinetic, suspension (`int Kms(s) s ds`) and
+    /// magnetic (`1/2 Le i^2 + 1/2 L2 i2^2`). Heat is not included: it leaves as loss.
+    pub fn stored_energy(&self, s: &State<D>) -> D {
+        let [x, v, i, i2, _, _] = *s;
+        let mut e = self.mms * v * v * 0.5 + self.kms.moment_integral(x) + self.le.eval(x) * i * i * 0.5;
+        if let Some((l2, _)) = &self.l2r2 {
+            e += l2.eval(x) * i2 * i2 * 0.5;
+        }
+        e
+    }
+
+    /// Power flows at a state for terminal voltage `u`.
+    pub fn powers(&self, s: &State<D>, u: D) -> Powers<D> {
+        let [x, v, i, i2, tv, _] = *s;
+        let r2_loss = match &self.l2r2 {
+            Some((_, r2)) => r2.eval(x) * (i - i2) * (i - i2),
+            None => D::zero(),
+        };
+        Powers { input: u * i, re_loss: self.re_at(tv) * i * i, r2_loss, rms_loss: self.rms * v * v }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::params::embedded_driver;
+    use num_dual::Dual64;
+
+    #[test]
+    fn static_equilibrium_under_dc_current_balances_force() {
+        // With v = 0 and a DC current, dv/dt = 0 where Bl(x) i + 1/2 Le'(x) i^2 = Kms(x) x.
+        let p = embedded_driver("sb17cac35-4").unwrap().three_state();
+        let m = Model::new(&p);
+        let i = 0.3;
+        // Solve the static balance by bisection: the slow, obvious oracle.
+        let f = |x: f64| p.bl.eval(x) * i + 0.5 * p.le.eval_d(x).1 * i * i - p.kms.eval(x) * x;
+        let (mut a, mut b) = (-0.005, 0.005);
+        for _ in 0..100 {
+            let c = 0.5 * (a + b);
+            if f(a) * f(c) <= 0.0 { b = c } else { a = c }
+        }
+        let x = 0.5 * (a + b);
+        let d = m.deriv(&[x, 0.0, i, 0.0, 0.0, 0.0], p.re * i);
+        assert!(d[idx::V].abs() < 1e-9, "{:?}", d);
+        assert!(d[idx::I].abs() < 1e-9, "{:?}", d);
+        assert!(x > 0.0, "positive current pushes the coil out");
+    }
+
+    #[test]
+    fn powers_close_the_energy_balance_instantaneously() {
+        // d/dt E_stored = P_in - losses, using dual numbers for dE/dt = grad E . f.
+        for name in crate::params::embedded_driver_names() {
+            let p = embedded_driver(name).unwrap();
+            let m = Model::new(&p);
+            let md: Model<Dual64> = Model::lift_from(&p);
+            let s = [0.003, -0.4, 1.7, 0.6, 20.0, 2.0];
+            let u = 7.5;
+            let ds = m.deriv(&s, u);
+            // Directional derivative of the stored energy along the flow.
+            let sd: State<Dual64> = std::array::from_fn(|k| Dual64::new(s[k], ds[k]));
+            let de_dt = md.stored_energy(&sd).eps;
+            let pw = m.powers(&s, u);
+            let balance = pw.input - pw.re_loss - pw.r2_loss - pw.rms_loss;
+            assert!((de_dt - balance).abs() < 1e-12 * pw.input.abs(), "{name}: {de_dt} vs {balance}");
+        }
+    }
+
+    #[test]
+    fn thermal_nodes_follow_their_equations() {
+        let p = embedded_driver("sb17cac35-4").unwrap();
+        let t = p.thermal.clone().unwrap();
+        let m = Model::new(&p);
+        let s = [0.0, 0.0, 2.0, 0.5, 10.0, 3.0];
+        let d = m.deriv(&s, 0.0);
+        let re_t = p.re * (1.0 + t.alpha * 10.0);
+        let r2 = p.l2r2.as_ref().unwrap().1.c[0];
+        assert!((d[idx::TV] - (re_t * 4.0 - 7.0 / t.rtv) / t.ctv).abs() < 1e-12);
+        assert!((d[idx::TM] - (r2 * 1.5 * 1.5 + 7.0 / t.rtv - 3.0 / t.rtm) / t.ctm).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,590 @@
+//! Parameter sets (`"format": "coilscope.parameters/1"`, see `shared/spec/formats.md`).
+//!
+//! A value is a number (a constant) or an ascending SI power series in x (metres). Parsing
+//! is strict about what the contract defines and lenient about what it does not: unknown keys
+//! (such as `published_curves`) are kept and written back, so files round-trip unchanged.
+//! Every error names the origin (file or embedded driver), the key, the value, and what
+//! would be valid.
+
+use crate::poly::Poly;
+use serde_json::{Map, Value};
+use std::fmt;
+
+/// The format tag of a parameter set.
+pub const PARAMETERS_FORMAT: &str = "coilscope.parameters/1";
+
+/// Copper's temperature coefficient of resistance (1/K), used when `thermal.alpha` is absent.
+pub const ALPHA_COPPER: f64 = 0.00393;
+
+/// Two-node thermal model (voice coil and magnet), temperatures as rises above ambient.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Thermal {
+    /// Temperature coefficient of Re (1/K).
+    pub alpha: f64,
+    /// Voice coil to magnet thermal resistance (K/W).
+    pub rtv: f64,
+    /// Voice-coil heat capacity (J/K).
+    pub ctv: f64,
+    /// Magnet to ambient thermal resistance (K/W).
+    pub rtm: f64,
+    /// Magnet heat capacity (J/K).
+    pub ctm: f64,
+}
+
+/// A validated parameter set in SI units.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Parameters {
+    pub name: Option<String>,
+    pub source: Option<String>,
+    /// DC resistance of the voice coil at ambient temperature (ohm).
+    pub re: f64,
+    /// Voice-coil inductance Le(x) (H).
+    pub le: Poly,
+    /// LR-2 para-inductance L2(x) (H) and its resistance R2(x) (ohm); both or neither.
+    pub l2r2: Option<(Poly, Poly)>,
+    /// Force factor Bl(x) (T m).
+    pub bl: Poly,
+    /// Secant stiffness Kms(x) (N/m): restoring force Kms(x) x.
+    pub kms: Poly,
+    /// Moving mass (kg).
+    pub mms: f64,
+    /// Mechanical resistance (kg/s).
+    pub rms: f64,
+    /// Effective radiating area (m^2).
+    pub sd: Option<f64>,
+    pub thermal: Option<Thermal>,
+    /// Where the x-dependent functions are valid (m).
+    pub x_range: Option<[f64; 2]>,
+    /// Keys this version does not interpret, kept verbatim (e.g. `published_curves`).
+    pub extra: Map<String, Value>,
+}
+
+/// A parameter-file problem, with where it is and what would be valid.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ParamError {
+    /// File path or `embedded driver NAME`.
+    pub origin: String,
+    /// The key at fault (empty for whole-file problems).
+    pub key: String,
+    pub message: String,
+}
+
+impl fmt::Display for ParamError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.key.is_empty() {
+            write!(f, "{}: {}", self.origin, self.message)
+        } else {
+            write!(f, "{}: key `{}`: {}", self.origin, self.key, self.message)
+        }
+    }
+}
+
+impl std::error::Error for ParamError {}
+
+const KNOWN_KEYS: &[&str] = &[
+    "format", "name", "source", "Re", "Le", "L2", "R2", "Bl", "Kms", "Mms", "Rms", "Sd", "thermal",
+    "x_range",
+];
+
+struct Ctx<'a> {
+    origin: &'a str,
+}
+
+impl Ctx<'_> {
+    fn err(&self, key: &str, message: impl Into<String>) -> ParamError {
+        ParamError { origin: self.origin.to_string(), key: key.to_string(), message: message.into() }
+    }
+
+    fn number(&self, key: &str, v: &Value) -> Result<f64, ParamError> {
+        match v {
+            Value::Number(n) => {
+                let f = n.as_f64().ok_or_else(|| self.err(key, format!("{n} is not a finite number")))?;
+                if f.is_finite() {
+                    Ok(f)
+                } else {
+                    Err(self.err(key, format!("{n} is not finite; give a finite number in SI units")))
+                }
+            }
+            other => Err(self.err(key, format!("expected a number (SI units), found {}", describe(other)))),
+        }
+    }
+
+    fn series(&self, key: &str, v: &Value) -> Result<Poly, ParamError> {
+        match v {
+            Value::Number(_) => Ok(Poly::constant(self.number(key, v)?)),
+            Value::Array(items) if items.is_empty() => Err(self.err(
+                key,
+                "empty power series; give a number or ascending coefficients [c0, c1, ...] in SI (x in metres)",
+            )),
+            Value::Array(items) => {
+                let mut c = Vec::with_capacity(items.len());
+                for (j, item) in items.iter().enumerate() {
+                    match item {
+                        Value::Number(_) => c.push(
+                            self.number(key, item)
+                                .map_err(|e| self.err(key, format!("coefficient c{j}: {}", e.message)))?,
+                        ),
+                        other => {
+                            return Err(self.err(
+                                key,
+                                format!("coefficient c{j} must be a number, found {}", describe(other)),
+                            ))
+                        }
+                    }
+                }
+                if c.len() > 16 {
+                    return Err(self.err(key, format!("{} coefficients; at most 16 (order 15) are supported", c.len())));
+                }
+                Ok(Poly { c })
+            }
+            other => Err(self.err(
+                key,
+                format!("expected a number or an array of power-series coefficients, found {}", describe(other)),
+            )),
+        }
+    }
+}
+
+fn describe(v: &Value) -> String {
+    match v {
+        Value::Null => "null".into(),
+        Value::Bool(b) => format!("the boolean {b}"),
+        Value::Number(n) => format!("the number {n}"),
+        Value::String(s) => format!("the string {s:?}"),
+        Value::Array(_) => "an array".into(),
+        Value::Object(_) => "an object".into(),
+    }
+}
+
+impl Parameters {
+    /// Parse and validate a parameter set from JSON text. `origin` names it in errors.
+    pub fn from_json_str(text: &str, origin: &str) -> Result<Self, ParamError> {
+        let value: Value = serde_json::from_str(text).map_err(|e| ParamError {
+            origin: origin.to_string(),
+            key: String::new(),
+            message: format!("not valid JSON ({e}); a parameter set is a JSON object, see shared/spec/formats.md"),
+        })?;
+        Self::from_json_value(&value, origin)
+    }
+
+    /// Parse and validate a parameter set from a JSON value.
+    pub fn from_json_value(value: &Value, origin: &str) -> Result<Self, ParamError> {
+        let ctx = Ctx { origin };
+        let obj = value.as_object().ok_or_else(|| {
+            ctx.err("", format!("expected a JSON object with keys Re, Le, Bl, Kms, Mms, Rms; found {}", describe(value)))
+        })?;
+        if let Some(f) = obj.get("format") {
+            if f.as_str() != Some(PARAMETERS_FORMAT) {
+                return Err(ctx.err("format", format!("{} is not {PARAMETERS_FORMAT:?}", describe(f))));
+            }
+        }
+        // A misspelt key would silently drop a parameter: refuse near-misses of known keys.
+        for k in obj.keys() {
+            if !KNOWN_KEYS.contains(&k.as_str()) {
+                if let Some(known) = KNOWN_KEYS.iter().find(|kk| kk.eq_ignore_ascii_case(k.trim())) {
+                    return Err(ctx.err(k, format!("unknown key; did you mean `{known}`? (keys are case-sensitive)")));
+                }
+            }
+        }
+        let required = |key: &str| -> Result<&Value, ParamError> {
+            obj.get(key).ok_or_else(|| ctx.err(key, "missing (required: Re, Le, Bl, Kms, Mms, Rms)"))
+        };
+        let text = |key: &str| -> Result<Option<String>, ParamError> {
+            match obj.get(key) {
+                None | Some(Value::Null) => Ok(None),
+                Some(Value::String(s)) => Ok(Some(s.clone())),
+                Some(other) => Err(ctx.err(key, format!("expected a string, found {}", describe(other)))),
+            }
+        };
+
+        let re = ctx.number("Re", required("Re")?)?;
+        let le = ctx.series("Le", required("Le")?)?;
+        let bl = ctx.series("Bl", required("Bl")?)?;
+        let kms = ctx.series("Kms", required("Kms")?)?;
+        let mms = ctx.number("Mms", required("Mms")?)?;
+        let rms = ctx.number("Rms", required("Rms")?)?;
+        let l2r2 = match (obj.get("L2"), obj.get("R2")) {
+            (None, None) => None,
+            (Some(l2), Some(r2)) => Some((ctx.series("L2", l2)?, ctx.series("R2", r2)?)),
+            (Some(_), None) => return Err(ctx.err("R2", "missing: L2 is given, and the LR-2 branch needs both L2 and R2")),
+            (None, Some(_)) => return Err(ctx.err("L2", "missing: R2 is given, and the LR-2 branch needs both L2 and R2")),
+        };
+        let sd = obj.get("Sd").map(|v| ctx.number("Sd", v)).transpose()?;
+        let x_range = match obj.get("x_range") {
+            None => None,
+            Some(Value::Array(a)) if a.len() == 2 => {
+                Some([ctx.number("x_range", &a[0])?, ctx.number("x_range", &a[1])?])
+            }
+            Some(other) => {
+                return Err(ctx.err("x_range", format!("expected [x_min, x_max] in metres, found {}", describe(other))))
+            }
+        };
+        let thermal = match obj.get("thermal") {
+            None | Some(Value::Null) => None,
+            Some(Value::Object(t)) => {
+                let get = |k: &str| -> Result<f64, ParamError> {
+                    let key = format!("thermal.{k}");
+                    ctx.number(&key, t.get(k).ok_or_else(|| ctx.err(&key, "missing (thermal needs Rtv, Ctv, Rtm, Ctm; alpha is optional)"))?)
+                };
+                let alpha = match t.get("alpha") {
+                    None => ALPHA_COPPER,
+                    Some(v) => ctx.number("thermal.alpha", v)?,
+                };
+                Some(Thermal { alpha, rtv: get("Rtv")?, ctv: get("Ctv")?, rtm: get("Rtm")?, ctm: get("Ctm")? })
+            }
+            Some(other) => {
+                return Err(ctx.err("thermal", format!("expected an object {{alpha, Rtv, Ctv, Rtm, Ctm}}, found {}", describe(other))))
+            }
+        };
+        let extra: Map<String, Value> =
+            obj.iter().filter(|(k, _)| !KNOWN_KEYS.contains(&k.as_str())).map(|(k, v)| (k.clone(), v.clone())).collect();
+        let p = Parameters {
+            name: text("name")?,
+            source: text("source")?,
+            re,
+            le,
+            l2r2,
+            bl,
+            kms,
+            mms,
+            rms,
+            sd,
+            thermal,
+            x_range,
+            extra,
+        };
+        p.validate(origin)?;
+        Ok(p)
+    }
+
+    /// Check physical sense and likely unit mistakes. Called by the parsers; call it again
+    /// after editing a set by hand.
+    pub fn validate(&self, origin: &str) -> Result<(), ParamError> {
+        let ctx = Ctx { origin };
+        let positive = |key: &str, v: f64, unit: &str| -> Result<(), ParamError> {
+            if v > 0.0 {
+                Ok(())
+            } else {
+                Err(ctx.err(key, format!("{v} {unit} must be > 0")))
+            }
+        };
+        positive("Re", self.re, "ohm")?;
+        positive("Mms", self.mms, "kg")?;
+        if self.rms < 0.0 {
+            return Err(ctx.err("Rms", format!("{} kg/s must be >= 0", self.rms)));
+        }
+        // Plausibility: a loudspeaker, headphone, microspeaker or shaker, in SI units.
+        if self.mms > 2.0 {
+            return Err(ctx.err("Mms", format!(
+                "{} kg is not a plausible moving mass (expected 1e-6 .. 2 kg); it looks like grams: {} g = {} kg",
+                self.mms, self.mms, self.mms / 1000.0
+            )));
+        }
+        if self.mms < 1e-7 {
+            return Err(ctx.err("Mms", format!("{} kg is implausibly small (expected 1e-6 .. 2 kg)", self.mms)));
+        }
+        if self.re > 5000.0 || self.re < 0.01 {
+            return Err(ctx.err("Re", format!("{} ohm is not a plausible voice-coil resistance (expected 0.01 .. 5000 ohm)", self.re)));
+        }
+        let le0 = self.le.c[0];
+        if le0 > 0.1 {
+            return Err(ctx.err("Le", format!(
+                "Le(0) = {le0} H is not a plausible voice-coil inductance (expected < 0.1 H); it looks like millihenry: {le0} mH = {} H",
+                le0 / 1000.0
+            )));
+        }
+        let bl0 = self.bl.c[0];
+        if bl0 > 200.0 {
+            return Err(ctx.err("Bl", format!("Bl(0) = {bl0} T m is not plausible (expected < 200 T m)")));
+        }
+        let kms0 = self.kms.c[0];
+        if kms0 > 0.0 && kms0 < 0.5 {
+            return Err(ctx.err("Kms", format!(
+                "Kms(0) = {kms0} N/m is implausibly soft; it looks like a compliance Cms in m/N: Kms = 1/Cms = {:.4} N/m",
+                1.0 / kms0
+            )));
+        }
+        if let Some(sd) = self.sd {
+            if !(sd > 0.0) {
+                return Err(ctx.err("Sd", format!("{sd} m^2 must be > 0")));
+            }
+            if sd > 2.0 {
+                return Err(ctx.err("Sd", format!("{sd} m^2 is not plausible (expected < 2 m^2); it looks like cm^2: {sd} cm^2 = {} m^2", sd * 1e-4)));
+            }
+        }
+        if let Some([lo, hi]) = self.x_range {
+            if !(lo < 0.0 && hi > 0.0) {
+                return Err(ctx.err("x_range", format!("[{lo}, {hi}] must contain the rest position: x_min < 0 < x_max (m)")));
+            }
+            if hi - lo > 0.2 {
+                return Err(ctx.err("x_range", format!(
+                    "[{lo}, {hi}] m spans more than 0.2 m; it looks like millimetres: [{lo}, {hi}] mm = [{}, {}] m",
+                    lo / 1000.0, hi / 1000.0
+                )));
+            }
+        }
+        if let Some(t) = &self.thermal {
+            for (k, v) in [("thermal.Rtv", t.rtv), ("thermal.Ctv", t.ctv), ("thermal.Rtm", t.rtm), ("thermal.Ctm", t.ctm)] {
+                if !(v > 0.0) {
+                    return Err(ctx.err(k, format!("{v} must be > 0")));
+                }
+            }
+            if !(t.alpha >= 0.0 && t.alpha < 0.02) {
+                return Err(ctx.err("thermal.alpha", format!("{} 1/K is not plausible (copper: 0.00393, aluminium: 0.0040)", t.alpha)));
+            }
+        }
+        // x-dependent functions must stay positive where they are valid.
+        let (lo, hi) = match self.x_range {
+            Some([lo, hi]) => (lo, hi),
+            None => (0.0, 0.0),
+        };
+        let where_ = if self.x_range.is_some() { format!("inside x_range [{lo}, {hi}] m") } else { "at x = 0".to_string() };
+        let mut funcs: Vec<(&str, &Poly, &str)> = vec![("Bl", &self.bl, "T m"), ("Kms", &self.kms, "N/m"), ("Le", &self.le, "H")];
+        if let Some((l2, r2)) = &self.l2r2 {
+            funcs.push(("L2", l2, "H"));
+            funcs.push(("R2", r2, "ohm"));
+        }
+        for (key, p, unit) in funcs {
+            let (mn, _) = p.min_max_on(lo, hi);
+            if !(mn > 0.0) {
+                let xm = argmin_on(p, lo, hi);
+                return Err(ctx.err(key, format!(
+                    "{key}(x) must be > 0 {where_}, but {key}({xm:.6} m) = {mn:.6e} {unit}; check the coefficients (SI: x in metres) or narrow x_range"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// The range where the x-dependent parameters may be evaluated. Without `x_range`, the
+    /// polynomials are trusted as far as they stay positive (checked while simulating).
+    pub fn valid_range(&self) -> Option<[f64; 2]> {
+        self.x_range
+    }
+
+    /// Write the set as contract JSON (constants as numbers, series as arrays), keeping
+    /// unknown keys.
+    pub fn to_json_value(&self) -> Value {
+        let mut m = Map::new();
+        m.insert("format".into(), PARAMETERS_FORMAT.into());
+        if let Some(n) = &self.name {
+            m.insert("name".into(), n.clone().into());
+        }
+        if let Some(s) = &self.source {
+            m.insert("source".into(), s.clone().into());
+        }
+        m.insert("Re".into(), self.re.into());
+        m.insert("Le".into(), series_json(&self.le));
+        if let Some((l2, r2)) = &self.l2r2 {
+            m.insert("L2".into(), series_json(l2));
+            m.insert("R2".into(), series_json(r2));
+        }
+        m.insert("Bl".into(), series_json(&self.bl));
+        m.insert("Kms".into(), series_json(&self.kms));
+        m.insert("Mms".into(), self.mms.into());
+        m.insert("Rms".into(), self.rms.into());
+        if let Some(sd) = self.sd {
+            m.insert("Sd".into(), sd.into());
+        }
+        if let Some(r) = self.x_range {
+            m.insert("x_range".into(), Value::Array(vec![r[0].into(), r[1].into()]));
+        }
+        if let Some(t) = &self.thermal {
+            let mut tm = Map::new();
+            tm.insert("alpha".into(), t.alpha.into());
+            tm.insert("Rtv".into(), t.rtv.into());
+            tm.insert("Ctv".into(), t.ctv.into());
+            tm.insert("Rtm".into(), t.rtm.into());
+            tm.insert("Ctm".into(), t.ctm.into());
+            m.insert("thermal".into(), Value::Object(tm));
+        }
+        for (k, v) in &self.extra {
+            m.insert(k.clone(), v.clone());
+        }
+        Value::Object(m)
+    }
+
+    /// The same driver without the LR-2 branch and the thermal model: the three-state model
+    /// of the seed paper (x, v, i).
+    pub fn three_state(&self) -> Parameters {
+        Parameters { l2r2: None, thermal: None, ..self.clone() }
+    }
+
+    /// Electrical time constant of the fast mode, min over the valid range of
+    /// `Le(x) / (Re + R2(x))` (s): what makes the current equation stiff.
+    pub fn min_electrical_time_constant(&self) -> f64 {
+        let (lo, hi) = self.x_range.map(|r| (r[0], r[1])).unwrap_or((0.0, 0.0));
+        let (le_min, _) = self.le.min_max_on(lo, hi);
+        let r2_max = self.l2r2.as_ref().map(|(_, r2)| r2.min_max_on(lo, hi).1).unwrap_or(0.0);
+        le_min / (self.re + r2_max)
+    }
+
+    /// Largest magnitude of the system's fast eigenvalues, an upper bound (1/s): the
+    /// Le-branch rate plus the L2-branch rate, at the valid range's worst point.
+    pub fn stiffness_rate(&self) -> f64 {
+        let (lo, hi) = self.x_range.map(|r| (r[0], r[1])).unwrap_or((0.0, 0.0));
+        let mut rate = 1.0 / self.min_electrical_time_constant();
+        if let Some((l2, r2)) = &self.l2r2 {
+            rate += r2.min_max_on(lo, hi).1 / l2.min_max_on(lo, hi).0;
+        }
+        rate
+    }
+}
+
+fn series_json(p: &Poly) -> Value {
+    if p.c.len() == 1 {
+        p.c[0].into()
+    } else {
+        Value::Array(p.c.iter().map(|&c| c.into()).collect())
+    }
+}
+
+fn argmin_on(p: &Poly, lo: f64, hi: f64) -> f64 {
+    let n = 2000;
+    (0..=n)
+        .map(|k| lo + (hi - lo) * k as f64 / n as f64)
+        .min_by(|a, b| p.eval(*a).total_cmp(&p.eval(*b)))
+        .unwrap_or(0.0)
+}
+
+/// The real drivers bundled with coilscope (Klippel LSI measurements, see `drivers/README`).
+pub const EMBEDDED_DRIVERS: &[(&str, &str)] = &[
+    ("sb17cac35-4", include_str!("../drivers/sb17cac35-4.json")),
+    ("ptt4.0w04-01a", include_str!("../drivers/ptt4.0w04-01a.json")),
+    ("18wu-4741t-00", include_str!("../drivers/18wu-4741t-00.json")),
+];
+
+/// The names of the embedded drivers.
+pub fn embedded_driver_names() -> Vec<&'static str> {
+    EMBEDDED_DRIVERS.iter().map(|(n, _)| *n).collect()
+}
+
+/// An embedded driver by name (case-insensitive), or None.
+pub fn embedded_driver(name: &str) -> Option<Parameters> {
+    EMBEDDED_DRIVERS.iter().find(|(n, _)| n.eq_ignore_ascii_case(name)).map(|(n, text)| {
+        Parameters::from_json_str(text, &format!("embedded driver {n}"))
+            .expect("embedded drivers are validated by the test suite")
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sb17() -> Value {
+        serde_json::from_str(EMBEDDED_DRIVERS[0].1).unwrap()
+    }
+
+    fn err_of(v: Value) -> String {
+        Parameters::from_json_value(&v, "test.json").unwrap_err().to_string()
+    }
+
+    #[test]
+    fn embedded_drivers_parse_and_round_trip() {
+        for name in embedded_driver_names() {
+            let p = embedded_driver(name).unwrap();
+            let again = Parameters::from_json_value(&p.to_json_value(), "again").unwrap();
+            assert_eq!(p, again, "{name}");
+            assert!(p.extra.contains_key("published_curves"));
+        }
+        assert!(embedded_driver("SB17CAC35-4").is_some());
+        assert!(embedded_driver("nope").is_none());
+    }
+
+    #[test]
+    fn embedded_copies_match_shared_drivers() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/drivers");
+        if !dir.exists() {
+            assert!(std::env::var_os("COILSCOPE_NO_SHARED").is_some(), "{} missing (set COILSCOPE_NO_SHARED=1 outside the workspace)", dir.display());
+            return;
+        }
+        for (name, text) in EMBEDDED_DRIVERS {
+            let shared = std::fs::read_to_string(dir.join(format!("{name}.json"))).unwrap();
+            let a: Value = serde_json::from_str(text).unwrap();
+            let b: Value = serde_json::from_str(&shared).unwrap();
+            assert_eq!(a, b, "embedded copy of {name} differs from shared/drivers");
+        }
+    }
+
+    #[test]
+    fn missing_key_is_named() {
+        let mut v = sb17();
+        v.as_object_mut().unwrap().remove("Bl");
+        assert_eq!(err_of(v), "test.json: key `Bl`: missing (required: Re, Le, Bl, Kms, Mms, Rms)");
+    }
+
+    #[test]
+    fn non_finite_and_wrong_types_are_named() {
+        let mut v = sb17();
+        v["Re"] = Value::String("3.3".into());
+        assert!(err_of(v).contains("key `Re`: expected a number (SI units), found the string \"3.3\""));
+        let mut v = sb17();
+        v["Kms"] = serde_json::json!([600.0, "x"]);
+        assert!(err_of(v).contains("key `Kms`: coefficient c1 must be a number"));
+        // JSON has no NaN literal; serde_json rejects it as invalid JSON, with the reason.
+        let e = Parameters::from_json_str(r#"{"Re": NaN}"#, "t.json").unwrap_err().to_string();
+        assert!(e.starts_with("t.json: not valid JSON"), "{e}");
+        let e = Parameters::from_json_str(r#"{"Re": 1e999}"#, "t.json").unwrap_err().to_string();
+        assert!(e.contains("t.json"), "{e}");
+    }
+
+    #[test]
+    fn non_positive_values_are_refused() {
+        for (key, val) in [("Mms", 0.0), ("Re", -1.0), ("Le", 0.0)] {
+            let mut v = sb17();
+            v[key] = val.into();
+            let e = err_of(v);
+            assert!(e.contains(&format!("key `{key}`")) && e.contains("> 0"), "{e}");
+        }
+    }
+
+    #[test]
+    fn stiffness_or_force_factor_crossing_zero_inside_range_is_refused() {
+        let mut v = sb17();
+        v["Bl"] = serde_json::json!([5.0, 0.0, -300000.0]); // zero at |x| = 4.1 mm
+        let e = err_of(v);
+        assert!(e.contains("key `Bl`: Bl(x) must be > 0 inside x_range"), "{e}");
+        let mut v = sb17();
+        v["Kms"] = serde_json::json!([600.0, 200000.0]); // zero at x = -3 mm
+        assert!(err_of(v).contains("key `Kms`: Kms(x) must be > 0"));
+    }
+
+    #[test]
+    fn unit_mistakes_are_flagged_with_the_likely_cause() {
+        let mut v = sb17();
+        v["Mms"] = 15.0.into();
+        let e = err_of(v);
+        assert!(e.contains("looks like grams: 15 g = 0.015 kg"), "{e}");
+        let mut v = sb17();
+        v["Le"] = 0.5.into();
+        let e = err_of(v);
+        assert!(e.contains("looks like millihenry: 0.5 mH = 0.0005 H"), "{e}");
+        let mut v = sb17();
+        v["x_range"] = serde_json::json!([-5.5, 5.5]);
+        assert!(err_of(v).contains("looks like millimetres"));
+        let mut v = sb17();
+        v["Kms"] = 0.0015.into();
+        assert!(err_of(v).contains("looks like a compliance Cms"));
+    }
+
+    #[test]
+    fn misspelt_keys_and_half_lr2_are_refused() {
+        let mut v = sb17();
+        let bl = v["Bl"].clone();
+        v.as_object_mut().unwrap().insert("bl".into(), bl);
+        assert!(err_of(v).contains("did you mean `Bl`"));
+        let mut v = sb17();
+        v.as_object_mut().unwrap().remove("R2");
+        assert!(err_of(v).contains("key `R2`: missing: L2 is given"));
+        let mut v = sb17();
+        v["format"] = "coilscope.parameters/9".into();
+        assert!(err_of(v).contains("key `format`"));
+    }
+
+    #[test]
+    fn stiffness_rate_reflects_the_electrical_time_constant() {
+        let p = embedded_driver("sb17cac35-4").unwrap();
+        let tau = p.min_electrical_time_constant();
+        assert!(tau > 20e-6 && tau < 40e-6, "{tau}");
+    }
+}

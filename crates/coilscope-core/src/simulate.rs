@@ -1,0 +1,262 @@
+//! The virtual transducer: the model driven by a sampled voltage.
+//!
+//! [`Simulator`] integrates [`crate::model::Model`] sample by sample (band-limited input,
+//! RK4 sub-steps, see [`crate::integrate`]) and guards the valid range: a trajectory that
+//! leaves the parameters' `x_range` (plus a margin) or becomes non-finite stops with a
+//! [`SimError`] that names the time and the state.
+
+use crate::integrate::{rk4_sample, substeps_for, Interpolator};
+use crate::model::{idx, Model, State, NSTATE};
+use crate::params::Parameters;
+use std::fmt;
+
+/// How far past `x_range` a trajectory may extrapolate before the simulation stops,
+/// as a fraction of the range's half-width on that side.
+pub const RANGE_MARGIN: f64 = 0.10;
+
+/// Simulation options.
+#[derive(Clone, Debug)]
+pub struct SimOptions {
+    /// Sub-steps per sample; `None` chooses them from the driver's stiffness.
+    pub substeps: Option<usize>,
+    /// Initial state (rest by default).
+    pub initial: State<f64>,
+    /// Allowed extrapolation past `x_range` (fraction of the half-width).
+    pub range_margin: f64,
+}
+
+impl Default for SimOptions {
+    fn default() -> Self {
+        SimOptions { substeps: None, initial: [0.0; NSTATE], range_margin: RANGE_MARGIN }
+    }
+}
+
+/// Why a simulation stopped.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SimError {
+    /// The state left the region where the model is valid.
+    OutOfRange { t: f64, sample: usize, state: State<f64>, reason: String },
+    /// Bad arguments (sample rate, empty input, non-finite input).
+    Input(String),
+}
+
+fn fmt_state(s: &State<f64>) -> String {
+    format!(
+        "x = {:.4} mm, v = {:.4} m/s, i = {:.4} A, i2 = {:.4} A, dTv = {:.3} K, dTm = {:.3} K",
+        s[idx::X] * 1e3,
+        s[idx::V],
+        s[idx::I],
+        s[idx::I2],
+        s[idx::TV],
+        s[idx::TM]
+    )
+}
+
+impl fmt::Display for SimError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            SimError::OutOfRange { t, sample, state, reason } => write!(
+                f,
+                "simulation stopped at t = {t:.6} s (sample {sample}): {reason}; state: {}. Lower the level, add a high-pass, or use parameters measured over a wider range",
+                fmt_state(state)
+            ),
+            SimError::Input(m) => write!(f, "{m}"),
+        }
+    }
+}
+
+impl std::error::Error for SimError {}
+
+/// The simulated signals at the sample instants.
+#[derive(Clone, Debug, Default)]
+pub struct Trace {
+    pub fs: f64,
+    pub u: Vec<f64>,
+    pub x: Vec<f64>,
+    pub v: Vec<f64>,
+    pub i: Vec<f64>,
+    pub i2: Vec<f64>,
+    pub tv: Vec<f64>,
+    pub tm: Vec<f64>,
+    /// Sub-steps per sample that were used.
+    pub substeps: usize,
+    /// Largest excursion past `x_range` (m, 0 if none): extrapolated, within the margin.
+    pub range_excess: f64,
+}
+
+/// Summary figures of a trace (the same keys as `shared/recordings/*.info.json`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Summary {
+    pub x_min: f64,
+    pub x_max: f64,
+    /// 0.5 and 99.5 percentiles of x.
+    pub x_p01: f64,
+    pub x_p99: f64,
+    pub u_rms: f64,
+    pub i_rms: f64,
+    /// Mean electrical input power (W).
+    pub p_mean: f64,
+    pub dt_end: f64,
+    pub dt_max: f64,
+    pub dtm_end: f64,
+}
+
+pub fn rms(s: &[f64]) -> f64 {
+    if s.is_empty() {
+        return 0.0;
+    }
+    (s.iter().map(|x| x * x).sum::<f64>() / s.len() as f64).sqrt()
+}
+
+fn percentile(sorted: &[f64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let pos = q * (sorted.len() - 1) as f64;
+    let lo = pos.floor() as usize;
+    let hi = pos.ceil() as usize;
+    sorted[lo] + (sorted[hi] - sorted[lo]) * (pos - lo as f64)
+}
+
+impl Trace {
+    pub fn summary(&self) -> Summary {
+        let mut xs = self.x.clone();
+        xs.sort_by(f64::total_cmp);
+        let n = self.u.len().max(1) as f64;
+        Summary {
+            x_min: xs.first().copied().unwrap_or(0.0),
+            x_max: xs.last().copied().unwrap_or(0.0),
+            x_p01: percentile(&xs, 0.005),
+            x_p99: percentile(&xs, 0.995),
+            u_rms: rms(&self.u),
+            i_rms: rms(&self.i),
+            p_mean: self.u.iter().zip(&self.i).map(|(u, i)| u * i).sum::<f64>() / n,
+            dt_end: self.tv.last().copied().unwrap_or(0.0),
+            dt_max: self.tv.iter().copied().fold(0.0, f64::max),
+            dtm_end: self.tm.last().copied().unwrap_or(0.0),
+        }
+    }
+}
+
+/// The virtual transducer.
+#[derive(Clone, Debug)]
+pub struct Simulator {
+    pub model: Model<f64>,
+    pub params: Parameters,
+    pub fs: f64,
+    interp: Interpolator,
+    /// Hard bounds on x (x_range plus margin), if the set has a range.
+    bounds: Option<[f64; 2]>,
+    range: Option<[f64; 2]>,
+    pub state: State<f64>,
+    scratch: Vec<f64>,
+}
+
+impl Simulator {
+    pub fn new(params: &Parameters, fs: f64, opts: &SimOptions) -> Result<Self, SimError> {
+        if !(fs.is_finite() && (1000.0..=1.0e6).contains(&fs)) {
+            return Err(SimError::Input(format!("sample rate {fs} Hz is not valid (1 kHz .. 1 MHz)")));
+        }
+        let n = opts.substeps.unwrap_or_else(|| substeps_for(params.stiffness_rate(), fs)).max(1);
+        let bounds = params.x_range.map(|[lo, hi]| [lo * (1.0 + opts.range_margin), hi * (1.0 + opts.range_margin)]);
+        Ok(Simulator {
+            model: Model::new(params),
+            params: params.clone(),
+            fs,
+            interp: Interpolator::new(n),
+            bounds,
+            range: params.x_range,
+            state: opts.initial,
+            scratch: vec![0.0; 2 * n + 1],
+        })
+    }
+
+    /// Sub-steps per sample.
+    pub fn substeps(&self) -> usize {
+        self.interp.n
+    }
+
+    fn check(&self, s: &State<f64>, m: usize) -> Result<(), SimError> {
+        let t = m as f64 / self.fs;
+        let fail = |reason: String| Err(SimError::OutOfRange { t, sample: m, state: *s, reason });
+        if s.iter().any(|v| !v.is_finite()) {
+            return fail("the state is no longer finite (the integration diverged)".into());
+        }
+        let x = s[idx::X];
+        match self.bounds {
+            Some([lo, hi]) => {
+                if x < lo || x > hi {
+                    let r = self.range.unwrap_or([lo, hi]);
+                    return fail(format!(
+                        "x = {:.3} mm is outside x_range [{:.3}, {:.3}] mm (+{:.0} % margin), where the parameters are not valid",
+                        x * 1e3,
+                        r[0] * 1e3,
+                        r[1] * 1e3,
+                        100.0 * (hi / r[1] - 1.0)
+                    ));
+                }
+            }
+            None => {
+                let p = &self.params;
+                for (name, v) in [("Bl", p.bl.eval(x)), ("Kms", p.kms.eval(x)), ("Le", p.le.eval(x))] {
+                    if !(v > 0.0) {
+                        return fail(format!("{name}({:.3} mm) = {v:.4e} is not positive (the set has no x_range)", x * 1e3));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Run over a whole voltage record, calling `observe(m, state)` with the state at each
+    /// sample instant `m / fs` (before the step to `m + 1`).
+    pub fn run(&mut self, u: &[f64], mut observe: impl FnMut(usize, &State<f64>)) -> Result<(), SimError> {
+        if let Some(k) = u.iter().position(|v| !v.is_finite()) {
+            return Err(SimError::Input(format!("input voltage sample {k} is not finite ({})", u[k])));
+        }
+        let dt = 1.0 / self.fs;
+        for m in 0..u.len() {
+            self.check(&self.state, m)?;
+            observe(m, &self.state);
+            self.interp.fill(u, m, &mut self.scratch);
+            self.state = rk4_sample(&self.model, &self.state, dt, &self.scratch);
+        }
+        Ok(())
+    }
+}
+
+/// Simulate a voltage record `u` (V, sampled at `fs`) and return the trace.
+pub fn simulate(params: &Parameters, fs: f64, u: &[f64], opts: &SimOptions) -> Result<Trace, SimError> {
+    if u.is_empty() {
+        return Err(SimError::Input("the input voltage has no samples".into()));
+    }
+    let mut sim = Simulator::new(params, fs, opts)?;
+    let n = u.len();
+    let mut tr = Trace {
+        fs,
+        u: u.to_vec(),
+        x: Vec::with_capacity(n),
+        v: Vec::with_capacity(n),
+        i: Vec::with_capacity(n),
+        i2: Vec::with_capacity(n),
+        tv: Vec::with_capacity(n),
+        tm: Vec::with_capacity(n),
+        substeps: sim.substeps(),
+        range_excess: 0.0,
+    };
+    let range = params.x_range;
+    let mut excess: f64 = 0.0;
+    sim.run(u, |_, s| {
+        tr.x.push(s[idx::X]);
+        tr.v.push(s[idx::V]);
+        tr.i.push(s[idx::I]);
+        tr.i2.push(s[idx::I2]);
+        tr.tv.push(s[idx::TV]);
+        tr.tm.push(s[idx::TM]);
+        if let Some([lo, hi]) = range {
+            excess = excess.max(lo - s[idx::X]).max(s[idx::X] - hi);
+        }
+    })?;
+    tr.range_excess = excess;
+    Ok(tr)
+}
