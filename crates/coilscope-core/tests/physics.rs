@@ -1,0 +1,184 @@
+//! Physics checks of the simulator against slow, obviously-correct references:
+//! a tiny-step integration, the energy balance, and the analytic small-signal impedance.
+
+use coilscope_core::excitation::{generate, Excitation, SignalSpec};
+use coilscope_core::integrate::{rk4_sample, Dynamics, Interpolator};
+use coilscope_core::model::{Model, NSTATE};
+use coilscope_core::simulate::{rms, simulate, SimOptions};
+use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
+use realfft::num_complex::Complex64;
+
+const FS: f64 = 48000.0;
+
+fn rel_rms(a: &[f64], b: &[f64]) -> f64 {
+    let e: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
+    rms(&e) / rms(b)
+}
+
+/// IEC noise scaled so that the peak excursion reaches `frac` of the driver's x_range.
+fn full_excursion_voltage(p: &Parameters, seconds: f64, frac: f64) -> Vec<f64> {
+    let spec = SignalSpec { fs: FS, seconds, rms: 1.0, fade: 0.05, seed: 11 };
+    let u1 = generate(&Excitation::Iec, &spec).unwrap();
+    let [lo, hi] = p.x_range.unwrap();
+    let target = frac * hi.min(-lo);
+    let mut gain = 0.5;
+    for _ in 0..6 {
+        let u: Vec<f64> = u1.iter().map(|v| v * gain).collect();
+        let tr = simulate(p, FS, &u, &SimOptions::default()).unwrap();
+        let s = tr.summary();
+        let peak = s.x_max.max(-s.x_min);
+        // Displacement grows less than linearly (stiffening): a damped secant update.
+        gain *= (target / peak).powf(0.8);
+    }
+    u1.iter().map(|v| v * gain).collect()
+}
+
+#[test]
+fn simulator_matches_tiny_step_reference_at_full_excursion() {
+    for name in embedded_driver_names() {
+        let p = embedded_driver(name).unwrap();
+        let u = full_excursion_voltage(&p, 0.6, 0.9);
+        let fast = simulate(&p, FS, &u, &SimOptions::default()).unwrap();
+        let s = fast.summary();
+        let [lo, hi] = p.x_range.unwrap();
+        assert!(s.x_max.max(-s.x_min) > 0.8 * hi.min(-lo), "{name}: excursion {s:?} too small for the test");
+        let tiny = simulate(&p, FS, &u, &SimOptions { substeps: Some(128), ..Default::default() }).unwrap();
+        let ei = rel_rms(&fast.i, &tiny.i);
+        let ex = rel_rms(&fast.x, &tiny.x);
+        eprintln!("{name}: {} sub-steps, current {ei:.2e}, displacement {ex:.2e}", fast.substeps);
+        assert!(ei < 1e-4, "{name}: current differs by {ei:.3e} (relative RMS)");
+        assert!(ex < 1e-4, "{name}: displacement differs by {ex:.3e} (relative RMS)");
+    }
+}
+
+/// The model with four energy accumulators: input, Re loss, R2 loss, Rms loss.
+struct WithEnergy<'a>(&'a Model<f64>);
+
+impl Dynamics<f64, 10> for WithEnergy<'_> {
+    fn deriv(&self, y: &[f64; 10], u: f64) -> [f64; 10] {
+        let s: [f64; NSTATE] = std::array::from_fn(|k| y[k]);
+        let d = self.0.deriv(&s, u);
+        let p = self.0.powers(&s, u);
+        [d[0], d[1], d[2], d[3], d[4], d[5], p.input, p.re_loss, p.r2_loss, p.rms_loss]
+    }
+}
+
+#[test]
+fn energy_in_equals_losses_plus_stored_energy() {
+    for name in embedded_driver_names() {
+        let p = embedded_driver(name).unwrap();
+        let u = full_excursion_voltage(&p, 0.5, 0.9);
+        let m = Model::new(&p);
+        // The production sub-step count, so this checks the integrator that ships.
+        let n = coilscope_core::Simulator::new(&p, FS, &SimOptions::default()).unwrap().substeps();
+        let it = Interpolator::new(n);
+        let mut pts = vec![0.0; 2 * n + 1];
+        let sys = WithEnergy(&m);
+        let mut y = [0.0; 10];
+        // Stop mid-signal so energy is still stored in the moving system.
+        let stop = u.len() * 3 / 5;
+        for k in 0..stop {
+            it.fill(&u, k, &mut pts);
+            y = rk4_sample(&sys, &y, 1.0 / FS, &pts);
+        }
+        let s: [f64; NSTATE] = std::array::from_fn(|k| y[k]);
+        let stored = m.stored_energy(&s);
+        let [e_in, e_re, e_r2, e_rms] = [y[6], y[7], y[8], y[9]];
+        let imbalance = e_in - e_re - e_r2 - e_rms - stored;
+        eprintln!("{name}: E_in {e_in:.4} J, Re {e_re:.4}, R2 {e_r2:.4}, Rms {e_rms:.4}, stored {stored:.3e}, imbalance {imbalance:.2e}");
+        assert!(e_r2 > 0.0 && e_rms > 0.0 && stored > 0.0);
+        assert!(imbalance.abs() < 1e-4 * e_in, "{name}: imbalance {imbalance:.3e} J of {e_in:.3e} J");
+    }
+}
+
+/// Electrical input impedance of the linearised model at x = 0 (cold).
+fn impedance(p: &Parameters, f: f64) -> Complex64 {
+    let jw = Complex64::new(0.0, 2.0 * std::f64::consts::PI * f);
+    let mut z = p.re + jw * p.le.c[0];
+    if let Some((l2, r2)) = &p.l2r2 {
+        let zl2 = jw * l2.c[0];
+        z += zl2 * r2.c[0] / (zl2 + r2.c[0]);
+    }
+    let zm = p.rms + jw * p.mms + p.kms.c[0] / jw;
+    z + p.bl.c[0] * p.bl.c[0] / zm
+}
+
+#[test]
+fn small_signal_current_follows_the_analytic_impedance() {
+    for name in embedded_driver_names() {
+        let p = embedded_driver(name).unwrap();
+        for f in [20.0, 60.0, 150.0, 1000.0, 8000.0] {
+            // 1 s of a periodic sine at 1 mV: linear, settled after the first half.
+            let n = 48000;
+            let u: Vec<f64> = (0..2 * n).map(|k| 1e-3 * (2.0 * std::f64::consts::PI * f * k as f64 / FS).sin()).collect();
+            let tr = simulate(&p, FS, &u, &SimOptions::default()).unwrap();
+            // Fourier coefficient over the last whole second.
+            let coef = |x: &[f64]| -> Complex64 {
+                x[n..].iter().enumerate().map(|(k, v)| {
+                    let ph = 2.0 * std::f64::consts::PI * f * (n + k) as f64 / FS;
+                    Complex64::new(ph.cos(), -ph.sin()) * *v
+                }).sum::<Complex64>()
+            };
+            let z_sim = coef(&tr.u) / coef(&tr.i);
+            let z = impedance(&p, f);
+            let err = (z_sim - z).norm() / z.norm();
+            assert!(err < 2e-4, "{name} at {f} Hz: |Z| {:.4} vs {:.4}, error {err:.2e}", z_sim.norm(), z.norm());
+        }
+    }
+}
+
+#[test]
+fn stiff_microspeaker_is_stable_and_accurate_at_48_khz() {
+    // A microspeaker: Le/(Re+R2) ~ 3 us, far below the 20.8 us sample period.
+    let p = Parameters::from_json_str(
+        r#"{"Re": 7.2, "Le": [2.4e-5, -0.002], "L2": 1.0e-5, "R2": 1.0, "Bl": [0.9, -200.0, -4.0e5],
+            "Kms": [300.0, 2.0e4, 4.0e8], "Mms": 8.0e-5, "Rms": 0.03, "x_range": [-4.0e-4, 4.0e-4],
+            "thermal": {"Rtv": 40.0, "Ctv": 0.02, "Rtm": 30.0, "Ctm": 2.0}}"#,
+        "microspeaker",
+    )
+    .unwrap();
+    let tau = p.min_electrical_time_constant();
+    assert!(tau < 4e-6, "{tau}");
+    let u = full_excursion_voltage(&p, 0.4, 0.9);
+    let fast = simulate(&p, FS, &u, &SimOptions::default()).unwrap();
+    assert!(fast.substeps >= 14, "{}", fast.substeps);
+    let tiny = simulate(&p, FS, &u, &SimOptions { substeps: Some(256), ..Default::default() }).unwrap();
+    let ei = rel_rms(&fast.i, &tiny.i);
+    let ex = rel_rms(&fast.x, &tiny.x);
+    eprintln!("microspeaker: {} sub-steps, current {ei:.2e}, displacement {ex:.2e}", fast.substeps);
+    assert!(ei < 1e-4 && ex < 1e-4, "current {ei:.3e}, displacement {ex:.3e}");
+}
+
+#[test]
+fn other_sample_rates_give_the_same_physics() {
+    // The same continuous excitation (a 70 Hz sine burst) at 44.1, 48 and 96 kHz:
+    // the peak excursion and the final temperature agree.
+    let p = embedded_driver("18wu-4741t-00").unwrap();
+    let peak = |fs: f64| {
+        let n = (0.5 * fs) as usize;
+        let u: Vec<f64> = (0..n).map(|k| {
+            let t = k as f64 / fs;
+            let w = (std::f64::consts::PI * t / 0.5).sin().powi(2);
+            4.0 * w * (2.0 * std::f64::consts::PI * 70.0 * t).sin()
+        }).collect();
+        let s = simulate(&p, fs, &u, &SimOptions::default()).unwrap().summary();
+        (s.x_max, s.x_min, s.dt_end)
+    };
+    let r = peak(48000.0);
+    for fs in [44100.0, 96000.0] {
+        let q = peak(fs);
+        assert!((q.0 - r.0).abs() < 2e-3 * r.0 && (q.1 - r.1).abs() < 2e-3 * r.1.abs(), "{fs}: {q:?} vs {r:?}");
+        assert!((q.2 - r.2).abs() < 5e-3 * r.2, "{fs}: {q:?} vs {r:?}");
+    }
+}
+
+#[test]
+fn leaving_the_valid_range_stops_with_time_and_state() {
+    let p = embedded_driver("sb17cac35-4").unwrap();
+    let u: Vec<f64> = (0..24000).map(|k| 30.0 * (2.0 * std::f64::consts::PI * 30.0 * k as f64 / FS).sin()).collect();
+    let e = simulate(&p, FS, &u, &SimOptions::default()).unwrap_err().to_string();
+    assert!(e.starts_with("simulation stopped at t = "), "{e}");
+    assert!(e.contains("outside x_range [-5.500, 5.500] mm") && e.contains("state: x = "), "{e}");
+    let bad = vec![f64::NAN; 10];
+    assert!(simulate(&p, FS, &bad, &SimOptions::default()).unwrap_err().to_string().contains("sample 0 is not finite"));
+}
