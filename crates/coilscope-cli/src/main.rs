@@ -1,1 +1,244 @@
-fn main(){}
+//! `coilscope`: large-signal parameters of electrodynamic transducers.
+//!
+//! A thin shell over the library crates: parse arguments, call one library function per
+//! step, print. Every failure is one line on stderr and exit code 2.
+
+use clap::{Parser, Subcommand, ValueEnum};
+use coilscope_core::excitation::{add_sensor_noise, crest_factor, generate, Excitation, SignalSpec};
+use coilscope_core::simulate::{simulate, SimOptions};
+use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
+use coilscope_io::{load_parameters, read_voltage, write_json, write_recording, Recording};
+use serde_json::json;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(name = "coilscope", version, about = "Large-signal parameters of electrodynamic transducers (Bl(x), Kms(x), Le(x), thermal) from voltage and current")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum ExcitationKind {
+    /// IEC 60268-1 simulated programme signal (pink noise, band-limited, crest factor 2).
+    Noise,
+    /// Band-limited pink noise (--band, --crest).
+    Pink,
+    /// Sine (--freq).
+    Sine,
+    /// Log-spaced multitone (--band, --tones, --crest).
+    Multitone,
+    /// Logarithmic sweep over --band.
+    Sweep,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Simulate a driver (virtual transducer) and write a recording: voltage, current [, displacement].
+    Simulate {
+        /// Embedded driver name (see `coilscope drivers`) or parameter file (JSON).
+        driver: String,
+        /// Excitation signal (ignored with --input).
+        #[arg(long, value_enum, default_value = "noise")]
+        excitation: ExcitationKind,
+        /// RMS voltage at the terminals (V). With --input: rescale the file to this RMS.
+        #[arg(long)]
+        volts: Option<f64>,
+        /// Duration (s).
+        #[arg(long, default_value_t = 4.0)]
+        seconds: f64,
+        /// Output recording (32-bit float WAV, physical units).
+        #[arg(long)]
+        out: PathBuf,
+        /// Also record the displacement (channel 3), as a laser would.
+        #[arg(long)]
+        laser: bool,
+        /// Add Gaussian sensor noise this many dB below each channel's RMS.
+        #[arg(long)]
+        snr_db: Option<f64>,
+        /// Seed of the excitation and sensor-noise RNGs.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Sample rate (Hz).
+        #[arg(long, default_value_t = 48000)]
+        rate: u32,
+        /// Drive with channel 1 of this WAV (volts) instead of a generated excitation.
+        #[arg(long)]
+        input: Option<PathBuf>,
+        /// Sine frequency (Hz).
+        #[arg(long, default_value_t = 50.0)]
+        freq: f64,
+        /// Band of pink noise, multitone or sweep (Hz).
+        #[arg(long, num_args = 2, value_names = ["LO", "HI"])]
+        band: Option<Vec<f64>>,
+        /// Crest-factor target for pink noise and multitone.
+        #[arg(long)]
+        crest: Option<f64>,
+        /// Number of multitone tones.
+        #[arg(long, default_value_t = 30)]
+        tones: usize,
+        /// Fade-in and fade-out (s).
+        #[arg(long, default_value_t = 0.05)]
+        fade: f64,
+        /// Scale factors of an integer-PCM --input (V per count).
+        #[arg(long)]
+        scale: Option<f64>,
+    },
+    /// List the embedded real drivers.
+    Drivers,
+    /// Validate a parameter set and print its small-signal figures.
+    Check {
+        /// Embedded driver name or parameter file.
+        params: String,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale } => {
+            cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale })
+        }
+        Command::Drivers => cmd_drivers(),
+        Command::Check { params } => load_parameters(&params).map_err(|e| e.to_string()).map(|p| print_params(&p)),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+struct SimulateArgs {
+    driver: String,
+    excitation: ExcitationKind,
+    volts: Option<f64>,
+    seconds: f64,
+    out: PathBuf,
+    laser: bool,
+    snr_db: Option<f64>,
+    seed: u64,
+    rate: u32,
+    input: Option<PathBuf>,
+    freq: f64,
+    band: Option<Vec<f64>>,
+    crest: Option<f64>,
+    tones: usize,
+    fade: f64,
+    scale: Option<f64>,
+}
+
+/// Where the summary of a recording goes: `NAME.info.json` beside `NAME.wav`.
+fn info_path(out: &Path) -> PathBuf {
+    let stem = out.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "recording".into());
+    out.with_file_name(format!("{stem}.info.json"))
+}
+
+fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
+    let params = load_parameters(&a.driver).map_err(|e| e.to_string())?;
+    if let Some(db) = a.snr_db {
+        if !(db.is_finite() && db > 0.0) {
+            return Err(format!("--snr-db {db}: give a positive number of dB (e.g. 70)"));
+        }
+    }
+    let (fs, u, what) = match &a.input {
+        Some(path) => {
+            let (fs, mut u) = read_voltage(path, a.scale.map(|s| vec![s]).as_deref()).map_err(|e| e.to_string())?;
+            if let Some(v) = a.volts {
+                let r = coilscope_core::simulate::rms(&u);
+                if r == 0.0 {
+                    return Err(format!("{}: the voltage channel is silent; cannot scale it to {v} V RMS", path.display()));
+                }
+                u.iter_mut().for_each(|x| *x *= v / r);
+            }
+            (fs as f64, u, json!({"input": path.display().to_string()}))
+        }
+        None => {
+            let volts = a.volts.ok_or("--volts RMS is required with a generated excitation (e.g. --volts 2)")?;
+            let band = match &a.band {
+                Some(b) => (b[0], b[1]),
+                None => (10.0, (8000.0f64).min(0.45 * a.rate as f64)),
+            };
+            let exc = match a.excitation {
+                ExcitationKind::Noise => Excitation::Iec,
+                ExcitationKind::Pink => Excitation::Pink { f_lo: band.0, f_hi: band.1, crest: a.crest },
+                ExcitationKind::Sine => Excitation::Sine { freq: a.freq },
+                ExcitationKind::Multitone => Excitation::Multitone { f_lo: band.0, f_hi: band.1, count: a.tones, crest: a.crest },
+                ExcitationKind::Sweep => Excitation::Sweep { f_lo: band.0, f_hi: band.1 },
+            };
+            let spec = SignalSpec { fs: a.rate as f64, seconds: a.seconds, rms: volts, fade: a.fade, seed: a.seed };
+            let u = generate(&exc, &spec)?;
+            let cf = crest_factor(&u);
+            (a.rate as f64, u, json!({"excitation": format!("{exc:?}"), "rms": volts, "seconds": a.seconds, "crest_factor": cf, "seed": a.seed}))
+        }
+    };
+    let trace = simulate(&params, fs, &u, &SimOptions::default()).map_err(|e| e.to_string())?;
+    let s = trace.summary();
+    let mut rec = Recording { fs: fs as u32, u: trace.u.clone(), i: trace.i.clone(), x: a.laser.then(|| trace.x.clone()) };
+    if let Some(db) = a.snr_db {
+        add_sensor_noise(&mut rec.u, db, a.seed, "sensor-noise/voltage");
+        add_sensor_noise(&mut rec.i, db, a.seed, "sensor-noise/current");
+        if let Some(x) = &mut rec.x {
+            add_sensor_noise(x, db, a.seed, "sensor-noise/displacement");
+        }
+    }
+    write_recording(&a.out, &rec).map_err(|e| e.to_string())?;
+    let info = json!({
+        "x_min": s.x_min, "x_max": s.x_max, "x_p01": s.x_p01, "x_p99": s.x_p99,
+        "u_rms": s.u_rms, "i_rms": s.i_rms, "dT_end": s.dt_end, "dT_max": s.dt_max,
+        "dTm_end": s.dtm_end, "p_mean": s.p_mean,
+        "driver": params.name.clone().unwrap_or_else(|| a.driver.clone()),
+        "fs": fs, "samples": u.len(), "substeps": trace.substeps, "snr_db": a.snr_db, "laser": a.laser,
+        "signal": what,
+    });
+    let info_file = info_path(&a.out);
+    write_json(&info_file, &info).map_err(|e| e.to_string())?;
+
+    let name = params.name.as_deref().unwrap_or(&a.driver);
+    println!("coilscope simulate: {name}, {:.2} s at {} Hz ({} RK4 sub-steps per sample)", u.len() as f64 / fs, fs, trace.substeps);
+    let range = params.x_range.map(|[lo, hi]| format!(" ({:.0} % / {:.0} % of x_range)", 100.0 * s.x_min / lo, 100.0 * s.x_max / hi)).unwrap_or_default();
+    println!("  peak excursion   {:+.3} mm .. {:+.3} mm{range}", s.x_min * 1e3, s.x_max * 1e3);
+    println!("  voltage, current {:.3} V RMS, {:.3} A RMS", s.u_rms, s.i_rms);
+    println!("  electrical power {:.3} W (mean u i)", s.p_mean);
+    println!("  voice coil       +{:.3} K at the end (max +{:.3} K), magnet +{:.4} K", s.dt_end, s.dt_max, s.dtm_end);
+    if trace.range_excess > 0.0 {
+        println!("  warning: x exceeded x_range by {:.3} mm (parameters extrapolated)", trace.range_excess * 1e3);
+    }
+    println!("  wrote {} and {}", a.out.display(), info_file.display());
+    Ok(())
+}
+
+fn resonance(p: &Parameters) -> f64 {
+    (p.kms.c[0] / p.mms).sqrt() / (2.0 * std::f64::consts::PI)
+}
+
+fn print_params(p: &Parameters) {
+    let fs = resonance(p);
+    let wms = 2.0 * std::f64::consts::PI * fs;
+    let qms = wms * p.mms / p.rms;
+    let qes = wms * p.mms * p.re / (p.bl.c[0] * p.bl.c[0]);
+    println!("{}", p.name.as_deref().unwrap_or("(unnamed)"));
+    println!("  Re {:.3} ohm, Le(0) {:.4} mH, Bl(0) {:.3} T m, Kms(0) {:.1} N/m, Mms {:.3} g, Rms {:.3} kg/s",
+        p.re, p.le.c[0] * 1e3, p.bl.c[0], p.kms.c[0], p.mms * 1e3, p.rms);
+    if let Some((l2, r2)) = &p.l2r2 {
+        println!("  L2 {:.4} mH, R2 {:.3} ohm", l2.c[0] * 1e3, r2.c[0]);
+    }
+    println!("  fs {fs:.2} Hz, Qms {qms:.3}, Qes {qes:.3}, Qts {:.3}", qms * qes / (qms + qes));
+    match p.x_range {
+        Some([lo, hi]) => println!("  x_range {:.2} .. {:.2} mm", lo * 1e3, hi * 1e3),
+        None => println!("  x_range not given"),
+    }
+    println!("  electrical time constant Le/(Re+R2) >= {:.2} us", p.min_electrical_time_constant() * 1e6);
+}
+
+fn cmd_drivers() -> Result<(), String> {
+    for name in embedded_driver_names() {
+        let p = embedded_driver(name).ok_or("embedded driver missing")?;
+        let [lo, hi] = p.x_range.unwrap_or([0.0, 0.0]);
+        println!("{name:<15} {:<40} fs {:6.2} Hz  x_range {:+.1} .. {:+.1} mm", p.name.as_deref().unwrap_or(""), resonance(&p), lo * 1e3, hi * 1e3);
+    }
+    Ok(())
+}

@@ -1,1 +1,351 @@
+//! # coilscope-io
+//!
+//! Files at the edge of coilscope, per `shared/spec/formats.md`:
+//!
+//! * Recordings: WAV, channel 1 voltage (V), channel 2 current (A), optional channel 3
+//!   displacement (m, + = coil out). 32-bit float holds physical units; integer PCM (or float
+//!   in other units) needs scale factors, from a sidecar `NAME.wav.json`
+//!   `{"scale": [V per unit, A per unit, m per unit]}` or from the caller. For integer PCM a
+//!   "unit" is one integer count of the stored sample.
+//! * Parameter sets: an embedded driver name or a JSON file.
+//! * Every write is atomic (temporary file in the same directory, fsync, rename): a crash
+//!   never leaves a half-written file under the final name.
+//!
+//! Every error is one line naming the file, the channel or key, the value, and what would
+//! be valid.
 
+use coilscope_core::params::{embedded_driver, embedded_driver_names, Parameters};
+use std::fmt;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// A file problem, as one readable line.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IoError(pub String);
+
+impl fmt::Display for IoError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for IoError {}
+
+fn err<T>(msg: impl Into<String>) -> Result<T, IoError> {
+    Err(IoError(msg.into()))
+}
+
+/// Write `bytes` to `path` atomically.
+pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    if !dir.is_dir() {
+        return err(format!("{}: the directory {} does not exist", path.display(), dir.display()));
+    }
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    if name.is_empty() {
+        return err(format!("{}: not a file path", path.display()));
+    }
+    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return err(format!("{}: cannot write ({e})", path.display()));
+    }
+    Ok(())
+}
+
+/// Write pretty JSON atomically.
+pub fn write_json(path: &Path, value: &serde_json::Value) -> Result<(), IoError> {
+    let mut text = serde_json::to_string_pretty(value).expect("JSON values serialise");
+    text.push('\n');
+    atomic_write(path, text.as_bytes())
+}
+
+/// A recording in physical units.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Recording {
+    pub fs: u32,
+    /// Terminal voltage (V).
+    pub u: Vec<f64>,
+    /// Current into the transducer (A).
+    pub i: Vec<f64>,
+    /// Voice-coil displacement (m, + = coil out), from a laser, if recorded.
+    pub x: Option<Vec<f64>>,
+}
+
+const CHANNEL_NAMES: [&str; 3] = ["voltage (channel 1)", "current (channel 2)", "displacement (channel 3)"];
+
+/// Raw channels of a WAV file, scaled to physical units.
+struct Channels {
+    fs: u32,
+    data: Vec<Vec<f64>>,
+}
+
+fn sidecar_path(path: &Path) -> PathBuf {
+    let mut s = path.as_os_str().to_owned();
+    s.push(".json");
+    PathBuf::from(s)
+}
+
+/// Scale factors from the sidecar `NAME.wav.json`, if it exists.
+pub fn read_sidecar_scale(path: &Path) -> Result<Option<Vec<f64>>, IoError> {
+    let side = sidecar_path(path);
+    if !side.exists() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(&side).map_err(|e| IoError(format!("{}: cannot read ({e})", side.display())))?;
+    let v: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| IoError(format!("{}: not valid JSON ({e}); expected {{\"scale\": [V, A, m per unit]}}", side.display())))?;
+    let Some(arr) = v.get("scale").and_then(|s| s.as_array()) else {
+        return err(format!("{}: key `scale`: missing or not an array; expected {{\"scale\": [V, A, m per unit]}}", side.display()));
+    };
+    let mut out = Vec::new();
+    for (k, item) in arr.iter().enumerate() {
+        match item.as_f64() {
+            Some(f) if f.is_finite() && f != 0.0 => out.push(f),
+            _ => return err(format!("{}: key `scale`: entry {} is {item}; expected a finite, non-zero number", side.display(), k + 1)),
+        }
+    }
+    if out.is_empty() || out.len() > 3 {
+        return err(format!("{}: key `scale`: {} entries; expected 1 to 3 (V, A, m per unit)", side.display(), out.len()));
+    }
+    Ok(Some(out))
+}
+
+fn read_channels(path: &Path, scale: Option<&[f64]>, max_channels: usize) -> Result<Channels, IoError> {
+    let shown = path.display();
+    if !path.exists() {
+        return err(format!("{shown}: no such file"));
+    }
+    let mut reader = hound::WavReader::open(path).map_err(|e| IoError(format!("{shown}: not a readable WAV file ({e})")))?;
+    let spec = reader.spec();
+    let nch = spec.channels as usize;
+    if nch == 0 || nch > max_channels {
+        return err(format!(
+            "{shown}: {nch} channels; expected 1 to {max_channels} (1 voltage V, 2 current A, 3 displacement m)"
+        ));
+    }
+    if !(1000..=1_000_000).contains(&spec.sample_rate) {
+        return err(format!("{shown}: sample rate {} Hz is not valid (1 kHz .. 1 MHz)", spec.sample_rate));
+    }
+    let sidecar = read_sidecar_scale(path)?;
+    let scale: Option<Vec<f64>> = scale.map(|s| s.to_vec()).or(sidecar);
+    let is_float = spec.sample_format == hound::SampleFormat::Float;
+    if let Some(s) = &scale {
+        if s.len() < nch {
+            return err(format!("{shown}: {} scale factors for {nch} channels; give one per channel (V, A, m per unit)", s.len()));
+        }
+    } else if !is_float {
+        return err(format!(
+            "{shown}: {}-bit integer PCM needs scale factors: a sidecar {} with {{\"scale\": [V, A, m per count]}}, or --scale",
+            spec.bits_per_sample,
+            sidecar_path(path).display()
+        ));
+    }
+    let frames = reader.duration() as usize;
+    let mut data: Vec<Vec<f64>> = (0..nch).map(|_| Vec::with_capacity(frames)).collect();
+    let mut push = |k: usize, v: f64| -> Result<(), IoError> {
+        let ch = k % nch;
+        if !v.is_finite() {
+            let n = k / nch;
+            return err(format!(
+                "{shown}: {} sample {n} (t = {:.6} s) is {v}; samples must be finite",
+                CHANNEL_NAMES[ch],
+                n as f64 / spec.sample_rate as f64
+            ));
+        }
+        data[ch].push(v);
+        Ok(())
+    };
+    if is_float {
+        if spec.bits_per_sample != 32 {
+            return err(format!("{shown}: {}-bit float is not supported; use 32-bit float", spec.bits_per_sample));
+        }
+        for (k, s) in reader.samples::<f32>().enumerate() {
+            push(k, s.map_err(|e| IoError(format!("{shown}: damaged sample data ({e})")))? as f64)?;
+        }
+    } else {
+        for (k, s) in reader.samples::<i32>().enumerate() {
+            push(k, s.map_err(|e| IoError(format!("{shown}: damaged sample data ({e})")))? as f64)?;
+        }
+    }
+    if data[0].is_empty() {
+        return err(format!("{shown}: no samples"));
+    }
+    if data.iter().any(|c| c.len() != data[0].len()) {
+        return err(format!("{shown}: truncated: the channels have different lengths"));
+    }
+    if let Some(s) = &scale {
+        for (c, f) in data.iter_mut().zip(s) {
+            c.iter_mut().for_each(|v| *v *= f);
+        }
+    }
+    Ok(Channels { fs: spec.sample_rate, data })
+}
+
+/// Read a recording (2 or 3 channels). `scale` overrides the sidecar.
+pub fn read_recording(path: &Path, scale: Option<&[f64]>) -> Result<Recording, IoError> {
+    let ch = read_channels(path, scale, 3)?;
+    if ch.data.len() < 2 {
+        return err(format!(
+            "{}: 1 channel; a recording needs voltage (channel 1, V) and current (channel 2, A)",
+            path.display()
+        ));
+    }
+    let mut it = ch.data.into_iter();
+    let u = it.next().unwrap_or_default();
+    let i = it.next().unwrap_or_default();
+    Ok(Recording { fs: ch.fs, u, i, x: it.next() })
+}
+
+/// Read a voltage signal (channel 1, V) to drive a simulation; further channels are ignored.
+pub fn read_voltage(path: &Path, scale: Option<&[f64]>) -> Result<(u32, Vec<f64>), IoError> {
+    let ch = read_channels(path, scale, 3)?;
+    Ok((ch.fs, ch.data.into_iter().next().unwrap_or_default()))
+}
+
+/// Write a recording as 32-bit float WAV in physical units (atomically).
+pub fn write_recording(path: &Path, rec: &Recording) -> Result<(), IoError> {
+    let nch = if rec.x.is_some() { 3 } else { 2 };
+    let spec = hound::WavSpec { channels: nch, sample_rate: rec.fs, bits_per_sample: 32, sample_format: hound::SampleFormat::Float };
+    let mut buf = std::io::Cursor::new(Vec::with_capacity(rec.u.len() * nch as usize * 4 + 64));
+    {
+        let mut w = hound::WavWriter::new(&mut buf, spec).map_err(|e| IoError(format!("{}: {e}", path.display())))?;
+        for k in 0..rec.u.len() {
+            let mut put = |v: f64| w.write_sample(v as f32).map_err(|e| IoError(format!("{}: {e}", path.display())));
+            put(rec.u[k])?;
+            put(rec.i[k])?;
+            if let Some(x) = &rec.x {
+                put(x[k])?;
+            }
+        }
+        w.finalize().map_err(|e| IoError(format!("{}: {e}", path.display())))?;
+    }
+    atomic_write(path, buf.get_ref())
+}
+
+/// A parameter set from an embedded driver name or a JSON file path.
+pub fn load_parameters(spec: &str) -> Result<Parameters, IoError> {
+    if let Some(p) = embedded_driver(spec) {
+        return Ok(p);
+    }
+    let path = Path::new(spec);
+    if !path.exists() {
+        return err(format!(
+            "{spec}: neither an embedded driver ({}) nor an existing parameter file",
+            embedded_driver_names().join(", ")
+        ));
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| IoError(format!("{spec}: cannot read ({e})")))?;
+    Parameters::from_json_str(&text, spec).map_err(|e| IoError(e.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write_wav_f32(path: &Path, ch: u16, frames: &[Vec<f32>]) {
+        let spec = hound::WavSpec { channels: ch, sample_rate: 48000, bits_per_sample: 32, sample_format: hound::SampleFormat::Float };
+        let mut w = hound::WavWriter::create(path, spec).unwrap();
+        for f in frames {
+            for s in f {
+                w.write_sample(*s).unwrap();
+            }
+        }
+        w.finalize().unwrap();
+    }
+
+    #[test]
+    fn recordings_round_trip_in_physical_units() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("r.wav");
+        let rec = Recording { fs: 48000, u: vec![0.0, 1.5, -2.25], i: vec![0.1, 0.2, -0.3], x: Some(vec![1e-3, -2e-3, 0.0]) };
+        write_recording(&p, &rec).unwrap();
+        let back = read_recording(&p, None).unwrap();
+        assert_eq!(back.fs, 48000);
+        for (a, b) in back.u.iter().zip(&rec.u).chain(back.i.iter().zip(&rec.i)) {
+            assert!((a - b).abs() < 1e-6 * b.abs().max(1.0));
+        }
+        assert_eq!(back.x.unwrap().len(), 3);
+        // No temporary file is left behind.
+        assert_eq!(std::fs::read_dir(d.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn integer_pcm_needs_and_uses_scale_factors() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("int.wav");
+        let spec = hound::WavSpec { channels: 2, sample_rate: 44100, bits_per_sample: 16, sample_format: hound::SampleFormat::Int };
+        let mut w = hound::WavWriter::create(&p, spec).unwrap();
+        for s in [1000i16, 200, -1000, -200] {
+            w.write_sample(s).unwrap();
+        }
+        w.finalize().unwrap();
+        let e = read_recording(&p, None).unwrap_err().to_string();
+        assert!(e.contains("16-bit integer PCM needs scale factors") && e.contains("int.wav.json"), "{e}");
+        std::fs::write(d.path().join("int.wav.json"), r#"{"scale": [0.001, 0.0005]}"#).unwrap();
+        let r = read_recording(&p, None).unwrap();
+        assert_eq!(r.u, vec![1.0, -1.0]);
+        assert_eq!(r.i, vec![0.1, -0.1]);
+        std::fs::write(d.path().join("int.wav.json"), r#"{"scale": [0.001, "x"]}"#).unwrap();
+        let e = read_recording(&p, None).unwrap_err().to_string();
+        assert!(e.contains("key `scale`: entry 2"), "{e}");
+    }
+
+    #[test]
+    fn bad_wavs_get_one_clear_line() {
+        let d = tempfile::tempdir().unwrap();
+        let missing = d.path().join("missing.wav");
+        assert!(read_recording(&missing, None).unwrap_err().0.ends_with("missing.wav: no such file"));
+        let text = d.path().join("text.wav");
+        std::fs::write(&text, "hello, not audio").unwrap();
+        assert!(read_recording(&text, None).unwrap_err().0.contains("text.wav: not a readable WAV file"));
+        let mono = d.path().join("mono.wav");
+        write_wav_f32(&mono, 1, &[vec![0.1], vec![0.2]]);
+        assert!(read_recording(&mono, None).unwrap_err().0.contains("1 channel; a recording needs voltage"));
+        let nan = d.path().join("nan.wav");
+        write_wav_f32(&nan, 2, &[vec![0.1, 0.0], vec![0.2, f32::NAN]]);
+        let e = read_recording(&nan, None).unwrap_err().0;
+        assert!(e.contains("current (channel 2) sample 1") && e.contains("NaN"), "{e}");
+        let empty = d.path().join("empty.wav");
+        write_wav_f32(&empty, 2, &[]);
+        assert!(read_recording(&empty, None).unwrap_err().0.contains("no samples"));
+        let five = d.path().join("five.wav");
+        write_wav_f32(&five, 5, &[vec![0.0; 5]]);
+        assert!(read_recording(&five, None).unwrap_err().0.contains("5 channels; expected 1 to 3"));
+        // Truncated file: cut a valid file in the middle of its data.
+        let good = d.path().join("good.wav");
+        write_wav_f32(&good, 2, &vec![vec![0.5, 0.25]; 100]);
+        let bytes = std::fs::read(&good).unwrap();
+        let cut = d.path().join("cut.wav");
+        std::fs::write(&cut, &bytes[..bytes.len() - 203]).unwrap();
+        let e = read_recording(&cut, None).unwrap_err().0;
+        assert!(e.starts_with(&format!("{}: ", cut.display())), "{e}");
+    }
+
+    #[test]
+    fn parameters_load_by_name_or_file_with_clear_errors() {
+        assert_eq!(load_parameters("ptt4.0w04-01a").unwrap().re, 3.92);
+        let e = load_parameters("no-such-driver").unwrap_err().0;
+        assert!(e.contains("neither an embedded driver (sb17cac35-4, ptt4.0w04-01a, 18wu-4741t-00)"), "{e}");
+        let d = tempfile::tempdir().unwrap();
+        let f = d.path().join("p.json");
+        std::fs::write(&f, r#"{"Re": 3.0, "Le": 0.5, "Bl": 5.0, "Kms": 600.0, "Mms": 0.01, "Rms": 0.5}"#).unwrap();
+        let e = load_parameters(f.to_str().unwrap()).unwrap_err().0;
+        assert!(e.contains("p.json: key `Le`") && e.contains("millihenry"), "{e}");
+    }
+
+    #[test]
+    fn atomic_write_refuses_missing_directories() {
+        let e = atomic_write(Path::new("/nonexistent-dir-xyz/out.json"), b"{}").unwrap_err().0;
+        assert!(e.contains("does not exist"), "{e}");
+    }
+}

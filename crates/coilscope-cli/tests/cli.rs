@@ -1,0 +1,102 @@
+//! The `coilscope` binary end to end: main job, and one clear line for each bad input.
+
+use std::process::{Command, Output};
+
+fn coilscope(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_coilscope")).args(args).output().unwrap()
+}
+
+fn one_error_line(o: &Output) -> String {
+    assert_eq!(o.status.code(), Some(2), "stdout: {}", String::from_utf8_lossy(&o.stdout));
+    let e = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(!e.contains("panicked"), "{e}");
+    assert_eq!(e.trim_end().lines().count(), 1, "not one line: {e}");
+    assert!(e.starts_with("error: "), "{e}");
+    e
+}
+
+#[test]
+fn simulate_writes_a_recording_and_reports_excursion_temperature_and_power() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("rec.wav");
+    let o = coilscope(&["simulate", "ptt4.0w04-01a", "--volts", "2", "--seconds", "1", "--laser", "--snr-db", "70", "--seed", "3", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    for want in ["peak excursion", "electrical power", "voice coil", "mm"] {
+        assert!(text.contains(want), "{text}");
+    }
+    let rec = coilscope_io::read_recording(&out, None).unwrap();
+    assert_eq!(rec.fs, 48000);
+    assert_eq!(rec.u.len(), 48000);
+    let x = rec.x.unwrap();
+    let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.path().join("rec.info.json")).unwrap()).unwrap();
+    let x_max = info["x_max"].as_f64().unwrap();
+    let peak_rec = x.iter().cloned().fold(f64::MIN, f64::max);
+    // The recorded displacement (with 70 dB noise) peaks where the summary says.
+    assert!((peak_rec - x_max).abs() < 0.02 * x_max, "{peak_rec} vs {x_max}");
+    assert!(info["dT_end"].as_f64().unwrap() > 0.0);
+    // Deterministic: the same seed gives the same file.
+    let again = d.path().join("again.wav");
+    let o = coilscope(&["simulate", "ptt4.0w04-01a", "--volts", "2", "--seconds", "1", "--laser", "--snr-db", "70", "--seed", "3", "--out", again.to_str().unwrap()]);
+    assert!(o.status.success());
+    assert_eq!(std::fs::read(&out).unwrap(), std::fs::read(&again).unwrap());
+}
+
+#[test]
+fn simulate_runs_other_rates_and_excitations() {
+    let d = tempfile::tempdir().unwrap();
+    for (rate, exc) in [("44100", "sine"), ("96000", "multitone"), ("48000", "sweep"), ("48000", "pink")] {
+        let out = d.path().join(format!("{rate}-{exc}.wav"));
+        let o = coilscope(&["simulate", "sb17cac35-4", "--excitation", exc, "--volts", "1", "--seconds", "0.5", "--rate", rate, "--out", out.to_str().unwrap()]);
+        assert!(o.status.success(), "{rate} {exc}: {}", String::from_utf8_lossy(&o.stderr));
+        assert_eq!(coilscope_io::read_recording(&out, None).unwrap().fs.to_string(), rate);
+    }
+}
+
+#[test]
+fn bad_inputs_get_one_clear_line() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("o.wav");
+    let out = out.to_str().unwrap();
+    // Unknown driver.
+    let e = one_error_line(&coilscope(&["simulate", "nope", "--volts", "1", "--out", out]));
+    assert!(e.contains("nope: neither an embedded driver"), "{e}");
+    // Parameter file in wrong units.
+    let p = d.path().join("bad.json");
+    std::fs::write(&p, r#"{"Re": 3.3, "Le": 0.0001, "Bl": 5.0, "Kms": 600.0, "Mms": 15, "Rms": 0.5}"#).unwrap();
+    let e = one_error_line(&coilscope(&["simulate", p.to_str().unwrap(), "--volts", "1", "--out", out]));
+    assert!(e.contains("bad.json: key `Mms`") && e.contains("grams"), "{e}");
+    // Broken JSON.
+    std::fs::write(&p, "{ not json").unwrap();
+    let e = one_error_line(&coilscope(&["check", p.to_str().unwrap()]));
+    assert!(e.contains("bad.json: not valid JSON"), "{e}");
+    // A WAV that is not one.
+    let w = d.path().join("fake.wav");
+    std::fs::write(&w, "RIFF????").unwrap();
+    let e = one_error_line(&coilscope(&["simulate", "sb17cac35-4", "--input", w.to_str().unwrap(), "--out", out]));
+    assert!(e.contains("fake.wav: not a readable WAV file"), "{e}");
+    // Missing level.
+    let e = one_error_line(&coilscope(&["simulate", "sb17cac35-4", "--out", out]));
+    assert!(e.contains("--volts RMS is required"), "{e}");
+    // Driven past its valid range: names time and state.
+    let e = one_error_line(&coilscope(&["simulate", "sb17cac35-4", "--excitation", "sine", "--freq", "20", "--volts", "20", "--seconds", "1", "--out", out]));
+    assert!(e.contains("simulation stopped at t = ") && e.contains("outside x_range"), "{e}");
+    // Output directory missing.
+    let e = one_error_line(&coilscope(&["simulate", "sb17cac35-4", "--volts", "1", "--seconds", "0.2", "--out", "/nonexistent-dir-xyz/o.wav"]));
+    assert!(e.contains("does not exist"), "{e}");
+    // Bad band.
+    let e = one_error_line(&coilscope(&["simulate", "sb17cac35-4", "--excitation", "pink", "--band", "500", "100", "--volts", "1", "--out", out]));
+    assert!(e.contains("band 500 .. 100 Hz is not valid"), "{e}");
+}
+
+#[test]
+fn drivers_and_check_list_the_embedded_sets() {
+    let o = coilscope(&["drivers"]);
+    let t = String::from_utf8_lossy(&o.stdout);
+    for n in ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"] {
+        assert!(t.contains(n), "{t}");
+    }
+    let o = coilscope(&["check", "18wu-4741t-00"]);
+    assert!(o.status.success());
+    assert!(String::from_utf8_lossy(&o.stdout).contains("Qts"));
+}
