@@ -1,1 +1,35 @@
-fn main(){}
+//! Simulation throughput of the full model (LR-2 branch and two-node thermal model on),
+//! in samples per second on one core: `cargo bench -p coilscope-core --bench simulate`.
+
+use coilscope_core::excitation::{generate, Excitation, SignalSpec};
+use coilscope_core::simulate::{simulate, SimOptions};
+use coilscope_core::{embedded_driver, embedded_driver_names};
+use divan::counter::ItemsCount;
+use divan::Bencher;
+
+fn main() {
+    divan::main();
+}
+
+const FS: f64 = 48000.0;
+
+/// One second of IEC noise at a level that drives each driver to a large excursion.
+fn voltage(volts: f64) -> Vec<f64> {
+    generate(&Excitation::Iec, &SignalSpec { fs: FS, seconds: 1.0, rms: volts, fade: 0.05, seed: 1 }).unwrap()
+}
+
+#[divan::bench(args = embedded_driver_names())]
+fn full_model(bencher: Bencher, name: &str) {
+    let p = embedded_driver(name).unwrap();
+    assert!(p.l2r2.is_some() && p.thermal.is_some());
+    let u = voltage(3.0);
+    bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &SimOptions::default()).unwrap());
+}
+
+/// The three-state model of the seed (no LR-2, no thermal), for comparison.
+#[divan::bench(args = embedded_driver_names())]
+fn three_state(bencher: Bencher, name: &str) {
+    let p = embedded_driver(name).unwrap().three_state();
+    let u = voltage(3.0);
+    bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &SimOptions::default()).unwrap());
+}
