@@ -6,6 +6,7 @@
 use clap::{Parser, Subcommand, ValueEnum};
 use coilscope_core::excitation::{add_sensor_noise, crest_factor, generate, Excitation, SignalSpec};
 use coilscope_core::simulate::{simulate, SimOptions};
+use coilscope_core::small_signal::thiele_small;
 use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
 use coilscope_io::{load_parameters, read_voltage, write_json, write_recording, Recording};
 use serde_json::json;
@@ -212,21 +213,18 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
 }
 
 fn resonance(p: &Parameters) -> f64 {
-    (p.kms.c[0] / p.mms).sqrt() / (2.0 * std::f64::consts::PI)
+    thiele_small(p).fs
 }
 
 fn print_params(p: &Parameters) {
-    let fs = resonance(p);
-    let wms = 2.0 * std::f64::consts::PI * fs;
-    let qms = wms * p.mms / p.rms;
-    let qes = wms * p.mms * p.re / (p.bl.c[0] * p.bl.c[0]);
+    let ts = thiele_small(p);
     println!("{}", p.name.as_deref().unwrap_or("(unnamed)"));
     println!("  Re {:.3} ohm, Le(0) {:.4} mH, Bl(0) {:.3} T m, Kms(0) {:.1} N/m, Mms {:.3} g, Rms {:.3} kg/s",
         p.re, p.le.c[0] * 1e3, p.bl.c[0], p.kms.c[0], p.mms * 1e3, p.rms);
     if let Some((l2, r2)) = &p.l2r2 {
         println!("  L2 {:.4} mH, R2 {:.3} ohm", l2.c[0] * 1e3, r2.c[0]);
     }
-    println!("  fs {fs:.2} Hz, Qms {qms:.3}, Qes {qes:.3}, Qts {:.3}", qms * qes / (qms + qes));
+    println!("  fs {:.2} Hz, Qms {:.3}, Qes {:.3}, Qts {:.3}", ts.fs, ts.qms, ts.qes, ts.qts);
     match p.x_range {
         Some([lo, hi]) => println!("  x_range {:.2} .. {:.2} mm", lo * 1e3, hi * 1e3),
         None => println!("  x_range not given"),

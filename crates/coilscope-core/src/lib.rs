@@ -19,6 +19,7 @@
 //! * [`normal_form`]: the seed paper's normal form `x''' = f(z) + g(z) u` (Eqs. 5-9).
 //! * [`integrate`]: band-limited input interpolation and RK4 sub-stepping.
 //! * [`simulate`]: the virtual transducer driven by a sampled voltage.
+//! * [`small_signal`]: the linearised model at rest: impedance, Thiele/Small figures.
 //! * [`excitation`]: seeded test signals (IEC 60268-1 noise, pink noise, sine, multitone,
 //!   sweep) and named RNGs.
 
@@ -29,6 +30,7 @@ pub mod normal_form;
 pub mod params;
 pub mod poly;
 pub mod simulate;
+pub mod small_signal;
 
 pub use model::{Model, State};
 pub use params::{embedded_driver, embedded_driver_names, ParamError, Parameters};

@@ -6,6 +6,7 @@ use coilscope_core::integrate::{rk4_sample, Dynamics, Interpolator};
 use coilscope_core::model::{Model, NSTATE};
 use coilscope_core::simulate::{rms, simulate, SimOptions};
 use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
+use coilscope_core::small_signal::impedance;
 use realfft::num_complex::Complex64;
 
 const FS: f64 = 48000.0;
@@ -89,18 +90,6 @@ fn energy_in_equals_losses_plus_stored_energy() {
         assert!(e_r2 > 0.0 && e_rms > 0.0 && stored > 0.0);
         assert!(imbalance.abs() < 1e-4 * e_in, "{name}: imbalance {imbalance:.3e} J of {e_in:.3e} J");
     }
-}
-
-/// Electrical input impedance of the linearised model at x = 0 (cold).
-fn impedance(p: &Parameters, f: f64) -> Complex64 {
-    let jw = Complex64::new(0.0, 2.0 * std::f64::consts::PI * f);
-    let mut z = p.re + jw * p.le.c[0];
-    if let Some((l2, r2)) = &p.l2r2 {
-        let zl2 = jw * l2.c[0];
-        z += zl2 * r2.c[0] / (zl2 + r2.c[0]);
-    }
-    let zm = p.rms + jw * p.mms + p.kms.c[0] / jw;
-    z + p.bl.c[0] * p.bl.c[0] / zm
 }
 
 #[test]
