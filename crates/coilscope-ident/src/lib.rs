@@ -1,0 +1,10 @@
+//! # coilscope-ident
+//!
+//! The identification engine. Solvers are pure state transitions ([`lm::lm_step`]); progress
+//! bars, logs and live views observe the states and never live inside the solver.
+//!
+//! * [`linear`]: small-signal parameters from the impedance (H1 estimate, LR-2 + motional
+//!   fit, absolute scale by Mms, added mass or displacement).
+
+pub mod linear;
+pub mod lm;

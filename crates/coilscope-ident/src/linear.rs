@@ -1,0 +1,471 @@
+//! Small-signal (linear) parameters from the electrical impedance (seed section 3.1).
+//!
+//! * [`check_channels`]: refuses recordings that would give a silently wrong answer
+//!   (silent, clipped, DC-offset or swapped channels).
+//! * [`h1_impedance`]: `Z(f) = U/I` by cross-spectral (H1) estimation: Hann windows, 50 %
+//!   overlap, averaged; with the coherence. For display (`.zma`, CSV) and to reject bins.
+//! * [`fit_linear`]: the LR-2 + motional model fitted by Levenberg-Marquardt as an *output
+//!   error on the current* over the whole record's DFT: `min sum_k |I_k - U_k / Z(f_k)|^2`.
+//!   For a record that starts and ends at rest this relation is exact (no window, no
+//!   leakage bias), and bins without excitation carry no weight, so noise, sweeps, multitones
+//!   and music all work. Parameters are fitted as logarithms (positive, well scaled), with the
+//!   exact analytic Jacobian.
+//! * [`scale_by_mms`], [`added_mass_mms`], [`scale_by_displacement`]: absolute scale.
+//!
+//! The motional branch is fitted as the parallel circuit `Res || Cmes || Lces` with
+//! `Res = Bl^2/Rms`, `Cmes = Mms/Bl^2`, `Lces = Bl^2/Kms`; the voltage alone determines these
+//! three, and one more number (Mms, an added mass, or the displacement) gives Bl.
+
+use crate::lm::{covariance, lm_step, LmState, Problem};
+use coilscope_core::params::Parameters;
+use coilscope_core::poly::Poly;
+use coilscope_core::simulate::rms;
+use nalgebra::{DMatrix, DVector};
+use realfft::num_complex::Complex64;
+use realfft::RealFftPlanner;
+use std::f64::consts::PI;
+
+/// Names of the fitted electrical quantities, in `LinearFit::theta` order.
+pub const NAMES: [&str; 7] = ["Re", "Le", "L2", "R2", "Res", "Cmes", "Lces"];
+
+/// Lowest coherence for a bin to enter the fit.
+pub const MIN_COHERENCE: f64 = 0.8;
+
+/// Check the two channels for what would make a fit silently wrong. `origin` names the file.
+pub fn check_channels(u: &[f64], i: &[f64], fs: f64, origin: &str) -> Result<(), String> {
+    for (name, x, unit) in [("voltage (channel 1)", u, "V"), ("current (channel 2)", i, "A")] {
+        let r = rms(x);
+        if r < 1e-9 {
+            return Err(format!("{origin}: {name} is silent (RMS {r:.3e} {unit}); check the wiring and the input gain"));
+        }
+        let mean = x.iter().sum::<f64>() / x.len() as f64;
+        if mean.abs() > 0.05 * r {
+            return Err(format!(
+                "{origin}: {name} has a DC offset of {mean:.4} {unit} ({:.0} % of its RMS); re-zero the interface or high-pass the channel",
+                100.0 * mean.abs() / r
+            ));
+        }
+        let peak = x.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        let at_peak = x.iter().filter(|v| v.abs() >= 0.9995 * peak).count();
+        if at_peak > 8.max(x.len() / 5000) {
+            return Err(format!(
+                "{origin}: {name} is clipped: {at_peak} samples sit at its peak {peak:.4} {unit}; lower the level or the input gain"
+            ));
+        }
+    }
+    let seconds = u.len() as f64 / fs;
+    if seconds < 0.5 {
+        return Err(format!("{origin}: {seconds:.3} s is too short; record at least 1 s (better 3 s or more)"));
+    }
+    Ok(())
+}
+
+/// An impedance estimate.
+#[derive(Clone, Debug)]
+pub struct ImpedanceEstimate {
+    pub f: Vec<f64>,
+    pub z: Vec<Complex64>,
+    /// Magnitude-squared coherence between voltage and current.
+    pub coherence: Vec<f64>,
+    /// Voltage power per bin (V^2, Welch average).
+    pub suu: Vec<f64>,
+}
+
+impl ImpedanceEstimate {
+    /// Bins with excitation (within 60 dB of the strongest) and coherence >= `min_coh`.
+    pub fn usable(&self, k: usize, min_coh: f64) -> bool {
+        let max = self.suu.iter().cloned().fold(0.0, f64::max);
+        self.suu[k] > 1e-6 * max && self.coherence[k] >= min_coh
+    }
+
+    /// Nearest bin to frequency `f`.
+    pub fn bin(&self, f: f64) -> usize {
+        let df = self.f[1] - self.f[0];
+        ((f / df).round() as usize).min(self.f.len() - 1)
+    }
+}
+
+/// Segment length of the H1 estimate: about 1 Hz resolution, at least 4 segments when the
+/// record allows, a power of two.
+pub fn segment_length(n: usize, fs: f64) -> usize {
+    let target = (fs.min(n as f64 / 2.5)).max(256.0);
+    let mut seg = 256usize;
+    while (seg * 2) as f64 <= target {
+        seg *= 2;
+    }
+    seg
+}
+
+/// `Z = U/I` by H1 estimation (`S_ui / S_ii` with `U` as output), Hann windows, 50 % overlap.
+pub fn h1_impedance(u: &[f64], i: &[f64], fs: f64, seg: usize) -> ImpedanceEstimate {
+    let mut planner = RealFftPlanner::<f64>::new();
+    let fft = planner.plan_fft_forward(seg);
+    let win: Vec<f64> = (0..seg).map(|k| 0.5 - 0.5 * (2.0 * PI * k as f64 / seg as f64).cos()).collect();
+    let nb = seg / 2 + 1;
+    let (mut suu, mut sii) = (vec![0.0; nb], vec![0.0; nb]);
+    let mut siu = vec![Complex64::new(0.0, 0.0); nb];
+    let (mut bu, mut bi) = (vec![0.0; seg], vec![0.0; seg]);
+    let (mut fu, mut fi) = (fft.make_output_vec(), fft.make_output_vec());
+    let mut start = 0;
+    let mut count = 0;
+    while start + seg <= u.len() {
+        for k in 0..seg {
+            bu[k] = u[start + k] * win[k];
+            bi[k] = i[start + k] * win[k];
+        }
+        fft.process(&mut bu, &mut fu).expect("lengths are consistent");
+        fft.process(&mut bi, &mut fi).expect("lengths are consistent");
+        for k in 0..nb {
+            suu[k] += fu[k].norm_sqr();
+            sii[k] += fi[k].norm_sqr();
+            siu[k] += fi[k].conj() * fu[k];
+        }
+        start += seg / 2;
+        count += 1;
+    }
+    let norm = 1.0 / (count.max(1) as f64 * win.iter().map(|w| w * w).sum::<f64>());
+    let f = (0..nb).map(|k| k as f64 * fs / seg as f64).collect();
+    let z = (0..nb).map(|k| if sii[k] > 0.0 { siu[k] / sii[k] } else { Complex64::new(0.0, 0.0) }).collect();
+    let coherence = (0..nb)
+        .map(|k| if suu[k] > 0.0 && sii[k] > 0.0 { siu[k].norm_sqr() / (suu[k] * sii[k]) } else { 0.0 })
+        .collect();
+    ImpedanceEstimate { f, z, coherence, suu: suu.iter().map(|s| s * norm).collect() }
+}
+
+/// The fitted impedance model, `theta` = ln of [Re, Le, L2, R2, Res, Cmes, Lces].
+pub fn model_impedance(p: &[f64; 7], f: f64) -> Complex64 {
+    model_impedance_and_gradient(p, f).0
+}
+
+/// Impedance and its derivatives with respect to ln(p_k).
+fn model_impedance_and_gradient(p: &[f64; 7], f: f64) -> (Complex64, [Complex64; 7]) {
+    let [re, le, l2, r2, res, cmes, lces] = *p;
+    let jw = Complex64::new(0.0, 2.0 * PI * f);
+    let zl2 = jw * l2;
+    let d2 = zl2 + r2;
+    let z2 = zl2 * r2 / d2;
+    let y = 1.0 / res + jw * cmes + 1.0 / (jw * lces);
+    let zm = 1.0 / y;
+    let z = re + jw * le + z2 + zm;
+    let zm2 = zm * zm;
+    let g = [
+        Complex64::new(re, 0.0),
+        jw * le,
+        jw * r2 * r2 / (d2 * d2) * l2,
+        zl2 * zl2 / (d2 * d2) * r2,
+        zm2 / (res * res) * res,
+        -zm2 * jw * cmes,
+        zm2 / (jw * lces * lces) * lces,
+    ];
+    (z, g)
+}
+
+/// The electrical fit of a recording.
+#[derive(Clone, Debug)]
+pub struct LinearFit {
+    /// [Re, Le, L2, R2, Res, Cmes, Lces] in SI (ohm, H, H, ohm, ohm, F, H).
+    pub p: [f64; 7],
+    /// Relative standard deviations of `p` (from the final Jacobian and residual).
+    pub sigma_rel: [f64; 7],
+    /// `|I - U/Z| / |I|` over the fitted bins (the current residual in the fitted band).
+    pub residual_rel: f64,
+    pub band: [f64; 2],
+    pub bins: usize,
+    pub iterations: usize,
+    /// The H1 estimate (for .zma / CSV and plots).
+    pub h1: ImpedanceEstimate,
+}
+
+impl LinearFit {
+    pub fn fs(&self) -> f64 {
+        1.0 / (2.0 * PI * (self.p[6] * self.p[5]).sqrt())
+    }
+    pub fn qms(&self) -> f64 {
+        2.0 * PI * self.fs() * self.p[5] * self.p[4]
+    }
+    pub fn qes(&self) -> f64 {
+        2.0 * PI * self.fs() * self.p[5] * self.p[0]
+    }
+}
+
+struct CurrentError {
+    f: Vec<f64>,
+    /// Weighted spectra (see `fit_linear`) and the weights.
+    u: Vec<Complex64>,
+    i: Vec<Complex64>,
+    w: Vec<f64>,
+    norm: f64,
+}
+
+impl CurrentError {
+    /// `|I - U/Z| / |I|` over the fitted bins, unweighted (the spec's `fit.residual_rel`).
+    fn residual_rel(&self, p: &[f64; 7]) -> f64 {
+        let (mut e, mut t) = (0.0, 0.0);
+        for k in 0..self.f.len() {
+            let z = model_impedance(p, self.f[k]);
+            e += ((self.i[k] - self.u[k] / z) / self.w[k]).norm_sqr();
+            t += (self.i[k] / self.w[k]).norm_sqr();
+        }
+        (e / t).sqrt()
+    }
+}
+
+impl Problem for CurrentError {
+    fn residual_jacobian(&self, theta: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
+        let p: [f64; 7] = std::array::from_fn(|k| theta[k].exp());
+        let m = self.f.len();
+        let mut r = DVector::zeros(2 * m);
+        let mut j = DMatrix::zeros(2 * m, 7);
+        for k in 0..m {
+            let (z, g) = model_impedance_and_gradient(&p, self.f[k]);
+            let e = (self.i[k] - self.u[k] / z) / self.norm;
+            r[2 * k] = e.re;
+            r[2 * k + 1] = e.im;
+            let a = self.u[k] / (z * z) / self.norm;
+            for c in 0..7 {
+                let d = a * g[c];
+                j[(2 * k, c)] = d.re;
+                j[(2 * k + 1, c)] = d.im;
+            }
+        }
+        (r, j)
+    }
+}
+
+fn rfft(x: &[f64]) -> Vec<Complex64> {
+    let mut planner = RealFftPlanner::<f64>::new();
+    let fft = planner.plan_fft_forward(x.len());
+    let mut buf = x.to_vec();
+    let mut out = fft.make_output_vec();
+    fft.process(&mut buf, &mut out).expect("lengths are consistent");
+    out
+}
+
+/// Start values from the H1 estimate (motional peak, half-power bandwidth, high-frequency
+/// inductance).
+fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<[f64; 7], String> {
+    let ok: Vec<usize> = (0..h1.f.len()).filter(|&k| h1.f[k] >= lo && h1.f[k] <= hi && h1.usable(k, MIN_COHERENCE)).collect();
+    if ok.len() < 20 {
+        return Err(format!("only {} usable frequency bins between {lo:.0} and {hi:.0} Hz", ok.len()));
+    }
+    let low: Vec<usize> = ok.iter().cloned().filter(|&k| h1.f[k] <= 2000.0_f64.min(hi / 2.0)).collect();
+    let re = low.iter().map(|&k| h1.z[k].re).fold(f64::INFINITY, f64::min).max(1e-3);
+    let &kpk = low.iter().max_by(|&&a, &&b| h1.z[a].re.total_cmp(&h1.z[b].re)).ok_or("no usable bins below 2 kHz")?;
+    let fs0 = h1.f[kpk];
+    let res = (h1.z[kpk].re - re).max(0.1 * re);
+    // Half-power points of the motional real part: bandwidth fs / Qms.
+    let half = re + 0.5 * res;
+    let below = low.iter().rev().filter(|&&k| k < kpk).find(|&&k| h1.z[k].re < half).map(|&k| h1.f[k]);
+    let above = low.iter().filter(|&&k| k > kpk).find(|&&k| h1.z[k].re < half).map(|&k| h1.f[k]);
+    let q = match (below, above) {
+        (Some(a), Some(b)) if b > a => (fs0 / (b - a)).clamp(0.3, 50.0),
+        _ => 3.0,
+    };
+    let cmes = q / (2.0 * PI * fs0 * res);
+    let lces = 1.0 / ((2.0 * PI * fs0).powi(2) * cmes);
+    let kh = *ok.last().unwrap();
+    let wh = 2.0 * PI * h1.f[kh];
+    let zh = h1.z[kh] - model_impedance(&[0.0, 0.0, 1e-12, 1e-12, res, cmes, lces], h1.f[kh]);
+    let le = (zh.im / wh * 0.6).max(1e-7);
+    let r2 = ((zh.re - re) * 2.0).max(0.05 * re);
+    Ok([re, le, le * 2.0, r2, res, cmes, lces])
+}
+
+/// Fit the linear model to a recording of voltage `u` and current `i` at rate `fs`.
+/// `observe` sees every LM state (progress, logs).
+pub fn fit_linear(u: &[f64], i: &[f64], fs: f64, origin: &str, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+    check_channels(u, i, fs, origin)?;
+    let h1 = h1_impedance(u, i, fs, segment_length(u.len(), fs));
+    // Band: from the lowest excited, coherent bin to 0.45 fs (at most 20 kHz).
+    let f_hi = (0.45 * fs).min(20000.0);
+    let f_lo = 2.0_f64.max(h1.f[1]);
+    let in_band: Vec<usize> = (1..h1.f.len()).filter(|&k| h1.f[k] >= f_lo && h1.f[k] <= f_hi).collect();
+    let excited: Vec<usize> = in_band.iter().cloned().filter(|&k| h1.usable(k, 0.0)).collect();
+    if excited.is_empty() {
+        return Err(format!("{origin}: no excitation between {f_lo:.0} and {f_hi:.0} Hz"));
+    }
+    let mut coh: Vec<f64> = excited.iter().map(|&k| h1.coherence[k]).collect();
+    coh.sort_by(f64::total_cmp);
+    let median = coh[coh.len() / 2];
+    if median < 0.5 {
+        return Err(format!(
+            "{origin}: too little coherence between voltage and current (median {median:.2} over {} excited bins, {f_lo:.0}..{f_hi:.0} Hz); the excitation is too weak against noise, or the channels are not of one measurement",
+            excited.len()
+        ));
+    }
+    let coherent: Vec<usize> = excited.iter().cloned().filter(|&k| h1.coherence[k] >= MIN_COHERENCE).collect();
+    let band = [h1.f[*coherent.first().ok_or("no coherent bins")?], h1.f[*coherent.last().unwrap()]];
+    // Swapped channels: U/I of a loudspeaker is ohms, its inverse is siemens-small.
+    let mut mags: Vec<f64> = coherent.iter().map(|&k| h1.z[k].norm()).collect();
+    mags.sort_by(f64::total_cmp);
+    let zmed = mags[mags.len() / 2];
+    if zmed < 0.5 {
+        return Err(format!(
+            "{origin}: |U/I| is {zmed:.3} ohm (median); channels 1 and 2 look swapped (voltage must be channel 1, current channel 2), or the current scale is wrong"
+        ));
+    }
+    let p0 = initial_guess(&h1, band[0], band[1]).map_err(|e| format!("{origin}: {e}"))?;
+
+    // Whole-record DFT; keep bins inside the band whose H1 bin is excited and coherent.
+    // Noise on both channels: the current error of bin k has variance
+    // s_i^2 + s_u^2 / |Z_k|^2. With equal relative noise on both channels (s_u / s_i =
+    // u_rms / i_rms = z_ref) the ML weight is 1 / sqrt(1 + (z_ref / |Z_k|)^2), from the H1 |Z|.
+    let n = u.len();
+    let (uf, i_f) = (rfft(u), rfft(i));
+    let df = fs / n as f64;
+    let z_ref = rms(u) / rms(i);
+    let mut prob = CurrentError { f: vec![], u: vec![], i: vec![], w: vec![], norm: 1.0 };
+    for k in 1..uf.len() {
+        let f = k as f64 * df;
+        if f < band[0] || f > band[1] {
+            continue;
+        }
+        let kh = h1.bin(f);
+        if h1.usable(kh, MIN_COHERENCE) {
+            let w = 1.0 / (1.0 + (z_ref / h1.z[kh].norm()).powi(2)).sqrt();
+            prob.f.push(f);
+            prob.u.push(uf[k] * w);
+            prob.i.push(i_f[k] * w);
+            prob.w.push(w);
+        }
+    }
+    prob.norm = prob.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
+    let mut s = LmState::new(&prob, p0.iter().map(|p| p.ln()).collect());
+    observe(&s);
+    while !s.converged && s.iteration < 200 {
+        s = lm_step(&prob, &s);
+        observe(&s);
+    }
+    let p: [f64; 7] = std::array::from_fn(|k| s.theta[k].exp());
+    let cov = covariance(&prob, &s.theta);
+    let sigma_rel: [f64; 7] = std::array::from_fn(|k| cov.as_ref().map(|c| c[(k, k)].sqrt()).unwrap_or(f64::NAN));
+    let residual_rel = prob.residual_rel(&p);
+    if !s.converged {
+        return Err(format!("{origin}: the impedance fit did not converge in {} iterations (residual {residual_rel:.3e})", s.iteration));
+    }
+    Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1 })
+}
+
+/// A parameter set from the electrical fit and a known moving mass (kg).
+pub fn scale_by_mms(fit: &LinearFit, mms: f64) -> Result<Parameters, String> {
+    if !(mms.is_finite() && mms > 0.0 && mms < 2.0) {
+        return Err(format!("moving mass {mms} kg is not valid (0 .. 2 kg; give kg, not g)"));
+    }
+    let [re, le, l2, r2, res, cmes, lces] = fit.p;
+    let bl2 = mms / cmes;
+    Ok(Parameters {
+        name: None,
+        source: Some("coilscope linear (impedance fit)".into()),
+        re,
+        le: Poly::constant(le),
+        l2r2: Some((Poly::constant(l2), Poly::constant(r2))),
+        bl: Poly::constant(bl2.sqrt()),
+        kms: Poly::constant(bl2 / lces),
+        mms,
+        rms: bl2 / res,
+        sd: None,
+        thermal: None,
+        x_range: None,
+        extra: Default::default(),
+    })
+}
+
+/// Moving mass from the resonance shift with a known added mass (kg):
+/// `Mms = Madd / ((fs / fs_with)^2 - 1)`.
+pub fn added_mass_mms(fit: &LinearFit, with_mass: &LinearFit, added: f64) -> Result<f64, String> {
+    let ratio = (fit.fs() / with_mass.fs()).powi(2);
+    if !(ratio > 1.02) {
+        return Err(format!(
+            "the added mass moved the resonance only from {:.2} Hz to {:.2} Hz; add more mass (about Mms/2 or more)",
+            fit.fs(),
+            with_mass.fs()
+        ));
+    }
+    Ok(added / (ratio - 1.0))
+}
+
+/// Moving mass from a displacement channel `x` (m): fit `X = (Bl/Kms) G(f) I` with the known
+/// resonance shape `G` and read `Bl = Lces / (Bl/Kms)`.
+pub fn scale_by_displacement(fit: &LinearFit, i: &[f64], x: &[f64], fs: f64, origin: &str) -> Result<f64, String> {
+    let (xf, i_f) = (rfft(x), rfft(i));
+    let n = i.len();
+    let (f_res, q) = (fit.fs(), fit.qms());
+    let (mut num, mut den) = (0.0, 0.0);
+    for k in 1..xf.len() {
+        let f = k as f64 * fs / n as f64;
+        if f < fit.band[0] || f > 4.0 * f_res {
+            continue;
+        }
+        let g = 1.0 / Complex64::new(1.0 - (f / f_res).powi(2), f / (f_res * q));
+        let gi = g * i_f[k];
+        num += (gi.conj() * xf[k]).re;
+        den += gi.norm_sqr();
+    }
+    let c = num / den;
+    if !(c.is_finite()) || c == 0.0 {
+        return Err(format!("{origin}: displacement (channel 3) does not follow the current"));
+    }
+    if c < 0.0 {
+        return Err(format!("{origin}: displacement (channel 3) has inverted polarity (x > 0 must be coil out for positive current)"));
+    }
+    let bl = fit.p[6] / c;
+    Ok(bl * bl * fit.p[5])
+}
+
+/// Displacement predicted from the current by the linear model (for the reached range).
+pub fn predicted_displacement(p: &Parameters, i: &[f64], fs: f64) -> Vec<f64> {
+    let n = i.len();
+    let mut spec = rfft(i);
+    for (k, c) in spec.iter_mut().enumerate() {
+        let f = k as f64 * fs / n as f64;
+        *c *= if k == 0 { Complex64::new(0.0, 0.0) } else { coilscope_core::small_signal::displacement_per_current(p, f) };
+    }
+    let mut planner = RealFftPlanner::<f64>::new();
+    let inv = planner.plan_fft_inverse(n);
+    spec[0].im = 0.0;
+    if n % 2 == 0 {
+        let l = spec.len() - 1;
+        spec[l].im = 0.0;
+    }
+    let mut out = vec![0.0; n];
+    inv.process(&mut spec, &mut out).expect("lengths are consistent");
+    out.iter_mut().for_each(|v| *v /= n as f64);
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn analytic_gradient_matches_finite_differences() {
+        let p = [3.4, 1.1e-4, 5.4e-4, 0.29, 72.0, 3.8e-4, 6.3e-2];
+        for f in [15.0, 32.0, 300.0, 5000.0] {
+            let (z, g) = model_impedance_and_gradient(&p, f);
+            for k in 0..7 {
+                let h = 1e-6;
+                let mut a = p;
+                let mut b = p;
+                a[k] *= (h as f64).exp();
+                b[k] *= (-h as f64).exp();
+                let fd = (model_impedance(&a, f) - model_impedance(&b, f)) / (2.0 * h);
+                // Central differences: truncation ~h^2 |g|, round-off ~eps |Z| / h.
+                let tol = 1e-6 * g[k].norm() + 1e-9 * z.norm();
+                assert!((fd - g[k]).norm() < tol, "{} at {f}: {fd} vs {}", NAMES[k], g[k]);
+            }
+        }
+    }
+
+    #[test]
+    fn model_impedance_equals_the_core_small_signal_impedance() {
+        let d = coilscope_core::embedded_driver("18wu-4741t-00").unwrap();
+        let (l2, r2) = (d.l2r2.as_ref().unwrap().0.c[0], d.l2r2.as_ref().unwrap().1.c[0]);
+        let bl2 = d.bl.c[0].powi(2);
+        let p = [d.re, d.le.c[0], l2, r2, bl2 / d.rms, d.mms / bl2, bl2 / d.kms.c[0]];
+        for f in [10.0, 23.6, 100.0, 3000.0] {
+            let a = model_impedance(&p, f);
+            let b = coilscope_core::small_signal::impedance(&d, f);
+            assert!((a - b).norm() < 1e-12 * b.norm());
+        }
+    }
+}
