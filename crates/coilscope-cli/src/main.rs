@@ -8,7 +8,7 @@ use coilscope_core::excitation::{add_sensor_noise, crest_factor, generate, Excit
 use coilscope_core::simulate::{simulate, SimOptions};
 use coilscope_core::small_signal::thiele_small;
 use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
-use coilscope_io::{load_parameters, read_voltage, write_json, write_recording, Recording};
+use coilscope_io::{load_parameters, read_recording, read_voltage, write_json, write_recording, Recording};
 use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -86,6 +86,29 @@ enum Command {
         #[arg(long)]
         scale: Option<f64>,
     },
+    /// Small-signal (Thiele/Small) parameters from the impedance of a recording.
+    Linear {
+        /// Recording (WAV: voltage V, current A [, displacement m]).
+        recording: PathBuf,
+        /// Known moving mass (kg) for the absolute scale.
+        #[arg(long)]
+        mms: Option<f64>,
+        /// Added mass (kg) of the added-mass method; needs --with-mass.
+        #[arg(long)]
+        added_mass: Option<f64>,
+        /// Recording of the same driver with the added mass.
+        #[arg(long)]
+        with_mass: Option<PathBuf>,
+        /// Effective radiating area (m^2), for Vas.
+        #[arg(long)]
+        sd: Option<f64>,
+        /// Scale factors of integer-PCM recordings (V, A [, m] per count).
+        #[arg(long, num_args = 2..=3, value_names = ["V", "A"])]
+        scale: Option<Vec<f64>>,
+        /// Result file (JSON); the impedance goes beside it as .zma and .csv.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// List the embedded real drivers.
     Drivers,
     /// Validate a parameter set and print its small-signal figures.
@@ -100,6 +123,9 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale } => {
             cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale })
+        }
+        Command::Linear { recording, mms, added_mass, with_mass, sd, scale, out } => {
+            cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), sd, scale.as_deref(), &out)
         }
         Command::Drivers => cmd_drivers(),
         Command::Check { params } => load_parameters(&params).map_err(|e| e.to_string()).map(|p| print_params(&p)),
@@ -210,6 +236,98 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
     }
     println!("  wrote {} and {}", a.out.display(), info_file.display());
     Ok(())
+}
+
+fn cmd_linear(
+    path: &Path,
+    mms: Option<f64>,
+    added_mass: Option<f64>,
+    with_mass: Option<&Path>,
+    sd: Option<f64>,
+    scale: Option<&[f64]>,
+    out: &Path,
+) -> Result<(), String> {
+    use coilscope_ident::linear::*;
+    let origin = path.display().to_string();
+    let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
+    let fs = rec.fs as f64;
+    let progress = |s: &coilscope_ident::lm::LmState| {
+        if s.iteration % 5 == 0 || s.converged {
+            eprint!("\r  fitting impedance: iteration {:3}, residual {:.3e}   ", s.iteration, (2.0 * s.cost).sqrt());
+        }
+    };
+    let fit = fit_linear(&rec.u, &rec.i, fs, &origin, progress)?;
+    eprintln!();
+    let (mms, method) = match (mms, added_mass, with_mass, &rec.x) {
+        (Some(m), None, None, _) => (m, ScaleMethod::Mms),
+        (None, Some(madd), Some(p2), _) => {
+            if !(madd.is_finite() && madd > 0.0 && madd < 2.0) {
+                return Err(format!("--added-mass {madd}: give the added mass in kg (0 .. 2 kg)"));
+            }
+            let o2 = p2.display().to_string();
+            let r2 = read_recording(p2, scale).map_err(|e| e.to_string())?;
+            let fit2 = fit_linear(&r2.u, &r2.i, r2.fs as f64, &o2, |_| {})?;
+            (added_mass_mms(&fit, &fit2, madd)?, ScaleMethod::AddedMass { added: madd, fs_with: fit2.fs() })
+        }
+        (None, None, None, Some(x)) => (scale_by_displacement(&fit, &rec.i, x, fs, &origin)?, ScaleMethod::Displacement),
+        (None, Some(_), None, _) | (None, None, Some(_), _) => return Err("--added-mass KG and --with-mass REC.wav go together".into()),
+        (Some(_), _, _, _) => return Err("give one scale: --mms, or --added-mass with --with-mass".into()),
+        (None, None, None, None) => {
+            return Err(format!("{origin}: no absolute scale: give --mms KG, or --added-mass KG --with-mass REC2.wav, or record a displacement channel (3)"))
+        }
+    };
+    let mut params = scale_by_mms(&fit, mms)?;
+    params.sd = sd;
+    if let Some(s) = sd {
+        params.validate("--sd").map_err(|_| format!("--sd {s}: give the radiating area in m^2 (e.g. 0.0118)"))?;
+    }
+    params.source = Some(format!("coilscope linear {}", path.display()));
+    let x_pred = match &rec.x {
+        Some(x) => x.clone(),
+        None => predict_x(&params, &rec.i, fs),
+    };
+    let x_range = [x_pred.iter().cloned().fold(0.0, f64::min), x_pred.iter().cloned().fold(0.0, f64::max)];
+    let result = result_json(&params, &fit, &method, x_range, &path.display().to_string());
+    write_json(out, &result).map_err(|e| e.to_string())?;
+    let zma = out.with_extension("zma");
+    let csv = out.with_extension("csv");
+    coilscope_io::atomic_write(&zma, zma_text(&fit.h1).as_bytes()).map_err(|e| e.to_string())?;
+    coilscope_io::atomic_write(&csv, impedance_csv(&fit.h1, &fit).as_bytes()).map_err(|e| e.to_string())?;
+
+    let ts = thiele_small(&params);
+    let u = &result["uncertainty"];
+    let pm = |k: &str, scale: f64| u[k].as_f64().map(|v| format!("+- {:.2e}", v * scale)).unwrap_or_default();
+    println!("coilscope linear: {} ({:.2} s at {} Hz)", path.display(), rec.u.len() as f64 / fs, rec.fs);
+    println!("  fit {:.1} .. {:.0} Hz, {} bins, residual {:.3e} (current, relative RMS), {} iterations", fit.band[0], fit.band[1], fit.bins, fit.residual_rel, fit.iterations);
+    let scale_text = match &method {
+        ScaleMethod::Mms => "Mms given".to_string(),
+        ScaleMethod::AddedMass { added, fs_with } => format!("added mass {:.2} g, fs with mass {:.2} Hz", added * 1e3, fs_with),
+        ScaleMethod::Displacement => "displacement channel".to_string(),
+    };
+    println!("  scale: {scale_text}");
+    println!("  {:<6} {:>12} {:<5} {}", "Re", format!("{:.4}", params.re), "ohm", pm("Re", 1.0));
+    println!("  {:<6} {:>12} {:<5} {}", "Le", format!("{:.4}", params.le.c[0] * 1e3), "mH", pm("Le", 1e3));
+    let (l2, r2) = params.l2r2.as_ref().map(|(a, b)| (a.c[0], b.c[0])).unwrap_or((0.0, 0.0));
+    println!("  {:<6} {:>12} {:<5} {}", "L2", format!("{:.4}", l2 * 1e3), "mH", pm("L2", 1e3));
+    println!("  {:<6} {:>12} {:<5} {}", "R2", format!("{:.4}", r2), "ohm", pm("R2", 1.0));
+    println!("  {:<6} {:>12} {:<5} {}", "fs", format!("{:.3}", ts.fs), "Hz", pm("fs", 1.0));
+    println!("  {:<6} {:>12}", "Qms", format!("{:.4}", ts.qms));
+    println!("  {:<6} {:>12}", "Qes", format!("{:.4}", ts.qes));
+    println!("  {:<6} {:>12}", "Qts", format!("{:.4}", ts.qts));
+    println!("  {:<6} {:>12} {:<5} {}", "Bl", format!("{:.4}", params.bl.c[0]), "T m", pm("Bl", 1.0));
+    println!("  {:<6} {:>12} {:<5} {}", "Kms", format!("{:.2}", params.kms.c[0]), "N/m", pm("Kms", 1.0));
+    println!("  {:<6} {:>12} {:<5}", "Mms", format!("{:.4}", params.mms * 1e3), "g");
+    println!("  {:<6} {:>12} {:<5} {}", "Rms", format!("{:.4}", params.rms), "kg/s", pm("Rms", 1.0));
+    if let Some(v) = ts.vas {
+        println!("  {:<6} {:>12} {:<5}", "Vas", format!("{:.3}", v * 1e3), "l");
+    }
+    println!("  x reached {:+.3} .. {:+.3} mm", x_range[0] * 1e3, x_range[1] * 1e3);
+    println!("  wrote {}, {}, {}", out.display(), zma.display(), csv.display());
+    Ok(())
+}
+
+fn predict_x(p: &Parameters, i: &[f64], fs: f64) -> Vec<f64> {
+    coilscope_ident::linear::predicted_displacement(p, i, fs)
 }
 
 fn resonance(p: &Parameters) -> f64 {
