@@ -251,13 +251,25 @@ fn cmd_linear(
     let origin = path.display().to_string();
     let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
     let fs = rec.fs as f64;
+    // Refuse a missing or doubled scale before spending time on the fit.
+    match (mms, added_mass, with_mass, &rec.x) {
+        (Some(_), None, None, _) | (None, Some(_), Some(_), _) | (None, None, None, Some(_)) => {}
+        (None, Some(_), None, _) | (None, None, Some(_), _) => return Err("--added-mass KG and --with-mass REC.wav go together".into()),
+        (Some(_), _, _, _) => return Err("give one scale: --mms, or --added-mass with --with-mass".into()),
+        (None, None, None, None) => {
+            return Err(format!("{origin}: no absolute scale: give --mms KG, or --added-mass KG --with-mass REC2.wav, or record a displacement channel (3)"))
+        }
+    }
+    let live = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let progress = |s: &coilscope_ident::lm::LmState| {
-        if s.iteration % 5 == 0 || s.converged {
+        if live && (s.iteration % 5 == 0 || s.converged) {
             eprint!("\r  fitting impedance: iteration {:3}, residual {:.3e}   ", s.iteration, (2.0 * s.cost).sqrt());
         }
     };
     let fit = fit_linear(&rec.u, &rec.i, fs, &origin, progress)?;
-    eprintln!();
+    if live {
+        eprintln!();
+    }
     let (mms, method) = match (mms, added_mass, with_mass, &rec.x) {
         (Some(m), None, None, _) => (m, ScaleMethod::Mms),
         (None, Some(madd), Some(p2), _) => {
@@ -270,11 +282,7 @@ fn cmd_linear(
             (added_mass_mms(&fit, &fit2, madd)?, ScaleMethod::AddedMass { added: madd, fs_with: fit2.fs() })
         }
         (None, None, None, Some(x)) => (scale_by_displacement(&fit, &rec.i, x, fs, &origin)?, ScaleMethod::Displacement),
-        (None, Some(_), None, _) | (None, None, Some(_), _) => return Err("--added-mass KG and --with-mass REC.wav go together".into()),
-        (Some(_), _, _, _) => return Err("give one scale: --mms, or --added-mass with --with-mass".into()),
-        (None, None, None, None) => {
-            return Err(format!("{origin}: no absolute scale: give --mms KG, or --added-mass KG --with-mass REC2.wav, or record a displacement channel (3)"))
-        }
+        _ => unreachable!("scale arguments were checked above"),
     };
     let mut params = scale_by_mms(&fit, mms)?;
     params.sd = sd;

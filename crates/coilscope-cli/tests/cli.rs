@@ -100,3 +100,41 @@ fn drivers_and_check_list_the_embedded_sets() {
     assert!(o.status.success());
     assert!(String::from_utf8_lossy(&o.stdout).contains("Qts"));
 }
+
+#[test]
+fn linear_writes_a_result_zma_and_csv() {
+    let d = tempfile::tempdir().unwrap();
+    let rec = d.path().join("small.wav");
+    let o = coilscope(&["simulate", "18wu-4741t-00", "--volts", "0.12", "--seconds", "3", "--snr-db", "70", "--laser", "--out", rec.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = d.path().join("lin.json");
+    // The displacement channel gives the scale; --sd gives Vas.
+    let o = coilscope(&["linear", rec.to_str().unwrap(), "--sd", "0.0154", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    for want in ["Re", "Qts", "Bl", "Kms", "Vas", "displacement channel"] {
+        assert!(text.contains(want), "{text}");
+    }
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(r["format"], "coilscope.result/1");
+    let truth = coilscope_core::embedded_driver("18wu-4741t-00").unwrap();
+    let bl = r["parameters"]["Bl"].as_f64().unwrap();
+    assert!((bl / truth.bl.c[0] - 1.0).abs() < 0.01, "Bl {bl}");
+    let fs = r["small_signal"]["fs"].as_f64().unwrap();
+    assert!((fs / 23.64 - 1.0).abs() < 0.01, "fs {fs}");
+    assert!(r["fit"]["residual_rel"].as_f64().unwrap() < 0.01);
+    let xr = r["fit"]["x_range"].as_array().unwrap();
+    assert!(xr[0].as_f64().unwrap() < 0.0 && xr[1].as_f64().unwrap() > 0.0);
+    assert!(r["uncertainty"]["Re"].as_f64().unwrap() > 0.0);
+    // The .zma is what REW and VituixCAD read: frequency, magnitude, phase.
+    let zma = std::fs::read_to_string(d.path().join("lin.zma")).unwrap();
+    let line: Vec<f64> = zma.lines().nth(10).unwrap().split_whitespace().map(|v| v.parse().unwrap()).collect();
+    assert_eq!(line.len(), 3);
+    assert!(line[1] > 3.0 && line[1] < 100.0);
+    assert!(std::fs::read_to_string(d.path().join("lin.csv")).unwrap().starts_with("frequency_hz,magnitude_ohm"));
+    // Without a scale the command says which to give.
+    let plain = d.path().join("plain.wav");
+    assert!(coilscope(&["simulate", "18wu-4741t-00", "--volts", "0.12", "--seconds", "2", "--out", plain.to_str().unwrap()]).status.success());
+    let e = one_error_line(&coilscope(&["linear", plain.to_str().unwrap(), "--out", out.to_str().unwrap()]));
+    assert!(e.contains("no absolute scale: give --mms KG"), "{e}");
+}
