@@ -15,6 +15,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use realfft::num_complex::Complex64;
 use realfft::RealFftPlanner;
+use crate::fft::irfft;
 use std::f64::consts::PI;
 
 /// A deterministic RNG for one purpose: the stream is chosen by the name (FNV-1a hash).
@@ -163,20 +164,6 @@ pub fn multitone_bins(n: usize, fs: f64, f_lo: f64, f_hi: f64, count: usize) -> 
         .collect();
     bins.dedup();
     bins
-}
-
-fn irfft(spec: &[Complex64], n: usize) -> Vec<f64> {
-    let mut planner = RealFftPlanner::<f64>::new();
-    let c2r = planner.plan_fft_inverse(n);
-    let mut s = spec.to_vec();
-    s[0].im = 0.0;
-    if n % 2 == 0 {
-        let last = s.len() - 1;
-        s[last].im = 0.0;
-    }
-    let mut out = vec![0.0; n];
-    c2r.process(&mut s, &mut out).expect("lengths are consistent");
-    out
 }
 
 fn shaped_noise(n: usize, fs: f64, shape: &dyn Fn(f64) -> f64, crest: Option<f64>, rng: &mut ChaCha8Rng) -> Vec<f64> {

@@ -24,6 +24,7 @@
 //!   sweep) and named RNGs.
 
 pub mod excitation;
+pub mod fft;
 pub mod integrate;
 pub mod model;
 pub mod normal_form;

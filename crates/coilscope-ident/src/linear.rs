@@ -17,6 +17,7 @@
 //! three, and one more number (Mms, an added mass, or the displacement) gives Bl.
 
 use crate::lm::{covariance, lm_step, LmState, Problem};
+use coilscope_core::fft::{irfft, rfft};
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
 use coilscope_core::simulate::rms;
@@ -237,15 +238,6 @@ impl Problem for CurrentError {
     }
 }
 
-fn rfft(x: &[f64]) -> Vec<Complex64> {
-    let mut planner = RealFftPlanner::<f64>::new();
-    let fft = planner.plan_fft_forward(x.len());
-    let mut buf = x.to_vec();
-    let mut out = fft.make_output_vec();
-    fft.process(&mut buf, &mut out).expect("lengths are consistent");
-    out
-}
-
 /// Start values from the H1 estimate (motional peak, half-power bandwidth, high-frequency
 /// inductance).
 fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<[f64; 7], String> {
@@ -437,15 +429,7 @@ pub fn predicted_displacement(p: &Parameters, i: &[f64], fs: f64) -> Vec<f64> {
         let f = k as f64 * fs / n as f64;
         *c *= if k == 0 { Complex64::new(0.0, 0.0) } else { coilscope_core::small_signal::displacement_per_current(p, f) };
     }
-    let mut planner = RealFftPlanner::<f64>::new();
-    let inv = planner.plan_fft_inverse(n);
-    spec[0].im = 0.0;
-    if n % 2 == 0 {
-        let l = spec.len() - 1;
-        spec[l].im = 0.0;
-    }
-    let mut out = vec![0.0; n];
-    inv.process(&mut spec, &mut out).expect("lengths are consistent");
+    let mut out = irfft(&spec, n);
     out.iter_mut().for_each(|v| *v /= n as f64);
     out
 }
