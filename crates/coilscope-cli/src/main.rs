@@ -292,7 +292,7 @@ fn cmd_linear(
     params.source = Some(format!("coilscope linear {}", path.display()));
     let x_pred = match &rec.x {
         Some(x) => x.clone(),
-        None => predict_x(&params, &rec.i, fs),
+        None => predicted_displacement(&params, &rec.i, fs),
     };
     let x_range = [x_pred.iter().cloned().fold(0.0, f64::min), x_pred.iter().cloned().fold(0.0, f64::max)];
     let result = result_json(&params, &fit, &method, x_range, &path.display().to_string());
@@ -332,10 +332,6 @@ fn cmd_linear(
     println!("  x reached {:+.3} .. {:+.3} mm", x_range[0] * 1e3, x_range[1] * 1e3);
     println!("  wrote {}, {}, {}", out.display(), zma.display(), csv.display());
     Ok(())
-}
-
-fn predict_x(p: &Parameters, i: &[f64], fs: f64) -> Vec<f64> {
-    coilscope_ident::linear::predicted_displacement(p, i, fs)
 }
 
 fn resonance(p: &Parameters) -> f64 {

@@ -75,13 +75,14 @@ pub struct ImpedanceEstimate {
     pub coherence: Vec<f64>,
     /// Voltage power per bin (V^2, Welch average).
     pub suu: Vec<f64>,
+    /// The largest `suu`: the reference of the excitation threshold.
+    pub suu_max: f64,
 }
 
 impl ImpedanceEstimate {
     /// Bins with excitation (within 60 dB of the strongest) and coherence >= `min_coh`.
     pub fn usable(&self, k: usize, min_coh: f64) -> bool {
-        let max = self.suu.iter().cloned().fold(0.0, f64::max);
-        self.suu[k] > 1e-6 * max && self.coherence[k] >= min_coh
+        self.suu[k] > 1e-6 * self.suu_max && self.coherence[k] >= min_coh
     }
 
     /// Nearest bin to frequency `f`.
@@ -135,7 +136,9 @@ pub fn h1_impedance(u: &[f64], i: &[f64], fs: f64, seg: usize) -> ImpedanceEstim
     let coherence = (0..nb)
         .map(|k| if suu[k] > 0.0 && sii[k] > 0.0 { siu[k].norm_sqr() / (suu[k] * sii[k]) } else { 0.0 })
         .collect();
-    ImpedanceEstimate { f, z, coherence, suu: suu.iter().map(|s| s * norm).collect() }
+    let suu: Vec<f64> = suu.iter().map(|s| s * norm).collect();
+    let suu_max = suu.iter().cloned().fold(0.0, f64::max);
+    ImpedanceEstimate { f, z, coherence, suu, suu_max }
 }
 
 /// The fitted impedance model, `theta` = ln of [Re, Le, L2, R2, Res, Cmes, Lces].
