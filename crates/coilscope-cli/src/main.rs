@@ -109,6 +109,27 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Large-signal parameters (Bl(x), Kms(x), Le(x), L2, R2, Rms, Re(t)) from a recording of
+    /// voltage and current at high level: output-error fit of the nonlinear model.
+    Identify {
+        /// Recording (WAV: voltage V, current A [, displacement m]).
+        recording: PathBuf,
+        /// Moving mass (kg), the absolute scale. Without it, a displacement channel (3) gives it.
+        #[arg(long)]
+        mms: Option<f64>,
+        /// Power-series order of Bl, Kms and Le (2 ..= 8); default: chosen on held-out data.
+        #[arg(long)]
+        order: Option<usize>,
+        /// Effective radiating area (m^2), for Vas.
+        #[arg(long)]
+        sd: Option<f64>,
+        /// Scale factors of integer-PCM recordings (V, A [, m] per count).
+        #[arg(long, num_args = 2..=3, value_names = ["V", "A"])]
+        scale: Option<Vec<f64>>,
+        /// Result file (JSON, coilscope.result/1).
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// List the embedded real drivers.
     Drivers,
     /// Validate a parameter set and print its small-signal figures.
@@ -127,6 +148,7 @@ fn main() -> ExitCode {
         Command::Linear { recording, mms, added_mass, with_mass, sd, scale, out } => {
             cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), sd, scale.as_deref(), &out)
         }
+        Command::Identify { recording, mms, order, sd, scale, out } => cmd_identify(&recording, mms, order, sd, scale.as_deref(), &out),
         Command::Drivers => cmd_drivers(),
         Command::Check { params } => load_parameters(&params).map_err(|e| e.to_string()).map(|p| print_params(&p)),
     };
@@ -361,4 +383,118 @@ fn cmd_drivers() -> Result<(), String> {
         println!("{name:<15} {:<40} fs {:6.2} Hz  x_range {:+.1} .. {:+.1} mm", p.name.as_deref().unwrap_or(""), resonance(&p), lo * 1e3, hi * 1e3);
     }
     Ok(())
+}
+
+fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), String> {
+    use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, Stage};
+    use coilscope_ident::linear::{fit_linear, scale_by_displacement};
+    let origin = path.display().to_string();
+    let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
+    let fs = rec.fs as f64;
+    if let Some(o) = order {
+        if !(2..=8).contains(&o) {
+            return Err(format!("--order {o}: give a power-series order from 2 to 8"));
+        }
+    }
+    if let Some(s) = sd {
+        if !(s.is_finite() && s > 0.0 && s < 1.0) {
+            return Err(format!("--sd {s}: give the radiating area in m^2 (e.g. 0.0118)"));
+        }
+    }
+    let (mms, mms_source) = match (mms, &rec.x) {
+        (Some(m), _) => (m, "given (--mms)".to_string()),
+        (None, Some(x)) => {
+            let lin = fit_linear(&rec.u, &rec.i, fs, &origin, |_| {})?;
+            (scale_by_displacement(&lin, &rec.i, x, fs, &origin)?, "displacement channel (linear fit)".to_string())
+        }
+        (None, None) => return Err(format!("{origin}: no absolute scale: give --mms KG (moving mass), or record a displacement channel (3)")),
+    };
+    let live = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let t0 = std::time::Instant::now();
+    let progress = |p: &coilscope_ident::large::Progress| {
+        if live {
+            let stage = match p.stage {
+                Stage::Estimate { order } => format!("order {order} on the estimation part"),
+                Stage::Final { order } => format!("order {order} on the whole record"),
+            };
+            eprint!("\r  {:5.1} s  fitting {stage}: iteration {:2}, current error {:.3e}        ", t0.elapsed().as_secs_f64(), p.state.iteration, p.residual_rel);
+        }
+    };
+    let opts = IdentifyOptions { mms, order, ..Default::default() };
+    let (fit, failure) = match identify(&rec.u, &rec.i, fs, &origin, &opts, progress) {
+        Ok(f) => (f, None),
+        Err(IdentifyError::NotConverged { message, best }) => (*best, Some(message)),
+        Err(e) => {
+            if live {
+                eprintln!();
+            }
+            return Err(e.to_string());
+        }
+    };
+    if live {
+        eprintln!();
+    }
+    let mut fit = fit;
+    fit.params.sd = sd;
+    fit.params.source = Some(format!("coilscope identify {}", path.display()));
+    let result = fit.result_json(&path.display().to_string(), &mms_source);
+    write_json(out, &result).map_err(|e| e.to_string())?;
+    print_large_summary(path, &rec, &fit, &result, t0.elapsed().as_secs_f64());
+    match failure {
+        Some(m) => Err(format!("{m}; written to {}", out.display())),
+        None => {
+            println!("  result: {}", out.display());
+            Ok(())
+        }
+    }
+}
+
+fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::large::LargeFit, result: &serde_json::Value, seconds: f64) {
+    let p = &fit.params;
+    let fs = rec.fs as f64;
+    println!("coilscope identify: {} ({:.2} s at {} Hz), fitted in {:.1} s", path.display(), rec.u.len() as f64 / fs, rec.fs, seconds);
+    println!(
+        "  order {} ({}), {} iterations, current error {:.3e} (relative RMS), x reached {:.3} .. {:.3} mm",
+        fit.order,
+        if fit.trials.is_empty() { "given".to_string() } else { "chosen on held-out data".to_string() },
+        fit.iterations,
+        fit.residual_rel,
+        fit.x_range[0] * 1e3,
+        fit.x_range[1] * 1e3
+    );
+    for t in &fit.trials {
+        println!("    order {}: estimation {:.3e}, validation {:.3e}", t.order, t.estimation_rel, t.validation_rel);
+    }
+    let u = &result["uncertainty"];
+    let pm = |k: &str, scale: f64| u[k].as_f64().map(|v| format!("+- {:.2e}", v * scale)).unwrap_or_default();
+    println!("  {:<6} {:>12} {:<5} {}", "Re", format!("{:.4}", p.re), "ohm", pm("Re", 1.0));
+    if let Some((l2, r2)) = &p.l2r2 {
+        println!("  {:<6} {:>12} {:<5} {}", "L2", format!("{:.4}", l2.c[0] * 1e3), "mH", pm("L2", 1e3));
+        println!("  {:<6} {:>12} {:<5} {}", "R2", format!("{:.4}", r2.c[0]), "ohm", pm("R2", 1.0));
+    }
+    println!("  {:<6} {:>12} {:<5}", "Mms", format!("{:.4}", p.mms * 1e3), "g");
+    println!("  {:<6} {:>12} {:<5} {}", "Rms", format!("{:.4}", p.rms), "kg/s", pm("Rms", 1.0));
+    let [lo, hi] = fit.x_range;
+    println!("  {:<6} {:>14} {:>14} {:>14}", "", format!("x={:.2} mm", lo * 1e3), "x=0", format!("x={:.2} mm", hi * 1e3));
+    for (name, unit, scale) in [("Bl", "T m", 1.0), ("Kms", "N/m", 1.0), ("Le", "mH", 1e3)] {
+        let b = fit.band(name, 3);
+        let cell = |k: usize| format!("{:.4} +- {:.1e}", b.value[k] * scale, b.sd[k] * scale);
+        let f = match name {
+            "Bl" => &p.bl,
+            "Kms" => &p.kms,
+            _ => &p.le,
+        };
+        let at0 = fit.band(name, 2);
+        let _ = at0;
+        println!("  {:<6} {:>14} {:>14} {:>14}  {unit}", name, cell(0), format!("{:.4}", f.eval(0.0) * scale), cell(2));
+    }
+    let l = &result["limits"];
+    let lim = |k: &str| match l[k].as_f64() {
+        Some(v) => format!("{:.2} mm", v * 1e3),
+        None => format!("> {:.2} mm", l[format!("{k}_beyond")].as_f64().unwrap_or(0.0) * 1e3),
+    };
+    println!("  limits: XBl {}, XC {}, XL {}, Xsym {}, Ak {:.1} %", lim("XBl"), lim("XC"), lim("XL"), l["Xsym"].as_f64().map(|v| format!("{:+.2} mm", v * 1e3)).unwrap_or("-".into()), l["Ak"].as_f64().unwrap_or(f64::NAN));
+    if let Some(dt) = result["thermal"]["dT_end"].as_f64() {
+        println!("  voice coil: Re {:.4} -> {:.4} ohm over the record (+{:.2} K)", fit.re_track[0].1, fit.re_track.last().unwrap().1, dt);
+    }
 }

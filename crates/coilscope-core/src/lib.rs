@@ -20,12 +20,14 @@
 //! * [`integrate`]: band-limited input interpolation and RK4 sub-stepping.
 //! * [`simulate`]: the virtual transducer driven by a sampled voltage.
 //! * [`small_signal`]: the linearised model at rest: impedance, Thiele/Small figures.
+//! * [`limits`]: displacement limits XBl, XC, XL, Xsym, Ak over a reached range.
 //! * [`excitation`]: seeded test signals (IEC 60268-1 noise, pink noise, sine, multitone,
 //!   sweep) and named RNGs.
 
 pub mod excitation;
 pub mod fft;
 pub mod integrate;
+pub mod limits;
 pub mod model;
 pub mod normal_form;
 pub mod params;

@@ -6,5 +6,6 @@
 //! * [`linear`]: small-signal parameters from the impedance (H1 estimate, LR-2 + motional
 //!   fit, absolute scale by Mms, added mass or displacement).
 
+pub mod large;
 pub mod linear;
 pub mod lm;

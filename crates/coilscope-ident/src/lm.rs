@@ -35,9 +35,8 @@ impl LmState {
 /// One LM iteration (tries damping until a step lowers the cost, at most 20 times).
 pub fn lm_step<P: Problem>(p: &P, s: &LmState) -> LmState {
     let (r, j) = p.residual_jacobian(&s.theta);
-    let jt = j.transpose();
-    let a = &jt * &j;
-    let g = &jt * &r;
+    let a = j.tr_mul(&j);
+    let g = j.tr_mul(&r);
     let mut lambda = s.lambda;
     for _ in 0..20 {
         let mut damped = a.clone();
@@ -74,7 +73,7 @@ pub fn covariance<P: Problem>(p: &P, theta: &[f64]) -> Option<DMatrix<f64>> {
         return None;
     }
     let s2 = r.norm_squared() / (m - n) as f64;
-    (j.transpose() * &j).try_inverse().map(|inv| inv * s2)
+    j.tr_mul(&j).try_inverse().map(|inv| inv * s2)
 }
 
 #[cfg(test)]

@@ -1,0 +1,861 @@
+//! Large-signal identification from voltage and current (seed section 3.2.2.2): the
+//! **output error of the parallel model**.
+//!
+//! The model of [`coilscope_core::model`] is driven by the measured voltage; its current is
+//! compared with the measured current, and Levenberg-Marquardt minimises
+//! `sum_m (i_model[m] - i_meas[m])^2` over
+//!
+//! * `Re(t)`: the voice-coil resistance, piecewise linear in time (knots every
+//!   [`IdentifyOptions::knot_seconds`]), so the heating of the coil during the record is
+//!   tracked, whatever the thermal constants; `Re` of the result is the value at the start and
+//!   the voice-coil temperature rise follows as `(Re(t)/Re(0) - 1)/alpha`;
+//! * `Le(x)`, `Bl(x)`, `Kms(x)`: power series of the selected order;
+//! * `L2`, `R2` (constants) and `Rms`; `Mms` is given (it fixes the absolute scale).
+//!
+//! The series are parametrised internally by Legendre polynomials in `x / x_ref` (well
+//! conditioned at order 8) and converted to the contract's power series in metres.
+//!
+//! Exact Jacobians: the same model runs on vector dual numbers ([`num_dual::DualSVec64`]),
+//! [`CHUNK`] parameters at a time; the chunks are independent and run on all cores. The
+//! Jacobian runs use the fewest RK4 sub-steps that keep the fast electrical mode inside
+//! RK4's accurate region (`|lambda| h <= 1.5`); the residual uses the simulator's own count.
+//!
+//! The solver ([`crate::lm::lm_step`]) is a pure state transition; [`identify`] hands every
+//! iteration to an observer (progress bars, logs) as a [`Progress`].
+
+use crate::linear::{check_channels, fit_linear, scale_by_mms, LinearFit};
+use crate::lm::{lm_step, LmState, Problem};
+use coilscope_core::integrate::{rk4_sample, substeps_for, Interpolator};
+use coilscope_core::model::{idx, Model, State, NSTATE};
+use coilscope_core::params::Parameters;
+use coilscope_core::poly::Poly;
+use nalgebra::{DMatrix, DVector};
+use num_dual::{DualNum, DualSVec64};
+use std::ops::Range;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// Parameters per dual-number pass of the Jacobian. Measured on the 8 s benchmark record
+/// (one core, release): seconds per Jacobian column 0.06 (width 2), 0.04 (4), 0.08 (8),
+/// 0.13 (16): wider duals stop fitting the registers.
+pub const CHUNK: usize = 4;
+/// Largest `|lambda| h` of the fast electrical mode in the Jacobian runs.
+const JACOBIAN_STIFF_LIMIT: f64 = 1.5;
+/// Highest power-series order.
+pub const MAX_ORDER: usize = 8;
+/// Lowest power-series order.
+pub const MIN_ORDER: usize = 2;
+
+/// Ascending power coefficients of the Legendre polynomials `P_0 .. P_n`.
+pub fn legendre(n: usize) -> Vec<Vec<f64>> {
+    let mut p = vec![vec![1.0], vec![0.0, 1.0]];
+    for k in 1..n {
+        let kf = k as f64;
+        let mut next = vec![0.0; k + 2];
+        for (j, c) in p[k].iter().enumerate() {
+            next[j + 1] += (2.0 * kf + 1.0) * c / (kf + 1.0);
+        }
+        for (j, c) in p[k - 1].iter().enumerate() {
+            next[j] -= kf * c / (kf + 1.0);
+        }
+        p.push(next);
+    }
+    p.truncate(n + 1);
+    p
+}
+
+/// Scales of the normalised parameters (the start values' magnitudes).
+#[derive(Clone, Debug)]
+pub struct Scales {
+    pub re: f64,
+    pub le: f64,
+    pub l2: f64,
+    pub r2: f64,
+    pub bl: f64,
+    pub kms: f64,
+    pub rms: f64,
+}
+
+/// Where each identified quantity sits in the parameter vector `theta`, and how `theta` maps
+/// to physical parameters. Every number of a result traces back to [`Layout::model`].
+#[derive(Clone, Debug)]
+pub struct Layout {
+    pub order: usize,
+    /// Number of `Re(t)` knots.
+    pub n_re: usize,
+    /// Seconds between `Re(t)` knots.
+    pub knot_dt: f64,
+    /// Reference displacement of the Legendre basis (m): `xi = x / x_ref`.
+    pub x_ref: f64,
+    pub scales: Scales,
+    pub has_l2r2: bool,
+    pub mms: f64,
+    legendre: Vec<Vec<f64>>,
+}
+
+/// Index ranges of the quantities in `theta`.
+#[derive(Clone, Debug)]
+pub struct Slots {
+    pub re: Range<usize>,
+    pub le: Range<usize>,
+    pub l2: Option<usize>,
+    pub r2: Option<usize>,
+    pub bl: Range<usize>,
+    pub kms: Range<usize>,
+    pub rms: usize,
+    pub n: usize,
+}
+
+impl Layout {
+    pub fn new(order: usize, n_re: usize, knot_dt: f64, x_ref: f64, scales: Scales, has_l2r2: bool, mms: f64) -> Self {
+        Layout { order, n_re, knot_dt, x_ref, scales, has_l2r2, mms, legendre: legendre(order) }
+    }
+
+    pub fn slots(&self) -> Slots {
+        let o = self.order + 1;
+        let re = 0..self.n_re;
+        let le = re.end..re.end + o;
+        let (l2, r2, next) = if self.has_l2r2 { (Some(le.end), Some(le.end + 1), le.end + 2) } else { (None, None, le.end) };
+        let bl = next..next + o;
+        let kms = bl.end..bl.end + o;
+        let rms = kms.end;
+        Slots { re, le, l2, r2, bl, kms, rms, n: rms + 1 }
+    }
+
+    /// Power series in x (m) of `scale * sum_j th_j P_j(x / x_ref)`.
+    fn series<D: DualNum<Primitive = f64> + Copy>(&self, th: &[D], scale: f64) -> Poly<D> {
+        let mut c = vec![D::zero(); self.order + 1];
+        for (j, t) in th.iter().enumerate() {
+            for (k, a) in self.legendre[j].iter().enumerate() {
+                if *a != 0.0 {
+                    c[k] += *t * (a * scale / self.x_ref.powi(k as i32));
+                }
+            }
+        }
+        Poly { c }
+    }
+
+    /// Basis values `scale * P_j(x / x_ref)`: the gradient of a series value w.r.t. its theta.
+    pub fn basis_at(&self, x: f64, scale: f64) -> Vec<f64> {
+        let xi = x / self.x_ref;
+        self.legendre.iter().map(|p| scale * Poly { c: p.clone() }.eval(xi)).collect()
+    }
+
+    /// The model (thermal part off: the heating is carried by the `Re(t)` knots) and the knots.
+    pub fn model<D: DualNum<Primitive = f64> + Copy>(&self, th: &[D]) -> (Model<D>, Vec<D>) {
+        let s = self.slots();
+        let sc = &self.scales;
+        let knots: Vec<D> = th[s.re.clone()].iter().map(|&t| t * sc.re).collect();
+        let l2r2 = match (s.l2, s.r2) {
+            (Some(a), Some(b)) => Some((Poly { c: vec![th[a] * sc.l2] }, Poly { c: vec![th[b] * sc.r2] })),
+            _ => None,
+        };
+        let model = Model {
+            re: knots[0],
+            le: self.series(&th[s.le.clone()], sc.le),
+            l2r2,
+            bl: self.series(&th[s.bl.clone()], sc.bl),
+            kms: self.series(&th[s.kms.clone()], sc.kms),
+            mms: D::from(self.mms),
+            rms: th[s.rms] * sc.rms,
+            thermal: None,
+        };
+        (model, knots)
+    }
+
+    /// The identified parameter set (`Re` at the start of the record).
+    pub fn parameters(&self, th: &[f64]) -> Parameters {
+        let (m, _) = self.model::<f64>(th);
+        Parameters {
+            name: None,
+            source: Some("coilscope identify (large-signal output-error fit)".into()),
+            re: m.re,
+            le: m.le,
+            l2r2: m.l2r2,
+            bl: m.bl,
+            kms: m.kms,
+            mms: m.mms,
+            rms: m.rms,
+            sd: None,
+            thermal: None,
+            x_range: None,
+            extra: Default::default(),
+        }
+    }
+
+    /// `theta` that represents a parameter set (series projected on the basis by least squares
+    /// over `[-x_ref, x_ref]`, exact when their degree is at most the order) and an `Re(t)`
+    /// track (`None`: constant `p.re`).
+    pub fn theta_from(&self, p: &Parameters, re_track: Option<&[f64]>) -> Vec<f64> {
+        let s = self.slots();
+        let sc = &self.scales;
+        let mut th = vec![0.0; s.n];
+        for (k, t) in th[s.re.clone()].iter_mut().enumerate() {
+            *t = re_track.and_then(|r| r.get(k).copied()).unwrap_or(p.re) / sc.re;
+        }
+        let project = |f: &Poly, scale: f64| -> Vec<f64> {
+            let o = self.order + 1;
+            let npts = 4 * o + 8;
+            let a = DMatrix::from_fn(npts, o, |r, c| {
+                let xi = (std::f64::consts::PI * (r as f64 + 0.5) / npts as f64).cos();
+                Poly { c: self.legendre[c].clone() }.eval(xi)
+            });
+            let b = DVector::from_fn(npts, |r, _| {
+                let xi = (std::f64::consts::PI * (r as f64 + 0.5) / npts as f64).cos();
+                f.eval(xi * self.x_ref) / scale
+            });
+            let sol = a.svd(true, true).solve(&b, 1e-14).expect("svd solve");
+            sol.iter().copied().collect()
+        };
+        th[s.le.clone()].copy_from_slice(&project(&p.le, sc.le));
+        th[s.bl.clone()].copy_from_slice(&project(&p.bl, sc.bl));
+        th[s.kms.clone()].copy_from_slice(&project(&p.kms, sc.kms));
+        if let (Some(a), Some(b), Some((l2, r2))) = (s.l2, s.r2, p.l2r2.as_ref()) {
+            th[a] = l2.eval(0.0) / sc.l2;
+            th[b] = r2.eval(0.0) / sc.r2;
+        }
+        th[s.rms] = p.rms / sc.rms;
+        th
+    }
+
+    /// `Re` at each knot (ohm).
+    pub fn re_track(&self, th: &[f64]) -> Vec<f64> {
+        th[self.slots().re].iter().map(|t| t * self.scales.re).collect()
+    }
+}
+
+/// Run the fitted model over `u[..len]` with `n` sub-steps per sample, calling
+/// `observe(m, state)` at each sample instant. Fails (with the sample index) if the state
+/// leaves `[-x_limit, x_limit]` or stops being finite: a trial step that ran away.
+#[allow(clippy::too_many_arguments)]
+fn run_model<D: DualNum<Primitive = f64> + Copy>(
+    model: &mut Model<D>,
+    knots: &[D],
+    knot_dt: f64,
+    u: &[f64],
+    fs: f64,
+    interp: &Interpolator,
+    len: usize,
+    x_limit: f64,
+    mut observe: impl FnMut(usize, &State<D>),
+) -> Result<(), usize> {
+    let n = interp.n;
+    let dt = 1.0 / fs;
+    let mut y: State<D> = [D::zero(); NSTATE];
+    let mut pf = vec![0.0; 2 * n + 1];
+    let mut pd = vec![D::zero(); 2 * n + 1];
+    let last = knots.len() - 1;
+    for m in 0..len {
+        let x = y[idx::X].re();
+        if !(x.abs() <= x_limit) || !y[idx::I].re().is_finite() {
+            return Err(m);
+        }
+        observe(m, &y);
+        let t = m as f64 * dt / knot_dt;
+        let k = (t.floor() as usize).min(last.saturating_sub(1));
+        let w = (t - k as f64).min(1.0);
+        model.re = if last == 0 { knots[0] } else { knots[k] * (1.0 - w) + knots[k + 1] * w };
+        interp.fill(u, m, &mut pf);
+        for (d, &f) in pd.iter_mut().zip(pf.iter()) {
+            *d = D::from(f);
+        }
+        y = rk4_sample(model, &y, dt, &pd);
+    }
+    Ok(())
+}
+
+/// The output-error problem over one record.
+pub struct OutputError<'a> {
+    pub layout: Layout,
+    pub u: &'a [f64],
+    pub i: &'a [f64],
+    pub fs: f64,
+    /// Samples whose residual enters the cost.
+    pub fit: Range<usize>,
+    /// Displacement beyond which a trial is rejected as a runaway (m).
+    pub x_limit: f64,
+    pub threads: usize,
+    interp: Interpolator,
+    interp_jac: Interpolator,
+}
+
+impl<'a> OutputError<'a> {
+    /// `rate`: the fastest electrical eigenvalue (1/s) of the start model.
+    pub fn new(layout: Layout, u: &'a [f64], i: &'a [f64], fs: f64, fit: Range<usize>, rate: f64, x_limit: f64, threads: usize) -> Self {
+        let n = substeps_for(rate, fs);
+        let n_jac = ((rate / fs / JACOBIAN_STIFF_LIMIT).ceil() as usize).clamp(1, n);
+        OutputError { layout, u, i, fs, fit, x_limit, threads: threads.max(1), interp: Interpolator::new(n), interp_jac: Interpolator::new(n_jac) }
+    }
+
+    /// Sub-steps per sample of the residual and of the Jacobian runs.
+    pub fn substeps(&self) -> (usize, usize) {
+        (self.interp.n, self.interp_jac.n)
+    }
+
+    /// Simulated trace of the model `theta` over `u[..len]`: (x, i) per sample.
+    pub fn trace(&self, th: &[f64], len: usize) -> Result<(Vec<f64>, Vec<f64>), usize> {
+        let (mut model, knots) = self.layout.model::<f64>(th);
+        let mut x = Vec::with_capacity(len);
+        let mut i = Vec::with_capacity(len);
+        run_model(&mut model, &knots, self.layout.knot_dt, self.u, self.fs, &self.interp, len, self.x_limit, |_, s| {
+            x.push(s[idx::X]);
+            i.push(s[idx::I]);
+        })?;
+        Ok((x, i))
+    }
+
+    fn residual_vec(&self, th: &[f64]) -> Option<DVector<f64>> {
+        let start = self.fit.start;
+        let mut r = DVector::zeros(self.fit.len());
+        let (mut model, knots) = self.layout.model::<f64>(th);
+        run_model(&mut model, &knots, self.layout.knot_dt, self.u, self.fs, &self.interp, self.fit.end, self.x_limit, |m, s| {
+            if m >= start {
+                r[m - start] = s[idx::I] - self.i[m];
+            }
+        })
+        .ok()?;
+        Some(r)
+    }
+
+    /// Jacobian columns `c0 .. c0 + N` (fewer at the end) of the current w.r.t. theta: one
+    /// run of the model on `N`-wide dual numbers.
+    fn jacobian_chunk<const N: usize>(&self, th: &[f64], c0: usize) -> Vec<Vec<f64>> {
+        let n = th.len();
+        let cnt = N.min(n - c0);
+        let thd: Vec<DualSVec64<N>> = th
+            .iter()
+            .enumerate()
+            .map(|(j, &t)| {
+                let d = DualSVec64::<N>::from_re(t);
+                if j >= c0 && j < c0 + cnt {
+                    d.derivative(j - c0)
+                } else {
+                    d
+                }
+            })
+            .collect();
+        let (mut model, knots) = self.layout.model(&thd);
+        let start = self.fit.start;
+        let mut cols = vec![vec![0.0; self.fit.len()]; cnt];
+        // A run that fails here ran away at a theta whose f64 run did not: leave zeros.
+        let _ = run_model(&mut model, &knots, self.layout.knot_dt, self.u, self.fs, &self.interp_jac, self.fit.end, f64::INFINITY, |m, s| {
+            if m >= start {
+                if let Some(e) = s[idx::I].eps.0.as_ref() {
+                    for (k, col) in cols.iter_mut().enumerate() {
+                        col[m - start] = e[k];
+                    }
+                }
+            }
+        });
+        cols
+    }
+
+    /// All Jacobian columns, passes spread over `threads` workers.
+    pub fn jacobian(&self, th: &[f64]) -> DMatrix<f64> {
+        let n = th.len();
+        let chunks: Vec<usize> = (0..n).step_by(CHUNK).collect();
+        let next = AtomicUsize::new(0);
+        let mut done: Vec<(usize, Vec<Vec<f64>>)> = Vec::new();
+        std::thread::scope(|scope| {
+            let workers: Vec<_> = (0..self.threads.min(chunks.len()))
+                .map(|_| {
+                    scope.spawn(|| {
+                        let mut out = Vec::new();
+                        loop {
+                            let k = next.fetch_add(1, Ordering::Relaxed);
+                            let Some(&c0) = chunks.get(k) else { break };
+                            out.push((c0, self.jacobian_chunk::<CHUNK>(th, c0)));
+                        }
+                        out
+                    })
+                })
+                .collect();
+            for w in workers {
+                done.extend(w.join().expect("Jacobian worker panicked"));
+            }
+        });
+        let mut j = DMatrix::zeros(self.fit.len(), n);
+        for (c0, cols) in done {
+            for (k, col) in cols.into_iter().enumerate() {
+                j.column_mut(c0 + k).copy_from_slice(&col);
+            }
+        }
+        j
+    }
+
+    /// Time one Jacobian pass of width `w` (1 ..= 8 or 16): what chose [`CHUNK`].
+    pub fn time_pass(&self, th: &[f64], w: usize) -> f64 {
+        let t = std::time::Instant::now();
+        match w {
+            1 => drop(self.jacobian_chunk::<1>(th, 0)),
+            2 => drop(self.jacobian_chunk::<2>(th, 0)),
+            4 => drop(self.jacobian_chunk::<4>(th, 0)),
+            8 => drop(self.jacobian_chunk::<8>(th, 0)),
+            _ => drop(self.jacobian_chunk::<16>(th, 0)),
+        }
+        t.elapsed().as_secs_f64()
+    }
+}
+
+impl Problem for OutputError<'_> {
+    fn residual_jacobian(&self, theta: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
+        let r = self.residual(theta);
+        (r, self.jacobian(theta))
+    }
+    fn residual(&self, theta: &[f64]) -> DVector<f64> {
+        // A runaway trial gets an infinite cost, so LM rejects it and raises the damping.
+        self.residual_vec(theta).unwrap_or_else(|| DVector::from_element(self.fit.len(), f64::INFINITY))
+    }
+}
+
+/// Options of [`identify`].
+#[derive(Clone, Debug)]
+pub struct IdentifyOptions {
+    /// Moving mass (kg): the absolute scale.
+    pub mms: f64,
+    /// Power-series order of Bl, Kms and Le; `None`: chosen by validation on held-out data.
+    pub order: Option<usize>,
+    /// Start values; `None`: the linear (impedance) fit of the same record, scaled by `mms`.
+    pub init: Option<Parameters>,
+    /// Seconds between the knots of the `Re(t)` track.
+    pub knot_seconds: f64,
+    /// Share of the record used for estimation while the order is chosen (the rest validates).
+    pub estimation_share: f64,
+    /// LM iterations of the final fit.
+    pub max_iterations: usize,
+    /// Worker threads for the Jacobian (0: all cores).
+    pub threads: usize,
+}
+
+impl Default for IdentifyOptions {
+    fn default() -> Self {
+        IdentifyOptions { mms: f64::NAN, order: None, init: None, knot_seconds: 2.0, estimation_share: 0.7, max_iterations: 40, threads: 0 }
+    }
+}
+
+/// What the fit is doing, for observers.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Stage {
+    /// Order `n` fitted on the estimation part.
+    Estimate { order: usize },
+    /// The chosen order fitted on the whole record.
+    Final { order: usize },
+}
+
+/// One observed iteration.
+#[derive(Clone, Debug)]
+pub struct Progress<'a> {
+    pub stage: Stage,
+    pub state: &'a LmState,
+    /// `||r|| / ||i||` over the fitted samples at this state.
+    pub residual_rel: f64,
+}
+
+/// Validation record of one candidate order.
+#[derive(Clone, Debug)]
+pub struct OrderTrial {
+    pub order: usize,
+    /// `||i_model - i|| / ||i||` on the estimation part.
+    pub estimation_rel: f64,
+    /// The same on the held-out part.
+    pub validation_rel: f64,
+    pub iterations: usize,
+}
+
+/// A large-signal fit.
+#[derive(Clone, Debug)]
+pub struct LargeFit {
+    /// The identified parameters (`Re` at the start, `x_range` = the reached range).
+    pub params: Parameters,
+    pub layout: Layout,
+    pub theta: Vec<f64>,
+    /// Covariance of theta (noise only; see [`LargeFit::sd`]).
+    pub cov: Option<DMatrix<f64>>,
+    /// `||i_model - i|| / ||i||` over the fitted samples.
+    pub residual_rel: f64,
+    /// Range of x the model reached on this record (m).
+    pub x_range: [f64; 2],
+    pub order: usize,
+    pub trials: Vec<OrderTrial>,
+    pub iterations: usize,
+    pub converged: bool,
+    /// Why the final fit stopped.
+    pub stop_reason: String,
+    /// `(t, Re(t))` at the knots.
+    pub re_track: Vec<(f64, f64)>,
+    /// Sub-steps of the residual and of the Jacobian runs.
+    pub substeps: (usize, usize),
+    /// Samples skipped at the start while the unknown initial state settles.
+    pub settle: usize,
+    /// Sample rate (Hz).
+    pub fs: f64,
+    /// The linear start (None when the caller gave one).
+    pub linear: Option<LinearFit>,
+    /// The predicted current and displacement of the final model (A, m).
+    pub i_model: Vec<f64>,
+    pub x_model: Vec<f64>,
+}
+
+/// Relative RMS of `r` against `i` (same length).
+fn rel(r: &DVector<f64>, i: &[f64]) -> f64 {
+    r.norm() / i.iter().map(|v| v * v).sum::<f64>().sqrt()
+}
+
+/// A fit that could not be made, or whose result cannot be trusted.
+#[derive(Clone, Debug)]
+pub enum IdentifyError {
+    /// Bad input: the message names the file and what would be valid.
+    Input(String),
+    /// The excitation did not reach far enough for the nonlinearities to show.
+    TooSmall(String),
+    /// The fit did not converge; the best estimate so far is kept.
+    NotConverged { message: String, best: Box<LargeFit> },
+}
+
+impl std::fmt::Display for IdentifyError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            IdentifyError::Input(m) | IdentifyError::TooSmall(m) => f.write_str(m),
+            IdentifyError::NotConverged { message, .. } => f.write_str(message),
+        }
+    }
+}
+
+/// Run LM on `prob` from `theta` until an accepted step lowers the cost by less than `tol`
+/// (relative; Gauss-Newton's next step would gain far less) or `max_it` iterations. Returns the last state.
+fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: usize, observe: &mut dyn FnMut(&Progress)) -> LmState {
+    let norm_i = prob.i[prob.fit.clone()].iter().map(|v| v * v).sum::<f64>().sqrt();
+    let report = |s: &LmState, observe: &mut dyn FnMut(&Progress)| {
+        observe(&Progress { stage: stage.clone(), state: s, residual_rel: (2.0 * s.cost).sqrt() / norm_i });
+    };
+    let mut s = LmState::new(prob, theta);
+    report(&s, observe);
+    while s.iteration < max_it {
+        let next = lm_step(prob, &s);
+        let stalled = next.last_decrease == 0.0;
+        s = next;
+        report(&s, observe);
+        if stalled {
+            break;
+        }
+        if s.last_decrease < tol || s.converged {
+            s.converged = true;
+            break;
+        }
+    }
+    s
+}
+
+/// Identify the large-signal parameters from voltage `u` (V) and current `i` (A) sampled at
+/// `fs`. `origin` names the recording in messages.
+pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOptions, mut observe: impl FnMut(&Progress)) -> Result<LargeFit, IdentifyError> {
+    use IdentifyError::*;
+    if u.len() != i.len() {
+        return Err(Input(format!("{origin}: voltage and current have different lengths ({} and {})", u.len(), i.len())));
+    }
+    check_channels(u, i, fs, origin).map_err(Input)?;
+    if let Some(o) = opts.order {
+        if !(MIN_ORDER..=MAX_ORDER).contains(&o) {
+            return Err(Input(format!("power-series order {o} is not valid ({MIN_ORDER} ..= {MAX_ORDER})")));
+        }
+    }
+    if !(opts.mms.is_finite() && opts.mms > 0.0 && opts.mms < 2.0) {
+        return Err(Input(format!("moving mass {} kg is not valid (0 .. 2 kg; give kg, not g)", opts.mms)));
+    }
+    let seconds = u.len() as f64 / fs;
+    if seconds < 2.0 {
+        return Err(Input(format!("{origin}: {seconds:.2} s is too short for a large-signal fit; record at least 2 s (8 s is typical)")));
+    }
+    // Start values.
+    let (start, linear) = match &opts.init {
+        Some(p) => (p.clone(), None),
+        None => {
+            let lin = fit_linear(u, i, fs, origin, |_| {}).map_err(Input)?;
+            (scale_by_mms(&lin, opts.mms).map_err(Input)?, Some(lin))
+        }
+    };
+    let start = Parameters { mms: opts.mms, thermal: None, ..start };
+    let threads = if opts.threads == 0 { std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) } else { opts.threads };
+    let rate = start.three_state().stiffness_rate().max(
+        start.l2r2.as_ref().map(|(l2, r2)| r2.eval(0.0) / l2.eval(0.0) + (start.re + r2.eval(0.0)) / start.le.eval(0.0)).unwrap_or(0.0),
+    );
+    // Settling: the unknown initial state decays with the mechanical time constant.
+    let tau = 2.0 * start.mms / start.rms.max(1e-9);
+    let settle = ((5.0 * tau).clamp(0.02, 0.25) * fs) as usize;
+    let n_re = ((seconds / opts.knot_seconds).ceil() as usize + 1).max(2);
+    let knot_dt = seconds / (n_re - 1) as f64;
+    let scales = Scales {
+        re: start.re,
+        le: start.le.eval(0.0).max(1e-9),
+        l2: start.l2r2.as_ref().map(|(l, _)| l.eval(0.0)).unwrap_or(1e-4).max(1e-9),
+        r2: start.l2r2.as_ref().map(|(_, r)| r.eval(0.0)).unwrap_or(1.0).max(1e-6),
+        bl: start.bl.eval(0.0),
+        kms: start.kms.eval(0.0),
+        rms: start.rms.max(1e-6),
+    };
+    let has_l2r2 = start.l2r2.is_some();
+    // Reach of the start model: the basis scale, and the runaway limit.
+    let probe = Layout::new(MIN_ORDER, n_re, knot_dt, 1e-3, scales.clone(), has_l2r2, opts.mms);
+    let th0 = probe.theta_from(&start, None);
+    let pr = OutputError::new(probe, u, i, fs, 0..u.len(), rate, f64::INFINITY, threads);
+    let (x0, _) = pr.trace(&th0, u.len()).map_err(|m| Input(format!("{origin}: the start model diverged at sample {m}")))?;
+    let reach0 = x0.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-6);
+    let x_ref = reach0;
+    let x_limit = 8.0 * reach0;
+    let layout_for = |order: usize| Layout::new(order, n_re, knot_dt, x_ref, scales.clone(), has_l2r2, opts.mms);
+
+    // Order selection: increasing orders on the estimation part, warm-started.
+    let n = u.len();
+    let split = ((opts.estimation_share.clamp(0.3, 0.9) * n as f64) as usize).max(settle + 1);
+    let mut trials = Vec::new();
+    let mut current = start.clone();
+    let mut re_track: Option<Vec<f64>> = None;
+    let mut best_by_order: Vec<(usize, Vec<f64>, f64)> = Vec::new();
+    let orders: Vec<usize> = match opts.order {
+        Some(o) => vec![o],
+        None => vec![2, 4, 6, 8],
+    };
+    let mut linear_rel = None;
+    if opts.order.is_none() {
+        // A linear time-domain fit (order 0) on the estimation part: the baseline that the
+        // nonlinear terms must improve on.
+        let lay = layout_for(0);
+        let th = lay.theta_from(&current, None);
+        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rate, x_limit, threads);
+        let s = solve(&prob, th, &Stage::Estimate { order: 0 }, 1e-3, 10, &mut observe);
+        linear_rel = Some((2.0 * s.cost).sqrt() / i[settle..split].iter().map(|v| v * v).sum::<f64>().sqrt());
+        current = Parameters { mms: opts.mms, ..lay.parameters(&s.theta) };
+        re_track = Some(lay.re_track(&s.theta));
+    }
+    for &order in &orders {
+        if opts.order.is_some() {
+            break;
+        }
+        let lay = layout_for(order);
+        let th = lay.theta_from(&current, re_track.as_deref());
+        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rate, x_limit, threads);
+        let s = solve(&prob, th, &Stage::Estimate { order }, 1e-3, 12, &mut observe);
+        let est = (2.0 * s.cost).sqrt() / i[settle..split].iter().map(|v| v * v).sum::<f64>().sqrt();
+        // The held-out part: Re(t) knots beyond the estimation part were not identified;
+        // continue the track linearly from its last identified interval.
+        let mut th_val = s.theta.clone();
+        let t_split = split as f64 / fs;
+        let sl = lay.slots();
+        let re_at = |th: &[f64], t: f64| {
+            let k = ((t / knot_dt).floor() as usize).min(n_re - 2);
+            let w = t / knot_dt - k as f64;
+            th[sl.re.start + k] * (1.0 - w) + th[sl.re.start + k + 1] * w
+        };
+        let (ra, rb) = (re_at(&s.theta, t_split - knot_dt), re_at(&s.theta, t_split));
+        for k in 0..n_re {
+            let tk = k as f64 * knot_dt;
+            if tk > t_split - knot_dt {
+                th_val[sl.re.start + k] = rb + (rb - ra) * (tk - t_split) / knot_dt;
+            }
+        }
+        let full = OutputError::new(lay.clone(), u, i, fs, split..n, rate, x_limit, threads);
+        let val = full.residual_vec(&th_val).map(|r| rel(&r, &i[split..n])).unwrap_or(f64::INFINITY);
+        trials.push(OrderTrial { order, estimation_rel: est, validation_rel: val, iterations: s.iteration });
+        current = Parameters { mms: opts.mms, ..lay.parameters(&s.theta) };
+        re_track = Some(lay.re_track(&th_val));
+        best_by_order.push((order, th_val, val));
+        if order == MIN_ORDER {
+            if let Some(lin) = linear_rel {
+                // The nonlinear terms must explain a real part of what the linear model misses.
+                let gain = 1.0 - est / lin;
+                if gain < 0.05 {
+                    let (lo, hi) = x0.iter().fold((0.0f64, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
+                    return Err(TooSmall(format!(
+                        "{origin}: the excitation is too small to identify anything nonlinear: x reached only {:.3} .. {:.3} mm, and nonlinear terms improve the current error by {:.1} % (linear {:.3e}, order 2 {:.3e}); raise the level until the driver reaches a good part of its rated excursion",
+                        lo * 1e3,
+                        hi * 1e3,
+                        100.0 * gain,
+                        lin,
+                        est
+                    )));
+                }
+            }
+        }
+        // Stop raising the order once validation stops improving by 2 %.
+        if best_by_order.len() >= 2 {
+            let prev = best_by_order[best_by_order.len() - 2].2;
+            if val > 0.98 * prev {
+                break;
+            }
+        }
+    }
+    let order = match opts.order {
+        Some(o) => o,
+        None => {
+            let best = best_by_order.iter().map(|b| b.2).fold(f64::INFINITY, f64::min);
+            best_by_order.iter().find(|b| b.2 <= 1.02 * best).map(|b| b.0).unwrap_or(MIN_ORDER)
+        }
+    };
+    if let Some((_, th, _)) = best_by_order.iter().find(|b| b.0 == order) {
+        let lay = layout_for(order);
+        current = Parameters { mms: opts.mms, ..lay.parameters(th) };
+        re_track = Some(lay.re_track(th));
+    }
+
+    // Final fit on the whole record.
+    let lay = layout_for(order);
+    let th = lay.theta_from(&current, re_track.as_deref());
+    let prob = OutputError::new(lay.clone(), u, i, fs, settle..n, rate, x_limit, threads);
+    let s = solve(&prob, th, &Stage::Final { order }, 1e-4, opts.max_iterations, &mut observe);
+    let (x_model, i_model) = prob.trace(&s.theta, n).map_err(|m| Input(format!("{origin}: the fitted model diverged at sample {m}")))?;
+    let r = prob.residual(&s.theta);
+    let residual_rel = rel(&r, &i[settle..n]);
+    let cov = crate::lm::covariance(&prob, &s.theta);
+    let x_range = x_model.iter().fold([0.0f64, 0.0f64], |[a, b], v| [a.min(*v), b.max(*v)]);
+    let mut params = lay.parameters(&s.theta);
+    params.x_range = Some(x_range);
+    let stop_reason = if s.converged {
+        format!("converged: cost decrease below 1e-4 after {} iterations", s.iteration)
+    } else if s.iteration >= opts.max_iterations {
+        format!("stopped at the iteration limit ({}), last relative cost decrease {:.2e}", opts.max_iterations, s.last_decrease)
+    } else {
+        "no step lowered the cost any further".to_string()
+    };
+    let converged = s.converged || s.last_decrease == 0.0;
+    let re_track = lay.re_track(&s.theta).iter().enumerate().map(|(k, r)| (k as f64 * knot_dt, *r)).collect();
+    let fit = LargeFit {
+        params,
+        layout: lay,
+        theta: s.theta.clone(),
+        cov,
+        residual_rel,
+        x_range,
+        order,
+        trials,
+        iterations: s.iteration,
+        converged,
+        stop_reason: stop_reason.clone(),
+        re_track,
+        substeps: prob.substeps(),
+        settle,
+        fs,
+        linear,
+        i_model,
+        x_model,
+    };
+    if !converged {
+        return Err(NotConverged { message: format!("{origin}: the large-signal fit did not converge ({stop_reason}); the best estimate is kept"), best: Box::new(fit) });
+    }
+    Ok(fit)
+}
+
+/// A function of x with its standard deviation on a grid (a confidence band: +- 2 sd is
+/// about 95 %).
+#[derive(Clone, Debug)]
+pub struct Band {
+    pub x: Vec<f64>,
+    pub value: Vec<f64>,
+    pub sd: Vec<f64>,
+}
+
+impl LargeFit {
+    /// Standard deviation of theta entry `k`.
+    fn sd_theta(&self, k: usize) -> f64 {
+        self.cov.as_ref().map(|c| c[(k, k)].max(0.0).sqrt()).unwrap_or(f64::NAN)
+    }
+
+    /// Standard deviations (SI) of the scalar quantities: Re (at the start), L2, R2, Rms.
+    pub fn sd(&self) -> Vec<(&'static str, f64)> {
+        let s = self.layout.slots();
+        let sc = &self.layout.scales;
+        let mut out = vec![("Re", self.sd_theta(s.re.start) * sc.re)];
+        if let (Some(a), Some(b)) = (s.l2, s.r2) {
+            out.push(("L2", self.sd_theta(a) * sc.l2));
+            out.push(("R2", self.sd_theta(b) * sc.r2));
+        }
+        out.push(("Rms", self.sd_theta(s.rms) * sc.rms));
+        out
+    }
+
+    /// Band of `Bl`, `Kms` or `Le` over the reached range (`points` x values).
+    pub fn band(&self, which: &str, points: usize) -> Band {
+        let s = self.layout.slots();
+        let sc = &self.layout.scales;
+        let (range, scale, f) = match which {
+            "Bl" => (s.bl, sc.bl, &self.params.bl),
+            "Kms" => (s.kms, sc.kms, &self.params.kms),
+            _ => (s.le, sc.le, &self.params.le),
+        };
+        let [lo, hi] = self.x_range;
+        let x: Vec<f64> = (0..points).map(|k| lo + (hi - lo) * k as f64 / (points - 1).max(1) as f64).collect();
+        let value = x.iter().map(|&x| f.eval(x)).collect();
+        let sd = x
+            .iter()
+            .map(|&x| {
+                let g = self.layout.basis_at(x, scale);
+                match &self.cov {
+                    Some(c) => {
+                        let mut v = 0.0;
+                        for (a, ga) in range.clone().zip(g.iter()) {
+                            for (b, gb) in range.clone().zip(g.iter()) {
+                                v += ga * c[(a, b)] * gb;
+                            }
+                        }
+                        v.max(0.0).sqrt()
+                    }
+                    None => f64::NAN,
+                }
+            })
+            .collect();
+        Band { x, value, sd }
+    }
+
+    /// Voice-coil temperature rise at the knots (K), from `Re(t)` and the copper coefficient.
+    pub fn temperature_track(&self, alpha: f64) -> Vec<(f64, f64)> {
+        let r0 = self.re_track[0].1;
+        self.re_track.iter().map(|&(t, r)| (t, (r / r0 - 1.0) / alpha)).collect()
+    }
+
+    /// The result file (`"format": "coilscope.result/1"`).
+    pub fn result_json(&self, recording: &str, mms_source: &str) -> serde_json::Value {
+        use serde_json::json;
+        let ts = coilscope_core::small_signal::thiele_small(&self.params);
+        let lim = coilscope_core::limits::limits(&self.params, self.x_range);
+        let mut unc = serde_json::Map::new();
+        unc.insert(
+            "note".into(),
+            "standard deviations from the final Jacobian and the residual variance (sensor noise; Mms is taken as exact; residual correlation and model error are not included). Bands: value and sd on a grid over fit.x_range; +-2 sd is about 95 %".into(),
+        );
+        for (k, v) in self.sd() {
+            unc.insert(k.into(), v.into());
+        }
+        for which in ["Bl", "Kms", "Le"] {
+            let b = self.band(which, 41);
+            unc.insert(format!("{which}_band"), json!({"x": b.x, "value": b.value, "sd": b.sd}));
+        }
+        let alpha = 0.00393;
+        let temps = self.temperature_track(alpha);
+        json!({
+            "format": "coilscope.result/1",
+            "kind": "large-signal",
+            "recording": recording,
+            "parameters": self.params.to_json_value(),
+            "fit": {
+                "method": "output-error (parallel model): measured voltage in, current compared",
+                "residual_rel": self.residual_rel,
+                "x_range": self.x_range,
+                "order": self.order,
+                "order_trials": self.trials.iter().map(|t| json!({"order": t.order, "estimation_rel": t.estimation_rel, "validation_rel": t.validation_rel, "iterations": t.iterations})).collect::<Vec<_>>(),
+                "iterations": self.iterations,
+                "converged": self.converged,
+                "stop_reason": self.stop_reason,
+                "substeps": [self.substeps.0, self.substeps.1],
+                "settle_s": self.settle as f64 / self.fs,
+                "Mms_source": mms_source,
+            },
+            "small_signal": ts.to_json(),
+            "limits": lim.to_json(),
+            "uncertainty": serde_json::Value::Object(unc),
+            "thermal": {
+                "note": "Re(t) tracked piecewise linearly; temperature rise = (Re(t)/Re(0) - 1)/alpha with alpha = 0.00393 1/K (copper)",
+                "Re_track": self.re_track.iter().map(|(t, r)| json!([t, r])).collect::<Vec<_>>(),
+                "dT_track": temps.iter().map(|(t, d)| json!([t, d])).collect::<Vec<_>>(),
+                "dT_end": temps.last().map(|t| t.1),
+            },
+        })
+    }
+}

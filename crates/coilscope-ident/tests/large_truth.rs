@@ -1,0 +1,282 @@
+//! Large-signal identification against the truth (issue 4).
+//!
+//! Recordings: 8 s at 48 kHz of pink noise (10 Hz - 8 kHz, crest factor 3) whose level makes
+//! the driver reach 85 % of its `x_range`, with the two-node thermal model on (the coil heats
+//! by 1-3 K during the record) and Gaussian sensor noise on both channels. Plus the
+//! independent recordings of `shared/recordings` (6 s, another simulator).
+//!
+//! Tolerances at 70 dB SNR (the issue's): over the range the record reached, the largest error
+//! of Bl(x) and Kms(x) within 2 % and of Le(x) within 5 % of the true value at rest; Re and
+//! Rms within 1 %; `residual_rel` <= 1 %. At 60 dB the same tolerances hold (asserted); the
+//! measured errors are printed by every test (`--nocapture`).
+
+use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
+use coilscope_core::simulate::{simulate, SimOptions};
+use coilscope_core::{embedded_driver, Parameters, Poly};
+use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, LargeFit};
+use std::path::Path;
+
+struct Rec {
+    fs: f64,
+    u: Vec<f64>,
+    i: Vec<f64>,
+    /// What the truth reached.
+    x_range: [f64; 2],
+}
+
+/// A large-signal recording reaching `share` of the driver's x_range.
+fn record(p: &Parameters, fs: f64, seconds: f64, share: f64, snr_db: f64, seed: u64) -> Rec {
+    let [lo, hi] = p.x_range.unwrap();
+    let target = share * hi.min(-lo);
+    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed }).unwrap();
+    let mut g = 1.0;
+    let mut tr = None;
+    for _ in 0..6 {
+        let u: Vec<f64> = unit.iter().map(|v| v * g).collect();
+        let t = simulate(p, fs, &u, &SimOptions::default()).unwrap();
+        let s = t.summary();
+        let peak = s.x_max.max(-s.x_min);
+        let done = (peak / target - 1.0).abs() < 0.02;
+        tr = Some(t);
+        if done {
+            break;
+        }
+        g *= target / peak;
+    }
+    let tr = tr.unwrap();
+    let s = tr.summary();
+    if seconds >= 8.0 {
+        assert!(s.dt_end > 0.5, "the coil must heat during the record ({} K)", s.dt_end);
+    }
+    let (mut u, mut i) = (tr.u, tr.i);
+    add_sensor_noise(&mut u, snr_db, seed, "sensor-noise/voltage");
+    add_sensor_noise(&mut i, snr_db, seed, "sensor-noise/current");
+    Rec { fs, u, i, x_range: [s.x_min, s.x_max] }
+}
+
+/// Largest |f - g| over [lo, hi], relative to g(0).
+fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
+    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, f64::max) / g.eval(0.0).abs()
+}
+
+struct Tol {
+    bl_kms: f64,
+    le: f64,
+    re_rms: f64,
+}
+const ISSUE: Tol = Tol { bl_kms: 0.02, le: 0.05, re_rms: 0.01 };
+
+fn assert_truth(label: &str, fit: &LargeFit, truth: &Parameters, range: [f64; 2], tol: &Tol) {
+    let q = &fit.params;
+    let e_bl = worst(&q.bl, &truth.bl, range);
+    let e_k = worst(&q.kms, &truth.kms, range);
+    let e_le = worst(&q.le, &truth.le, range);
+    let e_re = (q.re / truth.re - 1.0).abs();
+    let e_rms = (q.rms / truth.rms - 1.0).abs();
+    println!(
+        "{label}: order {}, residual {:.2e}, errors Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.3} %, Rms {:.3} %, x {:.2}..{:.2} mm (truth {:.2}..{:.2})",
+        fit.order,
+        fit.residual_rel,
+        100.0 * e_bl,
+        100.0 * e_k,
+        100.0 * e_le,
+        100.0 * e_re,
+        100.0 * e_rms,
+        fit.x_range[0] * 1e3,
+        fit.x_range[1] * 1e3,
+        range[0] * 1e3,
+        range[1] * 1e3
+    );
+    assert!(e_bl <= tol.bl_kms, "{label}: Bl off by {:.3} %", 100.0 * e_bl);
+    assert!(e_k <= tol.bl_kms, "{label}: Kms off by {:.3} %", 100.0 * e_k);
+    assert!(e_le <= tol.le, "{label}: Le off by {:.3} %", 100.0 * e_le);
+    assert!(e_re <= tol.re_rms, "{label}: Re off by {:.3} %", 100.0 * e_re);
+    assert!(e_rms <= tol.re_rms, "{label}: Rms off by {:.3} %", 100.0 * e_rms);
+    assert!(fit.residual_rel <= 0.01, "{label}: residual {}", fit.residual_rel);
+    // The reported range is the one reached (never extrapolated), within 2 %.
+    for k in 0..2 {
+        assert!((fit.x_range[k] / range[k] - 1.0).abs() < 0.02, "{label}: x_range {:?} vs {:?}", fit.x_range, range);
+    }
+    assert_eq!(q.x_range, Some(fit.x_range));
+}
+
+fn run(rec: &Rec, opts: IdentifyOptions) -> LargeFit {
+    match identify(&rec.u, &rec.i, rec.fs, "test", &opts, |_| {}) {
+        Ok(f) => f,
+        Err(e) => panic!("{e}"),
+    }
+}
+
+#[test]
+fn three_drivers_at_70_db() {
+    for name in ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"] {
+        let p = embedded_driver(name).unwrap();
+        let rec = record(&p, 48000.0, 8.0, 0.85, 70.0, 11);
+        let fit = run(&rec, IdentifyOptions { mms: p.mms, ..Default::default() });
+        assert_truth(&format!("{name} 70 dB"), &fit, &p, rec.x_range, &ISSUE);
+        // The voice-coil heating is tracked: Re rises over the record.
+        assert!(fit.re_track.last().unwrap().1 > fit.re_track[0].1 * 1.001, "{name}: {:?}", fit.re_track);
+    }
+}
+
+#[test]
+fn noisier_sensors_at_60_db() {
+    let p = embedded_driver("18wu-4741t-00").unwrap();
+    let rec = record(&p, 48000.0, 8.0, 0.85, 60.0, 12);
+    let fit = run(&rec, IdentifyOptions { mms: p.mms, ..Default::default() });
+    assert_truth("18wu 60 dB", &fit, &p, rec.x_range, &ISSUE);
+}
+
+#[test]
+fn other_sample_rates() {
+    for (name, fs) in [("sb17cac35-4", 44100.0), ("ptt4.0w04-01a", 96000.0)] {
+        let p = embedded_driver(name).unwrap();
+        let rec = record(&p, fs, 8.0, 0.85, 70.0, 13);
+        let fit = run(&rec, IdentifyOptions { mms: p.mms, ..Default::default() });
+        assert_truth(&format!("{name} at {fs} Hz"), &fit, &p, rec.x_range, &ISSUE);
+    }
+}
+
+#[test]
+fn start_with_kms_twice_too_high() {
+    // A linear estimate 2x off in Kms (the rest at the truth's values at rest), fixed order.
+    let p = embedded_driver("sb17cac35-4").unwrap();
+    let rec = record(&p, 48000.0, 8.0, 0.85, 70.0, 14);
+    let c0 = |f: &Poly| Poly::constant(f.eval(0.0));
+    let start = Parameters {
+        le: c0(&p.le),
+        bl: c0(&p.bl),
+        kms: Poly::constant(2.0 * p.kms.eval(0.0)),
+        l2r2: p.l2r2.clone(),
+        thermal: None,
+        x_range: None,
+        ..p.clone()
+    };
+    let fit = run(&rec, IdentifyOptions { mms: p.mms, init: Some(start), order: Some(4), ..Default::default() });
+    assert_eq!(fit.order, 4);
+    assert_truth("sb17 from Kms x2", &fit, &p, rec.x_range, &ISSUE);
+}
+
+#[test]
+fn uncertainty_bands_cover_the_truth_and_shrink_with_noise() {
+    let p = embedded_driver("ptt4.0w04-01a").unwrap();
+    let mut widths = vec![];
+    for snr in [70.0, 50.0] {
+        let rec = record(&p, 48000.0, 8.0, 0.85, snr, 15);
+        let fit = run(&rec, IdentifyOptions { mms: p.mms, order: Some(4), ..Default::default() });
+        let b = fit.band("Bl", 21);
+        let mut z_max: f64 = 0.0;
+        for (k, &x) in b.x.iter().enumerate() {
+            assert!(b.sd[k] > 0.0 && b.sd[k].is_finite());
+            z_max = z_max.max((b.value[k] - p.bl.eval(x)).abs() / b.sd[k]);
+        }
+        println!("{snr} dB: Bl band sd at rest {:.2e}, worst |error|/sd {z_max:.1}", b.sd[10]);
+        // Residual correlation makes the noise-only sd optimistic; 10 sd bounds the error.
+        assert!(z_max < 10.0, "{snr} dB: Bl error is {z_max:.1} sd");
+        widths.push(b.sd[10]);
+        for (k, v) in fit.sd() {
+            assert!(v > 0.0 && v.is_finite(), "{k}: {v}");
+        }
+    }
+    // 20 dB more noise: the band widens by about 10x.
+    let ratio = widths[1] / widths[0];
+    assert!(ratio > 5.0 && ratio < 20.0, "{widths:?}");
+}
+
+fn shared() -> Option<&'static Path> {
+    let p = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared"));
+    if p.exists() {
+        return Some(p);
+    }
+    assert!(std::env::var("COILSCOPE_NO_SHARED").is_ok(), "../shared is missing; set COILSCOPE_NO_SHARED=1 to skip the reference tests");
+    None
+}
+
+#[test]
+fn independent_reference_recordings() {
+    let Some(dir) = shared() else { return };
+    for name in ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"] {
+        let p = embedded_driver(name).unwrap();
+        let path = dir.join(format!("recordings/{name}-large.wav"));
+        let rec = coilscope_io::read_recording(&path, None).unwrap();
+        let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join(format!("recordings/{name}-large.info.json"))).unwrap()).unwrap();
+        let range = [info["x_min"].as_f64().unwrap(), info["x_max"].as_f64().unwrap()];
+        let r = Rec { fs: rec.fs as f64, u: rec.u, i: rec.i, x_range: range };
+        let fit = run(&r, IdentifyOptions { mms: p.mms, ..Default::default() });
+        assert_truth(&format!("{name} (independent)"), &fit, &p, range, &ISSUE);
+        // The heating the other simulator put in: within 15 % (it runs 8 % hotter than the
+        // spec's model; see the issue 2 note).
+        let dt = fit.temperature_track(0.00393).last().unwrap().1;
+        let dt_ref = info["dT_end"].as_f64().unwrap();
+        assert!((dt / dt_ref - 1.0).abs() < 0.15, "{name}: dT {dt} vs {dt_ref}");
+    }
+}
+
+#[test]
+fn independent_small_signal_record_gives_curves_over_its_small_range() {
+    // +-0.27 mm at 70 dB: the nonlinearity is still above the noise, so the fit is made, and
+    // its x_range says where the curves hold.
+    let Some(dir) = shared() else { return };
+    let p = embedded_driver("sb17cac35-4").unwrap();
+    let rec = coilscope_io::read_recording(&dir.join("recordings/sb17cac35-4-small.wav"), None).unwrap();
+    let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("recordings/sb17cac35-4-small.info.json")).unwrap()).unwrap();
+    let range = [info["x_min"].as_f64().unwrap(), info["x_max"].as_f64().unwrap()];
+    let r = Rec { fs: rec.fs as f64, u: rec.u, i: rec.i, x_range: range };
+    let fit = run(&r, IdentifyOptions { mms: p.mms, ..Default::default() });
+    assert_truth("sb17 small (independent)", &fit, &p, range, &ISSUE);
+    assert!(fit.x_range[1] < 0.3e-3 && fit.x_range[0] > -0.3e-3);
+}
+
+#[test]
+fn excitation_too_small_is_refused_with_the_reached_range() {
+    // About 0.03 mm at 60 dB: the nonlinear terms are buried in the noise.
+    let p = embedded_driver("sb17cac35-4").unwrap();
+    let rec = record(&p, 48000.0, 3.0, 0.005, 60.0, 19);
+    match identify(&rec.u, &rec.i, rec.fs, "small.wav", &IdentifyOptions { mms: p.mms, ..Default::default() }, |_| {}) {
+        Err(IdentifyError::TooSmall(m)) => {
+            println!("{m}");
+            assert!(m.contains("small.wav") && m.contains("mm") && m.contains("too small"), "{m}");
+        }
+        other => panic!("expected TooSmall, got {:?}", other.map(|f| (f.residual_rel, f.trials))),
+    }
+}
+
+#[test]
+fn clipped_input_is_refused() {
+    let p = embedded_driver("sb17cac35-4").unwrap();
+    let mut rec = record(&p, 48000.0, 3.0, 0.5, 70.0, 16);
+    let peak = rec.u.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+    rec.u.iter_mut().for_each(|v| *v = v.clamp(-0.6 * peak, 0.6 * peak));
+    let err = identify(&rec.u, &rec.i, rec.fs, "clip.wav", &IdentifyOptions { mms: p.mms, ..Default::default() }, |_| {}).unwrap_err();
+    let m = err.to_string();
+    assert!(m.contains("clip.wav") && m.contains("clipped") && m.contains("voltage"), "{m}");
+}
+
+#[test]
+fn a_fit_stopped_early_says_why_and_keeps_its_best_estimate() {
+    let p = embedded_driver("sb17cac35-4").unwrap();
+    let rec = record(&p, 48000.0, 3.0, 0.85, 70.0, 17);
+    let c0 = |f: &Poly| Poly::constant(f.eval(0.0));
+    let start = Parameters { le: c0(&p.le), bl: c0(&p.bl), kms: Poly::constant(2.0 * p.kms.eval(0.0)), thermal: None, x_range: None, ..p.clone() };
+    let opts = IdentifyOptions { mms: p.mms, init: Some(start), order: Some(4), max_iterations: 1, ..Default::default() };
+    match identify(&rec.u, &rec.i, rec.fs, "early.wav", &opts, |_| {}) {
+        Err(IdentifyError::NotConverged { message, best }) => {
+            assert!(message.contains("did not converge") && message.contains("iteration limit"), "{message}");
+            assert!(!best.converged && best.iterations == 1);
+            assert!(best.residual_rel.is_finite());
+        }
+        other => panic!("expected NotConverged, got {:?}", other.map(|f| f.iterations)),
+    }
+}
+
+#[test]
+fn bad_options_are_named() {
+    let p = embedded_driver("sb17cac35-4").unwrap();
+    let rec = record(&p, 48000.0, 3.0, 0.5, 70.0, 18);
+    let e = identify(&rec.u, &rec.i, rec.fs, "a.wav", &IdentifyOptions { mms: 15.0, ..Default::default() }, |_| {}).unwrap_err().to_string();
+    assert!(e.contains("moving mass 15") && e.contains("kg"), "{e}");
+    let e = identify(&rec.u, &rec.i, rec.fs, "a.wav", &IdentifyOptions { mms: p.mms, order: Some(12), ..Default::default() }, |_| {}).unwrap_err().to_string();
+    assert!(e.contains("order 12") && e.contains("2 ..= 8"), "{e}");
+    let e = identify(&rec.u[..48000], &rec.i[..48000], rec.fs, "a.wav", &IdentifyOptions { mms: p.mms, ..Default::default() }, |_| {}).unwrap_err().to_string();
+    assert!(e.contains("a.wav") && e.contains("too short"), "{e}");
+}
