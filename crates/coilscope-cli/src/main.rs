@@ -387,7 +387,7 @@ fn cmd_drivers() -> Result<(), String> {
 
 fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), String> {
     use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, Stage};
-    use coilscope_ident::linear::{fit_linear, scale_by_displacement};
+    use coilscope_ident::linear::fit_linear;
     let origin = path.display().to_string();
     let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
     let fs = rec.fs as f64;
@@ -401,12 +401,19 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<
             return Err(format!("--sd {s}: give the radiating area in m^2 (e.g. 0.0118)"));
         }
     }
-    let (mms, mms_source) = match (mms, &rec.x) {
-        (Some(m), _) => (m, "given (--mms)".to_string()),
-        (None, Some(x)) => {
+    // With a displacement channel: the equation-error (post-inverse) estimate gives Mms (when
+    // not given), the start values, and a cross-check of the output-error result.
+    let (mms, mms_source, post) = match (mms, &rec.x) {
+        (m, Some(x)) => {
             let lin = fit_linear(&rec.u, &rec.i, fs, &origin, |_| {})?;
-            (scale_by_displacement(&lin, &rec.i, x, fs, &origin)?, "displacement channel (linear fit)".to_string())
+            let l2r2 = Some((lin.p[2], lin.p[3]));
+            let pi = coilscope_ident::post_inverse::post_inverse(&rec.u, &rec.i, x, fs, order.unwrap_or(4), l2r2, &origin)?;
+            match m {
+                Some(m) => (m, "given (--mms)".to_string(), Some(pi)),
+                None => (pi.mms, "displacement channel (post-inverse equation error)".to_string(), Some(pi)),
+            }
         }
+        (Some(m), None) => (m, "given (--mms)".to_string(), None),
         (None, None) => return Err(format!("{origin}: no absolute scale: give --mms KG (moving mass), or record a displacement channel (3)")),
     };
     let live = std::io::IsTerminal::is_terminal(&std::io::stderr());
@@ -420,7 +427,8 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<
             eprint!("\r  {:5.1} s  fitting {stage}: iteration {:2}, current error {:.3e}        ", t0.elapsed().as_secs_f64(), p.state.iteration, p.residual_rel);
         }
     };
-    let opts = IdentifyOptions { mms, order, ..Default::default() };
+    let init = post.as_ref().map(|p| Parameters { mms, x_range: None, ..p.clone() });
+    let opts = IdentifyOptions { mms, order, init, ..Default::default() };
     let (fit, failure) = match identify(&rec.u, &rec.i, fs, &origin, &opts, progress) {
         Ok(f) => (f, None),
         Err(IdentifyError::NotConverged { message, best }) => (*best, Some(message)),
@@ -437,7 +445,22 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<
     let mut fit = fit;
     fit.params.sd = sd;
     fit.params.source = Some(format!("coilscope identify {}", path.display()));
-    let result = fit.result_json(&path.display().to_string(), &mms_source);
+    let mut result = fit.result_json(&path.display().to_string(), &mms_source);
+    if let Some(pi) = &post {
+        // Largest difference over the reached range, relative to the output-error value at rest.
+        let dev = |a: &coilscope_core::Poly, b: &coilscope_core::Poly| {
+            let [lo, hi] = fit.x_range;
+            (0..=200).map(|k| lo + (hi - lo) * k as f64 / 200.0).map(|x| (a.eval(x) - b.eval(x)).abs()).fold(0.0, f64::max) / b.eval(0.0).abs()
+        };
+        result["cross_check"] = json!({
+            "method": "post-inverse equation error with the measured displacement",
+            "parameters": pi.to_json_value(),
+            "max_rel_difference": {
+                "Bl": dev(&pi.bl, &fit.params.bl), "Kms": dev(&pi.kms, &fit.params.kms), "Le": dev(&pi.le, &fit.params.le),
+                "Mms": (pi.mms / fit.params.mms - 1.0).abs(), "Rms": (pi.rms / fit.params.rms - 1.0).abs(),
+            },
+        });
+    }
     write_json(out, &result).map_err(|e| e.to_string())?;
     print_large_summary(path, &rec, &fit, &result, t0.elapsed().as_secs_f64());
     match failure {
@@ -484,8 +507,6 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
             "Kms" => &p.kms,
             _ => &p.le,
         };
-        let at0 = fit.band(name, 2);
-        let _ = at0;
         println!("  {:<6} {:>14} {:>14} {:>14}  {unit}", name, cell(0), format!("{:.4}", f.eval(0.0) * scale), cell(2));
     }
     let l = &result["limits"];
@@ -494,6 +515,11 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
         None => format!("> {:.2} mm", l[format!("{k}_beyond")].as_f64().unwrap_or(0.0) * 1e3),
     };
     println!("  limits: XBl {}, XC {}, XL {}, Xsym {}, Ak {:.1} %", lim("XBl"), lim("XC"), lim("XL"), l["Xsym"].as_f64().map(|v| format!("{:+.2} mm", v * 1e3)).unwrap_or("-".into()), l["Ak"].as_f64().unwrap_or(f64::NAN));
+    if let Some(d) = result.get("cross_check") {
+        let m = &d["max_rel_difference"];
+        let pc = |k: &str| 100.0 * m[k].as_f64().unwrap_or(f64::NAN);
+        println!("  cross-check (post-inverse, measured x): Bl {:.2} %, Kms {:.2} %, Le {:.2} %, Mms {:.2} %", pc("Bl"), pc("Kms"), pc("Le"), pc("Mms"));
+    }
     if let Some(dt) = result["thermal"]["dT_end"].as_f64() {
         println!("  voice coil: Re {:.4} -> {:.4} ohm over the record (+{:.2} K)", fit.re_track[0].1, fit.re_track.last().unwrap().1, dt);
     }

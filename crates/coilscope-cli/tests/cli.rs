@@ -138,3 +138,55 @@ fn linear_writes_a_result_zma_and_csv() {
     let e = one_error_line(&coilscope(&["linear", plain.to_str().unwrap(), "--out", out.to_str().unwrap()]));
     assert!(e.contains("no absolute scale: give --mms KG"), "{e}");
 }
+
+#[test]
+fn identify_writes_the_result_contract_and_a_summary() {
+    // Issue 4: simulate a large-signal record, identify it, read the result per formats.md.
+    let d = tempfile::tempdir().unwrap();
+    let rec = d.path().join("big.wav");
+    let rec_s = rec.to_str().unwrap();
+    let o = coilscope(&["simulate", "sb17cac35-4", "--excitation", "pink", "--volts", "2.2", "--seconds", "4", "--snr-db", "70", "--laser", "--out", rec_s]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = d.path().join("big.json");
+    let o = coilscope(&["identify", rec_s, "--mms", "0.015367", "--order", "4", "--sd", "0.0118", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    for want in ["order 4", "Bl", "Kms", "Le", "XC", "cross-check", "voice coil"] {
+        assert!(text.contains(want), "{want}: {text}");
+    }
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(r["format"], "coilscope.result/1");
+    assert!(r["fit"]["residual_rel"].as_f64().unwrap() < 0.01);
+    let xr = r["fit"]["x_range"].as_array().unwrap();
+    assert!(xr[0].as_f64().unwrap() < -1e-3 && xr[1].as_f64().unwrap() > 1e-3);
+    assert_eq!(r["parameters"]["x_range"], r["fit"]["x_range"]);
+    assert_eq!(r["parameters"]["Bl"].as_array().unwrap().len(), 5);
+    assert!(r["small_signal"]["Vas"].as_f64().unwrap() > 0.0);
+    assert!(r["limits"]["XC"].as_f64().unwrap() > 0.0);
+    assert!(r["uncertainty"]["Re"].as_f64().unwrap() > 0.0);
+    assert_eq!(r["uncertainty"]["Bl_band"]["sd"].as_array().unwrap().len(), 41);
+    // The parameter set it wrote is a valid parameter file for the simulator.
+    let params = d.path().join("identified.json");
+    std::fs::write(&params, serde_json::to_string(&r["parameters"]).unwrap()).unwrap();
+    let o = coilscope(&["check", params.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+#[test]
+fn identify_bad_inputs_get_one_clear_line() {
+    let d = tempfile::tempdir().unwrap();
+    let rec = d.path().join("r.wav");
+    let rec_s = rec.to_str().unwrap();
+    let o = coilscope(&["simulate", "sb17cac35-4", "--volts", "1", "--seconds", "2.5", "--out", rec_s]);
+    assert!(o.status.success());
+    let out = d.path().join("o.json");
+    let out = out.to_str().unwrap();
+    let e = one_error_line(&coilscope(&["identify", rec_s, "--out", out]));
+    assert!(e.contains("r.wav") && e.contains("--mms"), "{e}");
+    let e = one_error_line(&coilscope(&["identify", rec_s, "--mms", "0.015", "--order", "9", "--out", out]));
+    assert!(e.contains("--order 9") && e.contains("2 to 8"), "{e}");
+    let e = one_error_line(&coilscope(&["identify", rec_s, "--mms", "15", "--out", out]));
+    assert!(e.contains("15") && e.contains("kg"), "{e}");
+    let e = one_error_line(&coilscope(&["identify", "missing.wav", "--mms", "0.015", "--out", out]));
+    assert!(e.contains("missing.wav"), "{e}");
+}

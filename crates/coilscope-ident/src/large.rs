@@ -276,6 +276,11 @@ pub struct OutputError<'a> {
     pub threads: usize,
     interp: Interpolator,
     interp_jac: Interpolator,
+    /// The last Jacobian computed (LM's last iteration): reused for the covariance.
+    last_jacobian: std::sync::Mutex<Option<DMatrix<f64>>>,
+    /// The last residual and its theta: LM evaluates a trial, accepts it, then asks for the
+    /// residual and Jacobian at the same theta.
+    last_residual: std::sync::Mutex<Option<(Vec<f64>, DVector<f64>)>>,
 }
 
 impl<'a> OutputError<'a> {
@@ -283,7 +288,7 @@ impl<'a> OutputError<'a> {
     pub fn new(layout: Layout, u: &'a [f64], i: &'a [f64], fs: f64, fit: Range<usize>, rate: f64, x_limit: f64, threads: usize) -> Self {
         let n = substeps_for(rate, fs);
         let n_jac = ((rate / fs / JACOBIAN_STIFF_LIMIT).ceil() as usize).clamp(1, n);
-        OutputError { layout, u, i, fs, fit, x_limit, threads: threads.max(1), interp: Interpolator::new(n), interp_jac: Interpolator::new(n_jac) }
+        OutputError { layout, u, i, fs, fit, x_limit, threads: threads.max(1), interp: Interpolator::new(n), interp_jac: Interpolator::new(n_jac), last_jacobian: Default::default(), last_residual: Default::default() }
     }
 
     /// Sub-steps per sample of the residual and of the Jacobian runs.
@@ -399,11 +404,20 @@ impl<'a> OutputError<'a> {
 impl Problem for OutputError<'_> {
     fn residual_jacobian(&self, theta: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
         let r = self.residual(theta);
-        (r, self.jacobian(theta))
+        let j = self.jacobian(theta);
+        *self.last_jacobian.lock().expect("jacobian cache") = Some(j.clone());
+        (r, j)
     }
     fn residual(&self, theta: &[f64]) -> DVector<f64> {
+        if let Some((th, r)) = self.last_residual.lock().expect("residual cache").as_ref() {
+            if th.as_slice() == theta {
+                return r.clone();
+            }
+        }
         // A runaway trial gets an infinite cost, so LM rejects it and raises the damping.
-        self.residual_vec(theta).unwrap_or_else(|| DVector::from_element(self.fit.len(), f64::INFINITY))
+        let r = self.residual_vec(theta).unwrap_or_else(|| DVector::from_element(self.fit.len(), f64::INFINITY));
+        *self.last_residual.lock().expect("residual cache") = Some((theta.to_vec(), r.clone()));
+        r
     }
 }
 
@@ -569,7 +583,9 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
     let (start, linear) = match &opts.init {
         Some(p) => (p.clone(), None),
         None => {
-            let lin = fit_linear(u, i, fs, origin, |_| {}).map_err(Input)?;
+            // The start needs no more than a few seconds (the fit is O(n) per iteration).
+            let m = u.len().min((4.0 * fs) as usize);
+            let lin = fit_linear(&u[..m], &i[..m], fs, origin, |_| {}).map_err(Input)?;
             (scale_by_mms(&lin, opts.mms).map_err(Input)?, Some(lin))
         }
     };
@@ -704,7 +720,15 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
     let (x_model, i_model) = prob.trace(&s.theta, n).map_err(|m| Input(format!("{origin}: the fitted model diverged at sample {m}")))?;
     let r = prob.residual(&s.theta);
     let residual_rel = rel(&r, &i[settle..n]);
-    let cov = crate::lm::covariance(&prob, &s.theta);
+    // Covariance from the Jacobian of LM's last iteration (the accepted step after it is
+    // below the convergence tolerance) and the final residual.
+    let cov = match prob.last_jacobian.lock().expect("jacobian cache").take() {
+        Some(j) if r.len() > j.ncols() => {
+            let s2 = r.norm_squared() / (r.len() - j.ncols()) as f64;
+            j.tr_mul(&j).try_inverse().map(|inv| inv * s2)
+        }
+        _ => crate::lm::covariance(&prob, &s.theta),
+    };
     let x_range = x_model.iter().fold([0.0f64, 0.0f64], |[a, b], v| [a.min(*v), b.max(*v)]);
     let mut params = lay.parameters(&s.theta);
     params.x_range = Some(x_range);

@@ -9,3 +9,4 @@
 pub mod large;
 pub mod linear;
 pub mod lm;
+pub mod post_inverse;

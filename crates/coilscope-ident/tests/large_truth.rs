@@ -280,3 +280,26 @@ fn bad_options_are_named() {
     let e = identify(&rec.u[..48000], &rec.i[..48000], rec.fs, "a.wav", &IdentifyOptions { mms: p.mms, ..Default::default() }, |_| {}).unwrap_err().to_string();
     assert!(e.contains("a.wav") && e.contains("too short"), "{e}");
 }
+
+#[test]
+fn post_inverse_with_measured_displacement_gives_the_whole_set_including_mms() {
+    // The equation-error estimate on the independent laser record (x measured, 70 dB):
+    // Bl, Kms within 2 %, Le within 5 %, Mms and Rms within 1 %, Re within 1 % (it sees the
+    // mean Re of a coil that heats by 1 K).
+    let Some(dir) = shared() else { return };
+    let p = embedded_driver("sb17cac35-4").unwrap();
+    let rec = coilscope_io::read_recording(&dir.join("recordings/sb17cac35-4-large-laser.wav"), None).unwrap();
+    let x = rec.x.clone().unwrap();
+    let (l2, r2) = p.l2r2.as_ref().map(|(a, b)| (a.c[0], b.c[0])).unwrap();
+    let q = coilscope_ident::post_inverse::post_inverse(&rec.u, &rec.i, &x, rec.fs as f64, 4, Some((l2, r2)), "laser.wav").unwrap();
+    let range = q.x_range.unwrap();
+    let (e_bl, e_k, e_le) = (worst(&q.bl, &p.bl, range), worst(&q.kms, &p.kms, range), worst(&q.le, &p.le, range));
+    let (e_m, e_r, e_re) = ((q.mms / p.mms - 1.0).abs(), (q.rms / p.rms - 1.0).abs(), (q.re / p.re - 1.0).abs());
+    println!("post-inverse: Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Mms {:.3} %, Rms {:.3} %, Re {:.3} %", 100.0 * e_bl, 100.0 * e_k, 100.0 * e_le, 100.0 * e_m, 100.0 * e_r, 100.0 * e_re);
+    assert!(e_bl < 0.02 && e_k < 0.02 && e_le < 0.05);
+    assert!(e_m < 0.01 && e_r < 0.01 && e_re < 0.01);
+    // A displacement channel of the wrong polarity is named.
+    let flipped: Vec<f64> = x.iter().map(|v| -v).collect();
+    let e = coilscope_ident::post_inverse::post_inverse(&rec.u, &rec.i, &flipped, rec.fs as f64, 4, Some((l2, r2)), "laser.wav").unwrap_err();
+    assert!(e.contains("laser.wav") && e.contains("polarity"), "{e}");
+}

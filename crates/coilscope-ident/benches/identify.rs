@@ -1,0 +1,86 @@
+//! Wall time of the large-signal identification of an 8 s, 48 kHz recording (pink noise to
+//! 85 % of x_range, thermal model on, 70 dB sensor noise), all cores:
+//! `cargo bench -p coilscope-ident --bench identify`. Also one Jacobian and one residual of
+//! the order-4 problem, the two costs every LM iteration pays.
+
+use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
+use coilscope_core::simulate::{simulate, SimOptions};
+use coilscope_core::{embedded_driver, Parameters};
+use coilscope_ident::large::{identify, IdentifyOptions, Layout, OutputError, Scales};
+use coilscope_ident::lm::Problem;
+use std::sync::OnceLock;
+
+fn main() {
+    divan::main();
+}
+
+const FS: f64 = 48000.0;
+
+struct Rec {
+    p: Parameters,
+    u: Vec<f64>,
+    i: Vec<f64>,
+}
+
+fn record(name: &str) -> Rec {
+    let p = embedded_driver(name).unwrap();
+    let [lo, hi] = p.x_range.unwrap();
+    let target = 0.85 * hi.min(-lo);
+    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs: FS, seconds: 8.0, rms: 1.0, fade: 0.05, seed: 1 }).unwrap();
+    let mut g = 1.0;
+    let mut tr = None;
+    for _ in 0..5 {
+        let u: Vec<f64> = unit.iter().map(|v| v * g).collect();
+        let t = simulate(&p, FS, &u, &SimOptions::default()).unwrap();
+        let s = t.summary();
+        g *= target / s.x_max.max(-s.x_min);
+        tr = Some(t);
+    }
+    let tr = tr.unwrap();
+    let (mut u, mut i) = (tr.u, tr.i);
+    add_sensor_noise(&mut u, 70.0, 1, "sensor-noise/voltage");
+    add_sensor_noise(&mut i, 70.0, 1, "sensor-noise/current");
+    Rec { p, u, i }
+}
+
+fn rec(name: &str) -> &'static Rec {
+    static SB17: OnceLock<Rec> = OnceLock::new();
+    static W18: OnceLock<Rec> = OnceLock::new();
+    static PTT: OnceLock<Rec> = OnceLock::new();
+    match name {
+        "sb17cac35-4" => SB17.get_or_init(|| record(name)),
+        "18wu-4741t-00" => W18.get_or_init(|| record(name)),
+        _ => PTT.get_or_init(|| record(name)),
+    }
+}
+
+/// The whole `identify` (linear start, order selection, final fit, covariance).
+#[divan::bench(args = ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"], sample_count = 3, sample_size = 1)]
+fn identify_8s(name: &str) {
+    let r = rec(name);
+    let f = identify(&r.u, &r.i, FS, "bench", &IdentifyOptions { mms: r.p.mms, ..Default::default() }, |_| {}).unwrap();
+    assert!(f.residual_rel < 0.01);
+}
+
+fn problem(r: &'static Rec) -> (OutputError<'static>, Vec<f64>) {
+    let p = &r.p;
+    let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
+    let lay = Layout::new(4, 5, 2.0, 0.005, sc, true, p.mms);
+    let th = lay.theta_from(p, None);
+    let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    (OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.stiffness_rate(), 0.05, threads), th)
+}
+
+/// One Jacobian (23 columns, 8 s) of the order-4 problem, all cores.
+#[divan::bench(sample_count = 5, sample_size = 1)]
+fn jacobian_order4(b: divan::Bencher) {
+    let (prob, th) = problem(rec("sb17cac35-4"));
+    b.bench_local(|| prob.jacobian(&th));
+}
+
+/// One residual (8 s) of the order-4 problem, one core.
+#[divan::bench(sample_count = 5, sample_size = 1)]
+fn residual_order4(b: divan::Bencher) {
+    let (prob, th) = problem(rec("sb17cac35-4"));
+    b.bench_local(|| prob.residual(&th));
+}
