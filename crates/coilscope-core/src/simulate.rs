@@ -260,3 +260,27 @@ pub fn simulate(params: &Parameters, fs: f64, u: &[f64], opts: &SimOptions) -> R
     tr.range_excess = excess;
     Ok(tr)
 }
+
+/// The gain that makes `unit` (a voltage signal, scaled linearly) drive the driver to a peak
+/// excursion of `target` (m, either direction), within 2 %, found by simulating up to six
+/// times; returns the gain and the trace at that gain. What a test or a virtual measurement
+/// uses to play "at 85 % of x_range".
+pub fn gain_for_peak(params: &Parameters, fs: f64, unit: &[f64], target: f64, opts: &SimOptions) -> Result<(f64, Trace), SimError> {
+    let mut g = 1.0;
+    let mut last = None;
+    for _ in 0..6 {
+        let u: Vec<f64> = unit.iter().map(|v| v * g).collect();
+        let t = simulate(params, fs, &u, opts)?;
+        let s = t.summary();
+        let peak = s.x_max.max(-s.x_min);
+        if !(peak > 0.0) {
+            return Err(SimError::Input("the signal does not move the driver".into()));
+        }
+        if (peak / target - 1.0).abs() < 0.02 {
+            return Ok((g, t));
+        }
+        g *= target / peak;
+        last = Some(t);
+    }
+    Ok((g, last.expect("at least one run")))
+}

@@ -4,7 +4,7 @@
 //! the order-4 problem, the two costs every LM iteration pays.
 
 use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
-use coilscope_core::simulate::{simulate, SimOptions};
+use coilscope_core::simulate::{gain_for_peak, SimOptions};
 use coilscope_core::{embedded_driver, Parameters};
 use coilscope_ident::large::{identify, IdentifyOptions, Layout, OutputError, Scales};
 use coilscope_ident::lm::Problem;
@@ -27,16 +27,7 @@ fn record(name: &str) -> Rec {
     let [lo, hi] = p.x_range.unwrap();
     let target = 0.85 * hi.min(-lo);
     let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs: FS, seconds: 8.0, rms: 1.0, fade: 0.05, seed: 1 }).unwrap();
-    let mut g = 1.0;
-    let mut tr = None;
-    for _ in 0..5 {
-        let u: Vec<f64> = unit.iter().map(|v| v * g).collect();
-        let t = simulate(&p, FS, &u, &SimOptions::default()).unwrap();
-        let s = t.summary();
-        g *= target / s.x_max.max(-s.x_min);
-        tr = Some(t);
-    }
-    let tr = tr.unwrap();
+    let (_, tr) = gain_for_peak(&p, FS, &unit, target, &SimOptions::default()).unwrap();
     let (mut u, mut i) = (tr.u, tr.i);
     add_sensor_noise(&mut u, 70.0, 1, "sensor-noise/voltage");
     add_sensor_noise(&mut i, 70.0, 1, "sensor-noise/current");

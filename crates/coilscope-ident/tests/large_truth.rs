@@ -11,7 +11,7 @@
 //! measured errors are printed by every test (`--nocapture`).
 
 use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
-use coilscope_core::simulate::{simulate, SimOptions};
+use coilscope_core::simulate::{gain_for_peak, SimOptions};
 use coilscope_core::{embedded_driver, Parameters, Poly};
 use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, LargeFit};
 use std::path::Path;
@@ -29,21 +29,7 @@ fn record(p: &Parameters, fs: f64, seconds: f64, share: f64, snr_db: f64, seed: 
     let [lo, hi] = p.x_range.unwrap();
     let target = share * hi.min(-lo);
     let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed }).unwrap();
-    let mut g = 1.0;
-    let mut tr = None;
-    for _ in 0..6 {
-        let u: Vec<f64> = unit.iter().map(|v| v * g).collect();
-        let t = simulate(p, fs, &u, &SimOptions::default()).unwrap();
-        let s = t.summary();
-        let peak = s.x_max.max(-s.x_min);
-        let done = (peak / target - 1.0).abs() < 0.02;
-        tr = Some(t);
-        if done {
-            break;
-        }
-        g *= target / peak;
-    }
-    let tr = tr.unwrap();
+    let (_, tr) = gain_for_peak(p, fs, &unit, target, &SimOptions::default()).unwrap();
     let s = tr.summary();
     if seconds >= 8.0 {
         assert!(s.dt_end > 0.5, "the coil must heat during the record ({} K)", s.dt_end);
