@@ -35,8 +35,8 @@ use std::ops::Range;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// Parameters per dual-number pass of the Jacobian. Measured on the 8 s benchmark record
-/// (one core, release): seconds per Jacobian column 0.06 (width 2), 0.04 (4), 0.08 (8),
-/// 0.13 (16): wider duals stop fitting the registers.
+/// (one core, release, by timing `jacobian_chunk::<W>`): seconds per Jacobian column 0.06
+/// (width 2), 0.04 (4), 0.08 (8), 0.13 (16): wider duals stop fitting the registers.
 pub const CHUNK: usize = 4;
 /// Largest `|lambda| h` of the fast electrical mode in the Jacobian runs.
 const JACOBIAN_STIFF_LIMIT: f64 = 1.5;
@@ -386,19 +386,6 @@ impl<'a> OutputError<'a> {
         }
         j
     }
-
-    /// Time one Jacobian pass of width `w` (1 ..= 8 or 16): what chose [`CHUNK`].
-    pub fn time_pass(&self, th: &[f64], w: usize) -> f64 {
-        let t = std::time::Instant::now();
-        match w {
-            1 => drop(self.jacobian_chunk::<1>(th, 0)),
-            2 => drop(self.jacobian_chunk::<2>(th, 0)),
-            4 => drop(self.jacobian_chunk::<4>(th, 0)),
-            8 => drop(self.jacobian_chunk::<8>(th, 0)),
-            _ => drop(self.jacobian_chunk::<16>(th, 0)),
-        }
-        t.elapsed().as_secs_f64()
-    }
 }
 
 impl Problem for OutputError<'_> {
@@ -591,9 +578,7 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
     };
     let start = Parameters { mms: opts.mms, thermal: None, ..start };
     let threads = if opts.threads == 0 { std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) } else { opts.threads };
-    let rate = start.three_state().stiffness_rate().max(
-        start.l2r2.as_ref().map(|(l2, r2)| r2.eval(0.0) / l2.eval(0.0) + (start.re + r2.eval(0.0)) / start.le.eval(0.0)).unwrap_or(0.0),
-    );
+    let rate = start.stiffness_rate();
     // Settling: the unknown initial state decays with the mechanical time constant.
     let tau = 2.0 * start.mms / start.rms.max(1e-9);
     let settle = ((5.0 * tau).clamp(0.02, 0.25) * fs) as usize;
@@ -626,10 +611,8 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
     let mut current = start.clone();
     let mut re_track: Option<Vec<f64>> = None;
     let mut best_by_order: Vec<(usize, Vec<f64>, f64)> = Vec::new();
-    let orders: Vec<usize> = match opts.order {
-        Some(o) => vec![o],
-        None => vec![2, 4, 6, 8],
-    };
+    // A given order skips the search.
+    let orders: Vec<usize> = if opts.order.is_some() { vec![] } else { vec![2, 4, 6, 8] };
     let mut linear_rel = None;
     if opts.order.is_none() {
         // A linear time-domain fit (order 0) on the estimation part: the baseline that the
@@ -643,9 +626,6 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
         re_track = Some(lay.re_track(&s.theta));
     }
     for &order in &orders {
-        if opts.order.is_some() {
-            break;
-        }
         let lay = layout_for(order);
         let th = lay.theta_from(&current, re_track.as_deref());
         let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rate, x_limit, threads);
