@@ -130,6 +130,67 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Dynamic measurement: play noise or music, ramp the level up from quiet, identify the
+    /// model online, protect the driver (excursion, temperature, stiffness), stop on
+    /// convergence. Writes DIR/result.json and DIR/run.sqlite; live state on the terminal.
+    Measure {
+        /// Virtual transducer: embedded driver name or parameter file (the default device).
+        #[arg(long = "virtual", value_name = "DRIVER", conflicts_with = "replay")]
+        virtual_driver: Option<String>,
+        /// Replay a recording (WAV: voltage, current) instead of driving a device.
+        #[arg(long, value_name = "WAV")]
+        replay: Option<PathBuf>,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Moving mass (kg); for a virtual driver its own Mms is the default.
+        #[arg(long)]
+        mms: Option<f64>,
+        /// Target peak excursion (mm); default: the safe range where Kms(x)/Kms(0) reaches --kms-limit.
+        #[arg(long, value_name = "MM")]
+        target_x: Option<f64>,
+        /// Largest voice-coil temperature rise (K).
+        #[arg(long, default_value_t = 50.0, value_name = "K")]
+        max_dt: f64,
+        /// Largest stiffness increase Kms(x)/Kms(0).
+        #[arg(long, default_value_t = 2.0)]
+        kms_limit: f64,
+        /// Largest drive level (V rms).
+        #[arg(long, default_value_t = 20.0)]
+        max_volts: f64,
+        /// Level of the small-signal stage (V rms).
+        #[arg(long, default_value_t = 0.2)]
+        start_volts: f64,
+        /// Music or any audio file as excitation (its sample rate is used), instead of IEC noise.
+        #[arg(long, value_name = "FILE")]
+        music: Option<PathBuf>,
+        /// Long-term test: run this many seconds (simulated or real), whatever the convergence.
+        #[arg(long, value_name = "S")]
+        duration: Option<f64>,
+        /// Long-term test at a fixed level (V rms); the high-pass keeps x in range.
+        #[arg(long)]
+        volts: Option<f64>,
+        /// Stop without convergence after this many seconds.
+        #[arg(long, default_value_t = 60.0)]
+        max_seconds: f64,
+        /// Power-series order of Bl, Kms, Le.
+        #[arg(long, default_value_t = 6)]
+        order: usize,
+        /// Sensor noise of the virtual device: voltage (V rms) and current (A rms).
+        #[arg(long, num_args = 2, value_names = ["V", "A"], default_values_t = [1e-4, 1e-4])]
+        noise: Vec<f64>,
+        /// Sample rate of the virtual device (Hz).
+        #[arg(long, default_value_t = 48000)]
+        rate: u32,
+        /// Seed of the excitation and sensor noise.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+    /// List the runs of a measurement database (DIR/run.sqlite), including interrupted ones.
+    Runs {
+        /// The database (or the measurement directory holding run.sqlite).
+        database: PathBuf,
+    },
     /// List the embedded real drivers.
     Drivers,
     /// Validate a parameter set and print its small-signal figures.
@@ -149,6 +210,10 @@ fn main() -> ExitCode {
             cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), sd, scale.as_deref(), &out)
         }
         Command::Identify { recording, mms, order, sd, scale, out } => cmd_identify(&recording, mms, order, sd, scale.as_deref(), &out),
+        Command::Measure { virtual_driver, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
+            cmd_measure(MeasureArgs { virtual_driver, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
+        }
+        Command::Runs { database } => cmd_runs(&database),
         Command::Drivers => cmd_drivers(),
         Command::Check { params } => load_parameters(&params).map_err(|e| e.to_string()).map(|p| print_params(&p)),
     };
@@ -523,4 +588,140 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
     if let Some(dt) = result["thermal"]["dT_end"].as_f64() {
         println!("  voice coil: Re {:.4} -> {:.4} ohm over the record (+{:.2} K)", fit.re_track[0].1, fit.re_track.last().unwrap().1, dt);
     }
+}
+
+struct MeasureArgs {
+    virtual_driver: Option<String>,
+    replay: Option<PathBuf>,
+    out: PathBuf,
+    mms: Option<f64>,
+    target_x: Option<f64>,
+    max_dt: f64,
+    kms_limit: f64,
+    max_volts: f64,
+    start_volts: f64,
+    music: Option<PathBuf>,
+    duration: Option<f64>,
+    volts: Option<f64>,
+    max_seconds: f64,
+    order: usize,
+    noise: Vec<f64>,
+    rate: u32,
+    seed: u64,
+}
+
+fn cmd_measure(a: MeasureArgs) -> Result<(), String> {
+    use coilscope_measure::device::{Device, ReplayDevice, VirtualDevice};
+    use coilscope_measure::signal::Source;
+    use coilscope_measure::store::Store;
+    use std::io::IsTerminal;
+    let (mut device, mms, mms_source): (Box<dyn Device>, f64, String) = match (&a.virtual_driver, &a.replay) {
+        (Some(d), None) => {
+            let p = load_parameters(d).map_err(|e| e.to_string())?;
+            let dev = VirtualDevice::new(&p, a.rate as f64, (a.noise[0], a.noise[1]), a.seed)?;
+            let (mms, src) = match a.mms {
+                Some(m) => (m, "given (--mms)".to_string()),
+                None => (p.mms, format!("the virtual driver's own Mms ({d})")),
+            };
+            (Box::new(dev), mms, src)
+        }
+        (None, Some(r)) => {
+            let mms = a.mms.ok_or("--replay needs --mms KG (the absolute scale)")?;
+            (Box::new(ReplayDevice::open(r, None)?), mms, "given (--mms)".to_string())
+        }
+        _ => return Err("give the device: --virtual DRIVER (embedded name or parameter file) or --replay REC.wav".into()),
+    };
+    let fs = device.fs();
+    let mut source = match &a.music {
+        Some(m) => Source::music(m, fs)?,
+        None => Source::noise(&Excitation::Iec, fs, a.seed)?,
+    };
+    let opts = coilscope_measure::MeasureOptions {
+        mms,
+        target_x: a.target_x.map(|x| x * 1e-3),
+        max_dt: a.max_dt,
+        kms_limit: a.kms_limit,
+        max_volts: a.max_volts,
+        start_volts: a.start_volts,
+        duration: a.duration,
+        hold_volts: a.volts,
+        max_seconds: a.max_seconds.max(a.duration.unwrap_or(0.0)),
+        order: a.order,
+        ..Default::default()
+    };
+    opts.validate()?;
+    std::fs::create_dir_all(&a.out).map_err(|e| format!("{}: cannot create the output directory: {e}", a.out.display()))?;
+    let options = json!({"target_x": opts.target_x, "max_dt": opts.max_dt, "kms_limit": opts.kms_limit, "max_volts": opts.max_volts, "duration": opts.duration, "volts": opts.hold_volts, "excitation": source.name(), "mms": mms});
+    let mut store = Store::create(&a.out.join("run.sqlite"), &device.describe(), &options)?;
+    let tty = std::io::stderr().is_terminal();
+    let mut last_print = -1.0;
+    eprintln!("measuring {} with {} (run {} in {})", device.describe(), source.name(), store.run, a.out.join("run.sqlite").display());
+    let result = coilscope_measure::measure(device.as_mut(), &mut source, &opts, Some(&mut store), |l| {
+        if l.t - last_print >= 1.0 || l.update.is_some() && tty {
+            last_print = l.t;
+            let line = format!(
+                "t {:6.1} s  {:<12} {:7.3} V  x {:+6.2} .. {:+6.2} mm  dT {:5.1} K  Re {:.4} ohm  err {:.1e}  limited by {}",
+                l.t,
+                l.stage.name(),
+                l.volts,
+                l.x_min * 1e3,
+                l.x_max * 1e3,
+                l.dtv,
+                l.re,
+                l.residual,
+                l.limited_by
+            );
+            if tty {
+                eprint!("\r{line}   ");
+            } else {
+                eprintln!("{line}");
+            }
+        }
+    });
+    if tty {
+        eprintln!();
+    }
+    let mut m = match result {
+        Ok(m) => m,
+        Err(e) => {
+            let _ = store.finish(0.0, &format!("failed: {e}"), None);
+            return Err(e);
+        }
+    };
+    m.mms_source = mms_source;
+    let j = m.result_json();
+    write_json(&a.out.join("result.json"), &j).map_err(|e| e.to_string())?;
+    let status = if m.converged { "converged" } else { "stopped" };
+    store.finish(m.seconds, status, Some(&j))?;
+    let p = &m.params;
+    println!("{status}: {}", m.stop_reason);
+    println!("measured {:.1} s, peak x {:.2} mm, voice-coil rise up to {:.1} K, {} updates, window residual {:.2e}", m.seconds, m.x_peak_max * 1e3, m.dtv_max, m.updates, m.residual_rel);
+    println!("small signal (start): Re {:.4} ohm, Bl {:.3} T m, Kms {:.1} N/m, Rms {:.3} kg/s", m.small.re, m.small.bl.eval(0.0), m.small.kms.eval(0.0), m.small.rms);
+    let [lo, hi] = m.x_range;
+    println!("large signal (end), over {:.2} .. {:.2} mm:", lo * 1e3, hi * 1e3);
+    for (name, f, unit) in [("Bl", &p.bl, "T m"), ("Kms", &p.kms, "N/m"), ("Le", &p.le, "mH")] {
+        let k = if unit == "mH" { 1e3 } else { 1.0 };
+        println!("  {name:<4} {:10.4} {:10.4} {:10.4} {unit}  (x_min, 0, x_max)", f.eval(lo) * k, f.eval(0.0) * k, f.eval(hi) * k);
+    }
+    for (t, e) in &m.events {
+        println!("  protection at {t:.1} s: {e}");
+    }
+    println!("wrote {} and {}", a.out.join("result.json").display(), a.out.join("run.sqlite").display());
+    Ok(())
+}
+
+fn cmd_runs(path: &Path) -> Result<(), String> {
+    let db = if path.is_dir() { path.join("run.sqlite") } else { path.to_path_buf() };
+    let runs = coilscope_measure::store::list_runs(&db)?;
+    if runs.is_empty() {
+        println!("{}: no runs", db.display());
+    }
+    for r in runs {
+        print!("run {:>3}  {:<12} {:8.1} s  {:>6} states  {:>4} estimates  {}", r.id, r.status, r.seconds, r.states, r.estimates, r.device);
+        if let Some(l) = r.last {
+            print!("  | last t {:.1} s: x {:+.2} .. {:+.2} mm, dT {:.1} K, {:.3} V", l.t, l.x_min * 1e3, l.x_max * 1e3, l.dtv, l.gain);
+        }
+        println!();
+    }
+    Ok(())
 }

@@ -9,4 +9,5 @@
 pub mod large;
 pub mod linear;
 pub mod lm;
+pub mod online;
 pub mod post_inverse;

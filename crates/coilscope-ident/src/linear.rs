@@ -273,7 +273,14 @@ fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<[f64; 7], S
 
 /// Fit the linear model to a recording of voltage `u` and current `i` at rate `fs`.
 /// `observe` sees every LM state (progress, logs).
-pub fn fit_linear(u: &[f64], i: &[f64], fs: f64, origin: &str, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+pub fn fit_linear(u: &[f64], i: &[f64], fs: f64, origin: &str, observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+    fit_linear_bins(u, i, fs, origin, usize::MAX, observe)
+}
+
+/// [`fit_linear`] on at most `max_bins` DFT bins (every k-th usable bin): a start value in a
+/// fraction of the time (the online measurement's small-signal stage uses 2000), with the
+/// noise averaging of fewer bins.
+pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: usize, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
     check_channels(u, i, fs, origin)?;
     let h1 = h1_impedance(u, i, fs, segment_length(u.len(), fs));
     // Band: from the lowest excited, coherent bin to 0.45 fs (at most 20 kHz).
@@ -328,6 +335,13 @@ pub fn fit_linear(u: &[f64], i: &[f64], fs: f64, origin: &str, mut observe: impl
             prob.i.push(i_f[k] * w);
             prob.w.push(w);
         }
+    }
+    if prob.f.len() > max_bins.max(50) {
+        let step = prob.f.len().div_ceil(max_bins.max(50));
+        fn keep<T: Copy>(v: &[T], step: usize) -> Vec<T> {
+            v.iter().step_by(step).copied().collect()
+        }
+        prob = CurrentError { f: keep(&prob.f, step), u: keep(&prob.u, step), i: keep(&prob.i, step), w: keep(&prob.w, step), norm: 1.0 };
     }
     prob.norm = prob.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
     // The LR-2 branch trades off against Re and Le: start from a few spreads of L2 and R2

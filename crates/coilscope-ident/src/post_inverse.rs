@@ -59,6 +59,14 @@ fn solve(cols: Vec<Vec<f64>>, rhs: Vec<f64>) -> Result<Vec<f64>, String> {
 /// LR-2 branch `(L2, R2)` (H, ohm) from the linear fit. The result's `x_range` is the measured
 /// range of x.
 pub fn post_inverse(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, l2r2: Option<(f64, f64)>, origin: &str) -> Result<Parameters, String> {
+    equation_error(u, i, x, fs, order, l2r2, None, origin)
+}
+
+/// [`post_inverse`] with the moving mass either estimated (`mms = None`) or given (kg): with
+/// Mms given, `Mms a` moves to the right side of the mechanical equation. With `x` taken
+/// from the model itself this is the pseudo-linear regression step of the online estimator.
+#[allow(clippy::too_many_arguments)]
+pub fn equation_error(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, l2r2: Option<(f64, f64)>, mms: Option<f64>, origin: &str) -> Result<Parameters, String> {
     let n = u.len();
     if i.len() != n || x.len() != n {
         return Err(format!("{origin}: channels have different lengths"));
@@ -101,7 +109,7 @@ pub fn post_inverse(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, l2r2
     let fm = 1000.0f64.min(0.4 * fs);
     let a = filtered(x, fs, fm, 2);
     let vm = filtered(x, fs, fm, 1);
-    let mut cols = vec![a, vm];
+    let mut cols = if mms.is_some() { vec![vm] } else { vec![a.clone(), vm] };
     for j in 0..=order {
         let c: Vec<f64> = x.iter().map(|&xm| xm.powi(j as i32 + 1)).collect();
         cols.push(lp(&c, fm));
@@ -109,10 +117,13 @@ pub fn post_inverse(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, l2r2
     let force: Vec<f64> = (0..n)
         .map(|m| {
             let (_, dle) = le.eval_d(x[m]);
-            bl.eval(x[m]) * i[m] + 0.5 * dle * i[m] * i[m]
+            bl.eval(x[m]) * i[m] + 0.5 * dle * i[m] * i[m] - mms.map_or(0.0, |mm| mm * a[m])
         })
         .collect();
-    let k = solve(cols, lp(&force, fm))?;
+    let mut k = solve(cols, lp(&force, fm))?;
+    if let Some(mm) = mms {
+        k.insert(0, mm);
+    }
     let (mms, rms) = (k[0], k[1]);
     if bl.eval(0.0) < 0.0 {
         return Err(format!(

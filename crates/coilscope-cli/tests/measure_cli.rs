@@ -1,0 +1,87 @@
+//! `coilscope measure` and `coilscope runs` (issue 5): the result and database, a kill during
+//! a long-term run, bad input.
+use std::process::{Command, Output};
+
+fn coilscope(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_coilscope")).args(args).output().unwrap()
+}
+
+#[test]
+fn virtual_measurement_writes_result_and_database() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("sb17");
+    let o = coilscope(&["measure", "--virtual", "sb17cac35-4", "--target-x", "4.5", "--out", out.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{text}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(text.contains("converged"), "{text}");
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
+    assert_eq!(j["format"], "coilscope.result/1");
+    let peak = j["measurement"]["x_peak_max"].as_f64().unwrap();
+    assert!(peak > 0.003 && peak < 0.0048, "{peak}");
+    let runs = coilscope(&["runs", out.to_str().unwrap()]);
+    let listing = String::from_utf8_lossy(&runs.stdout);
+    assert!(runs.status.success() && listing.contains("converged"), "{listing}");
+}
+
+#[test]
+fn a_killed_long_term_run_keeps_its_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("long");
+    let db = out.join("run.sqlite");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_coilscope"))
+        .args(["measure", "--virtual", "ptt4.0w04-01a", "--target-x", "6", "--duration", "3600", "--out", out.to_str().unwrap()])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // Wait until a few seconds of states are committed, then kill -9.
+    let t0 = std::time::Instant::now();
+    loop {
+        std::thread::sleep(std::time::Duration::from_millis(200));
+        if let Ok(r) = coilscope_measure::store::list_runs(&db) {
+            if r.first().is_some_and(|r| r.states >= 40) {
+                break;
+            }
+        }
+        assert!(t0.elapsed().as_secs() < 120, "no states were committed");
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let runs = coilscope_measure::store::list_runs(&db).unwrap();
+    let r = &runs[0];
+    assert!(r.states >= 40 && r.last.is_some(), "{r:?}");
+    // The committed rows are whole: states arrive in whole seconds (10 blocks each).
+    assert_eq!(r.states % 10, 0, "{r:?}");
+    let o = coilscope(&["runs", db.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // A run that never finished is listed as running (heartbeat fresh) or interrupted.
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(text.contains("running") || text.contains("interrupted"), "{text}");
+}
+
+#[test]
+fn bad_devices_files_and_limits_get_one_line_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("x");
+    let o = out.to_str().unwrap();
+    for (args, want) in [
+        (vec!["measure", "--out", o], "--virtual DRIVER"),
+        (vec!["measure", "--virtual", "no-such-driver", "--out", o], "no-such-driver"),
+        (vec!["measure", "--virtual", "sb17cac35-4", "--target-x=-2", "--out", o], "--target-x"),
+        (vec!["measure", "--virtual", "sb17cac35-4", "--max-dt", "0", "--out", o], "--max-dt"),
+        (vec!["measure", "--virtual", "sb17cac35-4", "--music", "/nonexistent/song.wav", "--out", o], "song.wav"),
+        (vec!["measure", "--replay", "/nonexistent/rec.wav", "--out", o], "--mms"),
+        (vec!["runs", "/nonexistent/run.sqlite"], "no such run database"),
+    ] {
+        let r = coilscope(&args);
+        let err = String::from_utf8_lossy(&r.stderr);
+        assert_eq!(r.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains(want), "{args:?}: {err}");
+    }
+    // A file that is not a database.
+    let bogus = dir.path().join("bogus.sqlite");
+    std::fs::write(&bogus, b"this is not sqlite at all, just text that is long enough to be a header").unwrap();
+    let r = coilscope(&["runs", bogus.to_str().unwrap()]);
+    assert_eq!(r.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&r.stderr).contains("bogus.sqlite"));
+}

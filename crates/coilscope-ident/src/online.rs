@@ -1,0 +1,541 @@
+//! Online identification: the model follows the transducer while it plays (seed section 4).
+//!
+//! Two loops run on the stream of measured voltage and current:
+//!
+//! * **Live model, every sample.** The current estimate runs as a parallel model driven by the
+//!   measured voltage: it gives the live displacement x(t), velocity v(t) and current (no
+//!   sensor needed for x). It runs on dual numbers that carry `d i / d Re`, so every
+//!   [`OnlineOptions::re_seconds`] a scalar Gauss-Newton step on the current error tracks the
+//!   voice-coil resistance, hence the voice-coil temperature, with a lag of a fraction of a
+//!   second.
+//! * **Recursive Gauss-Newton, every update.** On the last [`OnlineOptions::window`] seconds,
+//!   the exact Jacobian of the model current with respect to all parameters (vector dual
+//!   numbers, started from the live state at the window start) updates the estimate and its
+//!   covariance in information form:
+//!   `P⁻¹ ← P⁻¹ + JᵀJ/σ²`, `θ ← θ + P Jᵀ r / σ²`, then `P ← P + Q Δt`
+//!   (a Kalman filter on the parameters, σ² from the window's residual, Q a slow drift that
+//!   lets Re and the suspension follow heat and creep). The step is checked by re-running the
+//!   window and halved while it makes the error worse.
+//!
+//! The parameters are those of [`crate::large::Layout`] (Legendre series in `x / x_ref`) with
+//! one `Re`. Nothing here allocates per sample; the history kept is a few seconds.
+
+use crate::large::{Layout, Scales, CHUNK};
+use coilscope_core::integrate::{rk4_sample, substeps_for, Interpolator, HALF_TAPS};
+use coilscope_core::model::{idx, Model, State, NSTATE};
+use coilscope_core::params::Parameters;
+use nalgebra::{DMatrix, DVector};
+use num_dual::{Dual64, DualSVec64};
+
+/// Largest `|lambda| h` of the fast electrical mode in the Jacobian runs (as in `large`).
+const JACOBIAN_STIFF_LIMIT: f64 = 1.5;
+/// Samples between stored live states (window starts snap to these).
+const SNAP_EVERY: usize = 256;
+
+/// Options of the online estimator.
+#[derive(Clone, Debug)]
+pub struct OnlineOptions {
+    /// Power-series order of Bl, Kms, Le.
+    pub order: usize,
+    /// Reference displacement of the series basis (m): about the excursion to be reached.
+    pub x_ref: f64,
+    /// Seconds of data per recursive update.
+    pub window: f64,
+    /// Seconds between Re tracking steps.
+    pub re_seconds: f64,
+    /// Prior relative sd of the small-signal values (the start).
+    pub prior_linear: f64,
+    /// Prior sd of each nonlinear series coefficient, relative to the value at rest.
+    pub prior_nonlinear: f64,
+    /// Drift allowed per sqrt(second): Re (relative) and all other parameters.
+    pub re_drift: f64,
+    pub drift: f64,
+    /// Seconds of history kept (at least the window plus a margin).
+    pub keep: f64,
+}
+
+impl Default for OnlineOptions {
+    fn default() -> Self {
+        OnlineOptions { order: 4, x_ref: 1e-3, window: 0.5, re_seconds: 0.25, prior_linear: 0.05, prior_nonlinear: 0.5, re_drift: 0.01, drift: 1e-4, keep: 3.0 }
+    }
+}
+
+/// What the live model saw on the samples of one [`Online::push`].
+#[derive(Clone, Debug, Default)]
+pub struct LiveStats {
+    /// Samples the live model advanced.
+    pub samples: usize,
+    pub x_min: f64,
+    pub x_max: f64,
+    /// Sum of squared current error and of squared measured current (A²).
+    pub err_sq: f64,
+    pub i_sq: f64,
+    /// Sum of u i (W s) over the samples: the electrical energy in.
+    pub energy: f64,
+}
+
+impl LiveStats {
+    pub fn residual_rel(&self) -> f64 {
+        (self.err_sq / self.i_sq.max(1e-300)).sqrt()
+    }
+}
+
+/// One recursive update.
+#[derive(Clone, Debug)]
+pub struct Update {
+    /// Time of the window end (s since the start of the stream).
+    pub t: f64,
+    /// Relative current error on the window before and after the update.
+    pub before: f64,
+    pub after: f64,
+    /// Step length actually taken (fraction of the Gauss-Newton step).
+    pub step: f64,
+}
+
+/// Why the estimator stopped.
+#[derive(Clone, Debug)]
+pub struct OnlineError(pub String);
+
+impl std::fmt::Display for OnlineError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+/// The online estimator. Feed it blocks with [`Online::push`]; call [`Online::update`] when a
+/// recursive update is due.
+pub struct Online {
+    pub layout: Layout,
+    /// Normalised parameters and their covariance.
+    pub theta: Vec<f64>,
+    pub cov: DMatrix<f64>,
+    pub fs: f64,
+    opts: OnlineOptions,
+    interp: Interpolator,
+    interp_jac: Interpolator,
+    /// History: absolute sample index of `u[0]`.
+    base: usize,
+    u: Vec<f64>,
+    i: Vec<f64>,
+    /// Live model current and displacement at each history sample (valid below `pos`).
+    im: Vec<f64>,
+    xm: Vec<f64>,
+    /// Absolute index of the live model's next sample.
+    pos: usize,
+    live: State<Dual64>,
+    model: Model<Dual64>,
+    snaps: Vec<(usize, State<f64>)>,
+    re_num: f64,
+    re_den: f64,
+    re_count: usize,
+    last_update: usize,
+    settle: usize,
+    x_limit: f64,
+    /// Samples pushed so far.
+    pub pushed: usize,
+    /// Largest |x| of the live model so far (m).
+    pub reach: f64,
+    /// The estimate before the last update (the fall-back if the live model runs away).
+    previous: Option<(Vec<f64>, DMatrix<f64>)>,
+    /// Times the live model ran away and fell back.
+    pub resets: usize,
+}
+
+impl Online {
+    /// Start from a small-signal (or any) parameter set; `start.mms` is the absolute scale.
+    pub fn new(start: &Parameters, fs: f64, opts: OnlineOptions) -> Result<Self, OnlineError> {
+        if !(opts.x_ref.is_finite() && opts.x_ref > 0.0) {
+            return Err(OnlineError(format!("reference displacement {} m is not valid (> 0)", opts.x_ref)));
+        }
+        if !(crate::large::MIN_ORDER..=crate::large::MAX_ORDER).contains(&opts.order) {
+            return Err(OnlineError(format!("power-series order {} is not valid ({} ..= {})", opts.order, crate::large::MIN_ORDER, crate::large::MAX_ORDER)));
+        }
+        let scales = Scales {
+            re: start.re,
+            le: start.le.eval(0.0).max(1e-9),
+            l2: start.l2r2.as_ref().map(|(l, _)| l.eval(0.0)).unwrap_or(1e-4).max(1e-9),
+            r2: start.l2r2.as_ref().map(|(_, r)| r.eval(0.0)).unwrap_or(1.0).max(1e-6),
+            bl: start.bl.eval(0.0),
+            kms: start.kms.eval(0.0),
+            rms: start.rms.max(1e-6),
+        };
+        let layout = Layout::new(opts.order, 1, 1.0, opts.x_ref, scales, start.l2r2.is_some(), start.mms);
+        let theta = layout.theta_from(start, None);
+        let s = layout.slots();
+        let mut prior = vec![opts.prior_nonlinear.powi(2); s.n];
+        for k in [s.re.start, s.le.start, s.bl.start, s.kms.start, s.rms] {
+            prior[k] = opts.prior_linear.powi(2);
+        }
+        for k in [s.l2, s.r2].into_iter().flatten() {
+            prior[k] = (2.0 * opts.prior_linear).powi(2);
+        }
+        // Odd and even Legendre terms at rest: P_j(0) != 0 for even j, so the value at rest
+        // keeps its prior only through the constant term's variance (small enough).
+        let cov = DMatrix::from_diagonal(&DVector::from_vec(prior));
+        let rate = start.stiffness_rate();
+        let n = substeps_for(rate, fs);
+        let n_jac = ((rate / fs / JACOBIAN_STIFF_LIMIT).ceil() as usize).clamp(1, n);
+        // Sensitivities started at zero settle with the damped mechanical mode.
+        let damping = start.rms + start.bl.eval(0.0).powi(2) / start.re;
+        let settle = ((5.0 * 2.0 * start.mms / damping).clamp(0.005, 0.1) * fs) as usize;
+        let mut o = Online {
+            layout,
+            theta,
+            cov,
+            fs,
+            interp: Interpolator::new(n),
+            interp_jac: Interpolator::new(n_jac),
+            base: 0,
+            u: Vec::new(),
+            i: Vec::new(),
+            im: Vec::new(),
+            xm: Vec::new(),
+            pos: 0,
+            live: [Dual64::from(0.0); NSTATE],
+            model: Model::lift_from(start),
+            snaps: vec![(0, [0.0; NSTATE])],
+            re_num: 0.0,
+            re_den: 0.0,
+            re_count: 0,
+            last_update: 0,
+            settle,
+            x_limit: 20.0 * opts.x_ref,
+            pushed: 0,
+            reach: 0.0,
+            previous: None,
+            resets: 0,
+            opts,
+        };
+        o.rebuild_live();
+        Ok(o)
+    }
+
+    /// The current estimate as a parameter set (no x_range: the caller knows what was reached).
+    pub fn parameters(&self) -> Parameters {
+        let mut p = self.layout.parameters(&self.theta);
+        p.source = Some("coilscope measure (online recursive output-error estimate)".into());
+        p
+    }
+
+    /// Current voice-coil resistance estimate (ohm).
+    pub fn re(&self) -> f64 {
+        self.theta[self.layout.slots().re.start] * self.layout.scales.re
+    }
+
+    /// Time of the live model (s).
+    pub fn t(&self) -> f64 {
+        self.pos as f64 / self.fs
+    }
+
+    /// The live state `[x, v, i, i2, ...]` (f64 parts).
+    pub fn live_state(&self) -> State<f64> {
+        std::array::from_fn(|k| self.live[k].re)
+    }
+
+    /// The live model's displacement over the last `n` samples it ran (m).
+    pub fn recent_x(&self, n: usize) -> &[f64] {
+        let end = self.pos - self.base;
+        &self.xm[end.saturating_sub(n)..end]
+    }
+
+    fn rebuild_live(&mut self) {
+        let (m, _) = self.layout.model::<f64>(&self.theta);
+        let lift = |p: &coilscope_core::Poly| coilscope_core::Poly { c: p.c.iter().map(|&c| Dual64::from(c)).collect() };
+        self.model = Model {
+            re: Dual64::new(m.re, 1.0),
+            le: lift(&m.le),
+            l2r2: m.l2r2.as_ref().map(|(a, b)| (lift(a), lift(b))),
+            bl: lift(&m.bl),
+            kms: lift(&m.kms),
+            mms: Dual64::from(m.mms),
+            rms: Dual64::from(m.rms),
+            thermal: None,
+        };
+    }
+
+    /// Append measured samples and advance the live model as far as the interpolator's
+    /// look-ahead allows (it lags `HALF_TAPS` samples).
+    pub fn push(&mut self, u: &[f64], i: &[f64]) -> Result<LiveStats, OnlineError> {
+        self.u.extend_from_slice(u);
+        self.i.extend_from_slice(i);
+        self.im.resize(self.u.len(), 0.0);
+        self.xm.resize(self.u.len(), 0.0);
+        self.pushed += u.len();
+        let mut st = LiveStats { x_min: f64::INFINITY, x_max: f64::NEG_INFINITY, ..Default::default() };
+        let dt = 1.0 / self.fs;
+        // The live model runs with the Jacobian's sub-step count (`|lambda| h <= 1.5`): it
+        // shows the state and tracks Re; the updates judge the fit with the accurate count.
+        let n = self.interp_jac.n;
+        let mut pf = vec![0.0; 2 * n + 1];
+        let mut pd = vec![Dual64::from(0.0); 2 * n + 1];
+        let re_block = ((self.opts.re_seconds * self.fs) as usize).max(1);
+        while self.pos + HALF_TAPS < self.base + self.u.len() {
+            let k = self.pos - self.base;
+            let s = self.live;
+            let x = s[idx::X].re;
+            if !(x.abs() <= self.x_limit) || !s[idx::I].re.is_finite() {
+                // The last update's extrapolation failed beyond the reach: go back to the
+                // estimate before it and restart the live state from rest.
+                match self.previous.take() {
+                    Some((th, cov)) if self.resets < 10 => {
+                        self.theta = th;
+                        self.cov = cov;
+                        self.resets += 1;
+                        self.rebuild_live();
+                        self.live = [Dual64::from(0.0); NSTATE];
+                        continue;
+                    }
+                    _ => {
+                        return Err(OnlineError(format!(
+                            "the live model ran away at t = {:.3} s (x = {:.3e} m) and no earlier estimate is left to fall back to: the estimate no longer describes the transducer",
+                            self.t(),
+                            x
+                        )))
+                    }
+                }
+            }
+            let (ik, ir) = (s[idx::I].re, s[idx::I].eps);
+            self.im[k] = ik;
+            self.xm[k] = x;
+            let r = self.i[k] - ik;
+            st.samples += 1;
+            st.x_min = st.x_min.min(x);
+            st.x_max = st.x_max.max(x);
+            self.reach = self.reach.max(x.abs());
+            st.err_sq += r * r;
+            st.i_sq += self.i[k] * self.i[k];
+            st.energy += self.u[k] * self.i[k] * dt;
+            self.re_num += r * ir;
+            self.re_den += ir * ir;
+            self.re_count += 1;
+            self.interp_jac.fill(&self.u, k, &mut pf);
+            for (d, &f) in pd.iter_mut().zip(pf.iter()) {
+                *d = Dual64::from(f);
+            }
+            self.live = rk4_sample(&self.model, &self.live, dt, &pd);
+            self.pos += 1;
+            if self.pos % SNAP_EVERY == 0 {
+                self.snaps.push((self.pos, self.live_state()));
+            }
+            if self.re_count >= re_block {
+                self.re_step();
+            }
+        }
+        self.trim();
+        Ok(st)
+    }
+
+    /// Scalar Gauss-Newton step on Re from the accumulated `sum r s`, `sum s^2`.
+    fn re_step(&mut self) {
+        if self.re_den > 0.0 {
+            let d = self.re_num / self.re_den;
+            let re = self.re();
+            // Heating moves Re by far less than 1 % in a quarter second: a larger step is
+            // the rest of the model talking, not the coil; ignore it.
+            if (d / re).abs() < 0.01 {
+                let k = self.layout.slots().re.start;
+                self.theta[k] += d / self.layout.scales.re;
+                self.model.re = Dual64::new(self.re(), 1.0);
+                // Keep the sensitivity running: only the value moved.
+            }
+        }
+        self.re_num = 0.0;
+        self.re_den = 0.0;
+        self.re_count = 0;
+    }
+
+    fn trim(&mut self) {
+        let keep = ((self.opts.keep.max(self.opts.window + 0.5)) * self.fs) as usize + 2 * HALF_TAPS;
+        let have = self.u.len();
+        if have > 2 * keep {
+            let cut = have - keep;
+            self.u.drain(..cut);
+            self.i.drain(..cut);
+            self.im.drain(..cut);
+            self.xm.drain(..cut);
+            self.base += cut;
+            let first = self.base + HALF_TAPS;
+            let keep_from = self.snaps.iter().rposition(|s| s.0 <= first).unwrap_or(0);
+            self.snaps.drain(..keep_from);
+        }
+    }
+
+    /// Run the f64 model `theta` from `y0` over history samples `a..b` (absolute). Returns
+    /// the current error `i - i_model` after `skip` samples and the end state; `None` if the
+    /// model ran away.
+    fn run_window(&self, theta: &[f64], y0: State<f64>, a: usize, b: usize, skip: usize) -> Option<(DVector<f64>, State<f64>)> {
+        let (model, _) = self.layout.model::<f64>(theta);
+        let dt = 1.0 / self.fs;
+        let mut pf = vec![0.0; 2 * self.interp.n + 1];
+        let mut y = y0;
+        let mut r = DVector::zeros(b - a - skip);
+        for m in a..b {
+            let k = m - self.base;
+            if !(y[idx::X].abs() <= self.x_limit) || !y[idx::I].is_finite() {
+                return None;
+            }
+            if m >= a + skip {
+                r[m - a - skip] = self.i[k] - y[idx::I];
+            }
+            self.interp.fill(&self.u, k, &mut pf);
+            y = rk4_sample(&model, &y, dt, &pf);
+        }
+        Some((r, y))
+    }
+
+    /// Jacobian columns `c0 .. c0 + CHUNK` of the model current over `a..b` from `y0`.
+    fn jacobian_chunk(&self, y0: &State<f64>, a: usize, b: usize, skip: usize, c0: usize) -> Vec<Vec<f64>> {
+        let th = &self.theta;
+        let cnt = CHUNK.min(th.len() - c0);
+        let thd: Vec<DualSVec64<CHUNK>> = th
+            .iter()
+            .enumerate()
+            .map(|(j, &t)| {
+                let d = DualSVec64::<CHUNK>::from_re(t);
+                if j >= c0 && j < c0 + cnt {
+                    d.derivative(j - c0)
+                } else {
+                    d
+                }
+            })
+            .collect();
+        let (model, _) = self.layout.model(&thd);
+        let dt = 1.0 / self.fs;
+        let n = self.interp_jac.n;
+        let mut pf = vec![0.0; 2 * n + 1];
+        let mut pd = vec![DualSVec64::<CHUNK>::from_re(0.0); 2 * n + 1];
+        let mut y: State<DualSVec64<CHUNK>> = std::array::from_fn(|k| DualSVec64::from_re(y0[k]));
+        let mut cols = vec![Vec::with_capacity(b - a - skip); cnt];
+        for m in a..b {
+            if m >= a + skip {
+                match y[idx::I].eps.0.as_ref() {
+                    Some(e) => cols.iter_mut().enumerate().for_each(|(c, col)| col.push(e[c])),
+                    None => cols.iter_mut().for_each(|col| col.push(0.0)),
+                }
+            }
+            self.interp_jac.fill(&self.u, m - self.base, &mut pf);
+            for (d, &f) in pd.iter_mut().zip(pf.iter()) {
+                *d = DualSVec64::from_re(f);
+            }
+            y = rk4_sample(&model, &y, dt, &pd);
+        }
+        cols
+    }
+
+    /// Bl, Kms and Le positive over 1.6 times the reach so far (a ramp of 3 dB/s grows it by 1.41 per second) (at most `1.5 x_ref`): an
+    /// estimate that is not can run away as soon as the level rises past what was reached.
+    fn physical(&self, theta: &[f64]) -> bool {
+        let p = self.layout.parameters(theta);
+        let r = (1.6 * self.reach).clamp(0.05 * self.layout.x_ref, 1.5 * self.layout.x_ref);
+        (0..=30).map(|k| -r + 2.0 * r * k as f64 / 30.0).all(|x| p.bl.eval(x) > 0.0 && p.kms.eval(x) > 0.0 && p.le.eval(x) > 0.0) && p.rms > 0.0 && p.re > 0.0
+    }
+
+    /// Seconds of data since the last update.
+    pub fn since_update(&self) -> f64 {
+        (self.pos - self.last_update) as f64 / self.fs
+    }
+
+    /// One recursive Gauss-Newton update on the last `window` seconds the live model ran.
+    /// `None` if not enough data has been seen since the start.
+    pub fn update(&mut self) -> Option<Update> {
+        let w = (self.opts.window * self.fs) as usize;
+        let b = self.pos;
+        let want = b.checked_sub(w)?;
+        // The window starts at a stored live state.
+        let &(a, y0) = self.snaps.iter().rev().find(|s| s.0 <= want && s.0 >= self.base + HALF_TAPS)?;
+        let skip = self.settle.min((b - a) / 2);
+        let (r, _) = self.run_window(&self.theta, y0, a, b, skip)?;
+        let q: f64 = self.i[a + skip - self.base..b - self.base].iter().map(|v| v * v).sum();
+        let e0 = r.norm_squared();
+        let before = (e0 / q.max(1e-300)).sqrt();
+        let rows = r.len();
+        let sigma2 = (e0 / rows as f64).max(1e-300);
+        // Jacobian of the model current (the residual is r = i - i_model).
+        let np = self.theta.len();
+        let mut jac = DMatrix::zeros(rows, np);
+        for c0 in (0..np).step_by(CHUNK) {
+            for (c, col) in self.jacobian_chunk(&y0, a, b, skip, c0).into_iter().enumerate() {
+                jac.column_mut(c0 + c).copy_from_slice(&col);
+            }
+        }
+        let jtj = jac.tr_mul(&jac) / sigma2;
+        let jtr = jac.tr_mul(&r) / sigma2;
+        let p_inv = self.cov.clone().try_inverse()?;
+        let info = &p_inv + &jtj;
+        let cov = info.clone().try_inverse()?;
+        // Levenberg damping on the Gauss-Newton step while the trial is not physical or
+        // raises the window's error; the covariance update is the undamped one.
+        let mut accepted = None;
+        let mut step = 1.0;
+        // An estimate that is already outside the check (the reach grew) may move freely.
+        let check = self.physical(&self.theta);
+        for lambda in [0.0, 1.0, 10.0, 100.0, 1e3] {
+            let mut damped = info.clone();
+            for k in 0..np {
+                damped[(k, k)] *= 1.0 + lambda;
+            }
+            let Some(dcov) = damped.try_inverse() else { continue };
+            let mut delta = &dcov * &jtr;
+            // Trust region in normalised units.
+            let big = delta.amax();
+            if big > 0.3 {
+                delta *= 0.3 / big;
+            }
+            let trial: Vec<f64> = self.theta.iter().zip(delta.iter()).map(|(t, d)| t + d).collect();
+            if check && !self.physical(&trial) {
+                continue;
+            }
+            if let Some((r1, y_end)) = self.run_window(&trial, y0, a, b, skip) {
+                let e1 = r1.norm_squared();
+                if e1 <= e0 * 1.02 {
+                    step = 1.0 / (1.0 + lambda);
+                    accepted = Some((trial, e1, y_end));
+                    break;
+                }
+            }
+        }
+        let dt_upd = (b - self.last_update) as f64 / self.fs;
+        self.last_update = b;
+        let (theta, e1, y_end) = match accepted {
+            Some(v) => v,
+            None => {
+                // Keep the estimate; the information still narrows nothing (no update).
+                return Some(Update { t: self.t(), before, after: before, step: 0.0 });
+            }
+        };
+        self.previous = Some((std::mem::replace(&mut self.theta, theta), std::mem::replace(&mut self.cov, cov)));
+        // Drift.
+        let s = self.layout.slots();
+        for k in 0..np {
+            let q = if k == s.re.start { self.opts.re_drift } else { self.opts.drift };
+            self.cov[(k, k)] += q * q * dt_upd;
+        }
+        self.rebuild_live();
+        // Continue the live run from the new model's state at the window end.
+        self.live = std::array::from_fn(|k| Dual64::new(y_end[k], self.live[k].eps));
+        self.re_num = 0.0;
+        self.re_den = 0.0;
+        self.re_count = 0;
+        Some(Update { t: self.t(), before, after: (e1 / q.max(1e-300)).sqrt(), step })
+    }
+
+    /// Standard deviation (same unit as the curve) of `Bl`, `Kms` or `Le` at `x` from the
+    /// covariance.
+    pub fn curve_sd(&self, which: &str, x: f64) -> f64 {
+        let s = self.layout.slots();
+        let sc = &self.layout.scales;
+        let (range, scale) = match which {
+            "Bl" => (s.bl, sc.bl),
+            "Kms" => (s.kms, sc.kms),
+            _ => (s.le, sc.le),
+        };
+        let g = self.layout.basis_at(x, scale);
+        let mut v = 0.0;
+        for (a, ga) in range.clone().zip(g.iter()) {
+            for (b, gb) in range.clone().zip(g.iter()) {
+                v += ga * self.cov[(a, b)] * gb;
+            }
+        }
+        v.max(0.0).sqrt()
+    }
+}

@@ -1,0 +1,532 @@
+//! The measurement: a pure loop over blocks (source -> high-pass -> gain -> device ->
+//! online identification -> controller), with observers for the terminal and the database.
+//!
+//! Stages:
+//! 1. **Small**: the first [`MeasureOptions::small_seconds`] at `start_volts`: the linear
+//!    (impedance) fit gives the small-signal parameters, the start of the online estimator.
+//! 2. **Ramp**: the gain rises by [`MeasureOptions::ramp_db_per_s`] while the online
+//!    estimator follows, until a limit binds: the target excursion (`target_x`, or the safe
+//!    range where Kms(x)/Kms(0) reaches `kms_limit`), the voice-coil temperature rise
+//!    `max_dt`, or `max_volts`.
+//! 3. **Hold**: at that level until the estimate has converged (window residual below 2 %,
+//!    curves changing by less than 0.3 % (Bl, Kms) and 1 % (Le) at two updates), or
+//!    for `duration` in a long-term test.
+//!
+//! Protection acts on every block: the live model's peak excursion is compared with the
+//! limit and the gain cut at once when it is passed; the temperature (from the tracked Re)
+//! holds the gain at 70 % of `max_dt` and cuts it (power ~ gain^2) above 80 %. In a
+//! long-term test at a fixed level (`hold_volts`) the excursion is kept in range by raising
+//! the cut-off of the high-pass instead, so the electrical power stays.
+
+use crate::device::{Device, Truth};
+use crate::signal::{HighPass, Source};
+use crate::store::{StateRow, Store};
+use coilscope_core::params::Parameters;
+use coilscope_core::poly::Poly;
+use coilscope_ident::linear::{fit_linear_bins, scale_by_mms};
+use coilscope_ident::online::{Online, OnlineOptions};
+
+/// Seconds of peak-excursion memory of the controller.
+const PEAK_MEMORY_S: f64 = 8.0;
+/// Share of the excursion limit the controller aims the largest remembered peak at.
+const X_AIM: f64 = 0.92;
+
+/// Convergence: largest change of Bl(x), Kms(x) and of Le(x) per update (relative to the
+/// value at rest), at each of the last two updates.
+const CONVERGED_BL_KMS: f64 = 0.003;
+const CONVERGED_LE: f64 = 0.01;
+
+/// Options (SI units).
+#[derive(Clone, Debug)]
+pub struct MeasureOptions {
+    /// Moving mass (kg): the absolute scale.
+    pub mms: f64,
+    /// Target peak excursion (m); `None`: the safe range found from Kms(x).
+    pub target_x: Option<f64>,
+    /// Largest voice-coil temperature rise (K).
+    pub max_dt: f64,
+    /// Largest stiffness increase Kms(x)/Kms(0) inside the excursion.
+    pub kms_limit: f64,
+    /// Largest drive level (V rms).
+    pub max_volts: f64,
+    /// Level of the small-signal stage (V rms).
+    pub start_volts: f64,
+    pub small_seconds: f64,
+    pub ramp_db_per_s: f64,
+    /// Stop without convergence after this long (s).
+    pub max_seconds: f64,
+    /// Long-term test: run this long (s), whatever the convergence.
+    pub duration: Option<f64>,
+    /// Long-term test at a fixed level (V rms): the high-pass keeps x in range.
+    pub hold_volts: Option<f64>,
+    /// Block length (s).
+    pub block: f64,
+    /// Seconds between recursive updates.
+    pub update_seconds: f64,
+    /// Power-series order.
+    pub order: usize,
+    /// Temperature coefficient of the coil's resistance (1/K).
+    pub alpha: f64,
+    /// Cut-off of the excitation's high-pass at the start (Hz).
+    pub hp_hz: f64,
+}
+
+impl Default for MeasureOptions {
+    fn default() -> Self {
+        MeasureOptions {
+            mms: f64::NAN,
+            target_x: None,
+            max_dt: 50.0,
+            kms_limit: 2.0,
+            max_volts: 20.0,
+            start_volts: 0.2,
+            small_seconds: 2.0,
+            ramp_db_per_s: 3.0,
+            max_seconds: 60.0,
+            duration: None,
+            hold_volts: None,
+            block: 0.1,
+            update_seconds: 1.0,
+            order: 6,
+            alpha: 0.00393,
+            hp_hz: 5.0,
+        }
+    }
+}
+
+impl MeasureOptions {
+    /// Check the limits; the message names the option and what is valid.
+    pub fn validate(&self) -> Result<(), String> {
+        let check = |ok: bool, msg: String| if ok { Ok(()) } else { Err(msg) };
+        check(self.mms.is_finite() && self.mms > 0.0 && self.mms < 2.0, format!("--mms {} kg is not valid (0 .. 2 kg; give kg, not g)", self.mms))?;
+        if let Some(x) = self.target_x {
+            check(x.is_finite() && x > 0.0 && x < 0.1, format!("--target-x {} mm is not valid (0 .. 100 mm)", x * 1e3))?;
+        }
+        check(self.max_dt.is_finite() && self.max_dt > 0.0 && self.max_dt <= 300.0, format!("--max-dt {} K is not valid (0 .. 300 K)", self.max_dt))?;
+        check(self.kms_limit.is_finite() && self.kms_limit > 1.0, format!("--kms-limit {} is not valid (> 1, e.g. 2)", self.kms_limit))?;
+        check(self.max_volts.is_finite() && self.max_volts > 0.0 && self.max_volts <= 1000.0, format!("--max-volts {} V is not valid (0 .. 1000 V rms)", self.max_volts))?;
+        check(self.start_volts > 0.0 && self.start_volts <= self.max_volts, format!("--start-volts {} V is not valid (0 .. max-volts {} V)", self.start_volts, self.max_volts))?;
+        if let Some(d) = self.duration {
+            check(d.is_finite() && d >= self.small_seconds + 1.0, format!("--duration {d} s is not valid (at least {} s)", self.small_seconds + 1.0))?;
+        }
+        if let Some(v) = self.hold_volts {
+            check(v > 0.0 && v <= self.max_volts, format!("--volts {v} V is not valid (0 .. max-volts {} V)", self.max_volts))?;
+        }
+        check((2..=8).contains(&self.order), format!("--order {} is not valid (2 ..= 8)", self.order))?;
+        check(self.max_seconds >= self.small_seconds + 2.0, format!("--max-seconds {} s is not valid (at least {} s)", self.max_seconds, self.small_seconds + 2.0))?;
+        Ok(())
+    }
+}
+
+/// Stage of the measurement.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stage {
+    Small,
+    Ramp,
+    Hold,
+}
+
+impl Stage {
+    pub fn name(&self) -> &'static str {
+        match self {
+            Stage::Small => "small-signal",
+            Stage::Ramp => "ramp",
+            Stage::Hold => "hold",
+        }
+    }
+}
+
+/// What observers see after every block.
+#[derive(Clone, Debug)]
+pub struct Live {
+    pub t: f64,
+    pub stage: Stage,
+    /// Drive level (V rms of the unit signal times the gain).
+    pub volts: f64,
+    pub f_hp: f64,
+    /// Live model displacement over the block (m).
+    pub x_min: f64,
+    pub x_max: f64,
+    /// Estimated voice-coil temperature rise (K) and Re (ohm).
+    pub dtv: f64,
+    pub re: f64,
+    /// Current error of the live model over the block.
+    pub residual: f64,
+    /// Excursion limit in force (m).
+    pub x_limit: Option<f64>,
+    /// What limits the level now.
+    pub limited_by: &'static str,
+    /// Whether a recursive update ran after this block, and its window residual.
+    pub update: Option<f64>,
+}
+
+/// The outcome.
+pub struct Measurement {
+    pub params: Parameters,
+    /// Small-signal parameters from the first stage.
+    pub small: Parameters,
+    pub online: Online,
+    pub converged: bool,
+    pub stop_reason: String,
+    pub seconds: f64,
+    /// Range of x the live model reached at the final level (m).
+    pub x_range: [f64; 2],
+    pub x_peak_max: f64,
+    pub dtv_max: f64,
+    /// Last window residual.
+    pub residual_rel: f64,
+    pub updates: usize,
+    /// Protection events: (t, what).
+    pub events: Vec<(f64, String)>,
+    /// (t, dT) once per second.
+    pub dt_track: Vec<(f64, f64)>,
+    pub truth: Option<Truth>,
+    pub excitation: String,
+    pub device: String,
+    pub mms_source: String,
+}
+
+/// Largest relative change of a curve over `[-r, r]`, relative to its value at rest.
+fn curve_change(a: &Poly, b: &Poly, r: f64) -> f64 {
+    let b0 = b.eval(0.0).abs().max(1e-300);
+    (0..=40).map(|k| -r + 2.0 * r * k as f64 / 40.0).map(|x| (a.eval(x) - b.eval(x)).abs() / b0).fold(0.0, f64::max)
+}
+
+/// The smallest |x| within `reach` where max(Kms(x), Kms(-x)) / Kms(0) reaches `limit`.
+pub fn kms_limit_crossing(kms: &Poly, reach: f64, limit: f64) -> Option<f64> {
+    let k0 = kms.eval(0.0);
+    (1..=200).map(|k| reach * k as f64 / 200.0).find(|&x| kms.eval(x).max(kms.eval(-x)) / k0 >= limit)
+}
+
+/// Run a measurement. `observe` sees every block; `store` (if any) gets the decimated
+/// states (one per block) and every estimate.
+pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptions, mut store: Option<&mut Store>, mut observe: impl FnMut(&Live)) -> Result<Measurement, String> {
+    opts.validate()?;
+    let fs = device.fs();
+    let nb = ((opts.block * fs) as usize).max(64);
+    let mut hp = HighPass::new(fs, opts.hp_hz);
+    let controllable = device.controllable();
+    let mut gain = opts.start_volts;
+    let mut stage = Stage::Small;
+    let (mut u_small, mut i_small) = (Vec::new(), Vec::new());
+    let mut online: Option<Online> = None;
+    let mut small: Option<Parameters> = None;
+    let mut samples = 0usize;
+    let mut recent_peaks: Vec<f64> = Vec::new();
+    let mut prev_est: Option<Parameters> = None;
+    let mut changes: Vec<(f64, f64)> = Vec::new();
+    let mut auto_limit: Option<f64> = None;
+    // Largest Kms(x)/Kms(0) of the estimate within 1.3 times the reach.
+    let mut kms_ratio = 1.0f64;
+    let mut hold_since = f64::INFINITY;
+    let mut steady_blocks = 0;
+    let mut events = Vec::new();
+    let mut dt_track = Vec::new();
+    let (mut x_peak_max, mut dtv_max) = (0.0f64, 0.0f64);
+    let mut hold_range = [0.0f64, 0.0f64];
+    let mut last_residual = f64::NAN;
+    let mut updates = 0usize;
+    let mut converged = false;
+    let mut stop_reason = String::new();
+    let mut blocks = 0usize;
+    let end = opts.duration.unwrap_or(opts.max_seconds);
+    loop {
+        let t = samples as f64 / fs;
+        if t >= end {
+            stop_reason = match opts.duration {
+                Some(d) => format!("long-term test: the duration of {d} s is over"),
+                None => format!("no convergence within {} s (--max-seconds)", opts.max_seconds),
+            };
+            break;
+        }
+        let mut drive = source.next_block(nb);
+        hp.process(&mut drive);
+        drive.iter_mut().for_each(|v| *v *= gain);
+        let Some(blk) = device.play(&drive)? else {
+            stop_reason = "the replayed recording ended".into();
+            break;
+        };
+        let n = blk.u.len();
+        if n == 0 {
+            stop_reason = "the device delivered no samples".into();
+            break;
+        }
+        samples += n;
+        blocks += 1;
+        let t = samples as f64 / fs;
+        let mut live = Live {
+            t,
+            stage,
+            volts: gain,
+            f_hp: hp.fc,
+            x_min: 0.0,
+            x_max: 0.0,
+            dtv: 0.0,
+            re: f64::NAN,
+            residual: f64::NAN,
+            x_limit: None,
+            limited_by: "ramp",
+            update: None,
+        };
+        match online.as_mut() {
+            None => {
+                u_small.extend_from_slice(&blk.u);
+                i_small.extend_from_slice(&blk.i);
+                live.limited_by = "small-signal stage";
+                if t >= opts.small_seconds {
+                    let lin = fit_linear_bins(&u_small, &i_small, fs, "small-signal stage", usize::MAX, |_| {})
+                        .map_err(|e| format!("{e} (the small-signal stage at {:.3} V rms: raise --start-volts if the level is too low against noise)", opts.start_volts))?;
+                    let p = scale_by_mms(&lin, opts.mms)?;
+                    // Reach of the small stage: the series basis and the runaway limit scale from it.
+                    let x_small = coilscope_ident::linear::predicted_displacement(&p, &i_small, fs).iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-6);
+                    let x_ref = opts.target_x.unwrap_or(20.0 * x_small).max(2.0 * x_small);
+                    let mut on = Online::new(&p, fs, OnlineOptions { order: opts.order, x_ref, window: 0.3, ..Default::default() }).map_err(|e| e.0)?;
+                    on.push(&u_small, &i_small).map_err(|e| e.0)?;
+                    online = Some(on);
+                    small = Some(p);
+                    stage = if controllable { Stage::Ramp } else { Stage::Hold };
+                    if !controllable {
+                        hold_since = t;
+                    }
+                }
+            }
+            Some(on) => {
+                let st = on.push(&blk.u, &blk.i).map_err(|e| e.0)?;
+                let re_cold = small.as_ref().map(|p| p.re).unwrap_or(f64::NAN);
+                let dtv = (on.re() / re_cold - 1.0) / opts.alpha;
+                live.x_min = st.x_min;
+                live.x_max = st.x_max;
+                live.re = on.re();
+                live.dtv = dtv;
+                live.residual = st.residual_rel();
+                x_peak_max = x_peak_max.max(st.x_max.max(-st.x_min));
+                dtv_max = dtv_max.max(dtv);
+                if stage == Stage::Hold {
+                    hold_range = [hold_range[0].min(st.x_min), hold_range[1].max(st.x_max)];
+                }
+                // Recursive update.
+                if on.since_update() >= opts.update_seconds {
+                    if let Some(up) = on.update() {
+                        updates += 1;
+                        last_residual = up.before;
+                        live.update = Some(up.before);
+                        let est = on.parameters();
+                        let reach = on.reach;
+                        if let Some(prev) = &prev_est {
+                            let r = 0.9 * reach;
+                            let c_bk = curve_change(&est.bl, &prev.bl, r).max(curve_change(&est.kms, &prev.kms, r));
+                            let c_le = curve_change(&est.le, &prev.le, r);
+                            changes.push((c_bk, c_le));
+                        }
+                        // The safe range: where the stiffness rises past the user's limit.
+                        // Looked for a little beyond the reach (the estimate extrapolated), so
+                        // the ramp stops before the driver gets there.
+                        if let Some(x) = kms_limit_crossing(&est.kms, 1.3 * reach, opts.kms_limit) {
+                            if auto_limit.is_none_or(|a| x < a) {
+                                events.push((t, format!("Kms(x)/Kms(0) reaches {} at |x| = {:.2} mm: excursion limited there", opts.kms_limit, x * 1e3)));
+                            }
+                            auto_limit = Some(auto_limit.map_or(x, |a: f64| a.min(x)));
+                        }
+                        if let Some(s) = store.as_deref_mut() {
+                            let mut pj = est.clone();
+                            pj.x_range = Some([-reach, reach]);
+                            s.push_estimate(t, up.before, &pj.to_json_value());
+                        }
+                        let k0 = est.kms.eval(0.0);
+                        kms_ratio = (0..=20).map(|k| 1.3 * reach * k as f64 / 20.0).map(|x| est.kms.eval(x).max(est.kms.eval(-x)) / k0).fold(0.0, f64::max);
+                        prev_est = Some(est);
+                        // Convergence: at level for 2 s, small window error, stable curves.
+                        let n = changes.len();
+                        if opts.duration.is_none() && stage == Stage::Hold && t - hold_since >= 2.0 && n >= 2 && up.before < 0.02 {
+                            if changes[n - 2..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
+                                converged = true;
+                                stop_reason = format!("converged after {t:.1} s: window residual {:.2e}, Bl/Kms curves changed by < {} % and Le by < {} % (over 90 % of the reach) at each of the last two updates", up.before, 100.0 * CONVERGED_BL_KMS, 100.0 * CONVERGED_LE);
+                            }
+                        }
+                    }
+                }
+                // Controller.
+                if controllable {
+                    let x_limit = match (opts.target_x, auto_limit) {
+                        (Some(a), Some(b)) => Some(a.min(b)),
+                        (a, b) => a.or(b),
+                    };
+                    live.x_limit = x_limit;
+                    // Peak excursion per volt over the last 8 s (the noise's period): noise
+                    // peaks come rarely, so the level is set from the largest one seen.
+                    let peak = st.x_max.max(-st.x_min);
+                    recent_peaks.push(peak / gain);
+                    if recent_peaks.len() as f64 * opts.block > PEAK_MEMORY_S {
+                        recent_peaks.remove(0);
+                    }
+                    let per_volt = recent_peaks.iter().cloned().fold(0.0, f64::max);
+                    // Near the stiffness limit the ramp slows to a third.
+                    let ramp = if kms_ratio > 0.75 * opts.kms_limit { opts.ramp_db_per_s / 3.0 } else { opts.ramp_db_per_s };
+                    let step = 10f64.powf(ramp * n as f64 / fs / 20.0);
+                    let mut g = if opts.hold_volts.is_some() { opts.hold_volts.unwrap().min(gain * step) } else { gain * step };
+                    let mut why = "ramp";
+                    if let Some(xl) = x_limit {
+                        if opts.hold_volts.is_some() {
+                            // Fixed level: the high-pass keeps x in range.
+                            if peak > 0.97 * xl {
+                                let fc = (hp.fc.max(5.0) * 1.25).min(2000.0);
+                                events.push((t, format!("excursion {:.2} mm near the limit {:.2} mm: high-pass raised to {fc:.1} Hz", peak * 1e3, xl * 1e3)));
+                                hp.set(fc);
+                                why = "excursion (high-pass)";
+                            } else if gain * per_volt < 0.8 * xl && hp.fc > opts.hp_hz {
+                                hp.set((hp.fc / 1.05).max(opts.hp_hz));
+                            }
+                        } else if peak > 0.98 * xl {
+                            g = gain * 0.9 * xl / peak;
+                            events.push((t, format!("excursion {:.2} mm above 98 % of the limit {:.2} mm: gain cut to {g:.3} V", peak * 1e3, xl * 1e3)));
+                            why = "excursion";
+                        } else if g * per_volt > X_AIM * xl {
+                            g = X_AIM * xl / per_volt.max(1e-12);
+                            why = "excursion";
+                        }
+                    }
+                    // Margins for the lag of the Re tracking and the error of the cold Re
+                    // (0.1 % of Re is 0.25 K).
+                    if dtv > 0.8 * opts.max_dt {
+                        let cut = gain * (0.75 * opts.max_dt / dtv).sqrt();
+                        if cut < g {
+                            g = cut;
+                            events.push((t, format!("voice-coil rise {dtv:.2} K above 80 % of {} K: gain cut to {g:.3} V", opts.max_dt)));
+                            why = "temperature";
+                        }
+                    } else if dtv > 0.7 * opts.max_dt && g > gain {
+                        g = gain;
+                        why = "temperature";
+                    }
+                    if g > opts.max_volts {
+                        g = opts.max_volts;
+                        why = "max-volts";
+                    }
+                    live.limited_by = why;
+                    if stage == Stage::Ramp {
+                        if g <= gain * 1.0001 {
+                            steady_blocks += 1;
+                        } else {
+                            steady_blocks = 0;
+                        }
+                        if steady_blocks >= 3 {
+                            stage = Stage::Hold;
+                            hold_since = t;
+                            hold_range = [0.0, 0.0];
+                        }
+                    }
+                    gain = g;
+                } else {
+                    live.limited_by = "replay";
+                }
+                if blocks.is_multiple_of((1.0 / opts.block).round().max(1.0) as usize) {
+                    dt_track.push((t, dtv));
+                }
+            }
+        }
+        live.stage = stage;
+        observe(&live);
+        if let Some(s) = store.as_deref_mut() {
+            s.push_state(StateRow {
+                t,
+                stage: stage.name().into(),
+                u_rms: coilscope_core::simulate::rms(&blk.u),
+                i_rms: coilscope_core::simulate::rms(&blk.i),
+                gain: live.volts,
+                f_hp: live.f_hp,
+                x_min: live.x_min,
+                x_max: live.x_max,
+                dtv: live.dtv,
+                re: live.re,
+                residual: live.residual,
+            });
+            if blocks.is_multiple_of((1.0 / opts.block).round().max(1.0) as usize) {
+                s.commit(t)?;
+            }
+        }
+        if converged {
+            break;
+        }
+    }
+    let seconds = samples as f64 / fs;
+    let Some(on) = online else {
+        return Err(format!("the measurement ended after {seconds:.2} s, before the small-signal stage ({} s) was complete", opts.small_seconds));
+    };
+    let mut params = on.parameters();
+    if hold_range == [0.0, 0.0] {
+        hold_range = [-on.reach, on.reach];
+    }
+    params.x_range = Some(hold_range);
+    let small = small.expect("set with the estimator");
+    Ok(Measurement {
+        params,
+        small,
+        converged,
+        stop_reason,
+        seconds,
+        x_range: hold_range,
+        x_peak_max,
+        dtv_max,
+        residual_rel: last_residual,
+        updates,
+        events,
+        dt_track,
+        truth: device.truth(),
+        excitation: source.name().to_string(),
+        device: device.describe(),
+        mms_source: String::new(),
+        online: on,
+    })
+}
+
+impl Measurement {
+    /// The result file (`coilscope.result/1`, plus `measurement.*`).
+    pub fn result_json(&self) -> serde_json::Value {
+        use serde_json::json;
+        let ts = coilscope_core::small_signal::thiele_small(&self.params);
+        let ts_small = coilscope_core::small_signal::thiele_small(&self.small);
+        let lim = coilscope_core::limits::limits(&self.params, self.x_range);
+        let mut unc = serde_json::Map::new();
+        unc.insert("note".into(), "standard deviations from the online estimator's covariance (information from every window; sensor noise and the residual's level; Mms taken as exact). Bands: value and sd on a grid over fit.x_range".into());
+        let [lo, hi] = self.x_range;
+        let xs: Vec<f64> = (0..41).map(|k| lo + (hi - lo) * k as f64 / 40.0).collect();
+        for (which, f) in [("Bl", &self.params.bl), ("Kms", &self.params.kms), ("Le", &self.params.le)] {
+            let value: Vec<f64> = xs.iter().map(|&x| f.eval(x)).collect();
+            let sd: Vec<f64> = xs.iter().map(|&x| self.online.curve_sd(which, x)).collect();
+            unc.insert(format!("{which}_band"), json!({"x": xs, "value": value, "sd": sd}));
+        }
+        json!({
+            "format": "coilscope.result/1",
+            "kind": "large-signal",
+            "recording": self.device,
+            "parameters": self.params.to_json_value(),
+            "fit": {
+                "method": "online recursive output error (parallel model, exact Jacobians on sliding windows, Kalman update of the parameters)",
+                "residual_rel": self.residual_rel,
+                "x_range": self.x_range,
+                "order": self.online.layout.order,
+                "converged": self.converged,
+                "stop_reason": self.stop_reason,
+                "updates": self.updates,
+                "Mms_source": self.mms_source,
+            },
+            "small_signal": ts.to_json(),
+            "limits": lim.to_json(),
+            "uncertainty": serde_json::Value::Object(unc),
+            "thermal": {
+                "note": "voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = 0.00393 1/K",
+                "dT_track": self.dt_track.iter().map(|(t, d)| json!([t, d])).collect::<Vec<_>>(),
+            },
+            "measurement": {
+                "x_peak_max": self.x_peak_max,
+                "dTv_max": self.dtv_max,
+                "seconds": self.seconds,
+                "device": self.device,
+                "excitation": self.excitation,
+                "small_signal": {"parameters": self.small.to_json_value(), "thiele_small": ts_small.to_json()},
+                "protection_events": self.events.iter().map(|(t, e)| json!([t, e])).collect::<Vec<_>>(),
+                "live_model_resets": self.online.resets,
+            },
+        })
+    }
+}

@@ -1,0 +1,20 @@
+//! # coilscope-measure
+//!
+//! The dynamic measurement system (seed section 4): the transducer plays noise or music, the
+//! system starts quiet, raises the level, identifies the model as it goes (the online
+//! estimator of [`coilscope_ident::online`]), watches excursion and voice-coil temperature,
+//! protects the transducer and stops when the parameters have converged.
+//!
+//! * [`device`]: what is measured: the virtual transducer (default, no hardware) or a
+//!   replayed recording.
+//! * [`signal`]: excitation sources (IEC 60268-1 noise, pink noise, music files) and the
+//!   variable high-pass.
+//! * [`engine`]: the block loop, controller and protection; observers see every block.
+//! * [`store`]: the SQLite run database (crash-safe, one transaction per second).
+
+pub mod device;
+pub mod engine;
+pub mod signal;
+pub mod store;
+
+pub use engine::{measure, Live, MeasureOptions, Measurement, Stage};

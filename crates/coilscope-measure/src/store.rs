@@ -1,0 +1,167 @@
+//! The run database (SQLite, bundled): decimated live states and parameter estimates of
+//! every run, crash-safe.
+//!
+//! WAL journal; rows are written inside one transaction per second of measurement, so a kill
+//! loses at most the last second, and what was committed is never damaged. A run whose
+//! process died stays `running` in the table; [`list_runs`] reports it as `interrupted`
+//! (no heartbeat for 10 s).
+//!
+//! Tables (SI units):
+//! * `runs(id, started, device, options, status, seconds, heartbeat, result)`
+//! * `states(run, t, stage, u_rms, i_rms, gain, f_hp, x_min, x_max, dtv, re, residual)`
+//! * `estimates(run, t, residual, parameters)` (parameters as the contract's JSON)
+
+use rusqlite::{params, Connection, OptionalExtension};
+use std::path::Path;
+
+/// One decimated live state.
+#[derive(Clone, Debug, Default)]
+pub struct StateRow {
+    pub t: f64,
+    pub stage: String,
+    pub u_rms: f64,
+    pub i_rms: f64,
+    pub gain: f64,
+    pub f_hp: f64,
+    pub x_min: f64,
+    pub x_max: f64,
+    pub dtv: f64,
+    pub re: f64,
+    pub residual: f64,
+}
+
+/// An open run.
+pub struct Store {
+    conn: Connection,
+    pub run: i64,
+    path: String,
+    pending: Vec<StateRow>,
+    pending_est: Vec<(f64, f64, String)>,
+}
+
+fn now() -> f64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0)
+}
+
+fn open(path: &Path) -> Result<Connection, String> {
+    let conn = Connection::open(path).map_err(|e| format!("{}: cannot open the run database: {e}", path.display()))?;
+    conn.execute_batch(
+        "PRAGMA journal_mode = WAL;
+         PRAGMA synchronous = NORMAL;
+         PRAGMA busy_timeout = 5000;
+         CREATE TABLE IF NOT EXISTS runs(id INTEGER PRIMARY KEY, started REAL NOT NULL, device TEXT NOT NULL, options TEXT NOT NULL,
+             status TEXT NOT NULL, seconds REAL NOT NULL DEFAULT 0, heartbeat REAL NOT NULL, result TEXT);
+         CREATE TABLE IF NOT EXISTS states(run INTEGER NOT NULL REFERENCES runs(id), t REAL NOT NULL, stage TEXT NOT NULL, u_rms REAL, i_rms REAL,
+             gain REAL, f_hp REAL, x_min REAL, x_max REAL, dtv REAL, re REAL, residual REAL);
+         CREATE TABLE IF NOT EXISTS estimates(run INTEGER NOT NULL REFERENCES runs(id), t REAL NOT NULL, residual REAL, parameters TEXT NOT NULL);
+         CREATE INDEX IF NOT EXISTS states_run_t ON states(run, t);",
+    )
+    .map_err(|e| format!("{}: not a coilscope run database, or damaged: {e}", path.display()))?;
+    Ok(conn)
+}
+
+impl Store {
+    /// Open (or create) the database and start a run.
+    pub fn create(path: &Path, device: &str, options: &serde_json::Value) -> Result<Self, String> {
+        let conn = open(path)?;
+        let t = now();
+        conn.execute("INSERT INTO runs(started, device, options, status, heartbeat) VALUES (?1, ?2, ?3, 'running', ?1)", params![t, device, options.to_string()])
+            .map_err(|e| format!("{}: cannot start a run: {e}", path.display()))?;
+        let run = conn.last_insert_rowid();
+        Ok(Store { conn, run, path: path.display().to_string(), pending: Vec::new(), pending_est: Vec::new() })
+    }
+
+    pub fn push_state(&mut self, row: StateRow) {
+        self.pending.push(row);
+    }
+
+    pub fn push_estimate(&mut self, t: f64, residual: f64, params: &serde_json::Value) {
+        self.pending_est.push((t, residual, params.to_string()));
+    }
+
+    /// Write everything pending in one transaction (call once per second of measurement).
+    pub fn commit(&mut self, seconds: f64) -> Result<(), String> {
+        let err = |e: rusqlite::Error| format!("{}: cannot write the run: {e}", self.path);
+        let tx = self.conn.transaction().map_err(err)?;
+        {
+            let mut st = tx
+                .prepare_cached("INSERT INTO states(run, t, stage, u_rms, i_rms, gain, f_hp, x_min, x_max, dtv, re, residual) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12)")
+                .map_err(err)?;
+            for r in &self.pending {
+                st.execute(params![self.run, r.t, r.stage, r.u_rms, r.i_rms, r.gain, r.f_hp, r.x_min, r.x_max, r.dtv, r.re, r.residual]).map_err(err)?;
+            }
+            let mut se = tx.prepare_cached("INSERT INTO estimates(run, t, residual, parameters) VALUES (?1, ?2, ?3, ?4)").map_err(err)?;
+            for (t, r, p) in &self.pending_est {
+                se.execute(params![self.run, t, r, p]).map_err(err)?;
+            }
+            tx.execute("UPDATE runs SET seconds = ?1, heartbeat = ?2 WHERE id = ?3", params![seconds, now(), self.run]).map_err(err)?;
+        }
+        tx.commit().map_err(err)?;
+        self.pending.clear();
+        self.pending_est.clear();
+        Ok(())
+    }
+
+    /// Close the run with its status (`converged`, `stopped`, `failed: ...`) and result.
+    pub fn finish(&mut self, seconds: f64, status: &str, result: Option<&serde_json::Value>) -> Result<(), String> {
+        self.commit(seconds)?;
+        self.conn
+            .execute("UPDATE runs SET status = ?1, result = ?2, heartbeat = ?3 WHERE id = ?4", params![status, result.map(|r| r.to_string()), now(), self.run])
+            .map_err(|e| format!("{}: cannot close the run: {e}", self.path))?;
+        Ok(())
+    }
+}
+
+/// One run as listed.
+#[derive(Clone, Debug)]
+pub struct RunInfo {
+    pub id: i64,
+    pub started: f64,
+    pub device: String,
+    /// `running`, `interrupted` (no heartbeat for 10 s), or the final status.
+    pub status: String,
+    pub seconds: f64,
+    pub states: i64,
+    pub estimates: i64,
+    /// The last stored state.
+    pub last: Option<StateRow>,
+}
+
+/// List the runs of a database (works on a database whose writer was killed).
+pub fn list_runs(path: &Path) -> Result<Vec<RunInfo>, String> {
+    if !path.exists() {
+        return Err(format!("{}: no such run database (coilscope measure writes DIR/run.sqlite)", path.display()));
+    }
+    let conn = open(path)?;
+    let err = |e: rusqlite::Error| format!("{}: cannot read the runs: {e}", path.display());
+    let mut st = conn.prepare("SELECT id, started, device, status, seconds, heartbeat FROM runs ORDER BY id").map_err(err)?;
+    let rows: Vec<(i64, f64, String, String, f64, f64)> =
+        st.query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?, r.get(4)?, r.get(5)?))).map_err(err)?.collect::<Result<_, _>>().map_err(err)?;
+    let t_now = now();
+    let mut out = Vec::new();
+    for (id, started, device, status, seconds, heartbeat) in rows {
+        let states: i64 = conn.query_row("SELECT COUNT(*) FROM states WHERE run = ?1", [id], |r| r.get(0)).map_err(err)?;
+        let estimates: i64 = conn.query_row("SELECT COUNT(*) FROM estimates WHERE run = ?1", [id], |r| r.get(0)).map_err(err)?;
+        let last = conn
+            .query_row("SELECT t, stage, u_rms, i_rms, gain, f_hp, x_min, x_max, dtv, re, residual FROM states WHERE run = ?1 ORDER BY t DESC LIMIT 1", [id], |r| {
+                Ok(StateRow {
+                    t: r.get(0)?,
+                    stage: r.get(1)?,
+                    u_rms: r.get(2)?,
+                    i_rms: r.get(3)?,
+                    gain: r.get(4)?,
+                    f_hp: r.get(5)?,
+                    x_min: r.get(6)?,
+                    x_max: r.get(7)?,
+                    dtv: r.get(8)?,
+                    re: r.get(9)?,
+                    residual: r.get(10)?,
+                })
+            })
+            .optional()
+            .map_err(err)?;
+        let status = if status == "running" && t_now - heartbeat > 10.0 { "interrupted".to_string() } else { status };
+        out.push(RunInfo { id, started, device, status, seconds, states, estimates, last });
+    }
+    Ok(out)
+}
