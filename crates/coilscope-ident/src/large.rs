@@ -140,6 +140,26 @@ impl Layout {
         self.legendre.iter().map(|p| scale * Poly { c: p.clone() }.eval(xi)).collect()
     }
 
+    /// Standard deviation of `Bl`, `Kms` or `Le` (their unit) at `x`, from a covariance of
+    /// theta: the quadratic form of the curve's basis gradient.
+    pub fn curve_sd(&self, cov: &DMatrix<f64>, which: &str, x: f64) -> f64 {
+        let s = self.slots();
+        let sc = &self.scales;
+        let (range, scale) = match which {
+            "Bl" => (s.bl, sc.bl),
+            "Kms" => (s.kms, sc.kms),
+            _ => (s.le, sc.le),
+        };
+        let g = self.basis_at(x, scale);
+        let mut v = 0.0;
+        for (a, ga) in range.clone().zip(g.iter()) {
+            for (b, gb) in range.clone().zip(g.iter()) {
+                v += ga * cov[(a, b)] * gb;
+            }
+        }
+        v.max(0.0).sqrt()
+    }
+
     /// The model (thermal part off: the heating is carried by the `Re(t)` knots) and the knots.
     pub fn model<D: DualNum<Primitive = f64> + Copy>(&self, th: &[D]) -> (Model<D>, Vec<D>) {
         let s = self.slots();
@@ -221,6 +241,26 @@ impl Layout {
     pub fn re_track(&self, th: &[f64]) -> Vec<f64> {
         th[self.slots().re].iter().map(|t| t * self.scales.re).collect()
     }
+}
+
+/// `theta` as `N`-wide dual numbers whose derivative parts seed entries `c0 .. c0 + N` (fewer
+/// at the end): one pass of the model then gives those Jacobian columns. Returns the duals and
+/// the number of seeded columns.
+pub fn seed_duals<const N: usize>(th: &[f64], c0: usize) -> (Vec<DualSVec64<N>>, usize) {
+    let cnt = N.min(th.len() - c0);
+    let thd = th
+        .iter()
+        .enumerate()
+        .map(|(j, &t)| {
+            let d = DualSVec64::<N>::from_re(t);
+            if j >= c0 && j < c0 + cnt {
+                d.derivative(j - c0)
+            } else {
+                d
+            }
+        })
+        .collect();
+    (thd, cnt)
 }
 
 /// Run the fitted model over `u[..len]` with `n` sub-steps per sample, calling
@@ -324,20 +364,7 @@ impl<'a> OutputError<'a> {
     /// Jacobian columns `c0 .. c0 + N` (fewer at the end) of the current w.r.t. theta: one
     /// run of the model on `N`-wide dual numbers.
     fn jacobian_chunk<const N: usize>(&self, th: &[f64], c0: usize) -> Vec<Vec<f64>> {
-        let n = th.len();
-        let cnt = N.min(n - c0);
-        let thd: Vec<DualSVec64<N>> = th
-            .iter()
-            .enumerate()
-            .map(|(j, &t)| {
-                let d = DualSVec64::<N>::from_re(t);
-                if j >= c0 && j < c0 + cnt {
-                    d.derivative(j - c0)
-                } else {
-                    d
-                }
-            })
-            .collect();
+        let (thd, cnt) = seed_duals::<N>(th, c0);
         let (mut model, knots) = self.layout.model(&thd);
         let start = self.fit.start;
         let mut cols = vec![vec![0.0; self.fit.len()]; cnt];
@@ -777,34 +804,15 @@ impl LargeFit {
 
     /// Band of `Bl`, `Kms` or `Le` over the reached range (`points` x values).
     pub fn band(&self, which: &str, points: usize) -> Band {
-        let s = self.layout.slots();
-        let sc = &self.layout.scales;
-        let (range, scale, f) = match which {
-            "Bl" => (s.bl, sc.bl, &self.params.bl),
-            "Kms" => (s.kms, sc.kms, &self.params.kms),
-            _ => (s.le, sc.le, &self.params.le),
+        let f = match which {
+            "Bl" => &self.params.bl,
+            "Kms" => &self.params.kms,
+            _ => &self.params.le,
         };
         let [lo, hi] = self.x_range;
         let x: Vec<f64> = (0..points).map(|k| lo + (hi - lo) * k as f64 / (points - 1).max(1) as f64).collect();
         let value = x.iter().map(|&x| f.eval(x)).collect();
-        let sd = x
-            .iter()
-            .map(|&x| {
-                let g = self.layout.basis_at(x, scale);
-                match &self.cov {
-                    Some(c) => {
-                        let mut v = 0.0;
-                        for (a, ga) in range.clone().zip(g.iter()) {
-                            for (b, gb) in range.clone().zip(g.iter()) {
-                                v += ga * c[(a, b)] * gb;
-                            }
-                        }
-                        v.max(0.0).sqrt()
-                    }
-                    None => f64::NAN,
-                }
-            })
-            .collect();
+        let sd = x.iter().map(|&x| self.cov.as_ref().map_or(f64::NAN, |c| self.layout.curve_sd(c, which, x))).collect();
         Band { x, value, sd }
     }
 

@@ -20,7 +20,7 @@
 //! The parameters are those of [`crate::large::Layout`] (Legendre series in `x / x_ref`) with
 //! one `Re`. Nothing here allocates per sample; the history kept is a few seconds.
 
-use crate::large::{Layout, Scales, CHUNK};
+use crate::large::{seed_duals, Layout, Scales, CHUNK};
 use coilscope_core::integrate::{rk4_sample, substeps_for, Interpolator, HALF_TAPS};
 use coilscope_core::model::{idx, Model, State, NSTATE};
 use coilscope_core::params::Parameters;
@@ -70,8 +70,6 @@ pub struct LiveStats {
     /// Sum of squared current error and of squared measured current (A²).
     pub err_sq: f64,
     pub i_sq: f64,
-    /// Sum of u i (W s) over the samples: the electrical energy in.
-    pub energy: f64,
 }
 
 impl LiveStats {
@@ -117,9 +115,6 @@ pub struct Online {
     base: usize,
     u: Vec<f64>,
     i: Vec<f64>,
-    /// Live model current and displacement at each history sample (valid below `pos`).
-    im: Vec<f64>,
-    xm: Vec<f64>,
     /// Absolute index of the live model's next sample.
     pos: usize,
     live: State<Dual64>,
@@ -131,8 +126,6 @@ pub struct Online {
     last_update: usize,
     settle: usize,
     x_limit: f64,
-    /// Samples pushed so far.
-    pub pushed: usize,
     /// Largest |x| of the live model so far (m).
     pub reach: f64,
     /// The estimate before the last update (the fall-back if the live model runs away).
@@ -188,8 +181,6 @@ impl Online {
             base: 0,
             u: Vec::new(),
             i: Vec::new(),
-            im: Vec::new(),
-            xm: Vec::new(),
             pos: 0,
             live: [Dual64::from(0.0); NSTATE],
             model: Model::lift_from(start),
@@ -200,7 +191,6 @@ impl Online {
             last_update: 0,
             settle,
             x_limit: 20.0 * opts.x_ref,
-            pushed: 0,
             reach: 0.0,
             previous: None,
             resets: 0,
@@ -232,25 +222,10 @@ impl Online {
         std::array::from_fn(|k| self.live[k].re)
     }
 
-    /// The live model's displacement over the last `n` samples it ran (m).
-    pub fn recent_x(&self, n: usize) -> &[f64] {
-        let end = self.pos - self.base;
-        &self.xm[end.saturating_sub(n)..end]
-    }
-
+    /// The live model of the current theta, on duals that carry d/dRe.
     fn rebuild_live(&mut self) {
-        let (m, _) = self.layout.model::<f64>(&self.theta);
-        let lift = |p: &coilscope_core::Poly| coilscope_core::Poly { c: p.c.iter().map(|&c| Dual64::from(c)).collect() };
-        self.model = Model {
-            re: Dual64::new(m.re, 1.0),
-            le: lift(&m.le),
-            l2r2: m.l2r2.as_ref().map(|(a, b)| (lift(a), lift(b))),
-            bl: lift(&m.bl),
-            kms: lift(&m.kms),
-            mms: Dual64::from(m.mms),
-            rms: Dual64::from(m.rms),
-            thermal: None,
-        };
+        self.model = Model::lift_from(&self.layout.parameters(&self.theta));
+        self.model.re = Dual64::new(self.re(), 1.0);
     }
 
     /// Append measured samples and advance the live model as far as the interpolator's
@@ -258,9 +233,6 @@ impl Online {
     pub fn push(&mut self, u: &[f64], i: &[f64]) -> Result<LiveStats, OnlineError> {
         self.u.extend_from_slice(u);
         self.i.extend_from_slice(i);
-        self.im.resize(self.u.len(), 0.0);
-        self.xm.resize(self.u.len(), 0.0);
-        self.pushed += u.len();
         let mut st = LiveStats { x_min: f64::INFINITY, x_max: f64::NEG_INFINITY, ..Default::default() };
         let dt = 1.0 / self.fs;
         // The live model runs with the Jacobian's sub-step count (`|lambda| h <= 1.5`): it
@@ -295,8 +267,6 @@ impl Online {
                 }
             }
             let (ik, ir) = (s[idx::I].re, s[idx::I].eps);
-            self.im[k] = ik;
-            self.xm[k] = x;
             let r = self.i[k] - ik;
             st.samples += 1;
             st.x_min = st.x_min.min(x);
@@ -304,7 +274,6 @@ impl Online {
             self.reach = self.reach.max(x.abs());
             st.err_sq += r * r;
             st.i_sq += self.i[k] * self.i[k];
-            st.energy += self.u[k] * self.i[k] * dt;
             self.re_num += r * ir;
             self.re_den += ir * ir;
             self.re_count += 1;
@@ -351,8 +320,6 @@ impl Online {
             let cut = have - keep;
             self.u.drain(..cut);
             self.i.drain(..cut);
-            self.im.drain(..cut);
-            self.xm.drain(..cut);
             self.base += cut;
             let first = self.base + HALF_TAPS;
             let keep_from = self.snaps.iter().rposition(|s| s.0 <= first).unwrap_or(0);
@@ -385,20 +352,7 @@ impl Online {
 
     /// Jacobian columns `c0 .. c0 + CHUNK` of the model current over `a..b` from `y0`.
     fn jacobian_chunk(&self, y0: &State<f64>, a: usize, b: usize, skip: usize, c0: usize) -> Vec<Vec<f64>> {
-        let th = &self.theta;
-        let cnt = CHUNK.min(th.len() - c0);
-        let thd: Vec<DualSVec64<CHUNK>> = th
-            .iter()
-            .enumerate()
-            .map(|(j, &t)| {
-                let d = DualSVec64::<CHUNK>::from_re(t);
-                if j >= c0 && j < c0 + cnt {
-                    d.derivative(j - c0)
-                } else {
-                    d
-                }
-            })
-            .collect();
+        let (thd, cnt) = seed_duals::<CHUNK>(&self.theta, c0);
         let (model, _) = self.layout.model(&thd);
         let dt = 1.0 / self.fs;
         let n = self.interp_jac.n;
@@ -522,20 +476,6 @@ impl Online {
     /// Standard deviation (same unit as the curve) of `Bl`, `Kms` or `Le` at `x` from the
     /// covariance.
     pub fn curve_sd(&self, which: &str, x: f64) -> f64 {
-        let s = self.layout.slots();
-        let sc = &self.layout.scales;
-        let (range, scale) = match which {
-            "Bl" => (s.bl, sc.bl),
-            "Kms" => (s.kms, sc.kms),
-            _ => (s.le, sc.le),
-        };
-        let g = self.layout.basis_at(x, scale);
-        let mut v = 0.0;
-        for (a, ga) in range.clone().zip(g.iter()) {
-            for (b, gb) in range.clone().zip(g.iter()) {
-                v += ga * self.cov[(a, b)] * gb;
-            }
-        }
-        v.max(0.0).sqrt()
+        self.layout.curve_sd(&self.cov, which, x)
     }
 }

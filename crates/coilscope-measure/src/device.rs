@@ -18,6 +18,9 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
+/// How far past its `x_range` the virtual driver survives (fraction of the half-width).
+pub const BREAK_MARGIN: f64 = 0.10;
+
 /// A measured block: voltage (V) and current (A) at the terminals.
 #[derive(Clone, Debug, Default)]
 pub struct Block {
@@ -71,8 +74,8 @@ pub struct VirtualDevice {
     rng_u: ChaCha8Rng,
     rng_i: ChaCha8Rng,
     truth: Truth,
-    /// |x| beyond which the virtual driver is destroyed (m): x_range plus 10 %.
-    x_break: Option<[f64; 2]>,
+    /// The driver's valid range (m); beyond it plus [`BREAK_MARGIN`] the driver is destroyed.
+    x_range: Option<[f64; 2]>,
 }
 
 impl VirtualDevice {
@@ -98,7 +101,7 @@ impl VirtualDevice {
             rng_u: named_rng(seed, "virtual-device/voltage-noise"),
             rng_i: named_rng(seed, "virtual-device/current-noise"),
             truth: Truth::default(),
-            x_break: params.x_range.map(|[lo, hi]| [1.1 * lo, 1.1 * hi]),
+            x_range: params.x_range,
         })
     }
 
@@ -129,14 +132,15 @@ impl Device for VirtualDevice {
                 let m = (k - HALF_TAPS as isize) as usize;
                 let s = self.state;
                 let x = s[idx::X];
-                if let Some([lo, hi]) = self.x_break {
-                    if !(x >= lo && x <= hi) {
+                if let Some([lo, hi]) = self.x_range {
+                    if !(x >= (1.0 + BREAK_MARGIN) * lo && x <= (1.0 + BREAK_MARGIN) * hi) {
                         return Err(format!(
-                            "the virtual driver was destroyed: x = {:.3} mm at t = {:.3} s, beyond its valid range [{:.3}, {:.3}] mm + 10 % (the protection failed)",
+                            "the virtual driver was destroyed: x = {:.3} mm at t = {:.3} s, beyond its valid range [{:.3}, {:.3}] mm + {:.0} % (the protection failed)",
                             x * 1e3,
                             (self.pos - HALF_TAPS) as f64 / self.fs,
-                            lo / 1.1 * 1e3,
-                            hi / 1.1 * 1e3
+                            lo * 1e3,
+                            hi * 1e3,
+                            100.0 * BREAK_MARGIN
                         ));
                     }
                 }

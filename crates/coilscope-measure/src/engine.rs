@@ -229,6 +229,8 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     let mut converged = false;
     let mut stop_reason = String::new();
     let mut blocks = 0usize;
+    // Blocks per second: the database commits and the dT track are once a second.
+    let per_second = (1.0 / opts.block).round().max(1.0) as usize;
     let end = opts.duration.unwrap_or(opts.max_seconds);
     loop {
         let t = samples as f64 / fs;
@@ -363,7 +365,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                     // Near the stiffness limit the ramp slows to a third.
                     let ramp = if kms_ratio > 0.75 * opts.kms_limit { opts.ramp_db_per_s / 3.0 } else { opts.ramp_db_per_s };
                     let step = 10f64.powf(ramp * n as f64 / fs / 20.0);
-                    let mut g = if opts.hold_volts.is_some() { opts.hold_volts.unwrap().min(gain * step) } else { gain * step };
+                    let mut g = opts.hold_volts.map_or(gain * step, |v| v.min(gain * step));
                     let mut why = "ramp";
                     if let Some(xl) = x_limit {
                         if opts.hold_volts.is_some() {
@@ -419,7 +421,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                 } else {
                     live.limited_by = "replay";
                 }
-                if blocks.is_multiple_of((1.0 / opts.block).round().max(1.0) as usize) {
+                if blocks.is_multiple_of(per_second) {
                     dt_track.push((t, dtv));
                 }
             }
@@ -440,7 +442,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                 re: live.re,
                 residual: live.residual,
             });
-            if blocks.is_multiple_of((1.0 / opts.block).round().max(1.0) as usize) {
+            if blocks.is_multiple_of(per_second) {
                 s.commit(t)?;
             }
         }
