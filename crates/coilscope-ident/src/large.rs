@@ -75,6 +75,21 @@ pub struct Scales {
     pub rms: f64,
 }
 
+impl Scales {
+    /// The magnitudes of a start parameter set (values at rest, floored away from zero).
+    pub fn of(start: &Parameters) -> Self {
+        Scales {
+            re: start.re,
+            le: start.le.eval(0.0).max(1e-9),
+            l2: start.l2r2.as_ref().map(|(l, _)| l.eval(0.0)).unwrap_or(1e-4).max(1e-9),
+            r2: start.l2r2.as_ref().map(|(_, r)| r.eval(0.0)).unwrap_or(1.0).max(1e-6),
+            bl: start.bl.eval(0.0),
+            kms: start.kms.eval(0.0),
+            rms: start.rms.max(1e-6),
+        }
+    }
+}
+
 /// Where each identified quantity sits in the parameter vector `theta`, and how `theta` maps
 /// to physical parameters. Every number of a result traces back to [`Layout::model`].
 #[derive(Clone, Debug)]
@@ -611,15 +626,7 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
     let settle = ((5.0 * tau).clamp(0.02, 0.25) * fs) as usize;
     let n_re = ((seconds / opts.knot_seconds).ceil() as usize + 1).max(2);
     let knot_dt = seconds / (n_re - 1) as f64;
-    let scales = Scales {
-        re: start.re,
-        le: start.le.eval(0.0).max(1e-9),
-        l2: start.l2r2.as_ref().map(|(l, _)| l.eval(0.0)).unwrap_or(1e-4).max(1e-9),
-        r2: start.l2r2.as_ref().map(|(_, r)| r.eval(0.0)).unwrap_or(1.0).max(1e-6),
-        bl: start.bl.eval(0.0),
-        kms: start.kms.eval(0.0),
-        rms: start.rms.max(1e-6),
-    };
+    let scales = Scales::of(&start);
     let has_l2r2 = start.l2r2.is_some();
     // Reach of the start model: the basis scale, and the runaway limit.
     let probe = Layout::new(MIN_ORDER, n_re, knot_dt, 1e-3, scales.clone(), has_l2r2, opts.mms);

@@ -143,15 +143,7 @@ impl Online {
         if !(crate::large::MIN_ORDER..=crate::large::MAX_ORDER).contains(&opts.order) {
             return Err(OnlineError(format!("power-series order {} is not valid ({} ..= {})", opts.order, crate::large::MIN_ORDER, crate::large::MAX_ORDER)));
         }
-        let scales = Scales {
-            re: start.re,
-            le: start.le.eval(0.0).max(1e-9),
-            l2: start.l2r2.as_ref().map(|(l, _)| l.eval(0.0)).unwrap_or(1e-4).max(1e-9),
-            r2: start.l2r2.as_ref().map(|(_, r)| r.eval(0.0)).unwrap_or(1.0).max(1e-6),
-            bl: start.bl.eval(0.0),
-            kms: start.kms.eval(0.0),
-            rms: start.rms.max(1e-6),
-        };
+        let scales = Scales::of(start);
         let layout = Layout::new(opts.order, 1, 1.0, opts.x_ref, scales, start.l2r2.is_some(), start.mms);
         let theta = layout.theta_from(start, None);
         let s = layout.slots();
