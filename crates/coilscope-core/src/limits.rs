@@ -15,14 +15,47 @@
 //! * **Ak**: stiffness asymmetry at the reach, `(Kms(a) - Kms(-a)) / max(Kms(a), Kms(-a))`,
 //!   in percent.
 //!
+//! The percentages above are the defaults of [`Thresholds`]; [`limits_with`] takes others.
+//!
 //! A limit that the record did not reach is `None`: it lies beyond `a`.
 
 use crate::params::Parameters;
 use crate::poly::Poly;
 
+/// The thresholds that define XBl, XC and XL (fractions, not percent).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Thresholds {
+    /// XBl: `min(Bl(x), Bl(-x)) / Bl(0)` falls to this (default 0.82).
+    pub bl: f64,
+    /// XC: `min(Cms(x), Cms(-x)) / Cms(0)` falls to this (default 0.75).
+    pub cms: f64,
+    /// XL: `|Le(+-x) / Le(0) - 1|` rises to this (default 0.10).
+    pub le: f64,
+}
+
+impl Default for Thresholds {
+    fn default() -> Self {
+        Thresholds { bl: 0.82, cms: 0.75, le: 0.10 }
+    }
+}
+
+impl Thresholds {
+    /// Check that each threshold is a fraction strictly inside (0, 1).
+    pub fn validate(&self) -> Result<(), String> {
+        for (name, v) in [("Bl", self.bl), ("Cms", self.cms), ("Le", self.le)] {
+            if !(v > 0.0 && v < 1.0) {
+                return Err(format!("the {name} threshold {v} is not valid: give a fraction in (0, 1), e.g. 0.82 / 0.75 / 0.10"));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// The limits of one parameter set over a reached range.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Limits {
+    /// The thresholds the limits were computed with.
+    pub thresholds: Thresholds,
     /// `[x_min, x_max]` the limits were searched in (m).
     pub range: [f64; 2],
     /// Symmetric reach `min(-x_min, x_max)` (m).
@@ -83,15 +116,20 @@ pub fn symmetry_point(f: &Poly, amp: f64, range: [f64; 2]) -> Option<f64> {
     best
 }
 
-/// The limits of `p` over the reached range `[x_min, x_max]` (m).
+/// The limits of `p` over the reached range `[x_min, x_max]` (m), default thresholds.
 pub fn limits(p: &Parameters, range: [f64; 2]) -> Limits {
+    limits_with(p, range, Thresholds::default())
+}
+
+/// The limits of `p` over the reached range `[x_min, x_max]` (m) with thresholds `th`.
+pub fn limits_with(p: &Parameters, range: [f64; 2], th: Thresholds) -> Limits {
     let a = (-range[0]).min(range[1]).max(0.0);
     let bl0 = p.bl.eval(0.0);
     let k0 = p.kms.eval(0.0);
     let le0 = p.le.eval(0.0);
-    let xbl = first_crossing(a, |x| p.bl.eval(x).min(p.bl.eval(-x)) <= 0.82 * bl0);
-    let xc = first_crossing(a, |x| p.kms.eval(x).max(p.kms.eval(-x)) >= k0 / 0.75);
-    let xl = first_crossing(a, |x| ((p.le.eval(x) / le0 - 1.0).abs()).max((p.le.eval(-x) / le0 - 1.0).abs()) >= 0.10);
+    let xbl = first_crossing(a, |x| p.bl.eval(x).min(p.bl.eval(-x)) <= th.bl * bl0);
+    let xc = first_crossing(a, |x| p.kms.eval(x).max(p.kms.eval(-x)) >= k0 / th.cms);
+    let xl = first_crossing(a, |x| ((p.le.eval(x) / le0 - 1.0).abs()).max((p.le.eval(-x) / le0 - 1.0).abs()) >= th.le);
     // The largest amplitude (0.8 a down to 0.2 a) whose symmetry point lies inside the range.
     let (xsym, amp) = (2..=8)
         .rev()
@@ -99,7 +137,7 @@ pub fn limits(p: &Parameters, range: [f64; 2]) -> Limits {
         .find_map(|amp| symmetry_point(&p.bl, amp, range).map(|s| (Some(s), amp)))
         .unwrap_or((None, 0.8 * a));
     let (kp, km) = (p.kms.eval(a), p.kms.eval(-a));
-    Limits { range, reach: a, xbl, xc, xl, xsym, xsym_amplitude: amp, ak: 100.0 * (kp - km) / kp.max(km) }
+    Limits { thresholds: th, range, reach: a, xbl, xc, xl, xsym, xsym_amplitude: amp, ak: 100.0 * (kp - km) / kp.max(km) }
 }
 
 impl Limits {
@@ -118,9 +156,17 @@ impl Limits {
         o.insert("Ak".into(), self.ak.into());
         o.insert("range".into(), serde_json::json!(self.range));
         o.insert("units".into(), serde_json::json!({"XBl": "m", "XC": "m", "XL": "m", "Xsym": "m", "Ak": "%"}));
+        let th = &self.thresholds;
+        o.insert("thresholds".into(), serde_json::json!({"Bl": th.bl, "Cms": th.cms, "Le": th.le}));
         o.insert(
             "definitions".into(),
-            "XBl: min(Bl(x),Bl(-x)) = 82 % Bl(0); XC: min(Cms(x),Cms(-x)) = 75 % Cms(0); XL: |Le(+-x)/Le(0) - 1| = 10 %; Xsym: Bl(s+A) = Bl(s-A) at A = Xsym_amplitude; Ak = (Kms(a)-Kms(-a))/max(Kms(+-a)) at the symmetric reach a".into(),
+            format!(
+                "XBl: min(Bl(x),Bl(-x)) = {:.0} % Bl(0); XC: min(Cms(x),Cms(-x)) = {:.0} % Cms(0); XL: |Le(+-x)/Le(0) - 1| = {:.0} %; Xsym: Bl(s+A) = Bl(s-A) at A = Xsym_amplitude; Ak = (Kms(a)-Kms(-a))/max(Kms(+-a)) at the symmetric reach a",
+                100.0 * th.bl,
+                100.0 * th.cms,
+                100.0 * th.le
+            )
+            .into(),
         );
         serde_json::Value::Object(o)
     }
@@ -162,6 +208,20 @@ mod tests {
         assert!((l.xsym.unwrap() - 0.001).abs() < 1e-9, "{:?}", l.xsym);
         // Kms = 1000 - 1e4 x: softer coil-out, Ak = (940 - 1060)/1060.
         assert!((l.ak - 100.0 * (940.0 - 1060.0) / 1060.0).abs() < 1e-9, "{}", l.ak);
+    }
+
+    #[test]
+    fn changed_thresholds_move_the_limits_to_their_closed_forms() {
+        // Bl = 5 (1 - (x/0.01)^2) reaches 70 % at x = 0.01 sqrt(0.3); Le = 1e-3 (1 + 20 x)
+        // changes by 5 % at 2.5 mm; Kms = 1000 (1 + (x/0.005)^2) reaches 1/0.5 at 5 mm.
+        let p = set(vec![5.0, 0.0, -5.0e4], vec![1000.0, 0.0, 4.0e7], vec![1e-3, 2e-2]);
+        let th = Thresholds { bl: 0.70, cms: 0.5, le: 0.05 };
+        let l = limits_with(&p, [-0.008, 0.009], th);
+        assert!((l.xbl.unwrap() - 0.01 * 0.3f64.sqrt()).abs() < 1e-9, "{:?}", l.xbl);
+        assert!((l.xc.unwrap() - 0.005).abs() < 1e-9, "{:?}", l.xc);
+        assert!((l.xl.unwrap() - 0.0025).abs() < 1e-9, "{:?}", l.xl);
+        assert!(l.to_json()["definitions"].as_str().unwrap().contains("70 % Bl(0)"));
+        assert!(Thresholds { bl: 1.2, ..th }.validate().unwrap_err().contains("Bl threshold 1.2"));
     }
 
     #[test]

@@ -1,0 +1,248 @@
+//! Line charts drawn by plotters into SVG (inline in the report) and PNG (beside it).
+//!
+//! The font is DejaVu Sans, embedded in the binary (`fonts/`, with its licence) and registered
+//! with plotters' ab_glyph text backend, so no system font or fontconfig is needed. A log
+//! frequency axis is drawn as `log10(f)` with labels written back in Hz.
+
+use plotters::prelude::*;
+use plotters::style::{register_font, FontStyle};
+use std::sync::Once;
+
+static FONT: &[u8] = include_bytes!("../fonts/DejaVuSans.ttf");
+static REGISTER: Once = Once::new();
+
+fn ensure_font() {
+    REGISTER.call_once(|| {
+        // The embedded bytes are a valid TrueType font; a failure here is a build defect.
+        if register_font("sans-serif", FontStyle::Normal, FONT).is_err() {
+            eprintln!("coilscope-report: the embedded font did not load");
+        }
+    });
+}
+
+/// Colours of the series, in order.
+pub const PALETTE: [RGBColor; 6] = [
+    RGBColor(0x1f, 0x5f, 0xbf),
+    RGBColor(0xd6, 0x27, 0x28),
+    RGBColor(0x2c, 0xa0, 0x2c),
+    RGBColor(0xff, 0x7f, 0x0e),
+    RGBColor(0x94, 0x67, 0xbd),
+    RGBColor(0x17, 0x17, 0x17),
+];
+
+/// One curve.
+#[derive(Clone, Debug)]
+pub struct Series {
+    pub name: String,
+    pub points: Vec<(f64, f64)>,
+    /// Draw as dashes (a prediction rather than the reference).
+    pub dashed: bool,
+}
+
+/// A shaded band `lo..hi` around a curve (e.g. +-2 sd), drawn in the colour of series `of`.
+#[derive(Clone, Debug)]
+pub struct Band {
+    pub of: usize,
+    pub lo: Vec<(f64, f64)>,
+    pub hi: Vec<(f64, f64)>,
+}
+
+/// A chart: title, axes, curves, bands and labelled vertical markers.
+#[derive(Clone, Debug)]
+pub struct Chart {
+    /// File-name-safe id (PNG name, HTML anchor).
+    pub id: String,
+    pub title: String,
+    pub x_label: String,
+    pub y_label: String,
+    pub log_x: bool,
+    pub series: Vec<Series>,
+    pub bands: Vec<Band>,
+    /// Vertical lines at x with a label.
+    pub markers: Vec<(f64, String)>,
+}
+
+impl Chart {
+    pub fn new(id: &str, title: &str, x_label: &str, y_label: &str) -> Self {
+        Chart { id: id.into(), title: title.into(), x_label: x_label.into(), y_label: y_label.into(), log_x: false, series: vec![], bands: vec![], markers: vec![] }
+    }
+    pub fn log_x(mut self) -> Self {
+        self.log_x = true;
+        self
+    }
+    pub fn line(mut self, name: &str, points: Vec<(f64, f64)>) -> Self {
+        self.series.push(Series { name: name.into(), points, dashed: false });
+        self
+    }
+    pub fn dashed(mut self, name: &str, points: Vec<(f64, f64)>) -> Self {
+        self.series.push(Series { name: name.into(), points, dashed: true });
+        self
+    }
+    pub fn band(mut self, lo: Vec<(f64, f64)>, hi: Vec<(f64, f64)>) -> Self {
+        let of = self.series.len().saturating_sub(1);
+        self.bands.push(Band { of, lo, hi });
+        self
+    }
+    pub fn marker(mut self, x: f64, label: &str) -> Self {
+        self.markers.push((x, label.into()));
+        self
+    }
+
+    fn tx(&self, x: f64) -> f64 {
+        if self.log_x { x.max(1e-30).log10() } else { x }
+    }
+
+    /// Points with finite coordinates (and positive x on a log axis), axis-transformed.
+    fn clean(&self, pts: &[(f64, f64)]) -> Vec<(f64, f64)> {
+        pts.iter().filter(|(x, y)| x.is_finite() && y.is_finite() && (!self.log_x || *x > 0.0)).map(|&(x, y)| (self.tx(x), y)).collect()
+    }
+
+    fn bounds(&self) -> Option<((f64, f64), (f64, f64))> {
+        let all: Vec<(f64, f64)> = self
+            .series
+            .iter()
+            .flat_map(|s| self.clean(&s.points))
+            .chain(self.bands.iter().flat_map(|b| self.clean(&b.lo).into_iter().chain(self.clean(&b.hi))))
+            .collect();
+        if all.is_empty() {
+            return None;
+        }
+        let fold = |f: fn(&(f64, f64)) -> f64| all.iter().map(f).fold((f64::INFINITY, f64::NEG_INFINITY), |a, v| (a.0.min(v), a.1.max(v)));
+        let (mut x, mut y) = (fold(|p| p.0), fold(|p| p.1));
+        if x.1 - x.0 <= 0.0 {
+            x = (x.0 - 0.5, x.1 + 0.5);
+        }
+        let pad = if y.1 > y.0 { 0.06 * (y.1 - y.0) } else { 0.5 * y.0.abs().max(1e-12) };
+        y = (y.0 - pad, y.1 + pad);
+        Some((x, y))
+    }
+
+    /// Draw on any plotters backend.
+    pub fn draw<DB: DrawingBackend>(&self, root: DrawingArea<DB, plotters::coord::Shift>) -> Result<(), String> {
+        ensure_font();
+        let e = |err: DrawingAreaErrorKind<DB::ErrorType>| format!("chart {}: {err}", self.id);
+        root.fill(&WHITE).map_err(e)?;
+        let ((x0, x1), (y0, y1)) = self.bounds().ok_or_else(|| format!("chart {}: no finite data to draw", self.id))?;
+        let log = self.log_x;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(&self.title, ("sans-serif", 18))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(e)?;
+        let fmt_x = move |v: &f64| {
+            if log {
+                let f = 10f64.powf(*v);
+                if f >= 1000.0 { format!("{:.0}k", f / 1000.0) } else { format!("{f:.0}") }
+            } else {
+                format!("{v:.3}").trim_end_matches('0').trim_end_matches('.').to_string()
+            }
+        };
+        let fmt_y = |v: &f64| {
+            let a = v.abs();
+            if a != 0.0 && !(1e-2..1e4).contains(&a) { format!("{v:.2e}") } else { format!("{v:.3}").trim_end_matches('0').trim_end_matches('.').to_string() }
+        };
+        chart
+            .configure_mesh()
+            .x_desc(&self.x_label)
+            .y_desc(&self.y_label)
+            .x_label_formatter(&fmt_x)
+            .y_label_formatter(&fmt_y)
+            .label_style(("sans-serif", 13))
+            .light_line_style(RGBColor(235, 235, 235))
+            .draw()
+            .map_err(e)?;
+        for b in &self.bands {
+            let c = PALETTE[b.of % PALETTE.len()];
+            let mut poly = self.clean(&b.lo);
+            poly.extend(self.clean(&b.hi).into_iter().rev());
+            chart.draw_series(std::iter::once(Polygon::new(poly, c.mix(0.22).filled()))).map_err(e)?;
+        }
+        for (x, label) in &self.markers {
+            let tx = self.tx(*x);
+            if !(x0..=x1).contains(&tx) {
+                continue;
+            }
+            let grey = RGBColor(110, 110, 110);
+            chart.draw_series(DashedLineSeries::new(vec![(tx, y0), (tx, y1)], 6, 4, grey.stroke_width(1))).map_err(e)?;
+            chart.draw_series(std::iter::once(Text::new(label.clone(), (tx, y1 - 0.04 * (y1 - y0)), ("sans-serif", 12).into_font().color(&grey)))).map_err(e)?;
+        }
+        for (k, s) in self.series.iter().enumerate() {
+            let c = PALETTE[k % PALETTE.len()];
+            let pts = self.clean(&s.points);
+            let style = c.stroke_width(2);
+            let anno = if s.dashed {
+                chart.draw_series(DashedLineSeries::new(pts, 8, 5, style)).map_err(e)?
+            } else {
+                chart.draw_series(LineSeries::new(pts, style)).map_err(e)?
+            };
+            anno.label(s.name.clone()).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2)));
+        }
+        if self.series.len() > 1 {
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.85))
+                .border_style(RGBColor(200, 200, 200))
+                .label_font(("sans-serif", 13))
+                .position(SeriesLabelPosition::UpperRight)
+                .draw()
+                .map_err(e)?;
+        }
+        root.present().map_err(e)?;
+        Ok(())
+    }
+
+    /// The chart as an SVG document.
+    pub fn svg(&self, size: (u32, u32)) -> Result<String, String> {
+        let mut out = String::new();
+        self.draw(SVGBackend::with_string(&mut out, size).into_drawing_area())?;
+        Ok(out)
+    }
+
+    /// The chart as PNG bytes.
+    pub fn png(&self, size: (u32, u32)) -> Result<Vec<u8>, String> {
+        let mut buf = vec![0u8; (size.0 * size.1 * 3) as usize];
+        self.draw(BitMapBackend::with_buffer(&mut buf, size).into_drawing_area())?;
+        let img = image::RgbImage::from_raw(size.0, size.1, buf).ok_or("PNG buffer size mismatch")?;
+        let mut bytes = Vec::new();
+        img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png).map_err(|e| format!("chart {}: PNG encoding failed: {e}", self.id))?;
+        Ok(bytes)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> Chart {
+        Chart::new("t", "Test", "x (mm)", "Bl (T m)")
+            .line("Bl", (0..50).map(|k| (k as f64 * 0.1, 5.0 - 0.01 * (k * k) as f64)).collect())
+            .band((0..50).map(|k| (k as f64 * 0.1, 4.9 - 0.01 * (k * k) as f64)).collect(), (0..50).map(|k| (k as f64 * 0.1, 5.1 - 0.01 * (k * k) as f64)).collect())
+            .dashed("published", vec![(0.0, 5.0), (4.9, 0.0)])
+            .marker(2.0, "x_max")
+    }
+
+    #[test]
+    fn svg_has_the_curves_and_the_text() {
+        let s = sample().svg((640, 400)).unwrap();
+        assert!(s.starts_with("<svg") && s.contains("</svg>"));
+        assert!(s.contains("Bl (T m)") && s.contains("x_max") && s.contains("published"));
+        assert!(s.matches("<polyline").count() >= 2, "two data lines");
+        assert!(s.contains("<polygon"), "the band");
+    }
+
+    #[test]
+    fn png_draws_the_series_colour() {
+        let bytes = sample().png((640, 400)).unwrap();
+        let img = image::load_from_memory(&bytes).unwrap().to_rgb8();
+        let blue = img.pixels().filter(|p| p.0 == [0x1f, 0x5f, 0xbf]).count();
+        assert!(blue > 200, "the first series is drawn ({blue} pixels)");
+    }
+
+    #[test]
+    fn a_chart_without_finite_data_is_an_error() {
+        let c = Chart::new("empty", "E", "x", "y").line("nan", vec![(f64::NAN, 1.0)]);
+        assert!(c.svg((200, 100)).unwrap_err().contains("no finite data"));
+    }
+}

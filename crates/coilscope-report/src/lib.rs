@@ -1,0 +1,2 @@
+//! # coilscope-report
+pub mod chart;
