@@ -188,3 +188,20 @@ fn limits_agree_with_the_published_curves() {
         }
     }
 }
+
+#[test]
+fn multitone_distortion_is_absent_for_a_linear_set_and_grows_with_level() {
+    use coilscope_analysis::distortion::multitone;
+    let opts = SteadyOptions::default();
+    let p = embedded_driver("18wu-4741t-00").unwrap();
+    let lin = with_only(&p, &[], 0.0);
+    let m0 = multitone(&lin, 20.0, 5000.0, 20, 3.0, Output::Pressure, 7, &opts).unwrap();
+    assert!(db(m0.mtd) < -120.0, "a linear model has no distortion lines: {} dB", db(m0.mtd));
+    let a = multitone(&p, 20.0, 5000.0, 20, 1.5, Output::Pressure, 7, &opts).unwrap();
+    let b = multitone(&p, 20.0, 5000.0, 20, 3.0, Output::Pressure, 7, &opts).unwrap();
+    println!("MTD {:.2} dB at 1.5 V, {:.2} dB at 3 V", db(a.mtd), db(b.mtd));
+    // Mostly second order at these levels: about +6 dB per doubling.
+    let step = db(b.mtd) - db(a.mtd);
+    assert!((4.0..9.0).contains(&step), "{step} dB per doubling");
+    assert_eq!(a.tones.len(), 20);
+}

@@ -34,6 +34,55 @@ enum ExcitationKind {
     Sweep,
 }
 
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum OutputKind {
+    /// Far-field sound pressure (cone acceleration).
+    Pressure,
+    /// Voice-coil displacement.
+    Displacement,
+    /// Terminal current.
+    Current,
+}
+
+impl From<OutputKind> for coilscope_analysis::distortion::Output {
+    fn from(k: OutputKind) -> Self {
+        use coilscope_analysis::distortion::Output;
+        match k {
+            OutputKind::Pressure => Output::Pressure,
+            OutputKind::Displacement => Output::Displacement,
+            OutputKind::Current => Output::Current,
+        }
+    }
+}
+
+/// Limit thresholds and the thermal limit, shared by `diagnose` and `report`.
+#[derive(clap::Args, Clone, Copy, Debug)]
+struct LimitArgs {
+    /// XBl threshold: Bl falls to this fraction of Bl(0).
+    #[arg(long, default_value_t = 0.82)]
+    xbl: f64,
+    /// XC threshold: Cms falls to this fraction of Cms(0).
+    #[arg(long, default_value_t = 0.75)]
+    xc: f64,
+    /// XL threshold: Le changes by this fraction of Le(0).
+    #[arg(long, default_value_t = 0.10)]
+    xl: f64,
+    /// Voice-coil temperature rise limit for the thermal power handling (K).
+    #[arg(long, default_value_t = 50.0)]
+    max_dt: f64,
+}
+
+impl LimitArgs {
+    fn thresholds(&self) -> Result<coilscope_core::limits::Thresholds, String> {
+        let t = coilscope_core::limits::Thresholds { bl: self.xbl, cms: self.xc, le: self.xl };
+        t.validate().map_err(|e| format!("{e} (--xbl, --xc, --xl)"))?;
+        if !(self.max_dt.is_finite() && self.max_dt > 0.0 && self.max_dt <= 300.0) {
+            return Err(format!("--max-dt {} K is not valid (0 .. 300 K)", self.max_dt));
+        }
+        Ok(t)
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Simulate a driver (virtual transducer) and write a recording: voltage, current [, displacement].
@@ -134,6 +183,9 @@ enum Command {
     /// model online, protect the driver (excursion, temperature, stiffness), stop on
     /// convergence. Writes DIR/result.json and DIR/run.sqlite; live state on the terminal.
     Measure {
+        /// Do not write DIR/report.html (the HTML report with PNG plots and CSV curves).
+        #[arg(long)]
+        no_report: bool,
         /// Virtual transducer: embedded driver name or parameter file (the default device).
         #[arg(long = "virtual", value_name = "DRIVER", conflicts_with = "replay")]
         virtual_driver: Option<String>,
@@ -191,6 +243,78 @@ enum Command {
         /// The database (or the measurement directory holding run.sqlite).
         database: PathBuf,
     },
+    /// Predicted distortion of a parameter set (or result) by simulation to the steady state:
+    /// HD2/HD3/THD of a sine, each nonlinearity's share and the Volterra prediction; the IMD of
+    /// a two-tone (--freq2); a multitone spectrum (--multitone); sweeps (--sweep, --levels).
+    Distortion {
+        /// Embedded driver name, parameter file or result file.
+        params: String,
+        /// Sine frequency (Hz); the low tone f1 of a two-tone.
+        #[arg(long)]
+        freq: Option<f64>,
+        /// High tone f2 of a two-tone (Hz): intermodulation d2, d3 (IEC 60268-5).
+        #[arg(long)]
+        freq2: Option<f64>,
+        /// Amplitude of f2 relative to f1 in a two-tone.
+        #[arg(long, default_value_t = 1.0)]
+        ratio: f64,
+        /// Level: RMS voltage of the whole input signal (V); not needed with --levels.
+        #[arg(long, required_unless_present = "levels")]
+        volts: Option<f64>,
+        /// The signal the distortion is measured in.
+        #[arg(long, value_enum, default_value = "pressure")]
+        output: OutputKind,
+        /// A 30-tone multitone over --band instead of a sine.
+        #[arg(long)]
+        multitone: bool,
+        /// Multitone band (Hz).
+        #[arg(long, num_args = 2, value_names = ["F_LO", "F_HI"])]
+        band: Option<Vec<f64>>,
+        /// Number of multitone tones.
+        #[arg(long, default_value_t = 30)]
+        tones: usize,
+        /// Frequency sweep: HD2/HD3/THD and each nonlinearity's share from F_LO to F_HI (3 per octave).
+        #[arg(long, num_args = 2, value_names = ["F_LO", "F_HI"])]
+        sweep: Option<Vec<f64>>,
+        /// Level sweep at --freq (V RMS): full model against the Volterra series.
+        #[arg(long, num_args = 1.., value_delimiter = ',')]
+        levels: Option<Vec<f64>>,
+        /// Voice-coil temperature rise at which Re is taken (K).
+        #[arg(long, default_value_t = 0.0)]
+        temp_rise: f64,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+    /// Limits and diagnosis of a parameter set or result: XBl, XC, XL (thresholds changeable),
+    /// Xsym and the Bl rest-position shift, Ak, polarity check, thermal power handling.
+    Diagnose {
+        /// Embedded driver name, parameter file or result file.
+        params: String,
+        #[command(flatten)]
+        limits: LimitArgs,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Write a self-contained HTML report of a result (or parameter set), with PNG plots and
+    /// CSV curves in `<stem>_files/`.
+    Report {
+        /// Result file (coilscope.result/1), parameter file or embedded driver name.
+        result: String,
+        /// The HTML file to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// Run database with the measurement's time series (default: run.sqlite beside the result).
+        #[arg(long)]
+        db: Option<PathBuf>,
+        /// Level of the distortion analysis (V RMS); default: 70 % of the reach.
+        #[arg(long)]
+        volts: Option<f64>,
+        #[command(flatten)]
+        limits: LimitArgs,
+    },
     /// List the embedded real drivers.
     Drivers,
     /// Validate a parameter set and print its small-signal figures.
@@ -210,10 +334,15 @@ fn main() -> ExitCode {
             cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), sd, scale.as_deref(), &out)
         }
         Command::Identify { recording, mms, order, sd, scale, out } => cmd_identify(&recording, mms, order, sd, scale.as_deref(), &out),
-        Command::Measure { virtual_driver, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
-            cmd_measure(MeasureArgs { virtual_driver, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
+        Command::Measure { no_report, virtual_driver, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
+            cmd_measure(MeasureArgs { no_report, virtual_driver, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
         }
         Command::Runs { database } => cmd_runs(&database),
+        Command::Distortion { params, freq, freq2, ratio, volts, output, multitone, band, tones, sweep, levels, temp_rise, json, seed } => {
+            cmd_distortion(DistortionArgs { params, freq, freq2, ratio, volts, output: output.into(), multitone, band, tones, sweep, levels, temp_rise, json, seed })
+        }
+        Command::Diagnose { params, limits, json } => cmd_diagnose(&params, &limits, json),
+        Command::Report { result, out, db, volts, limits } => cmd_report(&result, &out, db.as_deref(), volts, &limits),
         Command::Drivers => cmd_drivers(),
         Command::Check { params } => load_parameters(&params).map_err(|e| e.to_string()).map(|p| print_params(&p)),
     };
@@ -591,6 +720,7 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
 }
 
 struct MeasureArgs {
+    no_report: bool,
     virtual_driver: Option<String>,
     replay: Option<PathBuf>,
     out: PathBuf,
@@ -707,6 +837,15 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), String> {
         println!("  protection at {t:.1} s: {e}");
     }
     println!("wrote {} and {}", a.out.join("result.json").display(), a.out.join("run.sqlite").display());
+    if !a.no_report {
+        let t = coilscope_core::limits::Thresholds::default();
+        let defaults = LimitArgs { xbl: t.bl, xc: t.cms, xl: t.le, max_dt: a.max_dt };
+        let result = a.out.join("result.json");
+        // The measurement is stored whatever happens to its report.
+        if let Err(e) = cmd_report(&result.to_string_lossy(), &a.out.join("report.html"), None, None, &defaults) {
+            eprintln!("warning: the report was not written: {e}");
+        }
+    }
     Ok(())
 }
 
@@ -723,5 +862,177 @@ fn cmd_runs(path: &Path) -> Result<(), String> {
         }
         println!();
     }
+    Ok(())
+}
+
+struct DistortionArgs {
+    params: String,
+    freq: Option<f64>,
+    freq2: Option<f64>,
+    ratio: f64,
+    volts: Option<f64>,
+    output: coilscope_analysis::distortion::Output,
+    multitone: bool,
+    band: Option<Vec<f64>>,
+    tones: usize,
+    sweep: Option<Vec<f64>>,
+    levels: Option<Vec<f64>>,
+    temp_rise: f64,
+    json: bool,
+    seed: u64,
+}
+
+fn print_json(v: &serde_json::Value) {
+    println!("{}", serde_json::to_string_pretty(v).expect("JSON values serialise"));
+}
+
+fn cmd_distortion(a: DistortionArgs) -> Result<(), String> {
+    use coilscope_analysis::db;
+    use coilscope_analysis::distortion::{self as d, SteadyOptions};
+    let input = coilscope_report::input_from(&a.params)?;
+    let p = &input.params;
+    if !(a.temp_rise.is_finite() && (0.0..=300.0).contains(&a.temp_rise)) {
+        return Err(format!("--temp-rise {} K is not valid (0 .. 300 K)", a.temp_rise));
+    }
+    let opts = SteadyOptions { dt_coil: a.temp_rise, ..SteadyOptions::default() };
+    let e = |e: coilscope_analysis::AnalysisError| e.to_string();
+    let name = p.name.clone().unwrap_or_else(|| a.params.clone());
+    let out = a.output.name();
+    let volts = a.volts.unwrap_or(f64::NAN);
+    if a.multitone {
+        let band = a.band.clone().unwrap_or_else(|| vec![20.0, 10_000.0]);
+        let m = d::multitone(p, band[0], band[1], a.tones, volts, a.output, a.seed, &opts).map_err(e)?;
+        if a.json {
+            print_json(&m.to_json());
+        } else {
+            println!("{name}: {} tones {:.0} .. {:.0} Hz, {:.3} V RMS, {out}", m.tones.len(), band[0], band[1], volts);
+            println!("  multitone total distortion {:.2} dB ({:.3} %)", db(m.mtd), 100.0 * m.mtd);
+            println!("  DC displacement {:+.4} mm, x {:+.3} .. {:+.3} mm", m.x_dc * 1e3, m.x_peak[0] * 1e3, m.x_peak[1] * 1e3);
+        }
+        return Ok(());
+    }
+    let freq = a.freq.ok_or("--freq F is required (the sine, or the low tone of a two-tone); or use --multitone")?;
+    if let Some(f2) = a.freq2 {
+        let im = d::intermod(p, freq, f2, volts, a.ratio, a.output, &opts).map_err(e)?;
+        if a.json {
+            print_json(&im.to_json());
+        } else {
+            println!("{name}: two-tone {:.2} Hz + {:.2} Hz (f2/f1 amplitude {}), {:.3} V RMS, {out}", im.f1, im.f2, im.amplitude_ratio, volts);
+            println!("  d2 (f2 +- f1)   {:8.2} dB  {:8.4} %", db(im.d2), 100.0 * im.d2);
+            println!("  d3 (f2 +- 2f1)  {:8.2} dB  {:8.4} %", db(im.d3), 100.0 * im.d3);
+            for (l, f, r) in &im.lines {
+                println!("    {l:<7} {f:9.2} Hz {:8.2} dB", db(*r));
+            }
+            println!("  DC displacement {:+.4} mm, x {:+.3} .. {:+.3} mm", im.x_dc * 1e3, im.x_peak[0] * 1e3, im.x_peak[1] * 1e3);
+        }
+        return Ok(());
+    }
+    if let Some(levels) = &a.levels {
+        let rows = d::level_sweep(p, freq, levels, a.output, &opts).map_err(e)?;
+        let div = d::divergence_level(&rows, 1.0);
+        if a.json {
+            let v: Vec<_> = rows.iter().map(|r| serde_json::json!({"volts_rms": r.volts, "full": r.full.to_json(), "volterra": {"HD2": r.volterra.0, "HD3": r.volterra.1, "x_dc": r.volterra_x_dc}})).collect();
+            print_json(&serde_json::json!({"freq": freq, "rows": v, "volterra_divergence_1dB_volts": div}));
+        } else {
+            println!("{name}: sine {freq} Hz, {out}; full model against the 3rd-order Volterra series");
+            println!("  {:>9} {:>9} {:>9} {:>11} {:>11}", "V RMS", "HD2 dB", "HD3 dB", "HD2 Volt.", "HD3 Volt.");
+            for r in &rows {
+                println!("  {:9.3} {:9.2} {:9.2} {:11.2} {:11.2}", r.volts, db(r.full.hd(2)), db(r.full.hd(3)), db(r.volterra.0), db(r.volterra.1));
+            }
+            match div {
+                Some(v) => println!("  the Volterra series is off by more than 1 dB from {v:.3} V"),
+                None => println!("  the Volterra series stays within 1 dB over these levels"),
+            }
+        }
+        return Ok(());
+    }
+    let freqs = match &a.sweep {
+        Some(b) => d::log_frequencies(b[0], b[1], 3),
+        None => vec![freq],
+    };
+    let sweep = d::frequency_sweep(p, &freqs, volts, a.output, &opts).map_err(e)?;
+    if a.json {
+        let q = d::with_only(p, &d::Nonlinearity::ALL, a.temp_rise);
+        let v: Vec<_> = sweep
+            .iter()
+            .map(|an| {
+                let pr = coilscope_analysis::volterra::probe(&q, an.total.freq);
+                let (h2, h3) = pr.hd(a.output, volts);
+                let mut j = an.to_json();
+                j["volterra"] = serde_json::json!({"HD2": h2, "HD3": h3, "HD2_dB": db(h2), "HD3_dB": db(h3), "x_dc": pr.x_dc(volts), "kernels": pr.to_json()});
+                j
+            })
+            .collect();
+        print_json(&if v.len() == 1 { v[0].clone() } else { serde_json::Value::Array(v) });
+        return Ok(());
+    }
+    println!("{name}: sine, {:.3} V RMS, {out}", volts);
+    for an in &sweep {
+        let t = &an.total;
+        let q = d::with_only(p, &d::Nonlinearity::ALL, a.temp_rise);
+        let (v2, v3) = coilscope_analysis::volterra::probe(&q, t.freq).hd(a.output, volts);
+        println!("  {:.2} Hz: x {:+.3} .. {:+.3} mm, DC displacement {:+.4} mm", t.freq, t.x_peak[0] * 1e3, t.x_peak[1] * 1e3, t.x_dc * 1e3);
+        println!("    {:<10} {:>9} {:>9} {:>9}", "", "HD2 dB", "HD3 dB", "THD dB");
+        println!("    {:<10} {:9.2} {:9.2} {:9.2}", "total", db(t.hd(2)), db(t.hd(3)), db(t.thd()));
+        for (nl, h) in &an.parts {
+            println!("    {:<10} {:9.2} {:9.2} {:9.2}", format!("{} only", nl.key()), db(h.hd(2)), db(h.hd(3)), db(h.thd()));
+        }
+        println!("    {:<10} {:9.2} {:9.2}", "Volterra", db(v2), db(v3));
+        println!("    dominant: {}; the parts' HD2 lines add up to the total within {:.1} %", an.dominant().name(), 100.0 * an.sum_mismatch(2));
+    }
+    Ok(())
+}
+
+fn cmd_diagnose(spec: &str, l: &LimitArgs, json: bool) -> Result<(), String> {
+    let th = l.thresholds()?;
+    let input = coilscope_report::input_from(spec)?;
+    let d = coilscope_analysis::diagnosis::diagnose(&input.params, input.range, th, l.max_dt);
+    if json {
+        print_json(&d.to_json());
+        return Ok(());
+    }
+    let mm = |v: Option<f64>| v.map(|x| format!("{:.2} mm", x * 1e3)).unwrap_or_else(|| format!("beyond the reach ({:.2} mm)", d.limits.reach * 1e3));
+    println!("{}: over {:.2} .. {:.2} mm", input.params.name.clone().unwrap_or_else(|| spec.into()), input.range[0] * 1e3, input.range[1] * 1e3);
+    println!("  XBl (Bl {:.0} %)   {}", th.bl * 100.0, mm(d.limits.xbl));
+    println!("  XC  (Cms {:.0} %)  {}", th.cms * 100.0, mm(d.limits.xc));
+    println!("  XL  (Le {:.0} %)   {}", th.le * 100.0, mm(d.limits.xl));
+    println!("  Ak               {:.1} %", d.limits.ak);
+    println!("  Bl               {}", d.bl_shift_advice());
+    let pol = &d.polarity;
+    println!("  polarity         {} (Le(-{:.2} mm) / Le(+{:.2} mm) = {:.3})", pol.verdict, pol.at * 1e3, pol.at * 1e3, pol.le_minus / pol.le_plus);
+    match &d.thermal {
+        Some(t) => {
+            println!("  thermal (+{:.0} K) {:.1} W continuous in Re; {:.2} V RMS worst sine ({:.0} Hz); {:.2} V RMS IEC noise ({:.1} W nominal)", t.dt_max, t.p_max, t.volts_sine, t.f_sine, t.volts_iec, t.p_nominal_iec);
+        }
+        None => println!("  thermal          no thermal parameters in the set"),
+    }
+    Ok(())
+}
+
+fn cmd_report(spec: &str, out: &Path, db: Option<&Path>, volts: Option<f64>, l: &LimitArgs) -> Result<(), String> {
+    let th = l.thresholds()?;
+    if let Some(v) = volts {
+        if !(v.is_finite() && v > 0.0 && v <= 500.0) {
+            return Err(format!("--volts {v} is not valid (0 .. 500 V RMS)"));
+        }
+    }
+    let mut input = coilscope_report::input_from(spec)?;
+    let db_path = db.map(Path::to_path_buf).or_else(|| Path::new(spec).parent().map(|d| d.join("run.sqlite")).filter(|p| p.exists()));
+    if let Some(path) = db_path {
+        let rows = coilscope_measure::store::read_states(&path, None)?;
+        if !rows.is_empty() {
+            input.states = Some(coilscope_report::TimeSeries {
+                t: rows.iter().map(|r| r.t).collect(),
+                x_min: rows.iter().map(|r| r.x_min).collect(),
+                x_max: rows.iter().map(|r| r.x_max).collect(),
+                dtv: rows.iter().map(|r| r.dtv).collect(),
+            });
+        }
+    }
+    let opts = coilscope_report::ReportOptions { thresholds: th, dt_max: l.max_dt, volts, ..Default::default() };
+    let rep = coilscope_report::build(&input, &opts)?;
+    let written = coilscope_report::write(&rep, out, opts.png_size)?;
+    println!("report: {} plots, distortion at {:.2} V RMS{}", rep.charts.len(), rep.volts, rep.volterra_divergence.map(|v| format!(", Volterra off by > 1 dB from {v:.2} V")).unwrap_or_default());
+    println!("wrote {} and {} files in {}", out.display(), written.len() - 1, coilscope_report::files_dir(out).display());
     Ok(())
 }

@@ -127,6 +127,42 @@ pub struct RunInfo {
     pub last: Option<StateRow>,
 }
 
+const STATE_COLUMNS: &str = "t, stage, u_rms, i_rms, gain, f_hp, x_min, x_max, dtv, re, residual";
+
+fn state_row(r: &rusqlite::Row) -> rusqlite::Result<StateRow> {
+    // Numeric columns may be NULL (a value not known yet at that state): read as NaN.
+    let num = |k: usize| r.get::<_, Option<f64>>(k).map(|v| v.unwrap_or(f64::NAN));
+    Ok(StateRow {
+        t: r.get(0)?,
+        stage: r.get(1)?,
+        u_rms: num(2)?,
+        i_rms: num(3)?,
+        gain: num(4)?,
+        f_hp: num(5)?,
+        x_min: num(6)?,
+        x_max: num(7)?,
+        dtv: num(8)?,
+        re: num(9)?,
+        residual: num(10)?,
+    })
+}
+
+/// Every stored state of run `run` (the last run when `None`), in time order.
+pub fn read_states(path: &Path, run: Option<i64>) -> Result<Vec<StateRow>, String> {
+    if !path.exists() {
+        return Err(format!("{}: no such run database (coilscope measure writes DIR/run.sqlite)", path.display()));
+    }
+    let conn = open(path)?;
+    let err = |e: rusqlite::Error| format!("{}: cannot read the states: {e}", path.display());
+    let run = match run {
+        Some(r) => r,
+        None => conn.query_row("SELECT MAX(id) FROM runs", [], |r| r.get::<_, Option<i64>>(0)).map_err(err)?.ok_or_else(|| format!("{}: the database has no runs", path.display()))?,
+    };
+    let mut st = conn.prepare(&format!("SELECT {STATE_COLUMNS} FROM states WHERE run = ?1 ORDER BY t")).map_err(err)?;
+    let rows = st.query_map([run], state_row).map_err(err)?.collect::<Result<Vec<_>, _>>().map_err(err)?;
+    Ok(rows)
+}
+
 /// List the runs of a database (works on a database whose writer was killed).
 pub fn list_runs(path: &Path) -> Result<Vec<RunInfo>, String> {
     if !path.exists() {
@@ -143,21 +179,7 @@ pub fn list_runs(path: &Path) -> Result<Vec<RunInfo>, String> {
         let states: i64 = conn.query_row("SELECT COUNT(*) FROM states WHERE run = ?1", [id], |r| r.get(0)).map_err(err)?;
         let estimates: i64 = conn.query_row("SELECT COUNT(*) FROM estimates WHERE run = ?1", [id], |r| r.get(0)).map_err(err)?;
         let last = conn
-            .query_row("SELECT t, stage, u_rms, i_rms, gain, f_hp, x_min, x_max, dtv, re, residual FROM states WHERE run = ?1 ORDER BY t DESC LIMIT 1", [id], |r| {
-                Ok(StateRow {
-                    t: r.get(0)?,
-                    stage: r.get(1)?,
-                    u_rms: r.get(2)?,
-                    i_rms: r.get(3)?,
-                    gain: r.get(4)?,
-                    f_hp: r.get(5)?,
-                    x_min: r.get(6)?,
-                    x_max: r.get(7)?,
-                    dtv: r.get(8)?,
-                    re: r.get(9)?,
-                    residual: r.get(10)?,
-                })
-            })
+            .query_row(&format!("SELECT {STATE_COLUMNS} FROM states WHERE run = ?1 ORDER BY t DESC LIMIT 1"), [id], state_row)
             .optional()
             .map_err(err)?;
         let status = if status == "running" && t_now - heartbeat > 10.0 { "interrupted".to_string() } else { status };

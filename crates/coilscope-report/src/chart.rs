@@ -134,7 +134,15 @@ impl Chart {
         let fmt_x = move |v: &f64| {
             if log {
                 let f = 10f64.powf(*v);
-                if f >= 1000.0 { format!("{:.0}k", f / 1000.0) } else { format!("{f:.0}") }
+                if f >= 1000.0 {
+                    format!("{:.1}k", f / 1000.0).replace(".0k", "k")
+                } else if f >= 10.0 {
+                    format!("{f:.0}")
+                } else if f >= 1.0 {
+                    format!("{f:.1}")
+                } else {
+                    format!("{f:.2}")
+                }
             } else {
                 format!("{v:.3}").trim_end_matches('0').trim_end_matches('.').to_string()
             }
@@ -166,7 +174,10 @@ impl Chart {
             }
             let grey = RGBColor(110, 110, 110);
             chart.draw_series(DashedLineSeries::new(vec![(tx, y0), (tx, y1)], 6, 4, grey.stroke_width(1))).map_err(e)?;
-            chart.draw_series(std::iter::once(Text::new(label.clone(), (tx, y1 - 0.04 * (y1 - y0)), ("sans-serif", 12).into_font().color(&grey)))).map_err(e)?;
+            // Labels right of the middle are written to the left of their line, so they stay inside.
+            let width = 0.0125 * (x1 - x0) * label.chars().count() as f64;
+            let lx = if tx > 0.5 * (x0 + x1) { tx - width - 0.005 * (x1 - x0) } else { tx + 0.005 * (x1 - x0) };
+            chart.draw_series(std::iter::once(Text::new(label.clone(), (lx, y1 - 0.04 * (y1 - y0)), ("sans-serif", 12).into_font().color(&grey)))).map_err(e)?;
         }
         for (k, s) in self.series.iter().enumerate() {
             let c = PALETTE[k % PALETTE.len()];

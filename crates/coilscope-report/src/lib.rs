@@ -1,2 +1,561 @@
 //! # coilscope-report
+//!
+//! One self-contained HTML page per result (no network, no script libraries): the nonlinear
+//! curves Bl(x), Kms(x), Cms(x), Le(x) with their uncertainty bands (+-2 sd) and the reached
+//! range marked, the small-signal impedance, the measurement's time series (excursion and
+//! voice-coil temperature) when a run database is attached, the predicted distortion with
+//! each nonlinearity's contribution and the Volterra comparison, and tables of parameters,
+//! power-series coefficients, limits and diagnosis.
+//!
+//! Every plot is also written as PNG, and the curves as CSV, into `<stem>_files/` beside the
+//! HTML file. Every number comes from one function of `coilscope-core` or
+//! `coilscope-analysis`; this crate only lays them out.
+
 pub mod chart;
+
+use chart::Chart;
+use coilscope_analysis::diagnosis::diagnose;
+use coilscope_analysis::distortion::{self, analyse, divergence_level, intermod, level_for_excursion, level_sweep, log_frequencies, multitone, Analysis, Nonlinearity, Output, SteadyOptions};
+use coilscope_analysis::{db, volterra};
+use coilscope_core::limits::Thresholds;
+use coilscope_core::small_signal::{impedance, thiele_small};
+use coilscope_core::Parameters;
+use serde_json::Value;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+/// The measurement's time series, one row per stored state (from the run database).
+#[derive(Clone, Debug, Default)]
+pub struct TimeSeries {
+    pub t: Vec<f64>,
+    pub x_min: Vec<f64>,
+    pub x_max: Vec<f64>,
+    pub dtv: Vec<f64>,
+}
+
+/// What a report is made from.
+#[derive(Clone, Debug)]
+pub struct ReportInput {
+    pub title: String,
+    pub params: Parameters,
+    /// The range the measurement reached (m); the curves are drawn and limits searched in it.
+    pub range: [f64; 2],
+    /// The result file (`coilscope.result/1`), when the report is of a result.
+    pub result: Option<Value>,
+    pub states: Option<TimeSeries>,
+}
+
+/// Report options.
+#[derive(Clone, Copy, Debug)]
+pub struct ReportOptions {
+    pub thresholds: Thresholds,
+    /// Voice-coil rise limit for the thermal power handling (K).
+    pub dt_max: f64,
+    /// Level of the distortion analysis (V RMS); default: the linear model's peak excursion
+    /// at 70 % of the reach over the analysed band.
+    pub volts: Option<f64>,
+    /// PNG size in pixels.
+    pub png_size: (u32, u32),
+}
+
+impl Default for ReportOptions {
+    fn default() -> Self {
+        ReportOptions { thresholds: Thresholds::default(), dt_max: 50.0, volts: None, png_size: (960, 560) }
+    }
+}
+
+/// A built report: the HTML text, its charts (for PNG) and CSV files `(name, text)`.
+pub struct Report {
+    pub html: String,
+    pub charts: Vec<Chart>,
+    pub csv: Vec<(String, String)>,
+    /// The distortion analysis level (V RMS) and where Volterra diverged (V), for the caller.
+    pub volts: f64,
+    pub volterra_divergence: Option<f64>,
+}
+
+const SVG_SIZE: (u32, u32) = (760, 440);
+
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
+}
+
+fn fmt(v: f64) -> String {
+    let a = v.abs();
+    if v == 0.0 {
+        "0".into()
+    } else if !(1e-3..1e5).contains(&a) {
+        format!("{v:.4e}")
+    } else {
+        format!("{v:.4}")
+    }
+}
+
+fn mm(v: Option<f64>) -> String {
+    v.map(|x| format!("{:.2} mm", x * 1e3)).unwrap_or_else(|| "beyond the reach".into())
+}
+
+/// `(x, value, sd)` of a band from the result's `uncertainty.<key>_band`.
+fn band_of(result: Option<&Value>, key: &str) -> Option<Vec<(f64, f64, f64)>> {
+    let b = result?.get("uncertainty")?.get(format!("{key}_band"))?;
+    let arr = |k: &str| b.get(k)?.as_array()?.iter().map(|v| v.as_f64()).collect::<Option<Vec<f64>>>();
+    let (x, v, s) = (arr("x")?, arr("value")?, arr("sd")?);
+    (x.len() == v.len() && v.len() == s.len()).then(|| x.into_iter().zip(v).zip(s).map(|((x, v), s)| (x, v, s)).collect())
+}
+
+fn grid(range: [f64; 2], n: usize) -> Vec<f64> {
+    (0..=n).map(|k| range[0] + (range[1] - range[0]) * k as f64 / n as f64).collect()
+}
+
+struct Builder {
+    html: String,
+    charts: Vec<Chart>,
+}
+
+impl Builder {
+    fn section(&mut self, title: &str, intro: &str) {
+        let _ = write!(self.html, "<h2>{}</h2>", esc(title));
+        if !intro.is_empty() {
+            let _ = write!(self.html, "<p class=\"note\">{}</p>", esc(intro));
+        }
+    }
+    fn chart(&mut self, c: Chart, caption: &str) -> Result<(), String> {
+        let svg = c.svg(SVG_SIZE)?;
+        let svg = svg.trim_start_matches("<?xml version=\"1.0\" encoding=\"UTF-8\"?>").trim();
+        let _ = write!(
+            self.html,
+            "<figure class=\"plot\" id=\"plot-{id}\" data-series=\"{n}\">{svg}<figcaption>{cap} <a href=\"#\" data-png=\"{id}.png\">PNG</a></figcaption></figure>",
+            id = esc(&c.id),
+            n = c.series.len(),
+            cap = esc(caption)
+        );
+        self.charts.push(c);
+        Ok(())
+    }
+    fn table(&mut self, head: &[&str], rows: &[Vec<String>]) {
+        self.html.push_str("<table><tr>");
+        for h in head {
+            let _ = write!(self.html, "<th>{}</th>", esc(h));
+        }
+        self.html.push_str("</tr>");
+        for r in rows {
+            self.html.push_str("<tr>");
+            for c in r {
+                let _ = write!(self.html, "<td>{}</td>", esc(c));
+            }
+            self.html.push_str("</tr>");
+        }
+        self.html.push_str("</table>");
+    }
+}
+
+/// The curve chart of one x-dependent parameter: value over the range, with +-2 sd band.
+fn curve_chart(id: &str, title: &str, unit: &str, f: &dyn Fn(f64) -> f64, band: Option<Vec<(f64, f64, f64)>>, range: [f64; 2], limit: Option<(f64, &str)>) -> Chart {
+    let xs = grid(range, 120);
+    let mut c = Chart::new(id, title, "x (mm), + = coil out", unit).line(title, xs.iter().map(|&x| (x * 1e3, f(x))).collect());
+    if let Some(b) = band {
+        c = c.band(b.iter().map(|(x, v, s)| (x * 1e3, v - 2.0 * s)).collect(), b.iter().map(|(x, v, s)| (x * 1e3, v + 2.0 * s)).collect());
+    }
+    c = c.marker(range[0] * 1e3, "x min reached").marker(range[1] * 1e3, "x max reached");
+    if let Some((x, label)) = limit {
+        c = c.marker(-x * 1e3, label).marker(x * 1e3, label);
+    }
+    c
+}
+
+/// Build the report (runs the distortion analysis; about a second in release).
+pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String> {
+    opts.thresholds.validate()?;
+    let p = &input.params;
+    let range = input.range;
+    if !(range[0] < 0.0 && range[1] > 0.0) {
+        return Err(format!("the reached range [{:.3}, {:.3}] mm must contain the rest position x = 0", range[0] * 1e3, range[1] * 1e3));
+    }
+    let result = input.result.as_ref();
+    let diag = diagnose(p, range, opts.thresholds, opts.dt_max);
+    let ts = thiele_small(p);
+    let mut b = Builder { html: String::new(), charts: vec![] };
+    let mut csv = Vec::new();
+
+    // --- Parameters ---------------------------------------------------------------------
+    b.section("Parameters", "Values at rest (x = 0); SI units. Small-signal figures from the linearised model at rest.");
+    let mut rows = vec![
+        vec!["Re".into(), fmt(p.re), "ohm".into()],
+        vec!["Le(0)".into(), fmt(p.le.c[0]), "H".into()],
+        vec!["Bl(0)".into(), fmt(p.bl.c[0]), "T m".into()],
+        vec!["Kms(0)".into(), fmt(p.kms.c[0]), "N/m".into()],
+        vec!["Mms".into(), fmt(p.mms), "kg".into()],
+        vec!["Rms".into(), fmt(p.rms), "kg/s".into()],
+    ];
+    if let Some((l2, r2)) = &p.l2r2 {
+        rows.push(vec!["L2(0)".into(), fmt(l2.c[0]), "H".into()]);
+        rows.push(vec!["R2(0)".into(), fmt(r2.c[0]), "ohm".into()]);
+    }
+    if let Some(t) = &p.thermal {
+        for (k, v, u) in [("alpha", t.alpha, "1/K"), ("Rtv", t.rtv, "K/W"), ("Ctv", t.ctv, "J/K"), ("Rtm", t.rtm, "K/W"), ("Ctm", t.ctm, "J/K")] {
+            rows.push(vec![k.into(), fmt(v), u.into()]);
+        }
+    }
+    for (k, v, u) in [("fs", ts.fs, "Hz"), ("Qms", ts.qms, ""), ("Qes", ts.qes, ""), ("Qts", ts.qts, "")] {
+        rows.push(vec![k.into(), fmt(v), u.into()]);
+    }
+    if let Some(v) = ts.vas {
+        rows.push(vec!["Vas".into(), fmt(v * 1e3), "l".into()]);
+    }
+    b.table(&["parameter", "value", "unit"], &rows);
+    let mut series_rows = vec![];
+    let mut funcs: Vec<(&str, &coilscope_core::Poly, &str)> = vec![("Bl", &p.bl, "T m"), ("Kms", &p.kms, "N/m"), ("Le", &p.le, "H")];
+    if let Some((l2, r2)) = &p.l2r2 {
+        funcs.push(("L2", l2, "H"));
+        funcs.push(("R2", r2, "ohm"));
+    }
+    let order = funcs.iter().map(|f| f.1.c.len()).max().unwrap_or(1);
+    for (name, f, unit) in &funcs {
+        let mut r = vec![format!("{name} ({unit}/m^j)")];
+        r.extend((0..order).map(|j| f.c.get(j).map(|&c| fmt(c)).unwrap_or_default()));
+        series_rows.push(r);
+    }
+    let heads: Vec<String> = std::iter::once("power series".to_string()).chain((0..order).map(|j| format!("c{j}"))).collect();
+    b.table(&heads.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &series_rows);
+
+    // --- Curves ---------------------------------------------------------------------------
+    b.section("Nonlinear parameters", "Solid: identified curve over the reached range; shaded: +-2 standard deviations (when the result carries them); dashed verticals: the reached range and the limits.");
+    let th = opts.thresholds;
+    let lim = &diag.limits;
+    let bl_band = band_of(result, "Bl");
+    let kms_band = band_of(result, "Kms");
+    let le_band = band_of(result, "Le");
+    let cms_band = kms_band.as_ref().map(|v| v.iter().map(|(x, k, s)| (*x, 1.0 / k, s / (k * k))).collect());
+    let xbl_label = format!("XBl ({:.0} %)", th.bl * 100.0);
+    let xc_label = format!("XC ({:.0} %)", th.cms * 100.0);
+    let xl_label = format!("XL ({:.0} %)", th.le * 100.0);
+    b.chart(curve_chart("bl", "Bl(x)", "Bl (T m)", &|x| p.bl.eval(x), bl_band, range, lim.xbl.map(|v| (v, xbl_label.as_str()))), "Force factor.")?;
+    b.chart(curve_chart("kms", "Kms(x)", "Kms (N/m)", &|x| p.kms.eval(x), kms_band, range, None), "Secant stiffness of the suspension.")?;
+    b.chart(curve_chart("cms", "Cms(x)", "Cms (mm/N)", &|x| 1e3 / p.kms.eval(x), cms_band.map(|v: Vec<(f64, f64, f64)>| v.into_iter().map(|(x, c, s)| (x, c * 1e3, s * 1e3)).collect()), range, lim.xc.map(|v| (v, xc_label.as_str()))), "Compliance 1/Kms(x).")?;
+    b.chart(curve_chart("le", "Le(x)", "Le (mH)", &|x| 1e3 * p.le.eval(x), le_band.map(|v| v.into_iter().map(|(x, l, s)| (x, l * 1e3, s * 1e3)).collect()), range, lim.xl.map(|v| (v, xl_label.as_str()))), "Voice-coil inductance; it should rise toward the back plate (x < 0).")?;
+    let mut c = String::from("x_mm,Bl_Tm,Kms_N_per_m,Cms_mm_per_N,Le_mH\n");
+    for x in grid(range, 100) {
+        let _ = writeln!(c, "{:.5},{:.6},{:.4},{:.6},{:.6}", x * 1e3, p.bl.eval(x), p.kms.eval(x), 1e3 / p.kms.eval(x), 1e3 * p.le.eval(x));
+    }
+    csv.push(("curves.csv".to_string(), c));
+
+    // --- Limits and diagnosis -------------------------------------------------------------
+    b.section("Limits and diagnosis", "IEC 62458 / Klippel displacement limits over the reached range (thresholds as given), the Bl symmetry point, the polarity check and the thermal power handling.");
+    let mut rows = vec![
+        vec![format!("XBl (Bl {:.0} %)", th.bl * 100.0), mm(lim.xbl)],
+        vec![format!("XC (Cms {:.0} %)", th.cms * 100.0), mm(lim.xc)],
+        vec![format!("XL (Le {:.0} %)", th.le * 100.0), mm(lim.xl)],
+        vec!["Xsym (Bl symmetry point)".into(), format!("{} at amplitude {:.2} mm", mm(lim.xsym), lim.xsym_amplitude * 1e3)],
+        vec!["Ak (stiffness asymmetry)".into(), format!("{:.1} %", lim.ak)],
+        vec!["Bl rest-position shift".into(), diag.bl_shift_advice()],
+        vec!["Polarity (Le asymmetry)".into(), format!("{}: Le(-{:.2} mm) = {:.4} mH, Le(+{:.2} mm) = {:.4} mH", diag.polarity.verdict, diag.polarity.at * 1e3, diag.polarity.le_minus * 1e3, diag.polarity.at * 1e3, diag.polarity.le_plus * 1e3)],
+    ];
+    if let Some(t) = &diag.thermal {
+        rows.push(vec![format!("Continuous power in Re for +{:.0} K", t.dt_max), format!("{:.1} W (tau_v {:.1} s, tau_m {:.0} s)", t.p_max, t.tau_v, t.tau_m)]);
+        rows.push(vec!["Voltage at that limit, worst sine".into(), format!("{:.2} V RMS at {:.0} Hz", t.volts_sine, t.f_sine)]);
+        rows.push(vec!["Voltage at that limit, IEC 60268-1 noise".into(), format!("{:.2} V RMS ({:.1} W nominal U^2/Re)", t.volts_iec, t.p_nominal_iec)]);
+    }
+
+    // --- Distortion -----------------------------------------------------------------------
+    let f_lo = (ts.fs / 3.0).max(10.0);
+    let f_hi = (ts.fs * 60.0).min(5000.0);
+    let freqs = log_frequencies(f_lo, f_hi, 3);
+    let sopts = SteadyOptions::default();
+    let mut volts = opts.volts.unwrap_or_else(|| level_for_excursion(p, &freqs, 0.7 * (-range[0]).min(range[1])));
+    let mut sweep: Vec<Analysis> = Vec::new();
+    for attempt in 0..4 {
+        match distortion::frequency_sweep(p, &freqs, volts, Output::Pressure, &sopts) {
+            Ok(s) => {
+                sweep = s;
+                break;
+            }
+            Err(e) if attempt < 3 && opts.volts.is_none() => {
+                let _ = e;
+                volts *= 0.7;
+            }
+            Err(e) => return Err(format!("distortion analysis at {volts:.3} V: {e}")),
+        }
+    }
+    let dominant = {
+        let mut score = [0.0f64; 3];
+        for a in &sweep {
+            for (k, (_, h)) in a.parts.iter().enumerate() {
+                score[k] += h.thd().powi(2);
+            }
+        }
+        let k = (0..3).max_by(|&i, &j| score[i].total_cmp(&score[j])).unwrap_or(0);
+        Nonlinearity::ALL[k]
+    };
+    rows.push(vec!["Dominant nonlinearity".into(), format!("{} (largest harmonic distortion alone, summed over {:.0} .. {:.0} Hz at {:.2} V)", dominant.name(), f_lo, f_hi, volts)]);
+    b.table(&["limit", "value"], &rows);
+
+    b.section(
+        "Distortion",
+        &format!("Predicted by simulating the identified model to its periodic steady state (sine of {volts:.2} V RMS; sound pressure in the far field, proportional to cone acceleration). Each nonlinearity's contribution is the model with only that nonlinearity left."),
+    );
+    let line = |f: &dyn Fn(&Analysis) -> f64| sweep.iter().map(|a| (a.total.freq, db(f(a)))).collect::<Vec<_>>();
+    b.chart(
+        Chart::new("hd", "Harmonic distortion", "frequency (Hz)", "dB re fundamental").log_x().line("HD2", line(&|a| a.total.hd(2))).line("HD3", line(&|a| a.total.hd(3))).line("THD", line(&|a| a.total.thd())).marker(ts.fs, "fs"),
+        "HD2, HD3 and THD of the sound pressure over frequency.",
+    )?;
+    for order in [2usize, 3] {
+        let mut c = Chart::new(&format!("contrib-hd{order}"), &format!("HD{order}: each nonlinearity alone"), "frequency (Hz)", "dB re fundamental").log_x().line("total", line(&|a| a.total.hd(order)));
+        for (k, nl) in Nonlinearity::ALL.iter().enumerate() {
+            c = c.dashed(nl.name(), sweep.iter().map(|a| (a.total.freq, db(a.parts[k].1.hd(order)))).collect());
+        }
+        b.chart(c, &format!("HD{order} of the full model (solid) and of each nonlinearity alone (dashed)."))?;
+    }
+    let mut c = String::from("f_Hz,HD2_dB,HD3_dB,THD_dB,HD2_Bl_dB,HD2_Kms_dB,HD2_Le_dB,HD3_Bl_dB,HD3_Kms_dB,HD3_Le_dB,x_dc_mm,dominant\n");
+    for a in &sweep {
+        let _ = write!(c, "{:.3},{:.3},{:.3},{:.3}", a.total.freq, db(a.total.hd(2)), db(a.total.hd(3)), db(a.total.thd()));
+        for order in [2, 3] {
+            for (_, h) in &a.parts {
+                let _ = write!(c, ",{:.3}", db(h.hd(order)));
+            }
+        }
+        let _ = writeln!(c, ",{:.5},{}", a.total.x_dc * 1e3, a.dominant().key());
+    }
+    csv.push(("distortion.csv".to_string(), c));
+
+    // Volterra against the full model over level, at resonance.
+    let f_v = ts.fs;
+    let v_top = level_for_excursion(p, &[f_v], 0.9 * (-range[0]).min(range[1]));
+    let levels: Vec<f64> = (0..=12).map(|k| v_top * 10f64.powf((k as f64 - 12.0) / 10.0)).collect();
+    let mut rows_v = Vec::new();
+    for &v in &levels {
+        if let Ok(r) = level_sweep(p, f_v, &[v], Output::Pressure, &sopts) {
+            rows_v.extend(r);
+        }
+    }
+    let divergence = divergence_level(&rows_v, 1.0);
+    let mut c = Chart::new("volterra", &format!("Volterra series vs full model at {:.1} Hz", f_v), "level (V RMS)", "dB re fundamental")
+        .log_x()
+        .line("HD2 full", rows_v.iter().map(|r| (r.volts, db(r.full.hd(2)))).collect())
+        .line("HD3 full", rows_v.iter().map(|r| (r.volts, db(r.full.hd(3)))).collect())
+        .dashed("HD2 Volterra", rows_v.iter().map(|r| (r.volts, db(r.volterra.0))).collect())
+        .dashed("HD3 Volterra", rows_v.iter().map(|r| (r.volts, db(r.volterra.1))).collect());
+    if let Some(v) = divergence {
+        c = c.marker(v, "Volterra off by 1 dB");
+    }
+    b.chart(
+        c,
+        &match divergence {
+            Some(v) => format!("The third-order Volterra series follows the model at small level and fails from {v:.2} V (off by more than 1 dB): the distortion feeds back into its own generation."),
+            None => "The third-order Volterra series stays within 1 dB of the model over the levels shown.".to_string(),
+        },
+    )?;
+    let mut c = String::from("volts_rms,HD2_full_dB,HD3_full_dB,HD2_volterra_dB,HD3_volterra_dB\n");
+    for r in &rows_v {
+        let _ = writeln!(c, "{:.5},{:.3},{:.3},{:.3},{:.3}", r.volts, db(r.full.hd(2)), db(r.full.hd(3)), db(r.volterra.0), db(r.volterra.1));
+    }
+    csv.push(("volterra.csv".to_string(), c));
+    let kern: Vec<(f64, [realfft::num_complex::Complex64; 3])> = freqs.iter().map(|&f| (f, volterra::probe(&distortion::with_only(p, &Nonlinearity::ALL, 0.0), f).kernels())).collect();
+    b.chart(
+        Chart::new("kernels", "Volterra kernels on the diagonal (displacement)", "frequency (Hz)", "dB re 1 m/V^n")
+            .log_x()
+            .line("|H1(f)|", kern.iter().map(|(f, k)| (*f, db(k[0].norm()))).collect())
+            .line("|H2(f,f)|", kern.iter().map(|(f, k)| (*f, db(k[1].norm()))).collect())
+            .line("|H3(f,f,f)|", kern.iter().map(|(f, k)| (*f, db(k[2].norm()))).collect()),
+        "First three kernels' transfer functions, from the power series by harmonic probing.",
+    )?;
+
+    // Two-tone IMD and multitone.
+    let mut drows = Vec::new();
+    for f in [ts.fs / 2.0, ts.fs, 3.0 * ts.fs] {
+        if let Ok(a) = sweep_point(p, f, volts, &sopts) {
+            drows.push(vec![format!("sine {f:.1} Hz"), format!("{:.1} dB", db(a.total.hd(2))), format!("{:.1} dB", db(a.total.hd(3))), format!("{:.1} dB", db(a.total.thd())), format!("{:+.3} mm", a.total.x_dc * 1e3), a.dominant().name().into()]);
+        }
+    }
+    let (f1, f2) = (ts.fs.max(10.0), (ts.fs * 20.0).max(700.0).min(4000.0) + 0.37 * ts.fs);
+    if let Ok(im) = intermod(p, f1, f2, volts, 1.0, Output::Pressure, &sopts) {
+        drows.push(vec![format!("two-tone {:.1} + {:.1} Hz", im.f1, im.f2), format!("d2 {:.1} dB", db(im.d2)), format!("d3 {:.1} dB", db(im.d3)), String::new(), format!("{:+.3} mm", im.x_dc * 1e3), String::new()]);
+    }
+    b.table(&["excitation", "HD2 / d2", "HD3 / d3", "THD", "DC displacement", "dominant"], &drows);
+    if let Ok(mt) = multitone(p, f_lo, 10_000.0, 30, volts, Output::Pressure, 1, &sopts) {
+        let ref_level = (mt.tones.iter().map(|t| t.1 * t.1).sum::<f64>() / mt.tones.len() as f64).sqrt();
+        let bands = log_frequencies(f_lo, 20_000.0, 3);
+        let dist: Vec<(f64, f64)> = bands
+            .windows(2)
+            .filter_map(|w| {
+                let pw: f64 = mt.distortion.iter().filter(|(f, _)| *f >= w[0] && *f < w[1]).map(|(_, a)| a * a).sum();
+                (pw > 0.0).then(|| ((w[0] * w[1]).sqrt(), db(pw.sqrt() / ref_level)))
+            })
+            .collect();
+        b.chart(
+            Chart::new("multitone", &format!("Multitone distortion (30 tones, MTD {:.1} dB)", db(mt.mtd)), "frequency (Hz)", "dB re mean tone")
+                .log_x()
+                .line("tones", mt.tones.iter().map(|(f, a)| (*f, db(a / ref_level))).collect())
+                .line("distortion per 1/3 octave", dist),
+            "Sound-pressure spectrum of a 30-tone multitone: the tones and the distortion that falls between them.",
+        )?;
+    }
+
+    // --- Impedance --------------------------------------------------------------------------
+    b.section("Impedance", "Small-signal electrical impedance of the linearised model at rest.");
+    let fz = log_frequencies(5.0, 20_000.0, 12);
+    let small: Option<Parameters> = result
+        .and_then(|r| r.get("measurement")?.get("small_signal")?.get("parameters").cloned())
+        .and_then(|v| Parameters::from_json_value(&v, "small-signal set").ok());
+    let mut cz = Chart::new("impedance", "Impedance magnitude", "frequency (Hz)", "|Z| (ohm)").log_x().line("large-signal set at x = 0", fz.iter().map(|&f| (f, impedance(p, f).norm())).collect());
+    let mut cp = Chart::new("impedance-phase", "Impedance phase", "frequency (Hz)", "phase (deg)").log_x().line("large-signal set at x = 0", fz.iter().map(|&f| (f, impedance(p, f).arg().to_degrees())).collect());
+    if let Some(s) = &small {
+        cz = cz.dashed("small-signal set (start of measurement)", fz.iter().map(|&f| (f, impedance(s, f).norm())).collect());
+        cp = cp.dashed("small-signal set (start of measurement)", fz.iter().map(|&f| (f, impedance(s, f).arg().to_degrees())).collect());
+    }
+    b.chart(cz, "Magnitude.")?;
+    b.chart(cp, "Phase.")?;
+    let mut c = String::from("f_Hz,Z_abs_ohm,Z_phase_deg\n");
+    for &f in &fz {
+        let z = impedance(p, f);
+        let _ = writeln!(c, "{f:.3},{:.5},{:.4}", z.norm(), z.arg().to_degrees());
+    }
+    csv.push(("impedance.csv".to_string(), c));
+
+    // --- Measurement --------------------------------------------------------------------
+    if let Some(r) = result {
+        if let Some(m) = r.get("measurement") {
+            b.section("Measurement", "The dynamic measurement that produced this result.");
+            let g = |k: &str| m.get(k).and_then(|v| v.as_f64());
+            let mut rows = vec![];
+            if let Some(s) = g("seconds") {
+                rows.push(vec!["measurement time".into(), format!("{s:.1} s")]);
+            }
+            if let Some(fit) = r.get("fit") {
+                rows.push(vec!["converged".into(), fit.get("converged").map(|v| v.to_string()).unwrap_or_default()]);
+                rows.push(vec!["stop reason".into(), fit.get("stop_reason").and_then(|v| v.as_str()).unwrap_or("").into()]);
+                if let Some(res) = fit.get("residual_rel").and_then(|v| v.as_f64()) {
+                    rows.push(vec!["residual".into(), format!("{:.2e}", res)]);
+                }
+            }
+            if let Some(x) = g("x_peak_max") {
+                rows.push(vec!["peak excursion".into(), format!("{:.2} mm", x * 1e3)]);
+            }
+            if let Some(t) = g("dTv_max") {
+                rows.push(vec!["largest voice-coil rise".into(), format!("{t:.1} K")]);
+            }
+            for ev in m.get("protection_events").and_then(|v| v.as_array()).into_iter().flatten() {
+                rows.push(vec![format!("event at {} s", ev.get(0).map(|v| v.to_string()).unwrap_or_default()), ev.get(1).and_then(|v| v.as_str()).unwrap_or("").into()]);
+            }
+            b.table(&["quantity", "value"], &rows);
+        }
+    }
+    let dt_track: Option<Vec<(f64, f64)>> = result.and_then(|r| r.get("thermal")?.get("dT_track")?.as_array().map(|a| a.iter().filter_map(|p| Some((p.get(0)?.as_f64()?, p.get(1)?.as_f64()?))).collect()));
+    if let Some(s) = &input.states {
+        let c = Chart::new("x-time", "Excursion during the measurement", "time (s)", "x (mm)")
+            .line("largest x per block", s.t.iter().zip(&s.x_max).map(|(t, x)| (*t, x * 1e3)).collect())
+            .line("smallest x per block", s.t.iter().zip(&s.x_min).map(|(t, x)| (*t, x * 1e3)).collect());
+        b.chart(c, "Live displacement from the model (no sensor): extremes of each block.")?;
+        let mut c = Chart::new("temperature-time", "Voice-coil temperature rise", "time (s)", "dT (K)").line("from the tracked Re", s.t.iter().zip(&s.dtv).map(|(t, v)| (*t, *v)).collect());
+        if let Some(track) = &dt_track {
+            c = c.dashed("at the parameter updates", track.clone());
+        }
+        b.chart(c, "Voice-coil temperature rise estimated from Re(t) = Re (1 + alpha dT).")?;
+        let mut c = String::from("t_s,x_min_mm,x_max_mm,dTv_K\n");
+        for k in 0..s.t.len() {
+            let _ = writeln!(c, "{:.3},{:.5},{:.5},{:.4}", s.t[k], s.x_min[k] * 1e3, s.x_max[k] * 1e3, s.dtv[k]);
+        }
+        csv.push(("time_series.csv".to_string(), c));
+    } else if let Some(track) = dt_track.filter(|t| t.len() >= 2) {
+        b.chart(Chart::new("temperature-time", "Voice-coil temperature rise", "time (s)", "dT (K)").line("from the tracked Re", track), "Voice-coil temperature rise from the fitted Re(t).")?;
+    }
+
+    let html = page(&input.title, p, &b.html);
+    Ok(Report { html, charts: b.charts, csv, volts, volterra_divergence: divergence })
+}
+
+fn sweep_point(p: &Parameters, f: f64, volts: f64, o: &SteadyOptions) -> Result<Analysis, String> {
+    analyse(p, f, volts, Output::Pressure, o).map_err(|e| e.to_string())
+}
+
+fn page(title: &str, p: &Parameters, body: &str) -> String {
+    let source = p.source.clone().unwrap_or_default();
+    format!(
+        r#"<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{t}</title>
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<style>
+body {{ font-family: "DejaVu Sans", Arial, sans-serif; margin: 24px auto; max-width: 820px; color: #222; }}
+h1 {{ font-size: 1.5em; }} h2 {{ font-size: 1.2em; margin-top: 2em; border-bottom: 1px solid #ccc; }}
+table {{ border-collapse: collapse; margin: 0.8em 0; font-size: 0.9em; }}
+th, td {{ border: 1px solid #ddd; padding: 3px 8px; text-align: left; }} th {{ background: #f3f3f3; }}
+figure.plot {{ margin: 1em 0; }} figure.plot svg {{ display: block; max-width: 100%; height: auto; }}
+figcaption {{ font-size: 0.85em; color: #555; }} .note {{ font-size: 0.9em; color: #555; }}
+</style></head><body>
+<h1>{t}</h1>
+<p class="note">{s}. Written by coilscope {v}. All units SI unless shown; x &gt; 0 is coil out (away from the back plate).</p>
+{body}
+<pre id="layout" hidden></pre>
+<script>
+(function () {{
+  var out = [];
+  document.querySelectorAll("figure.plot").forEach(function (f) {{
+    var r = f.querySelector("svg").getBoundingClientRect();
+    var marks = f.querySelectorAll("polyline, path, polygon").length;
+    f.setAttribute("data-drawn", marks > 0 && r.width > 0 && r.height > 0 ? "yes" : "no");
+    out.push({{ id: f.id, x: r.left + window.scrollX, y: r.top + window.scrollY, w: r.width, h: r.height, marks: marks }});
+  }});
+  var height = Math.ceil(document.documentElement.scrollHeight);
+  document.getElementById("layout").textContent = JSON.stringify({{ height: height, plots: out }});
+}})();
+</script>
+</body></html>
+"#,
+        t = esc(title),
+        s = esc(&source),
+        v = env!("CARGO_PKG_VERSION"),
+    )
+}
+
+/// The directory beside `out` that holds the PNG and CSV files: `<stem>_files`.
+pub fn files_dir(out: &Path) -> PathBuf {
+    let stem = out.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "report".into());
+    out.with_file_name(format!("{stem}_files"))
+}
+
+/// Write the HTML (atomically), the PNGs and the CSVs; return every path written.
+pub fn write(report: &Report, out: &Path, png_size: (u32, u32)) -> Result<Vec<PathBuf>, String> {
+    let dir = files_dir(out);
+    std::fs::create_dir_all(&dir).map_err(|e| format!("{}: cannot create the directory ({e})", dir.display()))?;
+    let mut written = vec![];
+    for c in &report.charts {
+        let path = dir.join(format!("{}.png", c.id));
+        coilscope_io::atomic_write(&path, &c.png(png_size)?).map_err(|e| e.to_string())?;
+        written.push(path);
+    }
+    for (name, text) in &report.csv {
+        let path = dir.join(name);
+        coilscope_io::atomic_write(&path, text.as_bytes()).map_err(|e| e.to_string())?;
+        written.push(path);
+    }
+    let rel = dir.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let html = report.html.replace("href=\"#\" data-png=\"", &format!("href=\"{rel}/"));
+    coilscope_io::atomic_write(out, html.as_bytes()).map_err(|e| e.to_string())?;
+    written.push(out.to_path_buf());
+    Ok(written)
+}
+
+/// Read a result file or a parameter set (embedded name or JSON path) into a report input.
+pub fn input_from(spec: &str) -> Result<ReportInput, String> {
+    let path = Path::new(spec);
+    let (params, result) = if path.exists() {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("{spec}: cannot read ({e})"))?;
+        let v: Value = serde_json::from_str(&text).map_err(|e| format!("{spec}: not JSON ({e})"))?;
+        if v.get("format").and_then(|f| f.as_str()).is_some_and(|f| f.starts_with("coilscope.result")) {
+            let pv = v.get("parameters").ok_or_else(|| format!("{spec}: the result has no `parameters` object"))?;
+            let p = Parameters::from_json_value(pv, &format!("{spec} (parameters)")).map_err(|e| e.to_string())?;
+            (p, Some(v))
+        } else {
+            (coilscope_io::load_parameters(spec).map_err(|e| e.to_string())?, None)
+        }
+    } else {
+        (coilscope_io::load_parameters(spec).map_err(|e| e.to_string())?, None)
+    };
+    let fit_range = result.as_ref().and_then(|r| {
+        let a = r.get("fit")?.get("x_range")?.as_array()?;
+        Some([a.first()?.as_f64()?, a.get(1)?.as_f64()?])
+    });
+    let range = fit_range.or(params.x_range).ok_or_else(|| format!("{spec}: neither fit.x_range nor the parameters' x_range says where the curves are valid"))?;
+    let recording = result.as_ref().and_then(|r| r.get("recording")?.as_str().map(str::to_string));
+    let title = format!("coilscope report: {}", params.name.clone().or(recording).unwrap_or_else(|| spec.to_string()));
+    Ok(ReportInput { title, params, range, result, states: None })
+}
