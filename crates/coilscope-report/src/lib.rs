@@ -103,6 +103,11 @@ fn band_of(result: Option<&Value>, key: &str) -> Option<Vec<(f64, f64, f64)>> {
     (x.len() == v.len() && v.len() == s.len()).then(|| x.into_iter().zip(v).zip(s).map(|((x, v), s)| (x, v, s)).collect())
 }
 
+/// dB for plots, floored at -160 dB (a linear set has no distortion at all: -inf).
+fn dbp(r: f64) -> f64 {
+    db(r).max(-160.0)
+}
+
 fn grid(range: [f64; 2], n: usize) -> Vec<f64> {
     (0..=n).map(|k| range[0] + (range[1] - range[0]) * k as f64 / n as f64).collect()
 }
@@ -293,7 +298,7 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         "Distortion",
         &format!("Predicted by simulating the identified model to its periodic steady state (sine of {volts:.2} V RMS; sound pressure in the far field, proportional to cone acceleration). Each nonlinearity's contribution is the model with only that nonlinearity left."),
     );
-    let line = |f: &dyn Fn(&Analysis) -> f64| sweep.iter().map(|a| (a.total.freq, db(f(a)))).collect::<Vec<_>>();
+    let line = |f: &dyn Fn(&Analysis) -> f64| sweep.iter().map(|a| (a.total.freq, dbp(f(a)))).collect::<Vec<_>>();
     b.chart(
         Chart::new("hd", "Harmonic distortion", "frequency (Hz)", "dB re fundamental").log_x().line("HD2", line(&|a| a.total.hd(2))).line("HD3", line(&|a| a.total.hd(3))).line("THD", line(&|a| a.total.thd())).marker(ts.fs, "fs"),
         "HD2, HD3 and THD of the sound pressure over frequency.",
@@ -301,7 +306,7 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     for order in [2usize, 3] {
         let mut c = Chart::new(&format!("contrib-hd{order}"), &format!("HD{order}: each nonlinearity alone"), "frequency (Hz)", "dB re fundamental").log_x().line("total", line(&|a| a.total.hd(order)));
         for (k, nl) in Nonlinearity::ALL.iter().enumerate() {
-            c = c.dashed(nl.name(), sweep.iter().map(|a| (a.total.freq, db(a.parts[k].1.hd(order)))).collect());
+            c = c.dashed(nl.name(), sweep.iter().map(|a| (a.total.freq, dbp(a.parts[k].1.hd(order)))).collect());
         }
         b.chart(c, &format!("HD{order} of the full model (solid) and of each nonlinearity alone (dashed)."))?;
     }
@@ -330,10 +335,10 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     let divergence = divergence_level(&rows_v, 1.0);
     let mut c = Chart::new("volterra", &format!("Volterra series vs full model at {:.1} Hz", f_v), "level (V RMS)", "dB re fundamental")
         .log_x()
-        .line("HD2 full", rows_v.iter().map(|r| (r.volts, db(r.full.hd(2)))).collect())
-        .line("HD3 full", rows_v.iter().map(|r| (r.volts, db(r.full.hd(3)))).collect())
-        .dashed("HD2 Volterra", rows_v.iter().map(|r| (r.volts, db(r.volterra.0))).collect())
-        .dashed("HD3 Volterra", rows_v.iter().map(|r| (r.volts, db(r.volterra.1))).collect());
+        .line("HD2 full", rows_v.iter().map(|r| (r.volts, dbp(r.full.hd(2)))).collect())
+        .line("HD3 full", rows_v.iter().map(|r| (r.volts, dbp(r.full.hd(3)))).collect())
+        .dashed("HD2 Volterra", rows_v.iter().map(|r| (r.volts, dbp(r.volterra.0))).collect())
+        .dashed("HD3 Volterra", rows_v.iter().map(|r| (r.volts, dbp(r.volterra.1))).collect());
     if let Some(v) = divergence {
         c = c.marker(v, "Volterra off by 1 dB");
     }
@@ -384,7 +389,7 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         b.chart(
             Chart::new("multitone", &format!("Multitone distortion (30 tones, MTD {:.1} dB)", db(mt.mtd)), "frequency (Hz)", "dB re mean tone")
                 .log_x()
-                .line("tones", mt.tones.iter().map(|(f, a)| (*f, db(a / ref_level))).collect())
+                .line("tones", mt.tones.iter().map(|(f, a)| (*f, dbp(a / ref_level))).collect())
                 .line("distortion per 1/3 octave", dist),
             "Sound-pressure spectrum of a 30-tone multitone: the tones and the distortion that falls between them.",
         )?;
