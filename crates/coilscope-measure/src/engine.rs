@@ -30,6 +30,11 @@ use coilscope_ident::online::{Online, OnlineOptions};
 const PEAK_MEMORY_S: f64 = 8.0;
 /// Share of the excursion limit the controller aims the largest remembered peak at.
 const X_AIM: f64 = 0.92;
+/// Near the stiffness limit (Kms ratio past 3/4 of the way to it), the aim stays within
+/// this multiple of the reach the last update checked for the stiffness limit.
+const EXPLORE: f64 = 1.25;
+/// The largest basis scale of the curves, in small-signal reaches.
+const X_REF_SMALL: f64 = 20.0;
 
 /// Convergence: largest change of Bl(x), Kms(x) and of Le(x) per update (relative to the
 /// value at rest), at each of the last two updates.
@@ -218,6 +223,8 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     let mut auto_limit: Option<f64> = None;
     // Largest Kms(x)/Kms(0) of the estimate within 1.3 times the reach.
     let mut kms_ratio = 1.0f64;
+    // The reach at the last update: how far the stiffness limit has been looked for.
+    let mut checked_reach = 0.0f64;
     let mut hold_since = f64::INFINITY;
     let mut steady_blocks = 0;
     let mut events = Vec::new();
@@ -281,7 +288,9 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                     let p = scale_by_mms(&lin, opts.mms)?;
                     // Reach of the small stage: the series basis and the runaway limit scale from it.
                     let x_small = coilscope_ident::linear::predicted_displacement(&p, &i_small, fs).iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-6);
-                    let x_ref = opts.target_x.unwrap_or(20.0 * x_small).max(2.0 * x_small);
+                    // Basis scale: the expected reach, never more than X_REF_SMALL times the
+                    // small-signal reach (a far target leaves the curves ill-conditioned at first).
+                    let x_ref = opts.target_x.map_or(20.0 * x_small, |t| t.min(X_REF_SMALL * x_small)).max(2.0 * x_small);
                     let mut on = Online::new(&p, fs, OnlineOptions { order: opts.order, x_ref, window: 0.3, ..Default::default() }).map_err(|e| e.0)?;
                     on.push(&u_small, &i_small).map_err(|e| e.0)?;
                     online = Some(on);
@@ -336,6 +345,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                         }
                         let k0 = est.kms.eval(0.0);
                         kms_ratio = (0..=20).map(|k| 1.3 * reach * k as f64 / 20.0).map(|x| est.kms.eval(x).max(est.kms.eval(-x)) / k0).fold(0.0, f64::max);
+                        checked_reach = reach;
                         prev_est = Some(est);
                         // Convergence: at level for 2 s, small window error, stable curves.
                         let n = changes.len();
@@ -385,6 +395,16 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                         } else if g * per_volt > X_AIM * xl {
                             g = X_AIM * xl / per_volt.max(1e-12);
                             why = "excursion";
+                        }
+                    }
+                    // Once the suspension stiffens, explore in steps: never aim beyond
+                    // EXPLORE times the reach the last update checked for the stiffness limit
+                    // (it looks 1.3 times the reach ahead), so the limit is seen before it is hit.
+                    if opts.hold_volts.is_none() && kms_ratio > 1.0 + 0.75 * (opts.kms_limit - 1.0) && checked_reach > 0.0 && g * per_volt > EXPLORE * checked_reach {
+                        let cap = EXPLORE * checked_reach / per_volt.max(1e-12);
+                        if cap < g {
+                            g = cap.max(gain.min(g));
+                            why = "exploration";
                         }
                     }
                     // Margins for the lag of the Re tracking and the error of the cold Re

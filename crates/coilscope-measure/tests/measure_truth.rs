@@ -74,13 +74,11 @@ fn sb17_and_ptt4_converge_from_silence_within_a_minute() {
 }
 
 #[test]
-#[ignore = "open (issue 5 not resolved): 18WU converges in 22 s but Kms(x) is 2.2 % off at the range end (limit 2 %)"]
 fn w18wu_converges_from_silence_within_a_minute() {
     converges_from_silence(&["18wu-4741t-00"]);
 }
 
 #[test]
-#[ignore = "open (issue 5 not resolved): with a target beyond the range the ramp overshoots the Kms-based safe limit on SB17 (x = 6.07 mm)"]
 fn a_target_beyond_the_range_is_held_at_the_safe_stiffness_limit() {
     // Target 2x the driver's valid range: the controller must stop where Kms(x)/Kms(0) = 2.
     for name in ["sb17cac35-4", "ptt4.0w04-01a"] {
