@@ -20,6 +20,7 @@ use coilscope_core::excitation::{generate, Excitation, SignalSpec};
 use coilscope_core::fft::rfft;
 use coilscope_core::limits::{limits_with, Limits, Thresholds};
 use coilscope_core::small_signal::impedance;
+use coilscope_core::params::Thermal;
 use coilscope_core::Parameters;
 use realfft::num_complex::Complex64 as C;
 use serde_json::{json, Value};
@@ -70,13 +71,12 @@ pub struct ThermalHandling {
     pub p_nominal_iec: f64,
 }
 
-/// Steady voice-coil rise per squared RMS volt of a sine at `f`, with Re at `re_hot`.
-fn heating_per_v2(p: &Parameters, re_hot: f64, f: f64) -> f64 {
-    let t = p.thermal.as_ref().expect("checked by the caller");
-    let hot = Parameters { re: re_hot, ..p.clone() };
-    let i = C::new(1.0, 0.0) / impedance(&hot, f);
-    let p_re = re_hot * i.norm_sqr();
-    let p_r2 = match &p.l2r2 {
+/// Steady voice-coil rise per squared RMS volt of a sine at `f`, for `hot` (the set with Re
+/// at the hot temperature) and its thermal resistances `t`.
+fn heating_per_v2(hot: &Parameters, t: &Thermal, f: f64) -> f64 {
+    let i = C::new(1.0, 0.0) / impedance(hot, f);
+    let p_re = hot.re * i.norm_sqr();
+    let p_r2 = match &hot.l2r2 {
         Some((l2, r2)) => {
             let zl = C::new(0.0, 2.0 * PI * f * l2.c[0]);
             let ir2 = i * zl / (zl + r2.c[0]);
@@ -91,9 +91,9 @@ fn heating_per_v2(p: &Parameters, re_hot: f64, f: f64) -> f64 {
 /// thermal parameters.
 pub fn thermal_handling(p: &Parameters, dt_max: f64) -> Option<ThermalHandling> {
     let t = p.thermal.as_ref()?;
-    let re_hot = p.re * (1.0 + t.alpha * dt_max);
+    let hot = Parameters { re: p.re * (1.0 + t.alpha * dt_max), ..p.clone() };
     let freqs = crate::distortion::log_frequencies(10.0, 20_000.0, 24);
-    let (f_sine, worst) = freqs.iter().map(|&f| (f, heating_per_v2(p, re_hot, f))).fold((0.0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+    let (f_sine, worst) = freqs.iter().map(|&f| (f, heating_per_v2(&hot, t, f))).fold((0.0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
     let fs = 48_000.0;
     let noise = generate(&Excitation::Iec, &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.0, seed: 1 }).ok()?;
     let spec = rfft(&noise);
@@ -103,7 +103,7 @@ pub fn thermal_handling(p: &Parameters, dt_max: f64) -> Option<ThermalHandling> 
         if f > 20_000.0 {
             break;
         }
-        heat += c.norm_sqr() * heating_per_v2(p, re_hot, f);
+        heat += c.norm_sqr() * heating_per_v2(&hot, t, f);
         power += c.norm_sqr();
     }
     let iec = heat / power;

@@ -208,12 +208,12 @@ fn check_periodic(p: &Parameters, exc: &Periodic) -> Result<(), AnalysisError> {
 
 /// Integrate `p` under the periodic excitation until the periodic steady state.
 pub fn steady_state(p: &Parameters, exc: &Periodic, opts: &SteadyOptions) -> Result<Response, AnalysisError> {
-    check_periodic(p, exc)?;
     run_steady(&with_only(p, &Nonlinearity::ALL, opts.dt_coil), exc, opts)
 }
 
 /// The steady state of a set that is already prepared (thermal off).
 fn run_steady(q: &Parameters, exc: &Periodic, opts: &SteadyOptions) -> Result<Response, AnalysisError> {
+    check_periodic(q, exc)?;
     let t = exc.period;
     let k_max = exc.tones.iter().map(|t| t.bin).max().unwrap_or(1);
     let f_max = k_max as f64 / t;
@@ -356,7 +356,6 @@ fn sine_window(freq: f64, min_seconds: f64) -> (f64, usize) {
 fn sine_harmonics(q: &Parameters, freq: f64, volts: f64, output: Output, opts: &SteadyOptions) -> Result<Harmonics, AnalysisError> {
     let (period, bin) = sine_window(freq, 0.05);
     let exc = Periodic { period, tones: vec![Tone { bin, amplitude: volts * SQRT_2, phase: 0.0 }] };
-    check_periodic(q, &exc)?;
     let r = run_steady(q, &exc, opts)?;
     let fund = r.line(output, bin);
     let lines = (2..=opts.harmonics.max(2))
@@ -411,9 +410,7 @@ impl Analysis {
 
 /// Harmonic distortion of a sine, total and per nonlinearity.
 pub fn analyse(p: &Parameters, freq: f64, volts: f64, output: Output, opts: &SteadyOptions) -> Result<Analysis, AnalysisError> {
-    check_freq("--freq", freq)?;
-    check_level(volts)?;
-    let total = sine_harmonics(&with_only(p, &Nonlinearity::ALL, opts.dt_coil), freq, volts, output, opts)?;
+    let total = harmonics(p, freq, volts, output, opts)?;
     let parts = Nonlinearity::ALL
         .iter()
         .map(|&nl| sine_harmonics(&with_only(p, &[nl], opts.dt_coil), freq, volts, output, opts).map(|h| (nl, h)))
@@ -477,7 +474,6 @@ pub fn intermod(p: &Parameters, f1: f64, f2: f64, volts: f64, ratio: f64, output
     let a1 = volts * (2.0 / (1.0 + ratio * ratio)).sqrt();
     let exc = Periodic { period, tones: vec![Tone { bin: k1, amplitude: a1, phase: 0.0 }, Tone { bin: k2, amplitude: a1 * ratio, phase: 0.0 }] };
     let q = with_only(p, &Nonlinearity::ALL, opts.dt_coil);
-    check_periodic(&q, &exc)?;
     let r = run_steady(&q, &exc, opts)?;
     let ref2 = r.line(output, k2).norm();
     let lev = |b: usize| r.line(output, b).norm() / ref2;
@@ -544,7 +540,6 @@ pub fn multitone(p: &Parameters, f_lo: f64, f_hi: f64, count: usize, volts: f64,
     let tones: Vec<Tone> = bins.iter().map(|&bin| Tone { bin, amplitude: amp, phase: rng.random_range(0.0..2.0 * PI) }).collect();
     let exc = Periodic { period, tones };
     let q = with_only(p, &Nonlinearity::ALL, opts.dt_coil);
-    check_periodic(&q, &exc)?;
     let opts = SteadyOptions { harmonics: opts.harmonics.min(3), ..*opts };
     let r = run_steady(&q, &exc, &opts)?;
     let top = r.max_bin().min((20_000.0 * period) as usize);

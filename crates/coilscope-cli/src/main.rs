@@ -55,6 +55,20 @@ impl From<OutputKind> for coilscope_analysis::distortion::Output {
     }
 }
 
+/// Arguments shared by the fits of a recording (`linear`, `identify`).
+#[derive(clap::Args, Clone, Debug)]
+struct FitArgs {
+    /// Effective radiating area (m^2), for Vas.
+    #[arg(long)]
+    sd: Option<f64>,
+    /// Scale factors of integer-PCM recordings (V, A [, m] per count).
+    #[arg(long, num_args = 2..=3, value_names = ["V", "A"])]
+    scale: Option<Vec<f64>>,
+    /// Result file (JSON, coilscope.result/1); `linear` writes the impedance beside it as .zma and .csv.
+    #[arg(long)]
+    out: PathBuf,
+}
+
 /// Limit thresholds and the thermal limit, shared by `diagnose` and `report`.
 #[derive(clap::Args, Clone, Copy, Debug)]
 struct LimitArgs {
@@ -148,15 +162,8 @@ enum Command {
         /// Recording of the same driver with the added mass.
         #[arg(long)]
         with_mass: Option<PathBuf>,
-        /// Effective radiating area (m^2), for Vas.
-        #[arg(long)]
-        sd: Option<f64>,
-        /// Scale factors of integer-PCM recordings (V, A [, m] per count).
-        #[arg(long, num_args = 2..=3, value_names = ["V", "A"])]
-        scale: Option<Vec<f64>>,
-        /// Result file (JSON); the impedance goes beside it as .zma and .csv.
-        #[arg(long)]
-        out: PathBuf,
+        #[command(flatten)]
+        fit: FitArgs,
     },
     /// Large-signal parameters (Bl(x), Kms(x), Le(x), L2, R2, Rms, Re(t)) from a recording of
     /// voltage and current at high level: output-error fit of the nonlinear model.
@@ -169,15 +176,8 @@ enum Command {
         /// Power-series order of Bl, Kms and Le (2 ..= 8); default: chosen on held-out data.
         #[arg(long)]
         order: Option<usize>,
-        /// Effective radiating area (m^2), for Vas.
-        #[arg(long)]
-        sd: Option<f64>,
-        /// Scale factors of integer-PCM recordings (V, A [, m] per count).
-        #[arg(long, num_args = 2..=3, value_names = ["V", "A"])]
-        scale: Option<Vec<f64>>,
-        /// Result file (JSON, coilscope.result/1).
-        #[arg(long)]
-        out: PathBuf,
+        #[command(flatten)]
+        fit: FitArgs,
     },
     /// Dynamic measurement: play noise or music, ramp the level up from quiet, identify the
     /// model online, protect the driver (excursion, temperature, stiffness), stop on
@@ -330,10 +330,10 @@ fn main() -> ExitCode {
         Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale } => {
             cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale })
         }
-        Command::Linear { recording, mms, added_mass, with_mass, sd, scale, out } => {
-            cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), sd, scale.as_deref(), &out)
+        Command::Linear { recording, mms, added_mass, with_mass, fit } => {
+            cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), fit.sd, fit.scale.as_deref(), &fit.out)
         }
-        Command::Identify { recording, mms, order, sd, scale, out } => cmd_identify(&recording, mms, order, sd, scale.as_deref(), &out),
+        Command::Identify { recording, mms, order, fit } => cmd_identify(&recording, mms, order, fit.sd, fit.scale.as_deref(), &fit.out),
         Command::Measure { no_report, virtual_driver, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
             cmd_measure(MeasureArgs { no_report, virtual_driver, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
         }
@@ -951,12 +951,13 @@ fn cmd_distortion(a: DistortionArgs) -> Result<(), String> {
         None => vec![freq],
     };
     let sweep = d::frequency_sweep(p, &freqs, volts, a.output, &opts).map_err(e)?;
+    let q = d::with_only(p, &d::Nonlinearity::ALL, a.temp_rise);
+    let probes: Vec<_> = sweep.iter().map(|an| coilscope_analysis::volterra::probe(&q, an.total.freq)).collect();
     if a.json {
-        let q = d::with_only(p, &d::Nonlinearity::ALL, a.temp_rise);
         let v: Vec<_> = sweep
             .iter()
-            .map(|an| {
-                let pr = coilscope_analysis::volterra::probe(&q, an.total.freq);
+            .zip(&probes)
+            .map(|(an, pr)| {
                 let (h2, h3) = pr.hd(a.output, volts);
                 let mut j = an.to_json();
                 j["volterra"] = serde_json::json!({"HD2": h2, "HD3": h3, "HD2_dB": db(h2), "HD3_dB": db(h3), "x_dc": pr.x_dc(volts), "kernels": pr.to_json()});
@@ -967,10 +968,9 @@ fn cmd_distortion(a: DistortionArgs) -> Result<(), String> {
         return Ok(());
     }
     println!("{name}: sine, {:.3} V RMS, {out}", volts);
-    for an in &sweep {
+    for (an, pr) in sweep.iter().zip(&probes) {
         let t = &an.total;
-        let q = d::with_only(p, &d::Nonlinearity::ALL, a.temp_rise);
-        let (v2, v3) = coilscope_analysis::volterra::probe(&q, t.freq).hd(a.output, volts);
+        let (v2, v3) = pr.hd(a.output, volts);
         println!("  {:.2} Hz: x {:+.3} .. {:+.3} mm, DC displacement {:+.4} mm", t.freq, t.x_peak[0] * 1e3, t.x_peak[1] * 1e3, t.x_dc * 1e3);
         println!("    {:<10} {:>9} {:>9} {:>9}", "", "HD2 dB", "HD3 dB", "THD dB");
         println!("    {:<10} {:9.2} {:9.2} {:9.2}", "total", db(t.hd(2)), db(t.hd(3)), db(t.thd()));

@@ -550,7 +550,7 @@ pub fn input_from(spec: &str) -> Result<ReportInput, String> {
             let p = Parameters::from_json_value(pv, &format!("{spec} (parameters)")).map_err(|e| e.to_string())?;
             (p, Some(v))
         } else {
-            (coilscope_io::load_parameters(spec).map_err(|e| e.to_string())?, None)
+            (Parameters::from_json_value(&v, spec).map_err(|e| e.to_string())?, None)
         }
     } else {
         (coilscope_io::load_parameters(spec).map_err(|e| e.to_string())?, None)
