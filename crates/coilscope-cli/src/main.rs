@@ -827,6 +827,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), String> {
     println!("{status}: {}", m.stop_reason);
     println!("measured {:.1} s, peak x {:.2} mm, voice-coil rise up to {:.1} K, {} updates, window residual {:.2e}", m.seconds, m.x_peak_max * 1e3, m.dtv_max, m.updates, m.residual_rel);
     println!("small signal (start): Re {:.4} ohm, Bl {:.3} T m, Kms {:.1} N/m, Rms {:.3} kg/s", m.small.re, m.small.bl.eval(0.0), m.small.kms.eval(0.0), m.small.rms);
+    println!("cold Re (online estimate at its first update, the temperature reference): {:.4} ohm", m.re_cold);
     let [lo, hi] = m.x_range;
     println!("large signal (end), over {:.2} .. {:.2} mm:", lo * 1e3, hi * 1e3);
     for (name, f, unit) in [("Bl", &p.bl, "T m"), ("Kms", &p.kms, "N/m"), ("Le", &p.le, "mH")] {

@@ -14,7 +14,9 @@
 //!
 //! Protection acts on every block: the live model's peak excursion is compared with the
 //! limit and the gain cut at once when it is passed; the temperature (from the tracked Re)
-//! holds the gain at 70 % of `max_dt` and cuts it (power ~ gain^2) above 80 %. In a
+//! carried one second ahead along its trend (the tracking lag), holds the gain at 85 % of
+//! `max_dt` and cuts it (power ~ gain^2) above 92 %. The cold Re is the online estimate at its
+//! first update, when the coil has seen almost no power. In a
 //! long-term test at a fixed level (`hold_volts`) the excursion is kept in range by raising
 //! the cut-off of the high-pass instead, so the electrical power stays.
 
@@ -35,6 +37,11 @@ const X_AIM: f64 = 0.92;
 const EXPLORE: f64 = 1.25;
 /// The largest basis scale of the curves, in small-signal reaches.
 const X_REF_SMALL: f64 = 20.0;
+
+/// Seconds of temperature estimates the trend is taken over, and how far ahead (s) the
+/// protection looks along it (about the lag of the Re tracking).
+const THERMAL_TREND_S: f64 = 1.0;
+const THERMAL_LAG_S: f64 = 1.0;
 
 /// Convergence: largest change of Bl(x), Kms(x) and of Le(x) per update (relative to the
 /// value at rest), at each of the last two updates.
@@ -178,6 +185,9 @@ pub struct Measurement {
     pub x_range: [f64; 2],
     pub x_peak_max: f64,
     pub dtv_max: f64,
+    /// Cold voice-coil resistance (ohm): the online estimate at its first update (the
+    /// reference of the temperature estimate); the small-signal fit's Re if none ran.
+    pub re_cold: f64,
     /// Last window residual.
     pub residual_rel: f64,
     pub updates: usize,
@@ -233,6 +243,11 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     let mut hold_range = [0.0f64, 0.0f64];
     let mut last_residual = f64::NAN;
     let mut updates = 0usize;
+    // Cold Re: the online estimate at its first update, when the coil has seen almost no
+    // power (the small-signal impedance fit's Re is off by 0.1-0.3 %, i.e. 0.25-0.75 K).
+    let mut re_cold: Option<f64> = None;
+    // Recent temperature estimates (one per block) for the trend.
+    let mut dtv_recent: Vec<f64> = Vec::new();
     let mut converged = false;
     let mut stop_reason = String::new();
     let mut blocks = 0usize;
@@ -303,8 +318,16 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
             }
             Some(on) => {
                 let st = on.push(&blk.u, &blk.i).map_err(|e| e.0)?;
-                let re_cold = small.as_ref().map(|p| p.re).unwrap_or(f64::NAN);
-                let dtv = (on.re() / re_cold - 1.0) / opts.alpha;
+                let re0 = re_cold.or(small.as_ref().map(|p| p.re)).unwrap_or(f64::NAN);
+                let dtv = (on.re() / re0 - 1.0) / opts.alpha;
+                dtv_recent.push(dtv);
+                if dtv_recent.len() as f64 * opts.block > THERMAL_TREND_S {
+                    dtv_recent.remove(0);
+                }
+                // The Re tracking lags the coil by about a second: protect on the estimate
+                // carried forward along its trend over the last second.
+                let slope = (dtv_recent.last().unwrap() - dtv_recent[0]) / ((dtv_recent.len() - 1).max(1) as f64 * opts.block);
+                let dtv_ahead = dtv + THERMAL_LAG_S * slope.max(0.0);
                 live.x_min = st.x_min;
                 live.x_max = st.x_max;
                 live.re = on.re();
@@ -319,6 +342,9 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                 if on.since_update() >= opts.update_seconds {
                     if let Some(up) = on.update() {
                         updates += 1;
+                        if re_cold.is_none() {
+                            re_cold = Some(on.re());
+                        }
                         last_residual = up.before;
                         live.update = Some(up.before);
                         let est = on.parameters();
@@ -407,16 +433,16 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                             why = "exploration";
                         }
                     }
-                    // Margins for the lag of the Re tracking and the error of the cold Re
-                    // (0.1 % of Re is 0.25 K).
-                    if dtv > 0.8 * opts.max_dt {
-                        let cut = gain * (0.75 * opts.max_dt / dtv).sqrt();
+                    // Margins for what is left of the tracking lag and for the cold Re's
+                    // error (0.05 % of Re is 0.13 K): hold at 85 %, cut to 85 % above 92 %.
+                    if dtv_ahead > 0.92 * opts.max_dt {
+                        let cut = gain * (0.85 * opts.max_dt / dtv_ahead).sqrt();
                         if cut < g {
                             g = cut;
-                            events.push((t, format!("voice-coil rise {dtv:.2} K above 80 % of {} K: gain cut to {g:.3} V", opts.max_dt)));
+                            events.push((t, format!("voice-coil rise {dtv:.2} K (heading for {dtv_ahead:.2} K) above 92 % of {} K: gain cut to {g:.3} V", opts.max_dt)));
                             why = "temperature";
                         }
-                    } else if dtv > 0.7 * opts.max_dt && g > gain {
+                    } else if dtv_ahead > 0.85 * opts.max_dt && g > gain {
                         g = gain;
                         why = "temperature";
                     }
@@ -480,6 +506,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     }
     params.x_range = Some(hold_range);
     let small = small.expect("set with the estimator");
+    let re_cold = re_cold.unwrap_or(small.re);
     Ok(Measurement {
         params,
         small,
@@ -489,6 +516,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
         x_range: hold_range,
         x_peak_max,
         dtv_max,
+        re_cold,
         residual_rel: last_residual,
         updates,
         events,
@@ -536,7 +564,8 @@ impl Measurement {
             "limits": lim.to_json(),
             "uncertainty": serde_json::Value::Object(unc),
             "thermal": {
-                "note": "voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = 0.00393 1/K",
+                "note": "voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = 0.00393 1/K; Re_cold is the online estimate at its first update (almost no power yet)",
+                "Re_cold": self.re_cold,
                 "dT_track": self.dt_track.iter().map(|(t, d)| json!([t, d])).collect::<Vec<_>>(),
             },
             "measurement": {

@@ -29,15 +29,17 @@ fn assert_truth(label: &str, m: &Measurement, p: &Parameters) {
     let q = &m.params;
     let r = m.x_range;
     let (e_bl, e_k, e_le) = (worst(&q.bl, &p.bl, r), worst(&q.kms, &p.kms, r), worst(&q.le, &p.le, r));
-    let (e_re, e_rms) = ((m.small.re / p.re - 1.0).abs(), (q.rms / p.rms - 1.0).abs());
+    let (e_re, e_rms) = ((m.re_cold / p.re - 1.0).abs(), (q.rms / p.rms - 1.0).abs());
+    let e_re_small = m.small.re / p.re - 1.0;
     println!(
-        "{label}: {} in {:.1} s; Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re(cold) {:.3} %, Rms {:.3} %, x {:.2}..{:.2} mm, true peak {:.2} mm, true dT max {:.1} K",
+        "{label}: {} in {:.1} s; Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re(cold) {:.3} % (small-signal fit {:.3} %), Rms {:.3} %, x {:.2}..{:.2} mm, true peak {:.2} mm, true dT max {:.1} K",
         m.stop_reason,
         m.seconds,
         100.0 * e_bl,
         100.0 * e_k,
         100.0 * e_le,
         100.0 * e_re,
+        100.0 * e_re_small,
         100.0 * e_rms,
         r[0] * 1e3,
         r[1] * 1e3,
@@ -94,17 +96,21 @@ fn a_target_beyond_the_range_is_held_at_the_safe_stiffness_limit() {
 }
 
 #[test]
-#[ignore = "open (issue 5 not resolved): the Re-based temperature estimate reads 3.0 K when the truth is 3.95 K (limit 3 K)"]
 fn a_low_temperature_limit_holds() {
-    let p = embedded_driver("sb17cac35-4").unwrap();
-    let [lo, hi] = p.x_range.unwrap();
-    let mut src = Source::noise(&Excitation::Iec, 48000.0, 4).unwrap();
-    let max_dt = 3.0;
-    let m = run(&p, &mut src, MeasureOptions { mms: p.mms, target_x: Some(0.85 * hi.min(-lo)), max_dt, duration: Some(30.0), ..Default::default() }, 3);
-    let t = m.truth.unwrap();
-    println!("true dT max {:.2} K (limit {max_dt} K), estimated {:.2} K", t.dtv_max, m.dtv_max);
-    assert!(t.dtv_max <= 1.05 * max_dt, "true voice-coil rise {} K", t.dtv_max);
-    assert!(t.dtv_max >= 0.6 * max_dt, "the level must have been raised toward the limit ({} K)", t.dtv_max);
+    // 3 K: a tenth of a percent of Re. The cold Re and the tracking lag both matter here.
+    for (name, seed) in [("sb17cac35-4", 3), ("18wu-4741t-00", 4)] {
+        let p = embedded_driver(name).unwrap();
+        let [lo, hi] = p.x_range.unwrap();
+        let mut src = Source::noise(&Excitation::Iec, 48000.0, 4).unwrap();
+        let max_dt = 3.0;
+        let m = run(&p, &mut src, MeasureOptions { mms: p.mms, target_x: Some(0.85 * hi.min(-lo)), max_dt, duration: Some(30.0), ..Default::default() }, seed);
+        let t = m.truth.unwrap();
+        println!("{name}: true dT max {:.2} K (limit {max_dt} K), estimated {:.2} K", t.dtv_max, m.dtv_max);
+        assert!(t.dtv_max <= 1.05 * max_dt, "{name}: true voice-coil rise {} K", t.dtv_max);
+        assert!(t.dtv_max >= 0.6 * max_dt, "{name}: the level must have been raised toward the limit ({} K)", t.dtv_max);
+        // The estimate follows the truth (it is what the protection acts on).
+        assert!((m.dtv_max - t.dtv_max).abs() <= 0.1 * max_dt, "{name}: estimated {} K, true {} K", m.dtv_max, t.dtv_max);
+    }
 }
 
 #[test]
