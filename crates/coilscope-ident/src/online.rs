@@ -29,6 +29,8 @@ use num_dual::{Dual64, DualSVec64};
 
 /// Largest `|lambda| h` of the fast electrical mode in the Jacobian runs (as in `large`).
 const JACOBIAN_STIFF_LIMIT: f64 = 1.5;
+/// Seconds of tracked Re the drift within a window is taken from.
+const RE_TREND_S: f64 = 1.0;
 /// Samples between stored live states (window starts snap to these).
 const SNAP_EVERY: usize = 256;
 
@@ -123,6 +125,8 @@ pub struct Online {
     re_num: f64,
     re_den: f64,
     re_count: usize,
+    /// Tracked Re after each tracking step: (absolute sample, ohm), the last seconds.
+    re_hist: std::collections::VecDeque<(usize, f64)>,
     last_update: usize,
     settle: usize,
     x_limit: f64,
@@ -180,6 +184,7 @@ impl Online {
             re_num: 0.0,
             re_den: 0.0,
             re_count: 0,
+            re_hist: std::collections::VecDeque::new(),
             last_update: 0,
             settle,
             x_limit: 20.0 * opts.x_ref,
@@ -303,6 +308,28 @@ impl Online {
         self.re_num = 0.0;
         self.re_den = 0.0;
         self.re_count = 0;
+        self.re_hist.push_back((self.pos, self.re()));
+        while self.re_hist.front().is_some_and(|&(k, _)| k + (RE_TREND_S * self.fs) as usize <= self.pos) {
+            self.re_hist.pop_front();
+        }
+    }
+
+    /// Rate of change of the tracked Re (ohm/s): least squares over the last
+    /// [`RE_TREND_S`] seconds, 0 with fewer than three tracking steps. Heating moves Re by up
+    /// to about 0.5 %/s at high level; within a window that is more than the current error
+    /// of a good model, so the windows run with this drift rather than a constant Re.
+    pub fn re_slope(&self) -> f64 {
+        let n = self.re_hist.len();
+        if n < 3 {
+            return 0.0;
+        }
+        let tm = self.re_hist.iter().map(|&(k, _)| k as f64).sum::<f64>() / n as f64;
+        let rm = self.re_hist.iter().map(|&(_, r)| r).sum::<f64>() / n as f64;
+        let (num, den) = self.re_hist.iter().fold((0.0, 0.0), |(a, b), &(k, r)| (a + (k as f64 - tm) * (r - rm), b + (k as f64 - tm).powi(2)));
+        let slope = num / den * self.fs;
+        // Coils heat by at most a few percent per second.
+        let cap = 0.05 * self.re();
+        slope.clamp(-cap, cap)
     }
 
     fn trim(&mut self) {
@@ -322,8 +349,10 @@ impl Online {
     /// Run the f64 model `theta` from `y0` over history samples `a..b` (absolute). Returns
     /// the current error `i - i_model` after `skip` samples and the end state; `None` if the
     /// model ran away.
-    fn run_window(&self, theta: &[f64], y0: State<f64>, a: usize, b: usize, skip: usize) -> Option<(DVector<f64>, State<f64>)> {
-        let (model, _) = self.layout.model::<f64>(theta);
+    fn run_window(&self, theta: &[f64], y0: State<f64>, a: usize, b: usize, skip: usize, re_slope: f64) -> Option<(DVector<f64>, State<f64>)> {
+        let (mut model, _) = self.layout.model::<f64>(theta);
+        // Re drifts along the tracked trend; theta's Re is the value at the window end.
+        let re_end = model.re;
         let dt = 1.0 / self.fs;
         let mut pf = vec![0.0; 2 * self.interp.n + 1];
         let mut y = y0;
@@ -337,15 +366,17 @@ impl Online {
                 r[m - a - skip] = self.i[k] - y[idx::I];
             }
             self.interp.fill(&self.u, k, &mut pf);
+            model.re = re_end + re_slope * (m as f64 - b as f64) * dt;
             y = rk4_sample(&model, &y, dt, &pf);
         }
         Some((r, y))
     }
 
     /// Jacobian columns `c0 .. c0 + CHUNK` of the model current over `a..b` from `y0`.
-    fn jacobian_chunk(&self, y0: &State<f64>, a: usize, b: usize, skip: usize, c0: usize) -> Vec<Vec<f64>> {
+    fn jacobian_chunk(&self, y0: &State<f64>, a: usize, b: usize, skip: usize, c0: usize, re_slope: f64) -> Vec<Vec<f64>> {
         let (thd, cnt) = seed_duals::<CHUNK>(&self.theta, c0);
-        let (model, _) = self.layout.model(&thd);
+        let (mut model, _) = self.layout.model(&thd);
+        let re_end = model.re;
         let dt = 1.0 / self.fs;
         let n = self.interp_jac.n;
         let mut pf = vec![0.0; 2 * n + 1];
@@ -363,6 +394,7 @@ impl Online {
             for (d, &f) in pd.iter_mut().zip(pf.iter()) {
                 *d = DualSVec64::from_re(f);
             }
+            model.re = re_end + re_slope * (m as f64 - b as f64) * dt;
             y = rk4_sample(&model, &y, dt, &pd);
         }
         cols
@@ -390,7 +422,8 @@ impl Online {
         // The window starts at a stored live state.
         let &(a, y0) = self.snaps.iter().rev().find(|s| s.0 <= want && s.0 >= self.base + HALF_TAPS)?;
         let skip = self.settle.min((b - a) / 2);
-        let (r, _) = self.run_window(&self.theta, y0, a, b, skip)?;
+        let slope = self.re_slope();
+        let (r, _) = self.run_window(&self.theta, y0, a, b, skip, slope)?;
         let q: f64 = self.i[a + skip - self.base..b - self.base].iter().map(|v| v * v).sum();
         let e0 = r.norm_squared();
         let before = (e0 / q.max(1e-300)).sqrt();
@@ -400,7 +433,7 @@ impl Online {
         let np = self.theta.len();
         let mut jac = DMatrix::zeros(rows, np);
         for c0 in (0..np).step_by(CHUNK) {
-            for (c, col) in self.jacobian_chunk(&y0, a, b, skip, c0).into_iter().enumerate() {
+            for (c, col) in self.jacobian_chunk(&y0, a, b, skip, c0, slope).into_iter().enumerate() {
                 jac.column_mut(c0 + c).copy_from_slice(&col);
             }
         }
@@ -431,7 +464,7 @@ impl Online {
             if check && !self.physical(&trial) {
                 continue;
             }
-            if let Some((r1, y_end)) = self.run_window(&trial, y0, a, b, skip) {
+            if let Some((r1, y_end)) = self.run_window(&trial, y0, a, b, skip, slope) {
                 let e1 = r1.norm_squared();
                 if e1 <= e0 * 1.02 {
                     step = 1.0 / (1.0 + lambda);

@@ -9,8 +9,13 @@
 //!    range where Kms(x)/Kms(0) reaches `kms_limit`), the voice-coil temperature rise
 //!    `max_dt`, or `max_volts`.
 //! 3. **Hold**: at that level until the estimate has converged (window residual below 2 %,
-//!    curves changing by less than 0.3 % (Bl, Kms) and 1 % (Le) at two updates), or
-//!    for `duration` in a long-term test.
+//!    curves changing by less than 0.3 % (Bl, Kms) and 1 % (Le) at two updates, over 90 %
+//!    of the 80th percentile of the block peaks since the level was last changed), or for
+//!    `duration` in a long-term test. A change of level by more than 5 % restarts the hold.
+//!
+//! Music does not excite every band the small-signal impedance fit needs (Re and the L2/R2
+//! branch are told apart only by a broad spectrum), so under music the small-signal stage
+//! plays quiet IEC noise; the music starts with the ramp.
 //!
 //! Protection acts on every block: the live model's peak excursion is compared with the
 //! limit and the gain cut at once when it is passed; the temperature (from the tracked Re)
@@ -23,6 +28,7 @@
 use crate::device::{Device, Truth};
 use crate::signal::{HighPass, Source};
 use crate::store::{StateRow, Store};
+use coilscope_core::excitation::Excitation;
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
 use coilscope_ident::linear::{fit_linear_bins, scale_by_mms};
@@ -170,6 +176,10 @@ pub struct Live {
     pub limited_by: &'static str,
     /// Whether a recursive update ran after this block, and its window residual.
     pub update: Option<f64>,
+    /// After an update: the new estimate, and the largest change of Bl/Kms and of Le since
+    /// the previous one (relative to the value at rest, over 90 % of the range).
+    pub estimate: Option<Parameters>,
+    pub change: Option<(f64, f64)>,
 }
 
 /// The outcome.
@@ -191,6 +201,8 @@ pub struct Measurement {
     /// Last window residual.
     pub residual_rel: f64,
     pub updates: usize,
+    /// What limited the drive level at the end (excursion, temperature, ...).
+    pub limited_by: String,
     /// Protection events: (t, what).
     pub events: Vec<(f64, String)>,
     /// (t, dT) once per second.
@@ -207,6 +219,16 @@ fn curve_change(a: &Poly, b: &Poly, r: f64) -> f64 {
     (0..=40).map(|k| -r + 2.0 * r * k as f64 / 40.0).map(|x| (a.eval(x) - b.eval(x)).abs() / b0).fold(0.0, f64::max)
 }
 
+/// The `q` quantile (0..1) of `v` (0 if empty).
+fn percentile(v: &[f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    s[((s.len() - 1) as f64 * q).round() as usize]
+}
+
 /// The smallest |x| within `reach` where max(Kms(x), Kms(-x)) / Kms(0) reaches `limit`.
 pub fn kms_limit_crossing(kms: &Poly, reach: f64, limit: f64) -> Option<f64> {
     let k0 = kms.eval(0.0);
@@ -220,6 +242,9 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     let fs = device.fs();
     let nb = ((opts.block * fs) as usize).max(64);
     let mut hp = HighPass::new(fs, opts.hp_hz);
+    // The small-signal stage needs every band of the impedance (Re and the L2/R2 branch are
+    // told apart only by a broad spectrum): under music it plays quiet IEC noise instead.
+    let mut pilot = if source.persistent() { None } else { Some(Source::noise(&Excitation::Iec, fs, 0)?) };
     let controllable = device.controllable();
     let mut gain = opts.start_volts;
     let mut stage = Stage::Small;
@@ -231,6 +256,8 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     let mut prev_est: Option<Parameters> = None;
     let mut changes: Vec<(f64, f64)> = Vec::new();
     let mut auto_limit: Option<f64> = None;
+    // The stiffness limit once it lies inside the reach (seen in the data, not extrapolated).
+    let mut seen_limit: Option<f64> = None;
     // Largest Kms(x)/Kms(0) of the estimate within 1.3 times the reach.
     let mut kms_ratio = 1.0f64;
     // The reach at the last update: how far the stiffness limit has been looked for.
@@ -241,6 +268,10 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     let mut dt_track = Vec::new();
     let (mut x_peak_max, mut dtv_max) = (0.0f64, 0.0f64);
     let mut hold_range = [0.0f64, 0.0f64];
+    // Block peaks |x| since the hold (re)started.
+    let mut hold_peaks: Vec<f64> = Vec::new();
+    // The gain at which the hold (re)started.
+    let mut hold_gain = 0.0f64;
     let mut last_residual = f64::NAN;
     let mut updates = 0usize;
     // Cold Re: the online estimate at its first update, when the coil has seen almost no
@@ -248,7 +279,11 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     let mut re_cold: Option<f64> = None;
     // Recent temperature estimates (one per block) for the trend.
     let mut dtv_recent: Vec<f64> = Vec::new();
+    // Whether the temperature has cut the level (cleared once the coil is below 75 %).
+    let mut temp_cut = false;
     let mut converged = false;
+    // What limited the level at the last block.
+    let mut last_why: &'static str = "small-signal stage";
     let mut stop_reason = String::new();
     let mut blocks = 0usize;
     // Blocks per second: the database commits and the dT track are once a second.
@@ -263,7 +298,10 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
             };
             break;
         }
-        let mut drive = source.next_block(nb);
+        let mut drive = match pilot.as_mut() {
+            Some(p) if stage == Stage::Small => p.next_block(nb),
+            _ => source.next_block(nb),
+        };
         hp.process(&mut drive);
         drive.iter_mut().for_each(|v| *v *= gain);
         let Some(blk) = device.play(&drive)? else {
@@ -291,6 +329,8 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
             x_limit: None,
             limited_by: "ramp",
             update: None,
+            estimate: None,
+            change: None,
         };
         match online.as_mut() {
             None => {
@@ -337,6 +377,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                 dtv_max = dtv_max.max(dtv);
                 if stage == Stage::Hold {
                     hold_range = [hold_range[0].min(st.x_min), hold_range[1].max(st.x_max)];
+                    hold_peaks.push(st.x_max.max(-st.x_min));
                 }
                 // Recursive update.
                 if on.since_update() >= opts.update_seconds {
@@ -350,20 +391,39 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                         let est = on.parameters();
                         let reach = on.reach;
                         if let Some(prev) = &prev_est {
-                            let r = 0.9 * reach;
+                            // Over the range the driver keeps visiting at the present level:
+                            // the 80th percentile of the block peaks since the hold (re)started.
+                            // The outermost peaks come a few times a period (noise) or a bar
+                            // (music); the curves there follow them by a few percent from update
+                            // to update and are judged by their uncertainty bands instead.
+                            let dense = percentile(&hold_peaks, 0.8);
+                            let r = 0.9 * if dense > 0.0 { dense } else { reach };
                             let c_bk = curve_change(&est.bl, &prev.bl, r).max(curve_change(&est.kms, &prev.kms, r));
                             let c_le = curve_change(&est.le, &prev.le, r);
                             changes.push((c_bk, c_le));
+                            live.change = Some((c_bk, c_le));
                         }
                         // The safe range: where the stiffness rises past the user's limit.
                         // Looked for a little beyond the reach (the estimate extrapolated), so
-                        // the ramp stops before the driver gets there.
-                        if let Some(x) = kms_limit_crossing(&est.kms, 1.3 * reach, opts.kms_limit) {
-                            if auto_limit.is_none_or(|a| x < a) {
-                                events.push((t, format!("Kms(x)/Kms(0) reaches {} at |x| = {:.2} mm: excursion limited there", opts.kms_limit, x * 1e3)));
-                            }
-                            auto_limit = Some(auto_limit.map_or(x, |a: f64| a.min(x)));
+                        // the ramp stops before the driver gets there. A crossing inside the
+                        // reach has been seen and stays; one beyond it is provisional and is
+                        // looked at again at every update (the extrapolation improves as the
+                        // reach grows toward it).
+                        let crossing = kms_limit_crossing(&est.kms, 1.3 * reach, opts.kms_limit);
+                        if let Some(x) = crossing.filter(|&x| x <= reach) {
+                            seen_limit = Some(seen_limit.map_or(x, |a: f64| a.min(x)));
                         }
+                        let new_limit = match (seen_limit, crossing) {
+                            (Some(a), Some(b)) => Some(a.min(b)),
+                            (a, b) => a.or(b),
+                        };
+                        match (auto_limit, new_limit) {
+                            (None, Some(x)) => events.push((t, format!("Kms(x)/Kms(0) reaches {} at |x| = {:.2} mm: excursion limited there", opts.kms_limit, x * 1e3))),
+                            (Some(a), Some(x)) if (x / a - 1.0).abs() > 0.05 => events.push((t, format!("Kms(x)/Kms(0) reaches {} at |x| = {:.2} mm (was {:.2} mm): excursion limit moved", opts.kms_limit, x * 1e3, a * 1e3))),
+                            (Some(a), None) => events.push((t, format!("the stiffness limit at {:.2} mm, extrapolated beyond the reach, is no longer predicted: the ramp explores on", a * 1e3))),
+                            _ => {}
+                        }
+                        auto_limit = new_limit;
                         if let Some(s) = store.as_deref_mut() {
                             let mut pj = est.clone();
                             pj.x_range = Some([-reach, reach]);
@@ -372,13 +432,15 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                         let k0 = est.kms.eval(0.0);
                         kms_ratio = (0..=20).map(|k| 1.3 * reach * k as f64 / 20.0).map(|x| est.kms.eval(x).max(est.kms.eval(-x)) / k0).fold(0.0, f64::max);
                         checked_reach = reach;
+                        live.estimate = Some(est.clone());
                         prev_est = Some(est);
                         // Convergence: at level for 2 s, small window error, stable curves.
                         let n = changes.len();
-                        if opts.duration.is_none() && stage == Stage::Hold && t - hold_since >= 2.0 && n >= 2 && up.before < 0.02 {
+                        // Not while the ramp only pauses to explore toward the stiffness limit.
+                        if opts.duration.is_none() && stage == Stage::Hold && last_why != "exploration" && t - hold_since >= 2.0 && n >= 2 && up.before < 0.02 {
                             if changes[n - 2..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
                                 converged = true;
-                                stop_reason = format!("converged after {t:.1} s: window residual {:.2e}, Bl/Kms curves changed by < {} % and Le by < {} % (over 90 % of the reach) at each of the last two updates", up.before, 100.0 * CONVERGED_BL_KMS, 100.0 * CONVERGED_LE);
+                                stop_reason = format!("converged after {t:.1} s: window residual {:.2e}, Bl/Kms curves changed by < {} % and Le by < {} % (over 90 % of the range the driver keeps visiting at the final level) at each of the last two updates", up.before, 100.0 * CONVERGED_BL_KMS, 100.0 * CONVERGED_LE);
                             }
                         }
                     }
@@ -442,9 +504,16 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                             events.push((t, format!("voice-coil rise {dtv:.2} K (heading for {dtv_ahead:.2} K) above 92 % of {} K: gain cut to {g:.3} V", opts.max_dt)));
                             why = "temperature";
                         }
-                    } else if dtv_ahead > 0.85 * opts.max_dt && g > gain {
+                    } else if (dtv_ahead > 0.85 * opts.max_dt || (temp_cut && dtv_ahead > 0.75 * opts.max_dt)) && g > gain {
+                        // After a cut the level stays until the coil has cooled to 75 %
+                        // (no hunting around the limit: every change of level restarts the hold).
                         g = gain;
                         why = "temperature";
+                    }
+                    if why == "temperature" && g < gain {
+                        temp_cut = true;
+                    } else if dtv_ahead < 0.75 * opts.max_dt {
+                        temp_cut = false;
                     }
                     if g > opts.max_volts {
                         g = opts.max_volts;
@@ -461,7 +530,20 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                             stage = Stage::Hold;
                             hold_since = t;
                             hold_range = [0.0, 0.0];
+                            hold_peaks.clear();
+                            hold_gain = g;
                         }
+                    } else if g < 0.95 * hold_gain {
+                        // The level fell (temperature, excursion): the range and the
+                        // convergence start again at the new level.
+                        hold_since = t;
+                        hold_range = [0.0, 0.0];
+                        hold_peaks.clear();
+                        hold_gain = g;
+                    } else if g > 1.05 * hold_gain {
+                        // The ramp went on (exploration): not converged at a level yet.
+                        hold_since = t;
+                        hold_gain = g;
                     }
                     gain = g;
                 } else {
@@ -473,6 +555,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
             }
         }
         live.stage = stage;
+        last_why = live.limited_by;
         observe(&live);
         if let Some(s) = store.as_deref_mut() {
             s.push_state(StateRow {
@@ -517,6 +600,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
         x_peak_max,
         dtv_max,
         re_cold,
+        limited_by: last_why.to_string(),
         residual_rel: last_residual,
         updates,
         events,
@@ -571,6 +655,7 @@ impl Measurement {
             "measurement": {
                 "x_peak_max": self.x_peak_max,
                 "dTv_max": self.dtv_max,
+                "limited_by": self.limited_by,
                 "seconds": self.seconds,
                 "device": self.device,
                 "excitation": self.excitation,

@@ -7,6 +7,8 @@ use std::f64::consts::PI;
 /// A looping unit-rms signal.
 pub struct Source {
     name: String,
+    /// Whether it excites every band all the time (noise), unlike music.
+    persistent: bool,
     x: Vec<f64>,
     pos: usize,
 }
@@ -15,7 +17,7 @@ impl Source {
     /// Noise of `exc` (IEC 60268-1 programme simulation, pink, ...): an 8 s period, looped.
     pub fn noise(exc: &Excitation, fs: f64, seed: u64) -> Result<Self, String> {
         let x = generate(exc, &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.0, seed })?;
-        Ok(Source { name: format!("{exc:?}"), x, pos: 0 })
+        Ok(Source { name: format!("{exc:?}"), persistent: true, x, pos: 0 })
     }
 
     /// Music or any audio file: the first channel, scaled to unit rms, looped. Its sample
@@ -39,11 +41,17 @@ impl Source {
         if !(samples.len() as f64 >= fs && rms > 1e-6) {
             return Err(format!("{}: the music file must hold at least 1 s of sound ({} samples, rms {rms:.2e})", path.display(), samples.len()));
         }
-        Ok(Source { name: path.display().to_string(), x: samples.iter().map(|v| v / rms).collect(), pos: 0 })
+        Ok(Source { name: path.display().to_string(), persistent: false, x: samples.iter().map(|v| v / rms).collect(), pos: 0 })
     }
 
     pub fn name(&self) -> &str {
         &self.name
+    }
+
+    /// Whether the signal excites every band all the time (generated noise), so that the
+    /// small-signal impedance fit can rely on it. Music need not.
+    pub fn persistent(&self) -> bool {
+        self.persistent
     }
 
     /// The next `n` samples.

@@ -32,7 +32,7 @@ fn assert_truth(label: &str, m: &Measurement, p: &Parameters) {
     let (e_re, e_rms) = ((m.re_cold / p.re - 1.0).abs(), (q.rms / p.rms - 1.0).abs());
     let e_re_small = m.small.re / p.re - 1.0;
     println!(
-        "{label}: {} in {:.1} s; Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re(cold) {:.3} % (small-signal fit {:.3} %), Rms {:.3} %, x {:.2}..{:.2} mm, true peak {:.2} mm, true dT max {:.1} K",
+        "{label}: {} in {:.1} s; Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re(cold) {:.3} % (small-signal fit {:.3} %), Rms {:.3} %, x {:.2}..{:.2} mm, true peak {:.2} mm, true dT max {:.1} K, limited by {}",
         m.stop_reason,
         m.seconds,
         100.0 * e_bl,
@@ -44,7 +44,8 @@ fn assert_truth(label: &str, m: &Measurement, p: &Parameters) {
         r[0] * 1e3,
         r[1] * 1e3,
         m.truth.unwrap().x_peak * 1e3,
-        m.truth.unwrap().dtv_max
+        m.truth.unwrap().dtv_max,
+        m.limited_by
     );
     assert!(m.converged, "{label}: {}", m.stop_reason);
     assert!(m.seconds <= 60.0, "{label}: {} s", m.seconds);
@@ -114,7 +115,6 @@ fn a_low_temperature_limit_holds() {
 }
 
 #[test]
-#[ignore = "open (issue 5 not resolved): on this synthetic music the online estimator does not converge within 60 s"]
 fn music_excitation_converges() {
     // "Music": bass notes and chords under a beat, written to a WAV and read back as the
     // excitation (what --music does).
