@@ -187,8 +187,10 @@ enum Command {
         #[arg(long)]
         no_report: bool,
         /// Virtual transducer: embedded driver name or parameter file (the default device).
-        #[arg(long = "virtual", value_name = "DRIVER", conflicts_with = "replay")]
+        #[arg(long = "virtual", value_name = "DRIVER", conflicts_with_all = ["replay", "card"])]
         virtual_driver: Option<String>,
+        #[command(flatten)]
+        card: CardArgs,
         /// Replay a recording (WAV: voltage, current) instead of driving a device.
         #[arg(long, value_name = "WAV")]
         replay: Option<PathBuf>,
@@ -231,13 +233,15 @@ enum Command {
         /// Sensor noise of the virtual device: voltage (V rms) and current (A rms).
         #[arg(long, num_args = 2, value_names = ["V", "A"], default_values_t = [1e-4, 1e-4])]
         noise: Vec<f64>,
-        /// Sample rate of the virtual device (Hz).
+        /// Sample rate of the virtual device or the sound card (Hz).
         #[arg(long, default_value_t = 48000)]
         rate: u32,
         /// Seed of the excitation and sensor noise.
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
+    /// List the sound devices (inputs and outputs) for measure --card (build with --features soundcard).
+    Devices,
     /// List the runs of a measurement database (DIR/run.sqlite), including interrupted ones.
     Runs {
         /// The database (or the measurement directory holding run.sqlite).
@@ -334,9 +338,10 @@ fn main() -> ExitCode {
             cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), fit.sd, fit.scale.as_deref(), &fit.out)
         }
         Command::Identify { recording, mms, order, fit } => cmd_identify(&recording, mms, order, fit.sd, fit.scale.as_deref(), &fit.out),
-        Command::Measure { no_report, virtual_driver, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
-            cmd_measure(MeasureArgs { no_report, virtual_driver, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
+        Command::Measure { no_report, virtual_driver, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
+            cmd_measure(MeasureArgs { no_report, virtual_driver, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
         }
+        Command::Devices => cmd_devices(),
         Command::Runs { database } => cmd_runs(&database),
         Command::Distortion { params, freq, freq2, ratio, volts, output, multitone, band, tones, sweep, levels, temp_rise, json, seed } => {
             cmd_distortion(DistortionArgs { params, freq, freq2, ratio, volts, output: output.into(), multitone, band, tones, sweep, levels, temp_rise, json, seed })
@@ -719,9 +724,92 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
     }
 }
 
+/// A sound card as the device (`measure --card`); the calibration turns full scale into
+/// volts and amperes. Needs a build with `--features soundcard`.
+#[derive(clap::Args, Debug)]
+struct CardArgs {
+    /// Measure a real transducer through a sound card (output -> amplifier -> driver; inputs:
+    /// terminal voltage and the voltage across a sense resistor).
+    #[arg(long, conflicts_with = "replay")]
+    card: bool,
+    /// Output device (as `coilscope devices` lists it); default: the system's default.
+    #[arg(long, value_name = "NAME", requires = "card")]
+    card_out: Option<String>,
+    /// Input device; default: the system's default.
+    #[arg(long, value_name = "NAME", requires = "card")]
+    card_in: Option<String>,
+    /// Output channel that drives the amplifier (0-based), of --out-channels.
+    #[arg(long, default_value_t = 0)]
+    drive_channel: usize,
+    #[arg(long, default_value_t = 2)]
+    out_channels: u16,
+    /// Input channels holding the terminal voltage and the sense-resistor voltage (0-based), of --in-channels.
+    #[arg(long, default_value_t = 0)]
+    u_channel: usize,
+    #[arg(long, default_value_t = 1)]
+    i_channel: usize,
+    #[arg(long, default_value_t = 2)]
+    in_channels: u16,
+    /// Volts at the driver's terminals for a full-scale output sample (amplifier gain included).
+    #[arg(long, default_value_t = 10.0, value_name = "V")]
+    out_volts_fs: f64,
+    /// Volts at the terminals for a full-scale sample on the voltage input (divider included).
+    #[arg(long, default_value_t = 10.0, value_name = "V")]
+    u_volts_fs: f64,
+    /// Volts across the sense resistor for a full-scale sample on the current input.
+    #[arg(long, default_value_t = 1.0, value_name = "V")]
+    i_volts_fs: f64,
+    /// The sense resistor (ohm).
+    #[arg(long, default_value_t = 0.1, value_name = "OHM")]
+    sense_ohm: f64,
+}
+
+#[cfg(feature = "soundcard")]
+fn open_card(c: &CardArgs, rate: u32) -> Result<Box<dyn coilscope_measure::device::Device>, String> {
+    use coilscope_measure::soundcard::{SoundCardDevice, SoundCardOptions};
+    let o = SoundCardOptions {
+        output: c.card_out.clone(),
+        input: c.card_in.clone(),
+        fs: rate as f64,
+        out_channels: c.out_channels,
+        drive_channel: c.drive_channel,
+        in_channels: c.in_channels,
+        u_channel: c.u_channel,
+        i_channel: c.i_channel,
+        out_volts_fs: c.out_volts_fs,
+        u_volts_fs: c.u_volts_fs,
+        i_volts_fs: c.i_volts_fs,
+        sense_ohm: c.sense_ohm,
+        ..Default::default()
+    };
+    Ok(Box::new(SoundCardDevice::open(&o)?))
+}
+
+#[cfg(not(feature = "soundcard"))]
+fn open_card(_: &CardArgs, _: u32) -> Result<Box<dyn coilscope_measure::device::Device>, String> {
+    Err(NO_SOUNDCARD.into())
+}
+
+#[cfg(not(feature = "soundcard"))]
+const NO_SOUNDCARD: &str = "this coilscope was built without sound-card support: rebuild with `cargo build --release --features soundcard` (Debian/Ubuntu: apt install libasound2-dev first)";
+
+#[cfg(feature = "soundcard")]
+fn cmd_devices() -> Result<(), String> {
+    let (inputs, outputs) = coilscope_measure::soundcard::list_devices()?;
+    println!("inputs:  {}", if inputs.is_empty() { "none".into() } else { inputs.join(", ") });
+    println!("outputs: {}", if outputs.is_empty() { "none".into() } else { outputs.join(", ") });
+    Ok(())
+}
+
+#[cfg(not(feature = "soundcard"))]
+fn cmd_devices() -> Result<(), String> {
+    Err(NO_SOUNDCARD.into())
+}
+
 struct MeasureArgs {
     no_report: bool,
     virtual_driver: Option<String>,
+    card: CardArgs,
     replay: Option<PathBuf>,
     out: PathBuf,
     mms: Option<f64>,
@@ -759,7 +847,11 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), String> {
             let mms = a.mms.ok_or("--replay needs --mms KG (the absolute scale)")?;
             (Box::new(ReplayDevice::open(r, None)?), mms, "given (--mms)".to_string())
         }
-        _ => return Err("give the device: --virtual DRIVER (embedded name or parameter file) or --replay REC.wav".into()),
+        (None, None) if a.card.card => {
+            let mms = a.mms.ok_or("--card needs --mms KG (the absolute scale: weigh the cone, or measure it by the added-mass method with `coilscope linear`)")?;
+            (open_card(&a.card, a.rate)?, mms, "given (--mms)".to_string())
+        }
+        _ => return Err("give the device: --virtual DRIVER (embedded name or parameter file), --replay REC.wav or --card".into()),
     };
     let fs = device.fs();
     let mut source = match &a.music {

@@ -72,7 +72,13 @@ fn bad_devices_files_and_limits_get_one_line_errors() {
         (vec!["measure", "--virtual", "sb17cac35-4", "--music", "/nonexistent/song.wav", "--out", o], "song.wav"),
         (vec!["measure", "--replay", "/nonexistent/rec.wav", "--out", o], "--mms"),
         (vec!["runs", "/nonexistent/run.sqlite"], "no such run database"),
+        (vec!["measure", "--card", "--out", o], "--card needs --mms"),
+        (vec!["measure", "--card", "--mms", "0.02", "--u-channel", "1", "--i-channel", "1", "--out", o], if cfg!(feature = "soundcard") { "--u-channel" } else { "--features soundcard" }),
+        (vec!["devices"], if cfg!(feature = "soundcard") { "" } else { "--features soundcard" }),
     ] {
+        if want.is_empty() {
+            continue;
+        }
         let r = coilscope(&args);
         let err = String::from_utf8_lossy(&r.stderr);
         assert_eq!(r.status.code(), Some(2), "{args:?}: {err}");

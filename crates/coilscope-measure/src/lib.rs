@@ -7,6 +7,8 @@
 //!
 //! * [`device`]: what is measured: the virtual transducer (default, no hardware) or a
 //!   replayed recording.
+//! * `soundcard` (feature `soundcard`): a sound card through cpal, with the voltage and
+//!   current-sense channels calibrated to volts and amperes.
 //! * [`signal`]: excitation sources (IEC 60268-1 noise, pink noise, music files) and the
 //!   variable high-pass.
 //! * [`engine`]: the block loop, controller and protection; observers see every block.
@@ -15,6 +17,8 @@
 pub mod device;
 pub mod engine;
 pub mod signal;
+#[cfg(feature = "soundcard")]
+pub mod soundcard;
 pub mod store;
 
 pub use engine::{measure, Live, MeasureOptions, Measurement, Stage};
