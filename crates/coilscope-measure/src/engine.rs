@@ -44,6 +44,11 @@ const EXPLORE: f64 = 1.25;
 /// The largest basis scale of the curves, in small-signal reaches.
 const X_REF_SMALL: f64 = 20.0;
 
+/// Seconds of data per recursive update.
+const ONLINE_WINDOW_S: f64 = 0.3;
+/// Largest relative current error of the live model over a block for its x to count as reached.
+const TRACKING_RESIDUAL: f64 = 0.2;
+
 /// Seconds of temperature estimates the trend is taken over, and how far ahead (s) the
 /// protection looks along it (about the lag of the Re tracking).
 const THERMAL_TREND_S: f64 = 1.0;
@@ -53,6 +58,8 @@ const THERMAL_LAG_S: f64 = 1.0;
 /// value at rest), at each of the last two updates.
 const CONVERGED_BL_KMS: f64 = 0.003;
 const CONVERGED_LE: f64 = 0.01;
+/// Seconds of data the stable updates must span.
+const CONVERGED_SPAN_S: f64 = 2.0;
 
 /// Options (SI units).
 #[derive(Clone, Debug)]
@@ -346,7 +353,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                     // Basis scale: the expected reach, never more than X_REF_SMALL times the
                     // small-signal reach (a far target leaves the curves ill-conditioned at first).
                     let x_ref = opts.target_x.map_or(20.0 * x_small, |t| t.min(X_REF_SMALL * x_small)).max(2.0 * x_small);
-                    let mut on = Online::new(&p, fs, OnlineOptions { order: opts.order, x_ref, window: 0.3, ..Default::default() }).map_err(|e| e.0)?;
+                    let mut on = Online::new(&p, fs, OnlineOptions { order: opts.order, x_ref, window: ONLINE_WINDOW_S, ..Default::default() }).map_err(|e| e.0)?;
                     on.push(&u_small, &i_small).map_err(|e| e.0)?;
                     online = Some(on);
                     small = Some(p);
@@ -375,12 +382,16 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                 live.residual = st.residual_rel();
                 x_peak_max = x_peak_max.max(st.x_max.max(-st.x_min));
                 dtv_max = dtv_max.max(dtv);
-                if stage == Stage::Hold {
+                // The reached range counts only blocks where the live model follows the
+                // measured current (a model that ran away and fell back shows no real x).
+                if stage == Stage::Hold && st.residual_rel() < TRACKING_RESIDUAL {
                     hold_range = [hold_range[0].min(st.x_min), hold_range[1].max(st.x_max)];
                     hold_peaks.push(st.x_max.max(-st.x_min));
                 }
-                // Recursive update.
-                if on.since_update() >= opts.update_seconds {
+                // Recursive update. A replay is not real time: it updates once per window, so
+                // every recorded sample is used.
+                let every = if controllable { opts.update_seconds } else { opts.update_seconds.min(ONLINE_WINDOW_S) };
+                if on.since_update() >= every {
                     if let Some(up) = on.update() {
                         updates += 1;
                         if re_cold.is_none() {
@@ -435,12 +446,15 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                         live.estimate = Some(est.clone());
                         prev_est = Some(est);
                         // Convergence: at level for 2 s, small window error, stable curves.
+                        // The stable updates must span CONVERGED_SPAN_S (2 updates at the
+                        // real-time cadence of 1 s, more when a replay updates every window).
                         let n = changes.len();
+                        let k = ((CONVERGED_SPAN_S / every).round() as usize).max(2);
                         // Not while the ramp only pauses to explore toward the stiffness limit.
-                        if opts.duration.is_none() && stage == Stage::Hold && last_why != "exploration" && t - hold_since >= 2.0 && n >= 2 && up.before < 0.02 {
-                            if changes[n - 2..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
+                        if opts.duration.is_none() && stage == Stage::Hold && last_why != "exploration" && t - hold_since >= 2.0 && n >= k && up.before < 0.02 {
+                            if changes[n - k..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
                                 converged = true;
-                                stop_reason = format!("converged after {t:.1} s: window residual {:.2e}, Bl/Kms curves changed by < {} % and Le by < {} % (over 90 % of the range the driver keeps visiting at the final level) at each of the last two updates", up.before, 100.0 * CONVERGED_BL_KMS, 100.0 * CONVERGED_LE);
+                                stop_reason = format!("converged after {t:.1} s: window residual {:.2e}, Bl/Kms curves changed by < {} % and Le by < {} % (over 90 % of the range the driver keeps visiting at the final level) at each of the last {k} updates", up.before, 100.0 * CONVERGED_BL_KMS, 100.0 * CONVERGED_LE);
                             }
                         }
                     }
