@@ -167,3 +167,18 @@ fn bad_limits_get_clear_errors() {
     assert!(VirtualDevice::new(&p, 1000.0, (1e-4, 1e-4), 1).is_err());
     assert!(Source::music(std::path::Path::new("/nonexistent/song.wav"), 48000.0).err().unwrap().contains("song.wav"));
 }
+
+#[test]
+fn other_sample_rates_converge() {
+    // 44.1 kHz (a CD-rate sound card) and 96 kHz: same accuracy, same protection.
+    let p = embedded_driver("ptt4.0w04-01a").unwrap();
+    let [lo, hi] = p.x_range.unwrap();
+    for fs in [44100.0, 96000.0] {
+        let target = 0.85 * hi.min(-lo);
+        let mut dev = VirtualDevice::new(&p, fs, (1e-4, 1e-4), 6).unwrap();
+        let mut src = Source::noise(&Excitation::Iec, fs, 2).unwrap();
+        let m = measure(&mut dev, &mut src, &MeasureOptions { mms: p.mms, target_x: Some(target), ..Default::default() }, None, |_| {}).unwrap();
+        assert_truth(&format!("ptt4 at {fs} Hz"), &m, &p);
+        assert!(m.truth.unwrap().x_peak <= 1.05 * target);
+    }
+}
