@@ -205,6 +205,8 @@ pub struct Measurement {
     /// Cold voice-coil resistance (ohm): the online estimate at its first update (the
     /// reference of the temperature estimate); the small-signal fit's Re if none ran.
     pub re_cold: f64,
+    /// Temperature coefficient of the coil's resistance used for the rise (1/K).
+    pub alpha: f64,
     /// Last window residual.
     pub residual_rel: f64,
     pub updates: usize,
@@ -614,6 +616,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
         x_peak_max,
         dtv_max,
         re_cold,
+        alpha: opts.alpha,
         limited_by: last_why.to_string(),
         residual_rel: last_residual,
         updates,
@@ -662,7 +665,7 @@ impl Measurement {
             "limits": lim.to_json(),
             "uncertainty": serde_json::Value::Object(unc),
             "thermal": {
-                "note": "voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = 0.00393 1/K; Re_cold is the online estimate at its first update (almost no power yet)",
+                "note": format!("voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = {} 1/K; Re_cold is the online estimate at its first update (almost no power yet)", self.alpha),
                 "Re_cold": self.re_cold,
                 "dT_track": self.dt_track.iter().map(|(t, d)| json!([t, d])).collect::<Vec<_>>(),
             },
