@@ -350,8 +350,9 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
     }
     if prob.f.len() > max_bins.max(50) {
         prob = thin(&prob, max_bins.max(50));
+    } else {
+        prob.norm = prob.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
     }
-    prob.norm = prob.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
     // The LR-2 branch trades off against Re and Le: start from a few spreads of L2 and R2
     // and keep the lowest cost (each start is a full LM run, observed like any other). The
     // starts are scouted on every k-th bin (at most SCOUT_BINS); the best is then polished on

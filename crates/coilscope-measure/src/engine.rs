@@ -453,11 +453,9 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                         let n = changes.len();
                         let k = ((CONVERGED_SPAN_S / every).round() as usize).max(2);
                         // Not while the ramp only pauses to explore toward the stiffness limit.
-                        if opts.duration.is_none() && stage == Stage::Hold && last_why != "exploration" && t - hold_since >= 2.0 && n >= k && up.before < 0.02 {
-                            if changes[n - k..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
-                                converged = true;
-                                stop_reason = format!("converged after {t:.1} s: window residual {:.2e}, Bl/Kms curves changed by < {} % and Le by < {} % (over 90 % of the range the driver keeps visiting at the final level) at each of the last {k} updates", up.before, 100.0 * CONVERGED_BL_KMS, 100.0 * CONVERGED_LE);
-                            }
+                        if opts.duration.is_none() && stage == Stage::Hold && last_why != "exploration" && t - hold_since >= 2.0 && n >= k && up.before < 0.02 && changes[n - k..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
+                            converged = true;
+                            stop_reason = format!("converged after {t:.1} s: window residual {:.2e}, Bl/Kms curves changed by < {} % and Le by < {} % (over 90 % of the range the driver keeps visiting at the final level) at each of the last {k} updates", up.before, 100.0 * CONVERGED_BL_KMS, 100.0 * CONVERGED_LE);
                         }
                     }
                 }

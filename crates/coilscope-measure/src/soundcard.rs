@@ -98,12 +98,16 @@ impl SoundCardOptions {
 /// Names of the sound devices cpal sees: (inputs, outputs).
 pub fn list_devices() -> Result<(Vec<String>, Vec<String>), String> {
     let host = cpal::default_host();
-    let names = |it: Result<Box<dyn Iterator<Item = cpal::Device>>, cpal::DevicesError>| -> Result<Vec<String>, String> {
-        Ok(it.map_err(|e| format!("cannot list the sound devices ({:?} host): {e}", host.id()))?.filter_map(|d| d.name().ok()).collect())
-    };
-    let inputs = names(host.input_devices().map(|d| Box::new(d) as Box<dyn Iterator<Item = cpal::Device>>))?;
-    let outputs = names(host.output_devices().map(|d| Box::new(d) as Box<dyn Iterator<Item = cpal::Device>>))?;
-    Ok((inputs, outputs))
+    let names = |input| devices(&host, input).map(|d| d.into_iter().map(|(n, _)| n).collect());
+    Ok((names(true)?, names(false)?))
+}
+
+/// The input (or output) devices with their names.
+fn devices(host: &cpal::Host, input: bool) -> Result<Vec<(String, cpal::Device)>, String> {
+    let what = if input { "input" } else { "output" };
+    let list: Vec<cpal::Device> = if input { host.input_devices().map(|d| d.collect()) } else { host.output_devices().map(|d| d.collect()) }
+        .map_err(|e| format!("cannot list the {what} sound devices ({:?} host): {e}", host.id()))?;
+    Ok(list.into_iter().filter_map(|d| d.name().ok().map(|n| (n, d))).collect())
 }
 
 fn find(host: &cpal::Host, name: Option<&str>, input: bool) -> Result<cpal::Device, String> {
@@ -111,11 +115,12 @@ fn find(host: &cpal::Host, name: Option<&str>, input: bool) -> Result<cpal::Devi
     match name {
         None => (if input { host.default_input_device() } else { host.default_output_device() }).ok_or_else(|| format!("there is no default {what} sound device; name one (coilscope devices lists them)")),
         Some(n) => {
-            let devices: Vec<cpal::Device> = if input { host.input_devices().map(|d| d.collect()) } else { host.output_devices().map(|d| d.collect()) }.map_err(|e| format!("cannot list the {what} sound devices: {e}"))?;
-            let names: Vec<String> = devices.iter().map(|d| d.name().unwrap_or_default()).collect();
-            match names.iter().position(|d| d == n) {
-                Some(k) => Ok(devices.into_iter().nth(k).expect("index from the same list")),
-                None => Err(format!("no {what} sound device named '{n}'; there are: {}", if names.is_empty() { "none".to_string() } else { names.join(", ") })),
+            let list = devices(host, input)?;
+            let names: Vec<&str> = list.iter().map(|(m, _)| m.as_str()).collect();
+            let known = if names.is_empty() { "none".to_string() } else { names.join(", ") };
+            match list.iter().position(|(m, _)| m == n) {
+                Some(k) => Ok(list.into_iter().nth(k).expect("index from the same list").1),
+                None => Err(format!("no {what} sound device named '{n}'; there are: {known}")),
             }
         }
     }
