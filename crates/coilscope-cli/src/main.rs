@@ -1,7 +1,14 @@
 //! `coilscope`: large-signal parameters of electrodynamic transducers.
 //!
 //! A thin shell over the library crates: parse arguments, call one library function per
-//! step, print. Every failure is one line on stderr and exit code 2.
+//! step, print. Every failure is one line on stderr and a non-zero exit code:
+//!
+//! | code | meaning |
+//! |---|---|
+//! | 0 | done, and the result can be trusted |
+//! | 2 | error: bad input, or the work could not be done (nothing trustworthy written) |
+//! | 3 | a result was written but is not trustworthy: not converged, or a warning that the fit does not describe the record (the best estimate is on disk, `fit.converged`/`fit.warnings` say why) |
+//! | 130 | interrupted (Ctrl-C): the result so far is written and marked interrupted |
 
 use clap::{Parser, Subcommand, ValueEnum};
 use coilscope_core::excitation::{add_sensor_noise, crest_factor, generate, Excitation, SignalSpec};
@@ -14,7 +21,12 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 #[derive(Parser)]
-#[command(name = "coilscope", version, about = "Large-signal parameters of electrodynamic transducers (Bl(x), Kms(x), Le(x), thermal) from voltage and current")]
+#[command(
+    name = "coilscope",
+    version,
+    about = "Large-signal parameters of electrodynamic transducers (Bl(x), Kms(x), Le(x), thermal) from voltage and current",
+    after_help = "Exit codes: 0 done and trustworthy; 2 error (bad input, nothing trustworthy written); 3 result written but not trustworthy (not converged, or warnings: see fit.warnings); 130 interrupted (result so far written)."
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -64,7 +76,8 @@ struct FitArgs {
     /// Scale factors of integer-PCM recordings (V, A [, m] per count).
     #[arg(long, num_args = 2..=3, value_names = ["V", "A"])]
     scale: Option<Vec<f64>>,
-    /// Result file (JSON, coilscope.result/1); `linear` writes the impedance beside it as .zma and .csv.
+    /// Result file (JSON, coilscope.result/1). `linear` also writes the measured impedance
+    /// beside it as .zma and .csv.
     #[arg(long)]
     out: PathBuf,
 }
@@ -200,8 +213,10 @@ enum Command {
         /// Moving mass (kg); for a virtual driver its own Mms is the default.
         #[arg(long)]
         mms: Option<f64>,
-        /// Target peak excursion (mm); default: the safe range where Kms(x)/Kms(0) reaches --kms-limit.
-        #[arg(long, value_name = "MM")]
+        /// Target peak excursion, a length with its unit (4.5mm, 0.0045m, 450um; a bare
+        /// number is metres and must be plausible); default: the safe range where
+        /// Kms(x)/Kms(0) reaches --kms-limit.
+        #[arg(long, value_name = "LENGTH", value_parser = parse_length)]
         target_x: Option<f64>,
         /// Largest voice-coil temperature rise (K).
         #[arg(long, default_value_t = 50.0, value_name = "K")]
@@ -289,6 +304,7 @@ enum Command {
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
+        /// Seed of the multitone's random phases.
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
@@ -299,6 +315,7 @@ enum Command {
         params: String,
         #[command(flatten)]
         limits: LimitArgs,
+        /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
     },
@@ -328,11 +345,70 @@ enum Command {
     },
 }
 
+/// A length on the command line, in metres: `4mm`, `4 mm`, `0.004m`, `400um` (or `µm`); a
+/// bare number is metres (SI, like every other input) and is refused when no transducer
+/// excursion could be meant (below 10 µm or above 0.1 m), with the likely intent named.
+fn parse_length(s: &str) -> Result<f64, String> {
+    let t = s.trim();
+    let split = t.find(|c: char| c.is_alphabetic() || c == 'µ').unwrap_or(t.len());
+    let (num, unit) = (t[..split].trim(), t[split..].trim());
+    let v: f64 = num.parse().map_err(|_| format!("'{s}' is not a length: write a number and a unit, e.g. 4mm or 0.004m"))?;
+    if !v.is_finite() {
+        return Err(format!("'{s}' is not a finite length"));
+    }
+    let m = match unit {
+        "m" => v,
+        "mm" => v * 1e-3,
+        "um" | "µm" => v * 1e-6,
+        "" => {
+            if v != 0.0 && !(1e-5..=0.1).contains(&v.abs()) {
+                return Err(format!(
+                    "{v} m = {} mm is not a plausible excursion: did you mean {v}mm? (a bare number is metres)",
+                    v * 1e3
+                ));
+            }
+            v
+        }
+        other => return Err(format!("unknown length unit '{other}' in '{s}': use m, mm or um")),
+    };
+    Ok(m)
+}
+
+/// Exit code of an error (bad input, or the work could not be done).
+const EXIT_ERROR: u8 = 2;
+/// Exit code of a result that was written but cannot be trusted.
+const EXIT_UNTRUSTED: u8 = 3;
+/// Exit code of an interrupted run (128 + SIGINT, as shells report it).
+const EXIT_INTERRUPTED: u8 = 130;
+
+/// How a command failed; each kind has its exit code.
+#[derive(Debug)]
+enum Failure {
+    /// Bad input, or the work could not be done.
+    Error(String),
+    /// A result is on disk, but not trustworthy (the message says why and where it is).
+    Untrusted(String),
+    /// Stopped by Ctrl-C after writing what it had.
+    Interrupted(String),
+}
+
+impl From<String> for Failure {
+    fn from(e: String) -> Self {
+        Failure::Error(e)
+    }
+}
+
+impl From<&str> for Failure {
+    fn from(e: &str) -> Self {
+        Failure::Error(e.to_string())
+    }
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    let result = match cli.command {
+    let result: Result<(), Failure> = match cli.command {
         Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale } => {
-            cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale })
+            cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale }).map_err(Failure::from)
         }
         Command::Linear { recording, mms, added_mass, with_mass, fit } => {
             cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), fit.sd, fit.scale.as_deref(), &fit.out)
@@ -341,21 +417,29 @@ fn main() -> ExitCode {
         Command::Measure { no_report, virtual_driver, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
             cmd_measure(MeasureArgs { no_report, virtual_driver, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
         }
-        Command::Devices => cmd_devices(),
-        Command::Runs { database } => cmd_runs(&database),
+        Command::Devices => cmd_devices().map_err(Failure::from),
+        Command::Runs { database } => cmd_runs(&database).map_err(Failure::from),
         Command::Distortion { params, freq, freq2, ratio, volts, output, multitone, band, tones, sweep, levels, temp_rise, json, seed } => {
-            cmd_distortion(DistortionArgs { params, freq, freq2, ratio, volts, output: output.into(), multitone, band, tones, sweep, levels, temp_rise, json, seed })
+            cmd_distortion(DistortionArgs { params, freq, freq2, ratio, volts, output: output.into(), multitone, band, tones, sweep, levels, temp_rise, json, seed }).map_err(Failure::from)
         }
-        Command::Diagnose { params, limits, json } => cmd_diagnose(&params, &limits, json),
-        Command::Report { result, out, db, volts, limits } => cmd_report(&result, &out, db.as_deref(), volts, &limits),
-        Command::Drivers => cmd_drivers(),
-        Command::Check { params } => load_parameters(&params).map_err(|e| e.to_string()).map(|p| print_params(&p)),
+        Command::Diagnose { params, limits, json } => cmd_diagnose(&params, &limits, json).map_err(Failure::from),
+        Command::Report { result, out, db, volts, limits } => cmd_report(&result, &out, db.as_deref(), volts, &limits).map_err(Failure::from),
+        Command::Drivers => cmd_drivers().map_err(Failure::from),
+        Command::Check { params } => load_parameters(&params).map_err(|e| Failure::Error(e.to_string())).map(|p| print_params(&p)),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
+        Err(Failure::Error(e)) => {
             eprintln!("error: {e}");
-            ExitCode::from(2)
+            ExitCode::from(EXIT_ERROR)
+        }
+        Err(Failure::Untrusted(e)) => {
+            eprintln!("not trustworthy: {e}");
+            ExitCode::from(EXIT_UNTRUSTED)
+        }
+        Err(Failure::Interrupted(e)) => {
+            eprintln!("interrupted: {e}");
+            ExitCode::from(EXIT_INTERRUPTED)
         }
     }
 }
@@ -467,7 +551,7 @@ fn cmd_linear(
     sd: Option<f64>,
     scale: Option<&[f64]>,
     out: &Path,
-) -> Result<(), String> {
+) -> Result<(), Failure> {
     use coilscope_ident::linear::*;
     let origin = path.display().to_string();
     let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
@@ -478,7 +562,7 @@ fn cmd_linear(
         (None, Some(_), None, _) | (None, None, Some(_), _) => return Err("--added-mass KG and --with-mass REC.wav go together".into()),
         (Some(_), _, _, _) => return Err("give one scale: --mms, or --added-mass with --with-mass".into()),
         (None, None, None, None) => {
-            return Err(format!("{origin}: no absolute scale: give --mms KG, or --added-mass KG --with-mass REC2.wav, or record a displacement channel (3)"))
+            return Err(Failure::from(format!("{origin}: no absolute scale: give --mms KG, or --added-mass KG --with-mass REC2.wav, or record a displacement channel (3)")))
         }
     }
     let live = std::io::IsTerminal::is_terminal(&std::io::stderr());
@@ -495,7 +579,7 @@ fn cmd_linear(
         (Some(m), None, None, _) => (m, ScaleMethod::Mms),
         (None, Some(madd), Some(p2), _) => {
             if !(madd.is_finite() && madd > 0.0 && madd < 2.0) {
-                return Err(format!("--added-mass {madd}: give the added mass in kg (0 .. 2 kg)"));
+                return Err(Failure::from(format!("--added-mass {madd}: give the added mass in kg (0 .. 2 kg)")));
             }
             let o2 = p2.display().to_string();
             let r2 = read_recording(p2, scale).map_err(|e| e.to_string())?;
@@ -516,7 +600,9 @@ fn cmd_linear(
         None => predicted_displacement(&params, &rec.i, fs),
     };
     let x_range = [x_pred.iter().cloned().fold(0.0, f64::min), x_pred.iter().cloned().fold(0.0, f64::max)];
-    let result = result_json(&params, &fit, &method, x_range, &path.display().to_string());
+    let mut result = result_json(&params, &fit, &method, x_range, &path.display().to_string());
+    let (floor, warnings) = linear_warnings(&fit, &params, &rec.u, &rec.i, fs);
+    attach_warnings(&mut result, &floor, &warnings);
     write_json(out, &result).map_err(|e| e.to_string())?;
     let zma = out.with_extension("zma");
     let csv = out.with_extension("csv");
@@ -552,7 +638,27 @@ fn cmd_linear(
     }
     println!("  x reached {:+.3} .. {:+.3} mm", x_range[0] * 1e3, x_range[1] * 1e3);
     println!("  wrote {}, {}, {}", out.display(), zma.display(), csv.display());
-    Ok(())
+    untrusted_if_warned(&warnings, out)
+}
+
+/// Put the noise floor and the warnings into `fit` of a result (`fit.noise_floor`,
+/// `fit.warnings`, `fit.trustworthy`) and print the warnings.
+fn attach_warnings(result: &mut serde_json::Value, floor: &coilscope_ident::checks::NoiseFloor, warnings: &[coilscope_ident::checks::Warning]) {
+    result["fit"]["noise_floor"] = floor.to_json();
+    result["fit"]["warnings"] = warnings.iter().map(|w| w.to_json()).collect::<Vec<_>>().into();
+    result["fit"]["trustworthy"] = warnings.is_empty().into();
+    for w in warnings {
+        eprintln!("warning [{}]: {}", w.code, w.message);
+    }
+}
+
+/// Exit 3 (result written, not trustworthy) when there are warnings.
+fn untrusted_if_warned(warnings: &[coilscope_ident::checks::Warning], out: &Path) -> Result<(), Failure> {
+    if warnings.is_empty() {
+        return Ok(());
+    }
+    let codes: Vec<&str> = warnings.iter().map(|w| w.code).collect();
+    Err(Failure::Untrusted(format!("{} warning(s) ({}); the result is written to {} with fit.trustworthy = false", warnings.len(), codes.join(", "), out.display())))
 }
 
 fn resonance(p: &Parameters) -> f64 {
@@ -584,7 +690,7 @@ fn cmd_drivers() -> Result<(), String> {
     Ok(())
 }
 
-fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), String> {
+fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
     use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, Stage};
     use coilscope_ident::linear::fit_linear;
     let origin = path.display().to_string();
@@ -592,12 +698,12 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<
     let fs = rec.fs as f64;
     if let Some(o) = order {
         if !(2..=8).contains(&o) {
-            return Err(format!("--order {o}: give a power-series order from 2 to 8"));
+            return Err(Failure::from(format!("--order {o}: give a power-series order from 2 to 8")));
         }
     }
     if let Some(s) = sd {
         if !(s.is_finite() && s > 0.0 && s < 1.0) {
-            return Err(format!("--sd {s}: give the radiating area in m^2 (e.g. 0.0118)"));
+            return Err(Failure::from(format!("--sd {s}: give the radiating area in m^2 (e.g. 0.0118)")));
         }
     }
     // With a displacement channel: the equation-error (post-inverse) estimate gives Mms (when
@@ -613,7 +719,7 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<
             }
         }
         (Some(m), None) => (m, "given (--mms)".to_string(), None),
-        (None, None) => return Err(format!("{origin}: no absolute scale: give --mms KG (moving mass), or record a displacement channel (3)")),
+        (None, None) => return Err(Failure::from(format!("{origin}: no absolute scale: give --mms KG (moving mass), or record a displacement channel (3)"))),
     };
     let live = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let t0 = std::time::Instant::now();
@@ -635,7 +741,7 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<
             if live {
                 eprintln!();
             }
-            return Err(e.to_string());
+            return Err(Failure::from(e.to_string()));
         }
     };
     if live {
@@ -645,6 +751,25 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<
     fit.params.sd = sd;
     fit.params.source = Some(format!("coilscope identify {}", path.display()));
     let mut result = fit.result_json(&path.display().to_string(), &mms_source);
+    let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(
+        &rec.i[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect::<Vec<_>>(),
+        fs,
+        "large-signal fit",
+        coilscope_core::simulate::rms(&rec.i),
+        0.0,
+    );
+    if let Some(lin) = &fit.linear {
+        if let Some((tau, share)) = lin.current_delay {
+            warnings.push(coilscope_ident::checks::Warning::new(
+                "current-delay",
+                format!("the current channel is {tau:.2} samples {} the voltage (shifting it explains {:.0} % of the small-signal fit's error): the channels are skewed, and Le, L2/R2 and Bl are biased", if tau > 0.0 { "late against" } else { "early against" }, 100.0 * share),
+            ));
+        }
+    }
+    if failure.is_some() {
+        result["fit"]["trustworthy"] = false.into();
+    }
+    attach_warnings(&mut result, &floor, &warnings);
     if let Some(pi) = &post {
         // Largest difference over the reached range, relative to the output-error value at rest.
         let dev = |a: &coilscope_core::Poly, b: &coilscope_core::Poly| {
@@ -663,10 +788,10 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<
     write_json(out, &result).map_err(|e| e.to_string())?;
     print_large_summary(path, &rec, &fit, &result, t0.elapsed().as_secs_f64());
     match failure {
-        Some(m) => Err(format!("{m}; written to {}", out.display())),
+        Some(m) => Err(Failure::Untrusted(format!("{m}; written to {}", out.display()))),
         None => {
             println!("  result: {}", out.display());
-            Ok(())
+            untrusted_if_warned(&warnings, out)
         }
     }
 }
@@ -741,13 +866,16 @@ struct CardArgs {
     /// Output channel that drives the amplifier (0-based), of --out-channels.
     #[arg(long, default_value_t = 0)]
     drive_channel: usize,
+    /// Number of output channels the output device is opened with.
     #[arg(long, default_value_t = 2)]
     out_channels: u16,
     /// Input channels holding the terminal voltage and the sense-resistor voltage (0-based), of --in-channels.
     #[arg(long, default_value_t = 0)]
     u_channel: usize,
+    /// Input channel holding the sense-resistor voltage (the current), 0-based.
     #[arg(long, default_value_t = 1)]
     i_channel: usize,
+    /// Number of input channels the input device is opened with.
     #[arg(long, default_value_t = 2)]
     in_channels: u16,
     /// Volts at the driver's terminals for a full-scale output sample (amplifier gain included).
@@ -828,7 +956,7 @@ struct MeasureArgs {
     seed: u64,
 }
 
-fn cmd_measure(a: MeasureArgs) -> Result<(), String> {
+fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     use coilscope_measure::device::{Device, ReplayDevice, VirtualDevice};
     use coilscope_measure::signal::Source;
     use coilscope_measure::store::Store;
@@ -860,7 +988,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), String> {
     };
     let opts = coilscope_measure::MeasureOptions {
         mms,
-        target_x: a.target_x.map(|x| x * 1e-3),
+        target_x: a.target_x,
         max_dt: a.max_dt,
         kms_limit: a.kms_limit,
         max_volts: a.max_volts,
@@ -869,6 +997,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), String> {
         hold_volts: a.volts,
         max_seconds: a.max_seconds.max(a.duration.unwrap_or(0.0)),
         order: a.order,
+        interrupt: Some(interrupt_flag()),
         ..Default::default()
     };
     opts.validate()?;
@@ -907,16 +1036,21 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), String> {
         Ok(m) => m,
         Err(e) => {
             let _ = store.finish(0.0, &format!("failed: {e}"), None);
-            return Err(e);
+            return Err(Failure::from(e));
         }
     };
     m.mms_source = mms_source;
     let j = m.result_json();
     write_json(&a.out.join("result.json"), &j).map_err(|e| e.to_string())?;
-    let status = if m.converged { "converged" } else { "stopped" };
+    let status = match m.stop_reason {
+        _ if m.converged => "converged",
+        coilscope_measure::StopReason::Interrupted { .. } => "interrupted",
+        coilscope_measure::StopReason::DurationOver { .. } => "finished",
+        _ => "not converged",
+    };
     store.finish(m.seconds, status, Some(&j))?;
     let p = &m.params;
-    println!("{status}: {}", m.stop_reason);
+    println!("{status}: {}", m.stop_reason.describe());
     println!("measured {:.1} s, peak x {:.2} mm, voice-coil rise up to {:.1} K, {} updates, window residual {:.2e}", m.seconds, m.x_peak_max * 1e3, m.dtv_max, m.updates, m.residual_rel);
     println!("small signal (start): Re {:.4} ohm, Bl {:.3} T m, Kms {:.1} N/m, Rms {:.3} kg/s", m.small.re, m.small.bl.eval(0.0), m.small.kms.eval(0.0), m.small.rms);
     println!("cold Re (online estimate at its first update, the temperature reference): {:.4} ohm", m.re_cold);
@@ -939,7 +1073,31 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), String> {
             eprintln!("warning: the report was not written: {e}");
         }
     }
-    Ok(())
+    let written = a.out.join("result.json");
+    match m.stop_reason {
+        coilscope_measure::StopReason::Interrupted { .. } => Err(Failure::Interrupted(format!("{}; written to {}", m.stop_reason.describe(), written.display()))),
+        ref r if !r.is_success() => Err(Failure::Untrusted(format!("{}; written to {}", r.describe(), written.display()))),
+        _ => Ok(()),
+    }
+}
+
+/// A flag that Ctrl-C (SIGINT) sets: the measurement finishes its block, writes its result,
+/// report and database rows marked interrupted, and exits 130. A second Ctrl-C kills at once.
+fn interrupt_flag() -> std::sync::Arc<std::sync::atomic::AtomicBool> {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    let flag = Arc::new(AtomicBool::new(false));
+    let f = flag.clone();
+    let installed = ctrlc::set_handler(move || {
+        if f.swap(true, Ordering::SeqCst) {
+            std::process::exit(EXIT_INTERRUPTED as i32);
+        }
+        eprintln!("\ninterrupt: finishing the block and writing the result (Ctrl-C again to quit at once)");
+    });
+    if let Err(e) = installed {
+        eprintln!("warning: Ctrl-C cannot be caught ({e}): an interrupted run will not write its result");
+    }
+    flag
 }
 
 fn cmd_runs(path: &Path) -> Result<(), String> {
@@ -1004,7 +1162,11 @@ fn cmd_distortion(a: DistortionArgs) -> Result<(), String> {
         }
         return Ok(());
     }
-    let freq = a.freq.ok_or("--freq F is required (the sine, or the low tone of a two-tone); or use --multitone")?;
+    if let (Some(_), Some(_)) = (&a.sweep, a.freq) {
+        return Err("--sweep F_LO F_HI sets the frequencies itself: drop --freq".into());
+    }
+    // A frequency sweep needs no --freq (it runs from F_LO to F_HI).
+    let freq = a.freq.or(a.sweep.as_ref().map(|b| b[0])).ok_or("--freq F is required (the sine, or the low tone of a two-tone); or use --multitone or --sweep F_LO F_HI")?;
     if let Some(f2) = a.freq2 {
         let im = d::intermod(p, freq, f2, volts, a.ratio, a.output, &opts).map_err(e)?;
         if a.json {
@@ -1128,4 +1290,45 @@ fn cmd_report(spec: &str, out: &Path, db: Option<&Path>, volts: Option<f64>, l: 
     println!("report: {} plots, distortion at {:.2} V RMS{}", rep.charts.len(), rep.volts, rep.volterra_divergence.map(|v| format!(", Volterra off by > 1 dB from {v:.2} V")).unwrap_or_default());
     println!("wrote {} and {} files in {}", out.display(), written.len() - 1, coilscope_report::files_dir(out).display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    /// Issue 14: every flag of every subcommand says what it is.
+    #[test]
+    fn every_flag_has_help() {
+        let mut missing = Vec::new();
+        let root = Cli::command();
+        for sub in root.get_subcommands() {
+            for arg in sub.get_arguments() {
+                let id = arg.get_id().as_str();
+                if id == "help" || id == "version" {
+                    continue;
+                }
+                if arg.get_help().is_none_or(|h| h.to_string().trim().is_empty()) {
+                    missing.push(format!("{} --{}", sub.get_name(), arg.get_long().unwrap_or(id)));
+                }
+            }
+            if sub.get_about().is_none() {
+                missing.push(format!("{} (no about)", sub.get_name()));
+            }
+        }
+        assert!(missing.is_empty(), "flags without help: {missing:?}");
+    }
+
+    #[test]
+    fn lengths_take_a_unit_or_plausible_metres() {
+        assert_eq!(parse_length("4mm").unwrap(), 4e-3);
+        assert_eq!(parse_length("4.5 mm").unwrap(), 4.5e-3);
+        assert_eq!(parse_length("0.004m").unwrap(), 0.004);
+        assert_eq!(parse_length("450um").unwrap(), 450e-6);
+        assert_eq!(parse_length("0.004").unwrap(), 0.004);
+        assert!(parse_length("4").unwrap_err().contains("did you mean 4mm"));
+        assert!(parse_length("0.000004").unwrap_err().contains("did you mean"));
+        assert!(parse_length("4in").unwrap_err().contains("unknown length unit"));
+        assert!(parse_length("mm").is_err());
+    }
 }

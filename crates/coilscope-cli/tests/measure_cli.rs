@@ -10,7 +10,7 @@ fn coilscope(args: &[&str]) -> Output {
 fn virtual_measurement_writes_result_and_database() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("sb17");
-    let o = coilscope(&["measure", "--virtual", "sb17cac35-4", "--target-x", "4.5", "--out", out.to_str().unwrap()]);
+    let o = coilscope(&["measure", "--virtual", "sb17cac35-4", "--target-x", "4.5mm", "--out", out.to_str().unwrap()]);
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{text}\n{}", String::from_utf8_lossy(&o.stderr));
     assert!(text.contains("converged"), "{text}");
@@ -29,7 +29,7 @@ fn a_killed_long_term_run_keeps_its_data() {
     let out = dir.path().join("long");
     let db = out.join("run.sqlite");
     let mut child = Command::new(env!("CARGO_BIN_EXE_coilscope"))
-        .args(["measure", "--virtual", "ptt4.0w04-01a", "--target-x", "6", "--duration", "3600", "--out", out.to_str().unwrap()])
+        .args(["measure", "--virtual", "ptt4.0w04-01a", "--target-x", "6mm", "--duration", "3600", "--out", out.to_str().unwrap()])
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .spawn()
@@ -54,9 +54,39 @@ fn a_killed_long_term_run_keeps_its_data() {
     assert_eq!(r.states % 10, 0, "{r:?}");
     let o = coilscope(&["runs", db.to_str().unwrap()]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    // A run that never finished is listed as running (heartbeat fresh) or interrupted.
+    // A run that never finished is listed as running (heartbeat fresh) or killed.
     let text = String::from_utf8_lossy(&o.stdout);
-    assert!(text.contains("running") || text.contains("interrupted"), "{text}");
+    assert!(text.contains("running") || text.contains("killed"), "{text}");
+}
+
+#[test]
+fn issue14_ctrl_c_writes_the_result_marked_interrupted_and_exits_130() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("int");
+    let db = out.join("run.sqlite");
+    let child = Command::new(env!("CARGO_BIN_EXE_coilscope"))
+        .args(["measure", "--virtual", "ptt4.0w04-01a", "--duration", "3600", "--no-report", "--out", out.to_str().unwrap()])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    loop {
+        std::thread::sleep(std::time::Duration::from_millis(200));
+        if coilscope_measure::store::list_runs(&db).is_ok_and(|r| r.first().is_some_and(|r| r.estimates >= 2)) {
+            break;
+        }
+        assert!(t0.elapsed().as_secs() < 120, "no estimates were committed");
+    }
+    let k = Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
+    assert!(k.success());
+    let o = child.wait_with_output().unwrap();
+    assert_eq!(o.status.code(), Some(130), "{}", String::from_utf8_lossy(&o.stderr));
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
+    assert_eq!(j["measurement"]["stop_reason"], "interrupted");
+    assert_eq!(j["fit"]["converged"], false);
+    let listing = String::from_utf8_lossy(&coilscope(&["runs", out.to_str().unwrap()]).stdout).into_owned();
+    assert!(listing.contains("interrupted"), "{listing}");
 }
 
 #[test]
@@ -67,8 +97,11 @@ fn bad_devices_files_and_limits_get_one_line_errors() {
     for (args, want) in [
         (vec!["measure", "--out", o], "--virtual DRIVER"),
         (vec!["measure", "--virtual", "no-such-driver", "--out", o], "no-such-driver"),
-        (vec!["measure", "--virtual", "sb17cac35-4", "--target-x=-2", "--out", o], "--target-x"),
+        (vec!["measure", "--virtual", "sb17cac35-4", "--target-x=-2mm", "--out", o], "--target-x"),
         (vec!["measure", "--virtual", "sb17cac35-4", "--max-dt", "0", "--out", o], "--max-dt"),
+        // Issue 14: a bare number is metres; 4 (meant as mm) is refused with the unit named.
+        (vec!["measure", "--virtual", "sb17cac35-4", "--target-x", "4", "--out", o], "did you mean 4mm"),
+        (vec!["measure", "--virtual", "sb17cac35-4", "--target-x", "4furlongs", "--out", o], "unknown length unit"),
         (vec!["measure", "--virtual", "sb17cac35-4", "--music", "/nonexistent/song.wav", "--out", o], "song.wav"),
         (vec!["measure", "--replay", "/nonexistent/rec.wav", "--out", o], "--mms"),
         (vec!["runs", "/nonexistent/run.sqlite"], "no such run database"),

@@ -6,6 +6,9 @@
 //! * [`linear`]: small-signal parameters from the impedance (H1 estimate, LR-2 + motional
 //!   fit, absolute scale by Mms, added mass or displacement).
 
+//! * [`checks`]: the residual against its noise floor, and what a doubtful fit is named.
+
+pub mod checks;
 pub mod large;
 pub mod linear;
 pub mod lm;

@@ -186,6 +186,13 @@ pub struct LinearFit {
     pub iterations: usize,
     /// The H1 estimate (for .zma / CSV and plots).
     pub h1: ImpedanceEstimate,
+    /// Bounded quantities the fit ended on (e.g. the L2/R2 corner at the band's edge: the
+    /// branch is not identifiable from this record). Empty for a fit inside its bounds.
+    pub at_bound: Vec<&'static str>,
+    /// Detected skew: (samples the current channel lags the voltage, share of the current
+    /// error that shifting it explains). `None` when a shift explains little (< 50 % of the
+    /// error) or is below 0.05 samples.
+    pub current_delay: Option<(f64, f64)>,
 }
 
 impl LinearFit {
@@ -207,9 +214,88 @@ struct CurrentError {
     i: Vec<Complex64>,
     w: Vec<f64>,
     norm: f64,
+    map: ParamMap,
+    /// `Some(fs)`: theta has an 8th entry, the current channel's delay against the voltage
+    /// in samples (`I_recorded = I e^{-j 2 pi f tau / fs}`): the check for skewed channels.
+    delay: Option<f64>,
+}
+
+/// How the solver's unknowns `theta` map to the impedance model's parameters.
+///
+/// The natural coordinates are `q = [ln Re, ln Le, ln tau2, ln R2, ln Res, ln Cmes, ln Lces]`
+/// with `tau2 = L2/R2`: logarithms keep every element positive. `tau2` is bounded so that the
+/// corner `1/(2 pi tau2)` of the LR-2 branch lies inside the fitted band: outside it the branch
+/// is a plain resistor (corner below the band: it trades exactly against Re, the fit slides to
+/// Re = 0) or a plain inductor (above: it trades against Le). A bounded coordinate is
+/// `q = lo + (hi - lo) s(theta)` with the logistic `s`; a fit that ends on a bound says so
+/// ([`LinearFit::at_bound`]).
+#[derive(Clone, Debug)]
+struct ParamMap {
+    /// Bounds of `q` (natural log units); infinite = unbounded.
+    lo: [f64; 7],
+    hi: [f64; 7],
+}
+
+fn logistic(t: f64) -> f64 {
+    1.0 / (1.0 + (-t).exp())
+}
+
+impl ParamMap {
+    fn q(&self, theta: &[f64]) -> [f64; 7] {
+        std::array::from_fn(|k| if self.lo[k].is_finite() { self.lo[k] + (self.hi[k] - self.lo[k]) * logistic(theta[k]) } else { theta[k] })
+    }
+    /// `dq_k / dtheta_k`.
+    fn dq(&self, theta: &[f64]) -> [f64; 7] {
+        std::array::from_fn(|k| {
+            if self.lo[k].is_finite() {
+                let s = logistic(theta[k]);
+                (self.hi[k] - self.lo[k]) * s * (1.0 - s)
+            } else {
+                1.0
+            }
+        })
+    }
+    /// `theta` of natural coordinates `q` (bounded ones pulled 1 % inside their bounds).
+    fn theta(&self, q: &[f64; 7]) -> Vec<f64> {
+        (0..7)
+            .map(|k| {
+                if self.lo[k].is_finite() {
+                    let s = ((q[k] - self.lo[k]) / (self.hi[k] - self.lo[k])).clamp(0.01, 0.99);
+                    (s / (1.0 - s)).ln()
+                } else {
+                    q[k]
+                }
+            })
+            .collect()
+    }
+    /// Impedance-model parameters `[Re, Le, L2, R2, Res, Cmes, Lces]` (SI).
+    fn params(&self, theta: &[f64]) -> [f64; 7] {
+        let q = self.q(theta);
+        let mut p: [f64; 7] = std::array::from_fn(|k| q[k].exp());
+        p[2] = (q[2] + q[3]).exp();
+        p
+    }
+    /// Natural coordinates of model parameters.
+    fn q_of(p: &[f64; 7]) -> [f64; 7] {
+        let mut q: [f64; 7] = std::array::from_fn(|k| p[k].ln());
+        q[2] = (p[2] / p[3]).ln();
+        q
+    }
+    /// Names of the bounded coordinates whose logistic sits within 1e-3 of a bound.
+    fn at_bound(&self, theta: &[f64]) -> Vec<&'static str> {
+        (0..7).filter(|&k| self.lo[k].is_finite() && !(1e-3..=1.0 - 1e-3).contains(&logistic(theta[k]))).map(|k| if k == 2 { "L2/R2 corner" } else { NAMES[k] }).collect()
+    }
 }
 
 impl CurrentError {
+    /// The delay factor `e^{-j 2 pi f tau / fs}` of bin `k` (1 without the delay check).
+    fn shift(&self, theta: &[f64], k: usize) -> Complex64 {
+        match self.delay {
+            Some(fs) => Complex64::from_polar(1.0, -2.0 * PI * self.f[k] * theta[7] / fs),
+            None => Complex64::new(1.0, 0.0),
+        }
+    }
+
     /// `|I - U/Z| / |I|` over the fitted bins, unweighted (the spec's `fit.residual_rel`).
     fn residual_rel(&self, p: &[f64; 7]) -> f64 {
         let (mut e, mut t) = (0.0, 0.0);
@@ -224,23 +310,43 @@ impl CurrentError {
 
 impl Problem for CurrentError {
     fn residual_jacobian(&self, theta: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
-        let p: [f64; 7] = std::array::from_fn(|k| theta[k].exp());
+        let p = self.map.params(theta);
+        let dq = self.map.dq(theta);
         let m = self.f.len();
+        let np = theta.len();
         let mut r = DVector::zeros(2 * m);
-        let mut j = DMatrix::zeros(2 * m, 7);
+        let mut j = DMatrix::zeros(2 * m, np);
         for k in 0..m {
-            let (z, g) = model_impedance_and_gradient(&p, self.f[k]);
-            let e = (self.i[k] - self.u[k] / z) / self.norm;
+            let (z, mut g) = model_impedance_and_gradient(&p, self.f[k]);
+            // From d/d ln p to d/dq: L2 = tau2 R2, so ln R2 moves L2 too.
+            g[3] += g[2];
+            let shift = self.shift(theta, k);
+            let e = (self.i[k] - self.u[k] * shift / z) / self.norm;
             r[2 * k] = e.re;
             r[2 * k + 1] = e.im;
-            let a = self.u[k] / (z * z) / self.norm;
+            let a = self.u[k] * shift / (z * z) / self.norm;
             for c in 0..7 {
-                let d = a * g[c];
+                let d = a * g[c] * dq[c];
                 j[(2 * k, c)] = d.re;
                 j[(2 * k + 1, c)] = d.im;
             }
+            if let Some(fs) = self.delay {
+                let d = self.u[k] * shift / z / self.norm * Complex64::new(0.0, 2.0 * PI * self.f[k] / fs);
+                j[(2 * k, 7)] = d.re;
+                j[(2 * k + 1, 7)] = d.im;
+            }
         }
         (r, j)
+    }
+    fn residual(&self, theta: &[f64]) -> DVector<f64> {
+        let p = self.map.params(theta);
+        DVector::from_iterator(
+            2 * self.f.len(),
+            (0..self.f.len()).flat_map(|k| {
+                let e = (self.i[k] - self.u[k] * self.shift(theta, k) / model_impedance(&p, self.f[k])) / self.norm;
+                [e.re, e.im]
+            }),
+        )
     }
 }
 
@@ -314,6 +420,21 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
             "{origin}: |U/I| is {zmed:.3} ohm (median); channels 1 and 2 look swapped (voltage must be channel 1, current channel 2), or the current scale is wrong"
         ));
     }
+    // Inverted current: a passive impedance has a positive real part at every frequency.
+    // Below 500 Hz, where a channel skew of a sample or two rotates the phase by a few
+    // degrees only (a skew is named by the fit below, not here).
+    let mut reals: Vec<f64> = coherent.iter().filter(|&&k| h1.f[k] <= 500.0).map(|&k| h1.z[k].re).collect();
+    if reals.is_empty() {
+        reals = coherent.iter().map(|&k| h1.z[k].re).collect();
+    }
+    reals.sort_by(f64::total_cmp);
+    let re_med = reals[reals.len() / 2];
+    if re_med < 0.0 {
+        return Err(format!(
+            "{origin}: the current looks inverted: U/I has a negative real part ({re_med:.3} ohm median over {} coherent bins up to 500 Hz), which no passive driver has; swap the sense-resistor leads or invert channel 2 (its scale factor)",
+            coherent.len()
+        ));
+    }
     let p0 = initial_guess(&h1, band[0], band[1]).map_err(|e| format!("{origin}: {e}"))?;
 
     // Whole-record DFT; keep bins inside the band whose H1 bin is excited and coherent.
@@ -324,7 +445,12 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
     let (uf, i_f) = (rfft(u), rfft(i));
     let df = fs / n as f64;
     let z_ref = rms(u) / rms(i);
-    let mut prob = CurrentError { f: vec![], u: vec![], i: vec![], w: vec![], norm: 1.0 };
+    // The LR-2 corner stays inside the fitted band (see `ParamMap`).
+    let (mut lo, mut hi) = ([f64::NEG_INFINITY; 7], [f64::INFINITY; 7]);
+    lo[2] = (1.0 / (2.0 * PI * band[1])).ln();
+    hi[2] = (1.0 / (2.0 * PI * band[0])).ln();
+    let map = ParamMap { lo, hi };
+    let mut prob = CurrentError { f: vec![], u: vec![], i: vec![], w: vec![], norm: 1.0, map: map.clone(), delay: None };
     for k in 1..uf.len() {
         let f = k as f64 * df;
         if f < band[0] || f > band[1] {
@@ -339,12 +465,15 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
             prob.w.push(w);
         }
     }
+    fn prob_norm(p: &CurrentError) -> f64 {
+        p.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt()
+    }
     fn keep<T: Copy>(v: &[T], step: usize) -> Vec<T> {
         v.iter().step_by(step).copied().collect()
     }
     fn thin(p: &CurrentError, most: usize) -> CurrentError {
         let step = p.f.len().div_ceil(most);
-        let mut t = CurrentError { f: keep(&p.f, step), u: keep(&p.u, step), i: keep(&p.i, step), w: keep(&p.w, step), norm: 1.0 };
+        let mut t = CurrentError { f: keep(&p.f, step), u: keep(&p.u, step), i: keep(&p.i, step), w: keep(&p.w, step), norm: 1.0, map: p.map.clone(), delay: None };
         t.norm = t.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
         t
     }
@@ -353,10 +482,11 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
     } else {
         prob.norm = prob.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
     }
-    // The LR-2 branch trades off against Re and Le: start from a few spreads of L2 and R2
-    // and keep the lowest cost (each start is a full LM run, observed like any other). The
-    // starts are scouted on every k-th bin (at most SCOUT_BINS); the best is then polished on
-    // all of them, so the answer is the full-data optimum at a quarter of the cost.
+    // The LR-2 branch trades off against Re and Le: start from the heuristic guess and from
+    // corners spread over the band, and keep the lowest cost among the converged runs (each
+    // start is a full LM run, observed like any other). The starts are scouted on every k-th
+    // bin (at most SCOUT_BINS); the best is then polished on all of them, so the answer is the
+    // full-data optimum at a fraction of the cost.
     let scout = (prob.f.len() > 2 * SCOUT_BINS).then(|| thin(&prob, SCOUT_BINS));
     let run = |p: &CurrentError, theta: Vec<f64>, observe: &mut dyn FnMut(&LmState)| {
         let mut s = LmState::new(p, theta);
@@ -367,13 +497,22 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
         }
         s
     };
+    let q0 = ParamMap::q_of(&p0);
+    let mut starts = vec![q0];
+    for frac in [0.25, 0.5, 0.75] {
+        let corner = band[0] * (band[1] / band[0]).powf(frac);
+        for r2f in [1.0, 4.0] {
+            let mut q = q0;
+            q[2] = (1.0 / (2.0 * PI * corner)).ln();
+            q[3] += f64::ln(r2f);
+            starts.push(q);
+        }
+    }
+    let better = |s: &LmState, b: &LmState| (s.converged && !b.converged) || (s.converged == b.converged && s.cost < b.cost);
     let mut best: Option<LmState> = None;
-    for (l2f, r2f) in [(1.0, 1.0), (4.0, 1.0), (1.0, 4.0), (0.25, 0.5)] {
-        let mut start = p0;
-        start[2] *= l2f;
-        start[3] *= r2f;
-        let s = run(scout.as_ref().unwrap_or(&prob), start.iter().map(|p| p.ln()).collect(), &mut observe);
-        if best.as_ref().is_none_or(|b| s.converged && s.cost < b.cost) {
+    for q in &starts {
+        let s = run(scout.as_ref().unwrap_or(&prob), map.theta(q), &mut observe);
+        if best.as_ref().is_none_or(|b| better(&s, b)) {
             best = Some(s);
         }
     }
@@ -382,14 +521,35 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
         best = Some(run(&prob, b.theta.clone(), &mut observe));
     }
     let s = best.expect("at least one start");
-    let p: [f64; 7] = std::array::from_fn(|k| s.theta[k].exp());
-    let cov = covariance(&prob, &s.theta);
-    let sigma_rel: [f64; 7] = std::array::from_fn(|k| cov.as_ref().map(|c| c[(k, k)].sqrt()).unwrap_or(f64::NAN));
+    let p = map.params(&s.theta);
+    // Relative sd of p_k is the sd of ln p_k: the covariance of theta mapped to q (and
+    // ln L2 = q2 + q3).
+    let dq = map.dq(&s.theta);
+    let sigma_rel: [f64; 7] = match covariance(&prob, &s.theta) {
+        Some(c) => {
+            let cq = |a: usize, b: usize| c[(a, b)] * dq[a] * dq[b];
+            std::array::from_fn(|k| if k == 2 { (cq(2, 2) + cq(3, 3) + 2.0 * cq(2, 3)).max(0.0).sqrt() } else { cq(k, k).max(0.0).sqrt() })
+        }
+        None => [f64::NAN; 7],
+    };
     let residual_rel = prob.residual_rel(&p);
     if !s.converged {
         return Err(format!("{origin}: the impedance fit did not converge in {} iterations (residual {residual_rel:.3e})", s.iteration));
     }
-    Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1 })
+    let at_bound = map.at_bound(&s.theta);
+    // Skewed channels: a current recorded late by tau samples multiplies U/I by
+    // e^{j 2 pi f tau / fs}, which no passive circuit does. Let the same fit shift the current
+    // channel: if that explains most of the error, the channels are skewed.
+    let current_delay = {
+        let mut check = CurrentError { delay: Some(fs), ..thin(&prob, SCOUT_BINS) };
+        check.norm = prob_norm(&check);
+        let mut th = s.theta.clone();
+        th.push(0.0);
+        let base = LmState::new(&check, th.clone()).cost;
+        let d = run(&check, th, &mut |_| {});
+        (d.converged && d.cost < 0.25 * base && d.theta[7].abs() >= 0.05).then(|| (d.theta[7], 1.0 - (d.cost / base).sqrt()))
+    };
+    Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay })
 }
 
 /// A parameter set from the electrical fit and a known moving mass (kg).
@@ -469,6 +629,118 @@ pub fn predicted_displacement(p: &Parameters, i: &[f64], fs: f64) -> Vec<f64> {
     let mut out = irfft(&spec, n);
     out.iter_mut().for_each(|v| *v /= n as f64);
     out
+}
+
+/// The linear model's current for the measured voltage (A), by the whole-record DFT
+/// (exact for a record that starts and ends at rest).
+pub fn model_current(fit: &LinearFit, u: &[f64], fs: f64) -> Vec<f64> {
+    let n = u.len();
+    let mut spec = rfft(u);
+    for (k, c) in spec.iter_mut().enumerate() {
+        let f = k as f64 * fs / n as f64;
+        *c = if k == 0 { *c / fit.p[0] } else { *c / model_impedance(&fit.p, f) };
+    }
+    let mut out = irfft(&spec, n);
+    out.iter_mut().for_each(|v| *v /= n as f64);
+    out
+}
+
+/// Relative current error above the noise floor below which a linear fit's misfit is not
+/// material (at 0.5 % the small-signal parameters are off by about 1 %).
+const LINEAR_MATERIAL_EXCESS: f64 = 0.005;
+
+/// Share of the linear model's current error above which a record is called large-signal.
+const NONLINEAR_SHARE_WARN: f64 = 0.3;
+
+/// What makes a linear fit of this record doubtful, named: skewed channels, a fit on a
+/// bound, a residual far above the noise floor, a record that drove the nonlinearities
+/// (use `identify`). `p` is the scaled parameter set of `fit`.
+pub fn linear_warnings(fit: &LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> (crate::checks::NoiseFloor, Vec<crate::checks::Warning>) {
+    use crate::checks::{residual_warnings, Warning};
+    let im = model_current(fit, u, fs);
+    let r: Vec<f64> = i.iter().zip(&im).map(|(a, b)| a - b).collect();
+    let (nf, mut w) = residual_warnings(&r, fs, "linear (small-signal) fit", rms(i), LINEAR_MATERIAL_EXCESS);
+    if let Some((tau, share)) = fit.current_delay {
+        w.push(Warning::new(
+            "current-delay",
+            format!(
+                "the current channel is {tau:.2} samples {} the voltage ({:.1} us at {fs} Hz): shifting it explains {:.0} % of the fit's error. Channels of one interface sampled apart, or a wiring/latency mistake; the parameters of this fit are biased (Le, L2/R2 most)",
+                if tau > 0.0 { "late against" } else { "early against" },
+                1e6 * tau.abs() / fs,
+                100.0 * share
+            ),
+        ));
+    }
+    for b in &fit.at_bound {
+        w.push(Warning::new(
+            "on-bound",
+            format!("the fit ended on the bound of {b}: the L2/R2 branch's corner is not inside the fitted band ({:.0} .. {:.0} Hz), so L2 and R2 are not identified by this record", fit.band[0], fit.band[1]),
+        ));
+    }
+    let excess = (nf.rms.powi(2) - nf.floor_rms.powi(2)).max(0.0).sqrt() / rms(i);
+    if nf.ratio > 2.0 && excess >= LINEAR_MATERIAL_EXCESS {
+        let x = predicted_displacement(p, i, fs);
+        let share = large_signal_share(p, &r, i, &x, fs);
+        if share > NONLINEAR_SHARE_WARN {
+            let (lo, hi) = x.iter().fold((0.0f64, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
+            w.push(Warning::new(
+                "large-signal-record",
+                format!(
+                    "this is a large-signal record: x reached {:.2} .. {:.2} mm and the first-order effects of Bl(x), Kms(x) and Le(x) explain {:.0} % of the linear fit's error, so the small-signal parameters are biased (Kms, fs most). Fit it with `coilscope identify`, or record at a lower level (well below 10 % of the rated excursion) for `linear`",
+                    lo * 1e3,
+                    hi * 1e3,
+                    100.0 * share
+                ),
+            ));
+        }
+    }
+    (nf, w)
+}
+
+/// Share of a linear fit's current error `r` that the first-order (perturbation) effects of
+/// the large-signal terms explain. With the linear model's x and v, each nonlinearity adds a
+/// voltage in the electrical loop (`x v`, `x^2 v` from Bl(x); `d(x i)/dt`, `d(x^2 i)/dt` from
+/// Le(x)), which changes the current by `-e / Z(f)`, or a force on the cone (`x i`, `x^2 i`
+/// from Bl(x); `x^2`, `x^3` from Kms(x); `i^2` from Le'(x)), which changes it by
+/// `-Bl F / (Ze Zm_total)`. Noise is explained by none of them.
+fn large_signal_share(p: &Parameters, r: &[f64], i: &[f64], x: &[f64], fs: f64) -> f64 {
+    use crate::checks::explained_share;
+    let n = r.len();
+    let v: Vec<f64> = (0..n).map(|k| (x[(k + 1).min(n - 1)] - x[k.saturating_sub(1)]) * fs / 2.0).collect();
+    let d = |s: &[f64]| -> Vec<f64> { (0..n).map(|k| (s[(k + 1).min(n - 1)] - s[k.saturating_sub(1)]) * fs / 2.0).collect() };
+    let (bl, kms, le) = (p.bl.eval(0.0), p.kms.eval(0.0), p.le.eval(0.0));
+    let filter = |s: &[f64], voltage: bool| -> Vec<f64> {
+        let mut spec = rfft(s);
+        for (k, c) in spec.iter_mut().enumerate() {
+            if k == 0 {
+                *c = Complex64::new(0.0, 0.0);
+                continue;
+            }
+            let f = k as f64 * fs / n as f64;
+            let jw = Complex64::new(0.0, 2.0 * PI * f);
+            let ze = p.re + jw * le + p.l2r2.as_ref().map_or(Complex64::new(0.0, 0.0), |(l2, r2)| jw * l2.eval(0.0) * r2.eval(0.0) / (jw * l2.eval(0.0) + r2.eval(0.0)));
+            let zm = jw * p.mms + p.rms + kms / jw;
+            let h = if voltage { -1.0 / (ze + bl * bl / zm) } else { -bl / (ze * (zm + bl * bl / ze)) };
+            *c *= h;
+        }
+        let mut out = irfft(&spec, n);
+        out.iter_mut().for_each(|s| *s /= n as f64);
+        out
+    };
+    let prod = |a: &[f64], b: &[f64]| -> Vec<f64> { a.iter().zip(b).map(|(a, b)| a * b).collect() };
+    let x2 = prod(x, x);
+    let regressors = vec![
+        filter(&prod(x, &v), true),
+        filter(&prod(&x2, &v), true),
+        filter(&d(&prod(x, i)), true),
+        filter(&d(&prod(&x2, i)), true),
+        filter(&prod(x, i), false),
+        filter(&prod(&x2, i), false),
+        filter(&x2, false),
+        filter(&prod(&x2, x), false),
+        filter(&prod(i, i), false),
+    ];
+    explained_share(r, &regressors)
 }
 
 /// How the absolute scale (Bl) was found.

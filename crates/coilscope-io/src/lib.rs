@@ -35,8 +35,41 @@ fn err<T>(msg: impl Into<String>) -> Result<T, IoError> {
     Err(IoError(msg.into()))
 }
 
-/// Write `bytes` to `path` atomically.
+/// Write `bytes` to `path` atomically: a temporary file beside the target, synced, then
+/// renamed over it, so a reader sees the old file or the new one, never half of one.
+///
+/// * A symlink is followed: its target is replaced atomically, the link stays.
+/// * A FIFO or character device (`/dev/null`, `/dev/stdout`, a pipe) is written straight
+///   (there is nothing to replace atomically, and replacing it would destroy it).
+/// * Any other special file (block device, socket, directory) is refused.
 pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
+    use std::os::unix::fs::FileTypeExt;
+    // Follow symlinks (a chain of them) to the file that is really written.
+    let mut target = path.to_path_buf();
+    for _ in 0..40 {
+        match std::fs::symlink_metadata(&target) {
+            Ok(m) if m.file_type().is_symlink() => {
+                let link = std::fs::read_link(&target).map_err(|e| IoError(format!("{}: cannot read the symlink ({e})", target.display())))?;
+                target = if link.is_absolute() { link } else { target.parent().unwrap_or(Path::new(".")).join(link) };
+            }
+            _ => break,
+        }
+    }
+    if let Ok(m) = std::fs::metadata(&target) {
+        let t = m.file_type();
+        if t.is_fifo() || t.is_char_device() {
+            return std::fs::OpenOptions::new()
+                .write(true)
+                .open(&target)
+                .and_then(|mut f| f.write_all(bytes))
+                .map_err(|e| IoError(format!("{}: cannot write ({e})", path.display())));
+        }
+        if !t.is_file() {
+            let what = if t.is_dir() { "a directory" } else if t.is_block_device() { "a block device" } else if t.is_socket() { "a socket" } else { "not a regular file" };
+            return err(format!("{}: is {what}; give the path of a file to write", path.display()));
+        }
+    }
+    let path = target.as_path();
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
@@ -203,7 +236,20 @@ pub fn read_recording(path: &Path, scale: Option<&[f64]>) -> Result<Recording, I
     let mut it = ch.data.into_iter();
     let u = it.next().unwrap_or_default();
     let i = it.next().unwrap_or_default();
-    Ok(Recording { fs: ch.fs, u, i, x: it.next() })
+    let x = it.next();
+    if let Some(x) = &x {
+        // A dead laser: a channel 3 that does not move would give a singular or silently
+        // wrong scale.
+        let mean = x.iter().sum::<f64>() / x.len().max(1) as f64;
+        let sd = (x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / x.len().max(1) as f64).sqrt();
+        if !(sd > 1e-12) {
+            return err(format!(
+                "{}: channel 3 (displacement) is silent (sd {sd:.2e} m): the laser is dead, unplugged or out of range; fix it, or record without channel 3 and give --mms KG",
+                path.display()
+            ));
+        }
+    }
+    Ok(Recording { fs: ch.fs, u, i, x })
 }
 
 /// Read a voltage signal (channel 1, V) to drive a simulation; further channels are ignored.
@@ -347,5 +393,24 @@ mod tests {
     fn atomic_write_refuses_missing_directories() {
         let e = atomic_write(Path::new("/nonexistent-dir-xyz/out.json"), b"{}").unwrap_err().0;
         assert!(e.contains("does not exist"), "{e}");
+    }
+
+    #[test]
+    fn issue14_writes_go_through_symlinks_and_never_replace_special_files() {
+        use std::os::unix::fs::FileTypeExt;
+        let d = tempfile::tempdir().unwrap();
+        let real = d.path().join("real.json");
+        std::fs::write(&real, "old").unwrap();
+        let link = d.path().join("link.json");
+        std::os::unix::fs::symlink("real.json", &link).unwrap();
+        atomic_write(&link, b"new").unwrap();
+        assert!(std::fs::symlink_metadata(&link).unwrap().file_type().is_symlink(), "the link was replaced");
+        assert_eq!(std::fs::read_to_string(&real).unwrap(), "new");
+        // A character device is written straight, and stays a device.
+        atomic_write(Path::new("/dev/null"), b"discarded").unwrap();
+        assert!(std::fs::metadata("/dev/null").unwrap().file_type().is_char_device());
+        // A directory is refused by name.
+        let e = atomic_write(d.path(), b"x").unwrap_err().to_string();
+        assert!(e.contains("is a directory"), "{e}");
     }
 }

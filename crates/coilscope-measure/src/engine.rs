@@ -90,6 +90,9 @@ pub struct MeasureOptions {
     pub update_seconds: f64,
     /// Power-series order.
     pub order: usize,
+    /// Set from outside (a Ctrl-C handler) to stop after the current block; the result
+    /// keeps the estimate so far, with `StopReason::Interrupted`.
+    pub interrupt: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
     /// Temperature coefficient of the coil's resistance (1/K).
     pub alpha: f64,
     /// Cut-off of the excitation's high-pass at the start (Hz).
@@ -113,6 +116,7 @@ impl Default for MeasureOptions {
             block: 0.1,
             update_seconds: 1.0,
             order: 6,
+            interrupt: None,
             alpha: 0.00393,
             hp_hz: 5.0,
         }
@@ -161,6 +165,107 @@ impl Stage {
     }
 }
 
+/// What limits the drive level (or holds it) at a block.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LimitedBy {
+    /// The quiet small-signal stage.
+    SmallSignal,
+    /// Nothing: the level rises.
+    Ramp,
+    /// The excursion limit (target or stiffness limit): the gain is held or cut.
+    Excursion,
+    /// The excursion limit in a long-term test at a fixed level: the high-pass is raised.
+    ExcursionHighPass,
+    /// The ramp explores in steps toward the stiffness limit.
+    Exploration,
+    /// The voice-coil temperature limit.
+    Temperature,
+    /// `max_volts`.
+    MaxVolts,
+    /// A replay: the level was set when it was recorded.
+    Replay,
+}
+
+impl LimitedBy {
+    /// The name written to result files and shown on the terminal.
+    pub fn name(&self) -> &'static str {
+        match self {
+            LimitedBy::SmallSignal => "small-signal stage",
+            LimitedBy::Ramp => "ramp",
+            LimitedBy::Excursion => "excursion",
+            LimitedBy::ExcursionHighPass => "excursion (high-pass)",
+            LimitedBy::Exploration => "exploration",
+            LimitedBy::Temperature => "temperature",
+            LimitedBy::MaxVolts => "max-volts",
+            LimitedBy::Replay => "replay",
+        }
+    }
+}
+
+/// Why a measurement stopped.
+#[derive(Clone, Debug, PartialEq)]
+pub enum StopReason {
+    /// The estimate converged (held-out check passed); `updates`: the stable updates.
+    Converged { t: f64, residual: f64, updates: usize },
+    /// `max_seconds` passed without convergence.
+    NoConvergence { max_seconds: f64 },
+    /// A long-term test ran its duration.
+    DurationOver { seconds: f64 },
+    /// The replayed recording ended before convergence.
+    ReplayEnded { seconds: f64 },
+    /// The device returned an empty block.
+    DeviceEmpty,
+    /// Stopped from outside (Ctrl-C).
+    Interrupted { t: f64 },
+}
+
+impl StopReason {
+    /// Short key for result files and the database (`measurement.stop_reason`).
+    pub fn key(&self) -> &'static str {
+        match self {
+            StopReason::Converged { .. } => "converged",
+            StopReason::NoConvergence { .. } => "no-convergence",
+            StopReason::DurationOver { .. } => "duration-over",
+            StopReason::ReplayEnded { .. } => "replay-ended",
+            StopReason::DeviceEmpty => "device-empty",
+            StopReason::Interrupted { .. } => "interrupted",
+        }
+    }
+
+    /// Whether the run did what was asked (converged, or a long-term test ran its course).
+    pub fn is_success(&self) -> bool {
+        matches!(self, StopReason::Converged { .. } | StopReason::DurationOver { .. })
+    }
+
+    /// One sentence for people, naming what to do where something can be done.
+    pub fn describe(&self) -> String {
+        match self {
+            StopReason::Converged { t, residual, updates } => format!(
+                "converged after {t:.1} s: window residual {residual:.2e}, Bl/Kms curves changed by < {} % and Le by < {} % (over 90 % of the range the driver keeps visiting at the final level) at each of the last {updates} updates",
+                100.0 * CONVERGED_BL_KMS,
+                100.0 * CONVERGED_LE
+            ),
+            StopReason::NoConvergence { max_seconds } => format!("no convergence within {max_seconds} s (--max-seconds): the best estimate is kept; raise --max-seconds, or check the residual and warnings"),
+            StopReason::DurationOver { seconds } => format!("long-term test: the duration of {seconds} s is over"),
+            StopReason::ReplayEnded { seconds } => format!("the replayed recording ended after {seconds:.1} s before the estimate converged: the best estimate is kept; a longer record (8 s or more at high level) converges"),
+            StopReason::DeviceEmpty => "the device delivered no samples".into(),
+            StopReason::Interrupted { t } => format!("interrupted at {t:.1} s: the estimate so far is kept"),
+        }
+    }
+}
+
+impl std::fmt::Display for LimitedBy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::fmt::Display for StopReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.describe())
+    }
+}
+
 /// What observers see after every block.
 #[derive(Clone, Debug)]
 pub struct Live {
@@ -180,7 +285,7 @@ pub struct Live {
     /// Excursion limit in force (m).
     pub x_limit: Option<f64>,
     /// What limits the level now.
-    pub limited_by: &'static str,
+    pub limited_by: LimitedBy,
     /// Whether a recursive update ran after this block, and its window residual.
     pub update: Option<f64>,
     /// After an update: the new estimate, and the largest change of Bl/Kms and of Le since
@@ -196,7 +301,7 @@ pub struct Measurement {
     pub small: Parameters,
     pub online: Online,
     pub converged: bool,
-    pub stop_reason: String,
+    pub stop_reason: StopReason,
     pub seconds: f64,
     /// Range of x the live model reached at the final level (m).
     pub x_range: [f64; 2],
@@ -205,13 +310,15 @@ pub struct Measurement {
     /// Cold voice-coil resistance (ohm): the online estimate at its first update (the
     /// reference of the temperature estimate); the small-signal fit's Re if none ran.
     pub re_cold: f64,
+    /// Voice-coil resistance at the end of the run (ohm): hot.
+    pub re_end: f64,
     /// Temperature coefficient of the coil's resistance used for the rise (1/K).
     pub alpha: f64,
     /// Last window residual.
     pub residual_rel: f64,
     pub updates: usize,
     /// What limited the drive level at the end (excursion, temperature, ...).
-    pub limited_by: String,
+    pub limited_by: LimitedBy,
     /// Protection events: (t, what).
     pub events: Vec<(f64, String)>,
     /// (t, dT) once per second.
@@ -220,6 +327,26 @@ pub struct Measurement {
     pub excitation: String,
     pub device: String,
     pub mms_source: String,
+}
+
+/// Seconds at the end of the small-signal stage in which the drive fades out (raised cosine)
+/// and then stays silent, so that the record the impedance fit sees starts and ends at rest:
+/// its whole-record DFT relation `I = U / Z` is then exact. A record cut off in motion
+/// carries a transient that the fit otherwise takes up in the LR-2 branch (18WU: Re -> 0,
+/// L2 = 0.96 H).
+const SMALL_FADE_S: f64 = 0.1;
+const SMALL_REST_S: f64 = 0.3;
+
+/// Fade-out and rest at the end of the small-signal stage; `start` is the absolute index of
+/// `drive[0]`.
+fn small_stage_envelope(drive: &mut [f64], start: usize, fs: f64, small_seconds: f64) {
+    let fade_at = small_seconds - SMALL_REST_S - SMALL_FADE_S;
+    for (k, v) in drive.iter_mut().enumerate() {
+        let t = (start + k) as f64 / fs - fade_at;
+        if t > 0.0 {
+            *v *= if t < SMALL_FADE_S { 0.5 + 0.5 * (std::f64::consts::PI * t / SMALL_FADE_S).cos() } else { 0.0 };
+        }
+    }
 }
 
 /// Largest relative change of a curve over `[-r, r]`, relative to its value at rest.
@@ -290,10 +417,12 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     let mut dtv_recent: Vec<f64> = Vec::new();
     // Whether the temperature has cut the level (cleared once the coil is below 75 %).
     let mut temp_cut = false;
+    // The temperature estimate (carried ahead) of the last cut.
+    let mut last_cut_dtv = 0.0f64;
     let mut converged = false;
     // What limited the level at the last block.
-    let mut last_why: &'static str = "small-signal stage";
-    let mut stop_reason = String::new();
+    let mut last_why = LimitedBy::SmallSignal;
+    let mut stop_reason: Option<StopReason> = None;
     let mut blocks = 0usize;
     // Blocks per second: the database commits and the dT track are once a second.
     let per_second = (1.0 / opts.block).round().max(1.0) as usize;
@@ -301,10 +430,14 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     loop {
         let t = samples as f64 / fs;
         if t >= end {
-            stop_reason = match opts.duration {
-                Some(d) => format!("long-term test: the duration of {d} s is over"),
-                None => format!("no convergence within {} s (--max-seconds)", opts.max_seconds),
-            };
+            stop_reason = Some(match opts.duration {
+                Some(seconds) => StopReason::DurationOver { seconds },
+                None => StopReason::NoConvergence { max_seconds: opts.max_seconds },
+            });
+            break;
+        }
+        if opts.interrupt.as_ref().is_some_and(|f| f.load(std::sync::atomic::Ordering::Relaxed)) {
+            stop_reason = Some(StopReason::Interrupted { t });
             break;
         }
         let mut drive = match pilot.as_mut() {
@@ -313,13 +446,16 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
         };
         hp.process(&mut drive);
         drive.iter_mut().for_each(|v| *v *= gain);
+        if stage == Stage::Small && controllable {
+            small_stage_envelope(&mut drive, samples, fs, opts.small_seconds);
+        }
         let Some(blk) = device.play(&drive)? else {
-            stop_reason = "the replayed recording ended".into();
+            stop_reason = Some(StopReason::ReplayEnded { seconds: t });
             break;
         };
         let n = blk.u.len();
         if n == 0 {
-            stop_reason = "the device delivered no samples".into();
+            stop_reason = Some(StopReason::DeviceEmpty);
             break;
         }
         samples += n;
@@ -336,7 +472,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
             re: f64::NAN,
             residual: f64::NAN,
             x_limit: None,
-            limited_by: "ramp",
+            limited_by: LimitedBy::Ramp,
             update: None,
             estimate: None,
             change: None,
@@ -345,7 +481,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
             None => {
                 u_small.extend_from_slice(&blk.u);
                 i_small.extend_from_slice(&blk.i);
-                live.limited_by = "small-signal stage";
+                live.limited_by = LimitedBy::SmallSignal;
                 if t >= opts.small_seconds {
                     let lin = fit_linear_bins(&u_small, &i_small, fs, "small-signal stage", usize::MAX, |_| {})
                         .map_err(|e| format!("{e} (the small-signal stage at {:.3} V rms: raise --start-volts if the level is too low against noise)", opts.start_volts))?;
@@ -453,9 +589,9 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                         let n = changes.len();
                         let k = ((CONVERGED_SPAN_S / every).round() as usize).max(2);
                         // Not while the ramp only pauses to explore toward the stiffness limit.
-                        if opts.duration.is_none() && stage == Stage::Hold && last_why != "exploration" && t - hold_since >= 2.0 && n >= k && up.before < 0.02 && changes[n - k..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
+                        if opts.duration.is_none() && stage == Stage::Hold && last_why != LimitedBy::Exploration && t - hold_since >= 2.0 && n >= k && up.before < 0.02 && changes[n - k..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
                             converged = true;
-                            stop_reason = format!("converged after {t:.1} s: window residual {:.2e}, Bl/Kms curves changed by < {} % and Le by < {} % (over 90 % of the range the driver keeps visiting at the final level) at each of the last {k} updates", up.before, 100.0 * CONVERGED_BL_KMS, 100.0 * CONVERGED_LE);
+                            stop_reason = Some(StopReason::Converged { t, residual: up.before, updates: k });
                         }
                     }
                 }
@@ -478,7 +614,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                     let ramp = if kms_ratio > 0.75 * opts.kms_limit { opts.ramp_db_per_s / 3.0 } else { opts.ramp_db_per_s };
                     let step = 10f64.powf(ramp * n as f64 / fs / 20.0);
                     let mut g = opts.hold_volts.map_or(gain * step, |v| v.min(gain * step));
-                    let mut why = "ramp";
+                    let mut why = LimitedBy::Ramp;
                     if let Some(xl) = x_limit {
                         if opts.hold_volts.is_some() {
                             // Fixed level: the high-pass keeps x in range.
@@ -486,17 +622,17 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                                 let fc = (hp.fc.max(5.0) * 1.25).min(2000.0);
                                 events.push((t, format!("excursion {:.2} mm near the limit {:.2} mm: high-pass raised to {fc:.1} Hz", peak * 1e3, xl * 1e3)));
                                 hp.set(fc);
-                                why = "excursion (high-pass)";
+                                why = LimitedBy::ExcursionHighPass;
                             } else if gain * per_volt < 0.8 * xl && hp.fc > opts.hp_hz {
                                 hp.set((hp.fc / 1.05).max(opts.hp_hz));
                             }
                         } else if peak > 0.98 * xl {
                             g = gain * 0.9 * xl / peak;
                             events.push((t, format!("excursion {:.2} mm above 98 % of the limit {:.2} mm: gain cut to {g:.3} V", peak * 1e3, xl * 1e3)));
-                            why = "excursion";
+                            why = LimitedBy::Excursion;
                         } else if g * per_volt > X_AIM * xl {
                             g = X_AIM * xl / per_volt.max(1e-12);
-                            why = "excursion";
+                            why = LimitedBy::Excursion;
                         }
                     }
                     // Once the suspension stiffens, explore in steps: never aim beyond
@@ -506,32 +642,39 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                         let cap = EXPLORE * checked_reach / per_volt.max(1e-12);
                         if cap < g {
                             g = cap.max(gain.min(g));
-                            why = "exploration";
+                            why = LimitedBy::Exploration;
                         }
                     }
                     // Margins for what is left of the tracking lag and for the cold Re's
                     // error (0.05 % of Re is 0.13 K): hold at 85 %, cut to 85 % above 92 %.
-                    if dtv_ahead > 0.92 * opts.max_dt {
+                    // A cut acts on the estimate that prompted it; the next block may cut
+                    // again only on new information (the estimate rose since), or the cuts
+                    // compound on one stale value.
+                    if dtv_ahead > 0.92 * opts.max_dt && dtv_ahead > last_cut_dtv {
                         let cut = gain * (0.85 * opts.max_dt / dtv_ahead).sqrt();
+                        last_cut_dtv = dtv_ahead;
                         if cut < g {
                             g = cut;
                             events.push((t, format!("voice-coil rise {dtv:.2} K (heading for {dtv_ahead:.2} K) above 92 % of {} K: gain cut to {g:.3} V", opts.max_dt)));
-                            why = "temperature";
+                            why = LimitedBy::Temperature;
                         }
                     } else if (dtv_ahead > 0.85 * opts.max_dt || (temp_cut && dtv_ahead > 0.75 * opts.max_dt)) && g > gain {
                         // After a cut the level stays until the coil has cooled to 75 %
                         // (no hunting around the limit: every change of level restarts the hold).
                         g = gain;
-                        why = "temperature";
+                        why = LimitedBy::Temperature;
                     }
-                    if why == "temperature" && g < gain {
+                    if why == LimitedBy::Temperature && g < gain {
                         temp_cut = true;
                     } else if dtv_ahead < 0.75 * opts.max_dt {
                         temp_cut = false;
                     }
+                    if dtv_ahead < 0.92 * opts.max_dt {
+                        last_cut_dtv = 0.0;
+                    }
                     if g > opts.max_volts {
                         g = opts.max_volts;
-                        why = "max-volts";
+                        why = LimitedBy::MaxVolts;
                     }
                     live.limited_by = why;
                     if stage == Stage::Ramp {
@@ -561,7 +704,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                     }
                     gain = g;
                 } else {
-                    live.limited_by = "replay";
+                    live.limited_by = LimitedBy::Replay;
                 }
                 if blocks.is_multiple_of(per_second) {
                     dt_track.push((t, dtv));
@@ -597,25 +740,30 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     let Some(on) = online else {
         return Err(format!("the measurement ended after {seconds:.2} s, before the small-signal stage ({} s) was complete", opts.small_seconds));
     };
+    // `Re` of a parameter set is the value at ambient temperature (formats.md): the cold
+    // estimate. The hot value at the end lives under `thermal` (`Measurement::re_end`).
     let mut params = on.parameters();
+    let re_end = params.re;
     if hold_range == [0.0, 0.0] {
         hold_range = [-on.reach, on.reach];
     }
     params.x_range = Some(hold_range);
     let small = small.expect("set with the estimator");
     let re_cold = re_cold.unwrap_or(small.re);
+    params.re = re_cold;
     Ok(Measurement {
         params,
         small,
         converged,
-        stop_reason,
+        stop_reason: stop_reason.unwrap_or(StopReason::DeviceEmpty),
         seconds,
         x_range: hold_range,
         x_peak_max,
         dtv_max,
         re_cold,
+        re_end,
         alpha: opts.alpha,
-        limited_by: last_why.to_string(),
+        limited_by: last_why,
         residual_rel: last_residual,
         updates,
         events,
@@ -655,7 +803,7 @@ impl Measurement {
                 "x_range": self.x_range,
                 "order": self.online.layout.order,
                 "converged": self.converged,
-                "stop_reason": self.stop_reason,
+                "stop_reason": self.stop_reason.describe(),
                 "updates": self.updates,
                 "Mms_source": self.mms_source,
             },
@@ -665,12 +813,15 @@ impl Measurement {
             "thermal": {
                 "note": format!("voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = {} 1/K; Re_cold is the online estimate at its first update (almost no power yet)", self.alpha),
                 "Re_cold": self.re_cold,
+                "Re_end": self.re_end,
+                "dT_end": (self.re_end / self.re_cold - 1.0) / self.alpha,
                 "dT_track": self.dt_track.iter().map(|(t, d)| json!([t, d])).collect::<Vec<_>>(),
             },
             "measurement": {
                 "x_peak_max": self.x_peak_max,
                 "dTv_max": self.dtv_max,
-                "limited_by": self.limited_by,
+                "limited_by": self.limited_by.name(),
+                "stop_reason": self.stop_reason.key(),
                 "seconds": self.seconds,
                 "device": self.device,
                 "excitation": self.excitation,

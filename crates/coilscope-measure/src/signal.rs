@@ -26,7 +26,7 @@ impl Source {
         let mut reader = hound_reader(path)?;
         let spec = reader.spec();
         if spec.sample_rate as f64 != fs {
-            return Err(format!("{}: sample rate {} Hz; the measurement runs at {fs} Hz (resample the file, or pass --fs {})", path.display(), spec.sample_rate, spec.sample_rate));
+            return Err(format!("{}: sample rate {} Hz; the measurement runs at {fs} Hz (resample the file, or pass --rate {})", path.display(), spec.sample_rate, spec.sample_rate));
         }
         let ch = spec.channels as usize;
         let samples: Vec<f64> = match spec.sample_format {

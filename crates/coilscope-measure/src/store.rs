@@ -3,8 +3,8 @@
 //!
 //! WAL journal; rows are written inside one transaction per second of measurement, so a kill
 //! loses at most the last second, and what was committed is never damaged. A run whose
-//! process died stays `running` in the table; [`list_runs`] reports it as `interrupted`
-//! (no heartbeat for 10 s).
+//! process died stays `running` in the table; [`list_runs`] reports it as `killed`
+//! (no heartbeat for 10 s); one stopped by Ctrl-C is closed as `interrupted`.
 //!
 //! Tables (SI units):
 //! * `runs(id, started, device, options, status, seconds, heartbeat, result)`
@@ -182,7 +182,9 @@ pub fn list_runs(path: &Path) -> Result<Vec<RunInfo>, String> {
             .query_row(&format!("SELECT {STATE_COLUMNS} FROM states WHERE run = ?1 ORDER BY t DESC LIMIT 1"), [id], state_row)
             .optional()
             .map_err(err)?;
-        let status = if status == "running" && t_now - heartbeat > 10.0 { "interrupted".to_string() } else { status };
+        // A run whose process died (killed, power lost) never closed its row: no heartbeat
+        // for 10 s. A run stopped by Ctrl-C closed it as `interrupted`.
+        let status = if status == "running" && t_now - heartbeat > 10.0 { "killed".to_string() } else { status };
         out.push(RunInfo { id, started, device, status, seconds, states, estimates, last });
     }
     Ok(out)

@@ -51,6 +51,12 @@ fn assert_truth(label: &str, m: &Measurement, p: &Parameters) {
     assert!(m.seconds <= 60.0, "{label}: {} s", m.seconds);
     assert!(e_bl <= 0.02 && e_k <= 0.02 && e_le <= 0.05, "{label}: Bl {e_bl}, Kms {e_k}, Le {e_le}");
     assert!(e_re <= 0.01 && e_rms <= 0.01, "{label}: Re {e_re}, Rms {e_rms}");
+    // Issue 14: `Re` of the result is the cold value (the truth at ambient), not the hot one.
+    let e_re_param = (q.re / p.re - 1.0).abs();
+    assert!(e_re_param <= 0.001, "{label}: parameters.Re {} vs cold truth {}", q.re, p.re);
+    let j = m.result_json();
+    assert_eq!(j["parameters"]["Re"].as_f64(), Some(q.re));
+    assert!(j["thermal"]["Re_end"].as_f64().unwrap() >= q.re, "{label}: the hot Re lives under thermal");
 }
 
 fn converges_from_silence(names: &[&str]) {

@@ -1,0 +1,115 @@
+//! Issue 14: wiring mistakes and doubtful fits are named, never a quiet exit 0.
+//!
+//! Each record is made by the simulator and then damaged as a wrong wiring would damage it;
+//! every command must name the cause and exit non-zero (2: refused, 3: result written but
+//! not trustworthy).
+
+use coilscope_io::{read_recording, write_recording, Recording};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn coilscope(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_coilscope")).args(args).output().unwrap()
+}
+
+fn text(o: &Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+/// A 4 s pink-noise record of SB17 at `volts` (70 dB sensor noise), optionally with laser.
+fn record(dir: &Path, name: &str, volts: &str, laser: bool) -> PathBuf {
+    let out = dir.join(name);
+    let mut args = vec!["simulate", "sb17cac35-4", "--excitation", "pink", "--volts", volts, "--seconds", "4", "--snr-db", "70", "--seed", "5", "--out", out.to_str().unwrap()];
+    if laser {
+        args.push("--laser");
+    }
+    let o = coilscope(&args);
+    assert!(o.status.success(), "{}", text(&o));
+    out
+}
+
+fn damaged(src: &Path, name: &str, f: impl FnOnce(&mut Recording)) -> PathBuf {
+    let mut rec = read_recording(src, None).unwrap();
+    f(&mut rec);
+    let out = src.with_file_name(name);
+    write_recording(&out, &rec).unwrap();
+    out
+}
+
+const MMS: &str = "0.015367";
+
+#[test]
+fn an_inverted_current_is_refused_by_name() {
+    let d = tempfile::tempdir().unwrap();
+    let src = record(d.path(), "small.wav", "0.15", false);
+    let inv = damaged(&src, "inverted.wav", |r| r.i.iter_mut().for_each(|v| *v = -*v));
+    let out = d.path().join("r.json");
+    for cmd in ["linear", "identify"] {
+        let o = coilscope(&[cmd, inv.to_str().unwrap(), "--mms", MMS, "--out", out.to_str().unwrap()]);
+        assert_eq!(o.status.code(), Some(2), "{cmd}: {}", text(&o));
+        assert!(text(&o).contains("current looks inverted") && text(&o).contains("inverted.wav"), "{cmd}: {}", text(&o));
+    }
+}
+
+#[test]
+fn a_current_one_sample_late_is_named_with_its_delay() {
+    let d = tempfile::tempdir().unwrap();
+    let src = record(d.path(), "small.wav", "0.15", false);
+    let late = damaged(&src, "late.wav", |r| {
+        r.i.rotate_right(1);
+        r.i[0] = 0.0;
+    });
+    let out = d.path().join("r.json");
+    let o = coilscope(&["linear", late.to_str().unwrap(), "--mms", MMS, "--out", out.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(3), "{}", text(&o));
+    let t = text(&o);
+    assert!(t.contains("[current-delay]") && t.contains("1.0") && t.contains("samples late"), "{t}");
+    // The best estimate is on disk, marked.
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(j["fit"]["trustworthy"], false);
+    assert!(j["fit"]["warnings"].as_array().unwrap().iter().any(|w| w["code"] == "current-delay"));
+}
+
+#[test]
+fn a_dc_offset_on_the_current_is_named_by_identify() {
+    let d = tempfile::tempdir().unwrap();
+    let src = record(d.path(), "big.wav", "2.3", false);
+    let rec = read_recording(&src, None).unwrap();
+    let i_rms = (rec.i.iter().map(|v| v * v).sum::<f64>() / rec.i.len() as f64).sqrt();
+    for share in [0.01, 0.03] {
+        let off = damaged(&src, &format!("dc{share}.wav"), |r| r.i.iter_mut().for_each(|v| *v += share * i_rms));
+        let out = d.path().join("r.json");
+        let o = coilscope(&["identify", off.to_str().unwrap(), "--mms", MMS, "--order", "4", "--out", out.to_str().unwrap()]);
+        assert_eq!(o.status.code(), Some(3), "DC {share}: {}", text(&o));
+        assert!(text(&o).contains("[dc-offset-current]"), "DC {share}: {}", text(&o));
+    }
+}
+
+#[test]
+fn linear_on_a_large_signal_record_says_to_use_identify() {
+    let d = tempfile::tempdir().unwrap();
+    let src = record(d.path(), "big.wav", "2.3", false);
+    let out = d.path().join("r.json");
+    let o = coilscope(&["linear", src.to_str().unwrap(), "--mms", MMS, "--out", out.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(3), "{}", text(&o));
+    assert!(text(&o).contains("[large-signal-record]") && text(&o).contains("coilscope identify"), "{}", text(&o));
+    // And a small-signal record of the same driver passes clean.
+    let small = record(d.path(), "small.wav", "0.15", false);
+    let o = coilscope(&["linear", small.to_str().unwrap(), "--mms", MMS, "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(!text(&o).contains("warning"), "{}", text(&o));
+}
+
+#[test]
+fn a_dead_displacement_channel_names_the_file_and_channel() {
+    let d = tempfile::tempdir().unwrap();
+    let src = record(d.path(), "laser.wav", "2.3", true);
+    let dead = damaged(&src, "dead-laser.wav", |r| r.x.as_mut().unwrap().iter_mut().for_each(|v| *v = 0.0));
+    let out = d.path().join("r.json");
+    for cmd in ["identify", "linear"] {
+        let o = coilscope(&[cmd, dead.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+        assert_eq!(o.status.code(), Some(2), "{cmd}: {}", text(&o));
+        let t = text(&o);
+        assert!(t.contains("dead-laser.wav") && t.contains("channel 3") && t.contains("silent"), "{cmd}: {t}");
+    }
+}
