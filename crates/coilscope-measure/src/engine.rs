@@ -533,7 +533,10 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                     if let Some(up) = on.update() {
                         updates += 1;
                         if re_cold.is_none() {
-                            re_cold = Some(on.re());
+                            // The small-signal fit of a record that ends at rest (the
+                            // stage's closing fade and rest) is the cold reference; the online
+                            // Re has already tracked a second of the ramp by now.
+                            re_cold = Some(small.as_ref().map_or(on.re(), |p| p.re));
                         }
                         last_residual = up.before;
                         live.update = Some(up.before);
