@@ -618,31 +618,27 @@ pub fn scale_by_displacement(fit: &LinearFit, i: &[f64], x: &[f64], fs: f64, ori
     Ok(bl * bl * fit.p[5])
 }
 
-/// Displacement predicted from the current by the linear model (for the reached range).
-pub fn predicted_displacement(p: &Parameters, i: &[f64], fs: f64) -> Vec<f64> {
-    let n = i.len();
-    let mut spec = rfft(i);
+/// `s` filtered by the transfer `h(k, f)` of each whole-record DFT bin (exact for a record
+/// that starts and ends at rest).
+fn filter_record(s: &[f64], fs: f64, h: impl Fn(usize, f64) -> Complex64) -> Vec<f64> {
+    let n = s.len();
+    let mut spec = rfft(s);
     for (k, c) in spec.iter_mut().enumerate() {
-        let f = k as f64 * fs / n as f64;
-        *c *= if k == 0 { Complex64::new(0.0, 0.0) } else { coilscope_core::small_signal::displacement_per_current(p, f) };
+        *c *= h(k, k as f64 * fs / n as f64);
     }
     let mut out = irfft(&spec, n);
     out.iter_mut().for_each(|v| *v /= n as f64);
     out
 }
 
-/// The linear model's current for the measured voltage (A), by the whole-record DFT
-/// (exact for a record that starts and ends at rest).
+/// Displacement predicted from the current by the linear model (for the reached range).
+pub fn predicted_displacement(p: &Parameters, i: &[f64], fs: f64) -> Vec<f64> {
+    filter_record(i, fs, |k, f| if k == 0 { Complex64::new(0.0, 0.0) } else { coilscope_core::small_signal::displacement_per_current(p, f) })
+}
+
+/// The linear model's current for the measured voltage (A).
 pub fn model_current(fit: &LinearFit, u: &[f64], fs: f64) -> Vec<f64> {
-    let n = u.len();
-    let mut spec = rfft(u);
-    for (k, c) in spec.iter_mut().enumerate() {
-        let f = k as f64 * fs / n as f64;
-        *c = if k == 0 { *c / fit.p[0] } else { *c / model_impedance(&fit.p, f) };
-    }
-    let mut out = irfft(&spec, n);
-    out.iter_mut().for_each(|v| *v /= n as f64);
-    out
+    filter_record(u, fs, |k, f| if k == 0 { Complex64::new(1.0 / fit.p[0], 0.0) } else { 1.0 / model_impedance(&fit.p, f) })
 }
 
 /// Relative current error above the noise floor below which a linear fit's misfit is not
@@ -706,26 +702,24 @@ pub fn linear_warnings(fit: &LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs
 fn large_signal_share(p: &Parameters, r: &[f64], i: &[f64], x: &[f64], fs: f64) -> f64 {
     use crate::checks::explained_share;
     let n = r.len();
-    let v: Vec<f64> = (0..n).map(|k| (x[(k + 1).min(n - 1)] - x[k.saturating_sub(1)]) * fs / 2.0).collect();
+    // Central differences (d/dt).
     let d = |s: &[f64]| -> Vec<f64> { (0..n).map(|k| (s[(k + 1).min(n - 1)] - s[k.saturating_sub(1)]) * fs / 2.0).collect() };
+    let v = d(x);
     let (bl, kms, le) = (p.bl.eval(0.0), p.kms.eval(0.0), p.le.eval(0.0));
     let filter = |s: &[f64], voltage: bool| -> Vec<f64> {
-        let mut spec = rfft(s);
-        for (k, c) in spec.iter_mut().enumerate() {
+        filter_record(s, fs, |k, f| {
             if k == 0 {
-                *c = Complex64::new(0.0, 0.0);
-                continue;
+                return Complex64::new(0.0, 0.0);
             }
-            let f = k as f64 * fs / n as f64;
             let jw = Complex64::new(0.0, 2.0 * PI * f);
             let ze = p.re + jw * le + p.l2r2.as_ref().map_or(Complex64::new(0.0, 0.0), |(l2, r2)| jw * l2.eval(0.0) * r2.eval(0.0) / (jw * l2.eval(0.0) + r2.eval(0.0)));
             let zm = jw * p.mms + p.rms + kms / jw;
-            let h = if voltage { -1.0 / (ze + bl * bl / zm) } else { -bl / (ze * (zm + bl * bl / ze)) };
-            *c *= h;
-        }
-        let mut out = irfft(&spec, n);
-        out.iter_mut().for_each(|s| *s /= n as f64);
-        out
+            if voltage {
+                -1.0 / (ze + bl * bl / zm)
+            } else {
+                -bl / (ze * (zm + bl * bl / ze))
+            }
+        })
     };
     let prod = |a: &[f64], b: &[f64]| -> Vec<f64> { a.iter().zip(b).map(|(a, b)| a * b).collect() };
     let x2 = prod(x, x);
