@@ -417,8 +417,6 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     let mut dtv_recent: Vec<f64> = Vec::new();
     // Whether the temperature has cut the level (cleared once the coil is below 75 %).
     let mut temp_cut = false;
-    // The temperature estimate (carried ahead) of the last cut.
-    let mut last_cut_dtv = 0.0f64;
     let mut converged = false;
     // What limited the level at the last block.
     let mut last_why = LimitedBy::SmallSignal;
@@ -650,12 +648,8 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                     }
                     // Margins for what is left of the tracking lag and for the cold Re's
                     // error (0.05 % of Re is 0.13 K): hold at 85 %, cut to 85 % above 92 %.
-                    // A cut acts on the estimate that prompted it; the next block may cut
-                    // again only on new information (the estimate rose since), or the cuts
-                    // compound on one stale value.
-                    if dtv_ahead > 0.92 * opts.max_dt && dtv_ahead > last_cut_dtv {
+                    if dtv_ahead > 0.92 * opts.max_dt {
                         let cut = gain * (0.85 * opts.max_dt / dtv_ahead).sqrt();
-                        last_cut_dtv = dtv_ahead;
                         if cut < g {
                             g = cut;
                             events.push((t, format!("voice-coil rise {dtv:.2} K (heading for {dtv_ahead:.2} K) above 92 % of {} K: gain cut to {g:.3} V", opts.max_dt)));
@@ -671,9 +665,6 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                         temp_cut = true;
                     } else if dtv_ahead < 0.75 * opts.max_dt {
                         temp_cut = false;
-                    }
-                    if dtv_ahead < 0.92 * opts.max_dt {
-                        last_cut_dtv = 0.0;
                     }
                     if g > opts.max_volts {
                         g = opts.max_volts;

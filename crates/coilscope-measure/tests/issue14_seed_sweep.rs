@@ -88,7 +88,7 @@ fn sweep(cases: Vec<Case>) -> (usize, Vec<String>) {
         let (e_bl, e_k, e_le) = (worst(&q.bl, &c.p.bl, r), worst(&q.kms, &c.p.kms, r), worst(&q.le, &c.p.le, r));
         let e_re = (q.re / c.p.re - 1.0).abs();
         let line = format!(
-            "{}: {} after {:.1} s; reach {:.2}..{:.2} mm, true peak {:.2} mm of {:.2}; Bl {:.2} %, Kms {:.2} %, Le {:.2} %, Re(cold) {:.3} %",
+            "{}: {} after {:.1} s; reach {:.2}..{:.2} mm, true peak {:.2} mm of {:.2}; dT true {:.1} K, estimated {:.1} K; Bl {:.2} %, Kms {:.2} %, Le {:.2} %, Re(cold) {:.3} %",
             c.label,
             m.stop_reason.key(),
             m.seconds,
@@ -96,6 +96,8 @@ fn sweep(cases: Vec<Case>) -> (usize, Vec<String>) {
             r[1] * 1e3,
             t.x_peak * 1e3,
             range * 1e3,
+            t.dtv_max,
+            m.dtv_max,
             100.0 * e_bl,
             100.0 * e_k,
             100.0 * e_le,
@@ -105,6 +107,9 @@ fn sweep(cases: Vec<Case>) -> (usize, Vec<String>) {
         let mut bad = Vec::new();
         if t.x_peak > 1.05 * range {
             bad.push("protection: true peak beyond the range + 5 %");
+        }
+        if t.dtv_max > 1.05 * opts.max_dt {
+            bad.push("protection: true voice-coil rise beyond the limit + 5 %");
         }
         if !q.bl.c.iter().chain(&q.kms.c).chain(&q.le.c).all(|v| v.is_finite()) {
             bad.push("NaN in the result");
@@ -158,9 +163,17 @@ fn w18wu_over_seeds() {
 #[test]
 #[ignore = "release-profile sweep: cargo test --release -p coilscope-measure --test issue14_seed_sweep -- --ignored"]
 fn microspeakers_over_seeds() {
-    let mut cases: Vec<Case> = (1..=SEEDS).map(|s| case("microspeaker-0g1", s)).collect();
-    cases.extend((1..=4).map(|s| case("microspeaker-2g7", s)));
-    check(cases);
+    check((1..=SEEDS).map(|s| case("microspeaker-0g1", s)).collect());
+}
+
+/// Open defect of issue 14 (not run by CI): a coil with a 2 s thermal time constant (the
+/// 2.7 g set, Rtv 40 K/W, Ctv 0.05 J/K) heats past the tracker's 1 %-per-step window; the
+/// estimate lags the truth by 6-7 K, the protection overshoots 50 K by up to 9 K and the
+/// level hunts without converging. Needs a thermal model in the protection.
+#[test]
+#[ignore = "known open (issue 14): thermal protection of a fast-heating microspeaker overshoots and hunts"]
+fn known_open_fast_heating_microspeaker() {
+    check((1..=4).map(|s| case("microspeaker-2g7", s)).collect());
 }
 
 #[test]
