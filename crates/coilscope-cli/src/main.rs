@@ -1006,22 +1006,22 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     let mut store = Store::create(&a.out.join("run.sqlite"), &device.describe(), &options)?;
     let tty = std::io::stderr().is_terminal();
     let mut last_print = -1.0;
-    eprintln!("measuring {} with {} (run {} in {})", device.describe(), source.name(), store.run, a.out.join("run.sqlite").display());
+    let controllable = device.controllable();
+    if controllable {
+        eprintln!("measuring {} with {} (run {} in {})", device.describe(), source.name(), store.run, a.out.join("run.sqlite").display());
+    } else {
+        eprintln!("identifying from the {} (run {} in {})", device.describe(), store.run, a.out.join("run.sqlite").display());
+    }
     let result = coilscope_measure::measure(device.as_mut(), &mut source, &opts, Some(&mut store), |l| {
         if l.t - last_print >= 1.0 || l.update.is_some() && tty {
             last_print = l.t;
-            let line = format!(
-                "t {:6.1} s  {:<12} {:7.3} V  x {:+6.2} .. {:+6.2} mm  dT {:5.1} K  Re {:.4} ohm  err {:.1e}  limited by {}",
-                l.t,
-                l.stage.name(),
-                l.volts,
-                l.x_min * 1e3,
-                l.x_max * 1e3,
-                l.dtv,
-                l.re,
-                l.residual,
-                l.limited_by
-            );
+            let state = format!("x {:+6.2} .. {:+6.2} mm  dT {:5.1} K  Re {:.4} ohm  err {:.1e}", l.x_min * 1e3, l.x_max * 1e3, l.dtv, l.re, l.residual);
+            // A replay's level was set when it was recorded: no drive level, no controller.
+            let line = if controllable {
+                format!("t {:6.1} s  {:<12} {:7.3} V  {state}  limited by {}", l.t, l.stage.name(), l.volts, l.limited_by)
+            } else {
+                format!("t {:6.1} s  {state}", l.t)
+            };
             if tty {
                 eprint!("\r{line}   ");
             } else {
@@ -1049,11 +1049,14 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         _ => "not converged",
     };
     store.finish(m.seconds, status, Some(&j))?;
+    for w in m.warnings() {
+        eprintln!("warning [{}]: {}", w.code, w.message);
+    }
     let p = &m.params;
     println!("{status}: {}", m.stop_reason.describe());
     println!("measured {:.1} s, peak x {:.2} mm, voice-coil rise up to {:.1} K, {} updates, window residual {:.2e}", m.seconds, m.x_peak_max * 1e3, m.dtv_max, m.updates, m.residual_rel);
-    println!("small signal (start): Re {:.4} ohm, Bl {:.3} T m, Kms {:.1} N/m, Rms {:.3} kg/s", m.small.re, m.small.bl.eval(0.0), m.small.kms.eval(0.0), m.small.rms);
-    println!("cold Re (online estimate at its first update, the temperature reference): {:.4} ohm", m.re_cold);
+    println!("start (the first {} s): Re {:.4} ohm, Bl {:.3} T m, Kms {:.1} N/m, Rms {:.3} kg/s", opts.small_seconds, m.small.re, m.small.bl.eval(0.0), m.small.kms.eval(0.0), m.small.rms);
+    println!("cold Re (the start's fit, the temperature reference): {:.4} ohm +- {:.1e}", m.re_cold, m.re_cold_sd);
     let [lo, hi] = m.x_range;
     println!("large signal (end), over {:.2} .. {:.2} mm:", lo * 1e3, hi * 1e3);
     for (name, f, unit) in [("Bl", &p.bl, "T m"), ("Kms", &p.kms, "N/m"), ("Le", &p.le, "mH")] {
@@ -1061,7 +1064,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         println!("  {name:<4} {:10.4} {:10.4} {:10.4} {unit}  (x_min, 0, x_max)", f.eval(lo) * k, f.eval(0.0) * k, f.eval(hi) * k);
     }
     for (t, e) in &m.events {
-        println!("  protection at {t:.1} s: {e}");
+        println!("  at {t:.1} s: {e}");
     }
     println!("wrote {} and {}", a.out.join("result.json").display(), a.out.join("run.sqlite").display());
     if !a.no_report {

@@ -113,3 +113,25 @@ fn a_dead_displacement_channel_names_the_file_and_channel() {
         assert!(t.contains("dead-laser.wav") && t.contains("channel 3") && t.contains("silent"), "{cmd}: {t}");
     }
 }
+
+#[test]
+fn a_microspeaker_small_signal_fit_is_clean_with_its_lr2_above_the_band() {
+    // The 0.1 g set's LR-2 corner is at 21 kHz, above the fitted band (to 20 kHz): the fit
+    // must still find it, report finite standard deviations, and raise no warning.
+    let d = tempfile::tempdir().unwrap();
+    let rec = d.path().join("micro.wav");
+    let drv = format!("{}/../../testdata/drivers/microspeaker-0g1.json", env!("CARGO_MANIFEST_DIR"));
+    let o = coilscope(&["simulate", &drv, "--volts", "0.1", "--seconds", "3", "--snr-db", "70", "--seed", "2", "--out", rec.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let out = d.path().join("r.json");
+    let o = coilscope(&["linear", rec.to_str().unwrap(), "--mms", "1e-4", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(!text(&o).contains("warning"), "{}", text(&o));
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let (l2, r2) = (j["parameters"]["L2"].as_f64().unwrap(), j["parameters"]["R2"].as_f64().unwrap());
+    assert!((l2 / 15e-6 - 1.0).abs() < 0.05 && (r2 / 2.0 - 1.0).abs() < 0.05, "L2 {l2}, R2 {r2}");
+    for k in ["Re", "Le", "L2", "R2", "Bl", "Kms", "Rms"] {
+        let sd = j["uncertainty"][k].as_f64();
+        assert!(sd.is_some_and(|v| v.is_finite() && v > 0.0), "{k}: {sd:?}");
+    }
+}

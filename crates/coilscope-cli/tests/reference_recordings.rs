@@ -131,3 +131,38 @@ fn replayed_reference_recordings_identify_every_driver() {
         assert!(r[1] - r[0] >= 0.7 * reached, "{name}: range {:?} m of {reached} m reached", r);
     }
 }
+
+/// Issue 14: `measure --replay` of one ordinary large-signal recording, as users have it: no
+/// quiet lead-in, played once, through the command line. The start is a batch large-signal
+/// fit of its first seconds; the result must converge within the issue's bounds (Bl, Kms
+/// 2 %, Le 5 % over the reached range; measured: <= 0.15 %), with the cold Re within 0.1 %.
+#[test]
+fn issue14_replay_of_a_single_large_recording_without_lead_in() {
+    let Some(dir) = shared_recordings() else { return };
+    let out = tempfile::tempdir().unwrap();
+    for name in ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"] {
+        let p = embedded_driver(name).unwrap();
+        let rec = dir.join(format!("{name}-large.wav"));
+        let res = out.path().join(name);
+        let o = Command::new(env!("CARGO_BIN_EXE_coilscope"))
+            .args(["measure", "--replay", rec.to_str().unwrap(), "--mms", &p.mms.to_string(), "--no-report", "--out", res.to_str().unwrap()])
+            .output()
+            .unwrap();
+        let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+        assert!(o.status.success(), "{name}: {text}");
+        // Output that fits a replay: no drive level, no controller.
+        assert!(text.contains("batch large-signal fit") && !text.contains(" V  x") && !text.contains("limited by"), "{name}: {text}");
+        let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(res.join("result.json")).unwrap()).unwrap();
+        let q = coilscope_core::Parameters::from_json_value(&j["parameters"], name).unwrap();
+        let r = [j["fit"]["x_range"][0].as_f64().unwrap(), j["fit"]["x_range"][1].as_f64().unwrap()];
+        let (e_bl, e_k, e_le) = (worst(&q.bl, &p.bl, r), worst(&q.kms, &p.kms, r), worst(&q.le, &p.le, r));
+        let e_re = (q.re / p.re - 1.0).abs();
+        println!("{name} replayed alone: Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.4} % over {:.2}..{:.2} mm", 100.0 * e_bl, 100.0 * e_k, 100.0 * e_le, 100.0 * e_re, r[0] * 1e3, r[1] * 1e3);
+        assert_eq!(j["fit"]["converged"], true, "{name}");
+        assert!(e_bl <= 0.02 && e_k <= 0.02 && e_le <= 0.05, "{name}: Bl {e_bl}, Kms {e_k}, Le {e_le}");
+        assert!(e_re <= 0.001, "{name}: Re {e_re}");
+        let info = info(&dir.join(format!("{name}-large.info.json")));
+        let reached = info["x_max"].as_f64().unwrap() - info["x_min"].as_f64().unwrap();
+        assert!(r[1] - r[0] >= 0.7 * reached, "{name}: range {r:?} m of {reached} m reached");
+    }
+}

@@ -32,6 +32,9 @@ pub const NAMES: [&str; 7] = ["Re", "Le", "L2", "R2", "Res", "Cmes", "Lces"];
 /// Bins the starts of the impedance fit are compared on (the best is then fitted on all).
 const SCOUT_BINS: usize = 4000;
 
+/// How far above the fitted band the LR-2 corner may lie.
+const CORNER_ABOVE_BAND: f64 = 4.0;
+
 /// Lowest coherence for a bin to enter the fit.
 pub const MIN_COHERENCE: f64 = 0.8;
 
@@ -193,6 +196,15 @@ pub struct LinearFit {
     /// error that shifting it explains). `None` when a shift explains little (< 50 % of the
     /// error) or is below 0.05 samples.
     pub current_delay: Option<(f64, f64)>,
+    /// The fitted transient term of a record that does not start and end at rest.
+    pub transient: Transient,
+}
+
+/// The transient term of a fit (see [`TRANSIENT`]): coefficients of `Q(s / omega0)`.
+#[derive(Clone, Debug)]
+pub struct Transient {
+    pub c: Vec<f64>,
+    pub omega0: f64,
 }
 
 impl LinearFit {
@@ -215,10 +227,27 @@ struct CurrentError {
     w: Vec<f64>,
     norm: f64,
     map: ParamMap,
-    /// `Some(fs)`: theta has an 8th entry, the current channel's delay against the voltage
-    /// in samples (`I_recorded = I e^{-j 2 pi f tau / fs}`): the check for skewed channels.
+    /// Reference angular frequency of the transient polynomial (rad/s).
+    omega0: f64,
+    /// `Some(fs)`: theta has an entry [`DELAY`], the current channel's delay against the
+    /// voltage in samples (`I_recorded = I e^{-j 2 pi f tau / fs}`): the check for skewed
+    /// channels.
     delay: Option<f64>,
 }
+
+/// `theta[TRANSIENT..TRANSIENT + N_TRANSIENT]`: the coefficients of the transient term.
+///
+/// The whole-record DFT relation `I = U / Z` is exact only for a record that starts and ends
+/// at rest. A record cut from a running signal (a replay, a stage of a measurement) adds
+/// the difference of its initial and final states, whose DFT is a rational function with
+/// the system's own poles: `T(s) = Q(s) / (Z(s) D_Z(s))`, `Q` a polynomial of degree 3 (the
+/// system has four states: i, i2, x, v), `D_Z` the denominator of `Z` (frequency-domain
+/// identification, Pintelon and Schoukens). `Q` is fitted with the rest, linear in its
+/// coefficients; on a record from rest to rest it comes out at the noise.
+const TRANSIENT: usize = 7;
+const N_TRANSIENT: usize = 4;
+/// `theta[DELAY]`: the current channel's delay in samples, in the skew check.
+const DELAY: usize = TRANSIENT + N_TRANSIENT;
 
 /// How the solver's unknowns `theta` map to the impedance model's parameters.
 ///
@@ -291,21 +320,53 @@ impl CurrentError {
     /// The delay factor `e^{-j 2 pi f tau / fs}` of bin `k` (1 without the delay check).
     fn shift(&self, theta: &[f64], k: usize) -> Complex64 {
         match self.delay {
-            Some(fs) => Complex64::from_polar(1.0, -2.0 * PI * self.f[k] * theta[7] / fs),
+            Some(fs) => Complex64::from_polar(1.0, -2.0 * PI * self.f[k] * theta[DELAY] / fs),
             None => Complex64::new(1.0, 0.0),
         }
     }
 
-    /// `|I - U/Z| / |I|` over the fitted bins, unweighted (the spec's `fit.residual_rel`).
-    fn residual_rel(&self, p: &[f64; 7]) -> f64 {
+    /// `|I - U/Z - T| / |I|` over the fitted bins, unweighted (the spec's `fit.residual_rel`).
+    fn residual_rel(&self, theta: &[f64]) -> f64 {
+        let p = self.map.params(theta);
         let (mut e, mut t) = (0.0, 0.0);
         for k in 0..self.f.len() {
-            let z = model_impedance(p, self.f[k]);
-            e += ((self.i[k] - self.u[k] / z) / self.w[k]).norm_sqr();
+            let z = model_impedance(&p, self.f[k]);
+            let tr = transient_term(&p, &theta[TRANSIENT..DELAY], self.omega0, self.f[k]).0;
+            e += ((self.i[k] - self.u[k] / z) / self.w[k] - tr).norm_sqr();
             t += (self.i[k] / self.w[k]).norm_sqr();
         }
         (e / t).sqrt()
     }
+}
+
+/// The transient term `T = Q(s) / P(s)` at `f` (current, in the DFT's units), with
+/// `Q(s) = sum_j c_j (s / omega0)^j` and `P = Z D_Z / (R2 Res)`, `D_Z = (s L2 + R2)(Res + s
+/// Lces + s^2 Lces Cmes Res)` (ohm). Returns `T`, `d ln P / d ln p_m` (m over the seven model
+/// parameters) and the basis `(s / omega0)^j / P` (= `dT / dc_j`).
+fn transient_term(p: &[f64; 7], c: &[f64], omega0: f64, f: f64) -> (Complex64, [Complex64; 7], [Complex64; N_TRANSIENT]) {
+    let [_, _, l2, r2, res, cmes, lces] = *p;
+    let s = Complex64::new(0.0, 2.0 * PI * f);
+    let (z, g) = model_impedance_and_gradient(p, f);
+    let a = s * l2 + r2;
+    let lcr = s * s * lces * cmes * res;
+    let b = res + s * lces + lcr;
+    let pp = z * a * b / (r2 * res);
+    let mut dlnp: [Complex64; 7] = std::array::from_fn(|m| g[m] / z);
+    dlnp[2] += s * l2 / a;
+    dlnp[3] += r2 / a - 1.0;
+    dlnp[4] += (res + lcr) / b - 1.0;
+    dlnp[5] += lcr / b;
+    dlnp[6] += (s * lces + lcr) / b;
+    let x = s / omega0;
+    let mut basis = [Complex64::new(0.0, 0.0); N_TRANSIENT];
+    let mut pow = Complex64::new(1.0, 0.0);
+    let mut t = Complex64::new(0.0, 0.0);
+    for (j, bj) in basis.iter_mut().enumerate() {
+        *bj = pow / pp;
+        t += c[j] * *bj;
+        pow *= x;
+    }
+    (t, dlnp, basis)
 }
 
 impl Problem for CurrentError {
@@ -318,22 +379,31 @@ impl Problem for CurrentError {
         let mut j = DMatrix::zeros(2 * m, np);
         for k in 0..m {
             let (z, mut g) = model_impedance_and_gradient(&p, self.f[k]);
+            let (tr, mut dlnp, basis) = transient_term(&p, &theta[TRANSIENT..DELAY], self.omega0, self.f[k]);
             // From d/d ln p to d/dq: L2 = tau2 R2, so ln R2 moves L2 too.
             g[3] += g[2];
+            dlnp[3] = dlnp[3] + dlnp[2];
             let shift = self.shift(theta, k);
-            let e = (self.i[k] - self.u[k] * shift / z) / self.norm;
+            let wk = self.w[k] / self.norm;
+            let e = (self.i[k] - self.u[k] * shift / z) / self.norm - wk * tr;
             r[2 * k] = e.re;
             r[2 * k + 1] = e.im;
             let a = self.u[k] * shift / (z * z) / self.norm;
             for c in 0..7 {
-                let d = a * g[c] * dq[c];
+                // e = ... - w T and dT/dq = -T d ln P / dq.
+                let d = (a * g[c] + wk * tr * dlnp[c]) * dq[c];
                 j[(2 * k, c)] = d.re;
                 j[(2 * k + 1, c)] = d.im;
             }
+            for (n, b) in basis.iter().enumerate() {
+                let d = -wk * b;
+                j[(2 * k, TRANSIENT + n)] = d.re;
+                j[(2 * k + 1, TRANSIENT + n)] = d.im;
+            }
             if let Some(fs) = self.delay {
                 let d = self.u[k] * shift / z / self.norm * Complex64::new(0.0, 2.0 * PI * self.f[k] / fs);
-                j[(2 * k, 7)] = d.re;
-                j[(2 * k + 1, 7)] = d.im;
+                j[(2 * k, DELAY)] = d.re;
+                j[(2 * k + 1, DELAY)] = d.im;
             }
         }
         (r, j)
@@ -343,7 +413,8 @@ impl Problem for CurrentError {
         DVector::from_iterator(
             2 * self.f.len(),
             (0..self.f.len()).flat_map(|k| {
-                let e = (self.i[k] - self.u[k] * self.shift(theta, k) / model_impedance(&p, self.f[k])) / self.norm;
+                let tr = transient_term(&p, &theta[TRANSIENT..DELAY], self.omega0, self.f[k]).0;
+                let e = (self.i[k] - self.u[k] * self.shift(theta, k) / model_impedance(&p, self.f[k])) / self.norm - self.w[k] / self.norm * tr;
                 [e.re, e.im]
             }),
         )
@@ -447,10 +518,12 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
     let z_ref = rms(u) / rms(i);
     // The LR-2 corner stays inside the fitted band (see `ParamMap`).
     let (mut lo, mut hi) = ([f64::NEG_INFINITY; 7], [f64::INFINITY; 7]);
-    lo[2] = (1.0 / (2.0 * PI * band[1])).ln();
+    // Upper corner: a few times the band's top (a corner just above it still shapes the
+    // impedance inside the band; the microspeaker sets have theirs at 21 kHz).
+    lo[2] = (1.0 / (2.0 * PI * CORNER_ABOVE_BAND * band[1])).ln();
     hi[2] = (1.0 / (2.0 * PI * band[0])).ln();
     let map = ParamMap { lo, hi };
-    let mut prob = CurrentError { f: vec![], u: vec![], i: vec![], w: vec![], norm: 1.0, map: map.clone(), delay: None };
+    let mut prob = CurrentError { f: vec![], u: vec![], i: vec![], w: vec![], norm: 1.0, map: map.clone(), omega0: 2.0 * PI * (band[0] * band[1]).sqrt(), delay: None };
     for k in 1..uf.len() {
         let f = k as f64 * df;
         if f < band[0] || f > band[1] {
@@ -473,7 +546,7 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
     }
     fn thin(p: &CurrentError, most: usize) -> CurrentError {
         let step = p.f.len().div_ceil(most);
-        let mut t = CurrentError { f: keep(&p.f, step), u: keep(&p.u, step), i: keep(&p.i, step), w: keep(&p.w, step), norm: 1.0, map: p.map.clone(), delay: None };
+        let mut t = CurrentError { f: keep(&p.f, step), u: keep(&p.u, step), i: keep(&p.i, step), w: keep(&p.w, step), norm: 1.0, map: p.map.clone(), omega0: p.omega0, delay: None };
         t.norm = t.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
         t
     }
@@ -511,7 +584,9 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
     let better = |s: &LmState, b: &LmState| (s.converged && !b.converged) || (s.converged == b.converged && s.cost < b.cost);
     let mut best: Option<LmState> = None;
     for q in &starts {
-        let s = run(scout.as_ref().unwrap_or(&prob), map.theta(q), &mut observe);
+        let mut th = map.theta(q);
+        th.resize(DELAY, 0.0);
+        let s = run(scout.as_ref().unwrap_or(&prob), th, &mut observe);
         if best.as_ref().is_none_or(|b| better(&s, b)) {
             best = Some(s);
         }
@@ -524,15 +599,18 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
     let p = map.params(&s.theta);
     // Relative sd of p_k is the sd of ln p_k: the covariance of theta mapped to q (and
     // ln L2 = q2 + q3).
+    // A coordinate that ended on its bound is held there (its logistic's slope is ~0, which
+    // would make J^T J singular and every sd NaN): it leaves the covariance, with sd 0.
     let dq = map.dq(&s.theta);
-    let sigma_rel: [f64; 7] = match covariance(&prob, &s.theta) {
+    let free: Vec<usize> = (0..s.theta.len()).filter(|&k| k >= 7 || !map.lo[k].is_finite() || (1e-3..=1.0 - 1e-3).contains(&logistic(s.theta[k]))).collect();
+    let sigma_rel: [f64; 7] = match covariance_of(&prob, &s.theta, &free) {
         Some(c) => {
             let cq = |a: usize, b: usize| c[(a, b)] * dq[a] * dq[b];
             std::array::from_fn(|k| if k == 2 { (cq(2, 2) + cq(3, 3) + 2.0 * cq(2, 3)).max(0.0).sqrt() } else { cq(k, k).max(0.0).sqrt() })
         }
         None => [f64::NAN; 7],
     };
-    let residual_rel = prob.residual_rel(&p);
+    let residual_rel = prob.residual_rel(&s.theta);
     if !s.converged {
         return Err(format!("{origin}: the impedance fit did not converge in {} iterations (residual {residual_rel:.3e})", s.iteration));
     }
@@ -547,9 +625,33 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
         th.push(0.0);
         let base = LmState::new(&check, th.clone()).cost;
         let d = run(&check, th, &mut |_| {});
-        (d.converged && d.cost < 0.25 * base && d.theta[7].abs() >= 0.05).then(|| (d.theta[7], 1.0 - (d.cost / base).sqrt()))
+        (d.converged && d.cost < 0.25 * base && d.theta[DELAY].abs() >= 0.05).then(|| (d.theta[DELAY], 1.0 - (d.cost / base).sqrt()))
     };
-    Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay })
+    let transient = Transient { c: s.theta[TRANSIENT..DELAY].to_vec(), omega0: prob.omega0 };
+    Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay, transient })
+}
+
+/// [`covariance`] over the `free` entries of theta only (the others held fixed, with zero
+/// rows and columns): `sigma^2 (J_f^T J_f)^-1`, `sigma^2 = |r|^2 / (m - n_f)`.
+fn covariance_of<P: Problem>(p: &P, theta: &[f64], free: &[usize]) -> Option<DMatrix<f64>> {
+    if free.len() == theta.len() {
+        return covariance(p, theta);
+    }
+    let (r, j) = p.residual_jacobian(theta);
+    let m = j.nrows();
+    if m <= free.len() {
+        return None;
+    }
+    let jf = j.select_columns(free);
+    let s2 = r.norm_squared() / (m - free.len()) as f64;
+    let cf = jf.tr_mul(&jf).try_inverse()? * s2;
+    let mut c = DMatrix::zeros(theta.len(), theta.len());
+    for (a, &ka) in free.iter().enumerate() {
+        for (b, &kb) in free.iter().enumerate() {
+            c[(ka, kb)] = cf[(a, b)];
+        }
+    }
+    Some(c)
 }
 
 /// A parameter set from the electrical fit and a known moving mass (kg).
@@ -636,9 +738,18 @@ pub fn predicted_displacement(p: &Parameters, i: &[f64], fs: f64) -> Vec<f64> {
     filter_record(i, fs, |k, f| if k == 0 { Complex64::new(0.0, 0.0) } else { coilscope_core::small_signal::displacement_per_current(p, f) })
 }
 
-/// The linear model's current for the measured voltage (A).
+/// The linear model's current for the measured voltage (A), with the fitted transient
+/// term of a record that does not start and end at rest.
 pub fn model_current(fit: &LinearFit, u: &[f64], fs: f64) -> Vec<f64> {
-    filter_record(u, fs, |k, f| if k == 0 { Complex64::new(1.0 / fit.p[0], 0.0) } else { 1.0 / model_impedance(&fit.p, f) })
+    let n = u.len();
+    let mut spec = rfft(u);
+    for (k, c) in spec.iter_mut().enumerate() {
+        let f = k as f64 * fs / n as f64;
+        *c = if k == 0 { *c / fit.p[0] } else { *c / model_impedance(&fit.p, f) + transient_term(&fit.p, &fit.transient.c, fit.transient.omega0, f).0 };
+    }
+    let mut out = irfft(&spec, n);
+    out.iter_mut().for_each(|v| *v /= n as f64);
+    out
 }
 
 /// Relative current error above the noise floor below which a linear fit's misfit is not
@@ -653,8 +764,11 @@ const NONLINEAR_SHARE_WARN: f64 = 0.3;
 /// (use `identify`). `p` is the scaled parameter set of `fit`.
 pub fn linear_warnings(fit: &LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> (crate::checks::NoiseFloor, Vec<crate::checks::Warning>) {
     use crate::checks::{residual_warnings, Warning};
-    let im = model_current(fit, u, fs);
-    let r: Vec<f64> = i.iter().zip(&im).map(|(a, b)| a - b).collect();
+    // The current error over the fitted band only (outside it nothing was fitted, and
+    // above fs/3 a simulator's or a converter's band-limiting is not the driver's).
+    let r = filter_record(&i.iter().zip(&model_current(fit, u, fs)).map(|(a, b)| a - b).collect::<Vec<_>>(), fs, |_, f| {
+        Complex64::new(if f >= fit.band[0] && f <= fit.band[1] { 1.0 } else { 0.0 }, 0.0)
+    });
     let (nf, mut w) = residual_warnings(&r, fs, "linear (small-signal) fit", rms(i), LINEAR_MATERIAL_EXCESS);
     if let Some((tau, share)) = fit.current_delay {
         w.push(Warning::new(
@@ -670,7 +784,7 @@ pub fn linear_warnings(fit: &LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs
     for b in &fit.at_bound {
         w.push(Warning::new(
             "on-bound",
-            format!("the fit ended on the bound of {b}: the L2/R2 branch's corner is not inside the fitted band ({:.0} .. {:.0} Hz), so L2 and R2 are not identified by this record", fit.band[0], fit.band[1]),
+            format!("the fit ended on the bound of {b}: the L2/R2 branch's corner is not between the fitted band's bottom and {CORNER_ABOVE_BAND} times its top ({:.0} .. {:.0} Hz), so L2 and R2 are not identified by this record", fit.band[0], CORNER_ABOVE_BAND * fit.band[1]),
         ));
     }
     let excess = (nf.rms.powi(2) - nf.floor_rms.powi(2)).max(0.0).sqrt() / rms(i);
@@ -832,6 +946,43 @@ mod tests {
                 let tol = 1e-6 * g[k].norm() + 1e-9 * z.norm();
                 assert!((fd - g[k]).norm() < tol, "{} at {f}: {fd} vs {}", NAMES[k], g[k]);
             }
+        }
+    }
+
+    #[test]
+    fn the_current_error_jacobian_matches_finite_differences_with_transient_and_delay() {
+        // Every column of the LM problem (bounded LR-2 corner, transient coefficients, the
+        // skew check's delay) against central differences of the residual.
+        let p = [3.4, 1.1e-4, 5.4e-4, 0.29, 72.0, 3.8e-4, 6.3e-2];
+        let freqs: Vec<f64> = (1..60).map(|k| 3.0 * 1.12f64.powi(k)).collect();
+        let u: Vec<Complex64> = freqs.iter().enumerate().map(|(k, _)| Complex64::from_polar(1.0 + 0.1 * k as f64, 0.7 * k as f64)).collect();
+        let i: Vec<Complex64> = freqs.iter().zip(&u).map(|(&f, u)| u / model_impedance(&p, f) * 1.01).collect();
+        let w: Vec<f64> = freqs.iter().map(|f| 1.0 / (1.0 + f / 1000.0)).collect();
+        let (mut lo, mut hi) = ([f64::NEG_INFINITY; 7], [f64::INFINITY; 7]);
+        lo[2] = (1.0 / (2.0 * PI * 20000.0)).ln();
+        hi[2] = (1.0 / (2.0 * PI * 3.0)).ln();
+        let map = ParamMap { lo, hi };
+        let prob = CurrentError {
+            f: freqs.clone(),
+            u: u.iter().zip(&w).map(|(u, w)| u * w).collect(),
+            i: i.iter().zip(&w).map(|(i, w)| i * w).collect(),
+            w,
+            norm: 3.0,
+            map: map.clone(),
+            omega0: 2.0 * PI * 250.0,
+            delay: Some(48000.0),
+        };
+        let mut th = map.theta(&ParamMap::q_of(&p));
+        th.extend([0.02, -0.01, 0.005, 0.003, 0.4]);
+        let (_, jac) = prob.residual_jacobian(&th);
+        for c in 0..th.len() {
+            let h = 1e-6;
+            let (mut a, mut b) = (th.clone(), th.clone());
+            a[c] += h;
+            b[c] -= h;
+            let fd = (prob.residual(&a) - prob.residual(&b)) / (2.0 * h);
+            let err = (&fd - jac.column(c)).amax();
+            assert!(err <= 1e-6 * fd.amax().max(1e-9), "column {c}: {err} of {}", fd.amax());
         }
     }
 

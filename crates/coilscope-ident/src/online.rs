@@ -92,6 +92,10 @@ pub struct Update {
     pub after: f64,
     /// Step length actually taken (fraction of the Gauss-Newton step).
     pub step: f64,
+    /// The window's residual before the update against its noise floor (see
+    /// [`crate::checks::noise_floor`]): the previous estimate's prediction of data it has not
+    /// seen (windows are 0.3 s a second apart). About 1 when the model fits to the noise.
+    pub floor_ratio: f64,
 }
 
 /// Why the estimator stopped.
@@ -428,6 +432,7 @@ impl Online {
         let skip = self.settle.min((b - a) / 2);
         let slope = self.re_slope();
         let (r, _) = self.run_window(&self.theta, y0, a, b, skip, slope)?;
+        let floor_ratio = crate::checks::noise_floor(r.as_slice(), self.fs).ratio;
         let q: f64 = self.i[a + skip - self.base..b - self.base].iter().map(|v| v * v).sum();
         let e0 = r.norm_squared();
         let before = (e0 / q.max(1e-300)).sqrt();
@@ -483,7 +488,7 @@ impl Online {
             Some(v) => v,
             None => {
                 // Keep the estimate; the information still narrows nothing (no update).
-                return Some(Update { t: self.t(), before, after: before, step: 0.0 });
+                return Some(Update { t: self.t(), before, after: before, step: 0.0, floor_ratio });
             }
         };
         self.previous = Some((std::mem::replace(&mut self.theta, theta), std::mem::replace(&mut self.cov, cov)));
@@ -499,7 +504,7 @@ impl Online {
         self.re_num = 0.0;
         self.re_den = 0.0;
         self.re_count = 0;
-        Some(Update { t: self.t(), before, after: (e1 / q.max(1e-300)).sqrt(), step })
+        Some(Update { t: self.t(), before, after: (e1 / q.max(1e-300)).sqrt(), step, floor_ratio })
     }
 
     /// Standard deviation (same unit as the curve) of `Bl`, `Kms` or `Le` at `x` from the

@@ -44,6 +44,13 @@ const EXPLORE: f64 = 1.25;
 /// The largest basis scale of the curves, in small-signal reaches.
 const X_REF_SMALL: f64 = 20.0;
 
+/// A replay's restart: when the window error before an update passes RESTART_RESIDUAL, the
+/// estimator restarts from a batch fit of the last RESTART_S seconds, at most MAX_RESTARTS
+/// times.
+const RESTART_RESIDUAL: f64 = 0.1;
+const RESTART_S: f64 = 2.0;
+const MAX_RESTARTS: usize = 3;
+
 /// Seconds of data per recursive update.
 const ONLINE_WINDOW_S: f64 = 0.3;
 /// Largest relative current error of the live model over a block for its x to count as reached.
@@ -58,6 +65,11 @@ const THERMAL_LAG_S: f64 = 1.0;
 /// value at rest), at each of the last two updates.
 const CONVERGED_BL_KMS: f64 = 0.003;
 const CONVERGED_LE: f64 = 0.01;
+/// Convergence: largest relative current error above the noise floor on the held-out window
+/// (the window before an update, which the previous estimate has not seen). Good fits of the
+/// virtual drivers sit at 0.07-0.2 %; a replay started from a linear fit of large-signal data
+/// that "converged" with Kms 43 % off sat at 1.9 %.
+pub const CONVERGED_EXCESS: f64 = 0.005;
 /// Seconds of data the stable updates must span.
 const CONVERGED_SPAN_S: f64 = 2.0;
 
@@ -247,7 +259,7 @@ impl StopReason {
             ),
             StopReason::NoConvergence { max_seconds } => format!("no convergence within {max_seconds} s (--max-seconds): the best estimate is kept; raise --max-seconds, or check the residual and warnings"),
             StopReason::DurationOver { seconds } => format!("long-term test: the duration of {seconds} s is over"),
-            StopReason::ReplayEnded { seconds } => format!("the replayed recording ended after {seconds:.1} s before the estimate converged: the best estimate is kept; a longer record (8 s or more at high level) converges"),
+            StopReason::ReplayEnded { seconds } => format!("the replayed recording ended after {seconds:.1} s before the estimate converged: the best estimate is kept; a replay needs about 2 s of quiet (small-signal) lead-in, then 8 s or more at high level"),
             StopReason::DeviceEmpty => "the device delivered no samples".into(),
             StopReason::Interrupted { t } => format!("interrupted at {t:.1} s: the estimate so far is kept"),
         }
@@ -310,12 +322,16 @@ pub struct Measurement {
     /// Cold voice-coil resistance (ohm): the online estimate at its first update (the
     /// reference of the temperature estimate); the small-signal fit's Re if none ran.
     pub re_cold: f64,
+    /// Standard deviation of `re_cold` (ohm; NaN when it came from no fit).
+    pub re_cold_sd: f64,
     /// Voice-coil resistance at the end of the run (ohm): hot.
     pub re_end: f64,
     /// Temperature coefficient of the coil's resistance used for the rise (1/K).
     pub alpha: f64,
     /// Last window residual.
     pub residual_rel: f64,
+    /// Relative current error above the noise floor on the last held-out window.
+    pub residual_excess: f64,
     pub updates: usize,
     /// What limited the drive level at the end (excursion, temperature, ...).
     pub limited_by: LimitedBy,
@@ -347,6 +363,29 @@ fn small_stage_envelope(drive: &mut [f64], start: usize, fs: f64, small_seconds:
             *v *= if t < SMALL_FADE_S { 0.5 + 0.5 * (std::f64::consts::PI * t / SMALL_FADE_S).cos() } else { 0.0 };
         }
     }
+}
+
+/// `Some(reach)` (m) when a record's first seconds are large-signal: the linear fit's error
+/// is explained by the large-signal terms (`coilscope_ident::linear::linear_warnings`).
+fn loud_start(lin: &coilscope_ident::linear::LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<f64> {
+    let (_, w) = coilscope_ident::linear::linear_warnings(lin, p, u, i, fs);
+    w.iter().any(|w| w.code == "large-signal-record").then(|| coilscope_ident::linear::predicted_displacement(p, i, fs).iter().fold(0.0f64, |a, v| a.max(v.abs())))
+}
+
+/// The batch large-signal fit (`coilscope identify`, order 4) of a record's first seconds, as
+/// the online estimator's start, with the sd of its Re (ohm) and the reach (m); `None` if it
+/// cannot be made (the linear start is kept).
+fn batch_start(u: &[f64], i: &[f64], fs: f64, mms: f64) -> Option<(Parameters, f64, f64)> {
+    use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions};
+    let opts = IdentifyOptions { mms, order: Some(4), ..Default::default() };
+    let fit = match identify(u, i, fs, "replay start", &opts, |_| {}) {
+        Ok(f) => f,
+        Err(IdentifyError::NotConverged { best, .. }) => *best,
+        Err(_) => return None,
+    };
+    let re_sd = fit.sd().iter().find(|(k, _)| *k == "Re").map_or(f64::NAN, |(_, v)| *v);
+    let reach = fit.x_range[1].max(-fit.x_range[0]);
+    Some((Parameters { x_range: None, ..fit.params }, re_sd, reach))
 }
 
 /// Largest relative change of a curve over `[-r, r]`, relative to its value at rest.
@@ -386,10 +425,15 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     let mut stage = Stage::Small;
     let (mut u_small, mut i_small) = (Vec::new(), Vec::new());
     let mut online: Option<Online> = None;
+    // Standard deviation of the cold Re (ohm), from the small-signal fit.
+    let mut re_cold_sd = f64::NAN;
     let mut small: Option<Parameters> = None;
     let mut samples = 0usize;
     let mut recent_peaks: Vec<f64> = Vec::new();
     let mut prev_est: Option<Parameters> = None;
+    // A replay's last RESTART_S seconds (for a restart from a batch fit) and the restarts.
+    let (mut recent_u, mut recent_i) = (Vec::new(), Vec::new());
+    let mut restarts = 0usize;
     let mut changes: Vec<(f64, f64)> = Vec::new();
     let mut auto_limit: Option<f64> = None;
     // The stiffness limit once it lies inside the reach (seen in the data, not extrapolated).
@@ -409,6 +453,8 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
     // The gain at which the hold (re)started.
     let mut hold_gain = 0.0f64;
     let mut last_residual = f64::NAN;
+    // Relative current error above the noise floor on the last held-out window.
+    let mut last_excess = f64::NAN;
     let mut updates = 0usize;
     // Cold Re: the online estimate at its first update, when the coil has seen almost no
     // power (the small-signal impedance fit's Re is off by 0.1-0.3 %, i.e. 0.25-0.75 K).
@@ -488,7 +534,26 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                     let x_small = coilscope_ident::linear::predicted_displacement(&p, &i_small, fs).iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-6);
                     // Basis scale: the expected reach, never more than X_REF_SMALL times the
                     // small-signal reach (a far target leaves the curves ill-conditioned at first).
-                    let x_ref = opts.target_x.map_or(20.0 * x_small, |t| t.min(X_REF_SMALL * x_small)).max(2.0 * x_small);
+                    let mut x_ref = opts.target_x.map_or(20.0 * x_small, |t| t.min(X_REF_SMALL * x_small)).max(2.0 * x_small);
+                    // A replay that starts loud (no quiet lead-in) has no small-signal stage: a
+                    // linear fit of large-signal data is a biased start (Kms 20-45 % off), from
+                    // which the online estimator does not recover. Start from a batch
+                    // large-signal fit of the same seconds, with the basis at their reach.
+                    re_cold_sd = lin.sigma_rel[0] * p.re;
+                    let p = match (controllable, loud_start(&lin, &p, &u_small, &i_small, fs)) {
+                        (false, Some(reach)) => {
+                            events.push((t, format!("the replay starts at large signal (x about {:.2} mm): the start is a batch large-signal fit of its first {:.1} s", reach * 1e3, opts.small_seconds)));
+                            x_ref = 1.5 * reach;
+                            match batch_start(&u_small, &i_small, fs, opts.mms) {
+                                Some((b, sd, _)) => {
+                                    re_cold_sd = sd;
+                                    b
+                                }
+                                None => p,
+                            }
+                        }
+                        _ => p,
+                    };
                     let mut on = Online::new(&p, fs, OnlineOptions { order: opts.order, x_ref, window: ONLINE_WINDOW_S, ..Default::default() }).map_err(|e| e.0)?;
                     on.push(&u_small, &i_small).map_err(|e| e.0)?;
                     online = Some(on);
@@ -500,6 +565,16 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                 }
             }
             Some(on) => {
+                if !controllable {
+                    recent_u.extend_from_slice(&blk.u);
+                    recent_i.extend_from_slice(&blk.i);
+                    let keep = (RESTART_S * fs) as usize;
+                    if recent_u.len() > keep {
+                        let cut = recent_u.len() - keep;
+                        recent_u.drain(..cut);
+                        recent_i.drain(..cut);
+                    }
+                }
                 let st = on.push(&blk.u, &blk.i).map_err(|e| e.0)?;
                 let re0 = re_cold.or(small.as_ref().map(|p| p.re)).unwrap_or(f64::NAN);
                 let dtv = (on.re() / re0 - 1.0) / opts.alpha;
@@ -530,13 +605,36 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                 if on.since_update() >= every {
                     if let Some(up) = on.update() {
                         updates += 1;
+                        // A replay has no ramp: the level can jump far past what the estimate
+                        // knows (a quiet lead-in, then the loud part), and the online update
+                        // from a model that misses 10 % of the current runs away. Restart it
+                        // from a batch large-signal fit of the last seconds instead.
+                        if !controllable && up.before > RESTART_RESIDUAL && restarts < MAX_RESTARTS && recent_u.len() as f64 >= RESTART_S * fs - 1.0 {
+                            if let Some((b, _, reach)) = batch_start(&recent_u, &recent_i, fs, opts.mms) {
+                                let fresh = Online::new(&b, fs, OnlineOptions { order: opts.order, x_ref: 1.5 * reach.max(1e-6), window: ONLINE_WINDOW_S, ..Default::default() })
+                                    .and_then(|mut f| f.push(&recent_u, &recent_i).map(|_| f));
+                                if let Ok(f) = fresh {
+                                    *on = f;
+                                    restarts += 1;
+                                    events.push((t, format!("the estimate missed {:.0} % of the current (the level jumped past what it knew): restarted from a batch large-signal fit of the last {RESTART_S} s", 100.0 * up.before)));
+                                    prev_est = None;
+                                    changes.clear();
+                                    hold_peaks.clear();
+                                    hold_range = [0.0, 0.0];
+                                    hold_since = t;
+                                }
+                            }
+                        }
                         if re_cold.is_none() {
-                            // The small-signal fit of a record that ends at rest (the
-                            // stage's closing fade and rest) is the cold reference; the online
-                            // Re has already tracked a second of the ramp by now.
+                            // The small-signal fit of a record that ends at rest (the stage's
+                            // closing fade and rest) is the cold reference: the online Re has
+                            // tracked a second of the ramp by now. Both are limited by sensor
+                            // noise at the start level (0.001 % without it).
                             re_cold = Some(small.as_ref().map_or(on.re(), |p| p.re));
                         }
                         last_residual = up.before;
+                        last_excess = up.before * (1.0 - 1.0 / up.floor_ratio.max(1.0).powi(2)).sqrt();
+
                         live.update = Some(up.before);
                         let est = on.parameters();
                         let reach = on.reach;
@@ -567,7 +665,9 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                             (Some(a), Some(b)) => Some(a.min(b)),
                             (a, b) => a.or(b),
                         };
+                        // A replay has no controller: its limits are not events.
                         match (auto_limit, new_limit) {
+                            _ if !controllable => {}
                             (None, Some(x)) => events.push((t, format!("Kms(x)/Kms(0) reaches {} at |x| = {:.2} mm: excursion limited there", opts.kms_limit, x * 1e3))),
                             (Some(a), Some(x)) if (x / a - 1.0).abs() > 0.05 => events.push((t, format!("Kms(x)/Kms(0) reaches {} at |x| = {:.2} mm (was {:.2} mm): excursion limit moved", opts.kms_limit, x * 1e3, a * 1e3))),
                             (Some(a), None) => events.push((t, format!("the stiffness limit at {:.2} mm, extrapolated beyond the reach, is no longer predicted: the ramp explores on", a * 1e3))),
@@ -590,7 +690,7 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                         let n = changes.len();
                         let k = ((CONVERGED_SPAN_S / every).round() as usize).max(2);
                         // Not while the ramp only pauses to explore toward the stiffness limit.
-                        if opts.duration.is_none() && stage == Stage::Hold && last_why != LimitedBy::Exploration && t - hold_since >= 2.0 && n >= k && up.before < 0.02 && changes[n - k..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
+                        if opts.duration.is_none() && stage == Stage::Hold && last_why != LimitedBy::Exploration && t - hold_since >= 2.0 && n >= k && up.before < 0.02 && last_excess <= CONVERGED_EXCESS && changes[n - k..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
                             converged = true;
                             stop_reason = Some(StopReason::Converged { t, residual: up.before, updates: k });
                         }
@@ -755,10 +855,12 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
         x_peak_max,
         dtv_max,
         re_cold,
+        re_cold_sd,
         re_end,
         alpha: opts.alpha,
         limited_by: last_why,
         residual_rel: last_residual,
+        residual_excess: last_excess,
         updates,
         events,
         dt_track,
@@ -771,6 +873,27 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
 }
 
 impl Measurement {
+    /// What makes the result doubtful, named (empty for a converged fit to the noise).
+    pub fn warnings(&self) -> Vec<coilscope_ident::checks::Warning> {
+        let mut w = Vec::new();
+        if self.residual_excess.is_finite() && self.residual_excess > CONVERGED_EXCESS {
+            w.push(coilscope_ident::checks::Warning::new(
+                "residual-above-noise",
+                format!(
+                    "the final model leaves {:.2} % of the current unexplained above the noise floor on data it had not seen (converged fits leave < {} %): the curves do not describe this driver. {}",
+                    100.0 * self.residual_excess,
+                    100.0 * CONVERGED_EXCESS,
+                    if self.online.resets > 0 || !self.device.starts_with("virtual") {
+                        "Likely causes: a record that starts loud (the start model is a linear fit of large-signal data: give a record with 2 s of quiet lead-in), a wiring or chain problem, or a driver with effects the model lacks"
+                    } else {
+                        "Likely causes: a measurement stopped before the estimate settled, or a driver with effects the model lacks"
+                    }
+                ),
+            ));
+        }
+        w
+    }
+
     /// The result file (`coilscope.result/1`, plus `measurement.*`).
     pub fn result_json(&self) -> serde_json::Value {
         use serde_json::json;
@@ -786,6 +909,8 @@ impl Measurement {
             let sd: Vec<f64> = xs.iter().map(|&x| self.online.curve_sd(which, x)).collect();
             unc.insert(format!("{which}_band"), json!({"x": xs, "value": value, "sd": sd}));
         }
+        // Re is the cold value: its sd is the small-signal fit's.
+        unc.insert("Re".into(), self.re_cold_sd.into());
         json!({
             "format": "coilscope.result/1",
             "kind": "large-signal",
@@ -794,6 +919,9 @@ impl Measurement {
             "fit": {
                 "method": "online recursive output error (parallel model, exact Jacobians on sliding windows, Kalman update of the parameters)",
                 "residual_rel": self.residual_rel,
+                "residual_excess": self.residual_excess,
+                "warnings": self.warnings().iter().map(|w| w.to_json()).collect::<Vec<_>>(),
+                "trustworthy": self.converged && self.warnings().is_empty(),
                 "x_range": self.x_range,
                 "order": self.online.layout.order,
                 "converged": self.converged,
@@ -807,6 +935,7 @@ impl Measurement {
             "thermal": {
                 "note": format!("voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = {} 1/K; Re_cold is the online estimate at its first update (almost no power yet)", self.alpha),
                 "Re_cold": self.re_cold,
+                "Re_cold_sd": self.re_cold_sd,
                 "Re_end": self.re_end,
                 "dT_end": (self.re_end / self.re_cold - 1.0) / self.alpha,
                 "dT_track": self.dt_track.iter().map(|(t, d)| json!([t, d])).collect::<Vec<_>>(),

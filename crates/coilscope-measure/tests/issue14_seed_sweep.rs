@@ -88,7 +88,7 @@ fn sweep(cases: Vec<Case>) -> (usize, Vec<String>) {
         let (e_bl, e_k, e_le) = (worst(&q.bl, &c.p.bl, r), worst(&q.kms, &c.p.kms, r), worst(&q.le, &c.p.le, r));
         let e_re = (q.re / c.p.re - 1.0).abs();
         let line = format!(
-            "{}: {} after {:.1} s; reach {:.2}..{:.2} mm, true peak {:.2} mm of {:.2}; dT true {:.1} K, estimated {:.1} K; Bl {:.2} %, Kms {:.2} %, Le {:.2} %, Re(cold) {:.3} %",
+            "{}: {} after {:.1} s; reach {:.2}..{:.2} mm, true peak {:.2} mm of {:.2}; dT true {:.1} K, estimated {:.1} K; Bl {:.2} %, Kms {:.2} %, Le {:.2} %, Re(cold) {:.3} % (sd {:.3} %)",
             c.label,
             m.stop_reason.key(),
             m.seconds,
@@ -101,7 +101,8 @@ fn sweep(cases: Vec<Case>) -> (usize, Vec<String>) {
             100.0 * e_bl,
             100.0 * e_k,
             100.0 * e_le,
-            100.0 * e_re
+            100.0 * e_re,
+            100.0 * m.re_cold_sd / q.re
         );
         println!("{line}");
         let mut bad = Vec::new();
@@ -118,8 +119,10 @@ fn sweep(cases: Vec<Case>) -> (usize, Vec<String>) {
             if !(e_bl <= 0.02 && e_k <= 0.02 && e_le <= 0.05) {
                 bad.push("converged on curves off the truth");
             }
-            if c.re_cold && e_re > 0.001 {
-                bad.push("cold Re off by more than 0.1 %");
+            // 0.1 %, or three of its reported standard deviations where the start level
+            // leaves less signal than that (a quiet start, music).
+            if c.re_cold && e_re > 0.001f64.max(3.0 * m.re_cold_sd / q.re) {
+                bad.push("cold Re off by more than 0.1 % and 3 sd");
             }
         } else if m.stop_reason.is_success() {
             bad.push("not converged, yet the stop reason says success");
