@@ -147,6 +147,18 @@ pub fn h1_impedance(u: &[f64], i: &[f64], fs: f64, seg: usize) -> ImpedanceEstim
     ImpedanceEstimate { f, z, coherence, suu, suu_max }
 }
 
+/// Whether a record starts and ends at rest: voltage and current in its first and last 2 ms
+/// below 1 % of their RMS (a cone still moving drives a current through the coil; a record
+/// that fades in and out is at rest at its very ends).
+pub fn at_rest(u: &[f64], i: &[f64], fs: f64) -> bool {
+    let m = ((0.002 * fs) as usize).clamp(1, u.len() / 4);
+    let quiet = |x: &[f64]| {
+        let r = rms(x);
+        rms(&x[..m]) < 0.01 * r && rms(&x[x.len() - m..]) < 0.01 * r
+    };
+    quiet(u) && quiet(i)
+}
+
 /// The fitted impedance model, `theta` = ln of [Re, Le, L2, R2, Res, Cmes, Lces].
 pub fn model_impedance(p: &[f64; 7], f: f64) -> Complex64 {
     model_impedance_and_gradient(p, f).0
@@ -229,13 +241,17 @@ struct CurrentError {
     map: ParamMap,
     /// Reference angular frequency of the transient polynomial (rad/s).
     omega0: f64,
-    /// `Some(fs)`: theta has an entry [`DELAY`], the current channel's delay against the
+    /// Number of transient coefficients in theta (0 or [`N_TRANSIENT`]).
+    n_transient: usize,
+    /// `Some(fs)`: theta has an entry [`CurrentError::delay_index`], the current channel's delay against the
     /// voltage in samples (`I_recorded = I e^{-j 2 pi f tau / fs}`): the check for skewed
     /// channels.
     delay: Option<f64>,
 }
 
-/// `theta[TRANSIENT..TRANSIENT + N_TRANSIENT]`: the coefficients of the transient term.
+/// `theta[TRANSIENT..TRANSIENT + n_transient]`: the coefficients of the transient term, for a
+/// record that does not start and end at rest (none for one that does: there the term is
+/// zero, and on a large-signal record its freedom would absorb distortion).
 ///
 /// The whole-record DFT relation `I = U / Z` is exact only for a record that starts and ends
 /// at rest. A record cut from a running signal (a replay, a stage of a measurement) adds
@@ -246,8 +262,6 @@ struct CurrentError {
 /// coefficients; on a record from rest to rest it comes out at the noise.
 const TRANSIENT: usize = 7;
 const N_TRANSIENT: usize = 4;
-/// `theta[DELAY]`: the current channel's delay in samples, in the skew check.
-const DELAY: usize = TRANSIENT + N_TRANSIENT;
 
 /// How the solver's unknowns `theta` map to the impedance model's parameters.
 ///
@@ -317,10 +331,20 @@ impl ParamMap {
 }
 
 impl CurrentError {
+    /// Where the delay of the skew check sits in theta.
+    fn delay_index(&self) -> usize {
+        TRANSIENT + self.n_transient
+    }
+
+    /// The transient coefficients in theta.
+    fn transient<'t>(&self, theta: &'t [f64]) -> &'t [f64] {
+        &theta[TRANSIENT..TRANSIENT + self.n_transient]
+    }
+
     /// The delay factor `e^{-j 2 pi f tau / fs}` of bin `k` (1 without the delay check).
     fn shift(&self, theta: &[f64], k: usize) -> Complex64 {
         match self.delay {
-            Some(fs) => Complex64::from_polar(1.0, -2.0 * PI * self.f[k] * theta[DELAY] / fs),
+            Some(fs) => Complex64::from_polar(1.0, -2.0 * PI * self.f[k] * theta[self.delay_index()] / fs),
             None => Complex64::new(1.0, 0.0),
         }
     }
@@ -331,7 +355,7 @@ impl CurrentError {
         let (mut e, mut t) = (0.0, 0.0);
         for k in 0..self.f.len() {
             let z = model_impedance(&p, self.f[k]);
-            let tr = transient_term(&p, &theta[TRANSIENT..DELAY], self.omega0, self.f[k]).0;
+            let tr = transient_term(&p, self.transient(theta), self.omega0, self.f[k]).0;
             e += ((self.i[k] - self.u[k] / z) / self.w[k] - tr).norm_sqr();
             t += (self.i[k] / self.w[k]).norm_sqr();
         }
@@ -363,7 +387,7 @@ fn transient_term(p: &[f64; 7], c: &[f64], omega0: f64, f: f64) -> (Complex64, [
     let mut t = Complex64::new(0.0, 0.0);
     for (j, bj) in basis.iter_mut().enumerate() {
         *bj = pow / pp;
-        t += c[j] * *bj;
+        t += c.get(j).copied().unwrap_or(0.0) * *bj;
         pow *= x;
     }
     (t, dlnp, basis)
@@ -379,7 +403,7 @@ impl Problem for CurrentError {
         let mut j = DMatrix::zeros(2 * m, np);
         for k in 0..m {
             let (z, mut g) = model_impedance_and_gradient(&p, self.f[k]);
-            let (tr, mut dlnp, basis) = transient_term(&p, &theta[TRANSIENT..DELAY], self.omega0, self.f[k]);
+            let (tr, mut dlnp, basis) = transient_term(&p, self.transient(theta), self.omega0, self.f[k]);
             // From d/d ln p to d/dq: L2 = tau2 R2, so ln R2 moves L2 too.
             g[3] += g[2];
             dlnp[3] = dlnp[3] + dlnp[2];
@@ -395,15 +419,15 @@ impl Problem for CurrentError {
                 j[(2 * k, c)] = d.re;
                 j[(2 * k + 1, c)] = d.im;
             }
-            for (n, b) in basis.iter().enumerate() {
+            for (n, b) in basis.iter().enumerate().take(self.n_transient) {
                 let d = -wk * b;
                 j[(2 * k, TRANSIENT + n)] = d.re;
                 j[(2 * k + 1, TRANSIENT + n)] = d.im;
             }
             if let Some(fs) = self.delay {
                 let d = self.u[k] * shift / z / self.norm * Complex64::new(0.0, 2.0 * PI * self.f[k] / fs);
-                j[(2 * k, DELAY)] = d.re;
-                j[(2 * k + 1, DELAY)] = d.im;
+                j[(2 * k, self.delay_index())] = d.re;
+                j[(2 * k + 1, self.delay_index())] = d.im;
             }
         }
         (r, j)
@@ -413,7 +437,7 @@ impl Problem for CurrentError {
         DVector::from_iterator(
             2 * self.f.len(),
             (0..self.f.len()).flat_map(|k| {
-                let tr = transient_term(&p, &theta[TRANSIENT..DELAY], self.omega0, self.f[k]).0;
+                let tr = transient_term(&p, self.transient(theta), self.omega0, self.f[k]).0;
                 let e = (self.i[k] - self.u[k] * self.shift(theta, k) / model_impedance(&p, self.f[k])) / self.norm - self.w[k] / self.norm * tr;
                 [e.re, e.im]
             }),
@@ -454,13 +478,15 @@ fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<[f64; 7], S
 /// Fit the linear model to a recording of voltage `u` and current `i` at rate `fs`.
 /// `observe` sees every LM state (progress, logs).
 pub fn fit_linear(u: &[f64], i: &[f64], fs: f64, origin: &str, observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
-    fit_linear_bins(u, i, fs, origin, usize::MAX, observe)
+    fit_linear_record(u, i, fs, origin, false, observe)
 }
 
-/// [`fit_linear`] on at most `max_bins` DFT bins (every k-th usable bin): a start value in a
-/// fraction of the time (the online measurement's small-signal stage uses 2000), with the
-/// noise averaging of fewer bins.
-pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: usize, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+/// [`fit_linear`], told whether the record is a `segment` cut from a running signal (a
+/// replay's first seconds): a segment that does not start and end at rest is fitted with the
+/// transient term (see [`TRANSIENT`]; a replay's cold Re 0.25 % -> 0.007 %). A whole record
+/// is not: on a long large-signal record the term's freedom replaces the LR-2 branch (18WU:
+/// L2, R2 -> 0) and spoils `identify`'s start.
+pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, segment: bool, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
     check_channels(u, i, fs, origin)?;
     let h1 = h1_impedance(u, i, fs, segment_length(u.len(), fs));
     // Band: from the lowest excited, coherent bin to 0.45 fs (at most 20 kHz).
@@ -523,7 +549,7 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
     lo[2] = (1.0 / (2.0 * PI * CORNER_ABOVE_BAND * band[1])).ln();
     hi[2] = (1.0 / (2.0 * PI * band[0])).ln();
     let map = ParamMap { lo, hi };
-    let mut prob = CurrentError { f: vec![], u: vec![], i: vec![], w: vec![], norm: 1.0, map: map.clone(), omega0: 2.0 * PI * (band[0] * band[1]).sqrt(), delay: None };
+    let mut prob = CurrentError { f: vec![], u: vec![], i: vec![], w: vec![], norm: 1.0, map: map.clone(), omega0: 2.0 * PI * (band[0] * band[1]).sqrt(), n_transient: if segment && !at_rest(u, i, fs) { N_TRANSIENT } else { 0 }, delay: None };
     for k in 1..uf.len() {
         let f = k as f64 * df;
         if f < band[0] || f > band[1] {
@@ -546,15 +572,11 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
     }
     fn thin(p: &CurrentError, most: usize) -> CurrentError {
         let step = p.f.len().div_ceil(most);
-        let mut t = CurrentError { f: keep(&p.f, step), u: keep(&p.u, step), i: keep(&p.i, step), w: keep(&p.w, step), norm: 1.0, map: p.map.clone(), omega0: p.omega0, delay: None };
+        let mut t = CurrentError { f: keep(&p.f, step), u: keep(&p.u, step), i: keep(&p.i, step), w: keep(&p.w, step), norm: 1.0, map: p.map.clone(), omega0: p.omega0, n_transient: p.n_transient, delay: None };
         t.norm = t.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
         t
     }
-    if prob.f.len() > max_bins.max(50) {
-        prob = thin(&prob, max_bins.max(50));
-    } else {
-        prob.norm = prob.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
-    }
+    prob.norm = prob.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
     // The LR-2 branch trades off against Re and Le: start from the heuristic guess and from
     // corners spread over the band, and keep the lowest cost among the converged runs (each
     // start is a full LM run, observed like any other). The starts are scouted on every k-th
@@ -585,7 +607,7 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
     let mut best: Option<LmState> = None;
     for q in &starts {
         let mut th = map.theta(q);
-        th.resize(DELAY, 0.0);
+        th.resize(TRANSIENT + prob.n_transient, 0.0);
         let s = run(scout.as_ref().unwrap_or(&prob), th, &mut observe);
         if best.as_ref().is_none_or(|b| better(&s, b)) {
             best = Some(s);
@@ -625,9 +647,10 @@ pub fn fit_linear_bins(u: &[f64], i: &[f64], fs: f64, origin: &str, max_bins: us
         th.push(0.0);
         let base = LmState::new(&check, th.clone()).cost;
         let d = run(&check, th, &mut |_| {});
-        (d.converged && d.cost < 0.25 * base && d.theta[DELAY].abs() >= 0.05).then(|| (d.theta[DELAY], 1.0 - (d.cost / base).sqrt()))
+        let at = check.delay_index();
+        (d.converged && d.cost < 0.25 * base && d.theta[at].abs() >= 0.05).then(|| (d.theta[at], 1.0 - (d.cost / base).sqrt()))
     };
-    let transient = Transient { c: s.theta[TRANSIENT..DELAY].to_vec(), omega0: prob.omega0 };
+    let transient = Transient { c: prob.transient(&s.theta).to_vec(), omega0: prob.omega0 };
     Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay, transient })
 }
 
@@ -970,6 +993,7 @@ mod tests {
             norm: 3.0,
             map: map.clone(),
             omega0: 2.0 * PI * 250.0,
+            n_transient: N_TRANSIENT,
             delay: Some(48000.0),
         };
         let mut th = map.theta(&ParamMap::q_of(&p));

@@ -31,7 +31,7 @@ use crate::store::{StateRow, Store};
 use coilscope_core::excitation::Excitation;
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
-use coilscope_ident::linear::{fit_linear_bins, scale_by_mms};
+use coilscope_ident::linear::{fit_linear_record, scale_by_mms};
 use coilscope_ident::online::{Online, OnlineOptions};
 
 /// Seconds of peak-excursion memory of the controller.
@@ -527,7 +527,9 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                 i_small.extend_from_slice(&blk.i);
                 live.limited_by = LimitedBy::SmallSignal;
                 if t >= opts.small_seconds {
-                    let lin = fit_linear_bins(&u_small, &i_small, fs, "small-signal stage", usize::MAX, |_| {})
+                    // A controlled stage ends at rest (fade and rest); a replay's first seconds
+                    // are a segment cut from the running record.
+                    let lin = fit_linear_record(&u_small, &i_small, fs, "small-signal stage", !controllable, |_| {})
                         .map_err(|e| format!("{e} (the small-signal stage at {:.3} V rms: raise --start-volts if the level is too low against noise)", opts.start_volts))?;
                     let p = scale_by_mms(&lin, opts.mms)?;
                     // Reach of the small stage: the series basis and the runaway limit scale from it.
