@@ -88,12 +88,16 @@ pub fn noise_floor(r: &[f64], _fs: f64) -> NoiseFloor {
     let norm = 2.0 / (count as f64 * wss * seg as f64);
     let lo = (0.02 * seg as f64) as usize;
     let hi = (0.45 * seg as f64) as usize;
-    let mut band: Vec<f64> = psd[lo.max(1)..hi].iter().map(|p| p * norm).collect();
-    band.sort_by(f64::total_cmp);
-    let median = band[band.len() / 2];
+    let median = median(psd[lo.max(1)..hi].iter().map(|p| p * norm).collect());
     // White noise: every one of the seg/2 bins holds `median`.
     let floor_rms = (median * (seg / 2) as f64).sqrt().max(1e-300);
     NoiseFloor { rms, floor_rms, ratio: rms / floor_rms, dc }
+}
+
+/// The median of `v` (the upper one of an even count; `v` not empty).
+pub(crate) fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
 }
 
 /// Ratio of the residual to its floor above which a fit is said not to describe the record.

@@ -497,9 +497,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, segment: b
     if excited.is_empty() {
         return Err(format!("{origin}: no excitation between {f_lo:.0} and {f_hi:.0} Hz"));
     }
-    let mut coh: Vec<f64> = excited.iter().map(|&k| h1.coherence[k]).collect();
-    coh.sort_by(f64::total_cmp);
-    let median = coh[coh.len() / 2];
+    let median = crate::checks::median(excited.iter().map(|&k| h1.coherence[k]).collect());
     if median < 0.5 {
         return Err(format!(
             "{origin}: too little coherence between voltage and current (median {median:.2} over {} excited bins, {f_lo:.0}..{f_hi:.0} Hz); the excitation is too weak against noise, or the channels are not of one measurement",
@@ -509,9 +507,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, segment: b
     let coherent: Vec<usize> = excited.iter().cloned().filter(|&k| h1.coherence[k] >= MIN_COHERENCE).collect();
     let band = [h1.f[*coherent.first().ok_or("no coherent bins")?], h1.f[*coherent.last().unwrap()]];
     // Swapped channels: U/I of a loudspeaker is ohms, its inverse is siemens-small.
-    let mut mags: Vec<f64> = coherent.iter().map(|&k| h1.z[k].norm()).collect();
-    mags.sort_by(f64::total_cmp);
-    let zmed = mags[mags.len() / 2];
+    let zmed = crate::checks::median(coherent.iter().map(|&k| h1.z[k].norm()).collect());
     if zmed < 0.5 {
         return Err(format!(
             "{origin}: |U/I| is {zmed:.3} ohm (median); channels 1 and 2 look swapped (voltage must be channel 1, current channel 2), or the current scale is wrong"
@@ -520,16 +516,16 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, segment: b
     // Inverted current: a passive impedance has a positive real part at every frequency.
     // Below 500 Hz, where a channel skew of a sample or two rotates the phase by a few
     // degrees only (a skew is named by the fit below, not here).
-    let mut reals: Vec<f64> = coherent.iter().filter(|&&k| h1.f[k] <= 500.0).map(|&k| h1.z[k].re).collect();
-    if reals.is_empty() {
-        reals = coherent.iter().map(|&k| h1.z[k].re).collect();
+    let mut low: Vec<usize> = coherent.iter().copied().filter(|&k| h1.f[k] <= 500.0).collect();
+    if low.is_empty() {
+        low = coherent.clone();
     }
-    reals.sort_by(f64::total_cmp);
-    let re_med = reals[reals.len() / 2];
+    let re_med = crate::checks::median(low.iter().map(|&k| h1.z[k].re).collect());
     if re_med < 0.0 {
         return Err(format!(
-            "{origin}: the current looks inverted: U/I has a negative real part ({re_med:.3} ohm median over {} coherent bins up to 500 Hz), which no passive driver has; swap the sense-resistor leads or invert channel 2 (its scale factor)",
-            coherent.len()
+            "{origin}: the current looks inverted: U/I has a negative real part ({re_med:.3} ohm median over {} coherent bins up to {:.0} Hz), which no passive driver has; swap the sense-resistor leads or invert channel 2 (its scale factor)",
+            low.len(),
+            h1.f[*low.last().expect("not empty")]
         ));
     }
     let p0 = initial_guess(&h1, band[0], band[1]).map_err(|e| format!("{origin}: {e}"))?;
