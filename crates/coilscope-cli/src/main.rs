@@ -204,7 +204,7 @@ enum Command {
         virtual_driver: Option<String>,
         #[command(flatten)]
         card: CardArgs,
-        /// Replay a recording (WAV: voltage, current) instead of driving a device.
+        /// Replay a recording (WAV: voltage, current, and optionally displacement) instead of driving a device; its displacement channel (a laser) gives the absolute scale when --mms is not given.
         #[arg(long, value_name = "WAV")]
         replay: Option<PathBuf>,
         /// Output directory.
@@ -972,8 +972,22 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
             (Box::new(dev), mms, src)
         }
         (None, Some(r)) => {
-            let mms = a.mms.ok_or("--replay needs --mms KG (the absolute scale)")?;
-            (Box::new(ReplayDevice::open(r, None)?), mms, "given (--mms)".to_string())
+            // A displacement channel (a laser) gives the absolute scale, as for `identify`:
+            // Mms from the post-inverse (equation-error) fit of the whole record.
+            let rec = read_recording(r, None).map_err(|e| e.to_string())?;
+            let name = r.display().to_string();
+            let (mms, src) = match (a.mms, &rec.x) {
+                (Some(m), _) => (m, "given (--mms)".to_string()),
+                (None, Some(x)) => {
+                    let fs = rec.fs as f64;
+                    let lin = coilscope_ident::linear::fit_linear(&rec.u, &rec.i, fs, &name, |_| {}).map_err(|e| e.to_string())?;
+                    let pi = coilscope_ident::post_inverse::post_inverse(&rec.u, &rec.i, x, fs, 4, Some((lin.p[2], lin.p[3])), &name)?;
+                    eprintln!("Mms {:.3} g from the displacement channel (post-inverse equation error)", pi.mms * 1e3);
+                    (pi.mms, "displacement channel (post-inverse equation error)".to_string())
+                }
+                (None, None) => return Err(Failure::from(format!("{name}: --replay needs an absolute scale: give --mms KG (moving mass), or a recording with a displacement channel (3, m)"))),
+            };
+            (Box::new(ReplayDevice::from_samples(&name, rec.fs as f64, rec.u, rec.i)), mms, src)
         }
         (None, None) if a.card.card => {
             let mms = a.mms.ok_or("--card needs --mms KG (the absolute scale: weigh the cone, or measure it by the added-mass method with `coilscope linear`)")?;
@@ -1035,8 +1049,17 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     let mut m = match result {
         Ok(m) => m,
         Err(e) => {
-            let _ = store.finish(0.0, &format!("failed: {e}"), None);
-            return Err(Failure::from(e));
+            // Nothing was estimated yet (the small-signal stage failed): the result says so.
+            let j = json!({
+                "format": "coilscope.result/1",
+                "kind": "large-signal",
+                "recording": device.describe(),
+                "fit": {"converged": false, "trustworthy": false, "stop_reason": e, "warnings": []},
+                "measurement": {"stop_reason": "failed", "error": e, "device": device.describe(), "excitation": source.name()},
+            });
+            let _ = write_json(&a.out.join("result.json"), &j);
+            let _ = store.finish(0.0, &format!("failed: {e}"), Some(&j));
+            return Err(Failure::from(format!("{e}; written to {}", a.out.join("result.json").display())));
         }
     };
     m.mms_source = mms_source;
@@ -1045,6 +1068,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     let status = match m.stop_reason {
         _ if m.converged => "converged",
         coilscope_measure::StopReason::Interrupted { .. } => "interrupted",
+        coilscope_measure::StopReason::Failed { .. } => "failed",
         coilscope_measure::StopReason::DurationOver { .. } => "finished",
         _ => "not converged",
     };
@@ -1056,7 +1080,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     println!("{status}: {}", m.stop_reason.describe());
     println!("measured {:.1} s, peak x {:.2} mm, voice-coil rise up to {:.1} K, {} updates, window residual {:.2e}", m.seconds, m.x_peak_max * 1e3, m.dtv_max, m.updates, m.residual_rel);
     println!("start (the first {} s): Re {:.4} ohm, Bl {:.3} T m, Kms {:.1} N/m, Rms {:.3} kg/s", opts.small_seconds, m.small.re, m.small.bl.eval(0.0), m.small.kms.eval(0.0), m.small.rms);
-    println!("cold Re (the start's fit, the temperature reference): {:.4} ohm +- {:.1e}", m.re_cold, m.re_cold_sd);
+    println!("cold Re (the temperature reference: the small-signal stage refitted with the final model when converged, else its impedance fit): {:.4} ohm +- {:.1e}", m.re_cold, m.re_cold_sd);
     let [lo, hi] = m.x_range;
     println!("large signal (end), over {:.2} .. {:.2} mm:", lo * 1e3, hi * 1e3);
     for (name, f, unit) in [("Bl", &p.bl, "T m"), ("Kms", &p.kms, "N/m"), ("Le", &p.le, "mH")] {
@@ -1079,6 +1103,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     let written = a.out.join("result.json");
     match m.stop_reason {
         coilscope_measure::StopReason::Interrupted { .. } => Err(Failure::Interrupted(format!("{}; written to {}", m.stop_reason.describe(), written.display()))),
+        coilscope_measure::StopReason::Failed { .. } => Err(Failure::Error(format!("{}; written to {}", m.stop_reason.describe(), written.display()))),
         ref r if !r.is_success() => Err(Failure::Untrusted(format!("{}; written to {}", r.describe(), written.display()))),
         _ => Ok(()),
     }

@@ -135,3 +135,25 @@ fn a_microspeaker_small_signal_fit_is_clean_with_its_lr2_above_the_band() {
         assert!(sd.is_some_and(|v| v.is_finite() && v > 0.0), "{k}: {sd:?}");
     }
 }
+
+/// Issue 14 item 6: `result.json` is always written. A virtual SB17 whose valid range is
+/// narrowed to +-2 mm (its stiffness limit lies at 5 mm, so the protection aims past it) is
+/// destroyed during the ramp: the run exits 2 and names the cause, and the result on disk
+/// keeps the estimate so far, marked failed and not converged.
+#[test]
+fn a_failed_measurement_still_writes_its_result() {
+    let d = tempfile::tempdir().unwrap();
+    let mut p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
+    p.x_range = Some([-0.002, 0.002]);
+    let driver = d.path().join("narrow.json");
+    std::fs::write(&driver, serde_json::to_string(&p.to_json_value()).unwrap()).unwrap();
+    let out = d.path().join("run");
+    let o = coilscope(&["measure", "--virtual", driver.to_str().unwrap(), "--out", out.to_str().unwrap(), "--no-report", "--max-seconds", "30"]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(text(&o).contains("destroyed") && text(&o).contains("result.json"), "{}", text(&o));
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
+    assert_eq!(j["measurement"]["stop_reason"], "failed");
+    assert_eq!(j["fit"]["converged"], false);
+    assert_eq!(j["fit"]["trustworthy"], false);
+    assert!(j["parameters"]["Bl"].as_array().is_some_and(|c| c.iter().all(|v| v.as_f64().is_some_and(f64::is_finite))), "{j}");
+}

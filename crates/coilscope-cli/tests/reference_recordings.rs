@@ -113,7 +113,7 @@ fn replayed_reference_recordings_identify_every_driver() {
         let e_rms = (q.rms / p.rms - 1.0).abs();
         println!(
             "{name}: {} after {:.1} s; Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re(cold) {:.3} %, Rms {:.3} % over {:.2}..{:.2} mm",
-            if m.converged { "converged" } else { "not converged" },
+            m.stop_reason,
             m.seconds,
             100.0 * e_bl,
             100.0 * e_k,
@@ -157,7 +157,17 @@ fn issue14_replay_of_a_single_large_recording_without_lead_in() {
         let r = [j["fit"]["x_range"][0].as_f64().unwrap(), j["fit"]["x_range"][1].as_f64().unwrap()];
         let (e_bl, e_k, e_le) = (worst(&q.bl, &p.bl, r), worst(&q.kms, &p.kms, r), worst(&q.le, &p.le, r));
         let e_re = (q.re / p.re - 1.0).abs();
-        println!("{name} replayed alone: Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.4} % over {:.2}..{:.2} mm", 100.0 * e_bl, 100.0 * e_k, 100.0 * e_le, 100.0 * e_re, r[0] * 1e3, r[1] * 1e3);
+        // The truth inside +-3 sd of the bands the result publishes, at every band point.
+        let mut z_max = 0.0f64;
+        for (which, truth) in [("Bl", &p.bl), ("Kms", &p.kms), ("Le", &p.le)] {
+            let band = &j["uncertainty"][format!("{which}_band")];
+            let col = |k: &str| band[k].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect::<Vec<_>>();
+            for ((x, v), sd) in col("x").into_iter().zip(col("value")).zip(col("sd")) {
+                z_max = z_max.max((v - truth.eval(x)).abs() / sd);
+            }
+        }
+        println!("{name} replayed alone: Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.4} % over {:.2}..{:.2} mm; truth within {z_max:.2} sd of the bands", 100.0 * e_bl, 100.0 * e_k, 100.0 * e_le, 100.0 * e_re, r[0] * 1e3, r[1] * 1e3);
+        assert!(z_max <= 3.0, "{name}: the truth lies {z_max:.1} sd outside the published band");
         assert_eq!(j["fit"]["converged"], true, "{name}");
         assert!(e_bl <= 0.02 && e_k <= 0.02 && e_le <= 0.05, "{name}: Bl {e_bl}, Kms {e_k}, Le {e_le}");
         assert!(e_re <= 0.001, "{name}: Re {e_re}");
@@ -165,4 +175,34 @@ fn issue14_replay_of_a_single_large_recording_without_lead_in() {
         let reached = info["x_max"].as_f64().unwrap() - info["x_min"].as_f64().unwrap();
         assert!(r[1] - r[0] >= 0.7 * reached, "{name}: range {r:?} m of {reached} m reached");
     }
+}
+
+/// Issue 14 item 3: a replay takes its absolute scale from the recording's laser channel
+/// when no --mms is given (post-inverse Mms, as `identify` does), and without either it
+/// says what would do.
+#[test]
+fn issue14_replay_takes_its_scale_from_the_laser_channel() {
+    let Some(dir) = shared_recordings() else { return };
+    let out = tempfile::tempdir().unwrap();
+    let p = embedded_driver("sb17cac35-4").unwrap();
+    let res = out.path().join("laser");
+    let rec = dir.join("sb17cac35-4-large-laser.wav");
+    let o = Command::new(env!("CARGO_BIN_EXE_coilscope")).args(["measure", "--replay", rec.to_str().unwrap(), "--no-report", "--out", res.to_str().unwrap()]).output().unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success(), "{text}");
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(res.join("result.json")).unwrap()).unwrap();
+    assert!(j["fit"]["Mms_source"].as_str().unwrap().contains("displacement channel"), "{j}");
+    let q = coilscope_core::Parameters::from_json_value(&j["parameters"], "laser replay").unwrap();
+    let r = [j["fit"]["x_range"][0].as_f64().unwrap(), j["fit"]["x_range"][1].as_f64().unwrap()];
+    let e_mms = (q.mms / p.mms - 1.0).abs();
+    let (e_bl, e_k, e_le) = (worst(&q.bl, &p.bl, r), worst(&q.kms, &p.kms, r), worst(&q.le, &p.le, r));
+    println!("laser-scaled replay: Mms {:.3} %, Bl {:.3} %, Kms {:.3} %, Le {:.3} %", 100.0 * e_mms, 100.0 * e_bl, 100.0 * e_k, 100.0 * e_le);
+    assert!(e_mms <= 0.005, "Mms {e_mms}");
+    assert!(e_bl <= 0.02 && e_k <= 0.02 && e_le <= 0.05, "Bl {e_bl}, Kms {e_k}, Le {e_le}");
+    // Neither a laser nor --mms: refused, naming both ways out.
+    let plain = dir.join("sb17cac35-4-large.wav");
+    let o = Command::new(env!("CARGO_BIN_EXE_coilscope")).args(["measure", "--replay", plain.to_str().unwrap(), "--no-report", "--out", out.path().join("plain").to_str().unwrap()]).output().unwrap();
+    let text = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{text}");
+    assert!(text.contains("--mms") && text.contains("displacement channel") && text.contains("sb17cac35-4-large.wav"), "{text}");
 }

@@ -47,8 +47,9 @@ fn simulator_matches_tiny_step_reference_at_full_excursion() {
         let ei = rel_rms(&fast.i, &tiny.i);
         let ex = rel_rms(&fast.x, &tiny.x);
         eprintln!("{name}: {} sub-steps, current {ei:.2e}, displacement {ex:.2e}", fast.substeps);
-        assert!(ei < 1e-4, "{name}: current differs by {ei:.3e} (relative RMS)");
-        assert!(ex < 1e-4, "{name}: displacement differs by {ex:.3e} (relative RMS)");
+        // README: current 0.8-1.9e-6, displacement < 3e-8; the test fails at about 5x.
+        assert!(ei < 1e-5, "{name}: current differs by {ei:.3e} (relative RMS)");
+        assert!(ex < 1e-7, "{name}: displacement differs by {ex:.3e} (relative RMS)");
     }
 }
 
@@ -88,7 +89,8 @@ fn energy_in_equals_losses_plus_stored_energy() {
         let imbalance = e_in - e_re - e_r2 - e_rms - stored;
         eprintln!("{name}: E_in {e_in:.4} J, Re {e_re:.4}, R2 {e_r2:.4}, Rms {e_rms:.4}, stored {stored:.3e}, imbalance {imbalance:.2e}");
         assert!(e_r2 > 0.0 && e_rms > 0.0 && stored > 0.0);
-        assert!(imbalance.abs() < 1e-4 * e_in, "{name}: imbalance {imbalance:.3e} J of {e_in:.3e} J");
+        // README: < 5e-6 of the input energy; the test fails at 4x.
+        assert!(imbalance.abs() < 2e-5 * e_in, "{name}: imbalance {imbalance:.3e} J of {e_in:.3e} J");
     }
 }
 
@@ -135,7 +137,8 @@ fn stiff_microspeaker_is_stable_and_accurate_at_48_khz() {
     let ei = rel_rms(&fast.i, &tiny.i);
     let ex = rel_rms(&fast.x, &tiny.x);
     eprintln!("microspeaker: {} sub-steps, current {ei:.2e}, displacement {ex:.2e}", fast.substeps);
-    assert!(ei < 1e-4 && ex < 1e-4, "current {ei:.3e}, displacement {ex:.3e}");
+    // README: 2.5e-6; the test fails at 4x.
+    assert!(ei < 1e-5 && ex < 1e-7, "current {ei:.3e}, displacement {ex:.3e}");
 }
 
 #[test]

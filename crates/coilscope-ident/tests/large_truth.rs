@@ -5,9 +5,9 @@
 //! by 1-3 K during the record) and Gaussian sensor noise on both channels. Plus the
 //! independent recordings of `shared/recordings` (6 s, another simulator).
 //!
-//! Tolerances at 70 dB SNR (the issue's): over the range the record reached, the largest error
-//! of Bl(x) and Kms(x) within 2 % and of Le(x) within 5 % of the true value at rest; Re and
-//! Rms within 1 %; `residual_rel` <= 1 %. At 60 dB the same tolerances hold (asserted); the
+//! Tolerances: over the range the record reached, the largest error of Bl(x), Kms(x) and
+//! Le(x) relative to the true value at rest, and of Re and Rms, at about 4 times the figures
+//! the README publishes (`AT_70_DB`, `AT_60_DB`, `INDEPENDENT`); `residual_rel` <= 1 %. The
 //! measured errors are printed by every test (`--nocapture`).
 
 use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
@@ -50,7 +50,15 @@ struct Tol {
     le: f64,
     re_rms: f64,
 }
-const ISSUE: Tol = Tol { bl_kms: 0.02, le: 0.05, re_rms: 0.01 };
+/// The tolerances protect the README's figures (issue 14): each fails at about 4 times what
+/// is published. 70 dB, own simulator (3 drivers, 44.1 / 96 kHz, a start with Kms 2x off):
+/// Bl, Kms <= 0.005 %, Le <= 0.015 %, Re, Rms <= 0.002 %.
+const AT_70_DB: Tol = Tol { bl_kms: 2e-4, le: 6e-4, re_rms: 1e-4 };
+/// 60 dB (18WU): Bl, Kms <= 0.03 %, Le <= 0.035 %, Re, Rms <= 0.015 %.
+const AT_60_DB: Tol = Tol { bl_kms: 1.2e-3, le: 1.4e-3, re_rms: 6e-4 };
+/// The independent simulator's recordings (6 s, 70 dB): Bl, Kms, Le <= 0.012 %, Re, Rms
+/// <= 0.01 %.
+const INDEPENDENT: Tol = Tol { bl_kms: 5e-4, le: 5e-4, re_rms: 4e-4 };
 
 fn assert_truth(label: &str, fit: &LargeFit, truth: &Parameters, range: [f64; 2], tol: &Tol) {
     let q = &fit.params;
@@ -99,7 +107,7 @@ fn three_drivers_at_70_db() {
         let p = embedded_driver(name).unwrap();
         let rec = record(&p, 48000.0, 8.0, 0.85, 70.0, 11);
         let fit = run(&rec, IdentifyOptions { mms: p.mms, ..Default::default() });
-        assert_truth(&format!("{name} 70 dB"), &fit, &p, rec.x_range, &ISSUE);
+        assert_truth(&format!("{name} 70 dB"), &fit, &p, rec.x_range, &AT_70_DB);
         // The voice-coil heating is tracked: Re rises over the record.
         assert!(fit.re_track.last().unwrap().1 > fit.re_track[0].1 * 1.001, "{name}: {:?}", fit.re_track);
     }
@@ -110,7 +118,7 @@ fn noisier_sensors_at_60_db() {
     let p = embedded_driver("18wu-4741t-00").unwrap();
     let rec = record(&p, 48000.0, 8.0, 0.85, 60.0, 12);
     let fit = run(&rec, IdentifyOptions { mms: p.mms, ..Default::default() });
-    assert_truth("18wu 60 dB", &fit, &p, rec.x_range, &ISSUE);
+    assert_truth("18wu 60 dB", &fit, &p, rec.x_range, &AT_60_DB);
 }
 
 #[test]
@@ -119,7 +127,7 @@ fn other_sample_rates() {
         let p = embedded_driver(name).unwrap();
         let rec = record(&p, fs, 8.0, 0.85, 70.0, 13);
         let fit = run(&rec, IdentifyOptions { mms: p.mms, ..Default::default() });
-        assert_truth(&format!("{name} at {fs} Hz"), &fit, &p, rec.x_range, &ISSUE);
+        assert_truth(&format!("{name} at {fs} Hz"), &fit, &p, rec.x_range, &AT_70_DB);
     }
 }
 
@@ -140,7 +148,7 @@ fn start_with_kms_twice_too_high() {
     };
     let fit = run(&rec, IdentifyOptions { mms: p.mms, init: Some(start), order: Some(4), ..Default::default() });
     assert_eq!(fit.order, 4);
-    assert_truth("sb17 from Kms x2", &fit, &p, rec.x_range, &ISSUE);
+    assert_truth("sb17 from Kms x2", &fit, &p, rec.x_range, &AT_70_DB);
 }
 
 #[test]
@@ -157,8 +165,8 @@ fn uncertainty_bands_cover_the_truth_and_shrink_with_noise() {
             z_max = z_max.max((b.value[k] - p.bl.eval(x)).abs() / b.sd[k]);
         }
         println!("{snr} dB: Bl band sd at rest {:.2e}, worst |error|/sd {z_max:.1}", b.sd[10]);
-        // Residual correlation makes the noise-only sd optimistic; 10 sd bounds the error.
-        assert!(z_max < 10.0, "{snr} dB: Bl error is {z_max:.1} sd");
+        // The band holds the truth (measured: within 1.0 sd at both levels).
+        assert!(z_max < 3.0, "{snr} dB: Bl error is {z_max:.1} sd");
         widths.push(b.sd[10]);
         for (k, v) in fit.sd() {
             assert!(v > 0.0 && v.is_finite(), "{k}: {v}");
@@ -189,7 +197,7 @@ fn independent_reference_recordings() {
         let range = [info["x_min"].as_f64().unwrap(), info["x_max"].as_f64().unwrap()];
         let r = Rec { fs: rec.fs as f64, u: rec.u, i: rec.i, x_range: range };
         let fit = run(&r, IdentifyOptions { mms: p.mms, ..Default::default() });
-        assert_truth(&format!("{name} (independent)"), &fit, &p, range, &ISSUE);
+        assert_truth(&format!("{name} (independent)"), &fit, &p, range, &INDEPENDENT);
         // The heating the other simulator put in: within 15 % (it runs 8 % hotter than the
         // spec's model; see the issue 2 note).
         let dt = fit.temperature_track(0.00393).last().unwrap().1;
@@ -209,7 +217,7 @@ fn independent_small_signal_record_gives_curves_over_its_small_range() {
     let range = [info["x_min"].as_f64().unwrap(), info["x_max"].as_f64().unwrap()];
     let r = Rec { fs: rec.fs as f64, u: rec.u, i: rec.i, x_range: range };
     let fit = run(&r, IdentifyOptions { mms: p.mms, ..Default::default() });
-    assert_truth("sb17 small (independent)", &fit, &p, range, &ISSUE);
+    assert_truth("sb17 small (independent)", &fit, &p, range, &INDEPENDENT);
     assert!(fit.x_range[1] < 0.3e-3 && fit.x_range[0] > -0.3e-3);
 }
 

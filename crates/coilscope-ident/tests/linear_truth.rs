@@ -206,3 +206,37 @@ mod bad_input {
         coilscope_core::simulate::rms(x)
     }
 }
+
+/// Issue 14: the linear fit's reported standard deviations are claims too. Over the three
+/// drivers and six noise seeds (4 s of IEC noise below 0.3 mm, 70 dB), each of the seven
+/// fitted quantities (Re, Le, L2, R2, Res, Cmes, Lces) against the truth in units of its own
+/// sd: the share within 2 sd is printed, and must be at least 90 % (a Gaussian: 95 %), with
+/// none beyond 5 sd.
+///
+/// Known open: 52 % lie within 2 sd, the largest at 16.7 sd (18WU, Re +0.13 % against an sd
+/// of 0.008 %; L2 -1.7 % against 0.11 %). The errors are within the published figures, but
+/// the sigmas, computed as if the fitted bins were independent with the residual's level,
+/// are 2-10 times too small. Run with `-- --ignored known_open`.
+#[test]
+#[ignore = "known open (issue 14): the linear fit's sigmas are 2-10x too small (52 % of 126 within 2 sd)"]
+fn known_open_linear_sigmas_cover_the_truth_over_seeds() {
+    let names = ["Re", "Le", "L2", "R2", "Res", "Cmes", "Lces"];
+    let mut z_all = Vec::new();
+    for name in embedded_driver_names() {
+        let p = embedded_driver(name).unwrap();
+        let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.eval(0.0), r.eval(0.0))).unwrap();
+        let (bl, kms) = (p.bl.eval(0.0), p.kms.eval(0.0));
+        let truth = [p.re, p.le.eval(0.0), l2, r2, bl * bl / p.rms, p.mms / (bl * bl), bl * bl / kms];
+        for seed in 1..=6 {
+            let r = record(&p, &Excitation::Iec, 48000.0, 4.0, 100 + seed);
+            let f = fit(&r, name);
+            let z: Vec<f64> = (0..7).map(|k| (f.p[k] / truth[k] - 1.0).abs() / f.sigma_rel[k]).collect();
+            println!("{name} seed {seed}: {}", (0..7).map(|k| format!("{} {:.1} ({:+.1e}/{:.1e})", names[k], z[k], f.p[k] / truth[k] - 1.0, f.sigma_rel[k])).collect::<Vec<_>>().join(", "));
+            z_all.extend(z);
+        }
+    }
+    let within = z_all.iter().filter(|&&z| z <= 2.0).count() as f64 / z_all.len() as f64;
+    let worst = z_all.iter().cloned().fold(0.0, f64::max);
+    println!("linear sigmas: {:.0} % of {} within 2 sd, largest {worst:.1} sd", 100.0 * within, z_all.len());
+    assert!(within >= 0.9 && worst <= 5.0, "linear sigmas: {:.0} % within 2 sd, largest {worst:.1} sd", 100.0 * within);
+}

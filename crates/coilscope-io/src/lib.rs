@@ -122,6 +122,11 @@ struct Channels {
     data: Vec<Vec<f64>>,
 }
 
+/// The sidecar's name for a recording shown as `shown` (messages).
+fn sidecar_name(shown: &str) -> String {
+    format!("{shown}.json")
+}
+
 fn sidecar_path(path: &Path) -> PathBuf {
     let mut s = path.as_os_str().to_owned();
     s.push(".json");
@@ -158,7 +163,22 @@ fn read_channels(path: &Path, scale: Option<&[f64]>, max_channels: usize) -> Res
     if !path.exists() {
         return err(format!("{shown}: no such file"));
     }
-    let mut reader = hound::WavReader::open(path).map_err(|e| IoError(format!("{shown}: not a readable WAV file ({e})")))?;
+    let reader = hound::WavReader::open(path).map_err(|e| IoError(format!("{shown}: not a readable WAV file ({e})")))?;
+    let sidecar = read_sidecar_scale(path)?;
+    let file_len = std::fs::metadata(path).map(|m| m.len()).unwrap_or(u64::MAX);
+    channels_from(reader, &shown.to_string(), scale.map(|s| s.to_vec()).or(sidecar), max_channels, file_len)
+}
+
+/// Read a recording from the bytes of a WAV file (2 or 3 channels); `name` names it in
+/// messages, `scale` gives the physical units of integer PCM. Never panics, whatever the
+/// bytes (a fuzz target).
+pub fn read_recording_bytes(bytes: &[u8], name: &str, scale: Option<&[f64]>) -> Result<Recording, IoError> {
+    let reader = hound::WavReader::new(std::io::Cursor::new(bytes)).map_err(|e| IoError(format!("{name}: not a readable WAV file ({e})")))?;
+    let ch = channels_from(reader, name, scale.map(|s| s.to_vec()), 3, bytes.len() as u64)?;
+    recording_of(ch, name)
+}
+
+fn channels_from<R: std::io::Read>(mut reader: hound::WavReader<R>, shown: &str, scale: Option<Vec<f64>>, max_channels: usize, file_len: u64) -> Result<Channels, IoError> {
     let spec = reader.spec();
     let nch = spec.channels as usize;
     if nch == 0 || nch > max_channels {
@@ -169,8 +189,6 @@ fn read_channels(path: &Path, scale: Option<&[f64]>, max_channels: usize) -> Res
     if !(1000..=1_000_000).contains(&spec.sample_rate) {
         return err(format!("{shown}: sample rate {} Hz is not valid (1 kHz .. 1 MHz)", spec.sample_rate));
     }
-    let sidecar = read_sidecar_scale(path)?;
-    let scale: Option<Vec<f64>> = scale.map(|s| s.to_vec()).or(sidecar);
     let is_float = spec.sample_format == hound::SampleFormat::Float;
     if let Some(s) = &scale {
         if s.len() < nch {
@@ -180,10 +198,11 @@ fn read_channels(path: &Path, scale: Option<&[f64]>, max_channels: usize) -> Res
         return err(format!(
             "{shown}: {}-bit integer PCM needs scale factors: a sidecar {} with {{\"scale\": [V, A, m per count]}}, or --scale",
             spec.bits_per_sample,
-            sidecar_path(path).display()
+            sidecar_name(shown)
         ));
     }
-    let frames = reader.duration() as usize;
+    // The header's length is a claim: never reserve more than the file can hold.
+    let frames = (reader.duration() as u64).min(file_len / (nch as u64 * (spec.bits_per_sample as u64).div_ceil(8).max(1))) as usize;
     let mut data: Vec<Vec<f64>> = (0..nch).map(|_| Vec::with_capacity(frames)).collect();
     let mut push = |k: usize, v: f64| -> Result<(), IoError> {
         let ch = k % nch;
@@ -227,11 +246,12 @@ fn read_channels(path: &Path, scale: Option<&[f64]>, max_channels: usize) -> Res
 /// Read a recording (2 or 3 channels). `scale` overrides the sidecar.
 pub fn read_recording(path: &Path, scale: Option<&[f64]>) -> Result<Recording, IoError> {
     let ch = read_channels(path, scale, 3)?;
+    recording_of(ch, &path.display().to_string())
+}
+
+fn recording_of(ch: Channels, shown: &str) -> Result<Recording, IoError> {
     if ch.data.len() < 2 {
-        return err(format!(
-            "{}: 1 channel; a recording needs voltage (channel 1, V) and current (channel 2, A)",
-            path.display()
-        ));
+        return err(format!("{shown}: 1 channel; a recording needs voltage (channel 1, V) and current (channel 2, A)"));
     }
     let mut it = ch.data.into_iter();
     let u = it.next().unwrap_or_default();
@@ -244,8 +264,7 @@ pub fn read_recording(path: &Path, scale: Option<&[f64]>) -> Result<Recording, I
         let sd = (x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / x.len().max(1) as f64).sqrt();
         if !(sd > 1e-12) {
             return err(format!(
-                "{}: channel 3 (displacement) is silent (sd {sd:.2e} m): the laser is dead, unplugged or out of range; fix it, or record without channel 3 and give --mms KG",
-                path.display()
+                "{shown}: channel 3 (displacement) is silent (sd {sd:.2e} m): the laser is dead, unplugged or out of range; fix it, or record without channel 3 and give --mms KG"
             ));
         }
     }

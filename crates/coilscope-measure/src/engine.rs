@@ -7,7 +7,13 @@
 //! 2. **Ramp**: the gain rises by [`MeasureOptions::ramp_db_per_s`] while the online
 //!    estimator follows, until a limit binds: the target excursion (`target_x`, or the safe
 //!    range where Kms(x)/Kms(0) reaches `kms_limit`), the voice-coil temperature rise
-//!    `max_dt`, or `max_volts`.
+//!    `max_dt`, or `max_volts`. The ramp never outruns its estimate: the level aims at most
+//!    1.6 times (1.25 times near the stiffness limit) past the reach the last update checked
+//!    (a trust region: beyond it the curves are extrapolated), and it waits while the last
+//!    update still moved the curves by more than [`RAMP_SETTLE`] or the estimate missed more
+//!    than [`RAMP_EXCESS`] of the held-out current (`LimitedBy::Settling`). The peak memory
+//!    starts with the small stage's crests (the noise repeats every 8 s), and the series
+//!    basis is scaled to the linear reach at 4 V, whatever the start level.
 //! 3. **Hold**: at that level until the estimate has converged (window residual below 2 %,
 //!    curves changing by less than 0.3 % (Bl, Kms) and 1 % (Le) at two updates, over 90 %
 //!    of the 80th percentile of the block peaks since the level was last changed), or for
@@ -41,8 +47,22 @@ const X_AIM: f64 = 0.92;
 /// Near the stiffness limit (Kms ratio past 3/4 of the way to it), the aim stays within
 /// this multiple of the reach the last update checked for the stiffness limit.
 const EXPLORE: f64 = 1.25;
+/// Far from it (Kms ratio below half the way to it), the aim stays within this multiple.
+const EXPLORE_FAR: f64 = 1.6;
+/// The ramp raises the level only while the estimate keeps up with it: while the last update
+/// moved Bl(x) or Kms(x) by more than this (relative to the value at rest, within the reach),
+/// the level holds. The curves at the edge of the reach are extrapolated until the data there
+/// has been seen often enough; a ramp that outruns them finds the stiffness limit only after
+/// it has passed it (SB17 started at 0.5 V: the update at 11.1 s moved Kms by 10 %, the driver
+/// reached 6 mm against a limit at 5 mm).
+pub const RAMP_SETTLE: f64 = 0.03;
+/// The same while the estimate misses more than this share of the current (above the noise
+/// floor) on the held-out window before the last update: it has fallen behind the level.
+pub const RAMP_EXCESS: f64 = 0.01;
 /// The largest basis scale of the curves, in small-signal reaches.
 const X_REF_SMALL: f64 = 20.0;
+/// A measurement's basis scale: the linear response's reach at this drive level (V rms).
+const X_REF_VOLTS: f64 = 4.0;
 
 /// A replay's restart: when the window error before an update passes RESTART_RESIDUAL, the
 /// estimator restarts from a batch fit of the last RESTART_S seconds, at most MAX_RESTARTS
@@ -190,6 +210,9 @@ pub enum LimitedBy {
     ExcursionHighPass,
     /// The ramp explores in steps toward the stiffness limit.
     Exploration,
+    /// The ramp waits for the estimate: the last update still moved the curves by more than
+    /// [`RAMP_SETTLE`] within the reach.
+    Settling,
     /// The voice-coil temperature limit.
     Temperature,
     /// `max_volts`.
@@ -207,6 +230,7 @@ impl LimitedBy {
             LimitedBy::Excursion => "excursion",
             LimitedBy::ExcursionHighPass => "excursion (high-pass)",
             LimitedBy::Exploration => "exploration",
+            LimitedBy::Settling => "settling",
             LimitedBy::Temperature => "temperature",
             LimitedBy::MaxVolts => "max-volts",
             LimitedBy::Replay => "replay",
@@ -229,6 +253,9 @@ pub enum StopReason {
     DeviceEmpty,
     /// Stopped from outside (Ctrl-C).
     Interrupted { t: f64 },
+    /// The device or the live model failed after the estimate existed: the estimate so far is
+    /// kept, and the message says what happened.
+    Failed { t: f64, message: String },
 }
 
 impl StopReason {
@@ -241,6 +268,7 @@ impl StopReason {
             StopReason::ReplayEnded { .. } => "replay-ended",
             StopReason::DeviceEmpty => "device-empty",
             StopReason::Interrupted { .. } => "interrupted",
+            StopReason::Failed { .. } => "failed",
         }
     }
 
@@ -262,6 +290,7 @@ impl StopReason {
             StopReason::ReplayEnded { seconds } => format!("the replayed recording ended after {seconds:.1} s before the estimate converged: the best estimate is kept; a replay needs about 2 s of quiet (small-signal) lead-in, then 8 s or more at high level"),
             StopReason::DeviceEmpty => "the device delivered no samples".into(),
             StopReason::Interrupted { t } => format!("interrupted at {t:.1} s: the estimate so far is kept"),
+            StopReason::Failed { t, message } => format!("failed at {t:.1} s: {message}; the estimate so far is kept (not trustworthy)"),
         }
     }
 }
@@ -319,8 +348,10 @@ pub struct Measurement {
     pub x_range: [f64; 2],
     pub x_peak_max: f64,
     pub dtv_max: f64,
-    /// Cold voice-coil resistance (ohm): the online estimate at its first update (the
-    /// reference of the temperature estimate); the small-signal fit's Re if none ran.
+    /// Cold voice-coil resistance (ohm): the small-signal stage's record fitted with the final
+    /// model when the run converged (`coilscope_ident::online::fit_re`, heating within the
+    /// stage removed), otherwise the stage's impedance fit; the reference of the temperature
+    /// estimate.
     pub re_cold: f64,
     /// Standard deviation of `re_cold` (ohm; NaN when it came from no fit).
     pub re_cold_sd: f64,
@@ -388,6 +419,146 @@ fn batch_start(u: &[f64], i: &[f64], fs: f64, mms: f64) -> Option<(Parameters, f
     Some((Parameters { x_range: None, ..fit.params }, re_sd, reach))
 }
 
+/// What the controller sees after a block (SI units).
+#[derive(Clone, Debug)]
+pub struct ControlInput {
+    /// The present drive level (V rms).
+    pub gain: f64,
+    /// Length of the block just played (s).
+    pub block_seconds: f64,
+    /// Largest |x| of the live model over the block (m).
+    pub peak: f64,
+    /// Largest remembered block peak per volt (m/V): the last 8 s and the small stage.
+    pub per_volt: f64,
+    /// The excursion limit in force (m): the target, the stiffness limit, or none yet.
+    pub x_limit: Option<f64>,
+    /// Largest Kms(x)/Kms(0) of the estimate within 1.3 times the reach.
+    pub kms_ratio: f64,
+    /// The reach (m) the last update checked the curves over.
+    pub checked_reach: f64,
+    /// Largest change of Bl(x)/Kms(x) at the last update (relative to the value at rest).
+    pub last_change: Option<f64>,
+    /// Current error above the noise floor on the last held-out window (NaN before one).
+    pub last_excess: f64,
+    /// Estimated voice-coil rise (K), and carried one second ahead along its trend.
+    pub dtv: f64,
+    pub dtv_ahead: f64,
+    /// Whether the temperature has cut the level (cleared below 75 % of the limit).
+    pub temp_cut: bool,
+    /// The excitation high-pass's cut-off (Hz).
+    pub hp_fc: f64,
+}
+
+/// The controller's decision for the next block.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ControlDecision {
+    /// The next drive level (V rms).
+    pub gain: f64,
+    pub why: LimitedBy,
+    /// A new high-pass cut-off (Hz), in a long-term test at a fixed level.
+    pub hp_fc: Option<f64>,
+    pub temp_cut: bool,
+    /// Protection events, for people.
+    pub events: Vec<String>,
+}
+
+/// The controller: one pure decision per block, its policies in order (each is unit-tested
+/// below):
+///
+/// 1. **Ramp**: `ramp_db_per_s` (a third of it near the stiffness limit), or the fixed level
+///    of a long-term test.
+/// 2. **Excursion**: above 98 % of the limit, cut at once to 90 %; otherwise aim the largest
+///    remembered peak at [`X_AIM`] of the limit. At a fixed level the high-pass rises instead.
+/// 3. **Trust region** (`Exploration`): never aim past 1.6 times the reach the last update
+///    checked (1.25 times near the stiffness limit): beyond it the curves are extrapolated.
+/// 4. **Settling**: no rise while the last update moved the curves by more than
+///    [`RAMP_SETTLE`] or missed more than [`RAMP_EXCESS`] of the held-out current.
+/// 5. **Temperature**: above 92 % of `max_dt` (ahead), cut to 85 % (power ~ gain^2); above
+///    85 %, or after a cut until the coil is below 75 %, no rise.
+/// 6. **`max_volts`**.
+pub fn control(opts: &MeasureOptions, c: &ControlInput) -> ControlDecision {
+    let gain = c.gain;
+    let (peak, per_volt, kms_ratio, checked_reach, dtv, dtv_ahead) = (c.peak, c.per_volt, c.kms_ratio, c.checked_reach, c.dtv, c.dtv_ahead);
+    let mut events = Vec::new();
+    let mut hp_fc = None;
+    let mut temp_cut = c.temp_cut;
+    // Near the stiffness limit the ramp slows to a third.
+    let ramp = if kms_ratio > 0.75 * opts.kms_limit { opts.ramp_db_per_s / 3.0 } else { opts.ramp_db_per_s };
+    let step = 10f64.powf(ramp * c.block_seconds / 20.0);
+    let mut g = opts.hold_volts.map_or(gain * step, |v| v.min(gain * step));
+    let mut why = LimitedBy::Ramp;
+    if let Some(xl) = c.x_limit {
+        if opts.hold_volts.is_some() {
+            // Fixed level: the high-pass keeps x in range.
+            if peak > 0.97 * xl {
+                let fc = (c.hp_fc.max(5.0) * 1.25).min(2000.0);
+                events.push(format!("excursion {:.2} mm near the limit {:.2} mm: high-pass raised to {fc:.1} Hz", peak * 1e3, xl * 1e3));
+                hp_fc = Some(fc);
+                why = LimitedBy::ExcursionHighPass;
+            } else if gain * per_volt < 0.8 * xl && c.hp_fc > opts.hp_hz {
+                hp_fc = Some((c.hp_fc / 1.05).max(opts.hp_hz));
+            }
+        } else if peak > 0.98 * xl {
+            g = gain * 0.9 * xl / peak;
+            events.push(format!("excursion {:.2} mm above 98 % of the limit {:.2} mm: gain cut to {g:.3} V", peak * 1e3, xl * 1e3));
+            why = LimitedBy::Excursion;
+        } else if g * per_volt > X_AIM * xl {
+            g = X_AIM * xl / per_volt.max(1e-12);
+            why = LimitedBy::Excursion;
+        }
+    }
+    // The trust region: the curves beyond the checked reach are extrapolated, so the level
+    // never aims past EXPLORE_FAR times it, EXPLORE times once the suspension stiffens (the
+    // limit is looked for 1.3 times the reach ahead, so it is seen before it is hit). A ramp of
+    // 3 dB/s otherwise grows the reach by 1.5 between two updates, past a stiffness limit the
+    // estimate has not yet seen.
+    let explore = if kms_ratio > 1.0 + 0.5 * (opts.kms_limit - 1.0) { EXPLORE } else { EXPLORE_FAR };
+    if opts.hold_volts.is_none() && checked_reach > 0.0 && g * per_volt > explore * checked_reach {
+        let cap = explore * checked_reach / per_volt.max(1e-12);
+        if cap < g {
+            g = cap.max(gain.min(g));
+            why = LimitedBy::Exploration;
+        }
+    }
+    if opts.hold_volts.is_none() && g > gain && (c.last_change.is_some_and(|b| b > RAMP_SETTLE) || c.last_excess > RAMP_EXCESS) {
+        g = gain;
+        why = LimitedBy::Settling;
+    }
+    // Margins for what is left of the tracking lag and for the cold Re's error (0.05 % of Re
+    // is 0.13 K): hold at 85 %, cut to 85 % above 92 %.
+    if dtv_ahead > 0.92 * opts.max_dt {
+        let cut = gain * (0.85 * opts.max_dt / dtv_ahead).sqrt();
+        if cut < g {
+            g = cut;
+            events.push(format!("voice-coil rise {dtv:.2} K (heading for {dtv_ahead:.2} K) above 92 % of {} K: gain cut to {g:.3} V", opts.max_dt));
+            why = LimitedBy::Temperature;
+        }
+    } else if (dtv_ahead > 0.85 * opts.max_dt || (temp_cut && dtv_ahead > 0.75 * opts.max_dt)) && g > gain {
+        // After a cut the level stays until the coil has cooled to 75 % (no hunting around
+        // the limit: every change of level restarts the hold).
+        g = gain;
+        why = LimitedBy::Temperature;
+    }
+    if why == LimitedBy::Temperature && g < gain {
+        temp_cut = true;
+    } else if dtv_ahead < 0.75 * opts.max_dt {
+        temp_cut = false;
+    }
+    if g > opts.max_volts {
+        g = opts.max_volts;
+        why = LimitedBy::MaxVolts;
+    }
+    ControlDecision { gain: g, why, hp_fc, temp_cut, events }
+}
+
+/// The online estimator's options. A replay makes no update from an estimate that misses
+/// more than [`RESTART_RESIDUAL`] of the window: it restarts from a batch fit once it has
+/// [`RESTART_S`] of the new level, and until then the last good model runs on (a step from
+/// that far ran PTT4's replay away 0.6 s after its level jumped).
+fn online_options(opts: &MeasureOptions, x_ref: f64, controllable: bool) -> OnlineOptions {
+    OnlineOptions { order: opts.order, x_ref, window: ONLINE_WINDOW_S, max_before: if controllable { f64::INFINITY } else { RESTART_RESIDUAL }, ..Default::default() }
+}
+
 /// Largest relative change of a curve over `[-r, r]`, relative to its value at rest.
 fn curve_change(a: &Poly, b: &Poly, r: f64) -> f64 {
     let b0 = b.eval(0.0).abs().max(1e-300);
@@ -410,106 +581,199 @@ pub fn kms_limit_crossing(kms: &Poly, reach: f64, limit: f64) -> Option<f64> {
     (1..=200).map(|k| reach * k as f64 / 200.0).find(|&x| kms.eval(x).max(kms.eval(-x)) / k0 >= limit)
 }
 
-/// Run a measurement. `observe` sees every block; `store` (if any) gets the decimated
-/// states (one per block) and every estimate.
-pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptions, mut store: Option<&mut Store>, mut observe: impl FnMut(&Live)) -> Result<Measurement, String> {
-    opts.validate()?;
-    let fs = device.fs();
-    let nb = ((opts.block * fs) as usize).max(64);
-    let mut hp = HighPass::new(fs, opts.hp_hz);
-    // The small-signal stage needs every band of the impedance (Re and the L2/R2 branch are
-    // told apart only by a broad spectrum): under music it plays quiet IEC noise instead.
-    let mut pilot = if source.persistent() { None } else { Some(Source::noise(&Excitation::Iec, fs, 0)?) };
-    let controllable = device.controllable();
-    let mut gain = opts.start_volts;
-    let mut stage = Stage::Small;
-    let (mut u_small, mut i_small) = (Vec::new(), Vec::new());
-    let mut online: Option<Online> = None;
-    // Standard deviation of the cold Re (ohm), from the small-signal fit.
-    let mut re_cold_sd = f64::NAN;
-    let mut small: Option<Parameters> = None;
-    let mut samples = 0usize;
-    let mut recent_peaks: Vec<f64> = Vec::new();
-    let mut prev_est: Option<Parameters> = None;
-    // A replay's last RESTART_S seconds (for a restart from a batch fit) and the restarts.
-    let (mut recent_u, mut recent_i) = (Vec::new(), Vec::new());
-    let mut restarts = 0usize;
-    let mut changes: Vec<(f64, f64)> = Vec::new();
-    let mut auto_limit: Option<f64> = None;
-    // The stiffness limit once it lies inside the reach (seen in the data, not extrapolated).
-    let mut seen_limit: Option<f64> = None;
-    // Largest Kms(x)/Kms(0) of the estimate within 1.3 times the reach.
-    let mut kms_ratio = 1.0f64;
-    // The reach at the last update: how far the stiffness limit has been looked for.
-    let mut checked_reach = 0.0f64;
-    let mut hold_since = f64::INFINITY;
-    let mut steady_blocks = 0;
-    let mut events = Vec::new();
-    let mut dt_track = Vec::new();
-    let (mut x_peak_max, mut dtv_max) = (0.0f64, 0.0f64);
-    let mut hold_range = [0.0f64, 0.0f64];
-    // Block peaks |x| since the hold (re)started.
-    let mut hold_peaks: Vec<f64> = Vec::new();
-    // The gain at which the hold (re)started.
-    let mut hold_gain = 0.0f64;
-    let mut last_residual = f64::NAN;
-    // Relative current error above the noise floor on the last held-out window.
-    let mut last_excess = f64::NAN;
-    let mut updates = 0usize;
-    // Cold Re: the online estimate at its first update, when the coil has seen almost no
-    // power (the small-signal impedance fit's Re is off by 0.1-0.3 %, i.e. 0.25-0.75 K).
-    let mut re_cold: Option<f64> = None;
-    // Recent temperature estimates (one per block) for the trend.
-    let mut dtv_recent: Vec<f64> = Vec::new();
-    // Whether the temperature has cut the level (cleared once the coil is below 75 %).
-    let mut temp_cut = false;
-    let mut converged = false;
-    // What limited the level at the last block.
-    let mut last_why = LimitedBy::SmallSignal;
-    let mut stop_reason: Option<StopReason> = None;
-    let mut blocks = 0usize;
-    // Blocks per second: the database commits and the dT track are once a second.
-    let per_second = (1.0 / opts.block).round().max(1.0) as usize;
-    let end = opts.duration.unwrap_or(opts.max_seconds);
-    loop {
-        let t = samples as f64 / fs;
-        if t >= end {
-            stop_reason = Some(match opts.duration {
+/// The measurement as a stepper: [`Engine::step`] plays one block and makes every decision
+/// that follows it (identification, protection, convergence); [`Engine::finish`] turns the
+/// state into the [`Measurement`]. [`measure`] is the loop over it; a live view, a test or
+/// another front end can drive the steps itself.
+pub struct Engine<'a> {
+    device: &'a mut dyn Device,
+    source: &'a mut Source,
+    opts: MeasureOptions,
+    fs: f64,
+    /// Samples per block.
+    nb: usize,
+    hp: HighPass,
+    /// The small-signal stage's excitation under music (quiet IEC noise).
+    pilot: Option<Source>,
+    controllable: bool,
+    gain: f64,
+    stage: Stage,
+    u_small: Vec<f64>,
+    i_small: Vec<f64>,
+    online: Option<Online>,
+    /// Standard deviation of the cold Re (ohm).
+    re_cold_sd: f64,
+    small: Option<Parameters>,
+    samples: usize,
+    /// Block peaks per volt over the last PEAK_MEMORY_S (and the small stage's).
+    recent_peaks: Vec<f64>,
+    prev_est: Option<Parameters>,
+    /// A replay's last RESTART_S seconds (for a restart from a batch fit) and the restarts.
+    recent_u: Vec<f64>,
+    recent_i: Vec<f64>,
+    restarts: usize,
+    /// Largest change of Bl/Kms and of Le at each update.
+    changes: Vec<(f64, f64)>,
+    auto_limit: Option<f64>,
+    /// The stiffness limit once it lies inside the reach (seen in the data, not extrapolated).
+    seen_limit: Option<f64>,
+    /// Largest Kms(x)/Kms(0) of the estimate within 1.3 times the reach.
+    kms_ratio: f64,
+    /// The reach at the last update: how far the stiffness limit has been looked for.
+    checked_reach: f64,
+    hold_since: f64,
+    steady_blocks: usize,
+    events: Vec<(f64, String)>,
+    dt_track: Vec<(f64, f64)>,
+    x_peak_max: f64,
+    dtv_max: f64,
+    hold_range: [f64; 2],
+    /// Block peaks |x| since the hold (re)started.
+    hold_peaks: Vec<f64>,
+    /// The gain at which the hold (re)started.
+    hold_gain: f64,
+    last_residual: f64,
+    /// Relative current error above the noise floor on the last held-out window.
+    last_excess: f64,
+    updates: usize,
+    /// Cold Re: the small-signal fit's, set at the first update.
+    re_cold: Option<f64>,
+    /// Recent temperature estimates (one per block) for the trend.
+    dtv_recent: Vec<f64>,
+    /// Whether the temperature has cut the level (cleared once the coil is below 75 %).
+    temp_cut: bool,
+    converged: bool,
+    /// What limited the level at the last block.
+    last_why: LimitedBy,
+    stop_reason: Option<StopReason>,
+    blocks: usize,
+    /// Blocks per second: the database commits and the dT track are once a second.
+    per_second: usize,
+    /// Seconds after which the run stops (duration or max_seconds).
+    end: f64,
+}
+
+impl<'a> Engine<'a> {
+    /// Check the options and set up the run (nothing is played yet).
+    pub fn new(device: &'a mut dyn Device, source: &'a mut Source, opts: &MeasureOptions) -> Result<Self, String> {
+        opts.validate()?;
+        let fs = device.fs();
+        // The small-signal stage needs every band of the impedance (Re and the L2/R2 branch
+        // are told apart only by a broad spectrum): under music it plays quiet IEC noise.
+        let pilot = if source.persistent() { None } else { Some(Source::noise(&Excitation::Iec, fs, 0)?) };
+        let controllable = device.controllable();
+        Ok(Engine {
+            device,
+            source,
+            opts: opts.clone(),
+            fs,
+            nb: ((opts.block * fs) as usize).max(64),
+            hp: HighPass::new(fs, opts.hp_hz),
+            pilot,
+            controllable,
+            gain: opts.start_volts,
+            stage: Stage::Small,
+            u_small: Vec::new(),
+            i_small: Vec::new(),
+            online: None,
+            re_cold_sd: f64::NAN,
+            small: None,
+            samples: 0,
+            recent_peaks: Vec::new(),
+            prev_est: None,
+            recent_u: Vec::new(),
+            recent_i: Vec::new(),
+            restarts: 0,
+            changes: Vec::new(),
+            auto_limit: None,
+            seen_limit: None,
+            kms_ratio: 1.0,
+            checked_reach: 0.0,
+            hold_since: f64::INFINITY,
+            steady_blocks: 0,
+            events: Vec::new(),
+            dt_track: Vec::new(),
+            x_peak_max: 0.0,
+            dtv_max: 0.0,
+            hold_range: [0.0, 0.0],
+            hold_peaks: Vec::new(),
+            hold_gain: 0.0,
+            last_residual: f64::NAN,
+            last_excess: f64::NAN,
+            updates: 0,
+            re_cold: None,
+            dtv_recent: Vec::new(),
+            temp_cut: false,
+            converged: false,
+            last_why: LimitedBy::SmallSignal,
+            stop_reason: None,
+            blocks: 0,
+            per_second: (1.0 / opts.block).round().max(1.0) as usize,
+            end: opts.duration.unwrap_or(opts.max_seconds),
+        })
+    }
+
+    /// Why the run stopped, once it has (`None` while it runs).
+    pub fn stop_reason(&self) -> Option<&StopReason> {
+        self.stop_reason.as_ref()
+    }
+
+    /// Play one block and decide what follows: `Ok(Some(live))` after a block, `Ok(None)`
+    /// once the run has stopped ([`Engine::stop_reason`] says why); an error only where
+    /// nothing can be kept (before the small-signal stage is complete, or the store failed).
+    /// `store` (if any) gets the block's state, once a second a commit, and every estimate.
+    pub fn step(&mut self, mut store: Option<&mut Store>) -> Result<Option<Live>, String> {
+        if self.stop_reason.is_some() {
+            return Ok(None);
+        }
+        let t = self.samples as f64 / self.fs;
+        if t >= self.end {
+            self.stop_reason = Some(match self.opts.duration {
                 Some(seconds) => StopReason::DurationOver { seconds },
-                None => StopReason::NoConvergence { max_seconds: opts.max_seconds },
+                None => StopReason::NoConvergence { max_seconds: self.opts.max_seconds },
             });
-            break;
+            return Ok(None);
         }
-        if opts.interrupt.as_ref().is_some_and(|f| f.load(std::sync::atomic::Ordering::Relaxed)) {
-            stop_reason = Some(StopReason::Interrupted { t });
-            break;
+        if self.opts.interrupt.as_ref().is_some_and(|f| f.load(std::sync::atomic::Ordering::Relaxed)) {
+            self.stop_reason = Some(StopReason::Interrupted { t });
+            return Ok(None);
         }
-        let mut drive = match pilot.as_mut() {
-            Some(p) if stage == Stage::Small => p.next_block(nb),
-            _ => source.next_block(nb),
+        let mut drive = match self.pilot.as_mut() {
+            Some(p) if self.stage == Stage::Small => p.next_block(self.nb),
+            _ => self.source.next_block(self.nb),
         };
-        hp.process(&mut drive);
-        drive.iter_mut().for_each(|v| *v *= gain);
-        if stage == Stage::Small && controllable {
-            small_stage_envelope(&mut drive, samples, fs, opts.small_seconds);
+        self.hp.process(&mut drive);
+        drive.iter_mut().for_each(|v| *v *= self.gain);
+        if self.stage == Stage::Small && self.controllable {
+            small_stage_envelope(&mut drive, self.samples, self.fs, self.opts.small_seconds);
         }
-        let Some(blk) = device.play(&drive)? else {
-            stop_reason = Some(StopReason::ReplayEnded { seconds: t });
-            break;
+        let played = match self.device.play(&drive) {
+            Ok(b) => b,
+            // Once there is an estimate, a failure ends the run with it kept (the result is
+            // written, marked failed); before that there is nothing to keep.
+            Err(message) if self.online.is_some() => {
+                self.stop_reason = Some(StopReason::Failed { t, message });
+                return Ok(None);
+            }
+            Err(e) => return Err(e),
+        };
+        let Some(blk) = played else {
+            self.stop_reason = Some(StopReason::ReplayEnded { seconds: t });
+            return Ok(None);
         };
         let n = blk.u.len();
         if n == 0 {
-            stop_reason = Some(StopReason::DeviceEmpty);
-            break;
+            self.stop_reason = Some(StopReason::DeviceEmpty);
+            return Ok(None);
         }
-        samples += n;
-        blocks += 1;
-        let t = samples as f64 / fs;
+        self.samples += n;
+        self.blocks += 1;
+        let t = self.samples as f64 / self.fs;
         let mut live = Live {
             t,
-            stage,
-            volts: gain,
-            f_hp: hp.fc,
+            stage: self.stage,
+            volts: self.gain,
+            f_hp: self.hp.fc,
             x_min: 0.0,
             x_max: 0.0,
             dtv: 0.0,
@@ -521,34 +785,50 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
             estimate: None,
             change: None,
         };
-        match online.as_mut() {
+        match self.online.as_mut() {
             None => {
-                u_small.extend_from_slice(&blk.u);
-                i_small.extend_from_slice(&blk.i);
+                self.u_small.extend_from_slice(&blk.u);
+                self.i_small.extend_from_slice(&blk.i);
                 live.limited_by = LimitedBy::SmallSignal;
-                if t >= opts.small_seconds {
+                if t >= self.opts.small_seconds {
                     // A controlled stage ends at rest (fade and rest); a replay's first seconds
                     // are a segment cut from the running record.
-                    let lin = fit_linear_record(&u_small, &i_small, fs, "small-signal stage", !controllable, |_| {})
-                        .map_err(|e| format!("{e} (the small-signal stage at {:.3} V rms: raise --start-volts if the level is too low against noise)", opts.start_volts))?;
-                    let p = scale_by_mms(&lin, opts.mms)?;
+                    let lin = fit_linear_record(&self.u_small, &self.i_small, self.fs, "small-signal stage", !self.controllable, |_| {})
+                        .map_err(|e| format!("{e} (the small-signal stage at {:.3} V rms: raise --start-volts if the level is too low against noise)", self.opts.start_volts))?;
+                    let p = scale_by_mms(&lin, self.opts.mms)?;
                     // Reach of the small stage: the series basis and the runaway limit scale from it.
-                    let x_small = coilscope_ident::linear::predicted_displacement(&p, &i_small, fs).iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-6);
+                    let x_lin = coilscope_ident::linear::predicted_displacement(&p, &self.i_small, self.fs);
+                    let x_small = x_lin.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-6);
+                    // The controller's peak memory starts with the small stage's blocks (before
+                    // its fade): the noise repeats every 8 s, and a crest first played quietly
+                    // here comes back at full level one period later (SB17 from 1 V: a crest at
+                    // 1.4 s of the period came back at 9.4 s as 6 mm against 4.1 mm remembered).
+                    if self.controllable {
+                        let quiet_from = ((self.opts.small_seconds - SMALL_REST_S - SMALL_FADE_S) * self.fs) as usize;
+                        for b in x_lin[..quiet_from.min(x_lin.len())].chunks(self.nb).filter(|b| b.len() == self.nb) {
+                            self.recent_peaks.push(b.iter().fold(0.0f64, |a, v| a.max(v.abs())) / self.opts.start_volts);
+                        }
+                    }
                     // Basis scale: the expected reach, never more than X_REF_SMALL times the
                     // small-signal reach (a far target leaves the curves ill-conditioned at first).
-                    let mut x_ref = opts.target_x.map_or(20.0 * x_small, |t| t.min(X_REF_SMALL * x_small)).max(2.0 * x_small);
+                    // A controlled stage scales it to the drive level: the reach of the
+                    // linear response at X_REF_VOLTS, whatever the start level (from 1 V, 20
+                    // small reaches put SB17's x_ref at 14 mm, and the series' prior held
+                    // Kms(x) at 1.5 where the driver reached 2.2 at 5.5 mm).
+                    let x_expect = if self.controllable { x_small * X_REF_VOLTS / self.opts.start_volts } else { X_REF_SMALL * x_small };
+                    let mut x_ref = self.opts.target_x.map_or(x_expect, |t| t.min(x_expect)).max(2.0 * x_small);
                     // A replay that starts loud (no quiet lead-in) has no small-signal stage: a
                     // linear fit of large-signal data is a biased start (Kms 20-45 % off), from
                     // which the online estimator does not recover. Start from a batch
                     // large-signal fit of the same seconds, with the basis at their reach.
-                    re_cold_sd = lin.sigma_rel[0] * p.re;
-                    let p = match (controllable, loud_start(&lin, &p, &u_small, &i_small, fs)) {
+                    self.re_cold_sd = lin.sigma_rel[0] * p.re;
+                    let p = match (self.controllable, loud_start(&lin, &p, &self.u_small, &self.i_small, self.fs)) {
                         (false, Some(reach)) => {
-                            events.push((t, format!("the replay starts at large signal (x about {:.2} mm): the start is a batch large-signal fit of its first {:.1} s", reach * 1e3, opts.small_seconds)));
+                            self.events.push((t, format!("the replay starts at large signal (x about {:.2} mm): the start is a batch large-signal fit of its first {:.1} s", reach * 1e3, self.opts.small_seconds)));
                             x_ref = 1.5 * reach;
-                            match batch_start(&u_small, &i_small, fs, opts.mms) {
+                            match batch_start(&self.u_small, &self.i_small, self.fs, self.opts.mms) {
                                 Some((b, sd, _)) => {
-                                    re_cold_sd = sd;
+                                    self.re_cold_sd = sd;
                                     b
                                 }
                                 None => p,
@@ -556,101 +836,107 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                         }
                         _ => p,
                     };
-                    let mut on = Online::new(&p, fs, OnlineOptions { order: opts.order, x_ref, window: ONLINE_WINDOW_S, ..Default::default() }).map_err(|e| e.0)?;
-                    on.push(&u_small, &i_small).map_err(|e| e.0)?;
-                    online = Some(on);
-                    small = Some(p);
-                    stage = if controllable { Stage::Ramp } else { Stage::Hold };
-                    if !controllable {
-                        hold_since = t;
+                    let mut on = Online::new(&p, self.fs, online_options(&self.opts, x_ref, self.controllable)).map_err(|e| e.0)?;
+                    on.push(&self.u_small, &self.i_small).map_err(|e| e.0)?;
+                    self.online = Some(on);
+                    self.small = Some(p);
+                    self.stage = if self.controllable { Stage::Ramp } else { Stage::Hold };
+                    if !self.controllable {
+                        self.hold_since = t;
                     }
                 }
             }
             Some(on) => {
-                if !controllable {
-                    recent_u.extend_from_slice(&blk.u);
-                    recent_i.extend_from_slice(&blk.i);
-                    let keep = (RESTART_S * fs) as usize;
-                    if recent_u.len() > keep {
-                        let cut = recent_u.len() - keep;
-                        recent_u.drain(..cut);
-                        recent_i.drain(..cut);
+                if !self.controllable {
+                    self.recent_u.extend_from_slice(&blk.u);
+                    self.recent_i.extend_from_slice(&blk.i);
+                    let keep = (RESTART_S * self.fs) as usize;
+                    if self.recent_u.len() > keep {
+                        let cut = self.recent_u.len() - keep;
+                        self.recent_u.drain(..cut);
+                        self.recent_i.drain(..cut);
                     }
                 }
-                let st = on.push(&blk.u, &blk.i).map_err(|e| e.0)?;
-                let re0 = re_cold.or(small.as_ref().map(|p| p.re)).unwrap_or(f64::NAN);
-                let dtv = (on.re() / re0 - 1.0) / opts.alpha;
-                dtv_recent.push(dtv);
-                if dtv_recent.len() as f64 * opts.block > THERMAL_TREND_S {
-                    dtv_recent.remove(0);
+                let st = match on.push(&blk.u, &blk.i) {
+                    Ok(st) => st,
+                    Err(e) => {
+                        self.stop_reason = Some(StopReason::Failed { t, message: e.0 });
+                        return Ok(None);
+                    }
+                };
+                let re0 = self.re_cold.or(self.small.as_ref().map(|p| p.re)).unwrap_or(f64::NAN);
+                let dtv = (on.re() / re0 - 1.0) / self.opts.alpha;
+                self.dtv_recent.push(dtv);
+                if self.dtv_recent.len() as f64 * self.opts.block > THERMAL_TREND_S {
+                    self.dtv_recent.remove(0);
                 }
                 // The Re tracking lags the coil by about a second: protect on the estimate
                 // carried forward along its trend over the last second.
-                let slope = (dtv_recent.last().unwrap() - dtv_recent[0]) / ((dtv_recent.len() - 1).max(1) as f64 * opts.block);
+                let slope = (self.dtv_recent.last().unwrap() - self.dtv_recent[0]) / ((self.dtv_recent.len() - 1).max(1) as f64 * self.opts.block);
                 let dtv_ahead = dtv + THERMAL_LAG_S * slope.max(0.0);
                 live.x_min = st.x_min;
                 live.x_max = st.x_max;
                 live.re = on.re();
                 live.dtv = dtv;
                 live.residual = st.residual_rel();
-                x_peak_max = x_peak_max.max(st.x_max.max(-st.x_min));
-                dtv_max = dtv_max.max(dtv);
+                self.x_peak_max = self.x_peak_max.max(st.x_max.max(-st.x_min));
+                self.dtv_max = self.dtv_max.max(dtv);
                 // The reached range counts only blocks where the live model follows the
                 // measured current (a model that ran away and fell back shows no real x).
-                if stage == Stage::Hold && st.residual_rel() < TRACKING_RESIDUAL {
-                    hold_range = [hold_range[0].min(st.x_min), hold_range[1].max(st.x_max)];
-                    hold_peaks.push(st.x_max.max(-st.x_min));
+                if self.stage == Stage::Hold && st.residual_rel() < TRACKING_RESIDUAL {
+                    self.hold_range = [self.hold_range[0].min(st.x_min), self.hold_range[1].max(st.x_max)];
+                    self.hold_peaks.push(st.x_max.max(-st.x_min));
                 }
                 // Recursive update. A replay is not real time: it updates once per window, so
                 // every recorded sample is used.
-                let every = if controllable { opts.update_seconds } else { opts.update_seconds.min(ONLINE_WINDOW_S) };
+                let every = if self.controllable { self.opts.update_seconds } else { self.opts.update_seconds.min(ONLINE_WINDOW_S) };
                 if on.since_update() >= every {
                     if let Some(up) = on.update() {
-                        updates += 1;
+                        self.updates += 1;
                         // A replay has no ramp: the level can jump far past what the estimate
                         // knows (a quiet lead-in, then the loud part), and the online update
                         // from a model that misses 10 % of the current runs away. Restart it
                         // from a batch large-signal fit of the last seconds instead.
-                        if !controllable && up.before > RESTART_RESIDUAL && restarts < MAX_RESTARTS && recent_u.len() as f64 >= RESTART_S * fs - 1.0 {
-                            if let Some((b, _, reach)) = batch_start(&recent_u, &recent_i, fs, opts.mms) {
-                                let fresh = Online::new(&b, fs, OnlineOptions { order: opts.order, x_ref: 1.5 * reach.max(1e-6), window: ONLINE_WINDOW_S, ..Default::default() })
-                                    .and_then(|mut f| f.push(&recent_u, &recent_i).map(|_| f));
+                        if !self.controllable && up.before > RESTART_RESIDUAL && self.restarts < MAX_RESTARTS && self.recent_u.len() as f64 >= RESTART_S * self.fs - 1.0 {
+                            if let Some((b, _, reach)) = batch_start(&self.recent_u, &self.recent_i, self.fs, self.opts.mms) {
+                                let fresh = Online::new(&b, self.fs, online_options(&self.opts, 1.5 * reach.max(1e-6), self.controllable))
+                                    .and_then(|mut f| f.push(&self.recent_u, &self.recent_i).map(|_| f));
                                 if let Ok(f) = fresh {
                                     *on = f;
-                                    restarts += 1;
-                                    events.push((t, format!("the estimate missed {:.0} % of the current (the level jumped past what it knew): restarted from a batch large-signal fit of the last {RESTART_S} s", 100.0 * up.before)));
-                                    prev_est = None;
-                                    changes.clear();
-                                    hold_peaks.clear();
-                                    hold_range = [0.0, 0.0];
-                                    hold_since = t;
+                                    self.restarts += 1;
+                                    self.events.push((t, format!("the estimate missed {:.0} % of the current (the level jumped past what it knew): restarted from a batch large-signal fit of the last {RESTART_S} s", 100.0 * up.before)));
+                                    self.prev_est = None;
+                                    self.changes.clear();
+                                    self.hold_peaks.clear();
+                                    self.hold_range = [0.0, 0.0];
+                                    self.hold_since = t;
                                 }
                             }
                         }
-                        if re_cold.is_none() {
+                        if self.re_cold.is_none() {
                             // The small-signal fit of a record that ends at rest (the stage's
                             // closing fade and rest) is the cold reference: the online Re has
                             // tracked a second of the ramp by now. Both are limited by sensor
                             // noise at the start level (0.001 % without it).
-                            re_cold = Some(small.as_ref().map_or(on.re(), |p| p.re));
+                            self.re_cold = Some(self.small.as_ref().map_or(on.re(), |p| p.re));
                         }
-                        last_residual = up.before;
-                        last_excess = up.before * (1.0 - 1.0 / up.floor_ratio.max(1.0).powi(2)).sqrt();
+                        self.last_residual = up.before;
+                        self.last_excess = up.before * (1.0 - 1.0 / up.floor_ratio.max(1.0).powi(2)).sqrt();
 
                         live.update = Some(up.before);
                         let est = on.parameters();
                         let reach = on.reach;
-                        if let Some(prev) = &prev_est {
+                        if let Some(prev) = &self.prev_est {
                             // Over the range the driver keeps visiting at the present level:
                             // the 80th percentile of the block peaks since the hold (re)started.
                             // The outermost peaks come a few times a period (noise) or a bar
                             // (music); the curves there follow them by a few percent from update
                             // to update and are judged by their uncertainty bands instead.
-                            let dense = percentile(&hold_peaks, 0.8);
+                            let dense = percentile(&self.hold_peaks, 0.8);
                             let r = 0.9 * if dense > 0.0 { dense } else { reach };
                             let c_bk = curve_change(&est.bl, &prev.bl, r).max(curve_change(&est.kms, &prev.kms, r));
                             let c_le = curve_change(&est.le, &prev.le, r);
-                            changes.push((c_bk, c_le));
+                            self.changes.push((c_bk, c_le));
                             live.change = Some((c_bk, c_le));
                         }
                         // The safe range: where the stiffness rises past the user's limit.
@@ -659,48 +945,48 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                         // reach has been seen and stays; one beyond it is provisional and is
                         // looked at again at every update (the extrapolation improves as the
                         // reach grows toward it).
-                        let crossing = kms_limit_crossing(&est.kms, 1.3 * reach, opts.kms_limit);
+                        let crossing = kms_limit_crossing(&est.kms, 1.3 * reach, self.opts.kms_limit);
                         if let Some(x) = crossing.filter(|&x| x <= reach) {
-                            seen_limit = Some(seen_limit.map_or(x, |a: f64| a.min(x)));
+                            self.seen_limit = Some(self.seen_limit.map_or(x, |a: f64| a.min(x)));
                         }
-                        let new_limit = match (seen_limit, crossing) {
+                        let new_limit = match (self.seen_limit, crossing) {
                             (Some(a), Some(b)) => Some(a.min(b)),
                             (a, b) => a.or(b),
                         };
                         // A replay has no controller: its limits are not events.
-                        match (auto_limit, new_limit) {
-                            _ if !controllable => {}
-                            (None, Some(x)) => events.push((t, format!("Kms(x)/Kms(0) reaches {} at |x| = {:.2} mm: excursion limited there", opts.kms_limit, x * 1e3))),
-                            (Some(a), Some(x)) if (x / a - 1.0).abs() > 0.05 => events.push((t, format!("Kms(x)/Kms(0) reaches {} at |x| = {:.2} mm (was {:.2} mm): excursion limit moved", opts.kms_limit, x * 1e3, a * 1e3))),
-                            (Some(a), None) => events.push((t, format!("the stiffness limit at {:.2} mm, extrapolated beyond the reach, is no longer predicted: the ramp explores on", a * 1e3))),
+                        match (self.auto_limit, new_limit) {
+                            _ if !self.controllable => {}
+                            (None, Some(x)) => self.events.push((t, format!("Kms(x)/Kms(0) reaches {} at |x| = {:.2} mm: excursion limited there", self.opts.kms_limit, x * 1e3))),
+                            (Some(a), Some(x)) if (x / a - 1.0).abs() > 0.05 => self.events.push((t, format!("Kms(x)/Kms(0) reaches {} at |x| = {:.2} mm (was {:.2} mm): excursion limit moved", self.opts.kms_limit, x * 1e3, a * 1e3))),
+                            (Some(a), None) => self.events.push((t, format!("the stiffness limit at {:.2} mm, extrapolated beyond the reach, is no longer predicted: the ramp explores on", a * 1e3))),
                             _ => {}
                         }
-                        auto_limit = new_limit;
+                        self.auto_limit = new_limit;
                         if let Some(s) = store.as_deref_mut() {
                             let mut pj = est.clone();
                             pj.x_range = Some([-reach, reach]);
                             s.push_estimate(t, up.before, &pj.to_json_value());
                         }
                         let k0 = est.kms.eval(0.0);
-                        kms_ratio = (0..=20).map(|k| 1.3 * reach * k as f64 / 20.0).map(|x| est.kms.eval(x).max(est.kms.eval(-x)) / k0).fold(0.0, f64::max);
-                        checked_reach = reach;
+                        self.kms_ratio = (0..=20).map(|k| 1.3 * reach * k as f64 / 20.0).map(|x| est.kms.eval(x).max(est.kms.eval(-x)) / k0).fold(0.0, f64::max);
+                        self.checked_reach = reach;
                         live.estimate = Some(est.clone());
-                        prev_est = Some(est);
+                        self.prev_est = Some(est);
                         // Convergence: at level for 2 s, small window error, stable curves.
                         // The stable updates must span CONVERGED_SPAN_S (2 updates at the
                         // real-time cadence of 1 s, more when a replay updates every window).
-                        let n = changes.len();
+                        let n = self.changes.len();
                         let k = ((CONVERGED_SPAN_S / every).round() as usize).max(2);
                         // Not while the ramp only pauses to explore toward the stiffness limit.
-                        if opts.duration.is_none() && stage == Stage::Hold && last_why != LimitedBy::Exploration && t - hold_since >= 2.0 && n >= k && up.before < 0.02 && last_excess <= CONVERGED_EXCESS && changes[n - k..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
-                            converged = true;
-                            stop_reason = Some(StopReason::Converged { t, residual: up.before, updates: k });
+                        if self.opts.duration.is_none() && self.stage == Stage::Hold && !matches!(self.last_why, LimitedBy::Exploration | LimitedBy::Settling) && t - self.hold_since >= 2.0 && n >= k && up.before < 0.02 && self.last_excess <= CONVERGED_EXCESS && self.changes[n - k..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
+                            self.converged = true;
+                            self.stop_reason = Some(StopReason::Converged { t, residual: up.before, updates: k });
                         }
                     }
                 }
                 // Controller.
-                if controllable {
-                    let x_limit = match (opts.target_x, auto_limit) {
+                if self.controllable {
+                    let x_limit = match (self.opts.target_x, self.auto_limit) {
                         (Some(a), Some(b)) => Some(a.min(b)),
                         (a, b) => a.or(b),
                     };
@@ -708,112 +994,62 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                     // Peak excursion per volt over the last 8 s (the noise's period): noise
                     // peaks come rarely, so the level is set from the largest one seen.
                     let peak = st.x_max.max(-st.x_min);
-                    recent_peaks.push(peak / gain);
-                    if recent_peaks.len() as f64 * opts.block > PEAK_MEMORY_S {
-                        recent_peaks.remove(0);
+                    self.recent_peaks.push(peak / self.gain);
+                    if self.recent_peaks.len() as f64 * self.opts.block > PEAK_MEMORY_S {
+                        self.recent_peaks.remove(0);
                     }
-                    let per_volt = recent_peaks.iter().cloned().fold(0.0, f64::max);
-                    // Near the stiffness limit the ramp slows to a third.
-                    let ramp = if kms_ratio > 0.75 * opts.kms_limit { opts.ramp_db_per_s / 3.0 } else { opts.ramp_db_per_s };
-                    let step = 10f64.powf(ramp * n as f64 / fs / 20.0);
-                    let mut g = opts.hold_volts.map_or(gain * step, |v| v.min(gain * step));
-                    let mut why = LimitedBy::Ramp;
-                    if let Some(xl) = x_limit {
-                        if opts.hold_volts.is_some() {
-                            // Fixed level: the high-pass keeps x in range.
-                            if peak > 0.97 * xl {
-                                let fc = (hp.fc.max(5.0) * 1.25).min(2000.0);
-                                events.push((t, format!("excursion {:.2} mm near the limit {:.2} mm: high-pass raised to {fc:.1} Hz", peak * 1e3, xl * 1e3)));
-                                hp.set(fc);
-                                why = LimitedBy::ExcursionHighPass;
-                            } else if gain * per_volt < 0.8 * xl && hp.fc > opts.hp_hz {
-                                hp.set((hp.fc / 1.05).max(opts.hp_hz));
-                            }
-                        } else if peak > 0.98 * xl {
-                            g = gain * 0.9 * xl / peak;
-                            events.push((t, format!("excursion {:.2} mm above 98 % of the limit {:.2} mm: gain cut to {g:.3} V", peak * 1e3, xl * 1e3)));
-                            why = LimitedBy::Excursion;
-                        } else if g * per_volt > X_AIM * xl {
-                            g = X_AIM * xl / per_volt.max(1e-12);
-                            why = LimitedBy::Excursion;
-                        }
+                    let per_volt = self.recent_peaks.iter().cloned().fold(0.0, f64::max);
+                    let d = control(
+                        &self.opts,
+                        &ControlInput { gain: self.gain, block_seconds: n as f64 / self.fs, peak, per_volt, x_limit, kms_ratio: self.kms_ratio, checked_reach: self.checked_reach, last_change: self.changes.last().map(|c| c.0), last_excess: self.last_excess, dtv, dtv_ahead, temp_cut: self.temp_cut, hp_fc: self.hp.fc },
+                    );
+                    let (g, why) = (d.gain, d.why);
+                    self.temp_cut = d.temp_cut;
+                    if let Some(fc) = d.hp_fc {
+                        self.hp.set(fc);
                     }
-                    // Once the suspension stiffens, explore in steps: never aim beyond
-                    // EXPLORE times the reach the last update checked for the stiffness limit
-                    // (it looks 1.3 times the reach ahead), so the limit is seen before it is hit.
-                    if opts.hold_volts.is_none() && kms_ratio > 1.0 + 0.75 * (opts.kms_limit - 1.0) && checked_reach > 0.0 && g * per_volt > EXPLORE * checked_reach {
-                        let cap = EXPLORE * checked_reach / per_volt.max(1e-12);
-                        if cap < g {
-                            g = cap.max(gain.min(g));
-                            why = LimitedBy::Exploration;
-                        }
-                    }
-                    // Margins for what is left of the tracking lag and for the cold Re's
-                    // error (0.05 % of Re is 0.13 K): hold at 85 %, cut to 85 % above 92 %.
-                    if dtv_ahead > 0.92 * opts.max_dt {
-                        let cut = gain * (0.85 * opts.max_dt / dtv_ahead).sqrt();
-                        if cut < g {
-                            g = cut;
-                            events.push((t, format!("voice-coil rise {dtv:.2} K (heading for {dtv_ahead:.2} K) above 92 % of {} K: gain cut to {g:.3} V", opts.max_dt)));
-                            why = LimitedBy::Temperature;
-                        }
-                    } else if (dtv_ahead > 0.85 * opts.max_dt || (temp_cut && dtv_ahead > 0.75 * opts.max_dt)) && g > gain {
-                        // After a cut the level stays until the coil has cooled to 75 %
-                        // (no hunting around the limit: every change of level restarts the hold).
-                        g = gain;
-                        why = LimitedBy::Temperature;
-                    }
-                    if why == LimitedBy::Temperature && g < gain {
-                        temp_cut = true;
-                    } else if dtv_ahead < 0.75 * opts.max_dt {
-                        temp_cut = false;
-                    }
-                    if g > opts.max_volts {
-                        g = opts.max_volts;
-                        why = LimitedBy::MaxVolts;
-                    }
+                    self.events.extend(d.events.into_iter().map(|e| (t, e)));
                     live.limited_by = why;
-                    if stage == Stage::Ramp {
-                        if g <= gain * 1.0001 {
-                            steady_blocks += 1;
+                    if self.stage == Stage::Ramp {
+                        if g <= self.gain * 1.0001 {
+                            self.steady_blocks += 1;
                         } else {
-                            steady_blocks = 0;
+                            self.steady_blocks = 0;
                         }
-                        if steady_blocks >= 3 {
-                            stage = Stage::Hold;
-                            hold_since = t;
-                            hold_range = [0.0, 0.0];
-                            hold_peaks.clear();
-                            hold_gain = g;
+                        if self.steady_blocks >= 3 {
+                            self.stage = Stage::Hold;
+                            self.hold_since = t;
+                            self.hold_range = [0.0, 0.0];
+                            self.hold_peaks.clear();
+                            self.hold_gain = g;
                         }
-                    } else if g < 0.95 * hold_gain {
+                    } else if g < 0.95 * self.hold_gain {
                         // The level fell (temperature, excursion): the range and the
                         // convergence start again at the new level.
-                        hold_since = t;
-                        hold_range = [0.0, 0.0];
-                        hold_peaks.clear();
-                        hold_gain = g;
-                    } else if g > 1.05 * hold_gain {
+                        self.hold_since = t;
+                        self.hold_range = [0.0, 0.0];
+                        self.hold_peaks.clear();
+                        self.hold_gain = g;
+                    } else if g > 1.05 * self.hold_gain {
                         // The ramp went on (exploration): not converged at a level yet.
-                        hold_since = t;
-                        hold_gain = g;
+                        self.hold_since = t;
+                        self.hold_gain = g;
                     }
-                    gain = g;
+                    self.gain = g;
                 } else {
                     live.limited_by = LimitedBy::Replay;
                 }
-                if blocks.is_multiple_of(per_second) {
-                    dt_track.push((t, dtv));
+                if self.blocks.is_multiple_of(self.per_second) {
+                    self.dt_track.push((t, dtv));
                 }
             }
         }
-        live.stage = stage;
-        last_why = live.limited_by;
-        observe(&live);
+        live.stage = self.stage;
+        self.last_why = live.limited_by;
         if let Some(s) = store.as_deref_mut() {
             s.push_state(StateRow {
                 t,
-                stage: stage.name().into(),
+                stage: self.stage.name().into(),
                 u_rms: coilscope_core::simulate::rms(&blk.u),
                 i_rms: coilscope_core::simulate::rms(&blk.i),
                 gain: live.volts,
@@ -824,54 +1060,81 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
                 re: live.re,
                 residual: live.residual,
             });
-            if blocks.is_multiple_of(per_second) {
+            if self.blocks.is_multiple_of(self.per_second) {
                 s.commit(t)?;
             }
         }
-        if converged {
-            break;
+        if self.converged {
+            return Ok(None);
         }
+        Ok(Some(live))
     }
-    let seconds = samples as f64 / fs;
-    let Some(on) = online else {
-        return Err(format!("the measurement ended after {seconds:.2} s, before the small-signal stage ({} s) was complete", opts.small_seconds));
-    };
-    // `Re` of a parameter set is the value at ambient temperature (formats.md): the cold
-    // estimate. The hot value at the end lives under `thermal` (`Measurement::re_end`).
-    let mut params = on.parameters();
-    let re_end = params.re;
-    if hold_range == [0.0, 0.0] {
-        hold_range = [-on.reach, on.reach];
+
+    /// The outcome: the estimate, the cold Re (refitted on the small-signal stage when the
+    /// run converged) and everything the run decided. An error if the small-signal stage was
+    /// never complete.
+    pub fn finish(self) -> Result<Measurement, String> {
+        let seconds = self.samples as f64 / self.fs;
+        let Some(on) = self.online else {
+            return Err(format!("the measurement ended after {seconds:.2} s, before the small-signal stage ({} s) was complete", self.opts.small_seconds));
+        };
+        // `Re` of a parameter set is the value at ambient temperature (formats.md): the cold
+        // estimate. The hot value at the end lives under `thermal` (`Measurement::re_end`).
+        let mut params = on.parameters();
+        let re_end = params.re;
+        let hold_range = if self.hold_range == [0.0, 0.0] { [-on.reach, on.reach] } else { self.hold_range };
+        params.x_range = Some(hold_range);
+        let small = self.small.expect("set with the estimator");
+        let mut re_cold = self.re_cold.unwrap_or(small.re);
+        let mut re_cold_sd = self.re_cold_sd;
+        // A converged model refits the cold Re on the small-signal stage's record (it starts
+        // and ends at rest, the coil still cold): unlike the linear fit, it does not read the
+        // stage's distortion as resistance.
+        if self.controllable && self.converged {
+            let start = Parameters { re: re_cold, ..params.clone() };
+            if let Some((re, sd)) = coilscope_ident::online::fit_re(&start, &self.u_small, &self.i_small, self.fs).filter(|&(re, _)| (re / re_cold - 1.0).abs() < 0.01) {
+                re_cold = re;
+                re_cold_sd = sd;
+            }
+        }
+        params.re = re_cold;
+        Ok(Measurement {
+            params,
+            small,
+            converged: self.converged,
+            stop_reason: self.stop_reason.unwrap_or(StopReason::DeviceEmpty),
+            seconds,
+            x_range: hold_range,
+            x_peak_max: self.x_peak_max,
+            dtv_max: self.dtv_max,
+            re_cold,
+            re_cold_sd,
+            re_end,
+            alpha: self.opts.alpha,
+            limited_by: self.last_why,
+            residual_rel: self.last_residual,
+            residual_excess: self.last_excess,
+            updates: self.updates,
+            events: self.events,
+            dt_track: self.dt_track,
+            truth: self.device.truth(),
+            excitation: self.source.name().to_string(),
+            device: self.device.describe(),
+            mms_source: String::new(),
+            online: on,
+        })
     }
-    params.x_range = Some(hold_range);
-    let small = small.expect("set with the estimator");
-    let re_cold = re_cold.unwrap_or(small.re);
-    params.re = re_cold;
-    Ok(Measurement {
-        params,
-        small,
-        converged,
-        stop_reason: stop_reason.unwrap_or(StopReason::DeviceEmpty),
-        seconds,
-        x_range: hold_range,
-        x_peak_max,
-        dtv_max,
-        re_cold,
-        re_cold_sd,
-        re_end,
-        alpha: opts.alpha,
-        limited_by: last_why,
-        residual_rel: last_residual,
-        residual_excess: last_excess,
-        updates,
-        events,
-        dt_track,
-        truth: device.truth(),
-        excitation: source.name().to_string(),
-        device: device.describe(),
-        mms_source: String::new(),
-        online: on,
-    })
+}
+
+/// Run a measurement: [`Engine::step`] until it stops, then [`Engine::finish`]. `observe`
+/// sees every block; `store` (if any) gets the decimated states (one per block) and every
+/// estimate.
+pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptions, mut store: Option<&mut Store>, mut observe: impl FnMut(&Live)) -> Result<Measurement, String> {
+    let mut engine = Engine::new(device, source, opts)?;
+    while let Some(live) = engine.step(store.as_deref_mut())? {
+        observe(&live);
+    }
+    engine.finish()
 }
 
 impl Measurement {
@@ -955,5 +1218,120 @@ impl Measurement {
                 "live_model_resets": self.online.resets,
             },
         })
+    }
+}
+
+#[cfg(test)]
+mod control_tests {
+    //! One test per controller policy (issue 14): each sets up the situation the policy is for
+    //! and checks the level it chooses against the rule's own arithmetic.
+    use super::*;
+
+    fn opts() -> MeasureOptions {
+        MeasureOptions { mms: 0.015, ..Default::default() }
+    }
+
+    /// Nothing binds: 1 V, 0.1 s blocks, 0.5 mm/V remembered, no limit, cold coil.
+    fn quiet() -> ControlInput {
+        ControlInput { gain: 1.0, block_seconds: 0.1, peak: 0.5e-3, per_volt: 0.5e-3, x_limit: None, kms_ratio: 1.0, checked_reach: 0.0, last_change: None, last_excess: f64::NAN, dtv: 0.0, dtv_ahead: 0.0, temp_cut: false, hp_fc: 5.0 }
+    }
+
+    fn close(a: f64, b: f64) -> bool {
+        (a - b).abs() <= 1e-12 * b.abs().max(1.0)
+    }
+
+    #[test]
+    fn the_ramp_rises_3_db_per_second_and_a_third_of_it_near_the_stiffness_limit() {
+        let d = control(&opts(), &quiet());
+        assert_eq!(d.why, LimitedBy::Ramp);
+        assert!(close(d.gain, 10f64.powf(3.0 * 0.1 / 20.0)), "{}", d.gain);
+        let d = control(&opts(), &ControlInput { kms_ratio: 1.6, ..quiet() });
+        assert!(close(d.gain, 10f64.powf(1.0 * 0.1 / 20.0)), "{}", d.gain);
+        assert!(d.events.is_empty());
+    }
+
+    #[test]
+    fn a_peak_above_98_percent_of_the_limit_cuts_the_level_at_once() {
+        let d = control(&opts(), &ControlInput { x_limit: Some(4e-3), peak: 4.2e-3, per_volt: 4.2e-3, ..quiet() });
+        assert_eq!(d.why, LimitedBy::Excursion);
+        assert!(close(d.gain, 0.9 * 4e-3 / 4.2e-3), "{}", d.gain);
+        assert_eq!(d.events.len(), 1);
+        assert!(d.events[0].contains("gain cut"), "{:?}", d.events);
+    }
+
+    #[test]
+    fn the_largest_remembered_peak_is_aimed_at_92_percent_of_the_limit() {
+        let d = control(&opts(), &ControlInput { x_limit: Some(4e-3), peak: 3.0e-3, per_volt: 3.9e-3, ..quiet() });
+        assert_eq!(d.why, LimitedBy::Excursion);
+        assert!(close(d.gain * 3.9e-3, X_AIM * 4e-3), "{}", d.gain);
+        assert!(d.events.is_empty(), "aiming is not an event");
+    }
+
+    #[test]
+    fn the_level_never_aims_past_the_trust_region_of_the_checked_reach() {
+        // 1 mm/V and 1 mm checked: far from the stiffness limit at most 1.6 mm is aimed at.
+        let far = ControlInput { gain: 1.59, per_volt: 1e-3, peak: 1e-3, checked_reach: 1e-3, ..quiet() };
+        let d = control(&opts(), &far);
+        assert_eq!(d.why, LimitedBy::Exploration);
+        assert!(close(d.gain, EXPLORE_FAR * 1e-3 / 1e-3), "{}", d.gain);
+        // Near it (Kms ratio past half the way to the limit) at most 1.25 mm; a level already
+        // above the cap is held, not cut (the cap is no protection limit).
+        let near = ControlInput { kms_ratio: 1.6, ..far };
+        let d = control(&opts(), &near);
+        assert_eq!(d.why, LimitedBy::Exploration);
+        assert!(close(d.gain, 1.59), "{}", d.gain);
+        let d = control(&opts(), &ControlInput { gain: 1.2, ..near });
+        assert!(close(d.gain, EXPLORE), "{}", d.gain);
+        // Inside the region the ramp goes on.
+        let d = control(&opts(), &ControlInput { gain: 1.0, ..far });
+        assert_eq!(d.why, LimitedBy::Ramp);
+    }
+
+    #[test]
+    fn the_ramp_waits_for_an_estimate_that_still_moves_or_misses_the_held_out_current() {
+        let d = control(&opts(), &ControlInput { last_change: Some(0.05), ..quiet() });
+        assert_eq!((d.gain, d.why), (1.0, LimitedBy::Settling));
+        let d = control(&opts(), &ControlInput { last_change: Some(0.01), last_excess: 0.02, ..quiet() });
+        assert_eq!((d.gain, d.why), (1.0, LimitedBy::Settling));
+        let d = control(&opts(), &ControlInput { last_change: Some(0.01), last_excess: 0.002, ..quiet() });
+        assert_eq!(d.why, LimitedBy::Ramp);
+        // Waiting never undoes a cut.
+        let d = control(&opts(), &ControlInput { last_change: Some(0.05), x_limit: Some(4e-3), peak: 4.2e-3, ..quiet() });
+        assert_eq!(d.why, LimitedBy::Excursion);
+        assert!(d.gain < 1.0);
+    }
+
+    #[test]
+    fn the_temperature_cuts_above_92_percent_holds_above_85_and_after_a_cut_until_75() {
+        let o = opts();
+        let hot = o.max_dt * 0.95;
+        let d = control(&o, &ControlInput { dtv: hot, dtv_ahead: hot, ..quiet() });
+        assert_eq!(d.why, LimitedBy::Temperature);
+        assert!(close(d.gain, (0.85 / 0.95f64).sqrt()), "{}", d.gain);
+        assert!(d.temp_cut && d.events.len() == 1);
+        let d = control(&o, &ControlInput { dtv_ahead: 0.88 * o.max_dt, ..quiet() });
+        assert_eq!((d.gain, d.why, d.temp_cut), (1.0, LimitedBy::Temperature, false));
+        let d = control(&o, &ControlInput { dtv_ahead: 0.8 * o.max_dt, temp_cut: true, ..quiet() });
+        assert_eq!((d.gain, d.why, d.temp_cut), (1.0, LimitedBy::Temperature, true));
+        let d = control(&o, &ControlInput { dtv_ahead: 0.7 * o.max_dt, temp_cut: true, ..quiet() });
+        assert_eq!((d.why, d.temp_cut), (LimitedBy::Ramp, false));
+    }
+
+    #[test]
+    fn max_volts_is_the_last_word() {
+        let d = control(&opts(), &ControlInput { gain: 20.0, ..quiet() });
+        assert_eq!((d.gain, d.why), (20.0, LimitedBy::MaxVolts));
+    }
+
+    #[test]
+    fn a_long_term_test_at_a_fixed_level_raises_the_high_pass_instead_of_cutting() {
+        let o = MeasureOptions { hold_volts: Some(1.0), ..opts() };
+        let d = control(&o, &ControlInput { x_limit: Some(4e-3), peak: 3.95e-3, per_volt: 3.95e-3, hp_fc: 20.0, ..quiet() });
+        assert_eq!(d.why, LimitedBy::ExcursionHighPass);
+        assert_eq!(d.gain, 1.0);
+        assert_eq!(d.hp_fc, Some(25.0));
+        // Far below the limit it comes back down, never below the start's cut-off.
+        let d = control(&o, &ControlInput { x_limit: Some(4e-3), peak: 1e-3, per_volt: 1e-3, hp_fc: 5.1, ..quiet() });
+        assert_eq!(d.hp_fc, Some(o.hp_hz));
     }
 }

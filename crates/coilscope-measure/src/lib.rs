@@ -21,4 +21,4 @@ pub mod signal;
 pub mod soundcard;
 pub mod store;
 
-pub use engine::{measure, LimitedBy, Live, MeasureOptions, Measurement, Stage, StopReason};
+pub use engine::{control, measure, ControlDecision, ControlInput, Engine, LimitedBy, Live, MeasureOptions, Measurement, Stage, StopReason};

@@ -542,19 +542,28 @@ pub fn write(report: &Report, out: &Path, png_size: (u32, u32)) -> Result<Vec<Pa
 /// Read a result file or a parameter set (embedded name or JSON path) into a report input.
 pub fn input_from(spec: &str) -> Result<ReportInput, String> {
     let path = Path::new(spec);
-    let (params, result) = if path.exists() {
+    if path.exists() {
         let text = std::fs::read_to_string(path).map_err(|e| format!("{spec}: cannot read ({e})"))?;
-        let v: Value = serde_json::from_str(&text).map_err(|e| format!("{spec}: not JSON ({e})"))?;
-        if v.get("format").and_then(|f| f.as_str()).is_some_and(|f| f.starts_with("coilscope.result")) {
-            let pv = v.get("parameters").ok_or_else(|| format!("{spec}: the result has no `parameters` object"))?;
-            let p = Parameters::from_json_value(pv, &format!("{spec} (parameters)")).map_err(|e| e.to_string())?;
-            (p, Some(v))
-        } else {
-            (Parameters::from_json_value(&v, spec).map_err(|e| e.to_string())?, None)
-        }
+        input_from_text(&text, spec)
     } else {
-        (coilscope_io::load_parameters(spec).map_err(|e| e.to_string())?, None)
-    };
+        input_of(coilscope_io::load_parameters(spec).map_err(|e| e.to_string())?, None, spec)
+    }
+}
+
+/// Read the text of a result file or of a parameter set (JSON) into a report input; `spec`
+/// names it in messages. Never panics, whatever the text (a fuzz target).
+pub fn input_from_text(text: &str, spec: &str) -> Result<ReportInput, String> {
+    let v: Value = serde_json::from_str(text).map_err(|e| format!("{spec}: not JSON ({e})"))?;
+    if v.get("format").and_then(|f| f.as_str()).is_some_and(|f| f.starts_with("coilscope.result")) {
+        let pv = v.get("parameters").ok_or_else(|| format!("{spec}: the result has no `parameters` object"))?;
+        let p = Parameters::from_json_value(pv, &format!("{spec} (parameters)")).map_err(|e| e.to_string())?;
+        input_of(p, Some(v), spec)
+    } else {
+        input_of(Parameters::from_json_value(&v, spec).map_err(|e| e.to_string())?, None, spec)
+    }
+}
+
+fn input_of(params: Parameters, result: Option<Value>, spec: &str) -> Result<ReportInput, String> {
     let fit_range = result.as_ref().and_then(|r| {
         let a = r.get("fit")?.get("x_range")?.as_array()?;
         Some([a.first()?.as_f64()?, a.get(1)?.as_f64()?])
