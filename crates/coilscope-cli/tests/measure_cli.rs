@@ -103,7 +103,7 @@ fn bad_devices_files_and_limits_get_one_line_errors() {
         (vec!["measure", "--virtual", "sb17cac35-4", "--target-x", "4", "--out", o], "did you mean 4mm"),
         (vec!["measure", "--virtual", "sb17cac35-4", "--target-x", "4furlongs", "--out", o], "unknown length unit"),
         (vec!["measure", "--virtual", "sb17cac35-4", "--music", "/nonexistent/song.wav", "--out", o], "song.wav"),
-        (vec!["measure", "--replay", "/nonexistent/rec.wav", "--out", o], "--mms"),
+        (vec!["measure", "--replay", "/nonexistent/rec.wav", "--out", o], "rec.wav: no such file"),
         (vec!["runs", "/nonexistent/run.sqlite"], "no such run database"),
         (vec!["measure", "--card", "--out", o], "--card needs --mms"),
         (vec!["measure", "--card", "--mms", "0.02", "--u-channel", "1", "--i-channel", "1", "--out", o], if cfg!(feature = "soundcard") { "--u-channel" } else { "--features soundcard" }),

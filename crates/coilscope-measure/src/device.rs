@@ -52,6 +52,9 @@ pub trait Device {
 pub struct Truth {
     /// Largest |x| (m).
     pub x_peak: f64,
+    /// Smallest and largest x (m): the range the driver truly reached.
+    pub x_min: f64,
+    pub x_max: f64,
     /// Largest voice-coil temperature rise (K).
     pub dtv_max: f64,
     /// The present voice-coil temperature rise (K).
@@ -145,6 +148,8 @@ impl Device for VirtualDevice {
                     }
                 }
                 self.truth.x_peak = self.truth.x_peak.max(x.abs());
+                self.truth.x_min = self.truth.x_min.min(x);
+                self.truth.x_max = self.truth.x_max.max(x);
                 self.truth.dtv = s[idx::TV];
                 self.truth.dtv_max = self.truth.dtv_max.max(s[idx::TV]);
                 let u = self.hist[m];

@@ -1280,7 +1280,9 @@ mod control_tests {
         let d = control(&opts(), &near);
         assert_eq!(d.why, LimitedBy::Exploration);
         assert!(close(d.gain, 1.59), "{}", d.gain);
-        let d = control(&opts(), &ControlInput { gain: 1.2, ..near });
+        // Just below the cap, the (slowed) ramp step is cut to it.
+        let d = control(&opts(), &ControlInput { gain: 1.245, ..near });
+        assert_eq!(d.why, LimitedBy::Exploration);
         assert!(close(d.gain, EXPLORE), "{}", d.gain);
         // Inside the region the ramp goes on.
         let d = control(&opts(), &ControlInput { gain: 1.0, ..far });

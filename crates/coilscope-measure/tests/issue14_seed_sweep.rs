@@ -103,7 +103,8 @@ fn sweep(cases: Vec<Case>) -> (usize, Vec<String>) {
         }
         let t = m.truth.unwrap();
         let q = &m.params;
-        let r = m.x_range;
+        // Scored over the range the driver truly reached, not the one the estimator reports.
+        let r = [t.x_min, t.x_max];
         let (e_bl, e_k, e_le) = (worst(&q.bl, &c.p.bl, r), worst(&q.kms, &c.p.kms, r), worst(&q.le, &c.p.le, r));
         let e_re = (q.re / c.p.re - 1.0).abs();
         let z = band_z(&m, &c.p);
@@ -112,14 +113,16 @@ fn sweep(cases: Vec<Case>) -> (usize, Vec<String>) {
             zs.extend(&z);
         }
         let line = format!(
-            "{}: bands hold the truth at 2 sd on {:.0} % of points (largest {:.1} sd); {} after {:.1} s; reach {:.2}..{:.2} mm, true peak {:.2} mm of {:.2}; dT true {:.1} K, estimated {:.1} K; Bl {:.2} %, Kms {:.2} %, Le {:.2} %, Re(cold) {:.3} % (sd {:.3} %)",
+            "{}: bands hold the truth at 2 sd on {:.0} % of points (largest {:.1} sd); {} after {:.1} s; reach {:.2}..{:.2} mm (true {:.2}..{:.2}), true peak {:.2} mm of {:.2}; dT true {:.1} K, estimated {:.1} K; Bl {:.2} %, Kms {:.2} %, Le {:.2} %, Re(cold) {:.3} % (sd {:.3} %)",
             c.label,
             100.0 * z2,
             z.iter().cloned().fold(0.0, f64::max),
             m.stop_reason.key(),
             m.seconds,
-            r[0] * 1e3,
-            r[1] * 1e3,
+            m.x_range[0] * 1e3,
+            m.x_range[1] * 1e3,
+            t.x_min * 1e3,
+            t.x_max * 1e3,
             t.x_peak * 1e3,
             range * 1e3,
             t.dtv_max,
@@ -134,6 +137,12 @@ fn sweep(cases: Vec<Case>) -> (usize, Vec<String>) {
         let mut bad = Vec::new();
         if t.x_peak > 1.05 * range {
             bad.push("protection: true peak beyond the range + 5 %");
+        }
+        // How far a run must get: 60 % of the safe range (the driver's range, or where its true
+        // Kms(x)/Kms(0) reaches the limit, if nearer), unless the coil's temperature held it.
+        let safe = coilscope_measure::engine::kms_limit_crossing(&c.p.kms, range, opts.kms_limit).unwrap_or(range);
+        if m.converged && t.x_peak < 0.6 * safe && m.limited_by != coilscope_measure::LimitedBy::Temperature {
+            bad.push("stopped short: the true peak is below 60 % of the safe range");
         }
         if t.dtv_max > 1.05 * opts.max_dt {
             bad.push("protection: true voice-coil rise beyond the limit + 5 %");

@@ -1,0 +1,80 @@
+//! Issue 14 item 10: truth outside the model class.
+//!
+//! The other truth tests simulate drivers whose Bl(x), Kms(x), Le(x) are the parameter sets'
+//! power series, of order 2-6, inside the order range `identify` fits, so a shared mistake
+//! or a truncation error cannot show there. Here the truth is each bundled driver's
+//! `published_curves` (the Klippel LSI curves as digitised) through an order-10 least-squares
+//! series over the valid range: it follows the digitised points (within their scatter) and
+//! has terms the fit does not. The record reaches 85 % of the range; the fit must stay within
+//! the issue's bounds (Bl, Kms 2 %, Le 5 % over the reached range) and its residual close to
+//! the noise floor.
+
+use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
+use coilscope_core::simulate::{gain_for_peak, SimOptions};
+use coilscope_core::{embedded_driver, Parameters, Poly};
+use coilscope_ident::large::{identify, IdentifyOptions};
+use nalgebra::{DMatrix, DVector};
+
+const ORDER: usize = 10;
+
+/// Least-squares power series of `ORDER` through the points inside `[lo, hi]` (SI).
+fn series_through(points: &[(f64, f64)], [lo, hi]: [f64; 2]) -> Poly {
+    let pts: Vec<(f64, f64)> = points.iter().copied().filter(|&(x, _)| x >= lo - 1e-9 && x <= hi + 1e-9).collect();
+    let s = hi.max(-lo);
+    let a = DMatrix::from_fn(pts.len(), ORDER + 1, |r, c| (pts[r].0 / s).powi(c as i32));
+    let b = DVector::from_iterator(pts.len(), pts.iter().map(|p| p.1));
+    let c = a.svd(true, true).solve(&b, 1e-12).unwrap();
+    Poly { c: (0..=ORDER).map(|k| c[k] / s.powi(k as i32)).collect() }
+}
+
+fn curve(p: &Parameters, which: &str) -> Vec<(f64, f64)> {
+    p.extra["published_curves"][which].as_array().unwrap().iter().map(|v| (v[0].as_f64().unwrap(), v[1].as_f64().unwrap())).collect()
+}
+
+fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
+    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, f64::max) / g.eval(0.0).abs()
+}
+
+#[test]
+fn identify_recovers_published_curves_outside_its_model_class() {
+    for name in ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"] {
+        let base = embedded_driver(name).unwrap();
+        let range = base.x_range.unwrap();
+        let mut truth = base.clone();
+        truth.bl = series_through(&curve(&base, "Bl"), range);
+        truth.kms = series_through(&curve(&base, "Kms"), range);
+        truth.le = series_through(&curve(&base, "Le"), range);
+        // The series follows the digitised points.
+        for (which, f) in [("Bl", &truth.bl), ("Kms", &truth.kms), ("Le", &truth.le)] {
+            let pts: Vec<_> = curve(&base, which).into_iter().filter(|&(x, _)| x >= range[0] && x <= range[1]).collect();
+            let off = pts.iter().map(|&(x, v)| (f.eval(x) / v - 1.0).abs()).fold(0.0, f64::max);
+            assert!(off < 0.02, "{name} {which}: the order-{ORDER} series is {off:.3} off the published points");
+        }
+        let fs = 48000.0;
+        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.05, seed: 21 }).unwrap();
+        let (_, tr) = gain_for_peak(&truth, fs, &unit, 0.85 * range[1].min(-range[0]), &SimOptions::default()).unwrap();
+        let s = tr.summary();
+        let (mut u, mut i) = (tr.u, tr.i);
+        add_sensor_noise(&mut u, 70.0, 21, "sensor-noise/voltage");
+        add_sensor_noise(&mut i, 70.0, 21, "sensor-noise/current");
+        let fit = identify(&u, &i, fs, name, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}).unwrap_or_else(|e| panic!("{name}: {e}"));
+        let r = [s.x_min, s.x_max];
+        let q = &fit.params;
+        let (e_bl, e_k, e_le) = (worst(&q.bl, &truth.bl, r), worst(&q.kms, &truth.kms, r), worst(&q.le, &truth.le, r));
+        let e_re = (q.re / truth.re - 1.0).abs();
+        println!(
+            "{name} (published curves, order {ORDER}): fit order {}, residual {:.2e}, Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.4} % over {:.2}..{:.2} mm",
+            fit.order,
+            fit.residual_rel,
+            100.0 * e_bl,
+            100.0 * e_k,
+            100.0 * e_le,
+            100.0 * e_re,
+            r[0] * 1e3,
+            r[1] * 1e3
+        );
+        assert!(e_bl <= 0.02 && e_k <= 0.02 && e_le <= 0.05, "{name}: Bl {e_bl}, Kms {e_k}, Le {e_le}");
+        assert!(e_re <= 0.01, "{name}: Re {e_re}");
+        assert!(fit.residual_rel <= 0.01, "{name}: residual {}", fit.residual_rel);
+    }
+}
