@@ -5,9 +5,9 @@
 //! or a truncation error cannot show there. Here the truth is each bundled driver's
 //! `published_curves` (the Klippel LSI curves as digitised) through an order-10 least-squares
 //! series over the valid range: it follows the digitised points (within their scatter) and
-//! has terms the fit does not. The record reaches 85 % of the range; the fit must stay within
-//! the bounds (Bl, Kms 2 %, Le 5 % over the reached range) and its residual close to
-//! the noise floor.
+//! has terms the fit does not. The record reaches 85 % of the range; measured over the
+//! reached range: Bl <= 0.45 %, Kms <= 0.24 %, Le <= 0.71 %, Re <= 0.006 %, the residual at
+//! the noise floor (the fit picks order 6-8).
 
 use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
 use coilscope_core::simulate::{gain_for_peak, SimOptions};
@@ -73,7 +73,9 @@ fn identify_recovers_published_curves_outside_its_model_class() {
             r[0] * 1e3,
             r[1] * 1e3
         );
-        assert!(e_bl <= 0.02 && e_k <= 0.02 && e_le <= 0.05, "{name}: Bl {e_bl}, Kms {e_k}, Le {e_le}");
+        // Measured: Bl <= 0.45 %, Kms <= 0.24 %, Le <= 0.71 % (the README's figures); the test
+        // fails at about 3.5x.
+        assert!(e_bl <= 0.015 && e_k <= 0.015 && e_le <= 0.025, "{name}: Bl {e_bl}, Kms {e_k}, Le {e_le}");
         assert!(e_re <= 0.01, "{name}: Re {e_re}");
         assert!(fit.residual_rel <= 0.01, "{name}: residual {}", fit.residual_rel);
     }
