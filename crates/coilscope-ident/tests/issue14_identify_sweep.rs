@@ -1,0 +1,84 @@
+//! Issue 14: `identify` never fails on plain records.
+//!
+//! Plain records as `coilscope simulate` makes them: 6 s of pink noise (10 Hz - 8 kHz, crest
+//! factor 3) at a level that takes the driver to 70 % of its range, coil heating on, 70 dB
+//! sensor noise. Eight seeds on each bundled driver and on a driver with a large,
+//! semi-inductive coil (`testdata/drivers/large-coil.json`: Le 2.9 mH, L2 6.7 mH), where two
+//! seeds of four once ended with "the start model diverged at sample 1". Every fit must
+//! converge. Measured over the 32 records: Bl, Kms, Le <= 0.02 % over the reached range, Re,
+//! Rms <= 0.008 % (the README's figures); the test fails at 0.1 % and 0.04 % (the issue's
+//! bounds are 2 %, 5 % and 1 %).
+//!
+//! Slow in a debug build: `cargo test --release -p coilscope-ident --test
+//! issue14_identify_sweep -- --ignored` (`.ci/run` runs it).
+
+use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
+use coilscope_core::simulate::{gain_for_peak, SimOptions};
+use coilscope_core::{embedded_driver, Parameters, Poly};
+use coilscope_ident::large::{identify, IdentifyOptions};
+
+fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
+    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, f64::max) / g.eval(0.0).abs()
+}
+
+fn driver(name: &str) -> Parameters {
+    embedded_driver(name).unwrap_or_else(|| {
+        let path = format!("{}/../../testdata/drivers/{name}.json", env!("CARGO_MANIFEST_DIR"));
+        Parameters::from_json_str(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
+    })
+}
+
+fn sweep(name: &str) {
+    let p = driver(name);
+    let [lo, hi] = p.x_range.unwrap();
+    let fs = 48000.0;
+    let mut failures = Vec::new();
+    for seed in 1..=8u64 {
+        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 6.0, rms: 1.0, fade: 0.05, seed }).unwrap();
+        let (_, tr) = gain_for_peak(&p, fs, &unit, 0.7 * hi.min(-lo), &SimOptions::default()).unwrap();
+        let s = tr.summary();
+        let (mut u, mut i) = (tr.u, tr.i);
+        add_sensor_noise(&mut u, 70.0, seed, "sensor-noise/voltage");
+        add_sensor_noise(&mut i, 70.0, seed, "sensor-noise/current");
+        let label = format!("{name} seed {seed}");
+        match identify(&u, &i, fs, &label, &IdentifyOptions { mms: p.mms, ..Default::default() }, |_| {}) {
+            Ok(fit) => {
+                let q = &fit.params;
+                let r = [s.x_min, s.x_max];
+                let (e_bl, e_k, e_le) = (worst(&q.bl, &p.bl, r), worst(&q.kms, &p.kms, r), worst(&q.le, &p.le, r));
+                let (e_re, e_rms) = ((q.re / p.re - 1.0).abs(), (q.rms / p.rms - 1.0).abs());
+                let line = format!("{label}: order {}, residual {:.2e}, Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.3} %, Rms {:.3} %", fit.order, fit.residual_rel, 100.0 * e_bl, 100.0 * e_k, 100.0 * e_le, 100.0 * e_re, 100.0 * e_rms);
+                println!("{line}");
+                if !(e_bl <= 1e-3 && e_k <= 1e-3 && e_le <= 1e-3 && e_re <= 4e-4 && e_rms <= 4e-4) {
+                    failures.push(format!("{line}: beyond 5x the published figures"));
+                }
+            }
+            Err(e) => failures.push(format!("{label}: {e}")),
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+#[test]
+#[ignore = "release-profile sweep: cargo test --release -p coilscope-ident --test issue14_identify_sweep -- --ignored"]
+fn identify_never_fails_on_sb17() {
+    sweep("sb17cac35-4");
+}
+
+#[test]
+#[ignore = "release-profile sweep: cargo test --release -p coilscope-ident --test issue14_identify_sweep -- --ignored"]
+fn identify_never_fails_on_ptt4() {
+    sweep("ptt4.0w04-01a");
+}
+
+#[test]
+#[ignore = "release-profile sweep: cargo test --release -p coilscope-ident --test issue14_identify_sweep -- --ignored"]
+fn identify_never_fails_on_18wu() {
+    sweep("18wu-4741t-00");
+}
+
+#[test]
+#[ignore = "release-profile sweep: cargo test --release -p coilscope-ident --test issue14_identify_sweep -- --ignored"]
+fn identify_never_fails_on_a_large_semi_inductive_coil() {
+    sweep("large-coil");
+}
