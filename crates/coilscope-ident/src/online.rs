@@ -33,6 +33,10 @@ const JACOBIAN_STIFF_LIMIT: f64 = 1.5;
 const RE_TREND_S: f64 = 1.0;
 /// Largest relative change of Re per tracking step that is taken for heating.
 const RE_STEP_MAX: f64 = 0.01;
+/// The largest step taken when the Re direction explains more than [`RE_EXPLAINED`] of the
+/// tracking block's current error (fast heating).
+const RE_STEP_MAX_HEAT: f64 = 0.05;
+const RE_EXPLAINED: f64 = 0.5;
 /// Samples between stored live states (window starts snap to these).
 const SNAP_EVERY: usize = 256;
 
@@ -136,6 +140,8 @@ pub struct Online {
     snaps: Vec<(usize, State<f64>)>,
     re_num: f64,
     re_den: f64,
+    /// Sum of the squared current error over the tracking block (A^2).
+    re_err2: f64,
     re_count: usize,
     /// Tracked Re after each tracking step: (absolute sample, ohm), the last seconds.
     re_hist: std::collections::VecDeque<(usize, f64)>,
@@ -198,6 +204,7 @@ impl Online {
             snaps: vec![(0, [0.0; NSTATE])],
             re_num: 0.0,
             re_den: 0.0,
+            re_err2: 0.0,
             re_count: 0,
             re_hist: std::collections::VecDeque::new(),
             last_update: 0,
@@ -292,6 +299,7 @@ impl Online {
             st.i_sq += self.i[k] * self.i[k];
             self.re_num += r * ir;
             self.re_den += ir * ir;
+            self.re_err2 += r * r;
             self.re_count += 1;
             self.interp_jac.fill(&self.u, k, &mut pf);
             for (d, &f) in pd.iter_mut().zip(pf.iter()) {
@@ -315,11 +323,15 @@ impl Online {
         if self.re_den > 0.0 {
             let d = self.re_num / self.re_den;
             let re = self.re();
-            // Heating moves Re by far less than 1 % in a quarter second: a larger step is
-            // the rest of the model talking, not the coil; ignore it. (Clamping it instead
+            // A woofer's coil moves Re by far less than 1 % in a quarter second: a larger step
+            // is the rest of the model talking, not the coil; ignore it (clamping it instead
             // biased the tracked Re by +0.3-0.6 % during the ramp, which the protection then
-            // read as 1-1.5 K of heat.)
-            if (d / re).abs() < RE_STEP_MAX {
+            // read as 1-1.5 K of heat). Unless the Re direction explains most of the block's
+            // current error: then it is the coil, heating fast (a microspeaker with a 2 s
+            // thermal time constant moves Re by 2.5 % in a quarter second), up to 5 %.
+            let explained = self.re_num * self.re_num / self.re_den / self.re_err2.max(1e-300);
+            let limit = if explained > RE_EXPLAINED { RE_STEP_MAX_HEAT } else { RE_STEP_MAX };
+            if (d / re).abs() < limit {
                 let k = self.layout.slots().re.start;
                 self.theta[k] += d / self.layout.scales.re;
                 self.model.re = Dual64::new(self.re(), 1.0);
@@ -328,6 +340,7 @@ impl Online {
         }
         self.re_num = 0.0;
         self.re_den = 0.0;
+        self.re_err2 = 0.0;
         self.re_count = 0;
         self.re_hist.push_back((self.pos, self.re()));
         while self.re_hist.front().is_some_and(|&(k, _)| k + (RE_TREND_S * self.fs) as usize <= self.pos) {
@@ -549,6 +562,7 @@ impl Online {
         self.live = std::array::from_fn(|k| Dual64::new(y_now[k], self.live[k].eps));
         self.re_num = 0.0;
         self.re_den = 0.0;
+        self.re_err2 = 0.0;
         self.re_count = 0;
         Some(Update { t: self.t(), before, after: (e1 / q.max(1e-300)).sqrt(), step, floor_ratio })
     }

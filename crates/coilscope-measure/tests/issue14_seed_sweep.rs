@@ -213,14 +213,16 @@ fn microspeakers_over_seeds() {
     check((1..=SEEDS).map(|s| case("microspeaker-0g1", s)).collect());
 }
 
-/// Open defect of issue 14 (not run by CI): a coil with a 2 s thermal time constant (the
-/// 2.7 g set, Rtv 40 K/W, Ctv 0.05 J/K) heats past the tracker's 1 %-per-step window; the
-/// estimate lags the truth by 6-7 K, the protection overshoots 50 K by up to 9 K and the
-/// level hunts without converging. Needs a thermal model in the protection.
+/// A coil with a 2 s thermal time constant (the 2.7 g set at +-3 mm, Rtv 40 K/W, Ctv
+/// 0.05 J/K) heats by 25 K/s at full level. The Re tracker used to discard steps over 1 % per
+/// 0.25 s, so the estimate lagged by 6-7 K, and the temperature cuts compounded block after
+/// block: the coil reached 53-64 K against a 50 K limit and the level hunted. The tracker now
+/// takes steps up to 5 % when the Re direction explains most of the block's error, and the
+/// controller waits a second after a cut before cutting again.
 #[test]
-#[ignore = "known open (issue 14): thermal protection of a fast-heating microspeaker overshoots and hunts"]
-fn known_open_fast_heating_microspeaker() {
-    check((1..=4).map(|s| case("microspeaker-2g7", s)).collect());
+#[ignore = "release-profile sweep: cargo test --release -p coilscope-measure --test issue14_seed_sweep -- --ignored"]
+fn fast_heating_microspeaker_over_seeds() {
+    check((1..=SEEDS).map(|s| case("microspeaker-2g7", s)).collect());
 }
 
 #[test]
