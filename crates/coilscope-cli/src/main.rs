@@ -690,9 +690,16 @@ fn cmd_drivers() -> Result<(), String> {
     Ok(())
 }
 
+/// The post-inverse (equation-error) estimate of a record with a displacement channel: the
+/// whole parameter set, Mms included. Its L2/R2 come from the linear fit of the same record
+/// (the equation error cannot separate them).
+fn post_inverse_of(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, origin: &str) -> Result<Parameters, Failure> {
+    let lin = coilscope_ident::linear::fit_linear(u, i, fs, origin, |_| {}).map_err(|e| e.to_string())?;
+    Ok(coilscope_ident::post_inverse::post_inverse(u, i, x, fs, order, Some((lin.p[2], lin.p[3])), origin)?)
+}
+
 fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
     use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, Stage};
-    use coilscope_ident::linear::fit_linear;
     let origin = path.display().to_string();
     let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
     let fs = rec.fs as f64;
@@ -710,9 +717,7 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<
     // not given), the start values, and a cross-check of the output-error result.
     let (mms, mms_source, post) = match (mms, &rec.x) {
         (m, Some(x)) => {
-            let lin = fit_linear(&rec.u, &rec.i, fs, &origin, |_| {})?;
-            let l2r2 = Some((lin.p[2], lin.p[3]));
-            let pi = coilscope_ident::post_inverse::post_inverse(&rec.u, &rec.i, x, fs, order.unwrap_or(4), l2r2, &origin)?;
+            let pi = post_inverse_of(&rec.u, &rec.i, x, fs, order.unwrap_or(4), &origin)?;
             match m {
                 Some(m) => (m, "given (--mms)".to_string(), Some(pi)),
                 None => (pi.mms, "displacement channel (post-inverse equation error)".to_string(), Some(pi)),
@@ -979,9 +984,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
             let (mms, src) = match (a.mms, &rec.x) {
                 (Some(m), _) => (m, "given (--mms)".to_string()),
                 (None, Some(x)) => {
-                    let fs = rec.fs as f64;
-                    let lin = coilscope_ident::linear::fit_linear(&rec.u, &rec.i, fs, &name, |_| {}).map_err(|e| e.to_string())?;
-                    let pi = coilscope_ident::post_inverse::post_inverse(&rec.u, &rec.i, x, fs, 4, Some((lin.p[2], lin.p[3])), &name)?;
+                    let pi = post_inverse_of(&rec.u, &rec.i, x, rec.fs as f64, 4, &name)?;
                     eprintln!("Mms {:.3} g from the displacement channel (post-inverse equation error)", pi.mms * 1e3);
                     (pi.mms, "displacement channel (post-inverse equation error)".to_string())
                 }

@@ -14,12 +14,11 @@
 
 use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
 use coilscope_core::simulate::{gain_for_peak, SimOptions};
-use coilscope_core::{embedded_driver, Parameters, Poly};
+use coilscope_core::{embedded_driver, Parameters};
 use coilscope_ident::large::{identify, IdentifyOptions};
 
-fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
-    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, f64::max) / g.eval(0.0).abs()
-}
+mod common;
+use common::Errors;
 
 fn driver(name: &str) -> Parameters {
     embedded_driver(name).unwrap_or_else(|| {
@@ -43,13 +42,10 @@ fn sweep(name: &str) {
         let label = format!("{name} seed {seed}");
         match identify(&u, &i, fs, &label, &IdentifyOptions { mms: p.mms, ..Default::default() }, |_| {}) {
             Ok(fit) => {
-                let q = &fit.params;
-                let r = [s.x_min, s.x_max];
-                let (e_bl, e_k, e_le) = (worst(&q.bl, &p.bl, r), worst(&q.kms, &p.kms, r), worst(&q.le, &p.le, r));
-                let (e_re, e_rms) = ((q.re / p.re - 1.0).abs(), (q.rms / p.rms - 1.0).abs());
-                let line = format!("{label}: order {}, residual {:.2e}, Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.3} %, Rms {:.3} %", fit.order, fit.residual_rel, 100.0 * e_bl, 100.0 * e_k, 100.0 * e_le, 100.0 * e_re, 100.0 * e_rms);
+                let e = Errors::of(&fit.params, &p, [s.x_min, s.x_max]);
+                let line = format!("{label}: order {}, residual {:.2e}, {e}", fit.order, fit.residual_rel);
                 println!("{line}");
-                if !(e_bl <= 1e-3 && e_k <= 1e-3 && e_le <= 1e-3 && e_re <= 4e-4 && e_rms <= 4e-4) {
+                if !(e.bl <= 1e-3 && e.kms <= 1e-3 && e.le <= 1e-3 && e.re <= 4e-4 && e.rms <= 4e-4) {
                     failures.push(format!("{line}: beyond 5x the published figures"));
                 }
             }

@@ -16,6 +16,9 @@ use coilscope_core::{embedded_driver, Parameters, Poly};
 use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, LargeFit};
 use std::path::Path;
 
+mod common;
+use common::{worst, Errors};
+
 struct Rec {
     fs: f64,
     u: Vec<f64>,
@@ -40,11 +43,6 @@ fn record(p: &Parameters, fs: f64, seconds: f64, share: f64, snr_db: f64, seed: 
     Rec { fs, u, i, x_range: [s.x_min, s.x_max] }
 }
 
-/// Largest |f - g| over [lo, hi], relative to g(0).
-fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
-    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, f64::max) / g.eval(0.0).abs()
-}
-
 struct Tol {
     bl_kms: f64,
     le: f64,
@@ -62,30 +60,21 @@ const INDEPENDENT: Tol = Tol { bl_kms: 5e-4, le: 5e-4, re_rms: 4e-4 };
 
 fn assert_truth(label: &str, fit: &LargeFit, truth: &Parameters, range: [f64; 2], tol: &Tol) {
     let q = &fit.params;
-    let e_bl = worst(&q.bl, &truth.bl, range);
-    let e_k = worst(&q.kms, &truth.kms, range);
-    let e_le = worst(&q.le, &truth.le, range);
-    let e_re = (q.re / truth.re - 1.0).abs();
-    let e_rms = (q.rms / truth.rms - 1.0).abs();
+    let e = Errors::of(q, truth, range);
     println!(
-        "{label}: order {}, residual {:.2e}, errors Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.3} %, Rms {:.3} %, x {:.2}..{:.2} mm (truth {:.2}..{:.2})",
+        "{label}: order {}, residual {:.2e}, errors {e}, x {:.2}..{:.2} mm (truth {:.2}..{:.2})",
         fit.order,
         fit.residual_rel,
-        100.0 * e_bl,
-        100.0 * e_k,
-        100.0 * e_le,
-        100.0 * e_re,
-        100.0 * e_rms,
         fit.x_range[0] * 1e3,
         fit.x_range[1] * 1e3,
         range[0] * 1e3,
         range[1] * 1e3
     );
-    assert!(e_bl <= tol.bl_kms, "{label}: Bl off by {:.3} %", 100.0 * e_bl);
-    assert!(e_k <= tol.bl_kms, "{label}: Kms off by {:.3} %", 100.0 * e_k);
-    assert!(e_le <= tol.le, "{label}: Le off by {:.3} %", 100.0 * e_le);
-    assert!(e_re <= tol.re_rms, "{label}: Re off by {:.3} %", 100.0 * e_re);
-    assert!(e_rms <= tol.re_rms, "{label}: Rms off by {:.3} %", 100.0 * e_rms);
+    assert!(e.bl <= tol.bl_kms, "{label}: Bl off by {:.3} %", 100.0 * e.bl);
+    assert!(e.kms <= tol.bl_kms, "{label}: Kms off by {:.3} %", 100.0 * e.kms);
+    assert!(e.le <= tol.le, "{label}: Le off by {:.3} %", 100.0 * e.le);
+    assert!(e.re <= tol.re_rms, "{label}: Re off by {:.3} %", 100.0 * e.re);
+    assert!(e.rms <= tol.re_rms, "{label}: Rms off by {:.3} %", 100.0 * e.rms);
     assert!(fit.residual_rel <= 0.01, "{label}: residual {}", fit.residual_rel);
     // The reported range is the one reached (never extrapolated), within 2 %.
     for k in 0..2 {

@@ -26,8 +26,9 @@
 //! Protection acts on every block: the live model's peak excursion is compared with the
 //! limit and the gain cut at once when it is passed; the temperature (from the tracked Re)
 //! carried one second ahead along its trend (the tracking lag), holds the gain at 85 % of
-//! `max_dt` and cuts it (power ~ gain^2) above 92 %. The cold Re is the online estimate at its
-//! first update, when the coil has seen almost no power. In a
+//! `max_dt` and cuts it (power ~ gain^2) above 92 %, waiting the tracking lag before cutting
+//! again. The temperature reference is the small-signal fit's Re; the published cold Re is that
+//! stage's record refitted with the final model (`coilscope_ident::online::fit_re`). In a
 //! long-term test at a fixed level (`hold_volts`) the excursion is kept in range by raising
 //! the cut-off of the high-pass instead, so the electrical power stays.
 
@@ -647,8 +648,6 @@ pub struct Engine<'a> {
     /// Relative current error above the noise floor on the last held-out window.
     last_excess: f64,
     updates: usize,
-    /// Cold Re: the small-signal fit's, set at the first update.
-    re_cold: Option<f64>,
     /// Recent temperature estimates (one per block) for the trend.
     dtv_recent: Vec<f64>,
     /// Whether the temperature has cut the level (cleared once the coil is below 75 %).
@@ -714,7 +713,6 @@ impl<'a> Engine<'a> {
             last_residual: f64::NAN,
             last_excess: f64::NAN,
             updates: 0,
-            re_cold: None,
             dtv_recent: Vec::new(),
             temp_cut: false,
             last_temp_cut: f64::NEG_INFINITY,
@@ -878,7 +876,9 @@ impl<'a> Engine<'a> {
                         return Ok(None);
                     }
                 };
-                let re0 = self.re_cold.or(self.small.as_ref().map(|p| p.re)).unwrap_or(f64::NAN);
+                // The temperature reference is the small-signal fit's Re: a record that ends at
+                // rest (the stage's closing fade and rest), with the coil still cold.
+                let re0 = self.small.as_ref().map_or(f64::NAN, |p| p.re);
                 let dtv = (on.re() / re0 - 1.0) / self.opts.alpha;
                 self.dtv_recent.push(dtv);
                 if self.dtv_recent.len() as f64 * self.opts.block > THERMAL_TREND_S {
@@ -926,13 +926,6 @@ impl<'a> Engine<'a> {
                                     self.hold_since = t;
                                 }
                             }
-                        }
-                        if self.re_cold.is_none() {
-                            // The small-signal fit of a record that ends at rest (the stage's
-                            // closing fade and rest) is the cold reference: the online Re has
-                            // tracked a second of the ramp by now. Both are limited by sensor
-                            // noise at the start level (0.001 % without it).
-                            self.re_cold = Some(self.small.as_ref().map_or(on.re(), |p| p.re));
                         }
                         self.last_residual = up.before;
                         self.last_excess = up.before * (1.0 - 1.0 / up.floor_ratio.max(1.0).powi(2)).sqrt();
@@ -1103,7 +1096,7 @@ impl<'a> Engine<'a> {
         let hold_range = if self.hold_range == [0.0, 0.0] { [-on.reach, on.reach] } else { self.hold_range };
         params.x_range = Some(hold_range);
         let small = self.small.expect("set with the estimator");
-        let mut re_cold = self.re_cold.unwrap_or(small.re);
+        let mut re_cold = small.re;
         let mut re_cold_sd = self.re_cold_sd;
         // A converged model refits the cold Re on the small-signal stage's record (it starts
         // and ends at rest, the coil still cold): unlike the linear fit, it does not read the
@@ -1216,7 +1209,7 @@ impl Measurement {
             "limits": lim.to_json(),
             "uncertainty": serde_json::Value::Object(unc),
             "thermal": {
-                "note": format!("voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = {} 1/K; Re_cold is the online estimate at its first update (almost no power yet)", self.alpha),
+                "note": format!("voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = {} 1/K; Re_cold is the small-signal stage's record refitted with the final model when converged, else the stage's impedance fit", self.alpha),
                 "Re_cold": self.re_cold,
                 "Re_cold_sd": self.re_cold_sd,
                 "Re_end": self.re_end,

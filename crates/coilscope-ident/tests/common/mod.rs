@@ -1,0 +1,37 @@
+//! Truth comparisons shared by the identification tests (`mod common;` in each).
+#![allow(dead_code)]
+
+use coilscope_core::{Parameters, Poly};
+
+/// Largest |f - g| over [lo, hi], relative to g(0).
+pub fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
+    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, f64::max) / g.eval(0.0).abs()
+}
+
+/// Errors of an identified set against the truth: Bl(x), Kms(x), Le(x) as the largest error
+/// over `range` relative to the true value at rest; Re and Rms relative.
+pub struct Errors {
+    pub bl: f64,
+    pub kms: f64,
+    pub le: f64,
+    pub re: f64,
+    pub rms: f64,
+}
+
+impl Errors {
+    pub fn of(q: &Parameters, truth: &Parameters, range: [f64; 2]) -> Self {
+        Errors {
+            bl: worst(&q.bl, &truth.bl, range),
+            kms: worst(&q.kms, &truth.kms, range),
+            le: worst(&q.le, &truth.le, range),
+            re: (q.re / truth.re - 1.0).abs(),
+            rms: (q.rms / truth.rms - 1.0).abs(),
+        }
+    }
+}
+
+impl std::fmt::Display for Errors {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.4} %, Rms {:.3} %", 100.0 * self.bl, 100.0 * self.kms, 100.0 * self.le, 100.0 * self.re, 100.0 * self.rms)
+    }
+}
