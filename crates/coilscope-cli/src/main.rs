@@ -175,6 +175,11 @@ enum Command {
         /// Recording of the same driver with the added mass.
         #[arg(long)]
         with_mass: Option<PathBuf>,
+        /// Effects to fit besides LR-2: `auto` (the data decide: an effect is kept when it
+        /// lowers the residual by 5 % or more), `none`, `creep` (LOG creep, lambda), `lr3` (a
+        /// second para-inductance branch L3/R3), or `creep,lr3`.
+        #[arg(long, default_value = "auto")]
+        effects: String,
         #[command(flatten)]
         fit: FitArgs,
     },
@@ -410,8 +415,8 @@ fn main() -> ExitCode {
         Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale } => {
             cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale }).map_err(Failure::from)
         }
-        Command::Linear { recording, mms, added_mass, with_mass, fit } => {
-            cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), fit.sd, fit.scale.as_deref(), &fit.out)
+        Command::Linear { recording, mms, added_mass, with_mass, effects, fit } => {
+            cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), &effects, fit.sd, fit.scale.as_deref(), &fit.out)
         }
         Command::Identify { recording, mms, order, fit } => cmd_identify(&recording, mms, order, fit.sd, fit.scale.as_deref(), &fit.out),
         Command::Measure { no_report, virtual_driver, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
@@ -548,12 +553,17 @@ fn cmd_linear(
     mms: Option<f64>,
     added_mass: Option<f64>,
     with_mass: Option<&Path>,
+    effects: &str,
     sd: Option<f64>,
     scale: Option<&[f64]>,
     out: &Path,
 ) -> Result<(), Failure> {
     use coilscope_ident::linear::*;
     let origin = path.display().to_string();
+    let effects = match effects.trim() {
+        "auto" => EffectsChoice::Auto,
+        other => EffectsChoice::Fixed(Effects::parse(other).map_err(|e| format!("--effects {other:?}: {e}"))?),
+    };
     let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
     let fs = rec.fs as f64;
     // Refuse a missing or doubled scale before spending time on the fit.
@@ -571,7 +581,7 @@ fn cmd_linear(
             eprint!("\r  fitting impedance: iteration {:3}, residual {:.3e}   ", s.iteration, (2.0 * s.cost).sqrt());
         }
     };
-    let fit = fit_linear(&rec.u, &rec.i, fs, &origin, progress)?;
+    let fit = fit_linear_record(&rec.u, &rec.i, fs, &origin, &LinearOptions { effects, ..Default::default() }, progress)?;
     if live {
         eprintln!();
     }
@@ -583,7 +593,9 @@ fn cmd_linear(
             }
             let o2 = p2.display().to_string();
             let r2 = read_recording(p2, scale).map_err(|e| e.to_string())?;
-            let fit2 = fit_linear(&r2.u, &r2.i, r2.fs as f64, &o2, |_| {})?;
+            // The same model as the first record: the resonance shift must compare like with like.
+            let same = LinearOptions { effects: EffectsChoice::Fixed(fit.effects), ..Default::default() };
+            let fit2 = fit_linear_record(&r2.u, &r2.i, r2.fs as f64, &o2, &same, |_| {})?;
             (added_mass_mms(&fit, &fit2, madd)?, ScaleMethod::AddedMass { added: madd, fs_with: fit2.fs() })
         }
         (None, None, None, Some(x)) => (scale_by_displacement(&fit, &rec.i, x, fs, &origin)?, ScaleMethod::Displacement),
@@ -620,11 +632,19 @@ fn cmd_linear(
         ScaleMethod::Displacement => "displacement channel".to_string(),
     };
     println!("  scale: {scale_text}");
+    println!("  model: {} (tried: {})", fit.effects.model_name(), fit.tried.iter().map(|(m, r)| format!("{m} {r:.2e}")).collect::<Vec<_>>().join(", "));
     println!("  {:<6} {:>12} {:<5} {}", "Re", format!("{:.4}", params.re), "ohm", pm("Re", 1.0));
     println!("  {:<6} {:>12} {:<5} {}", "Le", format!("{:.4}", params.le.c[0] * 1e3), "mH", pm("Le", 1e3));
     let (l2, r2) = params.l2r2.as_ref().map(|(a, b)| (a.c[0], b.c[0])).unwrap_or((0.0, 0.0));
     println!("  {:<6} {:>12} {:<5} {}", "L2", format!("{:.4}", l2 * 1e3), "mH", pm("L2", 1e3));
     println!("  {:<6} {:>12} {:<5} {}", "R2", format!("{:.4}", r2), "ohm", pm("R2", 1.0));
+    if let Some((l3, r3)) = params.l3r3 {
+        println!("  {:<6} {:>12} {:<5} {}", "L3", format!("{:.4}", l3 * 1e3), "mH", pm("L3", 1e3));
+        println!("  {:<6} {:>12} {:<5} {}", "R3", format!("{:.4}", r3), "ohm", pm("R3", 1.0));
+    }
+    if let Some(c) = &params.creep {
+        println!("  {:<6} {:>12} {:<5} {}", "lambda", format!("{:.4}", c.lambda), "", pm("creep.lambda", 1.0));
+    }
     println!("  {:<6} {:>12} {:<5} {}", "fs", format!("{:.3}", ts.fs), "Hz", pm("fs", 1.0));
     println!("  {:<6} {:>12}", "Qms", format!("{:.4}", ts.qms));
     println!("  {:<6} {:>12}", "Qes", format!("{:.4}", ts.qes));
@@ -673,6 +693,12 @@ fn print_params(p: &Parameters) {
     if let Some((l2, r2)) = &p.l2r2 {
         println!("  L2 {:.4} mH, R2 {:.3} ohm", l2.c[0] * 1e3, r2.c[0]);
     }
+    if let Some((l3, r3)) = p.l3r3 {
+        println!("  L3 {:.4} mH, R3 {:.3} ohm", l3 * 1e3, r3);
+    }
+    if let Some(c) = &p.creep {
+        println!("  creep lambda {:.4} (LOG, reference {:.2} Hz)", c.lambda, p.creep_f_ref().unwrap_or(0.0));
+    }
     println!("  fs {:.2} Hz, Qms {:.3}, Qes {:.3}, Qts {:.3}", ts.fs, ts.qms, ts.qes, ts.qts);
     match p.x_range {
         Some([lo, hi]) => println!("  x_range {:.2} .. {:.2} mm", lo * 1e3, hi * 1e3),
@@ -694,7 +720,7 @@ fn cmd_drivers() -> Result<(), String> {
 /// whole parameter set, Mms included. Its L2/R2 come from the linear fit of the same record
 /// (the equation error cannot separate them).
 fn post_inverse_of(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, origin: &str) -> Result<Parameters, Failure> {
-    let lin = coilscope_ident::linear::fit_linear(u, i, fs, origin, |_| {}).map_err(|e| e.to_string())?;
+    let lin = coilscope_ident::linear::fit_linear_record(u, i, fs, origin, &coilscope_ident::linear::LinearOptions::LARGE_SIGNAL_START, |_| {}).map_err(|e| e.to_string())?;
     Ok(coilscope_ident::post_inverse::post_inverse(u, i, x, fs, order, Some((lin.p[2], lin.p[3])), origin)?)
 }
 

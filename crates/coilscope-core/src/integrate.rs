@@ -39,6 +39,13 @@ impl<D: DualNum<Primitive = f64> + Copy> Dynamics<D, { crate::model::NSTATE }> f
     }
 }
 
+impl<D: DualNum<Primitive = f64> + Copy> Dynamics<D, { crate::model::NEXT }> for crate::model::ExtModel<D> {
+    #[inline]
+    fn deriv(&self, y: &[D; crate::model::NEXT], u: D) -> [D; crate::model::NEXT] {
+        crate::model::ExtModel::deriv(self, y, u)
+    }
+}
+
 #[inline(always)]
 fn axpy<D: DualNum<Primitive = f64> + Copy, const N: usize>(y: &[D; N], a: f64, k: &[D; N]) -> [D; N] {
     std::array::from_fn(|j| y[j] + k[j] * a)

@@ -20,10 +20,12 @@
 //! * [`integrate`]: band-limited input interpolation and RK4 sub-stepping.
 //! * [`simulate`]: the virtual transducer driven by a sampled voltage.
 //! * [`small_signal`]: the linearised model at rest: impedance, Thiele/Small figures.
+//! * [`creep`]: LOG creep of the suspension as a bank of Maxwell elements.
 //! * [`limits`]: displacement limits XBl, XC, XL, Xsym, Ak over a reached range.
 //! * [`excitation`]: seeded test signals (IEC 60268-1 noise, pink noise, sine, multitone,
 //!   sweep) and named RNGs.
 
+pub mod creep;
 pub mod excitation;
 pub mod fft;
 pub mod integrate;

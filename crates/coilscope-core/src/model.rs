@@ -69,6 +69,10 @@ pub struct Powers<D> {
     pub r2_loss: D,
     /// Mechanical loss in Rms.
     pub rms_loss: D,
+    /// Eddy-current loss in R3 (the LR-3 branch of [`ExtModel`]; zero in [`Model`]).
+    pub r3_loss: D,
+    /// Loss in the creep bank's dampers ([`ExtModel`]; zero in [`Model`]).
+    pub creep_loss: D,
 }
 
 impl Model<f64> {
@@ -160,7 +164,141 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
             Some((_, r2)) => r2.eval(x) * (i - i2) * (i - i2),
             None => D::zero(),
         };
-        Powers { input: u * i, re_loss: self.re_at(tv) * i * i, r2_loss, rms_loss: self.rms * v * v }
+        Powers { input: u * i, re_loss: self.re_at(tv) * i * i, r2_loss, rms_loss: self.rms * v * v, r3_loss: D::zero(), creep_loss: D::zero() }
+    }
+}
+
+/// Maxwell elements of the creep bank ([`crate::creep::taus`]).
+pub const NCREEP: usize = 10;
+/// States of the extended model: the six of [`Model`], the LR-3 branch current `i3`, and the
+/// creep bank's damper positions `y_k` (m).
+pub const NEXT: usize = NSTATE + 1 + NCREEP;
+/// Index of the extended model's own states.
+pub mod ext_idx {
+    pub const I3: usize = super::NSTATE;
+    pub const Y0: usize = super::NSTATE + 1;
+}
+
+/// The extended model's state vector `[x, v, i, i2, Tv, Tm, i3, y_1 .. y_NCREEP]`.
+pub type ExtState<D> = [D; NEXT];
+
+/// The creep bank in the model's scalar type (see [`crate::creep`]).
+#[derive(Clone, Debug)]
+pub struct CreepBank<D> {
+    /// Stiffness of each element, `lambda Kms(0) / PER_DECADE` (N/m).
+    pub dk: D,
+    /// What the bank adds to the real stiffness at `f_ref`, taken off the static spring (N/m).
+    pub kc: D,
+    /// `1 / tau_k` (1/s).
+    pub rate: [f64; NCREEP],
+}
+
+/// [`Model`] with the effects of real drivers that need states of their own (issue 15,
+/// formats.md "Extensions"), added as components to the same equations:
+///
+/// ```text
+/// u  = ... + R3 (i - i3),                  L3 di3/dt = R3 (i - i3)        (LR-3, in series with LR-2)
+/// Mms dv/dt = ... + Kc x - sum_k dK (x - y_k),   dy_k/dt = (x - y_k) / tau_k   (creep bank)
+/// Ctm dTm/dt = ... + R3 (i - i3)^2          (its loss heats the magnet, as R2's does)
+/// ```
+///
+/// The static spring is `Kms(x) - Kc`: the real part of the dynamic stiffness at `f_ref` is
+/// `Kms(x)`. Without either effect use [`Model`] (six states: the fast path).
+#[derive(Clone, Debug)]
+pub struct ExtModel<D> {
+    pub base: Model<D>,
+    pub lr3: Option<(D, D)>,
+    pub creep: Option<CreepBank<D>>,
+}
+
+impl ExtModel<f64> {
+    /// The extended model of a parameter set.
+    pub fn new(p: &Parameters) -> Self {
+        ExtModel::<f64>::lift_from(p)
+    }
+}
+
+impl<D: DualNum<Primitive = f64> + Copy> ExtModel<D> {
+    /// The extended model of a parameter set in scalar type `D`.
+    pub fn lift_from(p: &Parameters) -> Self {
+        let creep = match (&p.creep, p.creep_f_ref()) {
+            (Some(c), Some(f_ref)) => {
+                let taus = crate::creep::taus();
+                assert_eq!(taus.len(), NCREEP, "the creep bank's size changed: update model::NCREEP");
+                let dk = c.lambda * p.kms.c[0] / crate::creep::PER_DECADE as f64;
+                let kc = c.lambda * p.kms.c[0] * crate::creep::bank(2.0 * std::f64::consts::PI * f_ref).re;
+                Some(CreepBank { dk: D::from(dk), kc: D::from(kc), rate: std::array::from_fn(|k| 1.0 / taus[k]) })
+            }
+            _ => None,
+        };
+        ExtModel { base: Model::lift_from(p), lr3: p.l3r3.map(|(l, r)| (D::from(l), D::from(r))), creep }
+    }
+
+    /// Time derivative of the extended state for terminal voltage `u`.
+    #[inline]
+    pub fn deriv(&self, s: &ExtState<D>, u: D) -> ExtState<D> {
+        let base: State<D> = std::array::from_fn(|k| s[k]);
+        let b = self.base.deriv(&base, u);
+        let mut d = [D::zero(); NEXT];
+        d[..NSTATE].copy_from_slice(&b);
+        let (x, i) = (s[idx::X], s[idx::I]);
+        if let Some((l3, r3)) = self.lr3 {
+            let i3 = s[ext_idx::I3];
+            let u3 = r3 * (i - i3);
+            d[ext_idx::I3] = u3 / l3;
+            d[idx::I] -= u3 / self.base.le.eval(x);
+            if let Some(t) = &self.base.thermal {
+                d[idx::TM] += u3 * (i - i3) / t.ctm;
+            }
+        }
+        if let Some(c) = &self.creep {
+            let mut force = c.kc * x;
+            for k in 0..NCREEP {
+                let y = s[ext_idx::Y0 + k];
+                force -= c.dk * (x - y);
+                d[ext_idx::Y0 + k] = (x - y) * c.rate[k];
+            }
+            d[idx::V] += force / self.base.mms;
+        }
+        d
+    }
+
+    /// Stored energy (J): [`Model::stored_energy`] with the static spring `Kms(x) - Kc`, the
+    /// creep springs `1/2 dK (x - y_k)^2` and the LR-3 inductance `1/2 L3 i3^2`.
+    pub fn stored_energy(&self, s: &ExtState<D>) -> D {
+        let base: State<D> = std::array::from_fn(|k| s[k]);
+        let mut e = self.base.stored_energy(&base);
+        let x = s[idx::X];
+        if let Some((l3, _)) = self.lr3 {
+            e += l3 * s[ext_idx::I3] * s[ext_idx::I3] * 0.5;
+        }
+        if let Some(c) = &self.creep {
+            e -= c.kc * x * x * 0.5;
+            for k in 0..NCREEP {
+                let dx = x - s[ext_idx::Y0 + k];
+                e += c.dk * dx * dx * 0.5;
+            }
+        }
+        e
+    }
+
+    /// Power flows at a state for terminal voltage `u`.
+    pub fn powers(&self, s: &ExtState<D>, u: D) -> Powers<D> {
+        let base: State<D> = std::array::from_fn(|k| s[k]);
+        let mut p = self.base.powers(&base, u);
+        if let Some((_, r3)) = self.lr3 {
+            let d = s[idx::I] - s[ext_idx::I3];
+            p.r3_loss = r3 * d * d;
+        }
+        if let Some(c) = &self.creep {
+            let x = s[idx::X];
+            for k in 0..NCREEP {
+                // Damper force dK (x - y) times its velocity (x - y) / tau.
+                let dx = x - s[ext_idx::Y0 + k];
+                p.creep_loss += c.dk * dx * dx * c.rate[k];
+            }
+        }
+        p
     }
 }
 
@@ -207,6 +345,44 @@ mod tests {
             let balance = pw.input - pw.re_loss - pw.r2_loss - pw.rms_loss;
             assert!((de_dt - balance).abs() < 1e-12 * pw.input.abs(), "{name}: {de_dt} vs {balance}");
         }
+    }
+
+    /// The extended model conserves energy: dE/dt = P_in - every loss, with creep and LR-3.
+    #[test]
+    fn the_extended_model_closes_the_energy_balance_instantaneously() {
+        for name in crate::params::embedded_driver_names() {
+            let mut p = embedded_driver(name).unwrap();
+            let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
+            p.creep = Some(crate::params::Creep { lambda: 0.07, f_ref: None });
+            p.l3r3 = Some((0.6 * l2, 2.5 * r2));
+            let m = ExtModel::new(&p);
+            let md: ExtModel<Dual64> = ExtModel::lift_from(&p);
+            let mut s = [0.0; NEXT];
+            s[..NSTATE].copy_from_slice(&[0.003, -0.4, 1.7, 0.6, 20.0, 2.0]);
+            s[ext_idx::I3] = -0.3;
+            for k in 0..NCREEP {
+                s[ext_idx::Y0 + k] = 0.001 * (k as f64 - 4.0);
+            }
+            let u = 7.5;
+            let ds = m.deriv(&s, u);
+            let sd: ExtState<Dual64> = std::array::from_fn(|k| Dual64::new(s[k], ds[k]));
+            let de_dt = md.stored_energy(&sd).eps;
+            let pw = m.powers(&s, u);
+            assert!(pw.r3_loss > 0.0 && pw.creep_loss > 0.0);
+            let balance = pw.input - pw.re_loss - pw.r2_loss - pw.rms_loss - pw.r3_loss - pw.creep_loss;
+            assert!((de_dt - balance).abs() < 1e-12 * pw.input.abs(), "{name}: {de_dt} vs {balance}");
+        }
+    }
+
+    /// Without creep and LR-3 the extended model is the model.
+    #[test]
+    fn the_extended_model_without_effects_is_the_model() {
+        let p = embedded_driver("sb17cac35-4").unwrap();
+        let (m, e) = (Model::new(&p), ExtModel::new(&p));
+        let mut s = [0.0; NEXT];
+        s[..NSTATE].copy_from_slice(&[0.003, -0.4, 1.7, 0.6, 20.0, 2.0]);
+        let b: State<f64> = std::array::from_fn(|k| s[k]);
+        assert_eq!(e.deriv(&s, 3.0)[..NSTATE], m.deriv(&b, 3.0)[..]);
     }
 
     #[test]

@@ -31,6 +31,16 @@ pub struct Thermal {
     pub ctm: f64,
 }
 
+/// LOG creep of the suspension (`creep`, see [`crate::creep`] for its realisation).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Creep {
+    /// Klippel's LOG creep factor: `Cms(f) = Cms(f_ref) (1 - lambda log10(f / f_ref))`.
+    pub lambda: f64,
+    /// Reference frequency (Hz) where `Kms` is the dynamic stiffness; `None`: the
+    /// resonance `sqrt(Kms(0) / Mms) / 2 pi`.
+    pub f_ref: Option<f64>,
+}
+
 /// A validated parameter set in SI units.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Parameters {
@@ -52,6 +62,11 @@ pub struct Parameters {
     pub rms: f64,
     /// Effective radiating area (m^2).
     pub sd: Option<f64>,
+    /// Viscoelastic creep of the suspension (absent: not modelled).
+    pub creep: Option<Creep>,
+    /// A second para-inductance branch L3 (H) || R3 (ohm), in series with LR-2, independent
+    /// of x (absent: not modelled).
+    pub l3r3: Option<(f64, f64)>,
     pub thermal: Option<Thermal>,
     /// Where the x-dependent functions are valid (m).
     pub x_range: Option<[f64; 2]>,
@@ -83,8 +98,12 @@ impl std::error::Error for ParamError {}
 
 const KNOWN_KEYS: &[&str] = &[
     "format", "name", "source", "Re", "Le", "L2", "R2", "Bl", "Kms", "Mms", "Rms", "Sd", "thermal",
-    "x_range",
+    "x_range", "creep", "L3", "R3",
 ];
+
+/// Extensions of formats.md that no part of coilscope models yet: a set that has them is
+/// refused where they would matter, never silently simplified.
+pub const UNMODELLED_KEYS: &[&str] = &["Le_i", "Rms_v"];
 
 struct Ctx<'a> {
     origin: &'a str,
@@ -236,6 +255,35 @@ impl Parameters {
                 return Err(ctx.err("thermal", format!("expected an object {{alpha, Rtv, Ctv, Rtm, Ctm}}, found {}", describe(other))))
             }
         };
+        let creep = match obj.get("creep") {
+            None | Some(Value::Null) => None,
+            Some(Value::Object(c)) => {
+                let lambda = ctx.number("creep.lambda", c.get("lambda").ok_or_else(|| ctx.err("creep.lambda", "missing (creep needs lambda, Klippel's LOG creep factor, e.g. 0.05)"))?)?;
+                let f_ref = c.get("f_ref").map(|v| ctx.number("creep.f_ref", v)).transpose()?;
+                for (k, want) in [("per_decade", crate::creep::PER_DECADE as f64), ("f_min", crate::creep::F_MIN), ("f_max", crate::creep::F_MAX)] {
+                    if let Some(v) = c.get(k) {
+                        let got = ctx.number(&format!("creep.{k}"), v)?;
+                        if (got - want).abs() > 1e-9 * want {
+                            return Err(ctx.err(&format!("creep.{k}"), format!("{got}: coilscope realises creep with {} Maxwell elements per decade from {} to {} Hz; {k} must be {want} (or absent)", crate::creep::PER_DECADE, crate::creep::F_MIN, crate::creep::F_MAX)));
+                        }
+                    }
+                }
+                Some(Creep { lambda, f_ref })
+            }
+            Some(other) => return Err(ctx.err("creep", format!("expected an object {{\"lambda\": 0.05}}, found {}", describe(other)))),
+        };
+        let constant = |key: &str, v: &Value| -> Result<f64, ParamError> {
+            match v {
+                Value::Array(_) => Err(ctx.err(key, format!("{key} is a constant here (the LR-3 branch does not depend on x); give a number"))),
+                _ => ctx.number(key, v),
+            }
+        };
+        let l3r3 = match (obj.get("L3"), obj.get("R3")) {
+            (None, None) => None,
+            (Some(l3), Some(r3)) => Some((constant("L3", l3)?, constant("R3", r3)?)),
+            (Some(_), None) => return Err(ctx.err("R3", "missing: L3 is given, and the LR-3 branch needs both L3 and R3")),
+            (None, Some(_)) => return Err(ctx.err("L3", "missing: R3 is given, and the LR-3 branch needs both L3 and R3")),
+        };
         let extra: Map<String, Value> =
             obj.iter().filter(|(k, _)| !KNOWN_KEYS.contains(&k.as_str())).map(|(k, v)| (k.clone(), v.clone())).collect();
         let p = Parameters {
@@ -249,6 +297,8 @@ impl Parameters {
             mms,
             rms,
             sd,
+            creep,
+            l3r3,
             thermal,
             x_range,
             extra,
@@ -310,6 +360,24 @@ impl Parameters {
             }
             if sd > 2.0 {
                 return Err(ctx.err("Sd", format!("{sd} m^2 is not plausible (expected < 2 m^2); it looks like cm^2: {sd} cm^2 = {} m^2", sd * 1e-4)));
+            }
+        }
+        if let Some(c) = &self.creep {
+            if !(c.lambda >= 0.0 && c.lambda < 0.5) {
+                return Err(ctx.err("creep.lambda", format!("{} is not a plausible LOG creep factor (expected 0 .. 0.5; typical 0.03 .. 0.1)", c.lambda)));
+            }
+            if let Some(f) = c.f_ref {
+                if !(f > 0.0 && f < 1e5) {
+                    return Err(ctx.err("creep.f_ref", format!("{f} Hz must be > 0 (and below 100 kHz); absent: the resonance")));
+                }
+            }
+        }
+        if let Some((l3, r3)) = self.l3r3 {
+            if !(l3 > 0.0 && l3 < 0.1) {
+                return Err(ctx.err("L3", format!("{l3} H is not a plausible para-inductance (expected 0 .. 0.1 H; give H, not mH)")));
+            }
+            if !(r3 > 0.0 && r3 < 1e4) {
+                return Err(ctx.err("R3", format!("{r3} ohm must be > 0 (and below 10 kohm)")));
             }
         }
         if let Some([lo, hi]) = self.x_range {
@@ -386,6 +454,21 @@ impl Parameters {
         if let Some(sd) = self.sd {
             m.insert("Sd".into(), sd.into());
         }
+        if let Some(c) = &self.creep {
+            let mut cm = Map::new();
+            cm.insert("lambda".into(), c.lambda.into());
+            if let Some(f) = c.f_ref {
+                cm.insert("f_ref".into(), f.into());
+            }
+            cm.insert("per_decade".into(), (crate::creep::PER_DECADE as f64).into());
+            cm.insert("f_min".into(), crate::creep::F_MIN.into());
+            cm.insert("f_max".into(), crate::creep::F_MAX.into());
+            m.insert("creep".into(), Value::Object(cm));
+        }
+        if let Some((l3, r3)) = self.l3r3 {
+            m.insert("L3".into(), l3.into());
+            m.insert("R3".into(), r3.into());
+        }
         if let Some(r) = self.x_range {
             m.insert("x_range".into(), Value::Array(vec![r[0].into(), r[1].into()]));
         }
@@ -407,16 +490,31 @@ impl Parameters {
     /// The same driver without the LR-2 branch and the thermal model: the three-state model
     /// of the seed paper (x, v, i).
     pub fn three_state(&self) -> Parameters {
-        Parameters { l2r2: None, thermal: None, ..self.clone() }
+        Parameters { l2r2: None, l3r3: None, creep: None, thermal: None, ..self.clone() }
+    }
+
+    /// The reference frequency of the creep (Hz): `creep.f_ref`, or the resonance.
+    pub fn creep_f_ref(&self) -> Option<f64> {
+        self.creep.as_ref().map(|c| c.f_ref.unwrap_or_else(|| (self.kms.c[0] / self.mms).sqrt() / (2.0 * std::f64::consts::PI)))
+    }
+
+    /// Effects in this set that no model of coilscope realises yet (the [`UNMODELLED_KEYS`]
+    /// present), by their formats.md keys. The simulator refuses such a set rather than drop
+    /// the effect silently.
+    pub fn time_domain_unsupported(&self) -> Vec<&'static str> {
+        let mut v = Vec::new();
+        v.extend(UNMODELLED_KEYS.iter().copied().filter(|k| self.extra.contains_key(*k)));
+        v
     }
 
     /// Electrical time constant of the fast mode, min over the valid range of
-    /// `Le(x) / (Re + R2(x))` (s): what makes the current equation stiff.
+    /// `Le(x) / (Re + R2(x) + R3)` (s): what makes the current equation stiff.
     pub fn min_electrical_time_constant(&self) -> f64 {
         let (lo, hi) = self.x_range.map(|r| (r[0], r[1])).unwrap_or((0.0, 0.0));
         let (le_min, _) = self.le.min_max_on(lo, hi);
         let r2_max = self.l2r2.as_ref().map(|(_, r2)| r2.min_max_on(lo, hi).1).unwrap_or(0.0);
-        le_min / (self.re + r2_max)
+        let r3 = self.l3r3.map_or(0.0, |(_, r3)| r3);
+        le_min / (self.re + r2_max + r3)
     }
 
     /// Largest magnitude of the system's fast eigenvalues, an upper bound (1/s): the
@@ -426,6 +524,9 @@ impl Parameters {
         let mut rate = 1.0 / self.min_electrical_time_constant();
         if let Some((l2, r2)) = &self.l2r2 {
             rate += r2.min_max_on(lo, hi).1 / l2.min_max_on(lo, hi).0;
+        }
+        if let Some((l3, r3)) = self.l3r3 {
+            rate += r3 / l3;
         }
         rate
     }

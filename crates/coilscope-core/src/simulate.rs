@@ -6,7 +6,7 @@
 //! [`SimError`] that names the time and the state.
 
 use crate::integrate::{rk4_sample, substeps_for, Interpolator};
-use crate::model::{idx, Model, State, NSTATE};
+use crate::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
 use crate::params::Parameters;
 use std::fmt;
 
@@ -149,6 +149,9 @@ pub struct Simulator {
     bounds: Option<[f64; 2]>,
     range: Option<[f64; 2]>,
     pub state: State<f64>,
+    /// The extended model and its state, for a set with creep or LR-3 (`None`: the
+    /// six-state model, the fast path). Its first six states mirror `state`.
+    ext: Option<(ExtModel<f64>, ExtState<f64>)>,
     scratch: Vec<f64>,
 }
 
@@ -156,6 +159,13 @@ impl Simulator {
     pub fn new(params: &Parameters, fs: f64, opts: &SimOptions) -> Result<Self, SimError> {
         if !(fs.is_finite() && (1000.0..=1.0e6).contains(&fs)) {
             return Err(SimError::Input(format!("sample rate {fs} Hz is not valid (1 kHz .. 1 MHz)")));
+        }
+        let missing = params.time_domain_unsupported();
+        if !missing.is_empty() {
+            return Err(SimError::Input(format!(
+                "the parameter set has {}, which coilscope does not model yet; remove the key(s) to simulate without the effect",
+                missing.join(", ")
+            )));
         }
         let n = opts.substeps.unwrap_or_else(|| substeps_for(params.stiffness_rate(), fs)).max(1);
         let bounds = params.x_range.map(|[lo, hi]| [lo * (1.0 + opts.range_margin), hi * (1.0 + opts.range_margin)]);
@@ -167,6 +177,7 @@ impl Simulator {
             bounds,
             range: params.x_range,
             state: opts.initial,
+            ext: (params.creep.is_some() || params.l3r3.is_some()).then(|| (ExtModel::new(params), [0.0; NEXT])),
             scratch: vec![0.0; 2 * n + 1],
         })
     }
@@ -219,7 +230,14 @@ impl Simulator {
             self.check(&self.state, m)?;
             observe(m, &self.state);
             self.interp.fill(u, m, &mut self.scratch);
-            self.state = rk4_sample(&self.model, &self.state, dt, &self.scratch);
+            match &mut self.ext {
+                None => self.state = rk4_sample(&self.model, &self.state, dt, &self.scratch),
+                Some((model, s)) => {
+                    s[..NSTATE].copy_from_slice(&self.state);
+                    *s = rk4_sample(model, s, dt, &self.scratch);
+                    self.state.copy_from_slice(&s[..NSTATE]);
+                }
+            }
         }
         Ok(())
     }

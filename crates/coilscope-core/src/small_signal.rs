@@ -10,7 +10,8 @@ pub const RHO_AIR: f64 = 1.204;
 pub const C_AIR: f64 = 343.2;
 
 /// Electrical input impedance (ohm) of the linearised model at x = 0 and ambient temperature:
-/// `Re + jw Le + (jw L2 || R2) + Bl^2 / (Rms + jw Mms + Kms / jw)`.
+/// `Re + jw Le + (jw L2 || R2) + (jw L3 || R3) + Bl^2 / (Rms + jw Mms + K(jw) / jw)`, with
+/// `K(jw) = Kms(0)` without creep and the [`crate::creep`] bank's dynamic stiffness with it.
 pub fn impedance(p: &Parameters, f: f64) -> Complex64 {
     let jw = Complex64::new(0.0, 2.0 * PI * f);
     let mut z = p.re + jw * p.le.c[0];
@@ -18,14 +19,25 @@ pub fn impedance(p: &Parameters, f: f64) -> Complex64 {
         let zl2 = jw * l2.c[0];
         z += zl2 * r2.c[0] / (zl2 + r2.c[0]);
     }
-    let zm = p.rms + jw * p.mms + p.kms.c[0] / jw;
+    if let Some((l3, r3)) = p.l3r3 {
+        z += jw * l3 * r3 / (jw * l3 + r3);
+    }
+    let k = match (&p.creep, p.creep_f_ref()) {
+        (Some(c), Some(f_ref)) => p.kms.c[0] * crate::creep::stiffness_factor(c.lambda, 2.0 * PI * f, 2.0 * PI * f_ref),
+        _ => Complex64::new(p.kms.c[0], 0.0),
+    };
+    let zm = p.rms + jw * p.mms + k / jw;
     z + p.bl.c[0] * p.bl.c[0] / zm
 }
 
-/// Displacement per current `X / I` (m/A) at x = 0: `Bl / (Kms - w^2 Mms + jw Rms)`.
+/// Displacement per current `X / I` (m/A) at x = 0: `Bl / (K(jw) - w^2 Mms + jw Rms)`.
 pub fn displacement_per_current(p: &Parameters, f: f64) -> Complex64 {
     let w = 2.0 * PI * f;
-    p.bl.c[0] / Complex64::new(p.kms.c[0] - w * w * p.mms, w * p.rms)
+    let k = match (&p.creep, p.creep_f_ref()) {
+        (Some(c), Some(f_ref)) => p.kms.c[0] * crate::creep::stiffness_factor(c.lambda, w, 2.0 * PI * f_ref),
+        _ => Complex64::new(p.kms.c[0], 0.0),
+    };
+    p.bl.c[0] / (k + Complex64::new(-w * w * p.mms, w * p.rms))
 }
 
 /// Thiele/Small figures at x = 0.

@@ -3,7 +3,7 @@
 
 use coilscope_core::excitation::{generate, Excitation, SignalSpec};
 use coilscope_core::integrate::{rk4_sample, Dynamics, Interpolator};
-use coilscope_core::model::{Model, NSTATE};
+use coilscope_core::model::{ExtModel, Model, NEXT, NSTATE};
 use coilscope_core::simulate::{rms, simulate, SimOptions};
 use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
 use coilscope_core::small_signal::impedance;
@@ -173,4 +173,97 @@ fn leaving_the_valid_range_stops_with_time_and_state() {
     assert!(e.contains("outside x_range [-5.500, 5.500] mm") && e.contains("state: x = "), "{e}");
     let bad = vec![f64::NAN; 10];
     assert!(simulate(&p, FS, &bad, &SimOptions::default()).unwrap_err().to_string().contains("sample 0 is not finite"));
+}
+
+/// A bundled driver with the effects of issue 15 that have states of their own: LOG creep
+/// (lambda 0.07) and an LR-3 branch (L3 = 0.6 L2, R3 = 2.5 R2), as in shared/recordings'
+/// `-real-` records.
+fn with_effects(name: &str) -> Parameters {
+    let mut p = embedded_driver(name).unwrap();
+    let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
+    p.creep = Some(coilscope_core::params::Creep { lambda: 0.07, f_ref: None });
+    p.l3r3 = Some((0.6 * l2, 2.5 * r2));
+    p
+}
+
+/// The extended model with six energy accumulators: input, Re, R2, Rms, R3 and creep losses.
+struct ExtWithEnergy<'a>(&'a ExtModel<f64>);
+
+impl Dynamics<f64, { NEXT + 6 }> for ExtWithEnergy<'_> {
+    fn deriv(&self, y: &[f64; NEXT + 6], u: f64) -> [f64; NEXT + 6] {
+        let s: [f64; NEXT] = std::array::from_fn(|k| y[k]);
+        let d = self.0.deriv(&s, u);
+        let p = self.0.powers(&s, u);
+        let e = [p.input, p.re_loss, p.r2_loss, p.rms_loss, p.r3_loss, p.creep_loss];
+        std::array::from_fn(|k| if k < NEXT { d[k] } else { e[k - NEXT] })
+    }
+}
+
+/// Issue 15: with creep and LR-3 the energy still balances over a full-excursion record
+/// (the production integrator and sub-step count).
+#[test]
+fn energy_balances_with_creep_and_lr3() {
+    for name in embedded_driver_names() {
+        let p = with_effects(name);
+        let u = full_excursion_voltage(&p, 0.5, 0.9);
+        let m = ExtModel::new(&p);
+        let n = coilscope_core::Simulator::new(&p, FS, &SimOptions::default()).unwrap().substeps();
+        let it = Interpolator::new(n);
+        let mut pts = vec![0.0; 2 * n + 1];
+        let sys = ExtWithEnergy(&m);
+        let mut y = [0.0; NEXT + 6];
+        let stop = u.len() * 3 / 5;
+        for k in 0..stop {
+            it.fill(&u, k, &mut pts);
+            y = rk4_sample(&sys, &y, 1.0 / FS, &pts);
+        }
+        let s: [f64; NEXT] = std::array::from_fn(|k| y[k]);
+        let stored = m.stored_energy(&s);
+        let e: [f64; 6] = std::array::from_fn(|k| y[NEXT + k]);
+        let imbalance = e[0] - e[1..].iter().sum::<f64>() - stored;
+        eprintln!("{name}: E_in {:.4} J, R3 {:.4}, creep {:.4}, stored {stored:.3e}, imbalance {imbalance:.2e}", e[0], e[4], e[5]);
+        assert!(e[4] > 0.0 && e[5] > 0.0 && stored > 0.0);
+        assert!(imbalance.abs() < 2e-5 * e[0], "{name}: imbalance {imbalance:.3e} J of {:.3e} J", e[0]);
+    }
+}
+
+/// Issue 15: the time-domain model with creep and LR-3 follows the analytic small-signal
+/// impedance (the creep bank's and LR-3's frequency responses in `small_signal::impedance`).
+#[test]
+fn small_signal_current_with_creep_and_lr3_follows_the_analytic_impedance() {
+    for name in embedded_driver_names() {
+        let p = with_effects(name);
+        for f in [20.0, 60.0, 150.0, 1000.0, 8000.0] {
+            let n = 48000;
+            let u: Vec<f64> = (0..2 * n).map(|k| 1e-3 * (2.0 * std::f64::consts::PI * f * k as f64 / FS).sin()).collect();
+            let tr = simulate(&p, FS, &u, &SimOptions::default()).unwrap();
+            let coef = |x: &[f64]| -> Complex64 {
+                x[n..].iter().enumerate().map(|(k, v)| {
+                    let ph = 2.0 * std::f64::consts::PI * f * (n + k) as f64 / FS;
+                    Complex64::new(ph.cos(), -ph.sin()) * *v
+                }).sum::<Complex64>()
+            };
+            let z_sim = coef(&tr.u) / coef(&tr.i);
+            let z = impedance(&p, f);
+            let err = (z_sim - z).norm() / z.norm();
+            // The effects change |Z| by far more than the tolerance near the resonance.
+            let z0 = impedance(&embedded_driver(name).unwrap(), f);
+            eprintln!("{name} {f} Hz: error {err:.2e} (the effects move Z by {:.2e})", (z - z0).norm() / z.norm());
+            assert!(err < 2e-4, "{name} at {f} Hz: |Z| {:.4} vs {:.4}, error {err:.2e}", z_sim.norm(), z.norm());
+        }
+    }
+}
+
+/// Issue 15: the production step count is as accurate with the extra states as without.
+#[test]
+fn simulator_with_creep_and_lr3_matches_tiny_step_reference() {
+    for name in embedded_driver_names() {
+        let p = with_effects(name);
+        let u = full_excursion_voltage(&p, 0.6, 0.9);
+        let fast = simulate(&p, FS, &u, &SimOptions::default()).unwrap();
+        let tiny = simulate(&p, FS, &u, &SimOptions { substeps: Some(128), ..Default::default() }).unwrap();
+        let (ei, ex) = (rel_rms(&fast.i, &tiny.i), rel_rms(&fast.x, &tiny.x));
+        eprintln!("{name}: {} sub-steps, current {ei:.2e}, displacement {ex:.2e}", fast.substeps);
+        assert!(ei < 1e-5 && ex < 1e-7, "{name}: current {ei:.3e}, displacement {ex:.3e}");
+    }
 }

@@ -23,7 +23,7 @@
 //! The solver ([`crate::lm::lm_step`]) is a pure state transition; [`identify`] hands every
 //! iteration to an observer (progress bars, logs) as a [`Progress`].
 
-use crate::linear::{check_channels, fit_linear, scale_by_mms, LinearFit};
+use crate::linear::{check_channels, fit_linear_record, scale_by_mms, LinearFit, LinearOptions};
 use crate::lm::{lm_step, LmState, Problem};
 use coilscope_core::integrate::{rk4_sample, substeps_for, Interpolator};
 use coilscope_core::model::{idx, Model, State, NSTATE};
@@ -211,6 +211,8 @@ impl Layout {
             mms: m.mms,
             rms: m.rms,
             sd: None,
+            creep: None,
+            l3r3: None,
             thermal: None,
             x_range: None,
             extra: Default::default(),
@@ -614,7 +616,7 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
         None => {
             // The start needs no more than a few seconds (the fit is O(n) per iteration).
             let m = u.len().min((4.0 * fs) as usize);
-            let lin = fit_linear(&u[..m], &i[..m], fs, origin, |_| {}).map_err(Input)?;
+            let lin = fit_linear_record(&u[..m], &i[..m], fs, origin, &LinearOptions::LARGE_SIGNAL_START, |_| {}).map_err(Input)?;
             (scale_by_mms(&lin, opts.mms).map_err(Input)?, Some(lin))
         }
     };

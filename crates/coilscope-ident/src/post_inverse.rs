@@ -148,6 +148,8 @@ pub fn equation_error(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, l2
         mms,
         rms,
         sd: None,
+        creep: None,
+        l3r3: None,
         thermal: None,
         x_range: Some(x_range),
         extra: Default::default(),

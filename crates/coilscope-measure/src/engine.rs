@@ -38,7 +38,12 @@ use crate::store::{StateRow, Store};
 use coilscope_core::excitation::Excitation;
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
-use coilscope_ident::linear::{fit_linear_record, scale_by_mms};
+use coilscope_ident::linear::{fit_linear_record, scale_by_mms, Effects, EffectsChoice, Ends, LinearOptions};
+
+/// The small stage's linear fit: ends free (a replay's first seconds are cut from the running
+/// record; a controlled stage fades out with the cone still moving a little), the LR-2 model
+/// alone (the online estimator has no creep or LR-3 yet).
+const SMALL_STAGE_FIT: LinearOptions = LinearOptions { ends: Ends::Fitted, effects: EffectsChoice::Fixed(Effects::NONE) };
 use coilscope_ident::online::{Online, OnlineOptions};
 
 /// Seconds of peak-excursion memory of the controller.
@@ -803,9 +808,9 @@ impl<'a> Engine<'a> {
                 self.i_small.extend_from_slice(&blk.i);
                 live.limited_by = LimitedBy::SmallSignal;
                 if t >= self.opts.small_seconds {
-                    // A controlled stage ends at rest (fade and rest); a replay's first seconds
-                    // are a segment cut from the running record.
-                    let lin = fit_linear_record(&self.u_small, &self.i_small, self.fs, "small-signal stage", !self.controllable, |_| {})
+                    // A replay's first seconds are a segment cut from the running record; a
+                    // controlled stage fades out, with the cone still moving a little.
+                    let lin = fit_linear_record(&self.u_small, &self.i_small, self.fs, "small-signal stage", &SMALL_STAGE_FIT, |_| {})
                         .map_err(|e| format!("{e} (the small-signal stage at {:.3} V rms: raise --start-volts if the level is too low against noise)", self.opts.start_volts))?;
                     let p = scale_by_mms(&lin, self.opts.mms)?;
                     // Reach of the small stage: the series basis and the runaway limit scale from it.

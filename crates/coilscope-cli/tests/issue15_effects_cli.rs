@@ -1,0 +1,62 @@
+//! Issue 15 end to end: a parameter file with creep and LR-3 (formats.md "Extensions") is
+//! simulated by `coilscope simulate`, and `coilscope linear` finds both effects, writes them
+//! under their formats.md keys, names the model in `fit.model`, and can be forced.
+
+use std::process::{Command, Output};
+
+fn coilscope(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_coilscope")).args(args).output().unwrap()
+}
+
+#[test]
+fn linear_finds_creep_and_lr3_in_a_simulated_record_and_writes_them() {
+    let d = tempfile::tempdir().unwrap();
+    let mut p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
+    let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
+    p.creep = Some(coilscope_core::params::Creep { lambda: 0.06, f_ref: None });
+    p.l3r3 = Some((0.6 * l2, 2.5 * r2));
+    let drv = d.path().join("sb17-real.json");
+    std::fs::write(&drv, serde_json::to_string_pretty(&p.to_json_value()).unwrap()).unwrap();
+    let rec = d.path().join("small.wav");
+    let o = coilscope(&["simulate", drv.to_str().unwrap(), "--volts", "0.1", "--seconds", "4", "--snr-db", "70", "--out", rec.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = d.path().join("lin.json");
+    let mms = p.mms.to_string();
+    let o = coilscope(&["linear", rec.to_str().unwrap(), "--mms", &mms, "--out", out.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{text}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(text.contains("model: LR-2+LR-3+creep") && text.contains("lambda") && text.contains("L3"), "{text}");
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(r["fit"]["model"], "LR-2+LR-3+creep");
+    let lambda = r["parameters"]["creep"]["lambda"].as_f64().unwrap();
+    assert!((lambda / 0.06 - 1.0).abs() < 0.2, "lambda {lambda}");
+    let l3 = r["parameters"]["L3"].as_f64().unwrap();
+    assert!((l3 / (0.6 * l2) - 1.0).abs() < 0.05, "L3 {l3}");
+    assert!(r["uncertainty"]["creep.lambda"].as_f64().unwrap() > 0.0);
+    // The result's parameter set reads back, with the effects.
+    let back = coilscope_core::Parameters::from_json_value(&r["parameters"], "result").unwrap();
+    assert!(back.creep.is_some() && back.l3r3.is_some());
+    // Forced: the LR-2 model alone, named as such, with the misfit that says why it is wrong.
+    let o = coilscope(&["linear", rec.to_str().unwrap(), "--mms", &mms, "--effects", "none", "--out", out.to_str().unwrap()]);
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(r["fit"]["model"], "LR-2", "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(r["parameters"].get("creep").is_none());
+    // A bad --effects names the valid ones.
+    let o = coilscope(&["linear", rec.to_str().unwrap(), "--mms", &mms, "--effects", "crep", "--out", out.to_str().unwrap()]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(e.contains("--effects \"crep\"") && e.contains("valid: none, creep, lr3"), "{e}");
+}
+
+#[test]
+fn a_parameter_file_with_an_effect_coilscope_does_not_model_is_refused_by_simulate() {
+    let d = tempfile::tempdir().unwrap();
+    let mut v = coilscope_core::embedded_driver("sb17cac35-4").unwrap().to_json_value();
+    v["Rms_v"] = serde_json::json!([1.0, 0.0, 0.8]);
+    let drv = d.path().join("d.json");
+    std::fs::write(&drv, v.to_string()).unwrap();
+    let o = coilscope(&["simulate", drv.to_str().unwrap(), "--volts", "0.1", "--seconds", "1", "--out", d.path().join("r.wav").to_str().unwrap()]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(e.contains("Rms_v") && e.contains("does not model yet"), "{e}");
+}
