@@ -194,6 +194,10 @@ enum Command {
         /// Power-series order of Bl, Kms and Le (2 ..= 8); default: chosen on held-out data.
         #[arg(long)]
         order: Option<usize>,
+        /// Effects to fit besides LR-2: `auto` (chosen on held-out data: kept when it lowers
+        /// the held-out current error by 5 % or more), `none`, `creep`, `lr3`, `creep,lr3`.
+        #[arg(long, default_value = "auto")]
+        effects: String,
         #[command(flatten)]
         fit: FitArgs,
     },
@@ -418,7 +422,7 @@ fn main() -> ExitCode {
         Command::Linear { recording, mms, added_mass, with_mass, effects, fit } => {
             cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), &effects, fit.sd, fit.scale.as_deref(), &fit.out)
         }
-        Command::Identify { recording, mms, order, fit } => cmd_identify(&recording, mms, order, fit.sd, fit.scale.as_deref(), &fit.out),
+        Command::Identify { recording, mms, order, effects, fit } => cmd_identify(&recording, mms, order, &effects, fit.sd, fit.scale.as_deref(), &fit.out),
         Command::Measure { no_report, virtual_driver, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
             cmd_measure(MeasureArgs { no_report, virtual_driver, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
         }
@@ -560,10 +564,7 @@ fn cmd_linear(
 ) -> Result<(), Failure> {
     use coilscope_ident::linear::*;
     let origin = path.display().to_string();
-    let effects = match effects.trim() {
-        "auto" => EffectsChoice::Auto,
-        other => EffectsChoice::Fixed(Effects::parse(other).map_err(|e| format!("--effects {other:?}: {e}"))?),
-    };
+    let effects = parse_effects(effects)?;
     let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
     let fs = rec.fs as f64;
     // Refuse a missing or doubled scale before spending time on the fit.
@@ -661,6 +662,15 @@ fn cmd_linear(
     untrusted_if_warned(&warnings, out)
 }
 
+/// `--effects`: `auto`, or a list for [`coilscope_ident::linear::Effects::parse`].
+fn parse_effects(text: &str) -> Result<coilscope_ident::linear::EffectsChoice, Failure> {
+    use coilscope_ident::linear::{Effects, EffectsChoice};
+    match text.trim() {
+        "auto" => Ok(EffectsChoice::Auto),
+        other => Ok(EffectsChoice::Fixed(Effects::parse(other).map_err(|e| format!("--effects {other:?}: {e}"))?)),
+    }
+}
+
 /// Put the noise floor and the warnings into `fit` of a result (`fit.noise_floor`,
 /// `fit.warnings`, `fit.trustworthy`) and print the warnings.
 fn attach_warnings(result: &mut serde_json::Value, floor: &coilscope_ident::checks::NoiseFloor, warnings: &[coilscope_ident::checks::Warning]) {
@@ -724,7 +734,7 @@ fn post_inverse_of(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, origi
     Ok(coilscope_ident::post_inverse::post_inverse(u, i, x, fs, order, Some((lin.p[2], lin.p[3])), origin)?)
 }
 
-fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
+fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &str, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
     use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, Stage};
     let origin = path.display().to_string();
     let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
@@ -764,7 +774,7 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, sd: Option<
         }
     };
     let init = post.as_ref().map(|p| Parameters { mms, x_range: None, ..p.clone() });
-    let opts = IdentifyOptions { mms, order, init, ..Default::default() };
+    let opts = IdentifyOptions { mms, order, init, effects: parse_effects(effects)?, ..Default::default() };
     let (fit, failure) = match identify(&rec.u, &rec.i, fs, &origin, &opts, progress) {
         Ok(f) => (f, None),
         Err(IdentifyError::NotConverged { message, best }) => (*best, Some(message)),
@@ -843,12 +853,20 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
     for t in &fit.trials {
         println!("    order {}: estimation {:.3e}, validation {:.3e}", t.order, t.estimation_rel, t.validation_rel);
     }
+    println!("  model {} ({})", fit.layout.effects.model_name(), if fit.effect_trials.is_empty() { "given".to_string() } else { fit.effect_trials.iter().map(|(m, v)| format!("{m} validation {v:.3e}")).collect::<Vec<_>>().join(", ") });
     let u = &result["uncertainty"];
     let pm = |k: &str, scale: f64| u[k].as_f64().map(|v| format!("+- {:.2e}", v * scale)).unwrap_or_default();
     println!("  {:<6} {:>12} {:<5} {}", "Re", format!("{:.4}", p.re), "ohm", pm("Re", 1.0));
     if let Some((l2, r2)) = &p.l2r2 {
         println!("  {:<6} {:>12} {:<5} {}", "L2", format!("{:.4}", l2.c[0] * 1e3), "mH", pm("L2", 1e3));
         println!("  {:<6} {:>12} {:<5} {}", "R2", format!("{:.4}", r2.c[0]), "ohm", pm("R2", 1.0));
+    }
+    if let Some((l3, r3)) = p.l3r3 {
+        println!("  {:<6} {:>12} {:<5} {}", "L3", format!("{:.4}", l3 * 1e3), "mH", pm("L3", 1e3));
+        println!("  {:<6} {:>12} {:<5} {}", "R3", format!("{:.4}", r3), "ohm", pm("R3", 1.0));
+    }
+    if let Some(c) = &p.creep {
+        println!("  {:<6} {:>12} {:<5} {}", "lambda", format!("{:.4}", c.lambda), "", pm("creep.lambda", 1.0));
     }
     println!("  {:<6} {:>12} {:<5}", "Mms", format!("{:.4}", p.mms * 1e3), "g");
     println!("  {:<6} {:>12} {:<5} {}", "Rms", format!("{:.4}", p.rms), "kg/s", pm("Rms", 1.0));

@@ -33,3 +33,15 @@ fn three_state(bencher: Bencher, name: &str) {
     let u = voltage(3.0);
     bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &SimOptions::default()).unwrap());
 }
+
+/// Issue 15: the extended model (creep bank lambda 0.07 and LR-3: 17 states), against
+/// `full_model` on the same driver and drive.
+#[divan::bench(args = embedded_driver_names())]
+fn creep_and_lr3(bencher: Bencher, name: &str) {
+    let mut p = embedded_driver(name).unwrap();
+    let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
+    p.creep = Some(coilscope_core::params::Creep { lambda: 0.07, f_ref: None });
+    p.l3r3 = Some((0.6 * l2, 2.5 * r2));
+    let u = voltage(3.0);
+    bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &SimOptions::default()).unwrap());
+}

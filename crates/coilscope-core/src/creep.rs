@@ -63,6 +63,16 @@ pub fn bank_re_slope(w: f64) -> f64 {
         .sum()
 }
 
+/// `Re b(w)` for a scalar of any type (dual numbers carry its derivative): where the static
+/// spring's correction comes from when the reference `w` is itself an unknown.
+pub fn bank_re<D: num_dual::DualNum<Primitive = f64> + Copy>(w: D) -> D {
+    let per = 1.0 / PER_DECADE as f64;
+    taus().iter().fold(D::zero(), |acc, &tau| {
+        let u = w * w * (tau * tau);
+        acc + u / (u + 1.0) * per
+    })
+}
+
 /// The stiffness factor `K(jw) / Kms(0)` at `x = 0`: `1 + lambda (b(w) - Re b(w_ref))`.
 pub fn stiffness_factor(lambda: f64, w: f64, w_ref: f64) -> Complex64 {
     1.0 + lambda * (bank(w) - bank(w_ref).re)
@@ -95,6 +105,14 @@ mod tests {
         }
         // At the reference the real part is exactly 1: Kms is the dynamic stiffness there.
         assert!((stiffness_factor(lambda, wr, wr).re - 1.0).abs() < 1e-15);
+    }
+
+    #[test]
+    fn the_generic_real_part_is_the_real_part() {
+        for f in [0.3, 20.0, 700.0] {
+            let w = 2.0 * PI * f;
+            assert!((bank_re(w) - bank(w).re).abs() < 1e-14);
+        }
     }
 
     #[test]

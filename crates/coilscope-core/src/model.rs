@@ -221,17 +221,29 @@ impl ExtModel<f64> {
 impl<D: DualNum<Primitive = f64> + Copy> ExtModel<D> {
     /// The extended model of a parameter set in scalar type `D`.
     pub fn lift_from(p: &Parameters) -> Self {
-        let creep = match (&p.creep, p.creep_f_ref()) {
-            (Some(c), Some(f_ref)) => {
-                let taus = crate::creep::taus();
-                assert_eq!(taus.len(), NCREEP, "the creep bank's size changed: update model::NCREEP");
-                let dk = c.lambda * p.kms.c[0] / crate::creep::PER_DECADE as f64;
-                let kc = c.lambda * p.kms.c[0] * crate::creep::bank(2.0 * std::f64::consts::PI * f_ref).re;
-                Some(CreepBank { dk: D::from(dk), kc: D::from(kc), rate: std::array::from_fn(|k| 1.0 / taus[k]) })
-            }
-            _ => None,
+        let (lambda, f_ref) = match &p.creep {
+            Some(c) => (Some(D::from(c.lambda)), Some(c.f_ref.unwrap_or_else(|| p.creep_f_ref().expect("creep present")))),
+            None => (None, None),
         };
-        ExtModel { base: Model::lift_from(p), lr3: p.l3r3.map(|(l, r)| (D::from(l), D::from(r))), creep }
+        ExtModel::from_parts(Model::lift_from(p), p.l3r3.map(|(l, r)| (D::from(l), D::from(r))), lambda, f_ref)
+    }
+
+    /// The extended model of a [`Model`] and the effects' values in scalar type `D` (what a
+    /// fit whose unknowns include them builds): LR-3 `(L3, R3)`, and creep's `lambda` with
+    /// its reference `f_ref` (Hz; `None`: the resonance `sqrt(Kms(0) / Mms) / 2 pi`, which
+    /// then moves with the unknowns).
+    pub fn from_parts(base: Model<D>, lr3: Option<(D, D)>, lambda: Option<D>, f_ref: Option<f64>) -> Self {
+        let creep = lambda.map(|lambda| {
+            let taus = crate::creep::taus();
+            assert_eq!(taus.len(), NCREEP, "the creep bank's size changed: update model::NCREEP");
+            let k0 = base.kms.c[0];
+            let w_ref = match f_ref {
+                Some(f) => D::from(2.0 * std::f64::consts::PI * f),
+                None => (k0 / base.mms).sqrt(),
+            };
+            CreepBank { dk: lambda * k0 / crate::creep::PER_DECADE as f64, kc: lambda * k0 * crate::creep::bank_re(w_ref), rate: std::array::from_fn(|k| 1.0 / taus[k]) }
+        });
+        ExtModel { base, lr3, creep }
     }
 
     /// Time derivative of the extended state for terminal voltage `u`.

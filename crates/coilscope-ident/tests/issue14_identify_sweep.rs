@@ -16,6 +16,9 @@ use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalS
 use coilscope_core::simulate::{gain_for_peak, SimOptions};
 use coilscope_core::{embedded_driver, Parameters};
 use coilscope_ident::large::{identify, IdentifyOptions};
+// The LR-2 model: what this sweep tests is that the fit never fails; the choice of effects
+// (and that plain records keep LR-2) is tested in issue15_real_drivers.rs.
+use coilscope_ident::linear::{Effects, EffectsChoice};
 
 mod common;
 use common::Errors;
@@ -40,7 +43,7 @@ fn sweep(name: &str) {
         add_sensor_noise(&mut u, 70.0, seed, "sensor-noise/voltage");
         add_sensor_noise(&mut i, 70.0, seed, "sensor-noise/current");
         let label = format!("{name} seed {seed}");
-        match identify(&u, &i, fs, &label, &IdentifyOptions { mms: p.mms, ..Default::default() }, |_| {}) {
+        match identify(&u, &i, fs, &label, &IdentifyOptions { mms: p.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() }, |_| {}) {
             Ok(fit) => {
                 let e = Errors::of(&fit.params, &p, [s.x_min, s.x_max]);
                 let line = format!("{label}: order {}, residual {:.2e}, {e}", fit.order, fit.residual_rel);

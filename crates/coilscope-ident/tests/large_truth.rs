@@ -14,6 +14,11 @@ use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalS
 use coilscope_core::simulate::{gain_for_peak, SimOptions};
 use coilscope_core::{embedded_driver, Parameters, Poly};
 use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, LargeFit};
+use coilscope_ident::linear::{Effects, EffectsChoice};
+
+/// The LR-2 model: these tests are about accuracy in its world (the choice of effects is
+/// tested in issue15_real_drivers.rs), and Auto would triple their time.
+const LR2: EffectsChoice = EffectsChoice::Fixed(Effects::NONE);
 use std::path::Path;
 
 mod common;
@@ -95,7 +100,7 @@ fn three_drivers_at_70_db() {
     for name in ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"] {
         let p = embedded_driver(name).unwrap();
         let rec = record(&p, 48000.0, 8.0, 0.85, 70.0, 11);
-        let fit = run(&rec, IdentifyOptions { mms: p.mms, ..Default::default() });
+        let fit = run(&rec, IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() });
         assert_truth(&format!("{name} 70 dB"), &fit, &p, rec.x_range, &AT_70_DB);
         // The voice-coil heating is tracked: Re rises over the record.
         assert!(fit.re_track.last().unwrap().1 > fit.re_track[0].1 * 1.001, "{name}: {:?}", fit.re_track);
@@ -106,7 +111,7 @@ fn three_drivers_at_70_db() {
 fn noisier_sensors_at_60_db() {
     let p = embedded_driver("18wu-4741t-00").unwrap();
     let rec = record(&p, 48000.0, 8.0, 0.85, 60.0, 12);
-    let fit = run(&rec, IdentifyOptions { mms: p.mms, ..Default::default() });
+    let fit = run(&rec, IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() });
     assert_truth("18wu 60 dB", &fit, &p, rec.x_range, &AT_60_DB);
 }
 
@@ -115,7 +120,7 @@ fn other_sample_rates() {
     for (name, fs) in [("sb17cac35-4", 44100.0), ("ptt4.0w04-01a", 96000.0)] {
         let p = embedded_driver(name).unwrap();
         let rec = record(&p, fs, 8.0, 0.85, 70.0, 13);
-        let fit = run(&rec, IdentifyOptions { mms: p.mms, ..Default::default() });
+        let fit = run(&rec, IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() });
         assert_truth(&format!("{name} at {fs} Hz"), &fit, &p, rec.x_range, &AT_70_DB);
     }
 }
@@ -135,7 +140,7 @@ fn start_with_kms_twice_too_high() {
         x_range: None,
         ..p.clone()
     };
-    let fit = run(&rec, IdentifyOptions { mms: p.mms, init: Some(start), order: Some(4), ..Default::default() });
+    let fit = run(&rec, IdentifyOptions { mms: p.mms, effects: LR2, init: Some(start), order: Some(4), ..Default::default() });
     assert_eq!(fit.order, 4);
     assert_truth("sb17 from Kms x2", &fit, &p, rec.x_range, &AT_70_DB);
 }
@@ -146,7 +151,7 @@ fn uncertainty_bands_cover_the_truth_and_shrink_with_noise() {
     let mut widths = vec![];
     for snr in [70.0, 50.0] {
         let rec = record(&p, 48000.0, 8.0, 0.85, snr, 15);
-        let fit = run(&rec, IdentifyOptions { mms: p.mms, order: Some(4), ..Default::default() });
+        let fit = run(&rec, IdentifyOptions { mms: p.mms, effects: LR2, order: Some(4), ..Default::default() });
         let b = fit.band("Bl", 21);
         let mut z_max: f64 = 0.0;
         for (k, &x) in b.x.iter().enumerate() {
@@ -156,12 +161,14 @@ fn uncertainty_bands_cover_the_truth_and_shrink_with_noise() {
         println!("{snr} dB: Bl band sd at rest {:.2e}, worst |error|/sd {z_max:.1}", b.sd[10]);
         // The band holds the truth (measured: within 1.0 sd at both levels).
         assert!(z_max < 3.0, "{snr} dB: Bl error is {z_max:.1} sd");
-        widths.push(b.sd[10]);
+        // The statistical part (the band adds a systematic 0.01 % of the value in quadrature).
+        let sys = coilscope_ident::large::CURVE_SYSTEMATIC_REL * b.value[10];
+        widths.push((b.sd[10].powi(2) - sys * sys).max(0.0).sqrt());
         for (k, v) in fit.sd() {
             assert!(v > 0.0 && v.is_finite(), "{k}: {v}");
         }
     }
-    // 20 dB more noise: the band widens by about 10x.
+    // 20 dB more noise: the band's statistical part widens by about 10x.
     let ratio = widths[1] / widths[0];
     assert!(ratio > 5.0 && ratio < 20.0, "{widths:?}");
 }
@@ -185,7 +192,7 @@ fn independent_reference_recordings() {
         let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join(format!("recordings/{name}-large.info.json"))).unwrap()).unwrap();
         let range = [info["x_min"].as_f64().unwrap(), info["x_max"].as_f64().unwrap()];
         let r = Rec { fs: rec.fs as f64, u: rec.u, i: rec.i, x_range: range };
-        let fit = run(&r, IdentifyOptions { mms: p.mms, ..Default::default() });
+        let fit = run(&r, IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() });
         assert_truth(&format!("{name} (independent)"), &fit, &p, range, &INDEPENDENT);
         // The heating the other simulator put in: within 15 % (it runs 8 % hotter than the
         // spec's model; see the issue 2 note).
@@ -206,7 +213,7 @@ fn independent_small_signal_record_gives_curves_over_its_small_range() {
     let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("recordings/sb17cac35-4-small.info.json")).unwrap()).unwrap();
     let range = [info["x_min"].as_f64().unwrap(), info["x_max"].as_f64().unwrap()];
     let r = Rec { fs: rec.fs as f64, u: rec.u, i: rec.i, x_range: range };
-    let fit = run(&r, IdentifyOptions { mms: p.mms, ..Default::default() });
+    let fit = run(&r, IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() });
     assert_truth("sb17 small (independent)", &fit, &p, range, &INDEPENDENT);
     assert!(fit.x_range[1] < 0.3e-3 && fit.x_range[0] > -0.3e-3);
 }
@@ -216,7 +223,7 @@ fn excitation_too_small_is_refused_with_the_reached_range() {
     // About 0.03 mm at 60 dB: the nonlinear terms are buried in the noise.
     let p = embedded_driver("sb17cac35-4").unwrap();
     let rec = record(&p, 48000.0, 3.0, 0.005, 60.0, 19);
-    match identify(&rec.u, &rec.i, rec.fs, "small.wav", &IdentifyOptions { mms: p.mms, ..Default::default() }, |_| {}) {
+    match identify(&rec.u, &rec.i, rec.fs, "small.wav", &IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() }, |_| {}) {
         Err(IdentifyError::TooSmall(m)) => {
             println!("{m}");
             assert!(m.contains("small.wav") && m.contains("mm") && m.contains("too small"), "{m}");
@@ -231,7 +238,7 @@ fn clipped_input_is_refused() {
     let mut rec = record(&p, 48000.0, 3.0, 0.5, 70.0, 16);
     let peak = rec.u.iter().fold(0.0f64, |a, v| a.max(v.abs()));
     rec.u.iter_mut().for_each(|v| *v = v.clamp(-0.6 * peak, 0.6 * peak));
-    let err = identify(&rec.u, &rec.i, rec.fs, "clip.wav", &IdentifyOptions { mms: p.mms, ..Default::default() }, |_| {}).unwrap_err();
+    let err = identify(&rec.u, &rec.i, rec.fs, "clip.wav", &IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() }, |_| {}).unwrap_err();
     let m = err.to_string();
     assert!(m.contains("clip.wav") && m.contains("clipped") && m.contains("voltage"), "{m}");
 }
@@ -242,7 +249,7 @@ fn a_fit_stopped_early_says_why_and_keeps_its_best_estimate() {
     let rec = record(&p, 48000.0, 3.0, 0.85, 70.0, 17);
     let c0 = |f: &Poly| Poly::constant(f.eval(0.0));
     let start = Parameters { le: c0(&p.le), bl: c0(&p.bl), kms: Poly::constant(2.0 * p.kms.eval(0.0)), thermal: None, x_range: None, ..p.clone() };
-    let opts = IdentifyOptions { mms: p.mms, init: Some(start), order: Some(4), max_iterations: 1, ..Default::default() };
+    let opts = IdentifyOptions { mms: p.mms, effects: LR2, init: Some(start), order: Some(4), max_iterations: 1, ..Default::default() };
     match identify(&rec.u, &rec.i, rec.fs, "early.wav", &opts, |_| {}) {
         Err(IdentifyError::NotConverged { message, best }) => {
             assert!(message.contains("did not converge") && message.contains("iteration limit"), "{message}");
@@ -259,9 +266,9 @@ fn bad_options_are_named() {
     let rec = record(&p, 48000.0, 3.0, 0.5, 70.0, 18);
     let e = identify(&rec.u, &rec.i, rec.fs, "a.wav", &IdentifyOptions { mms: 15.0, ..Default::default() }, |_| {}).unwrap_err().to_string();
     assert!(e.contains("moving mass 15") && e.contains("kg"), "{e}");
-    let e = identify(&rec.u, &rec.i, rec.fs, "a.wav", &IdentifyOptions { mms: p.mms, order: Some(12), ..Default::default() }, |_| {}).unwrap_err().to_string();
+    let e = identify(&rec.u, &rec.i, rec.fs, "a.wav", &IdentifyOptions { mms: p.mms, effects: LR2, order: Some(12), ..Default::default() }, |_| {}).unwrap_err().to_string();
     assert!(e.contains("order 12") && e.contains("2 ..= 8"), "{e}");
-    let e = identify(&rec.u[..48000], &rec.i[..48000], rec.fs, "a.wav", &IdentifyOptions { mms: p.mms, ..Default::default() }, |_| {}).unwrap_err().to_string();
+    let e = identify(&rec.u[..48000], &rec.i[..48000], rec.fs, "a.wav", &IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() }, |_| {}).unwrap_err().to_string();
     assert!(e.contains("a.wav") && e.contains("too short"), "{e}");
 }
 

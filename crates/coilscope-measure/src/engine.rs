@@ -414,7 +414,8 @@ fn loud_start(lin: &coilscope_ident::linear::LinearFit, p: &Parameters, u: &[f64
 /// cannot be made (the linear start is kept).
 fn batch_start(u: &[f64], i: &[f64], fs: f64, mms: f64) -> Option<(Parameters, f64, f64)> {
     use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions};
-    let opts = IdentifyOptions { mms, order: Some(4), ..Default::default() };
+    // The LR-2 model: the online estimator has no creep or LR-3 yet.
+    let opts = IdentifyOptions { mms, order: Some(4), effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() };
     let fit = match identify(u, i, fs, "replay start", &opts, |_| {}) {
         Ok(f) => f,
         Err(IdentifyError::NotConverged { best, .. }) => *best,

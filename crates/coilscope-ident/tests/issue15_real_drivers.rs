@@ -1,0 +1,101 @@
+//! Issue 15: `identify` on the independent simulator's real-driver recordings
+//! (`shared/recordings/*-real-creep.wav`, `*-real-lr3.wav`: SB17 with LOG creep lambda 0.07,
+//! and with an LR-3 branch L3 = 0.6 L2, R3 = 2.5 R2), the effects chosen on held-out data,
+//! against the truth (the driver file plus the record's `world`): the right model; Bl(x)
+//! within 2 % and Kms(x) within 3 % over the reached range; Re within 0.5 %; lambda within
+//! 20 %; L3, R3 within 5 %; the truth within 3 sd of the bands; no residual-above-noise
+//! warning. And the plain large records of
+//! the three drivers keep the LR-2 model (no effect found where there is none).
+//!
+//! Release-profile (each identify with the effects' trials takes 20-40 s):
+//! `cargo test --release -p coilscope-ident --test issue15_real_drivers -- --ignored`.
+
+mod common;
+use common::Errors;
+use coilscope_core::{embedded_driver, Parameters};
+use coilscope_ident::large::{identify, IdentifyOptions, LargeFit};
+use coilscope_ident::linear::Effects;
+use std::path::Path;
+
+fn run(file: &str, truth: &Parameters) -> (LargeFit, Vec<f64>) {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings");
+    let rec = coilscope_io::read_recording(&dir.join(file), None).unwrap();
+    let fs = rec.fs as f64;
+    let fit = identify(&rec.u, &rec.i, fs, file, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}).unwrap_or_else(|e| panic!("{file}: {e}"));
+    (fit, rec.i)
+}
+
+/// Checks shared by the records; returns the problems.
+fn check(file: &str, fit: &LargeFit, i: &[f64], truth: &Parameters, want: Effects) -> Vec<String> {
+    let mut bad = vec![];
+    let q = &fit.params;
+    let e = Errors::of(q, truth, fit.x_range);
+    let r: Vec<f64> = i[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect();
+    let (floor, warnings) = coilscope_ident::checks::residual_warnings(&r, fit.fs, "large-signal fit", coilscope_core::simulate::rms(i), 0.0);
+    println!("{file}: model {} ({:?}), order {}, {e}, residual {:.2e} ({:.1}x floor), lambda {:?}, L3/R3 {:?}", fit.layout.effects.model_name(), fit.effect_trials, fit.order, fit.residual_rel, floor.rms / floor.floor_rms, q.creep.as_ref().map(|c| c.lambda), q.l3r3);
+    // The bands: the truth within 3 sd at every point of the reached range.
+    let mut zmax: f64 = 0.0;
+    for (name, f) in [("Bl", &truth.bl), ("Kms", &truth.kms), ("Le", &truth.le)] {
+        let b = fit.band(name, 41);
+        for k in 0..b.x.len() {
+            zmax = zmax.max((b.value[k] - f.eval(b.x[k])).abs() / b.sd[k]);
+        }
+    }
+    println!("{file}: the truth within {zmax:.2} sd of the bands");
+    if zmax > 3.0 {
+        bad.push(format!("{file}: the truth lies {zmax:.1} sd outside the bands"));
+    }
+    if fit.layout.effects != want {
+        bad.push(format!("{file}: chose {}, not {}", fit.layout.effects.model_name(), want.model_name()));
+    }
+    if !(e.bl <= 0.02 && e.kms <= 0.03 && e.re <= 0.005) {
+        bad.push(format!("{file}: {e}"));
+    }
+    if !warnings.is_empty() {
+        bad.push(format!("{file}: {}", warnings.iter().map(|w| w.message.clone()).collect::<Vec<_>>().join("; ")));
+    }
+    bad
+}
+
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+#[ignore = "release-profile sweep: cargo test --release -p coilscope-ident --test issue15_real_drivers -- --ignored"]
+fn identify_finds_creep_in_the_independent_real_creep_record() {
+    let truth = embedded_driver("sb17cac35-4").unwrap();
+    let (fit, i) = run("sb17cac35-4-real-creep.wav", &truth);
+    let mut bad = check("sb17cac35-4-real-creep.wav", &fit, &i, &truth, Effects { creep: true, lr3: false });
+    let lambda = fit.params.creep.as_ref().map_or(0.0, |c| c.lambda);
+    if (lambda / 0.07 - 1.0).abs() > 0.2 {
+        bad.push(format!("lambda {lambda} vs 0.07"));
+    }
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+}
+
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+#[ignore = "release-profile sweep: cargo test --release -p coilscope-ident --test issue15_real_drivers -- --ignored"]
+fn identify_finds_lr3_in_the_independent_real_lr3_record() {
+    let truth = embedded_driver("sb17cac35-4").unwrap();
+    let (fit, i) = run("sb17cac35-4-real-lr3.wav", &truth);
+    let mut bad = check("sb17cac35-4-real-lr3.wav", &fit, &i, &truth, Effects { creep: false, lr3: true });
+    let (l2, r2) = truth.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
+    let (l3, r3) = fit.params.l3r3.unwrap_or((0.0, 0.0));
+    if (l3 / (0.6 * l2) - 1.0).abs() > 0.05 || (r3 / (2.5 * r2) - 1.0).abs() > 0.05 {
+        bad.push(format!("L3 {l3} vs {}, R3 {r3} vs {}", 0.6 * l2, 2.5 * r2));
+    }
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+}
+
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+#[ignore = "release-profile sweep: cargo test --release -p coilscope-ident --test issue15_real_drivers -- --ignored"]
+fn plain_large_records_keep_the_lr2_model() {
+    let mut bad = vec![];
+    for name in ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"] {
+        let truth = embedded_driver(name).unwrap();
+        let file = format!("{name}-large.wav");
+        let (fit, i) = run(&file, &truth);
+        bad.extend(check(&file, &fit, &i, &truth, Effects::NONE));
+    }
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+}
