@@ -45,9 +45,20 @@ fn rec(name: &str) -> &'static Rec {
     }
 }
 
-/// The whole `identify` (linear start, order selection, final fit, covariance).
+/// The whole `identify` (linear start, order selection, final fit, covariance), the LR-2
+/// model given (what it was before issue 15).
 #[divan::bench(args = ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"], sample_count = 3, sample_size = 1)]
 fn identify_8s(name: &str) {
+    let r = rec(name);
+    let lr2 = coilscope_ident::linear::EffectsChoice::Fixed(coilscope_ident::linear::Effects::NONE);
+    let f = identify(&r.u, &r.i, FS, "bench", &IdentifyOptions { mms: r.p.mms, effects: lr2, ..Default::default() }, |_| {}).unwrap();
+    assert!(f.residual_rel < 0.01);
+}
+
+/// The same with the effects chosen on held-out data (the default): creep, LR-3 and both are
+/// tried at the chosen order.
+#[divan::bench(args = ["sb17cac35-4"], sample_count = 2, sample_size = 1)]
+fn identify_8s_effects_auto(name: &str) {
     let r = rec(name);
     let f = identify(&r.u, &r.i, FS, "bench", &IdentifyOptions { mms: r.p.mms, ..Default::default() }, |_| {}).unwrap();
     assert!(f.residual_rel < 0.01);
