@@ -94,23 +94,27 @@ fn energy_in_equals_losses_plus_stored_energy() {
     }
 }
 
+/// U/I of the simulator at `f`: 1 s of a sine at 1 mV (linear), settled over a first second,
+/// the Fourier coefficients over the last whole second.
+fn simulated_impedance(p: &Parameters, f: f64) -> Complex64 {
+    let n = 48000;
+    let u: Vec<f64> = (0..2 * n).map(|k| 1e-3 * (2.0 * std::f64::consts::PI * f * k as f64 / FS).sin()).collect();
+    let tr = simulate(p, FS, &u, &SimOptions::default()).unwrap();
+    let coef = |x: &[f64]| -> Complex64 {
+        x[n..].iter().enumerate().map(|(k, v)| {
+            let ph = 2.0 * std::f64::consts::PI * f * (n + k) as f64 / FS;
+            Complex64::new(ph.cos(), -ph.sin()) * *v
+        }).sum::<Complex64>()
+    };
+    coef(&tr.u) / coef(&tr.i)
+}
+
 #[test]
 fn small_signal_current_follows_the_analytic_impedance() {
     for name in embedded_driver_names() {
         let p = embedded_driver(name).unwrap();
         for f in [20.0, 60.0, 150.0, 1000.0, 8000.0] {
-            // 1 s of a periodic sine at 1 mV: linear, settled after the first half.
-            let n = 48000;
-            let u: Vec<f64> = (0..2 * n).map(|k| 1e-3 * (2.0 * std::f64::consts::PI * f * k as f64 / FS).sin()).collect();
-            let tr = simulate(&p, FS, &u, &SimOptions::default()).unwrap();
-            // Fourier coefficient over the last whole second.
-            let coef = |x: &[f64]| -> Complex64 {
-                x[n..].iter().enumerate().map(|(k, v)| {
-                    let ph = 2.0 * std::f64::consts::PI * f * (n + k) as f64 / FS;
-                    Complex64::new(ph.cos(), -ph.sin()) * *v
-                }).sum::<Complex64>()
-            };
-            let z_sim = coef(&tr.u) / coef(&tr.i);
+            let z_sim = simulated_impedance(&p, f);
             let z = impedance(&p, f);
             let err = (z_sim - z).norm() / z.norm();
             assert!(err < 2e-4, "{name} at {f} Hz: |Z| {:.4} vs {:.4}, error {err:.2e}", z_sim.norm(), z.norm());
@@ -234,16 +238,7 @@ fn small_signal_current_with_creep_and_lr3_follows_the_analytic_impedance() {
     for name in embedded_driver_names() {
         let p = with_effects(name);
         for f in [20.0, 60.0, 150.0, 1000.0, 8000.0] {
-            let n = 48000;
-            let u: Vec<f64> = (0..2 * n).map(|k| 1e-3 * (2.0 * std::f64::consts::PI * f * k as f64 / FS).sin()).collect();
-            let tr = simulate(&p, FS, &u, &SimOptions::default()).unwrap();
-            let coef = |x: &[f64]| -> Complex64 {
-                x[n..].iter().enumerate().map(|(k, v)| {
-                    let ph = 2.0 * std::f64::consts::PI * f * (n + k) as f64 / FS;
-                    Complex64::new(ph.cos(), -ph.sin()) * *v
-                }).sum::<Complex64>()
-            };
-            let z_sim = coef(&tr.u) / coef(&tr.i);
+            let z_sim = simulated_impedance(&p, f);
             let z = impedance(&p, f);
             let err = (z_sim - z).norm() / z.norm();
             // The effects change |Z| by far more than the tolerance near the resonance.
