@@ -7,6 +7,34 @@
 
 use crate::integrate::{rk4_sample, substeps_for, Interpolator};
 use crate::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
+
+/// The model a simulation integrates, one sample at a time: [`Model`] (six states, the fast
+/// path), or [`ExtModel`] when the set has creep or LR-3 (its extra states kept here; its
+/// first six mirror the caller's state, which stays the one source of x, v, i, ...).
+#[derive(Clone, Debug)]
+pub struct Plant {
+    model: Model<f64>,
+    ext: Option<(ExtModel<f64>, ExtState<f64>)>,
+}
+
+impl Plant {
+    pub fn new(params: &Parameters) -> Self {
+        Plant { model: Model::new(params), ext: (params.creep.is_some() || params.l3r3.is_some()).then(|| (ExtModel::new(params), [0.0; NEXT])) }
+    }
+
+    /// Advance `state` by one sample period `dt`, the input at the points of
+    /// [`crate::integrate::Interpolator::fill`].
+    pub fn step(&mut self, state: &mut State<f64>, dt: f64, u_points: &[f64]) {
+        match &mut self.ext {
+            None => *state = rk4_sample(&self.model, state, dt, u_points),
+            Some((model, s)) => {
+                s[..NSTATE].copy_from_slice(state);
+                *s = rk4_sample(model, s, dt, u_points);
+                state.copy_from_slice(&s[..NSTATE]);
+            }
+        }
+    }
+}
 use crate::params::Parameters;
 use std::fmt;
 
@@ -141,7 +169,7 @@ impl Trace {
 /// The virtual transducer.
 #[derive(Clone, Debug)]
 pub struct Simulator {
-    pub model: Model<f64>,
+    plant: Plant,
     pub params: Parameters,
     pub fs: f64,
     interp: Interpolator,
@@ -149,9 +177,6 @@ pub struct Simulator {
     bounds: Option<[f64; 2]>,
     range: Option<[f64; 2]>,
     pub state: State<f64>,
-    /// The extended model and its state, for a set with creep or LR-3 (`None`: the
-    /// six-state model, the fast path). Its first six states mirror `state`.
-    ext: Option<(ExtModel<f64>, ExtState<f64>)>,
     scratch: Vec<f64>,
 }
 
@@ -170,14 +195,13 @@ impl Simulator {
         let n = opts.substeps.unwrap_or_else(|| substeps_for(params.stiffness_rate(), fs)).max(1);
         let bounds = params.x_range.map(|[lo, hi]| [lo * (1.0 + opts.range_margin), hi * (1.0 + opts.range_margin)]);
         Ok(Simulator {
-            model: Model::new(params),
+            plant: Plant::new(params),
             params: params.clone(),
             fs,
             interp: Interpolator::new(n),
             bounds,
             range: params.x_range,
             state: opts.initial,
-            ext: (params.creep.is_some() || params.l3r3.is_some()).then(|| (ExtModel::new(params), [0.0; NEXT])),
             scratch: vec![0.0; 2 * n + 1],
         })
     }
@@ -230,14 +254,7 @@ impl Simulator {
             self.check(&self.state, m)?;
             observe(m, &self.state);
             self.interp.fill(u, m, &mut self.scratch);
-            match &mut self.ext {
-                None => self.state = rk4_sample(&self.model, &self.state, dt, &self.scratch),
-                Some((model, s)) => {
-                    s[..NSTATE].copy_from_slice(&self.state);
-                    *s = rk4_sample(model, s, dt, &self.scratch);
-                    self.state.copy_from_slice(&s[..NSTATE]);
-                }
-            }
+            self.plant.step(&mut self.state, dt, &self.scratch);
         }
         Ok(())
     }

@@ -203,7 +203,7 @@ impl Effects {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum EffectsChoice {
     /// The data decide: an effect is kept when it lowers the residual by at least
-    /// [`EFFECT_MIN_GAIN`] (and creep's lambda is positive, at least 5 sd from 0).
+    /// [`EFFECT_MIN_GAIN`] (and creep's lambda comes out positive).
     #[default]
     Auto,
     /// Exactly these effects.
@@ -213,12 +213,32 @@ pub enum EffectsChoice {
 /// Share by which an effect must lower the current residual to be kept (`Auto`).
 pub const EFFECT_MIN_GAIN: f64 = 0.05;
 
-/// Values of the extra effects at one point: creep's lambda (the reference is the resonance
-/// `1 / sqrt(Lces Cmes)`), and the LR-3 branch (L3, R3).
+/// Values of the extra effects at one point: creep's lambda with the bank at its reference,
+/// the resonance `w_s = 1 / sqrt(Lces Cmes)` (see [`CreepAt`]), and the LR-3 branch (L3, R3).
 #[derive(Clone, Copy, Debug, Default)]
 struct Ext {
-    lambda: Option<f64>,
+    creep: Option<CreepAt>,
     lr3: Option<(f64, f64)>,
+}
+
+/// Creep's lambda and what depends only on the parameters, not on the frequency: `Re b(w_s)`
+/// and its slope `d Re b / d ln w` at the reference (computed once per evaluation, not per bin).
+#[derive(Clone, Copy, Debug)]
+struct CreepAt {
+    lambda: f64,
+    b_ref: f64,
+    slope_ref: f64,
+}
+
+impl Ext {
+    /// The effects' values for the LR-2 quantities `p` (the creep reference moves with them).
+    fn new(p: &[f64; 7], lambda: Option<f64>, lr3: Option<(f64, f64)>) -> Ext {
+        let creep = lambda.map(|lambda| {
+            let ws = 1.0 / (p[6] * p[5]).sqrt();
+            CreepAt { lambda, b_ref: coilscope_core::creep::bank(ws).re, slope_ref: coilscope_core::creep::bank_re_slope(ws) }
+        });
+        Ext { creep, lr3 }
+    }
 }
 
 /// Impedance with the extra effects; derivatives with respect to ln(p_k) of the seven LR-2
@@ -234,12 +254,11 @@ fn impedance_ext(p: &[f64; 7], e: &Ext, f: f64) -> (Complex64, [Complex64; 7], [
     let d2 = zl2 + r2;
     let z2 = zl2 * r2 / d2;
     let zero = Complex64::new(0.0, 0.0);
-    let (kappa, dkappa_half, bank_rel) = match e.lambda {
-        Some(lambda) => {
-            let ws = 1.0 / (lces * cmes).sqrt();
-            let b = coilscope_core::creep::bank(2.0 * PI * f) - coilscope_core::creep::bank(ws).re;
+    let (kappa, dkappa_half, bank_rel) = match e.creep {
+        Some(c) => {
+            let b = coilscope_core::creep::bank(2.0 * PI * f) - c.b_ref;
             // d kappa / d ln Lces = d kappa / d ln Cmes = lambda h'(w_s) / 2.
-            (1.0 + lambda * b, lambda * coilscope_core::creep::bank_re_slope(ws) / 2.0, b)
+            (1.0 + c.lambda * b, c.lambda * c.slope_ref / 2.0, b)
         }
         None => (Complex64::new(1.0, 0.0), 0.0, zero),
     };
@@ -257,7 +276,7 @@ fn impedance_ext(p: &[f64; 7], e: &Ext, f: f64) -> (Complex64, [Complex64; 7], [
         zm2 * (kappa - dkappa_half) / (jw * lces),
     ];
     let mut gx = [zero; 3];
-    if e.lambda.is_some() {
+    if e.creep.is_some() {
         gx[0] = -zm2 * bank_rel / (jw * lces);
     }
     if let Some((l3, r3)) = e.lr3 {
@@ -312,7 +331,7 @@ pub struct Transient {
 
 impl LinearFit {
     fn ext(&self) -> Ext {
-        Ext { lambda: self.creep.map(|c| c.0), lr3: self.lr3.map(|(v, _)| (v[0], v[1])) }
+        Ext::new(&self.p, self.creep.map(|c| c.0), self.lr3.map(|(v, _)| (v[0], v[1])))
     }
     /// The fitted model's impedance (ohm) at `f` (Hz), with its effects.
     pub fn impedance(&self, f: f64) -> Complex64 {
@@ -384,6 +403,13 @@ fn logistic(t: f64) -> f64 {
     1.0 / (1.0 + (-t).exp())
 }
 
+/// The inverse of `q = lo + (hi - lo) logistic(theta)`, with `q` pulled at least `margin`
+/// (a share of the range) inside its bounds.
+fn bounded_theta(q: f64, lo: f64, hi: f64, margin: f64) -> f64 {
+    let s = ((q - lo) / (hi - lo)).clamp(margin, 1.0 - margin);
+    (s / (1.0 - s)).ln()
+}
+
 impl ParamMap {
     fn q(&self, theta: &[f64]) -> [f64; 7] {
         std::array::from_fn(|k| if self.lo[k].is_finite() { self.lo[k] + (self.hi[k] - self.lo[k]) * logistic(theta[k]) } else { theta[k] })
@@ -404,8 +430,7 @@ impl ParamMap {
         (0..7)
             .map(|k| {
                 if self.lo[k].is_finite() {
-                    let s = ((q[k] - self.lo[k]) / (self.hi[k] - self.lo[k])).clamp(0.01, 0.99);
-                    (s / (1.0 - s)).ln()
+                    bounded_theta(q[k], self.lo[k], self.hi[k], 0.01)
                 } else {
                     q[k]
                 }
@@ -461,13 +486,14 @@ impl CurrentError {
 
     /// The extra effects' values at theta.
     fn ext(&self, theta: &[f64]) -> Ext {
-        Ext {
-            lambda: self.idx_lambda().map(|k| theta[k]),
-            lr3: self.idx_lr3().map(|k| {
+        Ext::new(
+            &self.map.params(theta),
+            self.idx_lambda().map(|k| theta[k]),
+            self.idx_lr3().map(|k| {
                 let r3 = theta[k + 1].exp();
                 (self.tau3(theta[k]).0.exp() * r3, r3)
             }),
-        }
+        )
     }
 
     /// The transient coefficients in theta.
@@ -813,16 +839,21 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
             th
         })
         .collect();
-    let mut fitted = vec![solve(Effects::NONE, &base_starts, &mut observe)];
+    // Each fitted model with its current residual.
+    let with_residual = |(pr, s): (CurrentError, LmState)| {
+        let r = pr.residual_rel(&s.theta);
+        (pr, s, r)
+    };
+    let mut fitted = vec![with_residual(solve(Effects::NONE, &base_starts, &mut observe))];
     // Starts of a model with more effects, from a fitted one: creep from lambda = 0.05 (the
     // middle of what Klippel's LPM reports), LR-3 from a corner 4x above and 4x below LR-2's
     // with R3 = 2.5 R2 and R2 (the branches are named by their corners afterwards).
-    let grow = |from: &(CurrentError, LmState), to: Effects| -> Vec<Vec<f64>> {
-        let (pr, s) = from;
+    let grow = |from: &(CurrentError, LmState, f64), to: Effects| -> Vec<Vec<f64>> {
+        let (pr, s, _) = from;
         let (th0, ext0) = (&s.theta, pr.ext(&s.theta));
         let base = &th0[..7];
         let trans = pr.transient(th0).to_vec();
-        let lambdas = [ext0.lambda.unwrap_or(0.05)];
+        let lambda = ext0.creep.map_or(0.05, |c| c.lambda);
         let lr3s: Vec<(f64, f64)> = match (to.lr3, ext0.lr3) {
             (false, _) => vec![],
             (true, Some((l3, r3))) => vec![((l3 / r3).ln(), r3.ln())],
@@ -836,12 +867,10 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
         for &(ltau3, lr3) in if lr3s.is_empty() { &[(0.0, 0.0)][..] } else { &lr3s[..] } {
             let mut th = base.to_vec();
             if to.creep {
-                th.push(lambdas[0]);
+                th.push(lambda);
             }
             if to.lr3 {
-                let (lo, hi) = (map.lo[2], map.hi[2]);
-                let sv = ((ltau3 - lo) / (hi - lo)).clamp(0.01, 0.99);
-                th.push((sv / (1.0 - sv)).ln());
+                th.push(bounded_theta(ltau3, map.lo[2], map.hi[2], 0.01));
                 th.push(lr3);
             }
             th.extend_from_slice(&trans);
@@ -853,7 +882,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
         EffectsChoice::Fixed(e) if e == Effects::NONE => 0,
         EffectsChoice::Fixed(e) => {
             let st = grow(&fitted[0], e);
-            fitted.push(solve(e, &st, &mut observe));
+            fitted.push(with_residual(solve(e, &st, &mut observe)));
             1
         }
         EffectsChoice::Auto => {
@@ -869,15 +898,14 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
                 if !cur.lr3 {
                     cands.push(Effects { lr3: true, ..cur });
                 }
-                let r_cur = fitted[at].0.residual_rel(&fitted[at].1.theta);
+                let r_cur = fitted[at].2;
                 let mut best: Option<(usize, f64)> = None;
                 for e in cands {
                     let st = grow(&fitted[at], e);
-                    let (pr, s) = solve(e, &st, &mut observe);
-                    let r = pr.residual_rel(&s.theta);
+                    let (pr, s, r) = with_residual(solve(e, &st, &mut observe));
                     let lambda_ok = pr.idx_lambda().is_none_or(|k| s.theta[k] > 0.0);
-                    fitted.push((pr, s));
-                    if s_ok(lambda_ok, r, r_cur) && best.is_none_or(|(_, rb)| r < rb) {
+                    fitted.push((pr, s, r));
+                    if lambda_ok && r < (1.0 - EFFECT_MIN_GAIN) * r_cur && best.is_none_or(|(_, rb)| r < rb) {
                         best = Some((fitted.len() - 1, r));
                     }
                 }
@@ -888,11 +916,8 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
             }
         }
     };
-    fn s_ok(lambda_ok: bool, r: f64, r_cur: f64) -> bool {
-        lambda_ok && r < (1.0 - EFFECT_MIN_GAIN) * r_cur
-    }
-    let tried: Vec<(String, f64)> = fitted.iter().map(|(pr, s)| (pr.effects.model_name(), pr.residual_rel(&s.theta))).collect();
-    let (prob, mut s) = fitted.swap_remove(chosen);
+    let tried: Vec<(String, f64)> = fitted.iter().map(|(pr, _, r)| (pr.effects.model_name(), *r)).collect();
+    let (prob, mut s, _) = fitted.swap_remove(chosen);
     // Name the branches by their corners: LR-2 is the lower one.
     if let Some(k3) = prob.idx_lr3() {
         let q = map.q(&s.theta[..7]);
@@ -905,9 +930,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
             let th = map.theta(&qn);
             s.theta[2] = th[2];
             s.theta[3] = th[3];
-            let (lo, hi) = (map.lo[2], map.hi[2]);
-            let sv = ((ltau2 - lo) / (hi - lo)).clamp(1e-9, 1.0 - 1e-9);
-            s.theta[k3] = (sv / (1.0 - sv)).ln();
+            s.theta[k3] = bounded_theta(ltau2, map.lo[2], map.hi[2], 1e-9);
             s.theta[k3 + 1] = lr2;
         }
     }
@@ -1355,7 +1378,7 @@ mod tests {
         d.l3r3 = Some((0.6 * l2, 2.5 * r2));
         let bl2 = d.bl.c[0].powi(2);
         let p = [d.re, d.le.c[0], l2, r2, bl2 / d.rms, d.mms / bl2, bl2 / d.kms.c[0]];
-        let e = Ext { lambda: Some(0.07), lr3: d.l3r3 };
+        let e = Ext::new(&p, Some(0.07), d.l3r3);
         for f in [2.0, 10.0, 45.0, 100.0, 3000.0, 15000.0] {
             let a = impedance_ext(&p, &e, f).0;
             let b = coilscope_core::small_signal::impedance(&d, f);

@@ -11,8 +11,9 @@
 //! the drive.
 
 use coilscope_core::excitation::named_rng;
-use coilscope_core::integrate::{rk4_sample, substeps_for, Interpolator, HALF_TAPS};
-use coilscope_core::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
+use coilscope_core::integrate::{substeps_for, Interpolator, HALF_TAPS};
+use coilscope_core::model::{idx, State, NSTATE};
+use coilscope_core::simulate::Plant;
 use coilscope_core::params::Parameters;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -64,13 +65,10 @@ pub struct Truth {
 /// The virtual transducer.
 pub struct VirtualDevice {
     params: Parameters,
-    model: Model<f64>,
+    plant: Plant,
     fs: f64,
     interp: Interpolator,
     state: State<f64>,
-    /// The extended model and its state for a driver with creep or LR-3 (see
-    /// [`coilscope_core::simulate::Simulator`]); its first six states mirror `state`.
-    ext: Option<(ExtModel<f64>, ExtState<f64>)>,
     /// Drive history with look-ahead: `hist[0]` is absolute sample `base`.
     hist: Vec<f64>,
     base: usize,
@@ -100,11 +98,10 @@ impl VirtualDevice {
         let n = substeps_for(params.stiffness_rate(), fs);
         Ok(VirtualDevice {
             params: params.clone(),
-            model: Model::new(params),
+            plant: Plant::new(params),
             fs,
             interp: Interpolator::new(n),
             state: [0.0; NSTATE],
-            ext: (params.creep.is_some() || params.l3r3.is_some()).then(|| (ExtModel::new(params), [0.0; NEXT])),
             hist: Vec::new(),
             base: 0,
             pos: 0,
@@ -162,14 +159,7 @@ impl Device for VirtualDevice {
                 self.truth.dtv_max = self.truth.dtv_max.max(s[idx::TV]);
                 let u = self.hist[m];
                 self.interp.fill(&self.hist, m, &mut pf);
-                match &mut self.ext {
-                    None => self.state = rk4_sample(&self.model, &self.state, dt, &pf),
-                    Some((model, es)) => {
-                        es[..NSTATE].copy_from_slice(&self.state);
-                        *es = rk4_sample(model, es, dt, &pf);
-                        self.state.copy_from_slice(&es[..NSTATE]);
-                    }
-                }
+                self.plant.step(&mut self.state, dt, &pf);
                 (u, s[idx::I])
             };
             let eu: f64 = self.rng_u.sample(StandardNormal);
