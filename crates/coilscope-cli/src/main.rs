@@ -177,7 +177,8 @@ enum Command {
         with_mass: Option<PathBuf>,
         /// Effects to fit besides LR-2: `auto` (the data decide: an effect is kept when it
         /// lowers the residual by 5 % or more), `none`, `creep` (LOG creep, lambda), `lr3` (a
-        /// second para-inductance branch L3/R3), or `creep,lr3`.
+        /// second para-inductance branch L3/R3), or `creep,lr3`. (Le(i) and Rms(v) vanish at
+        /// small signal: `identify` fits them.)
         #[arg(long, default_value = "auto")]
         effects: String,
         #[command(flatten)]
@@ -195,7 +196,9 @@ enum Command {
         #[arg(long)]
         order: Option<usize>,
         /// Effects to fit besides LR-2: `auto` (chosen on held-out data: kept when it lowers
-        /// the held-out current error by 5 % or more), `none`, `creep`, `lr3`, `creep,lr3`.
+        /// the held-out current error by 1 % or more), `none`, or a comma-separated list of
+        /// `creep` (LOG creep), `lr3` (second para-inductance branch), `lei` (flux modulation
+        /// Le(i): g(i) = 1 + g1 i + g2 i^2) and `rmsv` (velocity-dependent loss Rms + c2 v^2).
         #[arg(long, default_value = "auto")]
         effects: String,
         #[command(flatten)]
@@ -1134,6 +1137,23 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         let k = if unit == "mH" { 1e3 } else { 1.0 };
         println!("  {name:<4} {:10.4} {:10.4} {:10.4} {unit}  (x_min, 0, x_max)", f.eval(lo) * k, f.eval(0.0) * k, f.eval(hi) * k);
     }
+    let mut model = format!("model {}", m.effects.model_name());
+    if let Some(c) = &p.creep {
+        model += &format!(", creep lambda {:.4}", c.lambda);
+    }
+    if let Some((l3, r3)) = p.l3r3 {
+        model += &format!(", L3 {:.4} mH, R3 {:.4} ohm", l3 * 1e3, r3);
+    }
+    if let Some(g) = &p.le_i {
+        model += &format!(", Le(i) g = {:?}", g.c.iter().map(|c| format!("{c:.3e}")).collect::<Vec<_>>());
+    }
+    if let Some(r) = &p.rms_v {
+        model += &format!(", Rms(v) = {:.4} + {:.4} v^2 kg/s", r.c[0], r.c.get(2).copied().unwrap_or(0.0));
+    }
+    if m.dropped.has_large_signal() {
+        model += &format!(" ({} estimated, within 3 sd of none: not reported)", m.dropped.model_name().trim_start_matches("LR-2+").replace('+', " and "));
+    }
+    println!("  {model}");
     for (t, e) in &m.events {
         println!("  at {t:.1} s: {e}");
     }

@@ -48,8 +48,10 @@ fn linear_finds_creep_and_lr3_in_a_simulated_record_and_writes_them() {
     assert!(e.contains("--effects \"crep\"") && e.contains("valid: none, creep, lr3"), "{e}");
 }
 
+/// `Rms_v` replaces `Rms` in the model, and its value at rest must be `Rms`: a file where the
+/// two disagree is refused with both values named, never simulated with one of them.
 #[test]
-fn a_parameter_file_with_an_effect_coilscope_does_not_model_is_refused_by_simulate() {
+fn a_parameter_file_whose_rms_v_disagrees_with_rms_is_refused_by_simulate() {
     let d = tempfile::tempdir().unwrap();
     let mut v = coilscope_core::embedded_driver("sb17cac35-4").unwrap().to_json_value();
     v["Rms_v"] = serde_json::json!([1.0, 0.0, 0.8]);
@@ -58,5 +60,19 @@ fn a_parameter_file_with_an_effect_coilscope_does_not_model_is_refused_by_simula
     let o = coilscope(&["simulate", drv.to_str().unwrap(), "--volts", "0.1", "--seconds", "1", "--out", d.path().join("r.wav").to_str().unwrap()]);
     let e = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{e}");
-    assert!(e.contains("Rms_v") && e.contains("does not model yet"), "{e}");
+    assert!(e.contains("Rms_v") && e.contains("must equal Rms") && e.contains("0.355"), "{e}");
+}
+
+/// Le(i) and Rms(v) vanish at small signal: `linear` refuses to fit them and says which
+/// command does.
+#[test]
+fn linear_refuses_the_large_signal_effects() {
+    let d = tempfile::tempdir().unwrap();
+    let rec = d.path().join("small.wav");
+    let o = coilscope(&["simulate", "sb17cac35-4", "--volts", "0.1", "--seconds", "2", "--snr-db", "70", "--out", rec.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = coilscope(&["linear", rec.to_str().unwrap(), "--mms", "0.0154", "--effects", "creep,lei", "--out", d.path().join("l.json").to_str().unwrap()]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_ne!(o.status.code(), Some(0), "{e}");
+    assert!(e.contains("Le(i)") && e.contains("large signal") && e.contains("identify"), "{e}");
 }

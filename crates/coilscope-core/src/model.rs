@@ -12,6 +12,12 @@
 //! Ctm dTm/dt = R2 (i - i2)^2 + (Tv - Tm)/Rtv - Tm/Rtm,      Re(T) = Re (1 + alpha T)
 //! ```
 //!
+//! With flux modulation (`Le_i`) the flux is `psi = Le(x) g(i) i`: `Le(x) di/dt` becomes
+//! `Le(x) h(i) di/dt + Le'(x) g(i) i v` and the reluctance force `Le'(x) G(i)`, with
+//! `h = d(i g)/di` and `G = int_0^i s g(s) ds` (both from the one coenergy `Le(x) G(i)`, so the
+//! energy balance closes). With `Rms_v`, `Rms(|v|)` replaces `Rms`. Creep and LR-3, which
+//! need states of their own, are in [`ExtModel`].
+//!
 //! The reluctance force is `+1/2 L'(x) i^2` (the seed paper's Eq. (1) prints the other sign;
 //! its Eq. (3) and the energy balance agree with this one). The model is generic over the
 //! scalar type `D` (f64, or `num_dual` dual numbers for exact Jacobians).
@@ -56,6 +62,11 @@ pub struct Model<D> {
     pub mms: D,
     pub rms: D,
     pub thermal: Option<ThermalModel<D>>,
+    /// Flux modulation (`Le_i`): the factor `g(i)` of the flux `psi = Le(x) g(i) i`
+    /// (`g(0) = 1`); `None`: `g = 1`.
+    pub le_i: Option<Poly<D>>,
+    /// Velocity-dependent loss (`Rms_v`): `Rms(|v|)`, which replaces `rms` in the force.
+    pub rms_v: Option<Poly<D>>,
 }
 
 /// Instantaneous power flows (W) at one state: what the energy balance integrates.
@@ -100,6 +111,44 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
                 rtm: D::from(t.rtm),
                 ctm: D::from(t.ctm),
             }),
+            le_i: p.le_i.as_ref().map(|g| g.lift()),
+            rms_v: p.rms_v.as_ref().map(|r| r.lift()),
+        }
+    }
+
+    /// Flux modulation at current `i`: `(g(i), h(i) = d(i g)/di, G(i) = int_0^i s g(s) ds)`;
+    /// `(1, 1, i^2 / 2)` without `Le_i`. The flux is `Le(x) g i`, the incremental inductance
+    /// `Le(x) h`, the magnetic coenergy `Le(x) G` and the energy `Le(x) (i^2 g - G)`.
+    #[inline]
+    pub fn flux_factors(&self, i: D) -> (D, D, D) {
+        match &self.le_i {
+            None => (D::one(), D::one(), i * i * 0.5),
+            Some(g) => {
+                let (mut gv, mut hv, mut big) = (D::zero(), D::zero(), D::zero());
+                let mut pw = D::one();
+                for (k, &c) in g.c.iter().enumerate() {
+                    let k = k as f64;
+                    gv += c * pw;
+                    hv += c * pw * (k + 1.0);
+                    big += c * pw * i * i / (k + 2.0);
+                    pw *= i;
+                }
+                (gv, hv, big)
+            }
+        }
+    }
+
+    /// The incremental inductance factor `h(i)` (1 without `Le_i`).
+    pub fn le_i_incremental(&self, i: D) -> D {
+        self.flux_factors(i).1
+    }
+
+    /// The mechanical resistance at velocity `v`: `Rms(|v|)`, or `Rms`.
+    #[inline]
+    pub fn rms_at(&self, v: D) -> D {
+        match &self.rms_v {
+            Some(r) => r.eval(v.abs()),
+            None => self.rms,
         }
     }
 
@@ -132,9 +181,15 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
             }
             None => (D::zero(), D::zero(), D::zero(), D::zero()),
         };
-        // d(Le i)/dt = u - Re i - Bl v - u_L2R2  =>  Le di/dt = ... - Le' v i
-        let di = (u - re_t * i - bl * v - u_l2r2 - dle * v * i) / le;
-        let force = bl * i - self.rms * v - kms * x + dle * i * i * 0.5 + f_l2;
+        // d(Le g(i) i)/dt = u - Re i - Bl v - u_L2R2  =>  Le h di/dt = ... - Le' v g i; the
+        // reluctance force Le' G(i) (Le' i^2 / 2 without Le_i); the loss Rms(|v|) v.
+        let (di, f_le, rms) = if self.le_i.is_none() && self.rms_v.is_none() {
+            ((u - re_t * i - bl * v - u_l2r2 - dle * v * i) / le, dle * i * i * 0.5, self.rms)
+        } else {
+            let (g, h, big) = self.flux_factors(i);
+            ((u - re_t * i - bl * v - u_l2r2 - dle * v * i * g) / (le * h), dle * big, self.rms_at(v))
+        };
+        let force = bl * i - rms * v - kms * x + f_le + f_l2;
         let dv = force / self.mms;
         let (dtv, dtm) = match &self.thermal {
             Some(t) => {
@@ -150,7 +205,8 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
     /// magnetic (`1/2 Le i^2 + 1/2 L2 i2^2`). Heat is not included: it leaves as loss.
     pub fn stored_energy(&self, s: &State<D>) -> D {
         let [x, v, i, i2, _, _] = *s;
-        let mut e = self.mms * v * v * 0.5 + self.kms.moment_integral(x) + self.le.eval(x) * i * i * 0.5;
+        let (g, _, big) = self.flux_factors(i);
+        let mut e = self.mms * v * v * 0.5 + self.kms.moment_integral(x) + self.le.eval(x) * (i * i * g - big);
         if let Some((l2, _)) = &self.l2r2 {
             e += l2.eval(x) * i2 * i2 * 0.5;
         }
@@ -164,7 +220,7 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
             Some((_, r2)) => r2.eval(x) * (i - i2) * (i - i2),
             None => D::zero(),
         };
-        Powers { input: u * i, re_loss: self.re_at(tv) * i * i, r2_loss, rms_loss: self.rms * v * v, r3_loss: D::zero(), creep_loss: D::zero() }
+        Powers { input: u * i, re_loss: self.re_at(tv) * i * i, r2_loss, rms_loss: self.rms_at(v) * v * v, r3_loss: D::zero(), creep_loss: D::zero() }
     }
 }
 
@@ -255,10 +311,11 @@ impl<D: DualNum<Primitive = f64> + Copy> ExtModel<D> {
         d[..NSTATE].copy_from_slice(&b);
         let (x, i) = (s[idx::X], s[idx::I]);
         if let Some((l3, r3)) = self.lr3 {
+            // The current equation: Le(x) h(i) di/dt = (what `Model` has) - u3.
             let i3 = s[ext_idx::I3];
             let u3 = r3 * (i - i3);
             d[ext_idx::I3] = u3 / l3;
-            d[idx::I] -= u3 / self.base.le.eval(x);
+            d[idx::I] -= u3 / (self.base.le.eval(x) * self.base.le_i_incremental(i));
             if let Some(t) = &self.base.thermal {
                 d[idx::TM] += u3 * (i - i3) / t.ctm;
             }
@@ -359,7 +416,8 @@ mod tests {
         }
     }
 
-    /// The extended model conserves energy: dE/dt = P_in - every loss, with creep and LR-3.
+    /// The extended model conserves energy: dE/dt = P_in - every loss, with creep, LR-3,
+    /// Le(i) (an asymmetric g(i)) and Rms(v).
     #[test]
     fn the_extended_model_closes_the_energy_balance_instantaneously() {
         for name in crate::params::embedded_driver_names() {
@@ -367,6 +425,8 @@ mod tests {
             let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
             p.creep = Some(crate::params::Creep { lambda: 0.07, f_ref: None });
             p.l3r3 = Some((0.6 * l2, 2.5 * r2));
+            p.le_i = Some(Poly { c: vec![1.0, 0.02, -0.015] });
+            p.rms_v = Some(Poly { c: vec![p.rms, 0.1 * p.rms, 0.8 * p.rms] });
             let m = ExtModel::new(&p);
             let md: ExtModel<Dual64> = ExtModel::lift_from(&p);
             let mut s = [0.0; NEXT];
@@ -384,6 +444,45 @@ mod tests {
             let balance = pw.input - pw.re_loss - pw.r2_loss - pw.rms_loss - pw.r3_loss - pw.creep_loss;
             assert!((de_dt - balance).abs() < 1e-12 * pw.input.abs(), "{name}: {de_dt} vs {balance}");
         }
+    }
+
+    /// Flux modulation against its definition, by slow numerics: the voltage across the voice
+    /// coil is d/dt of the flux `Le(x) g(i) i` (central differences along the flow), and the
+    /// reluctance force is d/dx of the coenergy `int_0^i Le(x) g(s) s ds` (Simpson's rule,
+    /// central difference in x).
+    #[test]
+    fn flux_modulation_follows_from_the_flux_and_the_coenergy() {
+        let mut p = embedded_driver("sb17cac35-4").unwrap();
+        p.thermal = None;
+        let g = Poly { c: vec![1.0, 0.03, -0.02, 0.004] };
+        p.le_i = Some(g.clone());
+        let m = ExtModel::new(&p);
+        let base = Model::new(&Parameters { le_i: None, ..p.clone() });
+        let (x, v, i, i2) = (0.002, 0.7, 2.1, 0.4);
+        let mut s = [0.0; NEXT];
+        s[..4].copy_from_slice(&[x, v, i, i2]);
+        let u = 9.0;
+        let d = m.deriv(&s, u);
+        let psi = |x: f64, i: f64| p.le.eval(x) * g.eval(i) * i;
+        // di/dt is ~1e4 A/s: a step of 1e-9 s keeps the second-order term below 1e-9.
+        let h = 1e-9;
+        let dpsi = (psi(x + v * h, i + d[idx::I] * h) - psi(x - v * h, i - d[idx::I] * h)) / (2.0 * h);
+        let (l2, r2) = p.l2r2.as_ref().unwrap();
+        let coil = u - p.re * i - p.bl.eval(x) * v - r2.eval(x) * (i - i2);
+        assert!((dpsi - coil).abs() < 1e-7 * coil.abs(), "dpsi/dt {dpsi} vs {coil}");
+        let coenergy = |x: f64| {
+            let n = 2000;
+            let f = |s: f64| p.le.eval(x) * g.eval(s) * s;
+            let hh = i / n as f64;
+            (0..=n).map(|k| f(k as f64 * hh) * if k == 0 || k == n { 1.0 } else if k % 2 == 1 { 4.0 } else { 2.0 }).sum::<f64>() * hh / 3.0
+        };
+        let f_rel = (coenergy(x + 1e-6) - coenergy(x - 1e-6)) / 2e-6;
+        let f_rest = p.bl.eval(x) * i - p.rms * v - p.kms.eval(x) * x + 0.5 * l2.eval_d(x).1 * i2 * i2;
+        let want = (f_rest + f_rel) / p.mms;
+        assert!((d[idx::V] - want).abs() < 1e-6 * want.abs(), "dv/dt {} vs {want}", d[idx::V]);
+        // And the rest of the state follows Model's equations.
+        let b = base.deriv(&std::array::from_fn(|k| s[k]), u);
+        assert_eq!(d[idx::I2], b[idx::I2]);
     }
 
     /// Without creep and LR-3 the extended model is the model.

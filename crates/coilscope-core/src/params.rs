@@ -67,6 +67,13 @@ pub struct Parameters {
     /// A second para-inductance branch L3 (H) || R3 (ohm), in series with LR-2, independent
     /// of x (absent: not modelled).
     pub l3r3: Option<(f64, f64)>,
+    /// Flux modulation (`Le_i`): ascending power series in the current (A) of the factor
+    /// `g(i)` in the flux `psi = Le(x) g(i) i`, with `g(0) = 1` (absent: not modelled).
+    pub le_i: Option<Poly>,
+    /// Velocity-dependent mechanical loss (`Rms_v`): ascending power series in `|v|` (m/s)
+    /// of `Rms(|v|)` (kg/s), replacing `Rms` in the model; `Rms_v(0) = Rms` (absent: not
+    /// modelled).
+    pub rms_v: Option<Poly>,
     pub thermal: Option<Thermal>,
     /// Where the x-dependent functions are valid (m).
     pub x_range: Option<[f64; 2]>,
@@ -98,12 +105,8 @@ impl std::error::Error for ParamError {}
 
 const KNOWN_KEYS: &[&str] = &[
     "format", "name", "source", "Re", "Le", "L2", "R2", "Bl", "Kms", "Mms", "Rms", "Sd", "thermal",
-    "x_range", "creep", "L3", "R3",
+    "x_range", "creep", "L3", "R3", "Le_i", "Rms_v",
 ];
-
-/// Extensions of formats.md that no part of coilscope models yet: a set that has them is
-/// refused where they would matter, never silently simplified.
-pub const UNMODELLED_KEYS: &[&str] = &["Le_i", "Rms_v"];
 
 struct Ctx<'a> {
     origin: &'a str,
@@ -284,6 +287,8 @@ impl Parameters {
             (Some(_), None) => return Err(ctx.err("R3", "missing: L3 is given, and the LR-3 branch needs both L3 and R3")),
             (None, Some(_)) => return Err(ctx.err("L3", "missing: R3 is given, and the LR-3 branch needs both L3 and R3")),
         };
+        let le_i = obj.get("Le_i").map(|v| ctx.series("Le_i", v)).transpose()?;
+        let rms_v = obj.get("Rms_v").map(|v| ctx.series("Rms_v", v)).transpose()?;
         let extra: Map<String, Value> =
             obj.iter().filter(|(k, _)| !KNOWN_KEYS.contains(&k.as_str())).map(|(k, v)| (k.clone(), v.clone())).collect();
         let p = Parameters {
@@ -299,6 +304,8 @@ impl Parameters {
             sd,
             creep,
             l3r3,
+            le_i,
+            rms_v,
             thermal,
             x_range,
             extra,
@@ -378,6 +385,20 @@ impl Parameters {
             }
             if !(r3 > 0.0 && r3 < 1e4) {
                 return Err(ctx.err("R3", format!("{r3} ohm must be > 0 (and below 10 kohm)")));
+            }
+        }
+        if let Some(g) = &self.le_i {
+            if (g.c[0] - 1.0).abs() > 1e-9 {
+                return Err(ctx.err("Le_i", format!("the factor g(i) must be 1 at i = 0 (Le(x) is the inductance at rest), but its c0 is {}; divide the series by c0 and fold c0 into Le", g.c[0])));
+            }
+        }
+        if let Some(r) = &self.rms_v {
+            if !(r.c[0] >= 0.0) || (r.c[0] - self.rms).abs() > 1e-6 * self.rms.max(1e-12) {
+                return Err(ctx.err("Rms_v", format!("Rms_v(0) = {} kg/s must equal Rms = {} kg/s (Rms is the value at rest)", r.c[0], self.rms)));
+            }
+            let (mn, _) = r.min_max_on(0.0, 10.0);
+            if !(mn >= 0.0) {
+                return Err(ctx.err("Rms_v", format!("Rms(|v|) must stay >= 0 for |v| up to 10 m/s, but it reaches {mn:.4e} kg/s; check the coefficients (SI: |v| in m/s)")));
             }
         }
         if let Some([lo, hi]) = self.x_range {
@@ -469,6 +490,12 @@ impl Parameters {
             m.insert("L3".into(), l3.into());
             m.insert("R3".into(), r3.into());
         }
+        if let Some(g) = &self.le_i {
+            m.insert("Le_i".into(), Value::Array(g.c.iter().map(|&c| c.into()).collect()));
+        }
+        if let Some(r) = &self.rms_v {
+            m.insert("Rms_v".into(), Value::Array(r.c.iter().map(|&c| c.into()).collect()));
+        }
         if let Some(r) = self.x_range {
             m.insert("x_range".into(), Value::Array(vec![r[0].into(), r[1].into()]));
         }
@@ -490,7 +517,7 @@ impl Parameters {
     /// The same driver without the LR-2 branch and the thermal model: the three-state model
     /// of the seed paper (x, v, i).
     pub fn three_state(&self) -> Parameters {
-        Parameters { l2r2: None, l3r3: None, creep: None, thermal: None, ..self.clone() }
+        Parameters { l2r2: None, l3r3: None, creep: None, le_i: None, rms_v: None, thermal: None, ..self.clone() }
     }
 
     /// The reference frequency of the creep (Hz): `creep.f_ref`, or the resonance.
@@ -498,13 +525,20 @@ impl Parameters {
         self.creep.as_ref().map(|c| c.f_ref.unwrap_or_else(|| (self.kms.c[0] / self.mms).sqrt() / (2.0 * std::f64::consts::PI)))
     }
 
-    /// Effects in this set that no model of coilscope realises yet (the [`UNMODELLED_KEYS`]
-    /// present), by their formats.md keys. The simulator refuses such a set rather than drop
-    /// the effect silently.
-    pub fn time_domain_unsupported(&self) -> Vec<&'static str> {
-        let mut v = Vec::new();
-        v.extend(UNMODELLED_KEYS.iter().copied().filter(|k| self.extra.contains_key(*k)));
-        v
+    /// Whether the set has an effect with states of its own (creep, LR-3), which needs
+    /// [`crate::model::ExtModel`]; without one, [`crate::model::Model`] is the same model,
+    /// faster (it has Le(i) and Rms(v)).
+    pub fn needs_ext_states(&self) -> bool {
+        self.creep.is_some() || self.l3r3.is_some()
+    }
+
+    /// The flux factor's incremental form `h(i) = d(i g(i))/di` (1 without `Le_i`): the
+    /// voice coil's incremental inductance is `Le(x) h(i)`.
+    pub fn le_i_incremental(&self, i: f64) -> f64 {
+        match &self.le_i {
+            Some(g) => g.eval(i) + i * g.eval_d(i).1,
+            None => 1.0,
+        }
     }
 
     /// Electrical time constant of the fast mode, min over the valid range of

@@ -9,8 +9,9 @@ use crate::integrate::{rk4_sample, substeps_for, Interpolator};
 use crate::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
 
 /// The model a simulation integrates, one sample at a time: [`Model`] (six states, the fast
-/// path), or [`ExtModel`] when the set has creep or LR-3 (its extra states kept here; its
-/// first six mirror the caller's state, which stays the one source of x, v, i, ...).
+/// path, with Le(i) and Rms(v)), or [`ExtModel`] when the set has creep or LR-3 (their
+/// states kept here; its first six mirror the caller's state, which stays the one source of
+/// x, v, i, ...).
 #[derive(Clone, Debug)]
 pub struct Plant {
     model: Model<f64>,
@@ -19,7 +20,20 @@ pub struct Plant {
 
 impl Plant {
     pub fn new(params: &Parameters) -> Self {
-        Plant { model: Model::new(params), ext: (params.creep.is_some() || params.l3r3.is_some()).then(|| (ExtModel::new(params), [0.0; NEXT])) }
+        Plant { model: Model::new(params), ext: params.needs_ext_states().then(|| (ExtModel::new(params), [0.0; NEXT])) }
+    }
+
+    /// Why the model is not valid at `state` (`None`: it is). With `Le_i`, the voice coil's
+    /// incremental inductance `Le(x) h(i)` must stay above [`MIN_INCREMENTAL_LE`] of `Le(x)`:
+    /// past that, the series is extrapolated beyond any measured current (and at zero the
+    /// current equation is singular).
+    pub fn invalid_at(&self, state: &State<f64>) -> Option<String> {
+        self.model.le_i.as_ref()?;
+        let i = state[idx::I];
+        let h = self.model.le_i_incremental(i);
+        (!(h >= MIN_INCREMENTAL_LE)).then(|| {
+            format!("Le_i drives the incremental inductance to {:.0} % of Le(x) at i = {i:.3} A (below {:.0} %: the flux series is extrapolated past its valid current)", 100.0 * h, 100.0 * MIN_INCREMENTAL_LE)
+        })
     }
 
     /// Advance `state` by one sample period `dt`, the input at the points of
@@ -37,6 +51,10 @@ impl Plant {
 }
 use crate::params::Parameters;
 use std::fmt;
+
+/// The smallest incremental inductance factor `h(i) = d(i g(i))/di` of `Le_i` a simulation
+/// accepts (see [`Plant::invalid_at`]).
+pub const MIN_INCREMENTAL_LE: f64 = 0.5;
 
 /// How far past `x_range` a trajectory may extrapolate before the simulation stops,
 /// as a fraction of the range's half-width on that side.
@@ -185,13 +203,6 @@ impl Simulator {
         if !(fs.is_finite() && (1000.0..=1.0e6).contains(&fs)) {
             return Err(SimError::Input(format!("sample rate {fs} Hz is not valid (1 kHz .. 1 MHz)")));
         }
-        let missing = params.time_domain_unsupported();
-        if !missing.is_empty() {
-            return Err(SimError::Input(format!(
-                "the parameter set has {}, which coilscope does not model yet; remove the key(s) to simulate without the effect",
-                missing.join(", ")
-            )));
-        }
         let n = opts.substeps.unwrap_or_else(|| substeps_for(params.stiffness_rate(), fs)).max(1);
         let bounds = params.x_range.map(|[lo, hi]| [lo * (1.0 + opts.range_margin), hi * (1.0 + opts.range_margin)]);
         Ok(Simulator {
@@ -216,6 +227,9 @@ impl Simulator {
         let fail = |reason: String| Err(SimError::OutOfRange { t, sample: m, state: *s, reason });
         if s.iter().any(|v| !v.is_finite()) {
             return fail("the state is no longer finite (the integration diverged)".into());
+        }
+        if let Some(why) = self.plant.invalid_at(s) {
+            return fail(why);
         }
         let x = s[idx::X];
         match self.bounds {

@@ -5,6 +5,7 @@ use coilscope_core::excitation::{generate, Excitation, SignalSpec};
 use coilscope_core::integrate::{rk4_sample, Dynamics, Interpolator};
 use coilscope_core::model::{ExtModel, Model, NEXT, NSTATE};
 use coilscope_core::simulate::{rms, simulate, SimOptions};
+use coilscope_core::poly::Poly;
 use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
 use coilscope_core::small_signal::impedance;
 use realfft::num_complex::Complex64;
@@ -179,14 +180,20 @@ fn leaving_the_valid_range_stops_with_time_and_state() {
     assert!(simulate(&p, FS, &bad, &SimOptions::default()).unwrap_err().to_string().contains("sample 0 is not finite"));
 }
 
-/// A bundled driver with the effects of issue 15 that have states of their own: LOG creep
-/// (lambda 0.07) and an LR-3 branch (L3 = 0.6 L2, R3 = 2.5 R2), as in shared/recordings'
-/// `-real-` records.
+/// A bundled driver with every effect of issue 15, as in shared/recordings' `-real-`
+/// records: LOG creep (lambda 0.07), an LR-3 branch (L3 = 0.6 L2, R3 = 2.5 R2), flux
+/// modulation with Le 4 % down (and 1 % asymmetry) at the peak current of a full-excursion
+/// record, and Rms 40 % up at its peak velocity.
 fn with_effects(name: &str) -> Parameters {
     let mut p = embedded_driver(name).unwrap();
+    let tr = simulate(&p, FS, &full_excursion_voltage(&p, 0.5, 0.9), &SimOptions::default()).unwrap();
+    let peak = |s: &[f64]| s.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+    let (i_pk, v_pk) = (peak(&tr.i), peak(&tr.v));
     let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
     p.creep = Some(coilscope_core::params::Creep { lambda: 0.07, f_ref: None });
     p.l3r3 = Some((0.6 * l2, 2.5 * r2));
+    p.le_i = Some(Poly { c: vec![1.0, 0.01 / i_pk, -0.04 / (i_pk * i_pk)] });
+    p.rms_v = Some(Poly { c: vec![p.rms, 0.0, 0.4 * p.rms / (v_pk * v_pk)] });
     p
 }
 
@@ -203,10 +210,10 @@ impl Dynamics<f64, { NEXT + 6 }> for ExtWithEnergy<'_> {
     }
 }
 
-/// Issue 15: with creep and LR-3 the energy still balances over a full-excursion record
+/// Issue 15: with creep, LR-3, Le(i) and Rms(v) the energy still balances over a full-excursion record
 /// (the production integrator and sub-step count).
 #[test]
-fn energy_balances_with_creep_and_lr3() {
+fn energy_balances_with_every_effect() {
     for name in embedded_driver_names() {
         let p = with_effects(name);
         let u = full_excursion_voltage(&p, 0.5, 0.9);
@@ -231,10 +238,11 @@ fn energy_balances_with_creep_and_lr3() {
     }
 }
 
-/// Issue 15: the time-domain model with creep and LR-3 follows the analytic small-signal
-/// impedance (the creep bank's and LR-3's frequency responses in `small_signal::impedance`).
+/// Issue 15: the time-domain model with every effect follows the analytic small-signal
+/// impedance (the creep bank's and LR-3's frequency responses in `small_signal::impedance`;
+/// Le(i) and Rms(v) vanish at small signal).
 #[test]
-fn small_signal_current_with_creep_and_lr3_follows_the_analytic_impedance() {
+fn small_signal_current_with_every_effect_follows_the_analytic_impedance() {
     for name in embedded_driver_names() {
         let p = with_effects(name);
         for f in [20.0, 60.0, 150.0, 1000.0, 8000.0] {
@@ -251,7 +259,7 @@ fn small_signal_current_with_creep_and_lr3_follows_the_analytic_impedance() {
 
 /// Issue 15: the production step count is as accurate with the extra states as without.
 #[test]
-fn simulator_with_creep_and_lr3_matches_tiny_step_reference() {
+fn simulator_with_every_effect_matches_tiny_step_reference() {
     for name in embedded_driver_names() {
         let p = with_effects(name);
         let u = full_excursion_voltage(&p, 0.6, 0.9);
@@ -259,6 +267,9 @@ fn simulator_with_creep_and_lr3_matches_tiny_step_reference() {
         let tiny = simulate(&p, FS, &u, &SimOptions { substeps: Some(128), ..Default::default() }).unwrap();
         let (ei, ex) = (rel_rms(&fast.i, &tiny.i), rel_rms(&fast.x, &tiny.x));
         eprintln!("{name}: {} sub-steps, current {ei:.2e}, displacement {ex:.2e}", fast.substeps);
-        assert!(ei < 1e-5 && ex < 1e-7, "{name}: current {ei:.3e}, displacement {ex:.3e}");
+        // The asymmetric flux factor rectifies: the displacement's error has a DC part
+        // (measured 2.1-3.9e-7 of the RMS excursion, 0.5 nm on SB17; 1/16 per doubling of the
+        // sub-steps, RK4's order); the current's stays that of the plain model.
+        assert!(ei < 1e-5 && ex < 1.5e-6, "{name}: current {ei:.3e}, displacement {ex:.3e}");
     }
 }

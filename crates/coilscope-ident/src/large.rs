@@ -104,8 +104,8 @@ pub struct Layout {
     pub scales: Scales,
     pub has_l2r2: bool,
     pub mms: f64,
-    /// Effects with states of their own (creep, LR-3), fitted with the rest: their unknowns
-    /// follow `Rms` in theta (lambda; then L3, R3). With none the model is [`Model`].
+    /// Effects fitted with the rest: their unknowns follow `Rms` in theta (lambda; L3, R3;
+    /// g1, g2; c2). Without creep and LR-3 the model is [`Model`] (six states).
     pub effects: Effects,
     legendre: Vec<Vec<f64>>,
 }
@@ -125,6 +125,12 @@ pub struct Slots {
     /// LR-3's L3 and R3 (scaled as L2 and R2).
     pub l3: Option<usize>,
     pub r3: Option<usize>,
+    /// Flux modulation: `g1` (1/A) and `g2` (1/A^2) of `g(i) = 1 + g1 i + g2 i^2`, at this
+    /// index and the next.
+    pub le_i: Option<usize>,
+    /// Velocity-dependent loss: `c2` (kg s/m^2) of `Rms(|v|) = Rms + c2 v^2`, in units of
+    /// `Rms` per (m/s)^2.
+    pub rms_v: Option<usize>,
     pub n: usize,
 }
 
@@ -135,6 +141,13 @@ pub struct Slots {
 /// whole range with a statistical sd of 0.0004 %: the truth sat 19-25 sd outside the bands.
 /// The figures the README publishes for identify are 0.005-0.015 %.
 pub const CURVE_SYSTEMATIC_REL: f64 = 1e-4;
+
+/// Least relative drop of the held-out current error for `identify` to keep an effect. On
+/// held-out data an effect that is not in the record does not help: on the plain reference
+/// records each one changed the error by less than 1e-4 of itself. An effect that is there
+/// can show a small gain in the estimate-validate trials (12 LM iterations, not converged):
+/// Le(i) on PTT4 with every other effect in lowered it by 3.2 % and was dropped at 5 %.
+pub const EFFECT_MIN_GAIN_HELD_OUT: f64 = 0.01;
 
 /// Scale of creep's lambda in theta.
 const LAMBDA_SCALE: f64 = 0.1;
@@ -168,7 +181,15 @@ impl Layout {
         } else {
             (None, None)
         };
-        Slots { re, le, l2, r2, bl, kms, rms, lambda, l3, r3, n }
+        let le_i = self.effects.le_i.then(|| {
+            n += 2;
+            n - 2
+        });
+        let rms_v = self.effects.rms_v.then(|| {
+            n += 1;
+            n - 1
+        });
+        Slots { re, le, l2, r2, bl, kms, rms, lambda, l3, r3, le_i, rms_v, n }
     }
 
     /// Power series in x (m) of `scale * sum_j th_j P_j(x / x_ref)`.
@@ -228,6 +249,8 @@ impl Layout {
             mms: D::from(self.mms),
             rms: th[s.rms] * sc.rms,
             thermal: None,
+            le_i: s.le_i.map(|k| Poly { c: vec![D::one(), th[k], th[k + 1]] }),
+            rms_v: s.rms_v.map(|k| Poly { c: vec![th[s.rms] * sc.rms, D::zero(), th[k] * sc.rms] }),
         };
         (model, knots)
     }
@@ -262,6 +285,8 @@ impl Layout {
             sd: None,
             creep: sl.lambda.map(|k| coilscope_core::params::Creep { lambda: th[k] * LAMBDA_SCALE, f_ref: None }),
             l3r3: sl.l3.zip(sl.r3).map(|(a, b)| (th[a] * self.scales.l2, th[b] * self.scales.r2)),
+            le_i: m.le_i,
+            rms_v: m.rms_v,
             thermal: None,
             x_range: None,
             extra: Default::default(),
@@ -311,7 +336,37 @@ impl Layout {
             th[a] = l3 / sc.l2;
             th[b] = r3 / sc.r2;
         }
+        // The large-signal effects start from none (g = 1, Rms constant), or from the set's.
+        if let Some(k) = s.le_i {
+            let c = p.le_i.as_ref().map_or(vec![], |g| g.c.clone());
+            th[k] = c.get(1).copied().unwrap_or(0.0);
+            th[k + 1] = c.get(2).copied().unwrap_or(0.0);
+        }
+        if let Some(k) = s.rms_v {
+            th[k] = p.rms_v.as_ref().and_then(|r| r.c.get(2).copied()).unwrap_or(0.0) / sc.rms;
+        }
         th
+    }
+
+    /// The effects' standard deviations under their formats.md keys (`creep.lambda`, `L3`,
+    /// `R3`; `Le_i` and `Rms_v` one per coefficient, 0 where it is fixed), from the sd of each
+    /// theta entry.
+    pub fn effect_uncertainties(&self, sd_theta: &dyn Fn(usize) -> f64, unc: &mut serde_json::Map<String, serde_json::Value>) {
+        let sl = self.slots();
+        let sc = &self.scales;
+        if let Some(k) = sl.lambda {
+            unc.insert("creep.lambda".into(), (sd_theta(k) * LAMBDA_SCALE).into());
+        }
+        if let (Some(a), Some(b)) = (sl.l3, sl.r3) {
+            unc.insert("L3".into(), (sd_theta(a) * sc.l2).into());
+            unc.insert("R3".into(), (sd_theta(b) * sc.r2).into());
+        }
+        if let Some(k) = sl.le_i {
+            unc.insert("Le_i".into(), serde_json::json!([0.0, sd_theta(k), sd_theta(k + 1)]));
+        }
+        if let Some(k) = sl.rms_v {
+            unc.insert("Rms_v".into(), serde_json::json!([sd_theta(sl.rms) * sc.rms, 0.0, sd_theta(k) * sc.rms]));
+        }
     }
 
     /// `Re` at each knot (ohm).
@@ -411,7 +466,7 @@ fn run_layout<D: DualNum<Primitive = f64> + Copy>(
     x_limit: f64,
     observe: impl FnMut(usize, &[D]),
 ) -> Result<(), usize> {
-    if layout.effects == Effects::NONE {
+    if !layout.effects.needs_ext_states() {
         let (mut model, knots) = layout.model(th);
         run_model(&mut model, &knots, layout.knot_dt, u, fs, interp, len, x_limit, observe)
     } else {
@@ -716,9 +771,14 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
     let (start, linear) = match &opts.init {
         Some(p) => (p.clone(), None),
         None => {
-            // The start needs no more than a few seconds (the fit is O(n) per iteration).
+            // The start needs no more than a few seconds (the fit is O(n) per iteration). The
+            // small-signal effects are chosen as in `linear`: on a large coil with an LR-3
+            // branch the LR-2 fit alone landed on fs = 1.4 kHz and Re 3x too high, and the
+            // start model then hardly moved (issue 15). The order search below starts from
+            // the LR-2 part of that fit; the effects are chosen again on held-out data.
             let m = u.len().min((4.0 * fs) as usize);
-            let lin = fit_linear_record(&u[..m], &i[..m], fs, origin, &LinearOptions::LARGE_SIGNAL_START, |_| {}).map_err(Input)?;
+            let lin_opts = LinearOptions { effects: EffectsChoice::Auto, ..LinearOptions::LARGE_SIGNAL_START };
+            let lin = fit_linear_record(&u[..m], &i[..m], fs, origin, &lin_opts, |_| {}).map_err(Input)?;
             (scale_by_mms(&lin, opts.mms).map_err(Input)?, Some(lin))
         }
     };
@@ -839,9 +899,11 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
         val_at_order = Some(*val);
     }
 
-    // Effects with states of their own (creep, LR-3): the data decide, as for the order.
-    // Forward selection at the chosen order: an effect is kept when it lowers the held-out
-    // current error by EFFECT_MIN_GAIN or more (and creep's lambda comes out positive).
+    // The effects of real drivers (creep, LR-3, Le(i), Rms(v)): the data decide, as for the
+    // order. Forward selection at the chosen order: an effect is kept when it lowers the
+    // held-out current error by EFFECT_MIN_GAIN_HELD_OUT or more (and creep's lambda comes
+    // out positive). Every effect not yet in is tried in every round: a dominant one masks the
+    // others (with all four in the record, only LR-3 lowered the error by 5 % on its own).
     let mut effect_trials: Vec<(String, f64)> = Vec::new();
     let effects = match opts.effects {
         EffectsChoice::Fixed(e) => e,
@@ -853,36 +915,43 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
             effect_trials.push((Effects::NONE.model_name(), base_val));
             let (mut at, mut at_val) = (Effects::NONE, base_val);
             loop {
-                let mut cands = vec![];
-                if !at.creep {
-                    cands.push(Effects { creep: true, ..at });
-                }
-                if !at.lr3 {
-                    cands.push(Effects { lr3: true, ..at });
-                }
+                let singles = [
+                    Effects { creep: true, ..Effects::NONE },
+                    Effects { lr3: true, ..Effects::NONE },
+                    Effects { le_i: true, ..Effects::NONE },
+                    Effects { rms_v: true, ..Effects::NONE },
+                ];
+                let add = |a: Effects, b: Effects| Effects { creep: a.creep || b.creep, lr3: a.lr3 || b.lr3, le_i: a.le_i || b.le_i, rms_v: a.rms_v || b.rms_v };
+                let cands: Vec<(Effects, Effects)> = singles
+                    .iter()
+                    .filter(|&&one| add(at, one) != at)
+                    .map(|&one| (one, add(at, one)))
+                    .collect();
                 let mut best: Option<(Effects, f64, Parameters, Vec<f64>)> = None;
-                for e in cands {
+                for (one, e) in cands {
                     let lay = layout_for(order).with_effects(e);
                     // The eddy-current branches and creep act at small signal too: their start
                     // values come from the linear fit with the same effects on the first
                     // seconds (from L2/R2 of the LR-2 fit, which absorbed the second branch,
-                    // LR-3 fell into a worse minimum).
-                    let m = u.len().min((4.0 * fs) as usize);
+                    // LR-3 fell into a worse minimum). Le(i) and Rms(v) start from none.
                     let mut from = current.clone();
-                    let lin_opts = LinearOptions { effects: EffectsChoice::Fixed(e), ..LinearOptions::LARGE_SIGNAL_START };
-                    if let Ok(lin) = fit_linear_record(&u[..m], &i[..m], fs, origin, &lin_opts, |_| {}) {
-                        if e.lr3 {
-                            from.l2r2 = Some((Poly::constant(lin.p[2]), Poly::constant(lin.p[3])));
-                            from.l3r3 = lin.lr3.map(|(v, _)| (v[0], v[1]));
-                        }
-                        if e.creep && !current.creep.is_some() {
-                            from.creep = lin.creep.filter(|c| c.0 > 0.0).map(|(lambda, _)| coilscope_core::params::Creep { lambda, f_ref: None });
+                    if one.creep || one.lr3 {
+                        let m = u.len().min((4.0 * fs) as usize);
+                        let lin_opts = LinearOptions { effects: EffectsChoice::Fixed(e.small_signal()), ..LinearOptions::LARGE_SIGNAL_START };
+                        if let Ok(lin) = fit_linear_record(&u[..m], &i[..m], fs, origin, &lin_opts, |_| {}) {
+                            if e.lr3 {
+                                from.l2r2 = Some((Poly::constant(lin.p[2]), Poly::constant(lin.p[3])));
+                                from.l3r3 = lin.lr3.map(|(v, _)| (v[0], v[1]));
+                            }
+                            if e.creep && current.creep.is_none() {
+                                from.creep = lin.creep.filter(|c| c.0 > 0.0).map(|(lambda, _)| coilscope_core::params::Creep { lambda, f_ref: None });
+                            }
                         }
                     }
                     let (s, _, th_val, val) = estimate_validate(&lay, &from, re_track.as_deref(), &mut observe);
                     effect_trials.push((e.model_name(), val));
                     let lambda_ok = lay.slots().lambda.is_none_or(|k| s.theta[k] > 0.0);
-                    if lambda_ok && val < (1.0 - crate::linear::EFFECT_MIN_GAIN) * at_val && best.as_ref().is_none_or(|b| val < b.1) {
+                    if lambda_ok && val < (1.0 - EFFECT_MIN_GAIN_HELD_OUT) * at_val && best.as_ref().is_none_or(|b| val < b.1) {
                         best = Some((e, val, Parameters { mms: opts.mms, ..lay.parameters(&th_val) }, lay.re_track(&th_val)));
                     }
                 }
@@ -1044,14 +1113,7 @@ impl LargeFit {
             let b = self.band(which, 41);
             unc.insert(format!("{which}_band"), json!({"x": b.x, "value": b.value, "sd": b.sd}));
         }
-        let sl = self.layout.slots();
-        if let Some(k) = sl.lambda {
-            unc.insert("creep.lambda".into(), (self.sd_theta(k) * LAMBDA_SCALE).into());
-        }
-        if let (Some(a), Some(b)) = (sl.l3, sl.r3) {
-            unc.insert("L3".into(), (self.sd_theta(a) * self.layout.scales.l2).into());
-            unc.insert("R3".into(), (self.sd_theta(b) * self.layout.scales.r2).into());
-        }
+        self.layout.effect_uncertainties(&|k| self.sd_theta(k), &mut unc);
         let alpha = 0.00393;
         let temps = self.temperature_track(alpha);
         json!({

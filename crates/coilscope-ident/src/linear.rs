@@ -165,15 +165,34 @@ pub struct Effects {
     pub creep: bool,
     /// A second para-inductance branch L3 || R3 in series with LR-2: two more unknowns.
     pub lr3: bool,
+    /// Flux modulation `Le_i` (large signal only: `identify`): `g(i) = 1 + g1 i + g2 i^2`.
+    pub le_i: bool,
+    /// Velocity-dependent loss `Rms_v` (large signal only: `identify`):
+    /// `Rms(|v|) = Rms + c2 v^2`.
+    pub rms_v: bool,
 }
 
 impl Effects {
-    pub const NONE: Effects = Effects { creep: false, lr3: false };
-    /// Unknowns the effects add to the seven of the LR-2 model.
+    pub const NONE: Effects = Effects { creep: false, lr3: false, le_i: false, rms_v: false };
+    /// Unknowns the small-signal effects add to the seven of the LR-2 model.
     fn n_extra(self) -> usize {
         self.creep as usize + 2 * self.lr3 as usize
     }
-    /// The names as in `fit.model` (`LR-2`, `LR-2+creep`, `LR-2+LR-3+creep`).
+    /// Whether a large-signal-only effect (Le(i), Rms(v)) is included: no small-signal
+    /// record can show it.
+    pub fn has_large_signal(self) -> bool {
+        self.le_i || self.rms_v
+    }
+    /// Whether an effect with states of its own (creep, LR-3) is in: the time-domain model
+    /// is then [`coilscope_core::model::ExtModel`].
+    pub fn needs_ext_states(self) -> bool {
+        self.creep || self.lr3
+    }
+    /// The effects a small-signal fit can see (creep, LR-3).
+    pub fn small_signal(self) -> Effects {
+        Effects { le_i: false, rms_v: false, ..self }
+    }
+    /// The names as in `fit.model` (`LR-2`, `LR-2+creep`, `LR-2+LR-3+creep+Le(i)+Rms(v)`).
     pub fn model_name(self) -> String {
         let mut s = String::from("LR-2");
         if self.lr3 {
@@ -182,9 +201,16 @@ impl Effects {
         if self.creep {
             s.push_str("+creep");
         }
+        if self.le_i {
+            s.push_str("+Le(i)");
+        }
+        if self.rms_v {
+            s.push_str("+Rms(v)");
+        }
         s
     }
-    /// Parse `none`, `creep`, `lr3`, `creep,lr3` (the CLI's `--effects`).
+    /// Parse `none`, or a comma-separated list of `creep`, `lr3`, `lei`, `rmsv` (the CLI's
+    /// `--effects`).
     pub fn parse(text: &str) -> Result<Effects, String> {
         let mut e = Effects::NONE;
         for part in text.split(',').map(str::trim).filter(|t| !t.is_empty()) {
@@ -192,7 +218,9 @@ impl Effects {
                 "none" => {}
                 "creep" => e.creep = true,
                 "lr3" | "LR-3" => e.lr3 = true,
-                other => return Err(format!("unknown effect {other:?}; valid: none, creep, lr3 (comma-separated), or auto")),
+                "lei" | "Le_i" | "Le(i)" => e.le_i = true,
+                "rmsv" | "Rms_v" | "Rms(v)" => e.rms_v = true,
+                other => return Err(format!("unknown effect {other:?}; valid: none, creep, lr3, lei, rmsv (comma-separated), or auto")),
             }
         }
         Ok(e)
@@ -638,7 +666,20 @@ fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<[f64; 7], S
     }
     let low: Vec<usize> = ok.iter().cloned().filter(|&k| h1.f[k] <= 2000.0_f64.min(hi / 2.0)).collect();
     let re = low.iter().map(|&k| h1.z[k].re).fold(f64::INFINITY, f64::min).max(1e-3);
-    let &kpk = low.iter().max_by(|&&a, &&b| h1.z[a].re.total_cmp(&h1.z[b].re)).ok_or("no usable bins below 2 kHz")?;
+    // The resonance: where the reactance turns from inductive to capacitive (Im Z from + to -,
+    // held for a few bins), the one with the largest real part. The largest real part alone
+    // is not it on a semi-inductive coil at high level: its LR-2 branch lifts Re Z towards
+    // 2 kHz above a resonance that the nonlinearity smears (a 2.9 mH / 6.7 mH coil at 85 %
+    // of its range gave 1.9 kHz for 35 Hz; issue 15).
+    let held = 3;
+    let crossing = (held..low.len().saturating_sub(held))
+        .filter(|&j| (j - held..j).all(|a| h1.z[low[a]].im > 0.0) && (j..j + held).all(|a| h1.z[low[a]].im <= 0.0))
+        .map(|j| low[j])
+        .max_by(|&a, &b| h1.z[a].re.total_cmp(&h1.z[b].re));
+    let kpk = match crossing {
+        Some(k) => k,
+        None => *low.iter().max_by(|&&a, &&b| h1.z[a].re.total_cmp(&h1.z[b].re)).ok_or("no usable bins below 2 kHz")?,
+    };
     let fs0 = h1.f[kpk];
     let res = (h1.z[kpk].re - re).max(0.1 * re);
     // Half-power points of the motional real part: bandwidth fs / Qms.
@@ -655,7 +696,11 @@ fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<[f64; 7], S
     let wh = 2.0 * PI * h1.f[kh];
     let zh = h1.z[kh] - model_impedance(&[0.0, 0.0, 1e-12, 1e-12, res, cmes, lces], h1.f[kh]);
     let le = (zh.im / wh * 0.6).max(1e-7);
-    let r2 = ((zh.re - re) * 2.0).max(0.05 * re);
+    // LR-2's resistance: what the branch adds to the real part at the top of the band (the
+    // median over its top quarter, in log frequency, less the motional part).
+    let f_top = hi * (lo / hi).powf(0.25);
+    let top: Vec<f64> = ok.iter().filter(|&&k| h1.f[k] >= f_top).map(|&k| (h1.z[k] - model_impedance(&[0.0, 0.0, 1e-12, 1e-12, res, cmes, lces], h1.f[k])).re - re).collect();
+    let r2 = if top.is_empty() { (zh.re - re) * 2.0 } else { crate::checks::median(top) }.max(0.05 * re);
     Ok([re, le, le * 2.0, r2, res, cmes, lces])
 }
 
@@ -674,8 +719,8 @@ pub struct LinearOptions {
 }
 
 impl LinearOptions {
-    /// The linear start of a large-signal fit: ends at rest, the LR-2 model alone (the
-    /// time-domain model has no creep or LR-3 yet).
+    /// The linear start of a large-signal fit: ends at rest, the LR-2 model alone (callers
+    /// that want the effects chosen set `effects`).
     pub const LARGE_SIGNAL_START: LinearOptions = LinearOptions { ends: Ends::AssumedAtRest, effects: EffectsChoice::Fixed(Effects::NONE) };
 }
 
@@ -700,6 +745,14 @@ pub enum Ends {
 /// [`fit_linear`] with [`LinearOptions`]: what to assume of the record's [`Ends`], and
 /// which effects to fit.
 pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+    if let EffectsChoice::Fixed(e) = opts.effects {
+        if e.has_large_signal() {
+            return Err(format!(
+                "{origin}: {} act only at large signal (they vanish at small currents and velocities); the linear fit takes none, creep, lr3 or auto, and `identify` fits them",
+                Effects { creep: false, lr3: false, ..e }.model_name().trim_start_matches("LR-2+").replace('+', " and ")
+            ));
+        }
+    }
     check_channels(u, i, fs, origin)?;
     let h1 = h1_impedance(u, i, fs, segment_length(u.len(), fs));
     // Band: from the lowest excited, coherent bin to 0.45 fs (at most 20 kHz).
@@ -823,7 +876,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     let mut starts = vec![q0];
     for frac in [0.25, 0.5, 0.75] {
         let corner = band[0] * (band[1] / band[0]).powf(frac);
-        for r2f in [1.0, 4.0] {
+        for r2f in [0.25, 1.0, 4.0] {
             let mut q = q0;
             q[2] = (1.0 / (2.0 * PI * corner)).ln();
             q[3] += f64::ln(r2f);
@@ -1031,6 +1084,8 @@ pub fn scale_by_mms(fit: &LinearFit, mms: f64) -> Result<Parameters, String> {
         sd: None,
         creep: fit.creep.map(|(lambda, _)| coilscope_core::params::Creep { lambda, f_ref: None }),
         l3r3: fit.lr3.map(|(v, _)| (v[0], v[1])),
+        le_i: None,
+        rms_v: None,
         thermal: None,
         x_range: None,
         extra: Default::default(),
@@ -1333,7 +1388,7 @@ mod tests {
         hi[2] = (1.0 / (2.0 * PI * 3.0)).ln();
         let map = ParamMap { lo, hi };
         for (creep, lr3) in [(false, false), (true, false), (false, true), (true, true)] {
-            let effects = Effects { creep, lr3 };
+            let effects = Effects { creep, lr3, ..Effects::NONE };
             let prob = CurrentError {
                 f: freqs.clone(),
                 u: u.iter().zip(&w).map(|(u, w)| u * w).collect(),

@@ -21,11 +21,61 @@
 //! one `Re`. Nothing here allocates per sample; the history kept is a few seconds.
 
 use crate::large::{seed_duals, Layout, Scales, CHUNK};
+use crate::linear::Effects;
 use coilscope_core::integrate::{rk4_sample, substeps_for, Interpolator, HALF_TAPS};
-use coilscope_core::model::{idx, Model, State, NSTATE};
+use coilscope_core::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
 use coilscope_core::params::Parameters;
 use nalgebra::{DMatrix, DVector};
-use num_dual::{Dual64, DualSVec64};
+use num_dual::{Dual64, DualNum, DualSVec64};
+
+/// The model the estimator runs: [`Model`] (six states, the fast path; Le(i) and Rms(v) are
+/// in it), or [`ExtModel`] when the layout has creep or LR-3. States are always the extended vector (the plain model uses its
+/// first six entries and leaves the rest at zero).
+enum OnlineModel<D> {
+    Plain(Model<D>),
+    Ext(ExtModel<D>),
+}
+
+impl<D: DualNum<Primitive = f64> + Copy> OnlineModel<D> {
+    /// The layout's model for `theta`.
+    fn of(layout: &Layout, th: &[D]) -> Self {
+        if !layout.effects.needs_ext_states() {
+            OnlineModel::Plain(layout.model(th).0)
+        } else {
+            OnlineModel::Ext(layout.ext_model(th).0)
+        }
+    }
+
+    /// The model of a parameter set (with its effects).
+    fn lift_from(p: &Parameters) -> Self {
+        if p.needs_ext_states() {
+            OnlineModel::Ext(ExtModel::lift_from(p))
+        } else {
+            OnlineModel::Plain(Model::lift_from(p))
+        }
+    }
+
+    fn base(&mut self) -> &mut Model<D> {
+        match self {
+            OnlineModel::Plain(m) => m,
+            OnlineModel::Ext(m) => &mut m.base,
+        }
+    }
+
+    /// One sample period `dt`, the input at the interpolator's points.
+    fn step(&self, y: &ExtState<D>, dt: f64, pd: &[D]) -> ExtState<D> {
+        match self {
+            OnlineModel::Plain(m) => {
+                let s: State<D> = std::array::from_fn(|k| y[k]);
+                let n = rk4_sample(m, &s, dt, pd);
+                let mut out = *y;
+                out[..NSTATE].copy_from_slice(&n);
+                out
+            }
+            OnlineModel::Ext(m) => rk4_sample(m, y, dt, pd),
+        }
+    }
+}
 
 /// Largest `|lambda| h` of the fast electrical mode in the Jacobian runs (as in `large`).
 const JACOBIAN_STIFF_LIMIT: f64 = 1.5;
@@ -37,6 +87,9 @@ const RE_STEP_MAX: f64 = 0.01;
 /// tracking block's current error (fast heating).
 const RE_STEP_MAX_HEAT: f64 = 0.05;
 const RE_EXPLAINED: f64 = 0.5;
+/// An effect whose coefficients all lie within this many sd of none is not reported
+/// ([`Online::insignificant_effects`]).
+pub const INSIGNIFICANT_SD: f64 = 3.0;
 /// Samples between stored live states (window starts snap to these).
 const SNAP_EVERY: usize = 256;
 
@@ -61,6 +114,11 @@ pub struct OnlineOptions {
     pub drift: f64,
     /// Seconds of history kept (at least the window plus a margin).
     pub keep: f64,
+    /// Effects estimated with the rest, besides those the start has (its creep and LR-3 are
+    /// always kept): by default flux modulation Le(i) and the velocity-dependent loss Rms(v),
+    /// which start at none, with a loose prior, and move only as far as the data at large
+    /// signal asks.
+    pub effects: Effects,
     /// An update whose window the present estimate misses by more than this (relative current
     /// error) is not made: a Gauss-Newton step that far from the data is wild, and its model
     /// can run away on the next samples. The caller restarts instead (a replay whose level
@@ -70,7 +128,7 @@ pub struct OnlineOptions {
 
 impl Default for OnlineOptions {
     fn default() -> Self {
-        OnlineOptions { order: 4, x_ref: 1e-3, window: 0.5, re_seconds: 0.25, prior_linear: 0.05, prior_nonlinear: 0.5, re_drift: 0.01, drift: 1e-4, keep: 3.0, max_before: f64::INFINITY }
+        OnlineOptions { order: 4, x_ref: 1e-3, window: 0.5, re_seconds: 0.25, prior_linear: 0.05, prior_nonlinear: 0.5, re_drift: 0.01, drift: 1e-4, keep: 3.0, max_before: f64::INFINITY, effects: Effects { le_i: true, rms_v: true, ..Effects::NONE } }
     }
 }
 
@@ -135,9 +193,9 @@ pub struct Online {
     i: Vec<f64>,
     /// Absolute index of the live model's next sample.
     pos: usize,
-    live: State<Dual64>,
-    model: Model<Dual64>,
-    snaps: Vec<(usize, State<f64>)>,
+    live: ExtState<Dual64>,
+    model: OnlineModel<Dual64>,
+    snaps: Vec<(usize, ExtState<f64>)>,
     re_num: f64,
     re_den: f64,
     /// Sum of the squared current error over the tracking block (A^2).
@@ -150,6 +208,10 @@ pub struct Online {
     x_limit: f64,
     /// Largest |x| of the live model so far (m).
     pub reach: f64,
+    /// Largest measured |i| (A) and live-model |v| (m/s) so far: where Le(i) and Rms(v) must
+    /// stay physical.
+    i_reach: f64,
+    v_reach: f64,
     /// The estimate before the last update (the fall-back if the live model runs away).
     previous: Option<(Vec<f64>, DMatrix<f64>)>,
     /// Times the live model ran away and fell back.
@@ -169,15 +231,29 @@ impl Online {
             return Err(OnlineError(format!("power-series order {} is not valid ({} ..= {})", opts.order, crate::large::MIN_ORDER, crate::large::MAX_ORDER)));
         }
         let scales = Scales::of(start);
-        let layout = Layout::new(opts.order, 1, 1.0, opts.x_ref, scales, start.l2r2.is_some(), start.mms);
+        let o = opts.effects;
+        let effects = Effects { creep: start.creep.is_some() || o.creep, lr3: start.l3r3.is_some() || o.lr3, le_i: start.le_i.is_some() || o.le_i, rms_v: start.rms_v.is_some() || o.rms_v };
+        let layout = Layout::new(opts.order, 1, 1.0, opts.x_ref, scales, start.l2r2.is_some(), start.mms).with_effects(effects);
         let theta = layout.theta_from(start, None);
         let s = layout.slots();
         let mut prior = vec![opts.prior_nonlinear.powi(2); s.n];
         for k in [s.re.start, s.le.start, s.bl.start, s.kms.start, s.rms] {
             prior[k] = opts.prior_linear.powi(2);
         }
-        for k in [s.l2, s.r2].into_iter().flatten() {
+        for k in [s.l2, s.r2, s.l3, s.r3].into_iter().flatten() {
             prior[k] = (2.0 * opts.prior_linear).powi(2);
+        }
+        // The effects' priors (theta units): lambda +- 0.05 (theta is lambda / 0.1); g1
+        // +- 0.2 / A and g2 +- 0.2 / A^2 (Le 20 % down at 1 A); c2 +- 1 Rms per (m/s)^2.
+        if let Some(k) = s.lambda {
+            prior[k] = 0.5f64.powi(2);
+        }
+        if let Some(k) = s.le_i {
+            prior[k] = 0.2f64.powi(2);
+            prior[k + 1] = 0.2f64.powi(2);
+        }
+        if let Some(k) = s.rms_v {
+            prior[k] = 1.0;
         }
         // Odd and even Legendre terms at rest: P_j(0) != 0 for even j, so the value at rest
         // keeps its prior only through the constant term's variance (small enough).
@@ -199,9 +275,9 @@ impl Online {
             u: Vec::new(),
             i: Vec::new(),
             pos: 0,
-            live: [Dual64::from(0.0); NSTATE],
-            model: Model::lift_from(start),
-            snaps: vec![(0, [0.0; NSTATE])],
+            live: [Dual64::from(0.0); NEXT],
+            model: OnlineModel::lift_from(start),
+            snaps: vec![(0, [0.0; NEXT])],
             re_num: 0.0,
             re_den: 0.0,
             re_err2: 0.0,
@@ -211,6 +287,8 @@ impl Online {
             settle,
             x_limit: 20.0 * opts.x_ref,
             reach: 0.0,
+            i_reach: 0.0,
+            v_reach: 0.0,
             previous: None,
             resets: 0,
             peak_since: (0.0, 0),
@@ -242,10 +320,16 @@ impl Online {
         std::array::from_fn(|k| self.live[k].re)
     }
 
+    /// The live model's whole state (the effects' states too).
+    fn live_ext(&self) -> ExtState<f64> {
+        std::array::from_fn(|k| self.live[k].re)
+    }
+
     /// The live model of the current theta, on duals that carry d/dRe.
     fn rebuild_live(&mut self) {
-        self.model = Model::lift_from(&self.layout.parameters(&self.theta));
-        self.model.re = Dual64::new(self.re(), 1.0);
+        let th: Vec<Dual64> = self.theta.iter().map(|&t| Dual64::from(t)).collect();
+        self.model = OnlineModel::of(&self.layout, &th);
+        self.model.base().re = Dual64::new(self.re(), 1.0);
     }
 
     /// Append measured samples and advance the live model as far as the interpolator's
@@ -274,7 +358,7 @@ impl Online {
                         self.cov = cov;
                         self.resets += 1;
                         self.rebuild_live();
-                        self.live = [Dual64::from(0.0); NSTATE];
+                        self.live = [Dual64::from(0.0); NEXT];
                         continue;
                     }
                     _ => {
@@ -292,6 +376,8 @@ impl Online {
             st.x_min = st.x_min.min(x);
             st.x_max = st.x_max.max(x);
             self.reach = self.reach.max(x.abs());
+            self.i_reach = self.i_reach.max(self.i[k].abs());
+            self.v_reach = self.v_reach.max(s[idx::V].re.abs());
             if x.abs() > self.peak_since.0 {
                 self.peak_since = (x.abs(), self.pos);
             }
@@ -305,10 +391,10 @@ impl Online {
             for (d, &f) in pd.iter_mut().zip(pf.iter()) {
                 *d = Dual64::from(f);
             }
-            self.live = rk4_sample(&self.model, &self.live, dt, &pd);
+            self.live = self.model.step(&self.live, dt, &pd);
             self.pos += 1;
             if self.pos % SNAP_EVERY == 0 {
-                self.snaps.push((self.pos, self.live_state()));
+                self.snaps.push((self.pos, self.live_ext()));
             }
             if self.re_count >= re_block {
                 self.re_step();
@@ -334,7 +420,7 @@ impl Online {
             if (d / re).abs() < limit {
                 let k = self.layout.slots().re.start;
                 self.theta[k] += d / self.layout.scales.re;
-                self.model.re = Dual64::new(self.re(), 1.0);
+                self.model.base().re = Dual64::new(self.re(), 1.0);
             }
             // Keep the sensitivity running: only the value moved.
         }
@@ -383,10 +469,10 @@ impl Online {
     /// Run the f64 model `theta` from `y0` over history samples `a..b` (absolute). Returns
     /// the current error `i - i_model` after `skip` samples and the end state; `None` if the
     /// model ran away.
-    fn run_window(&self, theta: &[f64], y0: State<f64>, a: usize, b: usize, skip: usize, re_slope: f64) -> Option<(DVector<f64>, State<f64>)> {
-        let (mut model, _) = self.layout.model::<f64>(theta);
+    fn run_window(&self, theta: &[f64], y0: ExtState<f64>, a: usize, b: usize, skip: usize, re_slope: f64) -> Option<(DVector<f64>, ExtState<f64>)> {
+        let mut model = OnlineModel::of(&self.layout, theta);
         // Re drifts along the tracked trend; theta's Re is the value now (the live model's position).
-        let re_end = model.re;
+        let re_end = model.base().re;
         let dt = 1.0 / self.fs;
         let mut pf = vec![0.0; 2 * self.interp.n + 1];
         let mut y = y0;
@@ -400,22 +486,22 @@ impl Online {
                 r[m - a - skip] = self.i[k] - y[idx::I];
             }
             self.interp.fill(&self.u, k, &mut pf);
-            model.re = re_end + re_slope * (m as f64 - self.pos as f64) * dt;
-            y = rk4_sample(&model, &y, dt, &pf);
+            model.base().re = re_end + re_slope * (m as f64 - self.pos as f64) * dt;
+            y = model.step(&y, dt, &pf);
         }
         Some((r, y))
     }
 
     /// Jacobian columns `c0 .. c0 + CHUNK` of the model current over `a..b` from `y0`.
-    fn jacobian_chunk(&self, y0: &State<f64>, a: usize, b: usize, skip: usize, c0: usize, re_slope: f64) -> Vec<Vec<f64>> {
+    fn jacobian_chunk(&self, y0: &ExtState<f64>, a: usize, b: usize, skip: usize, c0: usize, re_slope: f64) -> Vec<Vec<f64>> {
         let (thd, cnt) = seed_duals::<CHUNK>(&self.theta, c0);
-        let (mut model, _) = self.layout.model(&thd);
-        let re_end = model.re;
+        let mut model = OnlineModel::of(&self.layout, &thd);
+        let re_end = model.base().re;
         let dt = 1.0 / self.fs;
         let n = self.interp_jac.n;
         let mut pf = vec![0.0; 2 * n + 1];
         let mut pd = vec![DualSVec64::<CHUNK>::from_re(0.0); 2 * n + 1];
-        let mut y: State<DualSVec64<CHUNK>> = std::array::from_fn(|k| DualSVec64::from_re(y0[k]));
+        let mut y: ExtState<DualSVec64<CHUNK>> = std::array::from_fn(|k| DualSVec64::from_re(y0[k]));
         let mut cols = vec![Vec::with_capacity(b - a - skip); cnt];
         for m in a..b {
             if m >= a + skip {
@@ -428,8 +514,8 @@ impl Online {
             for (d, &f) in pd.iter_mut().zip(pf.iter()) {
                 *d = DualSVec64::from_re(f);
             }
-            model.re = re_end + re_slope * (m as f64 - self.pos as f64) * dt;
-            y = rk4_sample(&model, &y, dt, &pd);
+            model.base().re = re_end + re_slope * (m as f64 - self.pos as f64) * dt;
+            y = model.step(&y, dt, &pd);
         }
         cols
     }
@@ -439,7 +525,13 @@ impl Online {
     fn physical(&self, theta: &[f64]) -> bool {
         let p = self.layout.parameters(theta);
         let r = (1.6 * self.reach).clamp(0.05 * self.layout.x_ref, 1.5 * self.layout.x_ref);
-        (0..=30).map(|k| -r + 2.0 * r * k as f64 / 30.0).all(|x| p.bl.eval(x) > 0.0 && p.kms.eval(x) > 0.0 && p.le.eval(x) > 0.0) && p.rms > 0.0 && p.re > 0.0
+        let curves = (0..=30).map(|k| -r + 2.0 * r * k as f64 / 30.0).all(|x| p.bl.eval(x) > 0.0 && p.kms.eval(x) > 0.0 && p.le.eval(x) > 0.0) && p.rms > 0.0 && p.re > 0.0;
+        // Le(i) keeps the incremental inductance above half of Le(x), and Rms(v) stays >= 0,
+        // over 1.5 times the current and velocity seen.
+        let (ir, vr) = (1.5 * self.i_reach, 1.5 * self.v_reach);
+        let flux = p.le_i.is_none() || (0..=20).all(|k| p.le_i_incremental(-ir + 2.0 * ir * k as f64 / 20.0) >= coilscope_core::simulate::MIN_INCREMENTAL_LE);
+        let loss = p.rms_v.as_ref().is_none_or(|rv| (0..=10).all(|k| rv.eval(vr * k as f64 / 10.0) >= 0.0));
+        curves && flux && loss
     }
 
     /// Seconds of data since the last update.
@@ -567,6 +659,21 @@ impl Online {
         Some(Update { t: self.t(), before, after: (e1 / q.max(1e-300)).sqrt(), step, floor_ratio })
     }
 
+    /// The large-signal effects (Le(i), Rms(v)) of the layout whose every coefficient lies
+    /// within [`INSIGNIFICANT_SD`] sd of none: the data did not show them (a Wald test; the
+    /// estimator carries them from the start with a prior at none, so it cannot select them
+    /// by held-out error as `identify` does).
+    pub fn insignificant_effects(&self) -> Effects {
+        let s = self.layout.slots();
+        let small = |k: usize| self.theta[k].abs() < INSIGNIFICANT_SD * self.sd_theta(k);
+        Effects { le_i: s.le_i.is_some_and(|k| small(k) && small(k + 1)), rms_v: s.rms_v.is_some_and(small), ..Effects::NONE }
+    }
+
+    /// Standard deviation of theta entry `k` (normalised units).
+    pub fn sd_theta(&self, k: usize) -> f64 {
+        self.cov[(k, k)].max(0.0).sqrt()
+    }
+
     /// Standard deviation (same unit as the curve) of `Bl`, `Kms` or `Le` at `x` from the
     /// covariance.
     pub fn curve_sd(&self, which: &str, x: f64) -> f64 {
@@ -590,7 +697,7 @@ pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64
     use nalgebra::{Matrix2, Vector2};
     let n = substeps_for(p.stiffness_rate(), fs);
     let interp = Interpolator::new(n);
-    let mut model: Model<DualSVec64<2>> = Model::lift_from(p);
+    let mut model: OnlineModel<DualSVec64<2>> = OnlineModel::lift_from(p);
     let (mut re, mut slope) = (p.re, 0.0);
     let dt = 1.0 / fs;
     let len = u.len().min(i.len());
@@ -600,7 +707,7 @@ pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64
     for _ in 0..4 {
         let re0 = DualSVec64::<2>::from_re(re).derivative(0);
         let s0 = DualSVec64::<2>::from_re(slope).derivative(1);
-        let mut y: State<DualSVec64<2>> = std::array::from_fn(|_| DualSVec64::from_re(0.0));
+        let mut y: ExtState<DualSVec64<2>> = std::array::from_fn(|_| DualSVec64::from_re(0.0));
         let (mut jtj, mut jtr, mut e2, mut count) = (Matrix2::zeros(), Vector2::zeros(), 0.0, 0usize);
         for k in 0..len.saturating_sub(HALF_TAPS) {
             let ik = y[idx::I].re;
@@ -617,8 +724,8 @@ pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64
             for (d, &f) in pd.iter_mut().zip(pf.iter()) {
                 *d = DualSVec64::from_re(f);
             }
-            model.re = re0 + s0 * (k as f64 * dt);
-            y = rk4_sample(&model, &y, dt, &pd);
+            model.base().re = re0 + s0 * (k as f64 * dt);
+            y = model.step(&y, dt, &pd);
         }
         let cov = jtj.try_inverse()?;
         if count < 3 {

@@ -150,6 +150,8 @@ pub fn equation_error(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, l2
         sd: None,
         creep: None,
         l3r3: None,
+        le_i: None,
+        rms_v: None,
         thermal: None,
         x_range: Some(x_range),
         extra: Default::default(),

@@ -66,7 +66,7 @@ fn check(name: &str, truth: &Parameters, seed: u64, bad: &mut Vec<String>, zs: &
     let (u, i) = record(truth, seed);
     let fit = fit_linear(&u, &i, 48000.0, name, |_| {}).unwrap();
     let got = scale_by_mms(&fit, truth.mms).unwrap();
-    let want = Effects { creep: truth.creep.is_some(), lr3: truth.l3r3.is_some() };
+    let want = Effects { creep: truth.creep.is_some(), lr3: truth.l3r3.is_some(), ..Effects::NONE };
     let label = format!("{name} {} seed {seed}", want.model_name());
     let mut line = format!("{label}: chose {} (tried {}), residual {:.2e}", fit.effects.model_name(), fit.tried.iter().map(|(m, r)| format!("{m} {r:.2e}")).collect::<Vec<_>>().join(", "), fit.residual_rel);
     if fit.effects != want {
@@ -114,18 +114,36 @@ fn check(name: &str, truth: &Parameters, seed: u64, bad: &mut Vec<String>, zs: &
 }
 
 fn sweep(names: &[&str], seeds: std::ops::Range<u64>) {
-    let mut bad = vec![];
-    let mut zs = vec![];
-    let mut n = 0;
-    for (d, &name) in names.iter().enumerate() {
-        let p = driver(name);
-        for seed in seeds.clone().map(|s| s + 10 * d as u64) {
-            let mut rng = named_rng(seed, "issue15/lambda");
-            for (lambda, lr3) in [(None, false), (Some(0.02), false), (Some(0.05), false), (Some(0.1), false), (None, true), (Some(0.02 + 0.08 * rng.random::<f64>()), true)] {
-                println!("{}", check(name, &with(&p, lambda, lr3), seed, &mut bad, &mut zs));
-                n += 1;
-            }
+    // One thread per driver (the records are independent); the lines print in order.
+    let per_driver: Vec<(Vec<String>, Vec<String>, Vec<f64>)> = std::thread::scope(|sc| {
+        let handles: Vec<_> = names
+            .iter()
+            .enumerate()
+            .map(|(d, &name)| {
+                let seeds = seeds.clone();
+                sc.spawn(move || {
+                    let (mut lines, mut bad, mut zs) = (vec![], vec![], vec![]);
+                    let p = driver(name);
+                    for seed in seeds.map(|s| s + 10 * d as u64) {
+                        let mut rng = named_rng(seed, "issue15/lambda");
+                        for (lambda, lr3) in [(None, false), (Some(0.02), false), (Some(0.05), false), (Some(0.1), false), (None, true), (Some(0.02 + 0.08 * rng.random::<f64>()), true)] {
+                            lines.push(check(name, &with(&p, lambda, lr3), seed, &mut bad, &mut zs));
+                        }
+                    }
+                    (lines, bad, zs)
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    let (mut bad, mut zs, mut n) = (vec![], vec![], 0);
+    for (lines, b, z) in per_driver {
+        for l in &lines {
+            println!("{l}");
         }
+        n += lines.len();
+        bad.extend(b);
+        zs.extend(z);
     }
     println!("{} of {n} records within the figures", n - bad.len());
     let share = |k: f64| zs.iter().filter(|&&z| z <= k).count() as f64 / zs.len() as f64;
@@ -157,7 +175,7 @@ fn creep_and_lr3_over_drivers_and_seeds() {
 fn forced_creep_on_a_record_without_it_finds_none() {
     let p = driver("ptt4.0w04-01a");
     let (u, i) = record(&p, 5);
-    let opts = LinearOptions { effects: EffectsChoice::Fixed(Effects { creep: true, lr3: false }), ..Default::default() };
+    let opts = LinearOptions { effects: EffectsChoice::Fixed(Effects { creep: true, ..Effects::NONE }), ..Default::default() };
     let fit = fit_linear_record(&u, &i, 48000.0, "ptt4", &opts, |_| {}).unwrap();
     let (lambda, sd) = fit.creep.unwrap();
     println!("lambda {lambda:.5} +- {sd:.5}");
@@ -181,7 +199,7 @@ fn time_domain_records_give_the_same_answer() {
         add_sensor_noise(&mut u, 70.0, 3, "sensor-noise/voltage");
         add_sensor_noise(&mut i, 70.0, 3, "sensor-noise/current");
         let fit = fit_linear(&u, &i, 48000.0, name, |_| {}).unwrap();
-        let want = Effects { creep: lambda.is_some(), lr3 };
+        let want = Effects { creep: lambda.is_some(), lr3, ..Effects::NONE };
         let got = scale_by_mms(&fit, truth.mms).unwrap();
         println!(
             "{name} {}: chose {}, residual {:.2e}, lambda {:?}, Re {:+.3} %, Bl {:+.3} %, Kms {:+.3} %",

@@ -7,6 +7,9 @@
 //! warning. And the plain large records of
 //! the three drivers keep the LR-2 model (no effect found where there is none).
 //!
+//! And `-real-leirv` (flux modulation and velocity-dependent loss): both chosen, their
+//! coefficients within 20 % and 3 sd.
+//!
 //! Release-profile (each identify with the effects' trials takes 20-40 s):
 //! `cargo test --release -p coilscope-ident --test issue15_real_drivers -- --ignored`.
 
@@ -63,7 +66,7 @@ fn check(file: &str, fit: &LargeFit, i: &[f64], truth: &Parameters, want: Effect
 fn identify_finds_creep_in_the_independent_real_creep_record() {
     let truth = embedded_driver("sb17cac35-4").unwrap();
     let (fit, i) = run("sb17cac35-4-real-creep.wav", &truth);
-    let mut bad = check("sb17cac35-4-real-creep.wav", &fit, &i, &truth, Effects { creep: true, lr3: false });
+    let mut bad = check("sb17cac35-4-real-creep.wav", &fit, &i, &truth, Effects { creep: true, ..Effects::NONE });
     let lambda = fit.params.creep.as_ref().map_or(0.0, |c| c.lambda);
     if (lambda / 0.07 - 1.0).abs() > 0.2 {
         bad.push(format!("lambda {lambda} vs 0.07"));
@@ -77,11 +80,45 @@ fn identify_finds_creep_in_the_independent_real_creep_record() {
 fn identify_finds_lr3_in_the_independent_real_lr3_record() {
     let truth = embedded_driver("sb17cac35-4").unwrap();
     let (fit, i) = run("sb17cac35-4-real-lr3.wav", &truth);
-    let mut bad = check("sb17cac35-4-real-lr3.wav", &fit, &i, &truth, Effects { creep: false, lr3: true });
+    let mut bad = check("sb17cac35-4-real-lr3.wav", &fit, &i, &truth, Effects { lr3: true, ..Effects::NONE });
     let (l2, r2) = truth.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
     let (l3, r3) = fit.params.l3r3.unwrap_or((0.0, 0.0));
     if (l3 / (0.6 * l2) - 1.0).abs() > 0.05 || (r3 / (2.5 * r2) - 1.0).abs() > 0.05 {
         bad.push(format!("L3 {l3} vs {}, R3 {r3} vs {}", 0.6 * l2, 2.5 * r2));
+    }
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+}
+
+/// Flux modulation and velocity-dependent loss (`-real-leirv`: `Le_i` = [1, 0, -0.015],
+/// `Rms_v` = Rms (1 + 0.8 v^2)): both chosen, g2 and c2 within 20 % and within 3 sd, g1
+/// (zero in the truth) within 3 sd of zero, Rms within 5 %.
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+#[ignore = "release-profile sweep: cargo test --release -p coilscope-ident --test issue15_real_drivers -- --ignored"]
+fn identify_finds_le_i_and_rms_v_in_the_independent_real_leirv_record() {
+    let file = "sb17cac35-4-real-leirv.wav";
+    let truth = embedded_driver("sb17cac35-4").unwrap();
+    let (fit, i) = run(file, &truth);
+    let mut bad = check(file, &fit, &i, &truth, Effects { le_i: true, rms_v: true, ..Effects::NONE });
+    let unc = &fit.result_json(file, "given")["uncertainty"];
+    let sd = |k: &str, j: usize| unc[k][j].as_f64().unwrap_or(f64::NAN);
+    let g = fit.params.le_i.as_ref().map_or(vec![1.0, 0.0, 0.0], |g| g.c.clone());
+    let c2 = fit.params.rms_v.as_ref().map_or(0.0, |r| r.c[2]);
+    let (g2_true, c2_true) = (-0.015, 0.284);
+    println!(
+        "{file}: g1 {:.3e} +- {:.1e}, g2 {:.5e} +- {:.1e} (true {g2_true}), Rms {:.5} (true {}), c2 {c2:.5} +- {:.1e} (true {c2_true})",
+        g[1], sd("Le_i", 1), g[2], sd("Le_i", 2), fit.params.rms, truth.rms, sd("Rms_v", 2)
+    );
+    for (name, got, want, s) in [("g2", g[2], g2_true, sd("Le_i", 2)), ("c2", c2, c2_true, sd("Rms_v", 2))] {
+        if (got / want - 1.0).abs() > 0.2 || (got - want).abs() > 3.0 * s {
+            bad.push(format!("{name} {got:.5} +- {s:.5} vs {want}"));
+        }
+    }
+    if g[1].abs() > 3.0 * sd("Le_i", 1) {
+        bad.push(format!("g1 {:.5} +- {:.5} vs 0", g[1], sd("Le_i", 1)));
+    }
+    if (fit.params.rms / truth.rms - 1.0).abs() > 0.05 {
+        bad.push(format!("Rms {} vs {}", fit.params.rms, truth.rms));
     }
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }

@@ -91,10 +91,6 @@ impl VirtualDevice {
         if !(noise.0 >= 0.0 && noise.1 >= 0.0) {
             return Err(format!("sensor noise ({} V, {} A) is not valid (>= 0)", noise.0, noise.1));
         }
-        let missing = params.time_domain_unsupported();
-        if !missing.is_empty() {
-            return Err(format!("the driver has {}, which coilscope does not model yet; remove the key(s) to measure it without the effect", missing.join(", ")));
-        }
         let n = substeps_for(params.stiffness_rate(), fs);
         Ok(VirtualDevice {
             params: params.clone(),
@@ -151,6 +147,9 @@ impl Device for VirtualDevice {
                             100.0 * BREAK_MARGIN
                         ));
                     }
+                }
+                if let Some(why) = self.plant.invalid_at(&s) {
+                    return Err(format!("the virtual driver left its model at t = {:.3} s: {why} (the protection failed)", (self.pos - HALF_TAPS) as f64 / self.fs));
                 }
                 self.truth.x_peak = self.truth.x_peak.max(x.abs());
                 self.truth.x_min = self.truth.x_min.min(x);

@@ -41,9 +41,10 @@ use coilscope_core::poly::Poly;
 use coilscope_ident::linear::{fit_linear_record, scale_by_mms, Effects, EffectsChoice, Ends, LinearOptions};
 
 /// The small stage's linear fit: ends free (a replay's first seconds are cut from the running
-/// record; a controlled stage fades out with the cone still moving a little), the LR-2 model
-/// alone (the online estimator has no creep or LR-3 yet).
-const SMALL_STAGE_FIT: LinearOptions = LinearOptions { ends: Ends::Fitted, effects: EffectsChoice::Fixed(Effects::NONE) };
+/// record; a controlled stage fades out with the cone still moving a little), creep and LR-3
+/// chosen by the data as in `linear`; the online estimator keeps what it chose, and adds
+/// Le(i) and Rms(v) (see [`OnlineOptions::effects`]).
+const SMALL_STAGE_FIT: LinearOptions = LinearOptions { ends: Ends::Fitted, effects: EffectsChoice::Auto };
 use coilscope_ident::online::{Online, OnlineOptions};
 
 /// Seconds of peak-excursion memory of the controller.
@@ -380,6 +381,10 @@ pub struct Measurement {
     pub excitation: String,
     pub device: String,
     pub mms_source: String,
+    /// The model reported (`fit.model`): the estimator's, less the large-signal effects the
+    /// data did not show ([`Online::insignificant_effects`], named in `dropped`).
+    pub effects: Effects,
+    pub dropped: Effects,
 }
 
 /// Seconds at the end of the small-signal stage in which the drive fades out (raised cosine)
@@ -1099,6 +1104,14 @@ impl<'a> Engine<'a> {
         // estimate. The hot value at the end lives under `thermal` (`Measurement::re_end`).
         let mut params = on.parameters();
         let re_end = params.re;
+        let dropped = on.insignificant_effects();
+        if dropped.le_i {
+            params.le_i = None;
+        }
+        if dropped.rms_v {
+            params.rms_v = None;
+        }
+        let effects = Effects { le_i: on.layout.effects.le_i && !dropped.le_i, rms_v: on.layout.effects.rms_v && !dropped.rms_v, ..on.layout.effects };
         let hold_range = if self.hold_range == [0.0, 0.0] { [-on.reach, on.reach] } else { self.hold_range };
         params.x_range = Some(hold_range);
         let small = self.small.expect("set with the estimator");
@@ -1139,6 +1152,8 @@ impl<'a> Engine<'a> {
             device: self.device.describe(),
             mms_source: String::new(),
             online: on,
+            effects,
+            dropped,
         })
     }
 }
@@ -1193,6 +1208,12 @@ impl Measurement {
         }
         // Re is the cold value: its sd is the small-signal fit's.
         unc.insert("Re".into(), self.re_cold_sd.into());
+        self.online.layout.effect_uncertainties(&|k| self.online.sd_theta(k), &mut unc);
+        for (key, gone) in [("Le_i", self.dropped.le_i), ("Rms_v", self.dropped.rms_v)] {
+            if gone {
+                unc.remove(key);
+            }
+        }
         json!({
             "format": "coilscope.result/1",
             "kind": "large-signal",
@@ -1206,6 +1227,12 @@ impl Measurement {
                 "trustworthy": self.converged && self.warnings().is_empty(),
                 "x_range": self.x_range,
                 "order": self.online.layout.order,
+                "model": self.effects.model_name(),
+                "models_note": if self.dropped.has_large_signal() {
+                    format!("estimated with {} as well; within {} sd of none, not reported", self.dropped.model_name().trim_start_matches("LR-2+").replace('+', " and "), coilscope_ident::online::INSIGNIFICANT_SD)
+                } else {
+                    "every effect estimated is reported".to_string()
+                },
                 "converged": self.converged,
                 "stop_reason": self.stop_reason.describe(),
                 "updates": self.updates,
