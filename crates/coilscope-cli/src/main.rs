@@ -32,6 +32,24 @@ struct Cli {
     command: Command,
 }
 
+/// The virtual driver's world (`--world`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum World {
+    /// The parameter set as given.
+    Published,
+    /// Plus typical LOG creep where the set has none ([`Parameters::with_typical_creep`]).
+    Real,
+}
+
+impl World {
+    fn apply(self, p: Parameters) -> Parameters {
+        match self {
+            World::Published => p,
+            World::Real => p.with_typical_creep(),
+        }
+    }
+}
+
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum ExcitationKind {
     /// IEC 60268-1 simulated programme signal (pink noise, band-limited, crest factor 2).
@@ -161,6 +179,10 @@ enum Command {
         /// Scale factors of an integer-PCM --input (V per count).
         #[arg(long)]
         scale: Option<f64>,
+        /// The driver's world: `published` is the set as given; `real` adds LOG creep (lambda
+        /// 0.05, an assumption) to a set without it, as `measure --virtual` does by default.
+        #[arg(long, value_enum, default_value = "published")]
+        world: World,
     },
     /// Small-signal (Thiele/Small) parameters from the impedance of a recording.
     Linear {
@@ -214,6 +236,10 @@ enum Command {
         /// Virtual transducer: embedded driver name or parameter file (the default device).
         #[arg(long = "virtual", value_name = "DRIVER", conflicts_with_all = ["replay", "card"])]
         virtual_driver: Option<String>,
+        /// The virtual driver's world: `real` adds LOG creep (lambda 0.05, an assumption) to a
+        /// set without it, as real suspensions creep; `published` is the set as given.
+        #[arg(long, value_enum, default_value = "real")]
+        world: World,
         #[command(flatten)]
         card: CardArgs,
         /// Replay a recording (WAV: voltage, current, and optionally displacement) instead of driving a device; its displacement channel (a laser) gives the absolute scale when --mms is not given.
@@ -419,15 +445,15 @@ impl From<&str> for Failure {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result: Result<(), Failure> = match cli.command {
-        Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale } => {
-            cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale }).map_err(Failure::from)
+        Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world } => {
+            cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world }).map_err(Failure::from)
         }
         Command::Linear { recording, mms, added_mass, with_mass, effects, fit } => {
             cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), &effects, fit.sd, fit.scale.as_deref(), &fit.out)
         }
         Command::Identify { recording, mms, order, effects, fit } => cmd_identify(&recording, mms, order, &effects, fit.sd, fit.scale.as_deref(), &fit.out),
-        Command::Measure { no_report, virtual_driver, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
-            cmd_measure(MeasureArgs { no_report, virtual_driver, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
+        Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
+            cmd_measure(MeasureArgs { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
         }
         Command::Devices => cmd_devices().map_err(Failure::from),
         Command::Runs { database } => cmd_runs(&database).map_err(Failure::from),
@@ -457,6 +483,7 @@ fn main() -> ExitCode {
 }
 
 struct SimulateArgs {
+    world: World,
     driver: String,
     excitation: ExcitationKind,
     volts: Option<f64>,
@@ -482,7 +509,7 @@ fn info_path(out: &Path) -> PathBuf {
 }
 
 fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
-    let params = load_parameters(&a.driver).map_err(|e| e.to_string())?;
+    let params = a.world.apply(load_parameters(&a.driver).map_err(|e| e.to_string())?);
     if let Some(db) = a.snr_db {
         if !(db.is_finite() && db > 0.0) {
             return Err(format!("--snr-db {db}: give a positive number of dB (e.g. 70)"));
@@ -989,6 +1016,7 @@ fn cmd_devices() -> Result<(), String> {
 struct MeasureArgs {
     no_report: bool,
     virtual_driver: Option<String>,
+    world: World,
     card: CardArgs,
     replay: Option<PathBuf>,
     out: PathBuf,
@@ -1015,7 +1043,11 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     use std::io::IsTerminal;
     let (mut device, mms, mms_source): (Box<dyn Device>, f64, String) = match (&a.virtual_driver, &a.replay) {
         (Some(d), None) => {
-            let p = load_parameters(d).map_err(|e| e.to_string())?;
+            let given = load_parameters(d).map_err(|e| e.to_string())?;
+            let p = a.world.apply(given.clone());
+            if p != given {
+                println!("virtual world: real (LOG creep lambda {} assumed, as real suspensions creep; --world published for the set as given)", coilscope_core::params::TYPICAL_CREEP_LAMBDA);
+            }
             let dev = VirtualDevice::new(&p, a.rate as f64, (a.noise[0], a.noise[1]), a.seed)?;
             let (mms, src) = match a.mms {
                 Some(m) => (m, "given (--mms)".to_string()),

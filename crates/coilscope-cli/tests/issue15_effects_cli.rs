@@ -76,3 +76,28 @@ fn linear_refuses_the_large_signal_effects() {
     assert_ne!(o.status.code(), Some(0), "{e}");
     assert!(e.contains("Le(i)") && e.contains("large signal") && e.contains("identify"), "{e}");
 }
+
+/// The README's main command measures a bundled driver in the real world by default: LOG
+/// creep (lambda 0.05, an assumption) added to the published set, found again by the
+/// measurement and reported; `--world published` measures the set as given.
+#[test]
+fn measure_virtual_assumes_a_creeping_suspension_and_finds_it() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("run");
+    let o = coilscope(&["measure", "--virtual", "ptt4.0w04-01a", "--no-report", "--out", out.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{text}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(text.contains("virtual world: real (LOG creep lambda 0.05 assumed"), "{text}");
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
+    assert_eq!(r["fit"]["model"], "LR-2+creep", "{}", r["fit"]);
+    let lambda = r["parameters"]["creep"]["lambda"].as_f64().unwrap();
+    let sd = r["uncertainty"]["creep.lambda"].as_f64().unwrap();
+    assert!((lambda / 0.05 - 1.0).abs() < 0.2 && (lambda - 0.05).abs() < 3.0 * sd.max(1e-4), "lambda {lambda} +- {sd}");
+    // The set as given: no creep in the world, none in the result.
+    let out2 = d.path().join("run2");
+    let o = coilscope(&["measure", "--virtual", "ptt4.0w04-01a", "--world", "published", "--no-report", "--out", out2.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success() && !text.contains("virtual world"), "{text}");
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out2.join("result.json")).unwrap()).unwrap();
+    assert_eq!(r["fit"]["model"], "LR-2", "{}", r["fit"]);
+}

@@ -103,6 +103,11 @@ impl fmt::Display for ParamError {
 
 impl std::error::Error for ParamError {}
 
+/// LOG creep factor assumed for a real driver whose creep was not published (the middle of
+/// the 0.03-0.08 Klippel LPM reports for woofer suspensions); see
+/// [`Parameters::with_typical_creep`].
+pub const TYPICAL_CREEP_LAMBDA: f64 = 0.05;
+
 const KNOWN_KEYS: &[&str] = &[
     "format", "name", "source", "Re", "Le", "L2", "R2", "Bl", "Kms", "Mms", "Rms", "Sd", "thermal",
     "x_range", "creep", "L3", "R3", "Le_i", "Rms_v",
@@ -518,6 +523,19 @@ impl Parameters {
     /// of the seed paper (x, v, i).
     pub fn three_state(&self) -> Parameters {
         Parameters { l2r2: None, l3r3: None, creep: None, le_i: None, rms_v: None, thermal: None, ..self.clone() }
+    }
+
+    /// The set in the world of a real driver, as far as the published data leave it open:
+    /// LOG creep with [`TYPICAL_CREEP_LAMBDA`] where the set has none (an assumption: the
+    /// bundled drivers' reviews published no creep factor, and Klippel LPM reports 0.03-0.08
+    /// for woofer suspensions). LR-3, Le(i) and Rms(v) are added only where published: none
+    /// of the bundled drivers has them.
+    pub fn with_typical_creep(&self) -> Parameters {
+        let mut p = self.clone();
+        if p.creep.is_none() {
+            p.creep = Some(Creep { lambda: TYPICAL_CREEP_LAMBDA, f_ref: None });
+        }
+        p
     }
 
     /// The reference frequency of the creep (Hz): `creep.f_ref`, or the resonance.
