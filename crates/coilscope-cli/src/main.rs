@@ -1183,7 +1183,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         model += &format!(", Rms(v) = {:.4} + {:.4} v^2 kg/s", r.c[0], r.c.get(2).copied().unwrap_or(0.0));
     }
     if m.dropped.has_large_signal() {
-        model += &format!(" ({} estimated, within 3 sd of none: not reported)", m.dropped.model_name().trim_start_matches("LR-2+").replace('+', " and "));
+        model += &format!(" ({} estimated, within 3 sd of none: not reported)", m.dropped.in_words());
     }
     println!("  {model}");
     for (t, e) in &m.events {

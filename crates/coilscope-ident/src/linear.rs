@@ -209,6 +209,10 @@ impl Effects {
         }
         s
     }
+    /// The effects in words, without the LR-2 base (`Le(i) and Rms(v)`; empty for none).
+    pub fn in_words(self) -> String {
+        self.model_name().trim_start_matches("LR-2").trim_start_matches('+').replace('+', " and ")
+    }
     /// Parse `none`, or a comma-separated list of `creep`, `lr3`, `lei`, `rmsv` (the CLI's
     /// `--effects`).
     pub fn parse(text: &str) -> Result<Effects, String> {
@@ -749,7 +753,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
         if e.has_large_signal() {
             return Err(format!(
                 "{origin}: {} act only at large signal (they vanish at small currents and velocities); the linear fit takes none, creep, lr3 or auto, and `identify` fits them",
-                Effects { creep: false, lr3: false, ..e }.model_name().trim_start_matches("LR-2+").replace('+', " and ")
+                Effects { creep: false, lr3: false, ..e }.in_words()
             ));
         }
     }

@@ -136,3 +136,42 @@ fn plain_large_records_keep_the_lr2_model() {
     }
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
+
+/// Honest uncertainty under model error: with the LR-2 model forced on the creep and LR-3
+/// records (residual 13-20x the noise floor), the fit is several percent off, the
+/// residual-above-noise warning names it, and the bands of Bl and Kms and the sd of Re still
+/// hold the truth within 3 sd (the sandwich covariance widened by the residual's excess;
+/// measured 0.6-1.4 sd, against 30-300 sd with the classical covariance).
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+#[ignore = "release-profile sweep: cargo test --release -p coilscope-ident --test issue15_real_drivers -- --ignored"]
+fn a_forced_model_without_the_effect_widens_its_bands_to_the_error() {
+    use coilscope_ident::linear::EffectsChoice;
+    let truth = embedded_driver("sb17cac35-4").unwrap();
+    let mut bad = vec![];
+    for file in ["sb17cac35-4-real-creep.wav", "sb17cac35-4-real-lr3.wav"] {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings");
+        let rec = coilscope_io::read_recording(&dir.join(file), None).unwrap();
+        let fit = identify(&rec.u, &rec.i, rec.fs as f64, file, &IdentifyOptions { mms: truth.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() }, |_| {}).unwrap();
+        let e = Errors::of(&fit.params, &truth, fit.x_range);
+        let r: Vec<f64> = rec.i[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect();
+        let (_, warnings) = coilscope_ident::checks::residual_warnings(&r, fit.fs, "large-signal fit", coilscope_core::simulate::rms(&rec.i), 0.0);
+        let mut z: f64 = 0.0;
+        for (name, f) in [("Bl", &truth.bl), ("Kms", &truth.kms)] {
+            let b = fit.band(name, 41);
+            z = z.max((0..b.x.len()).map(|k| (b.value[k] - f.eval(b.x[k])).abs() / b.sd[k]).fold(0.0, f64::max));
+        }
+        let z_re = (fit.params.re - truth.re).abs() / fit.sd()[0].1;
+        println!("{file}, LR-2 forced: {e}, residual {:.2e}, truth within {z:.2} sd (Bl, Kms), Re {z_re:.2} sd, warnings {:?}", fit.residual_rel, warnings.iter().map(|w| w.code).collect::<Vec<_>>());
+        if !(e.bl > 0.005 || e.kms > 0.005) {
+            bad.push(format!("{file}: the forced model is not off ({e}): the test lost its point"));
+        }
+        if z > 3.0 || z_re > 3.0 {
+            bad.push(format!("{file}: the truth lies {z:.1} sd (Bl, Kms) and {z_re:.1} sd (Re) outside"));
+        }
+        if !warnings.iter().any(|w| w.code == "residual-above-noise") {
+            bad.push(format!("{file}: no residual-above-noise warning"));
+        }
+    }
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+}

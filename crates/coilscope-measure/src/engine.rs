@@ -1229,7 +1229,7 @@ impl Measurement {
                 "order": self.online.layout.order,
                 "model": self.effects.model_name(),
                 "models_note": if self.dropped.has_large_signal() {
-                    format!("estimated with {} as well; within {} sd of none, not reported", self.dropped.model_name().trim_start_matches("LR-2+").replace('+', " and "), coilscope_ident::online::INSIGNIFICANT_SD)
+                    format!("estimated with {} as well; within {} sd of none, not reported", self.dropped.in_words(), coilscope_ident::online::INSIGNIFICANT_SD)
                 } else {
                     "every effect estimated is reported".to_string()
                 },
