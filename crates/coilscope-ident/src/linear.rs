@@ -29,6 +29,12 @@ use std::f64::consts::PI;
 /// Names of the fitted electrical quantities, in `LinearFit::theta` order.
 pub const NAMES: [&str; 7] = ["Re", "Le", "L2", "R2", "Res", "Cmes", "Lces"];
 
+/// The linear fit's plateau: converged when the cost fell by less than `PLATEAU_REL` of
+/// itself over the last `PLATEAU_ITERATIONS` iterations (a parameter move of about 1e-3 of
+/// its sd; a fit that converges properly stops earlier, on LM's own test).
+const PLATEAU_ITERATIONS: usize = 10;
+const PLATEAU_REL: f64 = 1e-6;
+
 /// Bins the starts of the impedance fit are compared on (the best is then fitted on all).
 const SCOUT_BINS: usize = 4000;
 
@@ -843,12 +849,24 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
         t
     }
     prob.norm = prob.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
+    // LM to convergence, or to a plateau: the cost lowered by less than PLATEAU_REL over
+    // the last PLATEAU_ITERATIONS iterations. An effect the record does not have leaves a
+    // flat direction along which LM creeps for ever (LR-3 on 18WU's small stage: 200
+    // iterations, 4 s on 40 000 bins, the cost the same to 1e-9).
     let run = |p: &CurrentError, theta: Vec<f64>, observe: &mut dyn FnMut(&LmState)| {
         let mut s = LmState::new(p, theta);
         observe(&s);
+        let mut costs = std::collections::VecDeque::from([s.cost]);
         while !s.converged && s.iteration < 200 {
             s = lm_step(p, &s);
             observe(&s);
+            costs.push_back(s.cost);
+            if costs.len() > PLATEAU_ITERATIONS {
+                let old = costs.pop_front().expect("not empty");
+                if old - s.cost <= PLATEAU_REL * s.cost {
+                    s.converged = true;
+                }
+            }
         }
         s
     };
@@ -856,7 +874,10 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     // Fit one model (the LR-2 quantities plus `effects`) from several starts: each start is
     // scouted on every k-th bin (at most SCOUT_BINS), the best is polished on all of them,
     // so the answer is the full-data optimum at a fraction of the cost.
-    let solve = |effects: Effects, starts: &[Vec<f64>], observe: &mut dyn FnMut(&LmState)| -> (CurrentError, LmState) {
+    // A candidate whose scout residual is not below `gate` is not polished (it cannot win:
+    // the effect does not lower the residual by EFFECT_MIN_GAIN on the scout bins). Returns
+    // the problem, the state, the scout's residual and whether it was polished.
+    let solve = |effects: Effects, starts: &[Vec<f64>], gate: f64, observe: &mut dyn FnMut(&LmState)| -> (CurrentError, LmState, f64, bool) {
         let mut pr = CurrentError { f: prob.f.clone(), u: prob.u.clone(), i: prob.i.clone(), w: prob.w.clone(), map: prob.map.clone(), effects, delay: None, ..prob };
         pr.norm = prob.norm;
         let scout = (pr.f.len() > 2 * SCOUT_BINS).then(|| thin(&pr, SCOUT_BINS));
@@ -868,10 +889,12 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
             }
         }
         let mut s = best.expect("at least one start");
-        if scout.is_some() {
+        let scout_rel = scout.as_ref().unwrap_or(&pr).residual_rel(&s.theta);
+        let polish = scout.is_some() && scout_rel < gate;
+        if polish {
             s = run(&pr, s.theta.clone(), observe);
         }
-        (pr, s)
+        (pr, s, scout_rel, polish || scout.is_none())
     };
     // The LR-2 branch trades off against Re and Le: start from the heuristic guess and from
     // corners spread over the band, and keep the lowest cost among the converged runs (each
@@ -896,12 +919,16 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
             th
         })
         .collect();
-    // Each fitted model with its current residual.
-    let with_residual = |(pr, s): (CurrentError, LmState)| {
-        let r = pr.residual_rel(&s.theta);
+    // Each fitted model with its current residual (on all bins; a candidate left unpolished
+    // keeps its scout's, and cannot be chosen), and its scout residual.
+    let (mut scout_r, mut polished): (Vec<f64>, Vec<bool>) = (vec![], vec![]);
+    fn with_residual(scout_r: &mut Vec<f64>, polished: &mut Vec<bool>, (pr, s, sr, done): (CurrentError, LmState, f64, bool)) -> (CurrentError, LmState, f64) {
+        let r = if done { pr.residual_rel(&s.theta) } else { sr };
+        scout_r.push(sr);
+        polished.push(done);
         (pr, s, r)
-    };
-    let mut fitted = vec![with_residual(solve(Effects::NONE, &base_starts, &mut observe))];
+    }
+    let mut fitted = vec![with_residual(&mut scout_r, &mut polished, solve(Effects::NONE, &base_starts, f64::INFINITY, &mut observe))];
     // Starts of a model with more effects, from a fitted one: creep from lambda = 0.05 (the
     // middle of what Klippel's LPM reports), LR-3 from a corner 4x above and 4x below LR-2's
     // with R3 = 2.5 R2 and R2 (the branches are named by their corners afterwards).
@@ -939,7 +966,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
         EffectsChoice::Fixed(e) if e == Effects::NONE => 0,
         EffectsChoice::Fixed(e) => {
             let st = grow(&fitted[0], e);
-            fitted.push(with_residual(solve(e, &st, &mut observe)));
+            fitted.push(with_residual(&mut scout_r, &mut polished, solve(e, &st, f64::INFINITY, &mut observe)));
             1
         }
         EffectsChoice::Auto => {
@@ -955,14 +982,14 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
                 if !cur.lr3 {
                     cands.push(Effects { lr3: true, ..cur });
                 }
-                let r_cur = fitted[at].2;
+                let (r_cur, gate) = (fitted[at].2, (1.0 - EFFECT_MIN_GAIN) * scout_r[at]);
                 let mut best: Option<(usize, f64)> = None;
                 for e in cands {
                     let st = grow(&fitted[at], e);
-                    let (pr, s, r) = with_residual(solve(e, &st, &mut observe));
+                    let (pr, s, r) = with_residual(&mut scout_r, &mut polished, solve(e, &st, gate, &mut observe));
                     let lambda_ok = pr.idx_lambda().is_none_or(|k| s.theta[k] > 0.0);
                     fitted.push((pr, s, r));
-                    if lambda_ok && r < (1.0 - EFFECT_MIN_GAIN) * r_cur && best.is_none_or(|(_, rb)| r < rb) {
+                    if polished[fitted.len() - 1] && lambda_ok && r < (1.0 - EFFECT_MIN_GAIN) * r_cur && best.is_none_or(|(_, rb)| r < rb) {
                         best = Some((fitted.len() - 1, r));
                     }
                 }
