@@ -202,7 +202,8 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
     }
 
     /// Energy stored in the moving system (J): kinetic, suspension (`int Kms(s) s ds`) and
-    /// magnetic (`1/2 Le i^2 + 1/2 L2 i2^2`). Heat is not included: it leaves as loss.
+    /// magnetic (`Le (i^2 g(i) - G(i)) + 1/2 L2 i2^2`, which is `1/2 Le i^2 + ...` without
+    /// `Le_i`). Heat is not included: it leaves as loss.
     pub fn stored_energy(&self, s: &State<D>) -> D {
         let [x, v, i, i2, _, _] = *s;
         let (g, _, big) = self.flux_factors(i);
