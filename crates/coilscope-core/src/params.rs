@@ -550,15 +550,6 @@ impl Parameters {
         self.creep.is_some() || self.l3r3.is_some()
     }
 
-    /// The flux factor's incremental form `h(i) = d(i g(i))/di` (1 without `Le_i`): the
-    /// voice coil's incremental inductance is `Le(x) h(i)`.
-    pub fn le_i_incremental(&self, i: f64) -> f64 {
-        match &self.le_i {
-            Some(g) => g.eval(i) + i * g.eval_d(i).1,
-            None => 1.0,
-        }
-    }
-
     /// Electrical time constant of the fast mode, min over the valid range of
     /// `Le(x) / (Re + R2(x) + R3)` (s): what makes the current equation stiff.
     pub fn min_electrical_time_constant(&self) -> f64 {

@@ -529,7 +529,10 @@ impl Online {
         // Le(i) keeps the incremental inductance above half of Le(x), and Rms(v) stays >= 0,
         // over 1.5 times the current and velocity seen.
         let (ir, vr) = (1.5 * self.i_reach, 1.5 * self.v_reach);
-        let flux = p.le_i.is_none() || (0..=20).all(|k| p.le_i_incremental(-ir + 2.0 * ir * k as f64 / 20.0) >= coilscope_core::simulate::MIN_INCREMENTAL_LE);
+        let flux = p.le_i.is_none() || {
+            let m = Model::new(&p);
+            (0..=20).all(|k| m.le_i_incremental(-ir + 2.0 * ir * k as f64 / 20.0) >= coilscope_core::simulate::MIN_INCREMENTAL_LE)
+        };
         let loss = p.rms_v.as_ref().is_none_or(|rv| (0..=10).all(|k| rv.eval(vr * k as f64 / 10.0) >= 0.0));
         curves && flux && loss
     }
