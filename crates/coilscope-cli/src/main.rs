@@ -664,32 +664,31 @@ fn cmd_linear(
     };
     println!("  scale: {scale_text}");
     println!("  model: {} (tried: {})", fit.effects.model_name(), fit.tried.iter().map(|(m, r)| format!("{m} {r:.2e}")).collect::<Vec<_>>().join(", "));
-    println!("  {:<6} {:>12} {:<5} {}", "Re", format!("{:.4}", params.re), "ohm", pm("Re", 1.0));
-    println!("  {:<6} {:>12} {:<5} {}", "Le", format!("{:.4}", params.le.c[0] * 1e3), "mH", pm("Le", 1e3));
-    let (l2, r2) = params.l2r2.as_ref().map(|(a, b)| (a.c[0], b.c[0])).unwrap_or((0.0, 0.0));
-    println!("  {:<6} {:>12} {:<5} {}", "L2", format!("{:.4}", l2 * 1e3), "mH", pm("L2", 1e3));
-    println!("  {:<6} {:>12} {:<5} {}", "R2", format!("{:.4}", r2), "ohm", pm("R2", 1.0));
-    if let Some((l3, r3)) = params.l3r3 {
-        println!("  {:<6} {:>12} {:<5} {}", "L3", format!("{:.4}", l3 * 1e3), "mH", pm("L3", 1e3));
-        println!("  {:<6} {:>12} {:<5} {}", "R3", format!("{:.4}", r3), "ohm", pm("R3", 1.0));
-    }
-    if let Some(c) = &params.creep {
-        println!("  {:<6} {:>12} {:<5} {}", "lambda", format!("{:.4}", c.lambda), "", pm("creep.lambda", 1.0));
-    }
+    print_values(&params, u, &[]);
     println!("  {:<6} {:>12} {:<5} {}", "fs", format!("{:.3}", ts.fs), "Hz", pm("fs", 1.0));
     println!("  {:<6} {:>12}", "Qms", format!("{:.4}", ts.qms));
     println!("  {:<6} {:>12}", "Qes", format!("{:.4}", ts.qes));
     println!("  {:<6} {:>12}", "Qts", format!("{:.4}", ts.qts));
-    println!("  {:<6} {:>12} {:<5} {}", "Bl", format!("{:.4}", params.bl.c[0]), "T m", pm("Bl", 1.0));
-    println!("  {:<6} {:>12} {:<5} {}", "Kms", format!("{:.2}", params.kms.c[0]), "N/m", pm("Kms", 1.0));
-    println!("  {:<6} {:>12} {:<5}", "Mms", format!("{:.4}", params.mms * 1e3), "g");
-    println!("  {:<6} {:>12} {:<5} {}", "Rms", format!("{:.4}", params.rms), "kg/s", pm("Rms", 1.0));
     if let Some(v) = ts.vas {
         println!("  {:<6} {:>12} {:<5}", "Vas", format!("{:.3}", v * 1e3), "l");
     }
     println!("  x reached {:+.3} .. {:+.3} mm", x_range[0] * 1e3, x_range[1] * 1e3);
     println!("  wrote {}, {}, {}", out.display(), zma.display(), csv.display());
     untrusted_if_warned(&warnings, out)
+}
+
+/// The set's constants and values at rest, a line each, in the parameter schema's order and
+/// display units (`coilscope_core::schema`), with the result's sd (`uncertainty.<key>`) where
+/// it has one; `skip`: keys shown otherwise. The thermal constants are not fitted here.
+fn print_values(p: &Parameters, uncertainty: &serde_json::Value, skip: &[&str]) {
+    use coilscope_core::schema::{Component, Kind, ENTRIES};
+    let shown = ENTRIES.iter().filter(|e| !e.realisation && matches!(e.kind, Kind::Number | Kind::SeriesX) && e.component != Component::Thermal && !skip.contains(&e.key));
+    for e in shown {
+        let Some(v) = p.get(e.key).and_then(|v| v.at_rest()) else { continue };
+        let (unit, scale) = e.display;
+        let sd = uncertainty[e.key].as_f64().map(|s| format!("+- {:.2e}", s * scale)).unwrap_or_default();
+        println!("  {:<6} {:>12} {:<5} {}", e.short(), format!("{:.4}", v * scale), unit, sd);
+    }
 }
 
 /// `--effects`: `auto`, or a list for [`coilscope_ident::linear::Effects::parse`].
@@ -885,21 +884,8 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
     }
     println!("  model {} ({})", fit.layout.effects.model_name(), if fit.effect_trials.is_empty() { "given".to_string() } else { fit.effect_trials.iter().map(|(m, v)| format!("{m} validation {v:.3e}")).collect::<Vec<_>>().join(", ") });
     let u = &result["uncertainty"];
-    let pm = |k: &str, scale: f64| u[k].as_f64().map(|v| format!("+- {:.2e}", v * scale)).unwrap_or_default();
-    println!("  {:<6} {:>12} {:<5} {}", "Re", format!("{:.4}", p.re), "ohm", pm("Re", 1.0));
-    if let Some((l2, r2)) = &p.l2r2 {
-        println!("  {:<6} {:>12} {:<5} {}", "L2", format!("{:.4}", l2.c[0] * 1e3), "mH", pm("L2", 1e3));
-        println!("  {:<6} {:>12} {:<5} {}", "R2", format!("{:.4}", r2.c[0]), "ohm", pm("R2", 1.0));
-    }
-    if let Some((l3, r3)) = p.l3r3 {
-        println!("  {:<6} {:>12} {:<5} {}", "L3", format!("{:.4}", l3 * 1e3), "mH", pm("L3", 1e3));
-        println!("  {:<6} {:>12} {:<5} {}", "R3", format!("{:.4}", r3), "ohm", pm("R3", 1.0));
-    }
-    if let Some(c) = &p.creep {
-        println!("  {:<6} {:>12} {:<5} {}", "lambda", format!("{:.4}", c.lambda), "", pm("creep.lambda", 1.0));
-    }
-    println!("  {:<6} {:>12} {:<5}", "Mms", format!("{:.4}", p.mms * 1e3), "g");
-    println!("  {:<6} {:>12} {:<5} {}", "Rms", format!("{:.4}", p.rms), "kg/s", pm("Rms", 1.0));
+    // Bl, Kms and Le are shown as curves below.
+    print_values(p, u, &["Bl", "Kms", "Le"]);
     let [lo, hi] = fit.x_range;
     println!("  {:<6} {:>14} {:>14} {:>14}", "", format!("x={:.2} mm", lo * 1e3), "x=0", format!("x={:.2} mm", hi * 1e3));
     for (name, unit, scale) in [("Bl", "T m", 1.0), ("Kms", "N/m", 1.0), ("Le", "mH", 1e3)] {
@@ -1165,9 +1151,14 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     println!("cold Re (the temperature reference: the small-signal stage refitted with the final model when converged, else its impedance fit): {:.4} ohm +- {:.1e}", m.re_cold, m.re_cold_sd);
     let [lo, hi] = m.x_range;
     println!("large signal (end), over {:.2} .. {:.2} mm:", lo * 1e3, hi * 1e3);
-    for (name, f, unit) in [("Bl", &p.bl, "T m"), ("Kms", &p.kms, "N/m"), ("Le", &p.le, "mH")] {
-        let k = if unit == "mH" { 1e3 } else { 1.0 };
-        println!("  {name:<4} {:10.4} {:10.4} {:10.4} {unit}  (x_min, 0, x_max)", f.eval(lo) * k, f.eval(0.0) * k, f.eval(hi) * k);
+    // The functions of x of the parameter schema (constants among them on one line below).
+    for e in coilscope_core::schema::ENTRIES.iter().filter(|e| e.kind == coilscope_core::schema::Kind::SeriesX) {
+        if let Some(coilscope_core::schema::Value::Series(f)) = p.get(e.key) {
+            let ((unit, k), name) = (e.display, e.key);
+            if f.c.len() > 1 {
+                println!("  {name:<4} {:10.4} {:10.4} {:10.4} {unit}  (x_min, 0, x_max)", f.eval(lo) * k, f.eval(0.0) * k, f.eval(hi) * k);
+            }
+        }
     }
     let mut model = format!("model {}", m.effects.model_name());
     if let Some(c) = &p.creep {
@@ -1183,7 +1174,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         model += &format!(", Rms(v) = {:.4} + {:.4} v^2 kg/s", r.c[0], r.c.get(2).copied().unwrap_or(0.0));
     }
     if m.dropped.has_large_signal() {
-        model += &format!(" ({} estimated, within 3 sd of none: not reported)", m.dropped.in_words());
+        model += &format!(" ({})", m.models_note());
     }
     println!("  {model}");
     for (t, e) in &m.events {

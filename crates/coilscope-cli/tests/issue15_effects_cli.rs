@@ -8,6 +8,19 @@ fn coilscope(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_coilscope")).args(args).output().unwrap()
 }
 
+/// A result names its parameters' sds by the parameter schema's keys (besides the curves'
+/// bands, the note and the small-signal equivalents the linear fit estimates directly).
+fn uncertainty_keys_are_schema_keys(r: &serde_json::Value) {
+    let derived = ["note", "fs", "Res", "Cmes", "Lces"];
+    for k in r["uncertainty"].as_object().expect("an uncertainty object").keys() {
+        let ok = k.ends_with("_band") || derived.contains(&k.as_str()) || coilscope_core::schema::entry(k).is_some();
+        assert!(ok, "uncertainty key {k} is not a parameter-schema key");
+    }
+    for k in r["parameters"].as_object().expect("a parameter set").keys() {
+        assert!(coilscope_core::schema::file_keys().contains(&k.as_str()), "parameter key {k} is not in the schema");
+    }
+}
+
 #[test]
 fn linear_finds_creep_and_lr3_in_a_simulated_record_and_writes_them() {
     let d = tempfile::tempdir().unwrap();
@@ -33,6 +46,7 @@ fn linear_finds_creep_and_lr3_in_a_simulated_record_and_writes_them() {
     let l3 = r["parameters"]["L3"].as_f64().unwrap();
     assert!((l3 / (0.6 * l2) - 1.0).abs() < 0.05, "L3 {l3}");
     assert!(r["uncertainty"]["creep.lambda"].as_f64().unwrap() > 0.0);
+    uncertainty_keys_are_schema_keys(&r);
     // The result's parameter set reads back, with the effects.
     let back = coilscope_core::Parameters::from_json_value(&r["parameters"], "result").unwrap();
     assert!(back.creep.is_some() && back.l3r3.is_some());
@@ -92,6 +106,7 @@ fn measure_virtual_assumes_a_creeping_suspension_and_finds_it() {
     assert_eq!(r["fit"]["model"], "LR-2+creep", "{}", r["fit"]);
     let lambda = r["parameters"]["creep"]["lambda"].as_f64().unwrap();
     let sd = r["uncertainty"]["creep.lambda"].as_f64().unwrap();
+    uncertainty_keys_are_schema_keys(&r);
     assert!((lambda / 0.05 - 1.0).abs() < 0.2 && (lambda - 0.05).abs() < 3.0 * sd.max(1e-4), "lambda {lambda} +- {sd}");
     // The set as given: no creep in the world, none in the result.
     let out2 = d.path().join("run2");

@@ -34,6 +34,7 @@ pub mod model;
 pub mod normal_form;
 pub mod params;
 pub mod poly;
+pub mod schema;
 pub mod simulate;
 pub mod small_signal;
 

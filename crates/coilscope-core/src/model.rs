@@ -124,16 +124,16 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
         match &self.le_i {
             None => (D::one(), D::one(), i * i * 0.5),
             Some(g) => {
+                // Horner on the three series in i: sum c_k i^k, sum (k+1) c_k i^k and
+                // sum c_k i^k / (k+2) (then times i^2).
                 let (mut gv, mut hv, mut big) = (D::zero(), D::zero(), D::zero());
-                let mut pw = D::one();
-                for (k, &c) in g.c.iter().enumerate() {
+                for (k, &c) in g.c.iter().enumerate().rev() {
                     let k = k as f64;
-                    gv += c * pw;
-                    hv += c * pw * (k + 1.0);
-                    big += c * pw * i * i / (k + 2.0);
-                    pw *= i;
+                    gv = gv * i + c;
+                    hv = hv * i + c * (k + 1.0);
+                    big = big * i + c * (1.0 / (k + 2.0));
                 }
-                (gv, hv, big)
+                (gv, hv, big * i * i)
             }
         }
     }

@@ -7,6 +7,7 @@
 //! would be valid.
 
 use crate::poly::Poly;
+pub use crate::schema::Value as SchemaValue;
 use serde_json::{Map, Value};
 use std::fmt;
 
@@ -108,11 +109,6 @@ impl std::error::Error for ParamError {}
 /// [`Parameters::with_typical_creep`].
 pub const TYPICAL_CREEP_LAMBDA: f64 = 0.05;
 
-const KNOWN_KEYS: &[&str] = &[
-    "format", "name", "source", "Re", "Le", "L2", "R2", "Bl", "Kms", "Mms", "Rms", "Sd", "thermal",
-    "x_range", "creep", "L3", "R3", "Le_i", "Rms_v",
-];
-
 struct Ctx<'a> {
     origin: &'a str,
 }
@@ -198,7 +194,7 @@ impl Parameters {
     pub fn from_json_value(value: &Value, origin: &str) -> Result<Self, ParamError> {
         let ctx = Ctx { origin };
         let obj = value.as_object().ok_or_else(|| {
-            ctx.err("", format!("expected a JSON object with keys Re, Le, Bl, Kms, Mms, Rms; found {}", describe(value)))
+            ctx.err("", format!("expected a JSON object with keys {}; found {}", crate::schema::required_keys(), describe(value)))
         })?;
         if let Some(f) = obj.get("format") {
             if f.as_str() != Some(PARAMETERS_FORMAT) {
@@ -206,15 +202,16 @@ impl Parameters {
             }
         }
         // A misspelt key would silently drop a parameter: refuse near-misses of known keys.
+        let known_keys = crate::schema::file_keys();
         for k in obj.keys() {
-            if !KNOWN_KEYS.contains(&k.as_str()) {
-                if let Some(known) = KNOWN_KEYS.iter().find(|kk| kk.eq_ignore_ascii_case(k.trim())) {
+            if !known_keys.contains(&k.as_str()) {
+                if let Some(known) = known_keys.iter().find(|kk| kk.eq_ignore_ascii_case(k.trim())) {
                     return Err(ctx.err(k, format!("unknown key; did you mean `{known}`? (keys are case-sensitive)")));
                 }
             }
         }
         let required = |key: &str| -> Result<&Value, ParamError> {
-            obj.get(key).ok_or_else(|| ctx.err(key, "missing (required: Re, Le, Bl, Kms, Mms, Rms)"))
+            obj.get(key).ok_or_else(|| ctx.err(key, format!("missing (required: {})", crate::schema::required_keys())))
         };
         let text = |key: &str| -> Result<Option<String>, ParamError> {
             match obj.get(key) {
@@ -295,7 +292,7 @@ impl Parameters {
         let le_i = obj.get("Le_i").map(|v| ctx.series("Le_i", v)).transpose()?;
         let rms_v = obj.get("Rms_v").map(|v| ctx.series("Rms_v", v)).transpose()?;
         let extra: Map<String, Value> =
-            obj.iter().filter(|(k, _)| !KNOWN_KEYS.contains(&k.as_str())).map(|(k, v)| (k.clone(), v.clone())).collect();
+            obj.iter().filter(|(k, _)| !known_keys.contains(&k.as_str())).map(|(k, v)| (k.clone(), v.clone())).collect();
         let p = Parameters {
             name: text("name")?,
             source: text("source")?,
@@ -456,62 +453,68 @@ impl Parameters {
         self.x_range
     }
 
-    /// Write the set as contract JSON (constants as numbers, series as arrays), keeping
-    /// unknown keys.
+    /// The value of a [`crate::schema`] key (`"Re"`, `"Le"`, `"thermal.Rtv"`, ...), or `None`
+    /// when the set does not have it (or the key is not in the schema).
+    pub fn get(&self, key: &str) -> Option<SchemaValue<'_>> {
+        use SchemaValue as V;
+        let creep = |f: &dyn Fn(&Creep) -> Option<f64>| self.creep.as_ref().and_then(f).map(V::Number);
+        let thermal = |f: &dyn Fn(&Thermal) -> f64| self.thermal.as_ref().map(|t| V::Number(f(t)));
+        match key {
+            "name" => self.name.as_deref().map(V::Text),
+            "source" => self.source.as_deref().map(V::Text),
+            "Re" => Some(V::Number(self.re)),
+            "Le" => Some(V::Series(&self.le)),
+            "Le_i" => self.le_i.as_ref().map(V::Series),
+            "L2" => self.l2r2.as_ref().map(|(l, _)| V::Series(l)),
+            "R2" => self.l2r2.as_ref().map(|(_, r)| V::Series(r)),
+            "L3" => self.l3r3.map(|(l, _)| V::Number(l)),
+            "R3" => self.l3r3.map(|(_, r)| V::Number(r)),
+            "Bl" => Some(V::Series(&self.bl)),
+            "Kms" => Some(V::Series(&self.kms)),
+            "creep.lambda" => creep(&|c| Some(c.lambda)),
+            "creep.f_ref" => creep(&|c| c.f_ref),
+            "creep.per_decade" => creep(&|_| Some(crate::creep::PER_DECADE as f64)),
+            "creep.f_min" => creep(&|_| Some(crate::creep::F_MIN)),
+            "creep.f_max" => creep(&|_| Some(crate::creep::F_MAX)),
+            "Mms" => Some(V::Number(self.mms)),
+            "Rms" => Some(V::Number(self.rms)),
+            "Rms_v" => self.rms_v.as_ref().map(V::Series),
+            "Sd" => self.sd.map(V::Number),
+            "thermal.alpha" => thermal(&|t| t.alpha),
+            "thermal.Rtv" => thermal(&|t| t.rtv),
+            "thermal.Ctv" => thermal(&|t| t.ctv),
+            "thermal.Rtm" => thermal(&|t| t.rtm),
+            "thermal.Ctm" => thermal(&|t| t.ctm),
+            "x_range" => self.x_range.map(V::Range),
+            _ => None,
+        }
+    }
+
+    /// Write the set as contract JSON (constants as numbers, series in x as a number when
+    /// constant, else arrays), every [`crate::schema`] entry the set has, and the unknown keys
+    /// kept.
     pub fn to_json_value(&self) -> Value {
         let mut m = Map::new();
         m.insert("format".into(), PARAMETERS_FORMAT.into());
-        if let Some(n) = &self.name {
-            m.insert("name".into(), n.clone().into());
-        }
-        if let Some(s) = &self.source {
-            m.insert("source".into(), s.clone().into());
-        }
-        m.insert("Re".into(), self.re.into());
-        m.insert("Le".into(), series_json(&self.le));
-        if let Some((l2, r2)) = &self.l2r2 {
-            m.insert("L2".into(), series_json(l2));
-            m.insert("R2".into(), series_json(r2));
-        }
-        m.insert("Bl".into(), series_json(&self.bl));
-        m.insert("Kms".into(), series_json(&self.kms));
-        m.insert("Mms".into(), self.mms.into());
-        m.insert("Rms".into(), self.rms.into());
-        if let Some(sd) = self.sd {
-            m.insert("Sd".into(), sd.into());
-        }
-        if let Some(c) = &self.creep {
-            let mut cm = Map::new();
-            cm.insert("lambda".into(), c.lambda.into());
-            if let Some(f) = c.f_ref {
-                cm.insert("f_ref".into(), f.into());
+        for e in crate::schema::ENTRIES {
+            let Some(v) = self.get(e.key) else { continue };
+            let json: Value = match v {
+                SchemaValue::Number(x) => x.into(),
+                SchemaValue::Series(p) if e.kind == crate::schema::Kind::SeriesX => series_json(p),
+                SchemaValue::Series(p) => Value::Array(p.c.iter().map(|&c| c.into()).collect()),
+                SchemaValue::Range(r) => Value::Array(vec![r[0].into(), r[1].into()]),
+                SchemaValue::Text(t) => t.into(),
+            };
+            match e.key.split_once('.') {
+                Some((object, k)) => {
+                    if let Value::Object(o) = m.entry(object).or_insert_with(|| Value::Object(Map::new())) {
+                        o.insert(k.into(), json);
+                    }
+                }
+                None => {
+                    m.insert(e.key.into(), json);
+                }
             }
-            cm.insert("per_decade".into(), (crate::creep::PER_DECADE as f64).into());
-            cm.insert("f_min".into(), crate::creep::F_MIN.into());
-            cm.insert("f_max".into(), crate::creep::F_MAX.into());
-            m.insert("creep".into(), Value::Object(cm));
-        }
-        if let Some((l3, r3)) = self.l3r3 {
-            m.insert("L3".into(), l3.into());
-            m.insert("R3".into(), r3.into());
-        }
-        if let Some(g) = &self.le_i {
-            m.insert("Le_i".into(), Value::Array(g.c.iter().map(|&c| c.into()).collect()));
-        }
-        if let Some(r) = &self.rms_v {
-            m.insert("Rms_v".into(), Value::Array(r.c.iter().map(|&c| c.into()).collect()));
-        }
-        if let Some(r) = self.x_range {
-            m.insert("x_range".into(), Value::Array(vec![r[0].into(), r[1].into()]));
-        }
-        if let Some(t) = &self.thermal {
-            let mut tm = Map::new();
-            tm.insert("alpha".into(), t.alpha.into());
-            tm.insert("Rtv".into(), t.rtv.into());
-            tm.insert("Ctv".into(), t.ctv.into());
-            tm.insert("Rtm".into(), t.rtm.into());
-            tm.insert("Ctm".into(), t.ctm.into());
-            m.insert("thermal".into(), Value::Object(tm));
         }
         for (k, v) in &self.extra {
             m.insert(k.clone(), v.clone());
@@ -646,6 +649,31 @@ mod tests {
             let b: Value = serde_json::from_str(&shared).unwrap();
             assert_eq!(a, b, "embedded copy of {name} differs from shared/drivers");
         }
+    }
+
+    #[test]
+    fn every_schema_entry_is_read_written_and_read_back() {
+        // A set with every entry: each is reachable by its key, written, and read back equal.
+        let mut p = embedded_driver("sb17cac35-4").unwrap();
+        p.name = Some("all".into());
+        p.l3r3 = Some((0.4e-3, 6.0));
+        p.creep = Some(Creep { lambda: 0.05, f_ref: Some(30.0) });
+        p.le_i = Some(Poly { c: vec![1.0, -0.01, -0.002] });
+        p.rms_v = Some(Poly { c: vec![p.rms, 0.0, 0.3] });
+        p.sd = Some(0.0133);
+        p.validate("all").unwrap();
+        for e in crate::schema::ENTRIES {
+            assert!(p.get(e.key).is_some(), "{} unreachable", e.key);
+        }
+        assert!(p.get("nope").is_none());
+        let json = p.to_json_value();
+        for key in crate::schema::file_keys() {
+            assert!(json.get(key).is_some(), "{key} not written");
+        }
+        assert_eq!(Parameters::from_json_value(&json, "again").unwrap(), p);
+        // Absent entries are absent.
+        let bare = p.three_state();
+        assert!(bare.get("L2").is_none() && bare.get("thermal.Rtv").is_none() && bare.get("Le_i").is_none());
     }
 
     #[test]

@@ -134,6 +134,37 @@ pub struct Slots {
     pub n: usize,
 }
 
+impl Slots {
+    /// Every entry of theta by name (`Re0`, `Le0`..`LeN`, `L2`, `R2`, `Bl0`.., `Kms0`.., `Rms`,
+    /// `lambda`, `L3`, `R3`, `g1`, `g2`, `c2`), in index order: how a theta of one layout maps
+    /// onto another's.
+    pub fn named(&self) -> Vec<(String, usize)> {
+        let mut v = vec![];
+        let series = |v: &mut Vec<(String, usize)>, name: &str, r: &Range<usize>| {
+            for (j, k) in r.clone().enumerate() {
+                v.push((format!("{name}{j}"), k));
+            }
+        };
+        series(&mut v, "Re", &self.re);
+        series(&mut v, "Le", &self.le);
+        v.extend(self.l2.map(|k| ("L2".to_string(), k)));
+        v.extend(self.r2.map(|k| ("R2".to_string(), k)));
+        series(&mut v, "Bl", &self.bl);
+        series(&mut v, "Kms", &self.kms);
+        v.push(("Rms".into(), self.rms));
+        v.extend(self.lambda.map(|k| ("lambda".to_string(), k)));
+        v.extend(self.l3.map(|k| ("L3".to_string(), k)));
+        v.extend(self.r3.map(|k| ("R3".to_string(), k)));
+        if let Some(k) = self.le_i {
+            v.push(("g1".into(), k));
+            v.push(("g2".into(), k + 1));
+        }
+        v.extend(self.rms_v.map(|k| ("c2".to_string(), k)));
+        v.sort_by_key(|e| e.1);
+        v
+    }
+}
+
 /// Systematic part of a curve's band, relative to its value (a type-B uncertainty, added in
 /// quadrature to the statistical sd): what the fit cannot know from its own residual. On the
 /// independent simulator's recordings (`shared/recordings`, integrated at 16x and decimated

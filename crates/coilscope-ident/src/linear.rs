@@ -33,6 +33,14 @@ pub const NAMES: [&str; 7] = ["Re", "Le", "L2", "R2", "Res", "Cmes", "Lces"];
 /// itself over the last `PLATEAU_ITERATIONS` iterations (a parameter move of about 1e-3 of
 /// its sd; a fit that converges properly stops earlier, on LM's own test).
 const PLATEAU_ITERATIONS: usize = 10;
+/// Most LM iterations of one linear fit.
+const MAX_ITERATIONS: usize = 200;
+/// Most LM iterations of a candidate effect's scout (it starts from the fitted model with the
+/// effect at a typical value). An effect the record has takes most of its gain within a few
+/// iterations; one it lacks crept on (PTT4's 2 s small stage in `measure`: creep and LR-3
+/// scouts ran to 200 iterations, 0.6 s of a 0.4 s fit). A scout that passes the gate is
+/// polished on all bins to convergence.
+const CANDIDATE_SCOUT_ITERATIONS: usize = 40;
 const PLATEAU_REL: f64 = 1e-6;
 
 /// Bins the starts of the impedance fit are compared on (the best is then fitted on all).
@@ -853,11 +861,11 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     // the last PLATEAU_ITERATIONS iterations. An effect the record does not have leaves a
     // flat direction along which LM creeps for ever (LR-3 on 18WU's small stage: 200
     // iterations, 4 s on 40 000 bins, the cost the same to 1e-9).
-    let run = |p: &CurrentError, theta: Vec<f64>, observe: &mut dyn FnMut(&LmState)| {
+    let run = |p: &CurrentError, theta: Vec<f64>, max_iter: usize, observe: &mut dyn FnMut(&LmState)| {
         let mut s = LmState::new(p, theta);
         observe(&s);
         let mut costs = std::collections::VecDeque::from([s.cost]);
-        while !s.converged && s.iteration < 200 {
+        while !s.converged && s.iteration < max_iter {
             s = lm_step(p, &s);
             observe(&s);
             costs.push_back(s.cost);
@@ -881,9 +889,26 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
         let mut pr = CurrentError { f: prob.f.clone(), u: prob.u.clone(), i: prob.i.clone(), w: prob.w.clone(), map: prob.map.clone(), effects, delay: None, ..prob };
         pr.norm = prob.norm;
         let scout = (pr.f.len() > 2 * SCOUT_BINS).then(|| thin(&pr, SCOUT_BINS));
+        let scout_iterations = if gate.is_finite() && scout.is_some() { CANDIDATE_SCOUT_ITERATIONS } else { MAX_ITERATIONS };
+        // The starts are independent: they run on all cores, each keeping its LM states,
+        // which the observer then sees start by start, as if they had run in turn.
+        let on = scout.as_ref().unwrap_or(&pr);
+        let runs: Vec<(LmState, Vec<LmState>)> = std::thread::scope(|scope| {
+            let handles: Vec<_> = starts
+                .iter()
+                .map(|th| {
+                    scope.spawn(move || {
+                        let mut seen = vec![];
+                        let s = run(on, th.clone(), scout_iterations, &mut |st: &LmState| seen.push(st.clone()));
+                        (s, seen)
+                    })
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().expect("an LM run does not panic")).collect()
+        });
         let mut best: Option<LmState> = None;
-        for th in starts {
-            let s = run(scout.as_ref().unwrap_or(&pr), th.clone(), observe);
+        for (s, seen) in runs {
+            seen.iter().for_each(&mut *observe);
             if best.as_ref().is_none_or(|b| better(&s, b)) {
                 best = Some(s);
             }
@@ -892,7 +917,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
         let scout_rel = scout.as_ref().unwrap_or(&pr).residual_rel(&s.theta);
         let polish = scout.is_some() && scout_rel < gate;
         if polish {
-            s = run(&pr, s.theta.clone(), observe);
+            s = run(&pr, s.theta.clone(), MAX_ITERATIONS, observe);
         }
         (pr, s, scout_rel, polish || scout.is_none())
     };
@@ -1064,7 +1089,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
         let mut th = s.theta.clone();
         th.push(0.0);
         let base = LmState::new(&check, th.clone()).cost;
-        let d = run(&check, th, &mut |_| {});
+        let d = run(&check, th, MAX_ITERATIONS, &mut |_| {});
         let at = check.delay_index();
         (d.converged && d.cost < 0.25 * base && d.theta[at].abs() >= 0.05).then(|| (d.theta[at], 1.0 - (d.cost / base).sqrt()))
     };

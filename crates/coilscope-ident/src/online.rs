@@ -132,6 +132,33 @@ impl Default for OnlineOptions {
     }
 }
 
+/// Prior variances of theta (normalised units) for a layout's slots: the small-signal values
+/// `prior_linear`, the LR-2/LR-3 branches twice that, the series' shapes `prior_nonlinear`;
+/// the effects: lambda +- 0.05 (theta is lambda / 0.1), g1 +- 0.2 / A and g2 +- 0.2 / A^2
+/// (Le 20 % down at 1 A), c2 +- 1 Rms per (m/s)^2.
+fn prior_variances(s: &crate::large::Slots, opts: &OnlineOptions) -> Vec<f64> {
+    let mut prior = vec![opts.prior_nonlinear.powi(2); s.n];
+    for k in [s.re.start, s.le.start, s.bl.start, s.kms.start, s.rms] {
+        prior[k] = opts.prior_linear.powi(2);
+    }
+    for k in [s.l2, s.r2, s.l3, s.r3].into_iter().flatten() {
+        prior[k] = (2.0 * opts.prior_linear).powi(2);
+    }
+    if let Some(k) = s.lambda {
+        prior[k] = 0.5f64.powi(2);
+    }
+    if let Some(k) = s.le_i {
+        prior[k] = 0.2f64.powi(2);
+        prior[k + 1] = 0.2f64.powi(2);
+    }
+    if let Some(k) = s.rms_v {
+        prior[k] = 1.0;
+    }
+    // Odd and even Legendre terms at rest: P_j(0) != 0 for even j, so the value at rest
+    // keeps its prior only through the constant term's variance (small enough).
+    prior
+}
+
 /// What the live model saw on the samples of one [`Online::push`].
 #[derive(Clone, Debug, Default)]
 pub struct LiveStats {
@@ -216,6 +243,8 @@ pub struct Online {
     previous: Option<(Vec<f64>, DMatrix<f64>)>,
     /// Times the live model ran away and fell back.
     pub resets: usize,
+    /// Effects dropped by [`Online::drop_effects`].
+    pub dropped: Effects,
     /// Largest |x| of the live model since the last update, and its absolute sample: the
     /// update's window is centred on it.
     peak_since: (f64, usize),
@@ -235,29 +264,7 @@ impl Online {
         let effects = Effects { creep: start.creep.is_some() || o.creep, lr3: start.l3r3.is_some() || o.lr3, le_i: start.le_i.is_some() || o.le_i, rms_v: start.rms_v.is_some() || o.rms_v };
         let layout = Layout::new(opts.order, 1, 1.0, opts.x_ref, scales, start.l2r2.is_some(), start.mms).with_effects(effects);
         let theta = layout.theta_from(start, None);
-        let s = layout.slots();
-        let mut prior = vec![opts.prior_nonlinear.powi(2); s.n];
-        for k in [s.re.start, s.le.start, s.bl.start, s.kms.start, s.rms] {
-            prior[k] = opts.prior_linear.powi(2);
-        }
-        for k in [s.l2, s.r2, s.l3, s.r3].into_iter().flatten() {
-            prior[k] = (2.0 * opts.prior_linear).powi(2);
-        }
-        // The effects' priors (theta units): lambda +- 0.05 (theta is lambda / 0.1); g1
-        // +- 0.2 / A and g2 +- 0.2 / A^2 (Le 20 % down at 1 A); c2 +- 1 Rms per (m/s)^2.
-        if let Some(k) = s.lambda {
-            prior[k] = 0.5f64.powi(2);
-        }
-        if let Some(k) = s.le_i {
-            prior[k] = 0.2f64.powi(2);
-            prior[k + 1] = 0.2f64.powi(2);
-        }
-        if let Some(k) = s.rms_v {
-            prior[k] = 1.0;
-        }
-        // Odd and even Legendre terms at rest: P_j(0) != 0 for even j, so the value at rest
-        // keeps its prior only through the constant term's variance (small enough).
-        let cov = DMatrix::from_diagonal(&DVector::from_vec(prior));
+        let cov = DMatrix::from_diagonal(&DVector::from_vec(prior_variances(&layout.slots(), &opts)));
         let rate = start.stiffness_rate();
         let n = substeps_for(rate, fs);
         let n_jac = ((rate / fs / JACOBIAN_STIFF_LIMIT).ceil() as usize).clamp(1, n);
@@ -291,6 +298,7 @@ impl Online {
             v_reach: 0.0,
             previous: None,
             resets: 0,
+            dropped: Effects::NONE,
             peak_since: (0.0, 0),
             opts,
         };
@@ -580,8 +588,21 @@ impl Online {
         // Jacobian of the model current (the residual is r = i - i_model).
         let np = self.theta.len();
         let mut jac = DMatrix::zeros(rows, np);
-        for c0 in (0..np).step_by(CHUNK) {
-            for (c, col) in self.jacobian_chunk(&y0, a, b, skip, c0, slope).into_iter().enumerate() {
+        // The chunks of columns are independent: they run on all cores.
+        let starts: Vec<usize> = (0..np).step_by(CHUNK).collect();
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(starts.len()).max(1);
+        let this = &*self;
+        let chunks: Vec<(usize, Vec<Vec<f64>>)> = std::thread::scope(|scope| {
+            let handles: Vec<_> = (0..threads)
+                .map(|t| {
+                    let mine: Vec<usize> = starts.iter().copied().skip(t).step_by(threads).collect();
+                    scope.spawn(move || mine.into_iter().map(|c0| (c0, this.jacobian_chunk(&y0, a, b, skip, c0, slope))).collect::<Vec<_>>())
+                })
+                .collect();
+            handles.into_iter().flat_map(|h| h.join().expect("a Jacobian chunk does not panic")).collect()
+        });
+        for (c0, cols) in chunks {
+            for (c, col) in cols.into_iter().enumerate() {
                 jac.column_mut(c0 + c).copy_from_slice(&col);
             }
         }
@@ -670,6 +691,70 @@ impl Online {
         let s = self.layout.slots();
         let small = |k: usize| self.theta[k].abs() < INSIGNIFICANT_SD * self.sd_theta(k);
         Effects { le_i: s.le_i.is_some_and(|k| small(k) && small(k + 1)), rms_v: s.rms_v.is_some_and(small), ..Effects::NONE }
+    }
+
+    /// Stop estimating the large-signal effects in `drop` (Le(i), Rms(v); others are ignored):
+    /// the estimate and its covariance are conditioned on their coefficients being zero (the
+    /// Gaussian conditional: `theta_K -= P_KD P_DD^-1 theta_D`, `P_KK -= P_KD P_DD^-1 P_DK`),
+    /// and the live model continues without them. Each costs a fifth of an update (three more
+    /// Jacobian columns, a slower model): the measurement drops what the data at full level
+    /// did not show ([`Online::insignificant_effects`]). Returns the effects dropped.
+    pub fn drop_effects(&mut self, drop: Effects) -> Effects {
+        let e = self.layout.effects;
+        let dropped = Effects { le_i: drop.le_i && e.le_i, rms_v: drop.rms_v && e.rms_v, ..Effects::NONE };
+        if !(dropped.le_i || dropped.rms_v) {
+            return dropped;
+        }
+        let s = self.layout.slots();
+        let mut gone: Vec<usize> = vec![];
+        if let (true, Some(k)) = (dropped.le_i, s.le_i) {
+            gone.extend([k, k + 1]);
+        }
+        if let (true, Some(k)) = (dropped.rms_v, s.rms_v) {
+            gone.push(k);
+        }
+        let keep: Vec<usize> = (0..s.n).filter(|k| !gone.contains(k)).collect();
+        let sub = |rows: &[usize], cols: &[usize]| DMatrix::from_fn(rows.len(), cols.len(), |r, c| self.cov[(rows[r], cols[c])]);
+        let (p_kd, p_dd) = (sub(&keep, &gone), sub(&gone, &gone));
+        let Some(p_dd_inv) = p_dd.try_inverse() else {
+            return Effects::NONE;
+        };
+        // Condition on the dropped coefficients being zero, then remove them.
+        let gain = &p_kd * p_dd_inv;
+        let th_d = DVector::from_iterator(gone.len(), gone.iter().map(|&k| self.theta[k]));
+        let shift = &gain * th_d;
+        let cond = sub(&keep, &keep) - &gain * p_kd.transpose();
+        for (r, &k) in keep.iter().enumerate() {
+            self.theta[k] -= shift[r];
+            for (c, &l) in keep.iter().enumerate() {
+                self.cov[(k, l)] = 0.5 * (cond[(r, c)] + cond[(c, r)]);
+            }
+        }
+        self.dropped = Effects { le_i: self.dropped.le_i || dropped.le_i, rms_v: self.dropped.rms_v || dropped.rms_v, ..Effects::NONE };
+        self.relayout(Effects { le_i: e.le_i && !dropped.le_i, rms_v: e.rms_v && !dropped.rms_v, ..e });
+        dropped
+    }
+
+    /// Move the estimate to the layout with `effects`: entries carried over by name (the ones
+    /// it lacks are removed; a new one would start at none with its prior).
+    fn relayout(&mut self, effects: Effects) {
+        let old = self.layout.slots().named();
+        let layout = self.layout.clone().with_effects(effects);
+        let slots = layout.slots();
+        let new = slots.named();
+        let prior = prior_variances(&slots, &self.opts);
+        let from: Vec<Option<usize>> = new.iter().map(|(name, _)| old.iter().find(|o| &o.0 == name).map(|o| o.1)).collect();
+        let theta: Vec<f64> = from.iter().map(|f| f.map_or(0.0, |k| self.theta[k])).collect();
+        let cov = DMatrix::from_fn(slots.n, slots.n, |r, c| match (from[r], from[c]) {
+            (Some(a), Some(b)) => self.cov[(a, b)],
+            _ if r == c => prior[r],
+            _ => 0.0,
+        });
+        self.layout = layout;
+        self.theta = theta;
+        self.cov = cov;
+        self.previous = None;
+        self.rebuild_live();
     }
 
     /// Standard deviation of theta entry `k` (normalised units).

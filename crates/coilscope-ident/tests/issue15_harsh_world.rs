@@ -8,7 +8,8 @@
 //! * flux modulation, Le down 3 % (and 0.5 % asymmetry) at the record's peak current;
 //! * Rms up 35 % at the record's peak velocity.
 //!
-//! Drivers: the three bundled ones and the large semi-inductive coil (Le 2.9 mH, L2 6.7 mH).
+//! Drivers: the three bundled ones and the large semi-inductive coil (Le 2.9 mH, L2 6.7 mH);
+//! with every effect also SB17 at 44.1 kHz and PTT4 at 96 kHz.
 //! Asserted (the issue's figures): the model `LR-2+LR-3+creep+Le(i)+Rms(v)` is chosen;
 //! Bl(x) within 2 % and Kms(x) within 3 % over the reached range, Re within 0.5 %, Le(x)
 //! within 5 %; lambda, g2 and c2 within 20 %; the truth within 3 sd of the bands; a
@@ -39,10 +40,14 @@ fn peak(s: &[f64]) -> f64 {
 
 /// Identify one driver with `effects` (all four: the harsh world); returns the problems found.
 fn harsh(name: &str, seed: u64, effects: Effects) -> Vec<String> {
+    harsh_at(name, seed, effects, 48000.0)
+}
+
+/// [`harsh`] at sample rate `fs` (Hz).
+fn harsh_at(name: &str, seed: u64, effects: Effects, fs: f64) -> Vec<String> {
     let plain = driver(name);
     let [lo, hi] = plain.x_range.unwrap();
     let target = 0.85 * hi.min(-lo);
-    let fs = 48000.0;
     let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.05, seed }).unwrap();
     // The peak current and velocity of the plain driver at this level scale the effects.
     let (_, tr0) = gain_for_peak(&plain, fs, &unit, target, &SimOptions::default()).unwrap();
@@ -61,7 +66,7 @@ fn harsh(name: &str, seed: u64, effects: Effects) -> Vec<String> {
     let (mut u, mut i) = (tr.u, tr.i);
     add_sensor_noise(&mut u, 70.0, seed, "sensor-noise/voltage");
     add_sensor_noise(&mut i, 70.0, seed, "sensor-noise/current");
-    let label = format!("{name} ({}, seed {seed})", effects.model_name());
+    let label = format!("{name} ({}, seed {seed}, {} Hz)", effects.model_name(), fs);
     let fit = match identify(&u, &i, fs, &label, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}) {
         Ok(f) => f,
         Err(e) => return vec![format!("{label}: {e}")],
@@ -143,4 +148,18 @@ fn le_i_alone_and_rms_v_alone_on_the_bundled_drivers_and_a_large_coil() {
         cases.push((n, s + 10, Effects { rms_v: true, ..Effects::NONE }));
     }
     run(&cases);
+}
+
+/// Every effect at once on SB17 at 44.1 kHz and PTT4 at 96 kHz. (The microspeakers are not
+/// here: `identify` misses them even in the plain world, see the README's open findings.)
+#[test]
+#[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue15_harsh_world -- --ignored"]
+fn every_effect_at_once_at_other_rates() {
+    let all = Effects { creep: true, lr3: true, le_i: true, rms_v: true };
+    let cases = [("sb17cac35-4", 33, 44100.0), ("ptt4.0w04-01a", 34, 96000.0)];
+    let bad: Vec<String> = std::thread::scope(|sc| {
+        let hs: Vec<_> = cases.iter().map(|&(n, seed, fs)| sc.spawn(move || harsh_at(n, seed, all, fs))).collect();
+        hs.into_iter().flat_map(|h| h.join().unwrap()).collect()
+    });
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
 }

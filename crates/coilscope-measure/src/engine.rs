@@ -44,6 +44,10 @@ use coilscope_ident::linear::{fit_linear_record, scale_by_mms, Effects, EffectsC
 /// record; a controlled stage fades out with the cone still moving a little), creep and LR-3
 /// chosen by the data as in `linear`; the online estimator keeps what it chose, and adds
 /// Le(i) and Rms(v) (see [`OnlineOptions::effects`]).
+/// Seconds at full level (stage Hold) after which the online estimator stops estimating the
+/// large-signal effects the data have not shown ([`Online::drop_effects`]): the time the
+/// convergence test waits as well.
+const PRUNE_AFTER_HOLD_S: f64 = 2.0;
 const SMALL_STAGE_FIT: LinearOptions = LinearOptions { ends: Ends::Fitted, effects: EffectsChoice::Auto };
 use coilscope_ident::online::{Online, OnlineOptions};
 
@@ -645,6 +649,8 @@ pub struct Engine<'a> {
     /// The reach at the last update: how far the stiffness limit has been looked for.
     checked_reach: f64,
     hold_since: f64,
+    /// Whether the insignificant effects were dropped at full level.
+    pruned: bool,
     steady_blocks: usize,
     events: Vec<(f64, String)>,
     dt_track: Vec<(f64, f64)>,
@@ -713,6 +719,7 @@ impl<'a> Engine<'a> {
             kms_ratio: 1.0,
             checked_reach: 0.0,
             hold_since: f64::INFINITY,
+            pruned: false,
             steady_blocks: 0,
             events: Vec::new(),
             dt_track: Vec::new(),
@@ -940,6 +947,15 @@ impl<'a> Engine<'a> {
                         }
                         self.last_residual = up.before;
                         self.last_excess = up.before * (1.0 - 1.0 / up.floor_ratio.max(1.0).powi(2)).sqrt();
+                        // At full level for a while, the large-signal effects the data did not
+                        // show stop being estimated (each made every update a fifth dearer).
+                        if self.controllable && !self.pruned && self.stage == Stage::Hold && t - self.hold_since >= PRUNE_AFTER_HOLD_S {
+                            self.pruned = true;
+                            let d = on.drop_effects(on.insignificant_effects());
+                            if d.le_i || d.rms_v {
+                                self.events.push((t, format!("at full level for {PRUNE_AFTER_HOLD_S} s the data show no {}: no longer estimated", [(d.le_i, "flux modulation Le(i)"), (d.rms_v, "velocity-dependent loss Rms(v)")].iter().filter(|e| e.0).map(|e| e.1).collect::<Vec<_>>().join(" and "))));
+                            }
+                        }
 
                         live.update = Some(up.before);
                         let est = on.parameters();
@@ -1104,7 +1120,8 @@ impl<'a> Engine<'a> {
         // estimate. The hot value at the end lives under `thermal` (`Measurement::re_end`).
         let mut params = on.parameters();
         let re_end = params.re;
-        let dropped = on.insignificant_effects();
+        let later = on.insignificant_effects();
+        let dropped = Effects { le_i: later.le_i || on.dropped.le_i, rms_v: later.rms_v || on.dropped.rms_v, ..Effects::NONE };
         if dropped.le_i {
             params.le_i = None;
         }
@@ -1171,6 +1188,19 @@ pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptio
 
 impl Measurement {
     /// What makes the result doubtful, named (empty for a converged fit to the noise).
+    /// What the estimator did with the effects it was offered beyond those reported.
+    pub fn models_note(&self) -> String {
+        let mut notes = vec![];
+        if self.dropped.has_large_signal() {
+            notes.push(format!("estimated with {} as well; within {} sd of none, not reported", self.dropped.in_words(), coilscope_ident::online::INSIGNIFICANT_SD));
+        }
+        if notes.is_empty() {
+            "every effect estimated is reported".to_string()
+        } else {
+            notes.join("; ")
+        }
+    }
+
     pub fn warnings(&self) -> Vec<coilscope_ident::checks::Warning> {
         let mut w = Vec::new();
         if self.residual_excess.is_finite() && self.residual_excess > CONVERGED_EXCESS {
@@ -1228,11 +1258,7 @@ impl Measurement {
                 "x_range": self.x_range,
                 "order": self.online.layout.order,
                 "model": self.effects.model_name(),
-                "models_note": if self.dropped.has_large_signal() {
-                    format!("estimated with {} as well; within {} sd of none, not reported", self.dropped.in_words(), coilscope_ident::online::INSIGNIFICANT_SD)
-                } else {
-                    "every effect estimated is reported".to_string()
-                },
+                "models_note": self.models_note(),
                 "converged": self.converged,
                 "stop_reason": self.stop_reason.describe(),
                 "updates": self.updates,

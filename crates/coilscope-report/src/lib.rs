@@ -184,23 +184,13 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
 
     // --- Parameters ---------------------------------------------------------------------
     b.section("Parameters", "Values at rest (x = 0); SI units. Small-signal figures from the linearised model at rest.");
-    let mut rows = vec![
-        vec!["Re".into(), fmt(p.re), "ohm".into()],
-        vec!["Le(0)".into(), fmt(p.le.c[0]), "H".into()],
-        vec!["Bl(0)".into(), fmt(p.bl.c[0]), "T m".into()],
-        vec!["Kms(0)".into(), fmt(p.kms.c[0]), "N/m".into()],
-        vec!["Mms".into(), fmt(p.mms), "kg".into()],
-        vec!["Rms".into(), fmt(p.rms), "kg/s".into()],
-    ];
-    if let Some((l2, r2)) = &p.l2r2 {
-        rows.push(vec!["L2(0)".into(), fmt(l2.c[0]), "H".into()]);
-        rows.push(vec!["R2(0)".into(), fmt(r2.c[0]), "ohm".into()]);
-    }
-    if let Some(t) = &p.thermal {
-        for (k, v, u) in [("alpha", t.alpha, "1/K"), ("Rtv", t.rtv, "K/W"), ("Ctv", t.ctv, "J/K"), ("Rtm", t.rtm, "K/W"), ("Ctm", t.ctm, "J/K")] {
-            rows.push(vec![k.into(), fmt(v), u.into()]);
-        }
-    }
+    // Every constant of the parameter schema the set has, and the functions of x at rest.
+    use coilscope_core::schema::{Kind, ENTRIES};
+    let mut rows: Vec<Vec<String>> = ENTRIES
+        .iter()
+        .filter(|e| !e.realisation && matches!(e.kind, Kind::Number | Kind::SeriesX))
+        .filter_map(|e| p.get(e.key).and_then(|v| v.at_rest()).map(|v| vec![e.label(), fmt(v), e.unit_text().to_string()]))
+        .collect();
     for (k, v, u) in [("fs", ts.fs, "Hz"), ("Qms", ts.qms, ""), ("Qes", ts.qes, ""), ("Qts", ts.qts, "")] {
         rows.push(vec![k.into(), fmt(v), u.into()]);
     }
@@ -209,14 +199,16 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     }
     b.table(&["parameter", "value", "unit"], &rows);
     let mut series_rows = vec![];
-    let mut funcs: Vec<(&str, &coilscope_core::Poly, &str)> = vec![("Bl", &p.bl, "T m"), ("Kms", &p.kms, "N/m"), ("Le", &p.le, "H")];
-    if let Some((l2, r2)) = &p.l2r2 {
-        funcs.push(("L2", l2, "H"));
-        funcs.push(("R2", r2, "ohm"));
-    }
+    let funcs: Vec<(String, &coilscope_core::Poly)> = ENTRIES
+        .iter()
+        .filter_map(|e| match (p.get(e.key), e.variable()) {
+            (Some(coilscope_core::schema::Value::Series(f)), Some((var, var_unit))) => Some((format!("{} ({}/{var_unit}^j, {var})", e.key, e.unit), f)),
+            _ => None,
+        })
+        .collect();
     let order = funcs.iter().map(|f| f.1.c.len()).max().unwrap_or(1);
-    for (name, f, unit) in &funcs {
-        let mut r = vec![format!("{name} ({unit}/m^j)")];
+    for (name, f) in &funcs {
+        let mut r = vec![name.clone()];
         r.extend((0..order).map(|j| f.c.get(j).map(|&c| fmt(c)).unwrap_or_default()));
         series_rows.push(r);
     }
