@@ -681,10 +681,8 @@ fn cmd_linear(
 /// display units (`coilscope_core::schema`), with the result's sd (`uncertainty.<key>`) where
 /// it has one; `skip`: keys shown otherwise. The thermal constants are not fitted here.
 fn print_values(p: &Parameters, uncertainty: &serde_json::Value, skip: &[&str]) {
-    use coilscope_core::schema::{Component, Kind, ENTRIES};
-    let shown = ENTRIES.iter().filter(|e| !e.realisation && matches!(e.kind, Kind::Number | Kind::SeriesX) && e.component != Component::Thermal && !skip.contains(&e.key));
-    for e in shown {
-        let Some(v) = p.get(e.key).and_then(|v| v.at_rest()) else { continue };
+    let shown = p.values_at_rest().filter(|(e, _)| e.component != coilscope_core::schema::Component::Thermal && !skip.contains(&e.key));
+    for (e, v) in shown {
         let (unit, scale) = e.display;
         let sd = uncertainty[e.key].as_f64().map(|s| format!("+- {:.2e}", s * scale)).unwrap_or_default();
         println!("  {:<6} {:>12} {:<5} {}", e.short(), format!("{:.4}", v * scale), unit, sd);

@@ -430,11 +430,10 @@ impl Parameters {
             None => (0.0, 0.0),
         };
         let where_ = if self.x_range.is_some() { format!("inside x_range [{lo}, {hi}] m") } else { "at x = 0".to_string() };
-        let mut funcs: Vec<(&str, &Poly, &str)> = vec![("Bl", &self.bl, "T m"), ("Kms", &self.kms, "N/m"), ("Le", &self.le, "H")];
-        if let Some((l2, r2)) = &self.l2r2 {
-            funcs.push(("L2", l2, "H"));
-            funcs.push(("R2", r2, "ohm"));
-        }
+        let funcs = crate::schema::ENTRIES.iter().filter(|e| e.kind == crate::schema::Kind::SeriesX).filter_map(|e| match self.get(e.key) {
+            Some(SchemaValue::Series(p)) => Some((e.key, p, e.unit)),
+            _ => None,
+        });
         for (key, p, unit) in funcs {
             let (mn, _) = p.min_max_on(lo, hi);
             if !(mn > 0.0) {
@@ -488,6 +487,16 @@ impl Parameters {
             "x_range" => self.x_range.map(V::Range),
             _ => None,
         }
+    }
+
+    /// The constants and the functions of x at rest (their `c0`) the set has, in the schema's
+    /// order, without the creep bank's realisation keys: what a table of values shows.
+    pub fn values_at_rest(&self) -> impl Iterator<Item = (&'static crate::schema::Entry, f64)> + '_ {
+        use crate::schema::{Kind, ENTRIES};
+        ENTRIES
+            .iter()
+            .filter(|e| !e.realisation && matches!(e.kind, Kind::Number | Kind::SeriesX))
+            .filter_map(|e| self.get(e.key).and_then(|v| v.at_rest()).map(|v| (e, v)))
     }
 
     /// Write the set as contract JSON (constants as numbers, series in x as a number when

@@ -134,37 +134,6 @@ pub struct Slots {
     pub n: usize,
 }
 
-impl Slots {
-    /// Every entry of theta by name (`Re0`, `Le0`..`LeN`, `L2`, `R2`, `Bl0`.., `Kms0`.., `Rms`,
-    /// `lambda`, `L3`, `R3`, `g1`, `g2`, `c2`), in index order: how a theta of one layout maps
-    /// onto another's.
-    pub fn named(&self) -> Vec<(String, usize)> {
-        let mut v = vec![];
-        let series = |v: &mut Vec<(String, usize)>, name: &str, r: &Range<usize>| {
-            for (j, k) in r.clone().enumerate() {
-                v.push((format!("{name}{j}"), k));
-            }
-        };
-        series(&mut v, "Re", &self.re);
-        series(&mut v, "Le", &self.le);
-        v.extend(self.l2.map(|k| ("L2".to_string(), k)));
-        v.extend(self.r2.map(|k| ("R2".to_string(), k)));
-        series(&mut v, "Bl", &self.bl);
-        series(&mut v, "Kms", &self.kms);
-        v.push(("Rms".into(), self.rms));
-        v.extend(self.lambda.map(|k| ("lambda".to_string(), k)));
-        v.extend(self.l3.map(|k| ("L3".to_string(), k)));
-        v.extend(self.r3.map(|k| ("R3".to_string(), k)));
-        if let Some(k) = self.le_i {
-            v.push(("g1".into(), k));
-            v.push(("g2".into(), k + 1));
-        }
-        v.extend(self.rms_v.map(|k| ("c2".to_string(), k)));
-        v.sort_by_key(|e| e.1);
-        v
-    }
-}
-
 /// Systematic part of a curve's band, relative to its value (a type-B uncertainty, added in
 /// quadrature to the statistical sd): what the fit cannot know from its own residual. On the
 /// independent simulator's recordings (`shared/recordings`, integrated at 16x and decimated
@@ -600,36 +569,41 @@ impl<'a> OutputError<'a> {
 
     /// All Jacobian columns, passes spread over `threads` workers.
     pub fn jacobian(&self, th: &[f64]) -> DMatrix<f64> {
-        let n = th.len();
-        let chunks: Vec<usize> = (0..n).step_by(CHUNK).collect();
-        let next = AtomicUsize::new(0);
-        let mut done: Vec<(usize, Vec<Vec<f64>>)> = Vec::new();
-        std::thread::scope(|scope| {
-            let workers: Vec<_> = (0..self.threads.min(chunks.len()))
-                .map(|_| {
-                    scope.spawn(|| {
-                        let mut out = Vec::new();
-                        loop {
-                            let k = next.fetch_add(1, Ordering::Relaxed);
-                            let Some(&c0) = chunks.get(k) else { break };
-                            out.push((c0, self.jacobian_chunk::<CHUNK>(th, c0)));
-                        }
-                        out
-                    })
-                })
-                .collect();
-            for w in workers {
-                done.extend(w.join().expect("Jacobian worker panicked"));
-            }
-        });
-        let mut j = DMatrix::zeros(self.fit.len(), n);
-        for (c0, cols) in done {
-            for (k, col) in cols.into_iter().enumerate() {
-                j.column_mut(c0 + k).copy_from_slice(&col);
-            }
-        }
-        j
+        jacobian_by_chunks(self.fit.len(), th.len(), self.threads, |c0| self.jacobian_chunk::<CHUNK>(th, c0))
     }
+}
+
+/// A `rows x n` Jacobian from its passes: `chunk(c0)` gives the columns `c0 .. c0 + CHUNK`
+/// (fewer at the end). The passes are independent; `threads` workers take them in turn.
+pub(crate) fn jacobian_by_chunks(rows: usize, n: usize, threads: usize, chunk: impl Fn(usize) -> Vec<Vec<f64>> + Sync) -> DMatrix<f64> {
+    let chunks: Vec<usize> = (0..n).step_by(CHUNK).collect();
+    let next = AtomicUsize::new(0);
+    let mut done: Vec<(usize, Vec<Vec<f64>>)> = Vec::new();
+    std::thread::scope(|scope| {
+        let workers: Vec<_> = (0..threads.clamp(1, chunks.len().max(1)))
+            .map(|_| {
+                scope.spawn(|| {
+                    let mut out = Vec::new();
+                    loop {
+                        let k = next.fetch_add(1, Ordering::Relaxed);
+                        let Some(&c0) = chunks.get(k) else { break };
+                        out.push((c0, chunk(c0)));
+                    }
+                    out
+                })
+            })
+            .collect();
+        for w in workers {
+            done.extend(w.join().expect("Jacobian worker panicked"));
+        }
+    });
+    let mut j = DMatrix::zeros(rows, n);
+    for (c0, cols) in done {
+        for (k, col) in cols.into_iter().enumerate() {
+            j.column_mut(c0 + k).copy_from_slice(&col);
+        }
+    }
+    j
 }
 
 impl Problem for OutputError<'_> {

@@ -20,7 +20,7 @@
 //! The parameters are those of [`crate::large::Layout`] (Legendre series in `x / x_ref`) with
 //! one `Re`. Nothing here allocates per sample; the history kept is a few seconds.
 
-use crate::large::{seed_duals, Layout, Scales, CHUNK};
+use crate::large::{jacobian_by_chunks, seed_duals, Layout, Scales, CHUNK};
 use crate::linear::Effects;
 use coilscope_core::integrate::{rk4_sample, substeps_for, Interpolator, HALF_TAPS};
 use coilscope_core::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
@@ -587,25 +587,8 @@ impl Online {
         let sigma2 = (e0 / rows as f64).max(1e-300);
         // Jacobian of the model current (the residual is r = i - i_model).
         let np = self.theta.len();
-        let mut jac = DMatrix::zeros(rows, np);
-        // The chunks of columns are independent: they run on all cores.
-        let starts: Vec<usize> = (0..np).step_by(CHUNK).collect();
-        let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(starts.len()).max(1);
-        let this = &*self;
-        let chunks: Vec<(usize, Vec<Vec<f64>>)> = std::thread::scope(|scope| {
-            let handles: Vec<_> = (0..threads)
-                .map(|t| {
-                    let mine: Vec<usize> = starts.iter().copied().skip(t).step_by(threads).collect();
-                    scope.spawn(move || mine.into_iter().map(|c0| (c0, this.jacobian_chunk(&y0, a, b, skip, c0, slope))).collect::<Vec<_>>())
-                })
-                .collect();
-            handles.into_iter().flat_map(|h| h.join().expect("a Jacobian chunk does not panic")).collect()
-        });
-        for (c0, cols) in chunks {
-            for (c, col) in cols.into_iter().enumerate() {
-                jac.column_mut(c0 + c).copy_from_slice(&col);
-            }
-        }
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let jac = jacobian_by_chunks(rows, np, threads, |c0| self.jacobian_chunk(&y0, a, b, skip, c0, slope));
         let jtj = jac.tr_mul(&jac) / sigma2;
         let jtr = jac.tr_mul(&r) / sigma2;
         let p_inv = self.cov.clone().try_inverse()?;
@@ -719,42 +702,20 @@ impl Online {
         let Some(p_dd_inv) = p_dd.try_inverse() else {
             return Effects::NONE;
         };
-        // Condition on the dropped coefficients being zero, then remove them.
+        // Condition on the dropped coefficients being zero; the rest keep their order in
+        // theta (the effects' slots follow the others).
         let gain = &p_kd * p_dd_inv;
         let th_d = DVector::from_iterator(gone.len(), gone.iter().map(|&k| self.theta[k]));
         let shift = &gain * th_d;
         let cond = sub(&keep, &keep) - &gain * p_kd.transpose();
-        for (r, &k) in keep.iter().enumerate() {
-            self.theta[k] -= shift[r];
-            for (c, &l) in keep.iter().enumerate() {
-                self.cov[(k, l)] = 0.5 * (cond[(r, c)] + cond[(c, r)]);
-            }
-        }
+        self.theta = keep.iter().enumerate().map(|(r, &k)| self.theta[k] - shift[r]).collect();
+        self.cov = (&cond + cond.transpose()) * 0.5;
+        self.layout = self.layout.clone().with_effects(Effects { le_i: e.le_i && !dropped.le_i, rms_v: e.rms_v && !dropped.rms_v, ..e });
+        debug_assert_eq!(self.layout.slots().n, keep.len());
         self.dropped = Effects { le_i: self.dropped.le_i || dropped.le_i, rms_v: self.dropped.rms_v || dropped.rms_v, ..Effects::NONE };
-        self.relayout(Effects { le_i: e.le_i && !dropped.le_i, rms_v: e.rms_v && !dropped.rms_v, ..e });
-        dropped
-    }
-
-    /// Move the estimate to the layout with `effects`: entries carried over by name (the ones
-    /// it lacks are removed; a new one would start at none with its prior).
-    fn relayout(&mut self, effects: Effects) {
-        let old = self.layout.slots().named();
-        let layout = self.layout.clone().with_effects(effects);
-        let slots = layout.slots();
-        let new = slots.named();
-        let prior = prior_variances(&slots, &self.opts);
-        let from: Vec<Option<usize>> = new.iter().map(|(name, _)| old.iter().find(|o| &o.0 == name).map(|o| o.1)).collect();
-        let theta: Vec<f64> = from.iter().map(|f| f.map_or(0.0, |k| self.theta[k])).collect();
-        let cov = DMatrix::from_fn(slots.n, slots.n, |r, c| match (from[r], from[c]) {
-            (Some(a), Some(b)) => self.cov[(a, b)],
-            _ if r == c => prior[r],
-            _ => 0.0,
-        });
-        self.layout = layout;
-        self.theta = theta;
-        self.cov = cov;
         self.previous = None;
         self.rebuild_live();
+        dropped
     }
 
     /// Standard deviation of theta entry `k` (normalised units).

@@ -953,7 +953,7 @@ impl<'a> Engine<'a> {
                             self.pruned = true;
                             let d = on.drop_effects(on.insignificant_effects());
                             if d.le_i || d.rms_v {
-                                self.events.push((t, format!("at full level for {PRUNE_AFTER_HOLD_S} s the data show no {}: no longer estimated", [(d.le_i, "flux modulation Le(i)"), (d.rms_v, "velocity-dependent loss Rms(v)")].iter().filter(|e| e.0).map(|e| e.1).collect::<Vec<_>>().join(" and "))));
+                                self.events.push((t, format!("at full level for {PRUNE_AFTER_HOLD_S} s the data show no {}: no longer estimated", d.in_words())));
                             }
                         }
 

@@ -185,12 +185,7 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     // --- Parameters ---------------------------------------------------------------------
     b.section("Parameters", "Values at rest (x = 0); SI units. Small-signal figures from the linearised model at rest.");
     // Every constant of the parameter schema the set has, and the functions of x at rest.
-    use coilscope_core::schema::{Kind, ENTRIES};
-    let mut rows: Vec<Vec<String>> = ENTRIES
-        .iter()
-        .filter(|e| !e.realisation && matches!(e.kind, Kind::Number | Kind::SeriesX))
-        .filter_map(|e| p.get(e.key).and_then(|v| v.at_rest()).map(|v| vec![e.label(), fmt(v), e.unit_text().to_string()]))
-        .collect();
+    let mut rows: Vec<Vec<String>> = p.values_at_rest().map(|(e, v)| vec![e.label(), fmt(v), e.unit_text().to_string()]).collect();
     for (k, v, u) in [("fs", ts.fs, "Hz"), ("Qms", ts.qms, ""), ("Qes", ts.qes, ""), ("Qts", ts.qts, "")] {
         rows.push(vec![k.into(), fmt(v), u.into()]);
     }
@@ -199,7 +194,7 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     }
     b.table(&["parameter", "value", "unit"], &rows);
     let mut series_rows = vec![];
-    let funcs: Vec<(String, &coilscope_core::Poly)> = ENTRIES
+    let funcs: Vec<(String, &coilscope_core::Poly)> = coilscope_core::schema::ENTRIES
         .iter()
         .filter_map(|e| match (p.get(e.key), e.variable()) {
             (Some(coilscope_core::schema::Value::Series(f)), Some((var, var_unit))) => Some((format!("{} ({}/{var_unit}^j, {var})", e.key, e.unit), f)),
