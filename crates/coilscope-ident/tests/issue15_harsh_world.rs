@@ -121,6 +121,7 @@ fn harsh_at(name: &str, seed: u64, effects: Effects, fs: f64) -> Vec<String> {
 }
 
 fn run(cases: &[(&str, u64, Effects)]) {
+    let cases = common::slice::in_slice("issue15_harsh_world", cases.to_vec());
     let bad: Vec<String> = std::thread::scope(|sc| {
         let hs: Vec<_> = cases.iter().map(|&(n, seed, e)| sc.spawn(move || harsh(n, seed, e))).collect();
         hs.into_iter().flat_map(|h| h.join().unwrap()).collect()
@@ -156,7 +157,7 @@ fn le_i_alone_and_rms_v_alone_on_the_bundled_drivers_and_a_large_coil() {
 #[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue15_harsh_world -- --ignored"]
 fn every_effect_at_once_at_other_rates() {
     let all = Effects { creep: true, lr3: true, le_i: true, rms_v: true };
-    let cases = [("sb17cac35-4", 33, 44100.0), ("ptt4.0w04-01a", 34, 96000.0)];
+    let cases = common::slice::in_slice("issue15_harsh_world", vec![("sb17cac35-4", 33, 44100.0), ("ptt4.0w04-01a", 34, 96000.0)]);
     let bad: Vec<String> = std::thread::scope(|sc| {
         let hs: Vec<_> = cases.iter().map(|&(n, seed, fs)| sc.spawn(move || harsh_at(n, seed, all, fs))).collect();
         hs.into_iter().flat_map(|h| h.join().unwrap()).collect()

@@ -1,6 +1,8 @@
 //! Truth comparisons shared by the identification tests (`mod common;` in each).
 #![allow(dead_code)]
 
+pub mod slice;
+
 use coilscope_core::{Parameters, Poly};
 
 /// Largest |f - g| over [lo, hi], relative to g(0).
