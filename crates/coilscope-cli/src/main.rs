@@ -909,6 +909,9 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
     }
     if let Some(dt) = result["thermal"]["dT_end"].as_f64() {
         println!("  voice coil: Re {:.4} -> {:.4} ohm over the record (+{:.2} K)", fit.re_track[0].1, fit.re_track.last().unwrap().1, dt);
+        if !fit.layout.heat_taus.is_empty() {
+            println!("  Re(t): knots every {:.2} s plus heating terms (time constants {:?} s): the coil heated faster than the knots could follow", fit.layout.knot_dt, fit.layout.heat_taus);
+        }
     }
 }
 

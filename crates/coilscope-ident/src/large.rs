@@ -107,7 +107,51 @@ pub struct Layout {
     /// Effects fitted with the rest: their unknowns follow `Rms` in theta (lambda; L3, R3;
     /// g1, g2; c2). Without creep and LR-3 the model is [`Model`] (six states).
     pub effects: Effects,
+    /// Time constants (s) of the heating terms of `Re(t)` (empty: the knots alone; see
+    /// [`HEAT_TAUS`]).
+    pub heat_taus: Vec<f64>,
     legendre: Vec<Vec<f64>>,
+}
+
+/// Time constants (s) of the heating terms `identify` adds to `Re(t)` when the knots cannot
+/// follow the coil's heating. A coil heats as a sum of first-order responses to the power it
+/// takes, `Re(t) = Re(0) + sum_j a_j h_j(t)` with `h_j` the `tau_j` low-pass of `i(t)^2 /
+/// mean(i^2)` from zero at the start of the record (measured current, so the terms are
+/// known shapes with unknown sizes `a_j`). Piecewise-linear knots 2 s apart miss a
+/// 2 s thermal time constant by h^2/8 Re'': 0.1 g at 0.5 mm heats 65 K in 8 s, and the
+/// knots left Re(0) 1.6 % off with the residual 15x its floor; 0.25 s knots still 0.4 %.
+/// Three time constants a factor 3 apart cover 0.3-10 s (microspeakers' voice coils); slower
+/// heating is a straight line over a knot interval and the knots carry it.
+pub const HEAT_TAUS: [f64; 3] = [0.5, 1.5, 4.5];
+
+/// Least relative drop of the final residual for `identify` to keep the heating terms.
+pub const HEAT_MIN_GAIN: f64 = 0.05;
+
+/// Largest bend of the `Re(t)` knots, `|Re(k-1) - 2 Re(k) + Re(k+1)| / 8` relative to `Re`
+/// (the error of straight lines between them), that needs no heating terms. A woofer (thermal
+/// time constant 20-40 s) heating 20 K in 8 s bends its 2 s knots by about 1e-4.
+pub const KNOT_BEND: f64 = 2e-4;
+
+/// Residual to noise-floor ratio above which `identify` tries the heating terms.
+pub const HEAT_TRY_RATIO: f64 = 1.3;
+
+/// The heating terms' shapes over a record: per time constant, the low-pass of the
+/// normalised `i^2` from zero (first-order, exact for a piecewise-constant input per sample).
+pub fn heat_shapes(i: &[f64], fs: f64, taus: &[f64]) -> Vec<Vec<f64>> {
+    let mean = (i.iter().map(|v| v * v).sum::<f64>() / i.len().max(1) as f64).max(f64::MIN_POSITIVE);
+    taus.iter()
+        .map(|&tau| {
+            let a = (-1.0 / (fs * tau)).exp();
+            let mut h = 0.0;
+            i.iter()
+                .map(|v| {
+                    let now = h;
+                    h = a * h + (1.0 - a) * v * v / mean;
+                    now
+                })
+                .collect()
+        })
+        .collect()
 }
 
 /// Index ranges of the quantities in `theta`.
@@ -131,8 +175,14 @@ pub struct Slots {
     /// Velocity-dependent loss: `c2` (kg s/m^2) of `Rms(|v|) = Rms + c2 v^2`, in units of
     /// `Rms` per (m/s)^2.
     pub rms_v: Option<usize>,
+    /// The heating terms of `Re(t)` (one per `Layout::heat_taus`, in units of
+    /// `HEAT_SCALE * Re`).
+    pub heat: Range<usize>,
     pub n: usize,
 }
+
+/// Scale of the heating terms in theta, relative to `Re`.
+const HEAT_SCALE: f64 = 0.01;
 
 /// Systematic part of a curve's band, relative to its value (a type-B uncertainty, added in
 /// quadrature to the statistical sd): what the fit cannot know from its own residual. On the
@@ -171,7 +221,18 @@ const LAMBDA_SCALE: f64 = 0.1;
 
 impl Layout {
     pub fn new(order: usize, n_re: usize, knot_dt: f64, x_ref: f64, scales: Scales, has_l2r2: bool, mms: f64) -> Self {
-        Layout { order, n_re, knot_dt, x_ref, scales, has_l2r2, mms, effects: Effects::NONE, legendre: legendre(order) }
+        Layout { order, n_re, knot_dt, x_ref, scales, has_l2r2, mms, effects: Effects::NONE, heat_taus: Vec::new(), legendre: legendre(order) }
+    }
+
+    /// The same layout with heating terms of these time constants in `Re(t)`.
+    pub fn with_heat(self, taus: &[f64]) -> Self {
+        Layout { heat_taus: taus.to_vec(), ..self }
+    }
+
+    /// The heating terms' sizes (ohm: the `Re` rise each would reach under steady mean
+    /// power), in the order of `heat_taus`.
+    pub fn heat_sizes<D: DualNum<Primitive = f64> + Copy>(&self, th: &[D]) -> Vec<D> {
+        th[self.slots().heat].iter().map(|&t| t * (self.scales.re * HEAT_SCALE)).collect()
     }
 
     /// The same layout with `effects` fitted as well.
@@ -206,7 +267,9 @@ impl Layout {
             n += 1;
             n - 1
         });
-        Slots { re, le, l2, r2, bl, kms, rms, lambda, l3, r3, le_i, rms_v, n }
+        let heat = n..n + self.heat_taus.len();
+        n = heat.end;
+        Slots { re, le, l2, r2, bl, kms, rms, lambda, l3, r3, le_i, rms_v, heat, n }
     }
 
     /// Power series in x (m) of `scale * sum_j th_j P_j(x / x_ref)`.
@@ -438,6 +501,7 @@ fn run_model<D: DualNum<Primitive = f64> + Copy, const N: usize>(
     model: &mut impl KnotModel<D, N>,
     knots: &[D],
     knot_dt: f64,
+    heat: (&[D], &[Vec<f64>]),
     u: &[f64],
     fs: f64,
     interp: &Interpolator,
@@ -460,7 +524,11 @@ fn run_model<D: DualNum<Primitive = f64> + Copy, const N: usize>(
         let t = m as f64 * dt / knot_dt;
         let k = (t.floor() as usize).min(last.saturating_sub(1));
         let w = (t - k as f64).min(1.0);
-        model.set_re(if last == 0 { knots[0] } else { knots[k] * (1.0 - w) + knots[k + 1] * w });
+        let mut re = if last == 0 { knots[0] } else { knots[k] * (1.0 - w) + knots[k + 1] * w };
+        for (a, h) in heat.0.iter().zip(heat.1) {
+            re += *a * h[m];
+        }
+        model.set_re(re);
         interp.fill(u, m, &mut pf);
         for (d, &f) in pd.iter_mut().zip(pf.iter()) {
             *d = D::from(f);
@@ -476,6 +544,7 @@ fn run_model<D: DualNum<Primitive = f64> + Copy, const N: usize>(
 fn run_layout<D: DualNum<Primitive = f64> + Copy>(
     layout: &Layout,
     th: &[D],
+    heat: &[Vec<f64>],
     u: &[f64],
     fs: f64,
     interp: &Interpolator,
@@ -485,10 +554,10 @@ fn run_layout<D: DualNum<Primitive = f64> + Copy>(
 ) -> Result<(), usize> {
     if !layout.effects.needs_ext_states() {
         let (mut model, knots) = layout.model(th);
-        run_model(&mut model, &knots, layout.knot_dt, u, fs, interp, len, x_limit, observe)
+        run_model(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, interp, len, x_limit, observe)
     } else {
         let (mut model, knots) = layout.ext_model(th);
-        run_model(&mut model, &knots, layout.knot_dt, u, fs, interp, len, x_limit, observe)
+        run_model(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, interp, len, x_limit, observe)
     }
 }
 
@@ -503,6 +572,8 @@ pub struct OutputError<'a> {
     /// Displacement beyond which a trial is rejected as a runaway (m).
     pub x_limit: f64,
     pub threads: usize,
+    /// The heating terms' shapes over the whole record ([`heat_shapes`] of `i`).
+    pub heat: Vec<Vec<f64>>,
     interp: Interpolator,
     interp_jac: Interpolator,
     /// The last Jacobian computed (LM's last iteration): reused for the covariance.
@@ -517,7 +588,33 @@ impl<'a> OutputError<'a> {
     pub fn new(layout: Layout, u: &'a [f64], i: &'a [f64], fs: f64, fit: Range<usize>, rate: f64, x_limit: f64, threads: usize) -> Self {
         let n = substeps_for(rate, fs);
         let n_jac = ((rate / fs / JACOBIAN_STIFF_LIMIT).ceil() as usize).clamp(1, n);
-        OutputError { layout, u, i, fs, fit, x_limit, threads: threads.max(1), interp: Interpolator::new(n), interp_jac: Interpolator::new(n_jac), last_jacobian: Default::default(), last_residual: Default::default() }
+        let heat = heat_shapes(i, fs, &layout.heat_taus);
+        OutputError { layout, u, i, fs, fit, x_limit, threads: threads.max(1), heat, interp: Interpolator::new(n), interp_jac: Interpolator::new(n_jac), last_jacobian: Default::default(), last_residual: Default::default() }
+    }
+
+    /// `(t, Re(t))` of theta: at the knots, or every 0.1 s with heating terms.
+    pub fn re_track(&self, th: &[f64]) -> Vec<(f64, f64)> {
+        let lay = &self.layout;
+        let knots = lay.re_track(th);
+        if lay.heat_taus.is_empty() {
+            return knots.iter().enumerate().map(|(k, r)| (k as f64 * lay.knot_dt, *r)).collect();
+        }
+        let sizes = lay.heat_sizes(th);
+        let last = knots.len() - 1;
+        let step = ((0.1 * self.fs) as usize).max(1);
+        (0..self.u.len())
+            .step_by(step)
+            .map(|m| {
+                let t = m as f64 / self.fs;
+                let k = ((t / lay.knot_dt).floor() as usize).min(last.saturating_sub(1));
+                let w = (t / lay.knot_dt - k as f64).min(1.0);
+                let mut re = if last == 0 { knots[0] } else { knots[k] * (1.0 - w) + knots[k + 1] * w };
+                for (a, h) in sizes.iter().zip(&self.heat) {
+                    re += a * h[m];
+                }
+                (t, re)
+            })
+            .collect()
     }
 
     /// Sub-steps per sample of the residual and of the Jacobian runs.
@@ -529,7 +626,7 @@ impl<'a> OutputError<'a> {
     pub fn trace(&self, th: &[f64], len: usize) -> Result<(Vec<f64>, Vec<f64>), usize> {
         let mut x = Vec::with_capacity(len);
         let mut i = Vec::with_capacity(len);
-        run_layout(&self.layout, th, self.u, self.fs, &self.interp, len, self.x_limit, |_, s| {
+        run_layout(&self.layout, th, &self.heat, self.u, self.fs, &self.interp, len, self.x_limit, |_, s| {
             x.push(s[idx::X]);
             i.push(s[idx::I]);
         })?;
@@ -539,7 +636,7 @@ impl<'a> OutputError<'a> {
     fn residual_vec(&self, th: &[f64]) -> Option<DVector<f64>> {
         let start = self.fit.start;
         let mut r = DVector::zeros(self.fit.len());
-        run_layout(&self.layout, th, self.u, self.fs, &self.interp, self.fit.end, self.x_limit, |m, s| {
+        run_layout(&self.layout, th, &self.heat, self.u, self.fs, &self.interp, self.fit.end, self.x_limit, |m, s| {
             if m >= start {
                 r[m - start] = s[idx::I] - self.i[m];
             }
@@ -555,7 +652,7 @@ impl<'a> OutputError<'a> {
         let start = self.fit.start;
         let mut cols = vec![vec![0.0; self.fit.len()]; cnt];
         // A run that fails here ran away at a theta whose f64 run did not: leave zeros.
-        let _ = run_layout(&self.layout, &thd, self.u, self.fs, &self.interp_jac, self.fit.end, f64::INFINITY, |m, s| {
+        let _ = run_layout(&self.layout, &thd, &self.heat, self.u, self.fs, &self.interp_jac, self.fit.end, f64::INFINITY, |m, s| {
             if m >= start {
                 if let Some(e) = s[idx::I].eps.0.as_ref() {
                     for (k, col) in cols.iter_mut().enumerate() {
@@ -1012,9 +1109,33 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
     let th = lay.theta_from(&current, re_track.as_deref());
     let prob = OutputError::new(lay.clone(), u, i, fs, settle..n, rate, x_limit, threads);
     let s = solve(&prob, th, &Stage::Final { order }, 1e-4, opts.max_iterations, &mut observe);
-    let (x_model, i_model) = prob.trace(&s.theta, n).map_err(|m| Input(format!("{origin}: the fitted model diverged at sample {m}")))?;
     let r = prob.residual(&s.theta);
     let residual_rel = rel(&r, &i[settle..n]);
+    // Heating faster than the knots can follow (see HEAT_TAUS): the knots bend by more than
+    // KNOT_BEND between neighbours and the residual is above its floor. Then the heating
+    // terms join Re(t), kept when they lower the residual by HEAT_MIN_GAIN.
+    let (lay, prob, s, r, residual_rel) = {
+        let track = lay.re_track(&s.theta);
+        let bend = track.windows(3).map(|w| (w[0] - 2.0 * w[1] + w[2]).abs() / 8.0).fold(0.0, f64::max) / track[0].abs().max(1e-9);
+        let floor_ratio = crate::checks::noise_floor(r.as_slice(), fs).ratio;
+        if lay.heat_taus.is_empty() && bend > KNOT_BEND && floor_ratio > HEAT_TRY_RATIO {
+            let lay_h = lay.clone().with_heat(&HEAT_TAUS);
+            let mut th = s.theta.clone();
+            th.resize(lay_h.slots().n, 0.0);
+            let prob_h = OutputError::new(lay_h.clone(), u, i, fs, settle..n, rate, x_limit, threads);
+            let s_h = solve(&prob_h, th, &Stage::Final { order }, 1e-4, opts.max_iterations, &mut observe);
+            let r_h = prob_h.residual(&s_h.theta);
+            let rel_h = rel(&r_h, &i[settle..n]);
+            if rel_h < (1.0 - HEAT_MIN_GAIN) * residual_rel {
+                (lay_h, prob_h, s_h, r_h, rel_h)
+            } else {
+                (lay, prob, s, r, residual_rel)
+            }
+        } else {
+            (lay, prob, s, r, residual_rel)
+        }
+    };
+    let (x_model, i_model) = prob.trace(&s.theta, n).map_err(|m| Input(format!("{origin}: the fitted model diverged at sample {m}")))?;
     // Covariance from the Jacobian of LM's last iteration (the accepted step after it is
     // below the convergence tolerance) and the final residual: the cluster-robust sandwich
     // over blocks of COVARIANCE_BLOCK_S, which holds when the residual is coloured (the
@@ -1037,7 +1158,7 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
         "no step lowered the cost any further".to_string()
     };
     let converged = s.converged || s.last_decrease == 0.0;
-    let re_track = lay.re_track(&s.theta).iter().enumerate().map(|(k, r)| (k as f64 * knot_dt, *r)).collect();
+    let re_track = prob.re_track(&s.theta);
     let fit = LargeFit {
         params,
         layout: lay,
@@ -1164,7 +1285,12 @@ impl LargeFit {
             "limits": lim.to_json(),
             "uncertainty": serde_json::Value::Object(unc),
             "thermal": {
-                "note": "Re(t) tracked piecewise linearly; temperature rise = (Re(t)/Re(0) - 1)/alpha with alpha = 0.00393 1/K (copper)",
+                "note": if self.layout.heat_taus.is_empty() {
+                    format!("Re(t) tracked piecewise linearly (knots every {:.2} s); temperature rise = (Re(t)/Re(0) - 1)/alpha with alpha = 0.00393 1/K (copper)", self.layout.knot_dt)
+                } else {
+                    format!("Re(t) tracked piecewise linearly (knots every {:.2} s) plus heating terms, first-order responses to the measured i^2 with time constants {:?} s (the knots could not follow the heating); temperature rise = (Re(t)/Re(0) - 1)/alpha with alpha = 0.00393 1/K (copper)", self.layout.knot_dt, self.layout.heat_taus)
+                },
+                "heating_terms_tau_s": self.layout.heat_taus,
                 "Re_track": self.re_track.iter().map(|(t, r)| json!([t, r])).collect::<Vec<_>>(),
                 "dT_track": temps.iter().map(|(t, d)| json!([t, d])).collect::<Vec<_>>(),
                 "dT_end": temps.last().map(|t| t.1),

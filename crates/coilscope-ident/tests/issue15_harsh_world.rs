@@ -152,7 +152,8 @@ fn le_i_alone_and_rms_v_alone_on_the_bundled_drivers_and_a_large_coil() {
 }
 
 /// Every effect at once on SB17 at 44.1 kHz and PTT4 at 96 kHz. (The microspeakers are not
-/// here: `identify` misses them even in the plain world, see the README's open findings.)
+/// here yet: their fast heating is tested in the plain world,
+/// `issue14_identify_sweep::identify_follows_the_fast_heating_of_microspeakers`.)
 #[test]
 #[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue15_harsh_world -- --ignored"]
 fn every_effect_at_once_at_other_rates() {
