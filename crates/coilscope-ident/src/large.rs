@@ -138,6 +138,9 @@ pub const HEAT_TRY_RATIO: f64 = 1.3;
 /// The heating terms' shapes over a record: per time constant, the low-pass of the
 /// normalised `i^2` from zero (first-order, exact for a piecewise-constant input per sample).
 pub fn heat_shapes(i: &[f64], fs: f64, taus: &[f64]) -> Vec<Vec<f64>> {
+    if taus.is_empty() {
+        return Vec::new();
+    }
     let mean = (i.iter().map(|v| v * v).sum::<f64>() / i.len().max(1) as f64).max(f64::MIN_POSITIVE);
     taus.iter()
         .map(|&tau| {
@@ -475,6 +478,22 @@ pub fn seed_duals<const N: usize>(th: &[f64], c0: usize) -> (Vec<DualSVec64<N>>,
     (thd, cnt)
 }
 
+/// `Re` at sample `m` (time `t`, s): the knots, linear between them (held after the last),
+/// plus the heating terms `sizes[j] * heat[j][m]`. The one place [`run_model`] and
+/// [`OutputError::re_track`] take `Re(t)` from.
+#[inline]
+fn re_at<D: DualNum<Primitive = f64> + Copy>(knots: &[D], knot_dt: f64, t: f64, m: usize, (sizes, heat): (&[D], &[Vec<f64>])) -> D {
+    let last = knots.len() - 1;
+    let tk = t / knot_dt;
+    let k = (tk.floor() as usize).min(last.saturating_sub(1));
+    let w = (tk - k as f64).min(1.0);
+    let mut re = if last == 0 { knots[0] } else { knots[k] * (1.0 - w) + knots[k + 1] * w };
+    for (a, h) in sizes.iter().zip(heat) {
+        re += *a * h[m];
+    }
+    re
+}
+
 /// What [`run_model`] integrates: a model whose `Re` follows the knots.
 trait KnotModel<D, const N: usize>: Dynamics<D, N> {
     fn set_re(&mut self, re: D);
@@ -514,21 +533,13 @@ fn run_model<D: DualNum<Primitive = f64> + Copy, const N: usize>(
     let mut y: [D; N] = [D::zero(); N];
     let mut pf = vec![0.0; 2 * n + 1];
     let mut pd = vec![D::zero(); 2 * n + 1];
-    let last = knots.len() - 1;
     for m in 0..len {
         let x = y[idx::X].re();
         if !(x.abs() <= x_limit) || !y[idx::I].re().is_finite() {
             return Err(m);
         }
         observe(m, &y);
-        let t = m as f64 * dt / knot_dt;
-        let k = (t.floor() as usize).min(last.saturating_sub(1));
-        let w = (t - k as f64).min(1.0);
-        let mut re = if last == 0 { knots[0] } else { knots[k] * (1.0 - w) + knots[k + 1] * w };
-        for (a, h) in heat.0.iter().zip(heat.1) {
-            re += *a * h[m];
-        }
-        model.set_re(re);
+        model.set_re(re_at(knots, knot_dt, m as f64 * dt, m, heat));
         interp.fill(u, m, &mut pf);
         for (d, &f) in pd.iter_mut().zip(pf.iter()) {
             *d = D::from(f);
@@ -600,19 +611,12 @@ impl<'a> OutputError<'a> {
             return knots.iter().enumerate().map(|(k, r)| (k as f64 * lay.knot_dt, *r)).collect();
         }
         let sizes = lay.heat_sizes(th);
-        let last = knots.len() - 1;
         let step = ((0.1 * self.fs) as usize).max(1);
         (0..self.u.len())
             .step_by(step)
             .map(|m| {
                 let t = m as f64 / self.fs;
-                let k = ((t / lay.knot_dt).floor() as usize).min(last.saturating_sub(1));
-                let w = (t / lay.knot_dt - k as f64).min(1.0);
-                let mut re = if last == 0 { knots[0] } else { knots[k] * (1.0 - w) + knots[k + 1] * w };
-                for (a, h) in sizes.iter().zip(&self.heat) {
-                    re += a * h[m];
-                }
-                (t, re)
+                (t, re_at(&knots, lay.knot_dt, t, m, (&sizes, &self.heat)))
             })
             .collect()
     }
@@ -1040,11 +1044,10 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
                     Effects { le_i: true, ..Effects::NONE },
                     Effects { rms_v: true, ..Effects::NONE },
                 ];
-                let add = |a: Effects, b: Effects| Effects { creep: a.creep || b.creep, lr3: a.lr3 || b.lr3, le_i: a.le_i || b.le_i, rms_v: a.rms_v || b.rms_v };
                 let cands: Vec<(Effects, Effects)> = singles
                     .iter()
-                    .filter(|&&one| add(at, one) != at)
-                    .map(|&one| (one, add(at, one)))
+                    .filter(|&&one| at.union(one) != at)
+                    .map(|&one| (one, at.union(one)))
                     .collect();
                 let mut best: Option<(Effects, f64, Parameters, Vec<f64>)> = None;
                 for (one, e) in cands {
@@ -1114,11 +1117,11 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
     // Heating faster than the knots can follow (see HEAT_TAUS): the knots bend by more than
     // KNOT_BEND between neighbours and the residual is above its floor. Then the heating
     // terms join Re(t), kept when they lower the residual by HEAT_MIN_GAIN.
-    let (lay, prob, s, r, residual_rel) = {
+    let excess = crate::checks::noise_floor(r.as_slice(), fs).ratio;
+    let (lay, prob, s, r, residual_rel, excess) = {
         let track = lay.re_track(&s.theta);
         let bend = track.windows(3).map(|w| (w[0] - 2.0 * w[1] + w[2]).abs() / 8.0).fold(0.0, f64::max) / track[0].abs().max(1e-9);
-        let floor_ratio = crate::checks::noise_floor(r.as_slice(), fs).ratio;
-        if lay.heat_taus.is_empty() && bend > KNOT_BEND && floor_ratio > HEAT_TRY_RATIO {
+        if bend > KNOT_BEND && excess > HEAT_TRY_RATIO {
             let lay_h = lay.clone().with_heat(&HEAT_TAUS);
             let mut th = s.theta.clone();
             th.resize(lay_h.slots().n, 0.0);
@@ -1127,12 +1130,13 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
             let r_h = prob_h.residual(&s_h.theta);
             let rel_h = rel(&r_h, &i[settle..n]);
             if rel_h < (1.0 - HEAT_MIN_GAIN) * residual_rel {
-                (lay_h, prob_h, s_h, r_h, rel_h)
+                let excess_h = crate::checks::noise_floor(r_h.as_slice(), fs).ratio;
+                (lay_h, prob_h, s_h, r_h, rel_h, excess_h)
             } else {
-                (lay, prob, s, r, residual_rel)
+                (lay, prob, s, r, residual_rel, excess)
             }
         } else {
-            (lay, prob, s, r, residual_rel)
+            (lay, prob, s, r, residual_rel, excess)
         }
     };
     let (x_model, i_model) = prob.trace(&s.theta, n).map_err(|m| Input(format!("{origin}: the fitted model diverged at sample {m}")))?;
@@ -1145,7 +1149,6 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
         Some(j) if r.len() > j.ncols() => crate::lm::sandwich_covariance(&j, &r, ((COVARIANCE_BLOCK_S * fs) as usize).max(1)),
         _ => crate::lm::covariance(&prob, &s.theta),
     };
-    let excess = crate::checks::noise_floor(r.as_slice(), fs).ratio;
     let cov = cov.map(|c| if excess > MODEL_ERROR_RATIO { c * (excess * excess) } else { c });
     let x_range = x_model.iter().fold([0.0f64, 0.0f64], |[a, b], v| [a.min(*v), b.max(*v)]);
     let mut params = lay.parameters(&s.theta);

@@ -245,6 +245,8 @@ pub struct Online {
     pub resets: usize,
     /// Effects dropped by [`Online::drop_effects`].
     pub dropped: Effects,
+    /// Workers for the update's Jacobian passes (the machine's cores).
+    threads: usize,
     /// Largest |x| of the live model since the last update, and its absolute sample: the
     /// update's window is centred on it.
     peak_since: (f64, usize),
@@ -299,6 +301,7 @@ impl Online {
             previous: None,
             resets: 0,
             dropped: Effects::NONE,
+            threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
             peak_since: (0.0, 0),
             opts,
         };
@@ -587,8 +590,7 @@ impl Online {
         let sigma2 = (e0 / rows as f64).max(1e-300);
         // Jacobian of the model current (the residual is r = i - i_model).
         let np = self.theta.len();
-        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-        let jac = jacobian_by_chunks(rows, np, threads, |c0| self.jacobian_chunk(&y0, a, b, skip, c0, slope));
+        let jac = jacobian_by_chunks(rows, np, self.threads, |c0| self.jacobian_chunk(&y0, a, b, skip, c0, slope));
         let jtj = jac.tr_mul(&jac) / sigma2;
         let jtr = jac.tr_mul(&r) / sigma2;
         let p_inv = self.cov.clone().try_inverse()?;
@@ -685,7 +687,7 @@ impl Online {
     pub fn drop_effects(&mut self, drop: Effects) -> Effects {
         let e = self.layout.effects;
         let dropped = Effects { le_i: drop.le_i && e.le_i, rms_v: drop.rms_v && e.rms_v, ..Effects::NONE };
-        if !(dropped.le_i || dropped.rms_v) {
+        if !dropped.has_large_signal() {
             return dropped;
         }
         let s = self.layout.slots();
@@ -712,7 +714,7 @@ impl Online {
         self.cov = (&cond + cond.transpose()) * 0.5;
         self.layout = self.layout.clone().with_effects(Effects { le_i: e.le_i && !dropped.le_i, rms_v: e.rms_v && !dropped.rms_v, ..e });
         debug_assert_eq!(self.layout.slots().n, keep.len());
-        self.dropped = Effects { le_i: self.dropped.le_i || dropped.le_i, rms_v: self.dropped.rms_v || dropped.rms_v, ..Effects::NONE };
+        self.dropped = self.dropped.union(dropped);
         self.previous = None;
         self.rebuild_live();
         dropped

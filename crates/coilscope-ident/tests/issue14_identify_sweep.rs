@@ -13,7 +13,7 @@
 //! issue14_identify_sweep -- --ignored` (`.ci/run` runs it).
 
 use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
-use coilscope_core::simulate::{gain_for_peak, SimOptions};
+use coilscope_core::simulate::{gain_for_peak, SimOptions, Summary};
 use coilscope_core::{embedded_driver, Parameters};
 use coilscope_ident::large::{identify, IdentifyOptions};
 // The LR-2 model: what this sweep tests is that the fit never fails; the choice of effects
@@ -30,18 +30,28 @@ fn driver(name: &str) -> Parameters {
     })
 }
 
+const FS: f64 = 48000.0;
+
+/// A record of `p` as `coilscope simulate` makes it: `seconds` of pink noise (10 Hz - 8 kHz,
+/// crest 3) scaled so the true peak reaches `share` of the range, coil heating on, 70 dB sensor
+/// noise. Returns (u, i, the true trace's summary).
+fn record(p: &Parameters, seconds: f64, share: f64, seed: u64) -> (Vec<f64>, Vec<f64>, Summary) {
+    let [lo, hi] = p.x_range.unwrap();
+    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs: FS, seconds, rms: 1.0, fade: 0.05, seed }).unwrap();
+    let (_, tr) = gain_for_peak(p, FS, &unit, share * hi.min(-lo), &SimOptions::default()).unwrap();
+    let s = tr.summary();
+    let (mut u, mut i) = (tr.u, tr.i);
+    add_sensor_noise(&mut u, 70.0, seed, "sensor-noise/voltage");
+    add_sensor_noise(&mut i, 70.0, seed, "sensor-noise/current");
+    (u, i, s)
+}
+
 fn sweep(name: &str) {
     let p = driver(name);
-    let [lo, hi] = p.x_range.unwrap();
-    let fs = 48000.0;
+    let fs = FS;
     let mut failures = Vec::new();
     for seed in common::slice::in_slice(name, (1..=8u64).collect()) {
-        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 6.0, rms: 1.0, fade: 0.05, seed }).unwrap();
-        let (_, tr) = gain_for_peak(&p, fs, &unit, 0.7 * hi.min(-lo), &SimOptions::default()).unwrap();
-        let s = tr.summary();
-        let (mut u, mut i) = (tr.u, tr.i);
-        add_sensor_noise(&mut u, 70.0, seed, "sensor-noise/voltage");
-        add_sensor_noise(&mut i, 70.0, seed, "sensor-noise/current");
+        let (u, i, s) = record(&p, 6.0, 0.7, seed);
         let label = format!("{name} seed {seed}");
         match identify(&u, &i, fs, &label, &IdentifyOptions { mms: p.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() }, |_| {}) {
             Ok(fit) => {
@@ -106,14 +116,8 @@ fn fast_heating(cases: Vec<(&str, f64, u64)>) {
     let mut failures = Vec::new();
     for (name, share, seed) in cases {
         let p = driver(name);
-        let [lo, hi] = p.x_range.unwrap();
-        let fs = 48000.0;
-        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.05, seed }).unwrap();
-        let (_, tr) = gain_for_peak(&p, fs, &unit, share * hi.min(-lo), &SimOptions::default()).unwrap();
-        let s = tr.summary();
-        let (mut u, mut i) = (tr.u, tr.i);
-        add_sensor_noise(&mut u, 70.0, seed, "sensor-noise/voltage");
-        add_sensor_noise(&mut i, 70.0, seed, "sensor-noise/current");
+        let fs = FS;
+        let (u, i, s) = record(&p, 8.0, share, seed);
         let label = format!("{name} at {:.0} % seed {seed} (heats {:.0} K)", 100.0 * share, s.dt_max);
         match identify(&u, &i, fs, &label, &IdentifyOptions { mms: p.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() }, |_| {}) {
             Ok(fit) => {

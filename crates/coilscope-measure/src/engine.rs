@@ -952,7 +952,7 @@ impl<'a> Engine<'a> {
                         if self.controllable && !self.pruned && self.stage == Stage::Hold && t - self.hold_since >= PRUNE_AFTER_HOLD_S {
                             self.pruned = true;
                             let d = on.drop_effects(on.insignificant_effects());
-                            if d.le_i || d.rms_v {
+                            if d.has_large_signal() {
                                 self.events.push((t, format!("at full level for {PRUNE_AFTER_HOLD_S} s the data show no {}: no longer estimated", d.in_words())));
                             }
                         }
@@ -1121,7 +1121,7 @@ impl<'a> Engine<'a> {
         let mut params = on.parameters();
         let re_end = params.re;
         let later = on.insignificant_effects();
-        let dropped = Effects { le_i: later.le_i || on.dropped.le_i, rms_v: later.rms_v || on.dropped.rms_v, ..Effects::NONE };
+        let dropped = later.union(on.dropped);
         if dropped.le_i {
             params.le_i = None;
         }
