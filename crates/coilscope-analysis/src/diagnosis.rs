@@ -154,7 +154,7 @@ impl Diagnosis {
     pub fn to_json(&self) -> Value {
         let pol = &self.polarity;
         json!({
-            "limits": self.limits.to_json(),
+            "limits": coilscope_core::result::LimitsRecord::from(&self.limits),
             "bl_shift": {"shift": self.limits.xsym, "amplitude": self.limits.xsym_amplitude, "advice": self.bl_shift_advice(), "unit": "m"},
             "polarity": {"at": pol.at, "Le_minus": pol.le_minus, "Le_plus": pol.le_plus, "asymmetry": pol.asymmetry, "verdict": pol.verdict,
                 "rule": "Le rises toward the back plate (x < 0); a rise toward x > 0 suggests a reversed x axis or connection"},

@@ -15,6 +15,7 @@ use coilscope_core::excitation::{add_sensor_noise, crest_factor, generate, Excit
 use coilscope_core::simulate::{simulate, SimOptions};
 use coilscope_core::small_signal::thiele_small;
 use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
+use coilscope_core::result::ResultFile;
 use coilscope_io::{load_parameters, read_recording, read_voltage, write_json, write_recording, Recording};
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -643,7 +644,7 @@ fn cmd_linear(
         None => predicted_displacement(&params, &rec.i, fs),
     };
     let x_range = [x_pred.iter().cloned().fold(0.0, f64::min), x_pred.iter().cloned().fold(0.0, f64::max)];
-    let mut result = result_json(&params, &fit, &method, x_range, &path.display().to_string());
+    let mut result = coilscope_ident::linear::result(&params, &fit, &method, x_range, &path.display().to_string());
     let (floor, warnings) = linear_warnings(&fit, &params, &rec.u, &rec.i, fs);
     attach_warnings(&mut result, &floor, &warnings);
     write_json(out, &result).map_err(|e| e.to_string())?;
@@ -653,8 +654,8 @@ fn cmd_linear(
     coilscope_io::atomic_write(&csv, impedance_csv(&fit.h1, &fit).as_bytes()).map_err(|e| e.to_string())?;
 
     let ts = thiele_small(&params);
-    let u = &result["uncertainty"];
-    let pm = |k: &str, scale: f64| u[k].as_f64().map(|v| format!("+- {:.2e}", v * scale)).unwrap_or_default();
+    let u = &result.uncertainty;
+    let pm = |k: &str, scale: f64| u.value(k).map(|v| format!("+- {:.2e}", v * scale)).unwrap_or_default();
     println!("coilscope linear: {} ({:.2} s at {} Hz)", path.display(), rec.u.len() as f64 / fs, rec.fs);
     println!("  fit {:.1} .. {:.0} Hz, {} bins, residual {:.3e} (current, relative RMS), {} iterations", fit.band[0], fit.band[1], fit.bins, fit.residual_rel, fit.iterations);
     let scale_text = match &method {
@@ -680,11 +681,11 @@ fn cmd_linear(
 /// The set's constants and values at rest, a line each, in the parameter schema's order and
 /// display units (`coilscope_core::schema`), with the result's sd (`uncertainty.<key>`) where
 /// it has one; `skip`: keys shown otherwise. The thermal constants are not fitted here.
-fn print_values(p: &Parameters, uncertainty: &serde_json::Value, skip: &[&str]) {
+fn print_values(p: &Parameters, uncertainty: &coilscope_core::result::Uncertainty, skip: &[&str]) {
     let shown = p.values_at_rest().filter(|(e, _)| e.component != coilscope_core::schema::Component::Thermal && !skip.contains(&e.key));
     for (e, v) in shown {
         let (unit, scale) = e.display;
-        let sd = uncertainty[e.key].as_f64().map(|s| format!("+- {:.2e}", s * scale)).unwrap_or_default();
+        let sd = uncertainty.value(e.key).map(|s| format!("+- {:.2e}", s * scale)).unwrap_or_default();
         println!("  {:<6} {:>12} {:<5} {}", e.short(), format!("{:.4}", v * scale), unit, sd);
     }
 }
@@ -700,10 +701,10 @@ fn parse_effects(text: &str) -> Result<coilscope_ident::linear::EffectsChoice, F
 
 /// Put the noise floor and the warnings into `fit` of a result (`fit.noise_floor`,
 /// `fit.warnings`, `fit.trustworthy`) and print the warnings.
-fn attach_warnings(result: &mut serde_json::Value, floor: &coilscope_ident::checks::NoiseFloor, warnings: &[coilscope_ident::checks::Warning]) {
-    result["fit"]["noise_floor"] = floor.to_json();
-    result["fit"]["warnings"] = warnings.iter().map(|w| w.to_json()).collect::<Vec<_>>().into();
-    result["fit"]["trustworthy"] = warnings.is_empty().into();
+fn attach_warnings(result: &mut ResultFile, floor: &coilscope_ident::checks::NoiseFloor, warnings: &[coilscope_ident::checks::Warning]) {
+    result.fit.noise_floor = Some(*floor);
+    result.fit.warnings = Some(warnings.to_vec());
+    result.fit.trustworthy = Some(result.fit.trustworthy.unwrap_or(true) && warnings.is_empty());
     for w in warnings {
         eprintln!("warning [{}]: {}", w.code, w.message);
     }
@@ -714,7 +715,7 @@ fn untrusted_if_warned(warnings: &[coilscope_ident::checks::Warning], out: &Path
     if warnings.is_empty() {
         return Ok(());
     }
-    let codes: Vec<&str> = warnings.iter().map(|w| w.code).collect();
+    let codes: Vec<&str> = warnings.iter().map(|w| w.code.as_ref()).collect();
     Err(Failure::Untrusted(format!("{} warning(s) ({}); the result is written to {} with fit.trustworthy = false", warnings.len(), codes.join(", "), out.display())))
 }
 
@@ -818,7 +819,7 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
     let mut fit = fit;
     fit.params.sd = sd;
     fit.params.source = Some(format!("coilscope identify {}", path.display()));
-    let mut result = fit.result_json(&path.display().to_string(), &mms_source);
+    let mut result = fit.result(&path.display().to_string(), &mms_source);
     let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(
         &rec.i[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect::<Vec<_>>(),
         fs,
@@ -835,7 +836,7 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
         }
     }
     if failure.is_some() {
-        result["fit"]["trustworthy"] = false.into();
+        result.fit.trustworthy = Some(false);
     }
     attach_warnings(&mut result, &floor, &warnings);
     if let Some(pi) = &post {
@@ -844,13 +845,17 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
             let [lo, hi] = fit.x_range;
             (0..=200).map(|k| lo + (hi - lo) * k as f64 / 200.0).map(|x| (a.eval(x) - b.eval(x)).abs()).fold(0.0, f64::max) / b.eval(0.0).abs()
         };
-        result["cross_check"] = json!({
-            "method": "post-inverse equation error with the measured displacement",
-            "parameters": pi.to_json_value(),
-            "max_rel_difference": {
-                "Bl": dev(&pi.bl, &fit.params.bl), "Kms": dev(&pi.kms, &fit.params.kms), "Le": dev(&pi.le, &fit.params.le),
-                "Mms": (pi.mms / fit.params.mms - 1.0).abs(), "Rms": (pi.rms / fit.params.rms - 1.0).abs(),
-            },
+        let diff = [
+            ("Bl", dev(&pi.bl, &fit.params.bl)),
+            ("Kms", dev(&pi.kms, &fit.params.kms)),
+            ("Le", dev(&pi.le, &fit.params.le)),
+            ("Mms", (pi.mms / fit.params.mms - 1.0).abs()),
+            ("Rms", (pi.rms / fit.params.rms - 1.0).abs()),
+        ];
+        result.cross_check = Some(coilscope_core::result::CrossCheck {
+            method: "post-inverse equation error with the measured displacement".into(),
+            parameters: pi.clone(),
+            max_rel_difference: diff.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
         });
     }
     write_json(out, &result).map_err(|e| e.to_string())?;
@@ -864,7 +869,7 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
     }
 }
 
-fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::large::LargeFit, result: &serde_json::Value, seconds: f64) {
+fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::large::LargeFit, result: &ResultFile, seconds: f64) {
     let p = &fit.params;
     let fs = rec.fs as f64;
     println!("coilscope identify: {} ({:.2} s at {} Hz), fitted in {:.1} s", path.display(), rec.u.len() as f64 / fs, rec.fs, seconds);
@@ -881,7 +886,7 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
         println!("    order {}: estimation {:.3e}, validation {:.3e}", t.order, t.estimation_rel, t.validation_rel);
     }
     println!("  model {} ({})", fit.layout.effects.model_name(), if fit.effect_trials.is_empty() { "given".to_string() } else { fit.effect_trials.iter().map(|(m, v)| format!("{m} validation {v:.3e}")).collect::<Vec<_>>().join(", ") });
-    let u = &result["uncertainty"];
+    let u = &result.uncertainty;
     // Bl, Kms and Le are shown as curves below.
     print_values(p, u, &["Bl", "Kms", "Le"]);
     let [lo, hi] = fit.x_range;
@@ -896,18 +901,18 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
         };
         println!("  {:<6} {:>14} {:>14} {:>14}  {unit}", name, cell(0), format!("{:.4}", f.eval(0.0) * scale), cell(2));
     }
-    let l = &result["limits"];
-    let lim = |k: &str| match l[k].as_f64() {
-        Some(v) => format!("{:.2} mm", v * 1e3),
-        None => format!("> {:.2} mm", l[format!("{k}_beyond")].as_f64().unwrap_or(0.0) * 1e3),
-    };
-    println!("  limits: XBl {}, XC {}, XL {}, Xsym {}, Ak {:.1} %", lim("XBl"), lim("XC"), lim("XL"), l["Xsym"].as_f64().map(|v| format!("{:+.2} mm", v * 1e3)).unwrap_or("-".into()), l["Ak"].as_f64().unwrap_or(f64::NAN));
-    if let Some(d) = result.get("cross_check") {
-        let m = &d["max_rel_difference"];
-        let pc = |k: &str| 100.0 * m[k].as_f64().unwrap_or(f64::NAN);
+    if let Some(l) = &result.limits {
+        let lim = |v: Option<f64>, beyond: Option<f64>| match v {
+            Some(v) => format!("{:.2} mm", v * 1e3),
+            None => format!("> {:.2} mm", beyond.unwrap_or(0.0) * 1e3),
+        };
+        println!("  limits: XBl {}, XC {}, XL {}, Xsym {}, Ak {:.1} %", lim(l.xbl, l.xbl_beyond), lim(l.xc, l.xc_beyond), lim(l.xl, l.xl_beyond), l.xsym.map(|v| format!("{:+.2} mm", v * 1e3)).unwrap_or("-".into()), l.ak);
+    }
+    if let Some(d) = &result.cross_check {
+        let pc = |k: &str| 100.0 * d.max_rel_difference.get(k).copied().unwrap_or(f64::NAN);
         println!("  cross-check (post-inverse, measured x): Bl {:.2} %, Kms {:.2} %, Le {:.2} %, Mms {:.2} %", pc("Bl"), pc("Kms"), pc("Le"), pc("Mms"));
     }
-    if let Some(dt) = result["thermal"]["dT_end"].as_f64() {
+    if let Some(dt) = result.thermal.as_ref().and_then(|t| t.dt_end) {
         println!("  voice coil: Re {:.4} -> {:.4} ohm over the record (+{:.2} K)", fit.re_track[0].1, fit.re_track.last().unwrap().1, dt);
         if !fit.layout.heat_taus.is_empty() {
             println!("  Re(t): knots every {:.2} s plus heating terms (time constants {:?} s): the coil heated faster than the knots could follow", fit.layout.knot_dt, fit.layout.heat_taus);
@@ -1119,20 +1124,14 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         Ok(m) => m,
         Err(e) => {
             // Nothing was estimated yet (the small-signal stage failed): the result says so.
-            let j = json!({
-                "format": "coilscope.result/1",
-                "kind": "large-signal",
-                "recording": device.describe(),
-                "fit": {"converged": false, "trustworthy": false, "stop_reason": e, "warnings": []},
-                "measurement": {"stop_reason": "failed", "error": e, "device": device.describe(), "excitation": source.name()},
-            });
+            let j = coilscope_core::result::FailedResult::new(&e, &device.describe(), &source.name());
             let _ = write_json(&a.out.join("result.json"), &j);
             let _ = store.finish(0.0, &format!("failed: {e}"), Some(&j));
             return Err(Failure::from(format!("{e}; written to {}", a.out.join("result.json").display())));
         }
     };
     m.mms_source = mms_source;
-    let j = m.result_json();
+    let j = m.result();
     write_json(&a.out.join("result.json"), &j).map_err(|e| e.to_string())?;
     let status = match m.stop_reason {
         _ if m.converged => "converged",

@@ -101,6 +101,16 @@ fn drivers_and_check_list_the_embedded_sets() {
     assert!(String::from_utf8_lossy(&o.stdout).contains("Qts"));
 }
 
+/// The result file at `path` as JSON, after checking that the typed reader
+/// (`coilscope_core::result::ResultFile`) knows every key in it and writes it back unchanged.
+fn typed_result(path: &std::path::Path) -> serde_json::Value {
+    let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    let r = coilscope_core::result::ResultFile::from_json_value(v.clone(), &path.display().to_string()).unwrap();
+    assert!(r.other.is_empty(), "keys the typed result does not know: {:?}", r.other.keys().collect::<Vec<_>>());
+    assert_eq!(r.to_json_value(), v, "the typed result does not write the file back unchanged");
+    v
+}
+
 #[test]
 fn linear_writes_a_result_zma_and_csv() {
     let d = tempfile::tempdir().unwrap();
@@ -115,7 +125,7 @@ fn linear_writes_a_result_zma_and_csv() {
     for want in ["Re", "Qts", "Bl", "Kms", "Vas", "displacement channel"] {
         assert!(text.contains(want), "{text}");
     }
-    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let r = typed_result(&out);
     assert_eq!(r["format"], "coilscope.result/1");
     let truth = coilscope_core::embedded_driver("18wu-4741t-00").unwrap();
     let bl = r["parameters"]["Bl"].as_f64().unwrap();
@@ -154,7 +164,7 @@ fn identify_writes_the_result_contract_and_a_summary() {
     for want in ["order 4", "Bl", "Kms", "Le", "XC", "cross-check", "voice coil"] {
         assert!(text.contains(want), "{want}: {text}");
     }
-    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let r = typed_result(&out);
     assert_eq!(r["format"], "coilscope.result/1");
     assert!(r["fit"]["residual_rel"].as_f64().unwrap() < 0.01);
     let xr = r["fit"]["x_range"].as_array().unwrap();

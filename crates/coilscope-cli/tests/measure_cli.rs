@@ -16,6 +16,10 @@ fn virtual_measurement_writes_result_and_database() {
     assert!(text.contains("converged"), "{text}");
     let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
     assert_eq!(j["format"], "coilscope.result/1");
+    // The typed reader knows every key and writes the file back unchanged.
+    let r = coilscope_core::result::ResultFile::from_json_value(j.clone(), "result.json").unwrap();
+    assert!(r.other.is_empty(), "keys the typed result does not know: {:?}", r.other.keys().collect::<Vec<_>>());
+    assert_eq!(r.to_json_value(), j);
     let peak = j["measurement"]["x_peak_max"].as_f64().unwrap();
     assert!(peak > 0.003 && peak < 0.0048, "{peak}");
     let runs = coilscope(&["runs", out.to_str().unwrap()]);

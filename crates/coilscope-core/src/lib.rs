@@ -22,6 +22,7 @@
 //! * [`small_signal`]: the linearised model at rest: impedance, Thiele/Small figures.
 //! * [`creep`]: LOG creep of the suspension as a bank of Maxwell elements.
 //! * [`limits`]: displacement limits XBl, XC, XL, Xsym, Ak over a reached range.
+//! * [`result`]: the identification result file, typed.
 //! * [`excitation`]: seeded test signals (IEC 60268-1 noise, pink noise, sine, multitone,
 //!   sweep) and named RNGs.
 
@@ -34,6 +35,7 @@ pub mod model;
 pub mod normal_form;
 pub mod params;
 pub mod poly;
+pub mod result;
 pub mod schema;
 pub mod simulate;
 pub mod small_signal;

@@ -140,38 +140,6 @@ pub fn limits_with(p: &Parameters, range: [f64; 2], th: Thresholds) -> Limits {
     Limits { thresholds: th, range, reach: a, xbl, xc, xl, xsym, xsym_amplitude: amp, ak: 100.0 * (kp - km) / kp.max(km) }
 }
 
-impl Limits {
-    /// As the `limits` object of a result file (m; Ak in %). A limit beyond the reach is
-    /// `null` with `"<key>_beyond": reach`.
-    pub fn to_json(&self) -> serde_json::Value {
-        let mut o = serde_json::Map::new();
-        for (key, v) in [("XBl", self.xbl), ("XC", self.xc), ("XL", self.xl)] {
-            o.insert(key.into(), v.into());
-            if v.is_none() {
-                o.insert(format!("{key}_beyond"), self.reach.into());
-            }
-        }
-        o.insert("Xsym".into(), self.xsym.into());
-        o.insert("Xsym_amplitude".into(), self.xsym_amplitude.into());
-        o.insert("Ak".into(), self.ak.into());
-        o.insert("range".into(), serde_json::json!(self.range));
-        o.insert("units".into(), serde_json::json!({"XBl": "m", "XC": "m", "XL": "m", "Xsym": "m", "Ak": "%"}));
-        let th = &self.thresholds;
-        o.insert("thresholds".into(), serde_json::json!({"Bl": th.bl, "Cms": th.cms, "Le": th.le}));
-        o.insert(
-            "definitions".into(),
-            format!(
-                "XBl: min(Bl(x),Bl(-x)) = {:.0} % Bl(0); XC: min(Cms(x),Cms(-x)) = {:.0} % Cms(0); XL: |Le(+-x)/Le(0) - 1| = {:.0} %; Xsym: Bl(s+A) = Bl(s-A) at A = Xsym_amplitude; Ak = (Kms(a)-Kms(-a))/max(Kms(+-a)) at the symmetric reach a",
-                100.0 * th.bl,
-                100.0 * th.cms,
-                100.0 * th.le
-            )
-            .into(),
-        );
-        serde_json::Value::Object(o)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -220,7 +188,7 @@ mod tests {
         assert!((l.xbl.unwrap() - 0.01 * 0.3f64.sqrt()).abs() < 1e-9, "{:?}", l.xbl);
         assert!((l.xc.unwrap() - 0.005).abs() < 1e-9, "{:?}", l.xc);
         assert!((l.xl.unwrap() - 0.0025).abs() < 1e-9, "{:?}", l.xl);
-        assert!(l.to_json()["definitions"].as_str().unwrap().contains("70 % Bl(0)"));
+        assert!(crate::result::LimitsRecord::from(&l).definitions.contains("70 % Bl(0)"));
         assert!(Thresholds { bl: 1.2, ..th }.validate().unwrap_err().contains("Bl threshold 1.2"));
     }
 
@@ -229,7 +197,8 @@ mod tests {
         let p = set(vec![5.0, 0.0, -5.0e4], vec![1000.0], vec![1e-3]);
         let l = limits(&p, [-0.002, 0.003]);
         assert_eq!((l.xbl, l.xc, l.xl), (None, None, None));
-        let j = l.to_json();
+        let j = serde_json::to_value(crate::result::LimitsRecord::from(&l)).unwrap();
         assert_eq!(j["XBl_beyond"], 0.002);
+        assert!(j["XBl"].is_null());
     }
 }

@@ -72,15 +72,6 @@ pub fn thiele_small(p: &Parameters) -> ThieleSmall {
     }
 }
 
-impl ThieleSmall {
-    /// As the `small_signal` object of a result file.
-    pub fn to_json(&self) -> serde_json::Value {
-        serde_json::json!({
-            "fs": self.fs, "Qms": self.qms, "Qes": self.qes, "Qts": self.qts, "Cms": self.cms, "Vas": self.vas,
-        })
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

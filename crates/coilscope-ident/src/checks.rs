@@ -14,44 +14,8 @@
 
 use nalgebra::{DMatrix, DVector};
 use realfft::RealFftPlanner;
-use serde_json::json;
 
-/// A finding that makes a result doubtful.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Warning {
-    /// Stable key for scripts: `residual-above-noise`, `dc-offset-current`, `large-signal-record`,
-    /// `current-delay`, `on-bound`, `not-converged`.
-    pub code: &'static str,
-    pub message: String,
-}
-
-impl Warning {
-    pub fn new(code: &'static str, message: String) -> Self {
-        Warning { code, message }
-    }
-    pub fn to_json(&self) -> serde_json::Value {
-        json!({"code": self.code, "message": self.message})
-    }
-}
-
-/// The residual against its noise floor.
-#[derive(Clone, Copy, Debug)]
-pub struct NoiseFloor {
-    /// RMS of the residual (its unit).
-    pub rms: f64,
-    /// RMS that white noise at the floor would have over the whole band (0 .. fs/2).
-    pub floor_rms: f64,
-    /// `rms / floor_rms`: about 1 for a fit down to the sensor noise.
-    pub ratio: f64,
-    /// Mean of the residual (a DC offset the model cannot make).
-    pub dc: f64,
-}
-
-impl NoiseFloor {
-    pub fn to_json(&self) -> serde_json::Value {
-        json!({"residual_rms": self.rms, "floor_rms": self.floor_rms, "ratio": self.ratio, "dc": self.dc})
-    }
-}
+pub use coilscope_core::result::{NoiseFloor, Warning};
 
 /// The noise floor of `r` sampled at `fs`: Welch periodogram (Hann, 50 % overlap, about
 /// 50 Hz resolution), the median of its bins from 0.02 to 0.45 fs taken as the white floor.

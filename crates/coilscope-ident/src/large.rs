@@ -29,6 +29,8 @@ use coilscope_core::integrate::{rk4_sample, substeps_for, Dynamics, Interpolator
 use coilscope_core::model::{idx, ExtModel, Model, NEXT, NSTATE};
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
+use coilscope_core::result::{Fit, ModelTrial, ResultFile, Sd, Thermal, Uncertainty};
+use coilscope_core::schema;
 use nalgebra::{DMatrix, DVector};
 use num_dual::{DualNum, DualSVec64};
 use std::ops::Range;
@@ -431,24 +433,35 @@ impl Layout {
         th
     }
 
-    /// The effects' standard deviations under their formats.md keys (`creep.lambda`, `L3`,
-    /// `R3`; `Le_i` and `Rms_v` one per coefficient, 0 where it is fixed), from the sd of each
-    /// theta entry.
-    pub fn effect_uncertainties(&self, sd_theta: &dyn Fn(usize) -> f64, unc: &mut serde_json::Map<String, serde_json::Value>) {
+    /// The standard deviation of the schema key `key` ([`coilscope_core::schema`]) when the
+    /// layout fits it, from the sd of each theta entry: `Re` (at the first knot), `L2`, `R2`,
+    /// `Rms`, `creep.lambda`, `L3`, `R3`, and `Le_i` and `Rms_v` one per coefficient (0 where
+    /// it is fixed). The curves Bl, Kms and Le have bands instead; Mms is given.
+    pub fn sd_of(&self, key: &str, sd_theta: &dyn Fn(usize) -> f64) -> Option<Sd> {
         let sl = self.slots();
         let sc = &self.scales;
-        if let Some(k) = sl.lambda {
-            unc.insert("creep.lambda".into(), (sd_theta(k) * LAMBDA_SCALE).into());
+        let v = |k: Option<usize>, scale: f64| k.map(|k| Sd::Value(sd_theta(k) * scale));
+        match key {
+            "Re" => v(Some(sl.re.start), sc.re),
+            "L2" => v(sl.l2, sc.l2),
+            "R2" => v(sl.r2, sc.r2),
+            "Rms" => v(Some(sl.rms), sc.rms),
+            "creep.lambda" => v(sl.lambda, LAMBDA_SCALE),
+            "L3" => v(sl.l3, sc.l2),
+            "R3" => v(sl.r3, sc.r2),
+            "Le_i" => sl.le_i.map(|k| Sd::Coefficients(vec![0.0, sd_theta(k), sd_theta(k + 1)])),
+            "Rms_v" => sl.rms_v.map(|k| Sd::Coefficients(vec![sd_theta(sl.rms) * sc.rms, 0.0, sd_theta(k) * sc.rms])),
+            _ => None,
         }
-        if let (Some(a), Some(b)) = (sl.l3, sl.r3) {
-            unc.insert("L3".into(), (sd_theta(a) * sc.l2).into());
-            unc.insert("R3".into(), (sd_theta(b) * sc.r2).into());
-        }
-        if let Some(k) = sl.le_i {
-            unc.insert("Le_i".into(), serde_json::json!([0.0, sd_theta(k), sd_theta(k + 1)]));
-        }
-        if let Some(k) = sl.rms_v {
-            unc.insert("Rms_v".into(), serde_json::json!([sd_theta(sl.rms) * sc.rms, 0.0, sd_theta(k) * sc.rms]));
+    }
+
+    /// Every standard deviation the layout has, in the schema's order, into `unc`; `keep`
+    /// chooses the entries.
+    pub fn uncertainties(&self, sd_theta: &dyn Fn(usize) -> f64, keep: &dyn Fn(&schema::Entry) -> bool, unc: &mut Uncertainty) {
+        for e in schema::ENTRIES.iter().filter(|e| keep(e)) {
+            if let Some(sd) = self.sd_of(e.key, sd_theta) {
+                unc.sd.insert(e.key.to_string(), sd);
+            }
         }
     }
 
@@ -772,16 +785,9 @@ pub struct Progress<'a> {
     pub residual_rel: f64,
 }
 
-/// Validation record of one candidate order.
-#[derive(Clone, Debug)]
-pub struct OrderTrial {
-    pub order: usize,
-    /// `||i_model - i|| / ||i||` on the estimation part.
-    pub estimation_rel: f64,
-    /// The same on the held-out part.
-    pub validation_rel: f64,
-    pub iterations: usize,
-}
+/// Validation record of one candidate order: `||i_model - i|| / ||i||` on the estimation part
+/// and on the held-out part.
+pub use coilscope_core::result::OrderTrial;
 
 /// A large-signal fit.
 #[derive(Clone, Debug)]
@@ -1191,12 +1197,7 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
 
 /// A function of x with its standard deviation on a grid (a confidence band: +- 2 sd is
 /// about 95 %).
-#[derive(Clone, Debug)]
-pub struct Band {
-    pub x: Vec<f64>,
-    pub value: Vec<f64>,
-    pub sd: Vec<f64>,
-}
+pub use coilscope_core::result::Band;
 
 impl LargeFit {
     /// Standard deviation of theta entry `k`.
@@ -1206,15 +1207,13 @@ impl LargeFit {
 
     /// Standard deviations (SI) of the scalar quantities: Re (at the start), L2, R2, Rms.
     pub fn sd(&self) -> Vec<(&'static str, f64)> {
-        let s = self.layout.slots();
-        let sc = &self.layout.scales;
-        let mut out = vec![("Re", self.sd_theta(s.re.start) * sc.re)];
-        if let (Some(a), Some(b)) = (s.l2, s.r2) {
-            out.push(("L2", self.sd_theta(a) * sc.l2));
-            out.push(("R2", self.sd_theta(b) * sc.r2));
-        }
-        out.push(("Rms", self.sd_theta(s.rms) * sc.rms));
-        out
+        schema::ENTRIES
+            .iter()
+            .filter_map(|e| match self.layout.sd_of(e.key, &|k| self.sd_theta(k)) {
+                Some(Sd::Value(v)) => Some((e.key, v)),
+                _ => None,
+            })
+            .collect()
     }
 
     /// Band of `Bl`, `Kms` or `Le` over the reached range (`points` x values).
@@ -1245,59 +1244,46 @@ impl LargeFit {
     }
 
     /// The result file (`"format": "coilscope.result/1"`).
-    pub fn result_json(&self, recording: &str, mms_source: &str) -> serde_json::Value {
-        use serde_json::json;
-        let ts = coilscope_core::small_signal::thiele_small(&self.params);
-        let lim = coilscope_core::limits::limits(&self.params, self.x_range);
-        let mut unc = serde_json::Map::new();
-        unc.insert(
-            "note".into(),
-            "standard deviations from the final Jacobian and the residual variance (sensor noise; Mms is taken as exact). Bands: value and sd on a grid over fit.x_range, the sd including a systematic 0.01 % of the value (measured against an independent simulator and its anti-alias chain); +-2 sd is about 95 %".into(),
+    pub fn result(&self, recording: &str, mms_source: &str) -> ResultFile {
+        let mut unc = Uncertainty::new(
+            "standard deviations from the final Jacobian and the residual variance (sensor noise; Mms is taken as exact). Bands: value and sd on a grid over fit.x_range, the sd including a systematic 0.01 % of the value (measured against an independent simulator and its anti-alias chain); +-2 sd is about 95 %",
         );
-        for (k, v) in self.sd() {
-            unc.insert(k.into(), v.into());
-        }
+        self.layout.uncertainties(&|k| self.sd_theta(k), &|_| true, &mut unc);
         for which in ["Bl", "Kms", "Le"] {
-            let b = self.band(which, 41);
-            unc.insert(format!("{which}_band"), json!({"x": b.x, "value": b.value, "sd": b.sd}));
+            unc.set_band(which, self.band(which, 41));
         }
-        self.layout.effect_uncertainties(&|k| self.sd_theta(k), &mut unc);
+        let fit = Fit {
+            method: Some("output-error (parallel model): measured voltage in, current compared".into()),
+            residual_rel: self.residual_rel,
+            x_range: self.x_range,
+            order: Some(self.order),
+            model: self.layout.effects.model_name(),
+            models_tried: Some(self.effect_trials.iter().map(|(m, v)| ModelTrial { model: m.clone(), validation_rel: Some(*v), ..Default::default() }).collect()),
+            order_trials: Some(self.trials.clone()),
+            iterations: Some(self.iterations),
+            converged: Some(self.converged),
+            stop_reason: Some(self.stop_reason.clone()),
+            substeps: Some([self.substeps.0, self.substeps.1]),
+            settle_s: Some(self.settle as f64 / self.fs),
+            mms_source: Some(mms_source.into()),
+            ..Default::default()
+        };
+        let lim = coilscope_core::limits::limits(&self.params, self.x_range);
+        let mut r = ResultFile::new("large-signal", recording, self.params.clone(), fit, unc, Some(&lim));
         let alpha = 0.00393;
         let temps = self.temperature_track(alpha);
-        json!({
-            "format": "coilscope.result/1",
-            "kind": "large-signal",
-            "recording": recording,
-            "parameters": self.params.to_json_value(),
-            "fit": {
-                "method": "output-error (parallel model): measured voltage in, current compared",
-                "residual_rel": self.residual_rel,
-                "x_range": self.x_range,
-                "order": self.order,
-                "model": self.layout.effects.model_name(),
-                "models_tried": self.effect_trials.iter().map(|(m, v)| json!({"model": m, "validation_rel": v})).collect::<Vec<_>>(),
-                "order_trials": self.trials.iter().map(|t| json!({"order": t.order, "estimation_rel": t.estimation_rel, "validation_rel": t.validation_rel, "iterations": t.iterations})).collect::<Vec<_>>(),
-                "iterations": self.iterations,
-                "converged": self.converged,
-                "stop_reason": self.stop_reason,
-                "substeps": [self.substeps.0, self.substeps.1],
-                "settle_s": self.settle as f64 / self.fs,
-                "Mms_source": mms_source,
+        r.thermal = Some(Thermal {
+            note: if self.layout.heat_taus.is_empty() {
+                format!("Re(t) tracked piecewise linearly (knots every {:.2} s); temperature rise = (Re(t)/Re(0) - 1)/alpha with alpha = 0.00393 1/K (copper)", self.layout.knot_dt)
+            } else {
+                format!("Re(t) tracked piecewise linearly (knots every {:.2} s) plus heating terms, first-order responses to the measured i^2 with time constants {:?} s (the knots could not follow the heating); temperature rise = (Re(t)/Re(0) - 1)/alpha with alpha = 0.00393 1/K (copper)", self.layout.knot_dt, self.layout.heat_taus)
             },
-            "small_signal": ts.to_json(),
-            "limits": lim.to_json(),
-            "uncertainty": serde_json::Value::Object(unc),
-            "thermal": {
-                "note": if self.layout.heat_taus.is_empty() {
-                    format!("Re(t) tracked piecewise linearly (knots every {:.2} s); temperature rise = (Re(t)/Re(0) - 1)/alpha with alpha = 0.00393 1/K (copper)", self.layout.knot_dt)
-                } else {
-                    format!("Re(t) tracked piecewise linearly (knots every {:.2} s) plus heating terms, first-order responses to the measured i^2 with time constants {:?} s (the knots could not follow the heating); temperature rise = (Re(t)/Re(0) - 1)/alpha with alpha = 0.00393 1/K (copper)", self.layout.knot_dt, self.layout.heat_taus)
-                },
-                "heating_terms_tau_s": self.layout.heat_taus,
-                "Re_track": self.re_track.iter().map(|(t, r)| json!([t, r])).collect::<Vec<_>>(),
-                "dT_track": temps.iter().map(|(t, d)| json!([t, d])).collect::<Vec<_>>(),
-                "dT_end": temps.last().map(|t| t.1),
-            },
-        })
+            heating_terms_tau_s: Some(self.layout.heat_taus.clone()),
+            re_track: Some(self.re_track.clone()),
+            dt_end: temps.last().map(|t| t.1),
+            dt_track: temps,
+            ..Default::default()
+        });
+        r
     }
 }

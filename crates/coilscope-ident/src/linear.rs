@@ -17,6 +17,7 @@
 //! three, and one more number (Mms, an added mass, or the displacement) gives Bl.
 
 use crate::lm::{lm_step, sandwich_covariance, LmState, Problem};
+use coilscope_core::result::{Fit, ModelTrial, ResultFile, Scale, Uncertainty};
 use coilscope_core::fft::{irfft, rfft};
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
@@ -226,6 +227,11 @@ impl Effects {
             s.push_str("+Rms(v)");
         }
         s
+    }
+    /// The parameter-schema keys the effects add (`creep.lambda`, `L3`, `R3`, `Le_i`, `Rms_v`).
+    pub fn keys(self) -> Vec<&'static str> {
+        let on = [(self.creep, &["creep.lambda"][..]), (self.lr3, &["L3", "R3"][..]), (self.le_i, &["Le_i"][..]), (self.rms_v, &["Rms_v"][..])];
+        on.iter().filter(|(b, _)| *b).flat_map(|(_, k)| k.iter().copied()).collect()
     }
     /// The effects in words, without the LR-2 base (`Le(i) and Rms(v)`; empty for none).
     pub fn in_words(self) -> String {
@@ -1334,53 +1340,53 @@ pub enum ScaleMethod {
 }
 
 /// The identification result (`"format": "coilscope.result/1"`) of a linear fit.
-pub fn result_json(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f64; 2], recording: &str) -> serde_json::Value {
-    use serde_json::json;
+pub fn result(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f64; 2], recording: &str) -> ResultFile {
     let ts = coilscope_core::small_signal::thiele_small(p);
     let sd = |k: usize| fit.sigma_rel[k] * fit.p[k];
     // Relative uncertainties of the derived quantities, first order, independent terms.
     let s = fit.sigma_rel;
     let fs_rel = 0.5 * (s[5].powi(2) + s[6].powi(2)).sqrt();
-    let method_json = match method {
-        ScaleMethod::Mms => json!({"method": "mms", "Mms": p.mms}),
-        ScaleMethod::AddedMass { added, fs_with } => json!({"method": "added-mass", "added_mass": added, "fs_with_mass": fs_with}),
-        ScaleMethod::Displacement => json!({"method": "displacement"}),
+    let scale = match method {
+        ScaleMethod::Mms => Scale { method: "mms".into(), mms: Some(p.mms), ..Default::default() },
+        ScaleMethod::AddedMass { added, fs_with } => Scale { method: "added-mass".into(), added_mass: Some(*added), fs_with_mass: Some(*fs_with), ..Default::default() },
+        ScaleMethod::Displacement => Scale { method: "displacement".into(), ..Default::default() },
     };
-    let mut out = json!({
-        "format": "coilscope.result/1",
-        "kind": "linear",
-        "recording": recording,
-        "parameters": p.to_json_value(),
-        "fit": {
-            "residual_rel": fit.residual_rel,
-            "x_range": x_range,
-            "band_hz": fit.band,
-            "bins": fit.bins,
-            "iterations": fit.iterations,
-            "scale": method_json,
-            "motional": {"Res": fit.p[4], "Cmes": fit.p[5], "Lces": fit.p[6]},
-            "model": fit.effects.model_name(),
-            "models_tried": fit.tried.iter().map(|(m, r)| json!({"model": m, "residual_rel": r})).collect::<Vec<_>>(),
-        },
-        "small_signal": ts.to_json(),
-        "uncertainty": {
-            "note": "standard deviations: cluster-robust sandwich covariance over groups of 16 neighbouring bins (holds when the residual is not white: distortion, model error); the scale input, e.g. Mms, is taken as exact",
-            "Re": sd(0), "Le": sd(1), "L2": sd(2), "R2": sd(3),
-            "Res": sd(4), "Cmes": sd(5), "Lces": sd(6),
-            "fs": fs_rel * ts.fs,
-            "Bl": 0.5 * s[5] * p.bl.c[0],
-            "Kms": (0.25 * s[5].powi(2) + s[6].powi(2)).sqrt() * p.kms.c[0],
-            "Rms": (s[5].powi(2) + s[4].powi(2)).sqrt() * p.rms,
-        },
-    });
+    let mut unc = Uncertainty::new("standard deviations: cluster-robust sandwich covariance over groups of 16 neighbouring bins (holds when the residual is not white: distortion, model error); the scale input, e.g. Mms, is taken as exact");
+    for (key, v) in [
+        ("Re", sd(0)),
+        ("Le", sd(1)),
+        ("L2", sd(2)),
+        ("R2", sd(3)),
+        ("Res", sd(4)),
+        ("Cmes", sd(5)),
+        ("Lces", sd(6)),
+        ("fs", fs_rel * ts.fs),
+        ("Bl", 0.5 * s[5] * p.bl.c[0]),
+        ("Kms", (0.25 * s[5].powi(2) + s[6].powi(2)).sqrt() * p.kms.c[0]),
+        ("Rms", (s[5].powi(2) + s[4].powi(2)).sqrt() * p.rms),
+    ] {
+        unc.set(key, v);
+    }
     if let Some((_, sd)) = fit.creep {
-        out["uncertainty"]["creep.lambda"] = sd.into();
+        unc.set("creep.lambda", sd);
     }
     if let Some((v, sd)) = fit.lr3 {
-        out["uncertainty"]["L3"] = (sd[0] * v[0]).into();
-        out["uncertainty"]["R3"] = (sd[1] * v[1]).into();
+        unc.set("L3", sd[0] * v[0]);
+        unc.set("R3", sd[1] * v[1]);
     }
-    out
+    let fit_record = Fit {
+        residual_rel: fit.residual_rel,
+        x_range,
+        band_hz: Some(fit.band),
+        bins: Some(fit.bins),
+        iterations: Some(fit.iterations),
+        scale: Some(scale),
+        motional: Some([("Res", fit.p[4]), ("Cmes", fit.p[5]), ("Lces", fit.p[6])].iter().map(|(k, v)| (k.to_string(), *v)).collect()),
+        model: fit.effects.model_name(),
+        models_tried: Some(fit.tried.iter().map(|(m, r)| ModelTrial { model: m.clone(), residual_rel: Some(*r), ..Default::default() }).collect()),
+        ..Default::default()
+    };
+    ResultFile::new("linear", recording, p.clone(), fit_record, unc, None)
 }
 
 /// The H1 impedance as `.zma` text (frequency Hz, magnitude ohm, phase deg), coherent bins.

@@ -95,9 +95,10 @@ pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     Ok(())
 }
 
-/// Write pretty JSON atomically.
-pub fn write_json(path: &Path, value: &serde_json::Value) -> Result<(), IoError> {
-    let mut text = serde_json::to_string_pretty(value).expect("JSON values serialise");
+/// Write pretty JSON atomically (a JSON value, or a typed file such as
+/// [`coilscope_core::result::ResultFile`]).
+pub fn write_json<T: serde::Serialize + ?Sized>(path: &Path, value: &T) -> Result<(), IoError> {
+    let mut text = serde_json::to_string_pretty(value).expect("maps with string keys always serialise");
     text.push('\n');
     atomic_write(path, text.as_bytes())
 }

@@ -38,6 +38,7 @@ use crate::store::{StateRow, Store};
 use coilscope_core::excitation::Excitation;
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
+use coilscope_core::result::{Band, Fit, MeasurementRecord, ResultFile, SmallSignalStage, Thermal, Uncertainty};
 use coilscope_ident::linear::{fit_linear_record, scale_by_mms, Effects, EffectsChoice, Ends, LinearOptions};
 
 /// The small stage's linear fit: ends free (a replay's first seconds are cut from the running
@@ -1222,72 +1223,61 @@ impl Measurement {
     }
 
     /// The result file (`coilscope.result/1`, plus `measurement.*`).
-    pub fn result_json(&self) -> serde_json::Value {
-        use serde_json::json;
-        let ts = coilscope_core::small_signal::thiele_small(&self.params);
-        let ts_small = coilscope_core::small_signal::thiele_small(&self.small);
-        let lim = coilscope_core::limits::limits(&self.params, self.x_range);
-        let mut unc = serde_json::Map::new();
-        unc.insert("note".into(), "standard deviations from the online estimator's covariance (information from every window; sensor noise and the residual's level; Mms taken as exact). Bands: value and sd on a grid over fit.x_range".into());
+    pub fn result(&self) -> ResultFile {
+        let mut unc = Uncertainty::new("standard deviations from the online estimator's covariance (information from every window; sensor noise and the residual's level; Mms taken as exact). Bands: value and sd on a grid over fit.x_range");
         let [lo, hi] = self.x_range;
         let xs: Vec<f64> = (0..41).map(|k| lo + (hi - lo) * k as f64 / 40.0).collect();
         for (which, f) in [("Bl", &self.params.bl), ("Kms", &self.params.kms), ("Le", &self.params.le)] {
             let value: Vec<f64> = xs.iter().map(|&x| f.eval(x)).collect();
             let sd: Vec<f64> = xs.iter().map(|&x| self.online.curve_sd(which, x)).collect();
-            unc.insert(format!("{which}_band"), json!({"x": xs, "value": value, "sd": sd}));
+            unc.set_band(which, Band { x: xs.clone(), value, sd });
         }
-        // Re is the cold value: its sd is the small-signal fit's.
-        unc.insert("Re".into(), self.re_cold_sd.into());
-        self.online.layout.effect_uncertainties(&|k| self.online.sd_theta(k), &mut unc);
-        for (key, gone) in [("Le_i", self.dropped.le_i), ("Rms_v", self.dropped.rms_v)] {
-            if gone {
-                unc.remove(key);
-            }
-        }
-        json!({
-            "format": "coilscope.result/1",
-            "kind": "large-signal",
-            "recording": self.device,
-            "parameters": self.params.to_json_value(),
-            "fit": {
-                "method": "online recursive output error (parallel model, exact Jacobians on sliding windows, Kalman update of the parameters)",
-                "residual_rel": self.residual_rel,
-                "residual_excess": self.residual_excess,
-                "warnings": self.warnings().iter().map(|w| w.to_json()).collect::<Vec<_>>(),
-                "trustworthy": self.converged && self.warnings().is_empty(),
-                "x_range": self.x_range,
-                "order": self.online.layout.order,
-                "model": self.effects.model_name(),
-                "models_note": self.models_note(),
-                "converged": self.converged,
-                "stop_reason": self.stop_reason.describe(),
-                "updates": self.updates,
-                "Mms_source": self.mms_source,
-            },
-            "small_signal": ts.to_json(),
-            "limits": lim.to_json(),
-            "uncertainty": serde_json::Value::Object(unc),
-            "thermal": {
-                "note": format!("voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = {} 1/K; Re_cold is the small-signal stage's record refitted with the final model when converged, else the stage's impedance fit", self.alpha),
-                "Re_cold": self.re_cold,
-                "Re_cold_sd": self.re_cold_sd,
-                "Re_end": self.re_end,
-                "dT_end": (self.re_end / self.re_cold - 1.0) / self.alpha,
-                "dT_track": self.dt_track.iter().map(|(t, d)| json!([t, d])).collect::<Vec<_>>(),
-            },
-            "measurement": {
-                "x_peak_max": self.x_peak_max,
-                "dTv_max": self.dtv_max,
-                "limited_by": self.limited_by.name(),
-                "stop_reason": self.stop_reason.key(),
-                "seconds": self.seconds,
-                "device": self.device,
-                "excitation": self.excitation,
-                "small_signal": {"parameters": self.small.to_json_value(), "thiele_small": ts_small.to_json()},
-                "protection_events": self.events.iter().map(|(t, e)| json!([t, e])).collect::<Vec<_>>(),
-                "live_model_resets": self.online.resets,
-            },
-        })
+        // Re is the cold value: its sd is the small-signal fit's. Of the rest, the effects the
+        // final model keeps.
+        unc.set("Re", self.re_cold_sd);
+        let kept = self.effects.keys();
+        self.online.layout.uncertainties(&|k| self.online.sd_theta(k), &|e| kept.contains(&e.key), &mut unc);
+        let warnings = self.warnings();
+        let fit = Fit {
+            method: Some("online recursive output error (parallel model, exact Jacobians on sliding windows, Kalman update of the parameters)".into()),
+            residual_rel: self.residual_rel,
+            residual_excess: Some(self.residual_excess),
+            trustworthy: Some(self.converged && warnings.is_empty()),
+            warnings: Some(warnings),
+            x_range: self.x_range,
+            order: Some(self.online.layout.order),
+            model: self.effects.model_name(),
+            models_note: Some(self.models_note()),
+            converged: Some(self.converged),
+            stop_reason: Some(self.stop_reason.describe()),
+            updates: Some(self.updates),
+            mms_source: Some(self.mms_source.clone()),
+            ..Default::default()
+        };
+        let lim = coilscope_core::limits::limits(&self.params, self.x_range);
+        let mut r = ResultFile::new("large-signal", &self.device, self.params.clone(), fit, unc, Some(&lim));
+        r.thermal = Some(Thermal {
+            note: format!("voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = {} 1/K; Re_cold is the small-signal stage's record refitted with the final model when converged, else the stage's impedance fit", self.alpha),
+            re_cold: Some(self.re_cold),
+            re_cold_sd: Some(self.re_cold_sd),
+            re_end: Some(self.re_end),
+            dt_end: Some((self.re_end / self.re_cold - 1.0) / self.alpha),
+            dt_track: self.dt_track.clone(),
+            ..Default::default()
+        });
+        r.measurement = Some(MeasurementRecord {
+            x_peak_max: self.x_peak_max,
+            dtv_max: self.dtv_max,
+            limited_by: self.limited_by.name().into(),
+            stop_reason: self.stop_reason.key().into(),
+            seconds: self.seconds,
+            device: self.device.clone(),
+            excitation: self.excitation.clone(),
+            small_signal: SmallSignalStage { parameters: self.small.clone(), thiele_small: coilscope_core::small_signal::thiele_small(&self.small) },
+            protection_events: self.events.clone(),
+            live_model_resets: self.online.resets,
+        });
+        r
     }
 }
 

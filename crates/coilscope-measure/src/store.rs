@@ -103,10 +103,11 @@ impl Store {
     }
 
     /// Close the run with its status (`converged`, `stopped`, `failed: ...`) and result.
-    pub fn finish(&mut self, seconds: f64, status: &str, result: Option<&serde_json::Value>) -> Result<(), String> {
+    pub fn finish<R: serde::Serialize>(&mut self, seconds: f64, status: &str, result: Option<&R>) -> Result<(), String> {
         self.commit(seconds)?;
+        let text = result.map(|r| serde_json::to_string(r).expect("maps with string keys always serialise"));
         self.conn
-            .execute("UPDATE runs SET status = ?1, result = ?2, heartbeat = ?3 WHERE id = ?4", params![status, result.map(|r| r.to_string()), now(), self.run])
+            .execute("UPDATE runs SET status = ?1, result = ?2, heartbeat = ?3 WHERE id = ?4", params![status, text, now(), self.run])
             .map_err(|e| format!("{}: cannot close the run: {e}", self.path))?;
         Ok(())
     }

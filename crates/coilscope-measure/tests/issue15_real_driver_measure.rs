@@ -47,7 +47,7 @@ fn check(label: &str, m: &Measurement, truth: &Parameters) -> Vec<String> {
     let q = &m.params;
     let r = m.x_range;
     let (e_bl, e_k, e_le, e_re) = (worst(&q.bl, &truth.bl, r), worst(&q.kms, &truth.kms, r), worst(&q.le, &truth.le, r), (m.re_cold / truth.re - 1.0).abs());
-    let j = m.result_json();
+    let j = m.result().to_json_value();
     let mut zmax: f64 = 0.0;
     for (which, f) in [("Bl", &truth.bl), ("Kms", &truth.kms), ("Le", &truth.le)] {
         let b = &j["uncertainty"][format!("{which}_band")];
@@ -130,7 +130,7 @@ fn measure_of_a_plain_driver_reports_no_large_signal_effect() {
     let bad = check("sb17cac35-4 plain", &m, &p);
     assert!(bad.is_empty(), "{}", bad.join("\n"));
     assert!(m.dropped.le_i && m.dropped.rms_v && m.params.le_i.is_none() && m.params.rms_v.is_none());
-    let j = m.result_json();
+    let j = m.result().to_json_value();
     assert_eq!(j["fit"]["model"], "LR-2");
     assert!(j["fit"]["models_note"].as_str().unwrap().contains("Le(i) and Rms(v)"), "{}", j["fit"]["models_note"]);
 }

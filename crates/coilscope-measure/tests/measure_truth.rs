@@ -54,7 +54,7 @@ fn assert_truth(label: &str, m: &Measurement, p: &Parameters) {
     // Issue 14: `Re` of the result is the cold value (the truth at ambient), not the hot one.
     let e_re_param = (q.re / p.re - 1.0).abs();
     assert!(e_re_param <= 0.001, "{label}: parameters.Re {} vs cold truth {}", q.re, p.re);
-    let j = m.result_json();
+    let j = m.result().to_json_value();
     assert_eq!(j["parameters"]["Re"].as_f64(), Some(q.re));
     assert!(j["thermal"]["Re_end"].as_f64().unwrap() >= q.re, "{label}: the hot Re lives under thermal");
 }
@@ -70,7 +70,7 @@ fn converges_from_silence(names: &[&str]) {
         let truth = m.truth.unwrap();
         assert!(truth.x_peak <= 1.05 * target, "{name}: true peak {} mm over the target {} mm", truth.x_peak * 1e3, target * 1e3);
         // The result carries the measurement keys.
-        let j = m.result_json();
+        let j = m.result().to_json_value();
         for k in ["x_peak_max", "dTv_max", "seconds"] {
             assert!(j["measurement"][k].as_f64().is_some(), "{name}: measurement.{k}");
         }

@@ -20,6 +20,7 @@ use coilscope_analysis::{db, volterra};
 use coilscope_core::limits::Thresholds;
 use coilscope_core::small_signal::{impedance, thiele_small};
 use coilscope_core::Parameters;
+use coilscope_core::result::ResultFile;
 use serde_json::Value;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -41,7 +42,7 @@ pub struct ReportInput {
     /// The range the measurement reached (m); the curves are drawn and limits searched in it.
     pub range: [f64; 2],
     /// The result file (`coilscope.result/1`), when the report is of a result.
-    pub result: Option<Value>,
+    pub result: Option<ResultFile>,
     pub states: Option<TimeSeries>,
 }
 
@@ -95,12 +96,10 @@ fn mm(v: Option<f64>) -> String {
     v.map(|x| format!("{:.2} mm", x * 1e3)).unwrap_or_else(|| "beyond the reach".into())
 }
 
-/// `(x, value, sd)` of a band from the result's `uncertainty.<key>_band`.
-fn band_of(result: Option<&Value>, key: &str) -> Option<Vec<(f64, f64, f64)>> {
-    let b = result?.get("uncertainty")?.get(format!("{key}_band"))?;
-    let arr = |k: &str| b.get(k)?.as_array()?.iter().map(|v| v.as_f64()).collect::<Option<Vec<f64>>>();
-    let (x, v, s) = (arr("x")?, arr("value")?, arr("sd")?);
-    (x.len() == v.len() && v.len() == s.len()).then(|| x.into_iter().zip(v).zip(s).map(|((x, v), s)| (x, v, s)).collect())
+/// `(x, value, sd)` of a band from the result's `uncertainty.<key>_band` (finite points only).
+fn band_of(result: Option<&ResultFile>, key: &str) -> Option<Vec<(f64, f64, f64)>> {
+    let b = result?.uncertainty.band(key)?;
+    (b.x.len() == b.value.len() && b.value.len() == b.sd.len()).then(|| b.x.iter().zip(&b.value).zip(&b.sd).map(|((&x, &v), &s)| (x, v, s)).filter(|(x, v, s)| x.is_finite() && v.is_finite() && s.is_finite()).collect())
 }
 
 /// dB for plots, floored at -160 dB (a linear set has no distortion at all: -inf).
@@ -385,9 +384,7 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     // --- Impedance --------------------------------------------------------------------------
     b.section("Impedance", "Small-signal electrical impedance of the linearised model at rest.");
     let fz = log_frequencies(5.0, 20_000.0, 12);
-    let small: Option<Parameters> = result
-        .and_then(|r| r.get("measurement")?.get("small_signal")?.get("parameters").cloned())
-        .and_then(|v| Parameters::from_json_value(&v, "small-signal set").ok());
+    let small: Option<Parameters> = result.and_then(|r| Some(r.measurement.as_ref()?.small_signal.parameters.clone()));
     let mut cz = Chart::new("impedance", "Impedance magnitude", "frequency (Hz)", "|Z| (ohm)").log_x().line("large-signal set at x = 0", fz.iter().map(|&f| (f, impedance(p, f).norm())).collect());
     let mut cp = Chart::new("impedance-phase", "Impedance phase", "frequency (Hz)", "phase (deg)").log_x().line("large-signal set at x = 0", fz.iter().map(|&f| (f, impedance(p, f).arg().to_degrees())).collect());
     if let Some(s) = &small {
@@ -405,33 +402,24 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
 
     // --- Measurement --------------------------------------------------------------------
     if let Some(r) = result {
-        if let Some(m) = r.get("measurement") {
+        if let Some(m) = &r.measurement {
             b.section("Measurement", "The dynamic measurement that produced this result.");
-            let g = |k: &str| m.get(k).and_then(|v| v.as_f64());
-            let mut rows = vec![];
-            if let Some(s) = g("seconds") {
-                rows.push(vec!["measurement time".into(), format!("{s:.1} s")]);
-            }
-            if let Some(fit) = r.get("fit") {
-                rows.push(vec!["converged".into(), fit.get("converged").map(|v| v.to_string()).unwrap_or_default()]);
-                rows.push(vec!["stop reason".into(), fit.get("stop_reason").and_then(|v| v.as_str()).unwrap_or("").into()]);
-                if let Some(res) = fit.get("residual_rel").and_then(|v| v.as_f64()) {
-                    rows.push(vec!["residual".into(), format!("{:.2e}", res)]);
-                }
-            }
-            if let Some(x) = g("x_peak_max") {
-                rows.push(vec!["peak excursion".into(), format!("{:.2} mm", x * 1e3)]);
-            }
-            if let Some(t) = g("dTv_max") {
-                rows.push(vec!["largest voice-coil rise".into(), format!("{t:.1} K")]);
-            }
-            for ev in m.get("protection_events").and_then(|v| v.as_array()).into_iter().flatten() {
-                rows.push(vec![format!("event at {} s", ev.get(0).map(|v| v.to_string()).unwrap_or_default()), ev.get(1).and_then(|v| v.as_str()).unwrap_or("").into()]);
+            let fit = &r.fit;
+            let mut rows = vec![
+                vec!["measurement time".into(), format!("{:.1} s", m.seconds)],
+                vec!["converged".into(), fit.converged.map(|c| c.to_string()).unwrap_or_default()],
+                vec!["stop reason".into(), fit.stop_reason.clone().unwrap_or_default()],
+                vec!["residual".into(), format!("{:.2e}", fit.residual_rel)],
+                vec!["peak excursion".into(), format!("{:.2} mm", m.x_peak_max * 1e3)],
+                vec!["largest voice-coil rise".into(), format!("{:.1} K", m.dtv_max)],
+            ];
+            for (t, what) in &m.protection_events {
+                rows.push(vec![format!("event at {t} s"), what.clone()]);
             }
             b.table(&["quantity", "value"], &rows);
         }
     }
-    let dt_track: Option<Vec<(f64, f64)>> = result.and_then(|r| r.get("thermal")?.get("dT_track")?.as_array().map(|a| a.iter().filter_map(|p| Some((p.get(0)?.as_f64()?, p.get(1)?.as_f64()?))).collect()));
+    let dt_track: Option<Vec<(f64, f64)>> = result.and_then(|r| Some(r.thermal.as_ref()?.dt_track.clone())).filter(|t| !t.is_empty());
     if let Some(s) = &input.states {
         let c = Chart::new("x-time", "Excursion during the measurement", "time (s)", "x (mm)")
             .line("largest x per block", s.t.iter().zip(&s.x_max).map(|(t, x)| (*t, x * 1e3)).collect())
@@ -542,21 +530,18 @@ pub fn input_from(spec: &str) -> Result<ReportInput, String> {
 pub fn input_from_text(text: &str, spec: &str) -> Result<ReportInput, String> {
     let v: Value = serde_json::from_str(text).map_err(|e| format!("{spec}: not JSON ({e})"))?;
     if v.get("format").and_then(|f| f.as_str()).is_some_and(|f| f.starts_with("coilscope.result")) {
-        let pv = v.get("parameters").ok_or_else(|| format!("{spec}: the result has no `parameters` object"))?;
-        let p = Parameters::from_json_value(pv, &format!("{spec} (parameters)")).map_err(|e| e.to_string())?;
-        input_of(p, Some(v), spec)
+        let r = ResultFile::from_json_value(v, spec).map_err(|e| e.to_string())?;
+        input_of(r.parameters.clone(), Some(r), spec)
     } else {
         input_of(Parameters::from_json_value(&v, spec).map_err(|e| e.to_string())?, None, spec)
     }
 }
 
-fn input_of(params: Parameters, result: Option<Value>, spec: &str) -> Result<ReportInput, String> {
-    let fit_range = result.as_ref().and_then(|r| {
-        let a = r.get("fit")?.get("x_range")?.as_array()?;
-        Some([a.first()?.as_f64()?, a.get(1)?.as_f64()?])
-    });
+fn input_of(params: Parameters, result: Option<ResultFile>, spec: &str) -> Result<ReportInput, String> {
+    // A result without `fit` reads as the range [0, 0]: not a range.
+    let fit_range = result.as_ref().map(|r| r.fit.x_range).filter(|[lo, hi]| hi > lo);
     let range = fit_range.or(params.x_range).ok_or_else(|| format!("{spec}: neither fit.x_range nor the parameters' x_range says where the curves are valid"))?;
-    let recording = result.as_ref().and_then(|r| r.get("recording")?.as_str().map(str::to_string));
+    let recording = result.as_ref().map(|r| r.recording.clone()).filter(|r| !r.is_empty());
     let title = format!("coilscope report: {}", params.name.clone().or(recording).unwrap_or_else(|| spec.to_string()));
     Ok(ReportInput { title, params, range, result, states: None })
 }
