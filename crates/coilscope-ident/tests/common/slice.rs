@@ -7,9 +7,11 @@
 
 /// The slice of a sweep this run covers: (k, n).
 pub fn sweep_slice() -> (usize, usize) {
-    let Ok(s) = std::env::var("COILSCOPE_SWEEP_SLICE") else {
+    // Unset or empty: every case.
+    let s = std::env::var("COILSCOPE_SWEEP_SLICE").unwrap_or_default();
+    if s.trim().is_empty() {
         return (0, 1);
-    };
+    }
     let parsed = s.split_once('/').and_then(|(k, n)| {
         Some((
             k.trim().parse::<usize>().ok()?,
