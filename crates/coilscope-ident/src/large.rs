@@ -473,7 +473,7 @@ impl Layout {
     /// branches positive, and each para-inductance below [`BRANCH_MAX`] times its start. A
     /// branch whose inductance grows without bound acts as a plain resistor in series with Re:
     /// on a coil whose L2/R2 time constant is a sample period or less (a microspeaker: 20 uH,
-    /// 3 ohm, 7 us) the fit heading there once left L2 at -4e12 H and Re 19 % high.
+    /// 3 ohm, 7 us) the fit heading there once left L2 at -4e15 H and Re 19 % high.
     pub fn physical(&self, th: &[f64]) -> bool {
         let sl = self.slots();
         let positive = |k: Option<usize>| k.is_none_or(|k| th[k] > 0.0);
@@ -759,8 +759,8 @@ impl Problem for OutputError<'_> {
 }
 
 /// The start with Le restored when the small-signal fit moved all the coil's inductance into
-/// the LR-2 branch (Le below [`LE_VANISHED`] of Le + L2: zero in all but rounding): then the electrical equation has no
-/// time constant and the start model cannot run. On a 0.1 g microspeaker heating 68 K during
+/// the LR-2 branch (Le below [`LE_VANISHED`] of Le + L2: zero in all but rounding): then the
+/// electrical equation has no time constant and the start model cannot run. On a 0.1 g microspeaker heating 68 K during
 /// the record the impedance fit gave Le = 0, L2 44 uH, R2 22 ohm (true: 30 uH, 15 uH, 2 ohm),
 /// and `identify` stopped with "the start model diverged at sample 1". Above the branch's
 /// corner R2 / (2 pi L2) (here 79 kHz) the two are one inductance, so the start shares it
@@ -948,12 +948,10 @@ pub fn identify(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &IdentifyOpti
             let m = u.len().min((4.0 * fs) as usize);
             let lin_opts = LinearOptions { effects: EffectsChoice::Auto, ..LinearOptions::LARGE_SIGNAL_START };
             let lin = fit_linear_record(&u[..m], &i[..m], fs, origin, &lin_opts, |_| {}).map_err(Input)?;
-            (scale_by_mms(&lin, opts.mms).map_err(Input)?, Some(lin))
+            (split_vanished_le(scale_by_mms(&lin, opts.mms).map_err(Input)?), Some(lin))
         }
     };
     let start = Parameters { mms: opts.mms, thermal: None, ..start };
-    // A start whose Le vanished into L2 cannot run at all: share the inductance, and only then.
-    let start = if linear.is_some() && start.l2r2.is_some() && start.le.c[0] < LE_VANISHED * (start.le.c[0] + start.l2r2.as_ref().map_or(0.0, |b| b.0.c[0])) { split_vanished_le(start) } else { start };
     let threads = if opts.threads == 0 { std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) } else { opts.threads };
     let rate = start.stiffness_rate();
     // Settling: the unknown initial state decays with the mechanical time constant.
@@ -1253,7 +1251,8 @@ impl LargeFit {
         self.cov.as_ref().map(|c| c[(k, k)].max(0.0).sqrt()).unwrap_or(f64::NAN)
     }
 
-    /// Standard deviations (SI) of the scalar quantities: Re (at the start), L2, R2, Rms.
+    /// Standard deviations (SI) of the fitted constants, in the schema's order: Re (at the
+    /// start), L2, R2, L3, R3, creep.lambda, Rms, as the layout has them ([`Layout::sd_of`]).
     pub fn sd(&self) -> Vec<(&'static str, f64)> {
         schema::ENTRIES
             .iter()
