@@ -95,10 +95,25 @@ struct FitArgs {
     /// Scale factors of integer-PCM recordings (V, A [, m] per count).
     #[arg(long, num_args = 2..=3, value_names = ["V", "A"])]
     scale: Option<Vec<f64>>,
+    /// The measurement chain between the driver and the recorded channels: `auto` (estimated
+    /// with the driver: the current channel's delay, both channels' AC coupling, offsets and
+    /// mains hum) or `none` (the channels are the driver's voltage and current, exactly).
+    /// `none` is the default while the chain is being validated (issue 16).
+    #[arg(long, default_value = "none")]
+    chain: String,
     /// Result file (JSON, coilscope.result/1). `linear` also writes the measured impedance
     /// beside it as .zma and .csv.
     #[arg(long)]
     out: PathBuf,
+}
+
+/// `--chain`: true to estimate it.
+fn parse_chain(text: &str) -> Result<bool, Failure> {
+    match text.trim() {
+        "auto" => Ok(true),
+        "none" => Ok(false),
+        other => Err(Failure::from(format!("--chain {other:?}: give `auto` (estimate the measurement chain) or `none` (ideal channels)"))),
+    }
 }
 
 /// Limit thresholds and the thermal limit, shared by `diagnose` and `report`.
@@ -450,9 +465,9 @@ fn main() -> ExitCode {
             cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world }).map_err(Failure::from)
         }
         Command::Linear { recording, mms, added_mass, with_mass, effects, fit } => {
-            cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), &effects, fit.sd, fit.scale.as_deref(), &fit.out)
+            cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), &effects, &fit)
         }
-        Command::Identify { recording, mms, order, effects, fit } => cmd_identify(&recording, mms, order, &effects, fit.sd, fit.scale.as_deref(), &fit.out),
+        Command::Identify { recording, mms, order, effects, fit } => parse_chain(&fit.chain).and_then(|chain| cmd_identify(&recording, mms, order, &effects, chain, fit.sd, fit.scale.as_deref(), &fit.out)),
         Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
             cmd_measure(MeasureArgs { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
         }
@@ -589,11 +604,11 @@ fn cmd_linear(
     added_mass: Option<f64>,
     with_mass: Option<&Path>,
     effects: &str,
-    sd: Option<f64>,
-    scale: Option<&[f64]>,
-    out: &Path,
+    fa: &FitArgs,
 ) -> Result<(), Failure> {
     use coilscope_ident::linear::*;
+    let (sd, scale, out) = (fa.sd, fa.scale.as_deref(), fa.out.as_path());
+    let chain = parse_chain(&fa.chain)?;
     let origin = path.display().to_string();
     let effects = parse_effects(effects)?;
     let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
@@ -613,7 +628,7 @@ fn cmd_linear(
             eprint!("\r  fitting impedance: iteration {:3}, residual {:.3e}   ", s.iteration, (2.0 * s.cost).sqrt());
         }
     };
-    let fit = fit_linear_record(&rec.u, &rec.i, fs, &origin, &LinearOptions { effects, ..Default::default() }, progress)?;
+    let fit = fit_linear_record(&rec.u, &rec.i, fs, &origin, &LinearOptions { effects, chain, ..Default::default() }, progress)?;
     if live {
         eprintln!();
     }
@@ -626,7 +641,7 @@ fn cmd_linear(
             let o2 = p2.display().to_string();
             let r2 = read_recording(p2, scale).map_err(|e| e.to_string())?;
             // The same model as the first record: the resonance shift must compare like with like.
-            let same = LinearOptions { effects: EffectsChoice::Fixed(fit.effects), ..Default::default() };
+            let same = LinearOptions { effects: EffectsChoice::Fixed(fit.effects), chain, ..Default::default() };
             let fit2 = fit_linear_record(&r2.u, &r2.i, r2.fs as f64, &o2, &same, |_| {})?;
             (added_mass_mms(&fit, &fit2, madd)?, ScaleMethod::AddedMass { added: madd, fs_with: fit2.fs() })
         }
@@ -664,6 +679,9 @@ fn cmd_linear(
         ScaleMethod::Displacement => "displacement channel".to_string(),
     };
     println!("  scale: {scale_text}");
+    if let Some(c) = &fit.chain {
+        println!("  chain: {}", chain_text(c, fs));
+    }
     println!("  model: {} (tried: {})", fit.effects.model_name(), fit.tried.iter().map(|(m, r)| format!("{m} {r:.2e}")).collect::<Vec<_>>().join(", "));
     print_values(&params, u, &[]);
     println!("  {:<6} {:>12} {:<5} {}", "fs", format!("{:.3}", ts.fs), "Hz", pm("fs", 1.0));
@@ -688,6 +706,39 @@ fn print_values(p: &Parameters, uncertainty: &coilscope_core::result::Uncertaint
         let sd = uncertainty.value(e.key).map(|s| format!("+- {:.2e}", s * scale)).unwrap_or_default();
         println!("  {:<6} {:>12} {:<5} {}", e.short(), format!("{:.4}", v * scale), unit, sd);
     }
+}
+
+/// An estimated chain, in words (sds where estimated).
+fn chain_words(c: &coilscope_core::chain::Chain) -> String {
+    let sd = |k: &str, scale: f64| c.sd.get(k).map(|v| format!(" +- {:.3}", v * scale)).unwrap_or_default();
+    let mut parts = vec![];
+    if c.fitted.iter().any(|k| k == "delay_i") {
+        parts.push(format!("current {:.3}{} us late", c.delay_i * 1e6, sd("delay_i", 1e6)));
+    }
+    if c.fitted.iter().any(|k| k == "hp_u") {
+        parts.push(format!("voltage AC-coupled at {:.2}{} Hz", c.hp_u, sd("hp_u", 1.0)));
+    }
+    if c.fitted.iter().any(|k| k == "hp_i") {
+        parts.push(format!("current AC-coupled at {:.2}{} Hz", c.hp_i, sd("hp_i", 1.0)));
+    }
+    parts.push(format!("offsets {:.3e} V, {:.3e}{} A", c.dc_u, c.dc_i, sd("dc_i", 1.0)));
+    if let Some(h) = &c.hum {
+        parts.push(format!("hum at {} Hz: {}", h.f, h.i.iter().map(|l| format!("{:.2e}", l[0])).collect::<Vec<_>>().join(", ") + " A"));
+    }
+    parts.join("; ")
+}
+
+/// The chain a linear fit estimated, in words.
+fn chain_text(c: &coilscope_ident::linear::ChainEstimate, fs: f64) -> String {
+    let parts: Vec<String> = (0..3)
+        .filter(|&n| c.on[n])
+        .map(|n| match n {
+            0 => format!("current {:.3} +- {:.3} samples late ({:.2} us)", c.values[0], c.sd[0], 1e6 * c.values[0] / fs),
+            1 => format!("voltage AC-coupled at {:.2} +- {:.2} Hz", c.values[1], c.sd[1]),
+            _ => format!("current AC-coupled at {:.2} +- {:.2} Hz", c.values[2], c.sd[2]),
+        })
+        .collect();
+    if parts.is_empty() { "ideal (no delay or AC coupling found)".to_string() } else { parts.join(", ") }
 }
 
 /// `--effects`: `auto`, or a list for [`coilscope_ident::linear::Effects::parse`].
@@ -762,7 +813,8 @@ fn post_inverse_of(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, origi
     Ok(coilscope_ident::post_inverse::post_inverse(u, i, x, fs, order, Some((lin.p[2], lin.p[3])), origin)?)
 }
 
-fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &str, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
+#[allow(clippy::too_many_arguments)]
+fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &str, chain: bool, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
     use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, Stage};
     let origin = path.display().to_string();
     let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
@@ -802,7 +854,7 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
         }
     };
     let init = post.as_ref().map(|p| Parameters { mms, x_range: None, ..p.clone() });
-    let opts = IdentifyOptions { mms, order, init, effects: parse_effects(effects)?, ..Default::default() };
+    let opts = IdentifyOptions { mms, order, init, effects: parse_effects(effects)?, chain, ..Default::default() };
     let (fit, failure) = match identify(&rec.u, &rec.i, fs, &origin, &opts, progress) {
         Ok(f) => (f, None),
         Err(IdentifyError::NotConverged { message, best }) => (*best, Some(message)),
@@ -820,11 +872,12 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
     fit.params.sd = sd;
     fit.params.source = Some(format!("coilscope identify {}", path.display()));
     let mut result = fit.result(&path.display().to_string(), &mms_source);
+    // The current error behind the estimated chain (its offsets and hum are fitted, not error).
     let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(
-        &rec.i[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect::<Vec<_>>(),
+        &fit.i_phys[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect::<Vec<_>>(),
         fs,
         "large-signal fit",
-        coilscope_core::simulate::rms(&rec.i),
+        coilscope_core::simulate::rms(&fit.i_phys),
         0.0,
     );
     if let Some(lin) = &fit.linear {
@@ -886,6 +939,9 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
         println!("    order {}: estimation {:.3e}, validation {:.3e}", t.order, t.estimation_rel, t.validation_rel);
     }
     println!("  model {} ({})", fit.layout.effects.model_name(), if fit.effect_trials.is_empty() { "given".to_string() } else { fit.effect_trials.iter().map(|(m, v)| format!("{m} validation {v:.3e}")).collect::<Vec<_>>().join(", ") });
+    if let Some(c) = &fit.chain {
+        println!("  chain: {}", chain_words(c));
+    }
     let u = &result.uncertainty;
     // Bl, Kms and Le are shown as curves below.
     print_values(p, u, &["Bl", "Kms", "Le"]);

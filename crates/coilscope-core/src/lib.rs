@@ -26,6 +26,7 @@
 //! * [`excitation`]: seeded test signals (IEC 60268-1 noise, pink noise, sine, multitone,
 //!   sweep) and named RNGs.
 
+pub mod chain;
 pub mod creep;
 pub mod excitation;
 pub mod fft;

@@ -52,6 +52,10 @@ pub struct ResultFile {
     /// The post-inverse estimate with a measured displacement, against this result.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cross_check: Option<CrossCheck>,
+    /// The measurement chain, as estimated or calibrated (`shared/spec/formats.md`,
+    /// "Extensions").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub chain: Option<crate::chain::Chain>,
     /// Keys this version does not know (written by a newer tool): kept and written back.
     #[serde(flatten)]
     pub other: serde_json::Map<String, serde_json::Value>,
@@ -457,6 +461,7 @@ impl ResultFile {
             thermal: None,
             measurement: None,
             cross_check: None,
+            chain: None,
             other: Default::default(),
         }
     }

@@ -376,6 +376,38 @@ pub struct LinearFit {
     pub lr3: Option<([f64; 2], [f64; 2])>,
     /// Every model fitted, with its current residual (`fit.models_tried`).
     pub tried: Vec<(String, f64)>,
+    /// The measurement chain, when estimated ([`LinearOptions::chain`]).
+    pub chain: Option<ChainEstimate>,
+}
+
+/// The chain quantities a linear fit estimated: `[delay_i samples, hp_u Hz, hp_i Hz]`, their
+/// sds, and which the data asked for (the others held at 0).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ChainEstimate {
+    pub values: [f64; 3],
+    pub sd: [f64; 3],
+    pub on: [bool; 3],
+    /// Sample rate of the record (Hz).
+    pub fs: f64,
+}
+
+/// A chain quantity is kept when its estimate is this many sds from 0 (and a corner comes out
+/// positive); otherwise it is held at 0 and the fit repeated.
+pub const CHAIN_SIGNIFICANCE: f64 = 4.0;
+
+/// Smallest delay (samples) and corners (Hz) a fit keeps: below these a chain quantity
+/// changes nothing a driver's parameters depend on (a 0.005-sample delay turns the phase at
+/// 10 kHz by 0.4 degrees), however precisely it is measured.
+pub const CHAIN_MIN: [f64; 3] = [0.005, 0.05, 0.05];
+
+/// Mains hum's lines: the bins within this many Hz of a harmonic of 50 or 60 Hz (up to
+/// [`HUM_HARMONICS`]) are left out of a fit that estimates the chain.
+pub const HUM_GUARD_HZ: f64 = 0.75;
+pub const HUM_HARMONICS: usize = 6;
+
+/// True when `f` (Hz) is within [`HUM_GUARD_HZ`] of a mains line.
+pub fn near_hum(f: f64) -> bool {
+    [50.0, 60.0].iter().any(|m| (1..=HUM_HARMONICS).any(|k| (f - k as f64 * m).abs() <= HUM_GUARD_HZ))
 }
 
 /// The transient term of a fit (see `CurrentError`): coefficients of `Q(s / omega0)`.
@@ -419,10 +451,80 @@ struct CurrentError {
     /// The extra effects fitted; their unknowns follow the seven LR-2 ones in theta:
     /// lambda (creep), then the LR-3 corner (bounded as the LR-2 one) and ln R3.
     effects: Effects,
-    /// `Some(fs)`: theta has an entry [`CurrentError::delay_index`], the current channel's delay against the
-    /// voltage in samples (`I_recorded = I e^{-j 2 pi f tau / fs}`): the check for skewed
-    /// channels.
-    delay: Option<f64>,
+    /// The measurement chain's unknowns ([`ChainTerms`]), from [`CurrentError::chain_index`] in
+    /// theta: the current channel's delay (samples), the voltage and current channels'
+    /// AC-coupling corners (Hz), those that are on. `None`: an ideal chain.
+    chain: Option<ChainTerms>,
+}
+
+/// Which chain quantities a fit estimates (see [`coilscope_core::chain`]). The recorded
+/// `U/I` is `Z H_u(f) / (H_i(f) e^{-j 2 pi f tau / fs})`, so the predicted recorded current
+/// is `U_rec e^{-j 2 pi f tau / fs} H_i(f) / (H_u(f) Z)`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ChainTerms {
+    pub fs: f64,
+    /// The current channel's delay (samples).
+    pub delay: bool,
+    /// The voltage channel's AC-coupling corner (Hz).
+    pub hp_u: bool,
+    /// The current channel's AC-coupling corner (Hz).
+    pub hp_i: bool,
+}
+
+impl ChainTerms {
+    /// The three, in theta's order.
+    pub const NAMES: [&'static str; 3] = ["delay_i", "hp_u", "hp_i"];
+    fn on(&self) -> [bool; 3] {
+        [self.delay, self.hp_u, self.hp_i]
+    }
+    fn count(&self) -> usize {
+        self.on().iter().filter(|b| **b).count()
+    }
+    /// `[delay, hp_u, hp_i]` on or off.
+    pub fn on_flags(&self) -> [bool; 3] {
+        self.on()
+    }
+    /// How many are on.
+    pub fn values_count(&self) -> usize {
+        self.count()
+    }
+    /// `[delay samples, hp_u Hz, hp_i Hz]` of the entries of theta for those on.
+    pub fn values_of(&self, th: &[f64]) -> [f64; 3] {
+        self.values(th)
+    }
+    /// `[delay samples, hp_u Hz, hp_i Hz]` from the chain's entries of theta (0 for those off).
+    fn values(&self, th: &[f64]) -> [f64; 3] {
+        let mut v = [0.0; 3];
+        let mut k = 0;
+        for (n, on) in self.on().into_iter().enumerate() {
+            if on {
+                v[n] = th[k];
+                k += 1;
+            }
+        }
+        v
+    }
+    /// The factor on the predicted current at `f`, and its derivatives w.r.t. the chain's
+    /// entries of theta (those on, in order).
+    fn factor(&self, th: &[f64], f: f64) -> (Complex64, Vec<Complex64>) {
+        let [tau, fu, fi] = self.values(th);
+        let c = |tau: f64, fu: f64, fi: f64| {
+            Complex64::from_polar(1.0, -2.0 * PI * f * tau / self.fs) * coilscope_core::chain::hp_response(fi, f, self.fs) / coilscope_core::chain::hp_response(fu, f, self.fs)
+        };
+        let c0 = c(tau, fu, fi);
+        let h = 1e-4;
+        let mut d = vec![];
+        if self.delay {
+            d.push(c0 * Complex64::new(0.0, -2.0 * PI * f / self.fs));
+        }
+        if self.hp_u {
+            d.push((c(tau, fu + h, fi) - c(tau, fu - h, fi)) / (2.0 * h));
+        }
+        if self.hp_i {
+            d.push((c(tau, fu, fi + h) - c(tau, fu, fi - h)) / (2.0 * h));
+        }
+        (c0, d)
+    }
 }
 
 /// `theta[t0..t0 + n_transient]` (`t0` = 7 + the extra effects' unknowns): the coefficients
@@ -513,8 +615,8 @@ impl ParamMap {
 }
 
 impl CurrentError {
-    /// Where the delay of the skew check sits in theta.
-    fn delay_index(&self) -> usize {
+    /// Where the chain's unknowns start in theta.
+    fn chain_index(&self) -> usize {
         self.t0() + self.n_transient
     }
 
@@ -557,12 +659,16 @@ impl CurrentError {
         &theta[self.t0()..self.t0() + self.n_transient]
     }
 
-    /// The delay factor `e^{-j 2 pi f tau / fs}` of bin `k` (1 without the delay check).
-    fn shift(&self, theta: &[f64], k: usize) -> Complex64 {
-        match self.delay {
-            Some(fs) => Complex64::from_polar(1.0, -2.0 * PI * self.f[k] * theta[self.delay_index()] / fs),
-            None => Complex64::new(1.0, 0.0),
+    /// The chain's factor on the predicted current of bin `k` (1 for an ideal chain), with its
+    /// derivatives.
+    fn shift_d(&self, theta: &[f64], k: usize) -> (Complex64, Vec<Complex64>) {
+        match &self.chain {
+            Some(c) => c.factor(&theta[self.chain_index()..], self.f[k]),
+            None => (Complex64::new(1.0, 0.0), vec![]),
         }
+    }
+    fn shift(&self, theta: &[f64], k: usize) -> Complex64 {
+        self.shift_d(theta, k).0
     }
 
     /// `|I - U/Z - T| / |I|` over the fitted bins, unweighted (the spec's `fit.residual_rel`).
@@ -633,7 +739,7 @@ impl Problem for CurrentError {
             dlnp[3] = dlnp[3] + dlnp[2];
             gx[2] += gx[1];
             dlnpx[2] = dlnpx[2] + dlnpx[1];
-            let shift = self.shift(theta, k);
+            let (shift, dshift) = self.shift_d(theta, k);
             let wk = self.w[k] / self.norm;
             let e = (self.i[k] - self.u[k] * shift / z) / self.norm - wk * tr;
             r[2 * k] = e.re;
@@ -663,10 +769,10 @@ impl Problem for CurrentError {
                 j[(2 * k, t0 + n)] = d.re;
                 j[(2 * k + 1, t0 + n)] = d.im;
             }
-            if let Some(fs) = self.delay {
-                let d = self.u[k] * shift / z / self.norm * Complex64::new(0.0, 2.0 * PI * self.f[k] / fs);
-                j[(2 * k, self.delay_index())] = d.re;
-                j[(2 * k + 1, self.delay_index())] = d.im;
+            for (n, ds) in dshift.iter().enumerate() {
+                let d = -self.u[k] * ds / z / self.norm;
+                j[(2 * k, self.chain_index() + n)] = d.re;
+                j[(2 * k + 1, self.chain_index() + n)] = d.im;
             }
         }
         (r, j)
@@ -744,12 +850,16 @@ pub fn fit_linear(u: &[f64], i: &[f64], fs: f64, origin: &str, observe: impl FnM
 pub struct LinearOptions {
     pub ends: Ends,
     pub effects: EffectsChoice,
+    /// Estimate the measurement chain (the current channel's delay, both channels'
+    /// AC-coupling corners; the bins next to mains hum left out), keeping the quantities the
+    /// data ask for ([`LinearFit::chain`]).
+    pub chain: bool,
 }
 
 impl LinearOptions {
     /// The linear start of a large-signal fit: ends at rest, the LR-2 model alone (callers
     /// that want the effects chosen set `effects`).
-    pub const LARGE_SIGNAL_START: LinearOptions = LinearOptions { ends: Ends::AssumedAtRest, effects: EffectsChoice::Fixed(Effects::NONE) };
+    pub const LARGE_SIGNAL_START: LinearOptions = LinearOptions { ends: Ends::AssumedAtRest, effects: EffectsChoice::Fixed(Effects::NONE), chain: false };
 }
 
 /// What the impedance fit assumes of a record's ends (see `CurrentError`'s transient term).
@@ -839,14 +949,14 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     lo[2] = (1.0 / (2.0 * PI * CORNER_ABOVE_BAND * band[1])).ln();
     hi[2] = (1.0 / (2.0 * PI * band[0])).ln();
     let map = ParamMap { lo, hi };
-    let mut prob = CurrentError { f: vec![], u: vec![], i: vec![], w: vec![], norm: 1.0, map: map.clone(), omega0: 2.0 * PI * (band[0] * band[1]).sqrt(), n_transient: if opts.ends == Ends::Fitted { N_TRANSIENT } else { 0 }, effects: Effects::NONE, delay: None };
+    let mut prob = CurrentError { f: vec![], u: vec![], i: vec![], w: vec![], norm: 1.0, map: map.clone(), omega0: 2.0 * PI * (band[0] * band[1]).sqrt(), n_transient: if opts.ends == Ends::Fitted { N_TRANSIENT } else { 0 }, effects: Effects::NONE, chain: None };
     for k in 1..uf.len() {
         let f = k as f64 * df;
         if f < band[0] || f > band[1] {
             continue;
         }
         let kh = h1.bin(f);
-        if h1.usable(kh, MIN_COHERENCE) {
+        if h1.usable(kh, MIN_COHERENCE) && !(opts.chain && near_hum(f)) {
             let w = 1.0 / (1.0 + (z_ref / h1.z[kh].norm()).powi(2)).sqrt();
             prob.f.push(f);
             prob.u.push(uf[k] * w);
@@ -862,11 +972,15 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     }
     fn thin(p: &CurrentError, most: usize) -> CurrentError {
         let step = p.f.len().div_ceil(most);
-        let mut t = CurrentError { f: keep(&p.f, step), u: keep(&p.u, step), i: keep(&p.i, step), w: keep(&p.w, step), norm: 1.0, map: p.map.clone(), omega0: p.omega0, n_transient: p.n_transient, effects: p.effects, delay: None };
+        let mut t = CurrentError { f: keep(&p.f, step), u: keep(&p.u, step), i: keep(&p.i, step), w: keep(&p.w, step), norm: 1.0, map: p.map.clone(), omega0: p.omega0, n_transient: p.n_transient, effects: p.effects, chain: p.chain };
         t.norm = t.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
         t
     }
     prob.norm = prob.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
+    if opts.chain {
+        prob.chain = Some(ChainTerms { fs, delay: true, hp_u: true, hp_i: true });
+    }
+    let n_chain = prob.chain.map_or(0, |c| c.count());
     // LM to convergence, or to a plateau: the cost lowered by less than PLATEAU_REL over
     // the last PLATEAU_ITERATIONS iterations. An effect the record does not have leaves a
     // flat direction along which LM creeps for ever (LR-3 on 18WU's small stage: 200
@@ -896,7 +1010,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     // the effect does not lower the residual by EFFECT_MIN_GAIN on the scout bins). Returns
     // the problem, the state, the scout's residual and whether it was polished.
     let solve = |effects: Effects, starts: &[Vec<f64>], gate: f64, observe: &mut dyn FnMut(&LmState)| -> (CurrentError, LmState, f64, bool) {
-        let mut pr = CurrentError { f: prob.f.clone(), u: prob.u.clone(), i: prob.i.clone(), w: prob.w.clone(), map: prob.map.clone(), effects, delay: None, ..prob };
+        let mut pr = CurrentError { f: prob.f.clone(), u: prob.u.clone(), i: prob.i.clone(), w: prob.w.clone(), map: prob.map.clone(), effects, chain: prob.chain, ..prob };
         pr.norm = prob.norm;
         let scout = (pr.f.len() > 2 * SCOUT_BINS).then(|| thin(&pr, SCOUT_BINS));
         let scout_iterations = if gate.is_finite() && scout.is_some() { CANDIDATE_SCOUT_ITERATIONS } else { MAX_ITERATIONS };
@@ -950,7 +1064,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
         .iter()
         .map(|q| {
             let mut th = map.theta(q);
-            th.resize(7 + n_t, 0.0);
+            th.resize(7 + n_t + n_chain, 0.0);
             th
         })
         .collect();
@@ -971,7 +1085,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
         let (pr, s, _) = from;
         let (th0, ext0) = (&s.theta, pr.ext(&s.theta));
         let base = &th0[..7];
-        let trans = pr.transient(th0).to_vec();
+        let trans = th0[pr.t0()..].to_vec();
         let lambda = ext0.creep.map_or(0.05, |c| c.lambda);
         let lr3s: Vec<(f64, f64)> = match (to.lr3, ext0.lr3) {
             (false, _) => vec![],
@@ -1036,7 +1150,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
         }
     };
     let tried: Vec<(String, f64)> = fitted.iter().map(|(pr, _, r)| (pr.effects.model_name(), *r)).collect();
-    let (prob, mut s, _) = fitted.swap_remove(chosen);
+    let (mut prob, mut s, _) = fitted.swap_remove(chosen);
     // Name the branches by their corners: LR-2 is the lower one.
     if let Some(k3) = prob.idx_lr3() {
         let q = map.q(&s.theta[..7]);
@@ -1053,6 +1167,39 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
             s.theta[k3 + 1] = lr2;
         }
     }
+    let free_of = |prob: &CurrentError, th: &[f64]| -> Vec<usize> {
+        let inside = |t: f64| (1e-3..=1.0 - 1e-3).contains(&logistic(t));
+        (0..th.len()).filter(|&k| (k >= 7 && Some(k) != prob.idx_lr3()) || (k < 7 && !map.lo[k].is_finite()) || inside(th[k])).collect()
+    };
+    // The chain: keep the quantities whose estimates stand out of their sds (a corner also
+    // positive), hold the others at 0 and fit again.
+    if let Some(terms) = prob.chain {
+        let ci = prob.chain_index();
+        let cov = covariance_of(&prob, &s.theta, &free_of(&prob, &s.theta));
+        let vals = terms.values(&s.theta[ci..]);
+        let mut keep = terms;
+        let mut k = ci;
+        for (n, on) in terms.on().into_iter().enumerate() {
+            if on {
+                let sd = cov.as_ref().map_or(f64::INFINITY, |c| c[(k, k)].max(0.0).sqrt());
+                let significant = vals[n].abs() > CHAIN_SIGNIFICANCE * sd && vals[n].abs() >= CHAIN_MIN[n] && (n == 0 || vals[n] > 0.0);
+                match n {
+                    0 => keep.delay = significant,
+                    1 => keep.hp_u = significant,
+                    _ => keep.hp_i = significant,
+                }
+                k += 1;
+            }
+        }
+        if keep != terms {
+            let mut th = s.theta[..ci].to_vec();
+            let kv = keep.on();
+            th.extend((0..3).filter(|&n| kv[n]).map(|n| vals[n]));
+            let pr = CurrentError { f: prob.f.clone(), u: prob.u.clone(), i: prob.i.clone(), w: prob.w.clone(), map: prob.map.clone(), chain: (keep.count() > 0).then_some(keep), ..prob };
+            s = run(&pr, th, MAX_ITERATIONS, &mut observe);
+            prob = pr;
+        }
+    }
     let p = map.params(&s.theta);
     let ext = prob.ext(&s.theta);
     // Relative sd of p_k is the sd of ln p_k: the covariance of theta mapped to q (and
@@ -1061,8 +1208,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     // would make J^T J singular and every sd NaN): it leaves the covariance, with sd 0.
     let dq = map.dq(&s.theta);
     let inside = |t: f64| (1e-3..=1.0 - 1e-3).contains(&logistic(t));
-    let free: Vec<usize> = (0..s.theta.len()).filter(|&k| (k >= 7 && Some(k) != prob.idx_lr3()) || (k < 7 && !map.lo[k].is_finite()) || inside(s.theta[k])).collect();
-    let cov = covariance_of(&prob, &s.theta, &free);
+    let cov = covariance_of(&prob, &s.theta, &free_of(&prob, &s.theta));
     let sigma_rel: [f64; 7] = match &cov {
         Some(c) => {
             let cq = |a: usize, b: usize| c[(a, b)] * dq[a] * dq[b];
@@ -1093,18 +1239,33 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     // Skewed channels: a current recorded late by tau samples multiplies U/I by
     // e^{j 2 pi f tau / fs}, which no passive circuit does. Let the same fit shift the current
     // channel: if that explains most of the error, the channels are skewed.
-    let current_delay = {
-        let mut check = CurrentError { delay: Some(fs), ..thin(&prob, SCOUT_BINS) };
+    let chain = opts.chain.then(|| {
+        let terms = prob.chain.unwrap_or(ChainTerms { fs, delay: false, hp_u: false, hp_i: false });
+        let ci = prob.chain_index();
+        let values = terms.values(&s.theta[ci..]);
+        let mut sd = [0.0; 3];
+        let mut k = ci;
+        for (n, on) in terms.on().into_iter().enumerate() {
+            if on {
+                sd[n] = cov.as_ref().map_or(f64::NAN, |c| c[(k, k)].max(0.0).sqrt());
+                k += 1;
+            }
+        }
+        ChainEstimate { values, sd, on: terms.on(), fs }
+    });
+    // With the chain estimated, its delay is in the model (and reported there).
+    let current_delay = if opts.chain { None } else {
+        let mut check = CurrentError { chain: Some(ChainTerms { fs, delay: true, hp_u: false, hp_i: false }), ..thin(&prob, SCOUT_BINS) };
         check.norm = prob_norm(&check);
         let mut th = s.theta.clone();
         th.push(0.0);
         let base = LmState::new(&check, th.clone()).cost;
         let d = run(&check, th, MAX_ITERATIONS, &mut |_| {});
-        let at = check.delay_index();
+        let at = check.chain_index();
         (d.converged && d.cost < 0.25 * base && d.theta[at].abs() >= 0.05).then(|| (d.theta[at], 1.0 - (d.cost / base).sqrt()))
     };
     let transient = Transient { c: prob.transient(&s.theta).to_vec(), omega0: prob.omega0 };
-    Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay, transient, effects: prob.effects, creep, lr3, tried })
+    Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay, transient, effects: prob.effects, creep, lr3, tried, chain })
 }
 
 /// Bins per cluster of the linear fit's robust covariance (see [`covariance_of`]).
@@ -1386,7 +1547,24 @@ pub fn result(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f
         models_tried: Some(fit.tried.iter().map(|(m, r)| ModelTrial { model: m.clone(), residual_rel: Some(*r), ..Default::default() }).collect()),
         ..Default::default()
     };
-    ResultFile::new("linear", recording, p.clone(), fit_record, unc, None)
+    let mut r = ResultFile::new("linear", recording, p.clone(), fit_record, unc, None);
+    r.chain = fit.chain.as_ref().map(|c| c.to_chain());
+    r
+}
+
+impl ChainEstimate {
+    /// As a result's `chain` (the delay in s at sample rate `fs`).
+    pub fn to_chain(&self) -> coilscope_core::chain::Chain {
+        let fs = self.fs;
+        let mut c = coilscope_core::chain::Chain { source: Some("estimated".into()), delay_i: self.values[0] / fs, hp_u: self.values[1], hp_i: self.values[2], ..Default::default() };
+        for (n, key) in ChainTerms::NAMES.iter().enumerate() {
+            if self.on[n] {
+                c.sd.insert(key.to_string(), if n == 0 { self.sd[0] / fs } else { self.sd[n] });
+                c.fitted.push(key.to_string());
+            }
+        }
+        c
+    }
 }
 
 /// The H1 impedance as `.zma` text (frequency Hz, magnitude ohm, phase deg), coherent bins.
@@ -1465,7 +1643,7 @@ mod tests {
                 omega0: 2.0 * PI * 250.0,
                 n_transient: N_TRANSIENT,
                 effects,
-                delay: Some(48000.0),
+                chain: Some(ChainTerms { fs: 48000.0, delay: true, hp_u: true, hp_i: true }),
             };
             let mut th = map.theta(&ParamMap::q_of(&p));
             if creep {
@@ -1474,7 +1652,7 @@ mod tests {
             if lr3 {
                 th.extend([0.7, (0.8f64).ln()]);
             }
-            th.extend([0.02, -0.01, 0.005, 0.003, 0.4]);
+            th.extend([0.02, -0.01, 0.005, 0.003, 0.4, 2.0, 3.5]);
             let (_, jac) = prob.residual_jacobian(&th);
             for c in 0..th.len() {
                 let h = 1e-6;

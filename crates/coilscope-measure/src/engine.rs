@@ -49,7 +49,7 @@ use coilscope_ident::linear::{fit_linear_record, scale_by_mms, Effects, EffectsC
 /// large-signal effects the data have not shown ([`Online::drop_effects`]): the time the
 /// convergence test waits as well.
 const PRUNE_AFTER_HOLD_S: f64 = 2.0;
-const SMALL_STAGE_FIT: LinearOptions = LinearOptions { ends: Ends::Fitted, effects: EffectsChoice::Auto };
+const SMALL_STAGE_FIT: LinearOptions = LinearOptions { ends: Ends::Fitted, effects: EffectsChoice::Auto, chain: false };
 use coilscope_ident::online::{Online, OnlineOptions};
 
 /// Seconds of peak-excursion memory of the controller.
@@ -425,7 +425,7 @@ fn loud_start(lin: &coilscope_ident::linear::LinearFit, p: &Parameters, u: &[f64
 fn batch_start(u: &[f64], i: &[f64], fs: f64, mms: f64) -> Option<(Parameters, f64, f64)> {
     use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions};
     // The LR-2 model: the online estimator has no creep or LR-3 yet.
-    let opts = IdentifyOptions { mms, order: Some(4), effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() };
+    let opts = IdentifyOptions { mms, order: Some(4), effects: EffectsChoice::Fixed(Effects::NONE), chain: false, ..Default::default() };
     let fit = match identify(u, i, fs, "replay start", &opts, |_| {}) {
         Ok(f) => f,
         Err(IdentifyError::NotConverged { best, .. }) => *best,

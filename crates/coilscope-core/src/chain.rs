@@ -1,0 +1,321 @@
+//! The measurement chain: what a sound card and a sense resistor do between the driver's
+//! terminals (physical `u`, `i`) and the recorded channels.
+//!
+//! The model, per channel, in the order a real interface applies it:
+//!
+//! ```text
+//! recorded = HP_fc( delayed(physical) ) + dc + hum
+//! ```
+//!
+//! * **Delay** (`delay_i`, s): the current channel sampled late against the voltage
+//!   (`i_rec(t) = i(t - delay_i)`); fractional, done on the whole record by FFT (band-limited,
+//!   zero-padded so nothing wraps around).
+//! * **AC coupling** (`hp_u`, `hp_i`, Hz): first-order Butterworth high-pass, discretised with
+//!   the bilinear transform (pre-warped corner): `y[n] = g (x[n] - x[n-1]) + a y[n-1]`,
+//!   `K = tan(pi fc / fs)`, `a = (1 - K) / (1 + K)`, `g = 1 / (1 + K)`. A corner of 0 is a wire.
+//!   Its inverse ([`hp_inverse`]) is exact: `x[n] = x[n-1] + (y[n] - a y[n-1]) / g`.
+//! * **DC** (`dc_u`, `dc_i`, V, A): added after the coupling (an ADC offset, a sense amplifier's
+//!   offset), so it reaches the record but not the driver.
+//! * **Hum** ([`Hum`]): mains and its harmonics, added to the record.
+//!
+//! Conventions and keys are those of `shared/spec/formats.md` ("Extensions": a result's
+//! `chain`). Everything is SI; the delay is in seconds (the fits work in samples and convert).
+
+use realfft::num_complex::Complex64;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::f64::consts::PI;
+
+/// Mains hum on the recorded channels: peak amplitude and phase (rad, of a cosine at `t = 0`)
+/// of each harmonic `k f` (`k = 1, 2, ...`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Hum {
+    /// Mains frequency (Hz): 50 or 60.
+    pub f: f64,
+    /// `[peak V, phase rad]` on the voltage channel, harmonic 1, 2, ...
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub u: Vec<[f64; 2]>,
+    /// `[peak A, phase rad]` on the current channel (as estimated by a fit: what the voltage
+    /// channel's hum drives through the driver is included here).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub i: Vec<[f64; 2]>,
+}
+
+impl Hum {
+    fn signal(f: f64, lines: &[[f64; 2]], n: usize, fs: f64) -> Vec<f64> {
+        (0..n)
+            .map(|m| {
+                let t = m as f64 / fs;
+                lines.iter().enumerate().map(|(k, [a, ph])| a * (2.0 * PI * (k + 1) as f64 * f * t + ph).cos()).sum()
+            })
+            .collect()
+    }
+}
+
+/// The measurement chain (result key `chain`). Absent quantities are 0 (a wire).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Chain {
+    /// How the values were found: `estimated` (jointly with the driver), `calibrated` (a chain
+    /// file), `simulated` (a virtual chain).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub source: Option<String>,
+    /// Current channel late against the voltage (s).
+    pub delay_i: f64,
+    /// First-order AC-coupling corner of the voltage channel (Hz; 0: DC-coupled).
+    pub hp_u: f64,
+    /// The same for the current channel (Hz).
+    pub hp_i: f64,
+    /// Offset on the recorded voltage (V).
+    pub dc_u: f64,
+    /// Offset on the recorded current (A).
+    pub dc_i: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub hum: Option<Hum>,
+    /// Sense resistor (ohm), where the wiring puts its drop into the voltage channel.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sense_ohm: Option<f64>,
+    /// `terminals` (voltage measured at the driver) or `driver+shunt`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sense_wiring: Option<String>,
+    /// Standard deviations of the estimated quantities, under their keys (`delay_i`, ...).
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub sd: BTreeMap<String, f64>,
+    /// Which quantities the data asked for (estimated ones; the others were held at 0).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub fitted: Vec<String>,
+    /// Keys this version does not know: kept and written back.
+    #[serde(flatten)]
+    pub other: serde_json::Map<String, serde_json::Value>,
+}
+
+/// Bilinear first-order high-pass coefficients `(g, a)` for corner `fc` (Hz) at `fs`.
+pub fn hp_coefficients(fc: f64, fs: f64) -> (f64, f64) {
+    let k = (PI * fc / fs).tan();
+    ((1.0 / (1.0 + k)), (1.0 - k) / (1.0 + k))
+}
+
+/// First-order bilinear high-pass of `x` (starting from rest).
+pub fn hp(x: &[f64], fc: f64, fs: f64) -> Vec<f64> {
+    let (g, a) = hp_coefficients(fc, fs);
+    let (mut xp, mut yp) = (0.0, 0.0);
+    x.iter()
+        .map(|&v| {
+            yp = g * (v - xp) + a * yp;
+            xp = v;
+            yp
+        })
+        .collect()
+}
+
+/// The exact inverse of [`hp`]: the signal whose high-pass is `y`.
+pub fn hp_inverse(y: &[f64], fc: f64, fs: f64) -> Vec<f64> {
+    let (g, a) = hp_coefficients(fc, fs);
+    let (mut xp, mut yp) = (0.0, 0.0);
+    y.iter()
+        .map(|&v| {
+            xp += (v - a * yp) / g;
+            yp = v;
+            xp
+        })
+        .collect()
+}
+
+/// Frequency response of [`hp`] at `f` (Hz).
+pub fn hp_response(fc: f64, f: f64, fs: f64) -> Complex64 {
+    let (g, a) = hp_coefficients(fc, fs);
+    let zi = Complex64::from_polar(1.0, -2.0 * PI * f / fs);
+    g * (1.0 - zi) / (1.0 - a * zi)
+}
+
+/// `x` delayed by `samples` (fractional, may be negative: an advance), band-limited by FFT over
+/// the record zero-padded by at least 256 samples on the delayed side, so that nothing wraps.
+pub fn delay(x: &[f64], samples: f64) -> Vec<f64> {
+    if samples == 0.0 || x.is_empty() {
+        return x.to_vec();
+    }
+    let pad = 256 + samples.abs().ceil() as usize;
+    let n = (x.len() + 2 * pad).next_power_of_two().max(2);
+    let mut buf = vec![0.0; n];
+    buf[pad..pad + x.len()].copy_from_slice(x);
+    let mut spec = crate::fft::rfft(&buf);
+    for (k, c) in spec.iter_mut().enumerate() {
+        *c *= Complex64::from_polar(1.0 / n as f64, -2.0 * PI * k as f64 * samples / n as f64);
+    }
+    let last = spec.len() - 1;
+    if n % 2 == 0 {
+        // The Nyquist bin of a real signal cannot carry a fractional shift: its phase would
+        // make it complex. Keep its real part only (it is empty for a band-limited record).
+        spec[last] = Complex64::new(spec[last].re, 0.0);
+    }
+    let y = crate::fft::irfft(&spec, n);
+    y[pad..pad + x.len()].to_vec()
+}
+
+impl Chain {
+    /// Channel records of the physical `u` (V) and `i` (A) at `fs`.
+    pub fn apply(&self, u: &[f64], i: &[f64], fs: f64) -> (Vec<f64>, Vec<f64>) {
+        let mut ur = hp(u, self.hp_u, fs);
+        let mut ir = hp(&delay(i, self.delay_i * fs), self.hp_i, fs);
+        let n = u.len();
+        let (hu, hi) = match &self.hum {
+            Some(h) => (Hum::signal(h.f, &h.u, n, fs), Hum::signal(h.f, &h.i, n, fs)),
+            None => (vec![0.0; n], vec![0.0; n]),
+        };
+        for m in 0..n {
+            ur[m] += self.dc_u + hu[m];
+            ir[m] += self.dc_i + hi[m];
+        }
+        (ur, ir)
+    }
+
+    /// The physical `u`, `i` of channel records (the exact inverse of [`Chain::apply`]).
+    pub fn invert(&self, u_rec: &[f64], i_rec: &[f64], fs: f64) -> (Vec<f64>, Vec<f64>) {
+        let n = u_rec.len();
+        let (hu, hi) = match &self.hum {
+            Some(h) => (Hum::signal(h.f, &h.u, n, fs), Hum::signal(h.f, &h.i, n, fs)),
+            None => (vec![0.0; n], vec![0.0; n]),
+        };
+        let uc: Vec<f64> = (0..n).map(|m| u_rec[m] - self.dc_u - hu[m]).collect();
+        let ic: Vec<f64> = (0..n).map(|m| i_rec[m] - self.dc_i - hi[m]).collect();
+        (hp_inverse(&uc, self.hp_u, fs), delay(&hp_inverse(&ic, self.hp_i, fs), -self.delay_i * fs))
+    }
+
+    /// What the chain multiplies the recorded `U/I` by at `f`: `Z_rec = Z * ratio`.
+    pub fn impedance_factor(&self, f: f64, fs: f64) -> Complex64 {
+        hp_response(self.hp_u, f, fs) / hp_response(self.hp_i, f, fs) * Complex64::from_polar(1.0, 2.0 * PI * f * self.delay_i)
+    }
+
+    /// True when every quantity is 0 (an ideal chain).
+    pub fn is_ideal(&self) -> bool {
+        self.delay_i == 0.0 && self.hp_u == 0.0 && self.hp_i == 0.0 && self.dc_u == 0.0 && self.dc_i == 0.0 && self.hum.is_none()
+    }
+}
+
+/// The physical voltage behind a voltage channel AC-coupled at `hp_u` (Hz) with an unknown
+/// offset: `hp_inverse(u_rec - dc_u)`, with `dc_u` the offset that leaves the result without a
+/// mean and a trend (an offset left in would be integrated into a ramp). Returns the voltage
+/// and `dc_u`.
+pub fn voltage_behind(u_rec: &[f64], hp_u: f64, fs: f64) -> (Vec<f64>, f64) {
+    let x = hp_inverse(u_rec, hp_u, fs);
+    let ones = hp_inverse(&vec![1.0; u_rec.len()], hp_u, fs);
+    let (xo, oo) = x.iter().zip(&ones).fold((0.0, 0.0), |(a, b), (x, o)| (a + x * o, b + o * o));
+    let dc = if oo > 0.0 { xo / oo } else { 0.0 };
+    (x.iter().zip(&ones).map(|(x, o)| x - dc * o).collect(), dc)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, StandardNormal};
+
+    fn noise(seed: u64, n: usize) -> Vec<f64> {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        // Band-limited, starting and ending at rest.
+        let w: Vec<f64> = (0..n).map(|_| StandardNormal.sample(&mut rng)).collect();
+        let mut y = hp(&w, 20.0, 48000.0);
+        // Four one-pole low-passes: nearly nothing left near Nyquist, as after an ADC's
+        // anti-alias filter (a fractional delay is exact only for a band-limited signal).
+        for _ in 0..4 {
+            let mut s = 0.0;
+            for v in y.iter_mut() {
+                s = 0.9 * s + 0.1 * *v;
+                *v = s;
+            }
+        }
+        let fade = n / 10;
+        for k in 0..fade {
+            let g = k as f64 / fade as f64;
+            y[k] *= g;
+            y[n - 1 - k] *= g;
+        }
+        y
+    }
+
+    #[test]
+    fn hp_matches_its_analytic_response_and_inverse() {
+        let fs = 48000.0;
+        // Response of a long sinusoid in steady state against hp_response.
+        for (fc, f) in [(2.0, 10.0), (4.0, 50.0), (3.0, 1000.0)] {
+            let n = 480000;
+            let x: Vec<f64> = (0..n).map(|m| (2.0 * PI * f * m as f64 / fs).cos()).collect();
+            let y = hp(&x, fc, fs);
+            let h = hp_response(fc, f, fs);
+            for m in n - 1000..n {
+                let want = h.norm() * (2.0 * PI * f * m as f64 / fs + h.arg()).cos();
+                assert!((y[m] - want).abs() < 1e-9, "fc {fc} f {f}: {} vs {want}", y[m]);
+            }
+            // The analog prototype s / (s + wc), pre-warped at the corner: -3 dB there.
+            assert!((hp_response(fc, fc, fs).norm() - 0.5f64.sqrt()).abs() < 1e-9);
+        }
+        let x = noise(1, 20000);
+        let back = hp_inverse(&hp(&x, 3.0, 48000.0), 3.0, 48000.0);
+        let err = x.iter().zip(&back).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+        assert!(err < 1e-9, "{err}");
+    }
+
+    #[test]
+    fn fractional_delay_is_an_exact_phase_shift_and_invertible() {
+        let fs = 48000.0;
+        let f = 1234.5;
+        let n = 4800;
+        // A windowed tone: delaying it by d samples equals evaluating it at t - d/fs.
+        let env = |t: f64| (PI * t / (n as f64 / fs)).sin().powi(4);
+        let sig = |t: f64| env(t) * (2.0 * PI * f * t).sin();
+        let x: Vec<f64> = (0..n).map(|m| sig(m as f64 / fs)).collect();
+        for d in [0.3, -0.25, 1.7] {
+            let y = delay(&x, d);
+            for m in 100..n - 100 {
+                let want = sig((m as f64 - d) / fs);
+                assert!((y[m] - want).abs() < 1e-6, "d {d} m {m}: {} vs {want}", y[m]);
+            }
+            let back = delay(&y, -d);
+            let err = x.iter().zip(&back).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            assert!(err < 1e-9, "{err}");
+        }
+    }
+
+    #[test]
+    fn chain_inverts_exactly_and_finds_the_voltage_offset() {
+        let fs = 48000.0;
+        let n = 96000;
+        let (u, i) = (noise(2, n), noise(3, n));
+        let c = Chain {
+            delay_i: 0.3 / fs,
+            hp_u: 2.0,
+            hp_i: 4.0,
+            dc_u: 0.01,
+            dc_i: 1e-3,
+            hum: Some(Hum { f: 50.0, u: vec![[1e-3, 0.2], [0.0, 0.0], [5e-4, 1.0]], i: vec![[1e-4, -0.5]] }),
+            ..Chain::default()
+        };
+        let (ur, ir) = c.apply(&u, &i, fs);
+        let (ub, ib) = c.invert(&ur, &ir, fs);
+        // Exact but at the record's ends: what a fractional delay moves past them is not
+        // recorded (the sinc's tails; this test noise is not band-limited).
+        let err = |a: &[f64], b: &[f64]| (2000..n - 2000).map(|m| (a[m] - b[m]).abs()).fold(0.0, f64::max);
+        assert!(err(&u, &ub) < 1e-9 && err(&i, &ib) < 1e-7, "{} {}", err(&u, &ub), err(&i, &ib));
+        // The offset from the record alone (no hum on this one).
+        let c2 = Chain { hum: None, ..c };
+        let (ur, _) = c2.apply(&u, &i, fs);
+        let (ub, dc) = voltage_behind(&ur, 2.0, fs);
+        let rms = (u.iter().map(|v| v * v).sum::<f64>() / n as f64).sqrt();
+        assert!((dc - 0.01).abs() < 1e-4 * rms, "dc {dc}");
+        assert!(err(&u, &ub) < 3e-3 * rms, "{}", err(&u, &ub) / rms);
+        // The impedance factor: the recorded U/I of a resistor.
+        let z = c2.impedance_factor(100.0, fs);
+        let want = hp_response(2.0, 100.0, fs) / (hp_response(4.0, 100.0, fs) * Complex64::from_polar(1.0, -2.0 * PI * 100.0 * 0.3 / fs));
+        assert!((z - want).norm() < 1e-12);
+    }
+
+    #[test]
+    fn chain_round_trips_as_json_with_unknown_keys() {
+        let text = r#"{"delay_i":6.25e-6,"hp_u":2.0,"hp_i":4.0,"dc_i":0.001,"hum":{"f":50.0,"i":[[1e-4,0.5]]},"future":1}"#;
+        let c: Chain = serde_json::from_str(text).unwrap();
+        assert_eq!(c.hp_i, 4.0);
+        assert_eq!(c.other["future"], 1);
+        let back: Chain = serde_json::from_str(&serde_json::to_string(&c).unwrap()).unwrap();
+        assert_eq!(back, c);
+    }
+}

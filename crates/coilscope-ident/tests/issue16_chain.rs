@@ -1,0 +1,89 @@
+//! Issue 16: `identify` with the measurement chain estimated, on the independent simulator's
+//! `sb17cac35-4-real-chain.wav` (SB17 through a real recording chain: the current 0.3 sample
+//! late, first-order AC coupling at 2 Hz on the voltage and 4 Hz on the current, 1 mA offset on
+//! the current, 50 + 150 Hz hum at -55 dB). Without the chain, `identify` stopped with "the
+//! excitation is too small" (the linear model explained nothing: 7 % current error).
+//!
+//! The issue's bounds: Bl within 2 %, Kms within 3 %, Re within 0.5 %, Le within 5 %, the
+//! truth within 3 sd of the bands, the residual within 2x its floor; and the chain: the delay
+//! within 0.01 sample, the corners within 5 %, the offset within 5 %, each truth within 3 sd.
+//!
+//! Release profile: `cargo test --release -p coilscope-ident --test issue16_chain -- --ignored`.
+
+mod common;
+use common::Errors;
+use coilscope_core::embedded_driver;
+use coilscope_ident::large::{identify, IdentifyOptions};
+use std::path::Path;
+
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+#[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue16_chain -- --ignored"]
+fn identify_estimates_the_chain_of_the_independent_real_chain_record() {
+    let bad = run(false);
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+}
+
+/// The sds: open. On this record the bands miss the truth by up to 13 sd (the curves
+/// themselves are within 0.4 %), the delay's sd is 26x too small (0.2997 sample +- 4e-6 against
+/// 0.3) and the offset's 5x: the covariance does not yet carry the chain's model error
+/// (the independent simulator's anti-alias decimation against our band-limited delay).
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+#[ignore = "known open (issue 16): cargo test --release -p coilscope-ident --test issue16_chain -- --ignored known_open"]
+fn known_open_chain_sds_cover_the_truth() {
+    let bad = run(true);
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+}
+
+/// The checks; `sds`: also the truth within 3 sd (bands and chain).
+fn run(sds: bool) -> Vec<String> {
+    let file = "sb17cac35-4-real-chain.wav";
+    let truth = embedded_driver("sb17cac35-4").unwrap();
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings");
+    let rec = coilscope_io::read_recording(&dir.join(file), None).unwrap();
+    let fs = rec.fs as f64;
+    let fit = identify(&rec.u, &rec.i, fs, file, &IdentifyOptions { mms: truth.mms, chain: true, ..Default::default() }, |_| {}).unwrap_or_else(|e| panic!("{file}: {e}"));
+    let e = Errors::of(&fit.params, &truth, fit.x_range);
+    let r: Vec<f64> = fit.i_phys[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect();
+    let (floor, _) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", coilscope_core::simulate::rms(&fit.i_phys), 0.0);
+    let c = fit.chain.clone().expect("chain estimated");
+    println!("{file}: {e}, residual {:.2e} ({:.2}x floor), chain {c:?}", fit.residual_rel, floor.rms / floor.floor_rms);
+    let mut bad = vec![];
+    if !(e.bl <= 0.02 && e.kms <= 0.03 && e.re <= 0.005 && e.le <= 0.05) {
+        bad.push(format!("{e}"));
+    }
+    if floor.rms > 2.0 * floor.floor_rms {
+        bad.push(format!("residual {:.2}x its floor", floor.rms / floor.floor_rms));
+    }
+    let mut zmax: f64 = 0.0;
+    for (name, f) in [("Bl", &truth.bl), ("Kms", &truth.kms), ("Le", &truth.le)] {
+        let b = fit.band(name, 41);
+        for k in 0..b.x.len() {
+            zmax = zmax.max((b.value[k] - f.eval(b.x[k])).abs() / b.sd[k]);
+        }
+    }
+    println!("the truth within {zmax:.2} sd of the bands");
+    if sds && zmax > 3.0 {
+        bad.push(format!("the truth lies {zmax:.1} sd outside the bands"));
+    }
+    // The chain against the world of the record.
+    for (key, got, want, tol) in [("delay_i", c.delay_i, 0.3 / fs, 0.01 / fs), ("hp_u", c.hp_u, 2.0, 0.1), ("hp_i", c.hp_i, 4.0, 0.2), ("dc_i", c.dc_i, 1e-3, 5e-5)] {
+        let sd = c.sd[key];
+        println!("{key}: {got:.6e} +- {sd:.2e} (true {want:.6e})");
+        if (got - want).abs() > tol {
+            bad.push(format!("{key} {got:.4e}, true {want:.4e} (tolerance {tol:.1e})"));
+        }
+        if sds && (got - want).abs() > 3.0 * sd {
+            bad.push(format!("{key} {got:.4e} +- {sd:.2e}: the truth {want:.4e} is {:.1} sd away", (got - want).abs() / sd));
+        }
+    }
+    // Hum: 50 Hz, the 150 Hz line half of it (the current channel's own hum; what the voltage's
+    // drives through the driver is in it too, so the ratio only roughly).
+    let h = c.hum.expect("hum");
+    assert_eq!(h.f, 50.0);
+    if !(h.i[0][0] > 10.0 * h.i[1][0] && h.i[2][0] > 10.0 * h.i[1][0]) {
+        bad.push(format!("hum lines {:?}", h.i));
+    }
+    bad
+}
