@@ -25,8 +25,8 @@ fn identify_estimates_the_chain_of_the_independent_real_chain_record() {
 }
 
 /// The sds: open. On this record the bands miss the truth by up to 13 sd (the curves
-/// themselves are within 0.4 %), the delay's sd is 26x too small (0.2997 sample +- 4e-6 against
-/// 0.3) and the offset's 5x: the covariance does not yet carry the chain's model error
+/// themselves are within 0.4 %), the delay misses by 26 sd (0.2997 sample +- 9e-6 against
+/// 0.3) and the offset by 5 sd: the covariance does not yet carry the chain's model error
 /// (the independent simulator's anti-alias decimation against our band-limited delay).
 #[test]
 #[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
