@@ -680,7 +680,7 @@ fn cmd_linear(
     };
     println!("  scale: {scale_text}");
     if let Some(c) = &fit.chain {
-        println!("  chain: {}", chain_text(c, fs));
+        println!("  chain: {}", chain_words(&c.to_chain(), fs));
     }
     println!("  model: {} (tried: {})", fit.effects.model_name(), fit.tried.iter().map(|(m, r)| format!("{m} {r:.2e}")).collect::<Vec<_>>().join(", "));
     print_values(&params, u, &[]);
@@ -708,36 +708,26 @@ fn print_values(p: &Parameters, uncertainty: &coilscope_core::result::Uncertaint
     }
 }
 
-/// An estimated chain, in words (sds where estimated).
-fn chain_words(c: &coilscope_core::chain::Chain) -> String {
-    let sd = |k: &str, scale: f64| c.sd.get(k).map(|v| format!(" +- {:.3}", v * scale)).unwrap_or_default();
+/// An estimated chain of a record at `fs`, in words: what was fitted, with its sds.
+fn chain_words(c: &coilscope_core::chain::Chain, fs: f64) -> String {
+    let fitted = |k: &str| c.fitted.iter().any(|f| f == k);
+    let sd = |k: &str| c.sd.get(k).copied().unwrap_or(f64::NAN);
     let mut parts = vec![];
-    if c.fitted.iter().any(|k| k == "delay_i") {
-        parts.push(format!("current {:.3}{} us late", c.delay_i * 1e6, sd("delay_i", 1e6)));
+    if fitted("delay_i") {
+        parts.push(format!("current {:.3} +- {:.3} samples late ({:.2} us)", c.delay_i * fs, sd("delay_i") * fs, 1e6 * c.delay_i));
     }
-    if c.fitted.iter().any(|k| k == "hp_u") {
-        parts.push(format!("voltage AC-coupled at {:.2}{} Hz", c.hp_u, sd("hp_u", 1.0)));
+    if fitted("hp_u") {
+        parts.push(format!("voltage AC-coupled at {:.2} +- {:.2} Hz", c.hp_u, sd("hp_u")));
     }
-    if c.fitted.iter().any(|k| k == "hp_i") {
-        parts.push(format!("current AC-coupled at {:.2}{} Hz", c.hp_i, sd("hp_i", 1.0)));
+    if fitted("hp_i") {
+        parts.push(format!("current AC-coupled at {:.2} +- {:.2} Hz", c.hp_i, sd("hp_i")));
     }
-    parts.push(format!("offsets {:.3e} V, {:.3e}{} A", c.dc_u, c.dc_i, sd("dc_i", 1.0)));
+    if fitted("dc_i") {
+        parts.push(format!("offsets {:.3e} V, {:.3e} +- {:.1e} A", c.dc_u, c.dc_i, sd("dc_i")));
+    }
     if let Some(h) = &c.hum {
         parts.push(format!("hum at {} Hz: {}", h.f, h.i.iter().map(|l| format!("{:.2e}", l[0])).collect::<Vec<_>>().join(", ") + " A"));
     }
-    parts.join("; ")
-}
-
-/// The chain a linear fit estimated, in words.
-fn chain_text(c: &coilscope_ident::linear::ChainEstimate, fs: f64) -> String {
-    let parts: Vec<String> = (0..3)
-        .filter(|&n| c.on[n])
-        .map(|n| match n {
-            0 => format!("current {:.3} +- {:.3} samples late ({:.2} us)", c.values[0], c.sd[0], 1e6 * c.values[0] / fs),
-            1 => format!("voltage AC-coupled at {:.2} +- {:.2} Hz", c.values[1], c.sd[1]),
-            _ => format!("current AC-coupled at {:.2} +- {:.2} Hz", c.values[2], c.sd[2]),
-        })
-        .collect();
     if parts.is_empty() { "ideal (no delay or AC coupling found)".to_string() } else { parts.join(", ") }
 }
 
@@ -940,7 +930,7 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
     }
     println!("  model {} ({})", fit.layout.effects.model_name(), if fit.effect_trials.is_empty() { "given".to_string() } else { fit.effect_trials.iter().map(|(m, v)| format!("{m} validation {v:.3e}")).collect::<Vec<_>>().join(", ") });
     if let Some(c) = &fit.chain {
-        println!("  chain: {}", chain_words(c));
+        println!("  chain: {}", chain_words(c, fit.fs));
     }
     let u = &result.uncertainty;
     // Bl, Kms and Le are shown as curves below.

@@ -142,29 +142,33 @@ pub fn delay(x: &[f64], samples: f64) -> Vec<f64> {
     for (k, c) in spec.iter_mut().enumerate() {
         *c *= Complex64::from_polar(1.0 / n as f64, -2.0 * PI * k as f64 * samples / n as f64);
     }
-    let last = spec.len() - 1;
-    if n % 2 == 0 {
-        // The Nyquist bin of a real signal cannot carry a fractional shift: its phase would
-        // make it complex. Keep its real part only (it is empty for a band-limited record).
-        spec[last] = Complex64::new(spec[last].re, 0.0);
-    }
+    // The Nyquist bin of a real signal cannot carry a fractional shift (its phase would make it
+    // complex): `irfft` keeps its real part only (it is empty for a band-limited record).
     let y = crate::fft::irfft(&spec, n);
     y[pad..pad + x.len()].to_vec()
 }
 
 impl Chain {
+    /// What the record adds after the coupling, per channel: offset plus hum, `n` samples.
+    fn additive(&self, n: usize, fs: f64) -> (Vec<f64>, Vec<f64>) {
+        let (mut hu, mut hi) = match &self.hum {
+            Some(h) => (Hum::signal(h.f, &h.u, n, fs), Hum::signal(h.f, &h.i, n, fs)),
+            None => (vec![0.0; n], vec![0.0; n]),
+        };
+        hu.iter_mut().for_each(|v| *v += self.dc_u);
+        hi.iter_mut().for_each(|v| *v += self.dc_i);
+        (hu, hi)
+    }
+
     /// Channel records of the physical `u` (V) and `i` (A) at `fs`.
     pub fn apply(&self, u: &[f64], i: &[f64], fs: f64) -> (Vec<f64>, Vec<f64>) {
         let mut ur = hp(u, self.hp_u, fs);
         let mut ir = hp(&delay(i, self.delay_i * fs), self.hp_i, fs);
         let n = u.len();
-        let (hu, hi) = match &self.hum {
-            Some(h) => (Hum::signal(h.f, &h.u, n, fs), Hum::signal(h.f, &h.i, n, fs)),
-            None => (vec![0.0; n], vec![0.0; n]),
-        };
+        let (au, ai) = self.additive(n, fs);
         for m in 0..n {
-            ur[m] += self.dc_u + hu[m];
-            ir[m] += self.dc_i + hi[m];
+            ur[m] += au[m];
+            ir[m] += ai[m];
         }
         (ur, ir)
     }
@@ -172,12 +176,9 @@ impl Chain {
     /// The physical `u`, `i` of channel records (the exact inverse of [`Chain::apply`]).
     pub fn invert(&self, u_rec: &[f64], i_rec: &[f64], fs: f64) -> (Vec<f64>, Vec<f64>) {
         let n = u_rec.len();
-        let (hu, hi) = match &self.hum {
-            Some(h) => (Hum::signal(h.f, &h.u, n, fs), Hum::signal(h.f, &h.i, n, fs)),
-            None => (vec![0.0; n], vec![0.0; n]),
-        };
-        let uc: Vec<f64> = (0..n).map(|m| u_rec[m] - self.dc_u - hu[m]).collect();
-        let ic: Vec<f64> = (0..n).map(|m| i_rec[m] - self.dc_i - hi[m]).collect();
+        let (au, ai) = self.additive(n, fs);
+        let uc: Vec<f64> = (0..n).map(|m| u_rec[m] - au[m]).collect();
+        let ic: Vec<f64> = (0..n).map(|m| i_rec[m] - ai[m]).collect();
         (hp_inverse(&uc, self.hp_u, fs), delay(&hp_inverse(&ic, self.hp_i, fs), -self.delay_i * fs))
     }
 

@@ -633,26 +633,20 @@ impl ChainSetup {
         // layout's are (and J^T J stays well conditioned).
         let a = coilscope_core::simulate::rms(i_rec).max(1e-12);
         let mut basis = vec![("dc".to_string(), vec![a; n]), ("ramp".to_string(), (0..n).map(|m| a * m as f64 / n as f64).collect())];
-        for mains in [50.0, 60.0] {
-            for k in 1..=crate::linear::HUM_HARMONICS {
-                let f = mains * k as f64;
-                // 300 Hz is a line of both: one pair of columns.
-                if f < 0.45 * fs && !basis.iter().any(|(name, _)| name == &format!("cos {f}")) {
-                    let w = 2.0 * std::f64::consts::PI * f / fs;
-                    basis.push((format!("cos {f}"), (0..n).map(|m| a * (w * m as f64).cos()).collect()));
-                    basis.push((format!("sin {f}"), (0..n).map(|m| a * (w * m as f64).sin()).collect()));
-                }
-            }
+        for f in crate::linear::mains_lines().into_iter().filter(|&f| f < 0.45 * fs) {
+            let w = 2.0 * std::f64::consts::PI * f / fs;
+            basis.push((format!("cos {f}"), (0..n).map(|m| a * (w * m as f64).cos()).collect()));
+            basis.push((format!("sin {f}"), (0..n).map(|m| a * (w * m as f64).sin()).collect()));
         }
         ChainSetup { u_rec: u_rec.to_vec(), i_rec: i_rec.to_vec(), terms, basis }
     }
     /// Unknowns of the chain in theta.
     pub fn n(&self) -> usize {
-        self.terms.values_count() + self.basis.len()
+        self.terms.count() + self.basis.len()
     }
     /// `[tau samples, hp_u Hz, hp_i Hz]` of the chain's part of theta.
     pub fn values(&self, th_c: &[f64]) -> [f64; 3] {
-        self.terms.values_of(th_c)
+        self.terms.values(th_c)
     }
     /// The drive: the voltage behind the channel (and the offset removed, V).
     pub fn voltage(&self, th_c: &[f64]) -> (Vec<f64>, f64) {
@@ -662,7 +656,7 @@ impl ChainSetup {
     pub fn target(&self, th_c: &[f64]) -> Vec<f64> {
         let [tau, _, fi] = self.values(th_c);
         let mut t = coilscope_core::chain::delay(&coilscope_core::chain::hp_inverse(&self.i_rec, fi, self.terms.fs), -tau);
-        let c = &th_c[self.terms.values_count()..];
+        let c = &th_c[self.terms.count()..];
         for (ck, (_, b)) in c.iter().zip(&self.basis) {
             if *ck != 0.0 {
                 for (v, bv) in t.iter_mut().zip(b) {
@@ -675,7 +669,7 @@ impl ChainSetup {
     /// The chain's theta at the linear fit's estimate, the offset and ramp by least squares
     /// on the current behind the chain (the driver's current has neither), hum at 0.
     pub fn theta0(&self, est: &[f64; 3]) -> Vec<f64> {
-        let on = self.terms.on_flags();
+        let on = self.terms.on();
         let mut th: Vec<f64> = (0..3).filter(|&k| on[k]).map(|k| est[k]).collect();
         let nc = th.len();
         th.resize(self.n(), 0.0);
@@ -789,6 +783,7 @@ impl<'a> OutputError<'a> {
         self.residual_with(th, &u, &i)
     }
 
+    /// The residual of theta for a given drive `u` and current to match `i`.
     fn residual_with(&self, th: &[f64], u: &[f64], i: &[f64]) -> Option<DVector<f64>> {
         let start = self.fit.start;
         let mut r = DVector::zeros(self.fit.len());
@@ -806,7 +801,9 @@ impl<'a> OutputError<'a> {
         let nl = self.n_layout();
         let fit = self.fit.clone();
         let mut cols = vec![];
-        let on = c.terms.on_flags();
+        let on = c.terms.on();
+        // The current to match does not depend on hp_u.
+        let target = c.target(&th[nl..]);
         let mut k = nl;
         for (n, on) in on.into_iter().enumerate() {
             if !on {
@@ -818,8 +815,8 @@ impl<'a> OutputError<'a> {
             b[k] -= h;
             let col: Vec<f64> = if n == 1 {
                 // hp_u changes the drive: two runs of the model.
-                let ra = self.residual_vec(&a);
-                let rb = self.residual_vec(&b);
+                let ra = self.residual_with(&a, &c.voltage(&a[nl..]).0, &target);
+                let rb = self.residual_with(&b, &c.voltage(&b[nl..]).0, &target);
                 match (ra, rb) {
                     (Some(ra), Some(rb)) => ra.iter().zip(rb.iter()).map(|(x, y)| (x - y) / (2.0 * h)).collect(),
                     _ => vec![0.0; fit.len()],
@@ -943,8 +940,6 @@ fn split_vanished_le(mut p: Parameters) -> Parameters {
             l2.c[0] = 2.0 * p.le.c[0];
             r2.c[0] = 0.25 * p.re;
         }
-    }
-    if let Some((l2, _)) = &mut p.l2r2 {
         let total = p.le.c[0] + l2.c[0];
         if p.le.c[0] < LE_VANISHED * total {
             p.le.c[0] = 0.5 * total;
@@ -977,8 +972,9 @@ pub struct IdentifyOptions {
     pub threads: usize,
     /// Creep and LR-3: chosen on held-out data, or given.
     pub effects: EffectsChoice,
-    /// Estimate the measurement chain with the driver ([`ChainSetup`]); the linear start
-    /// decides which of delay and AC couplings the record has.
+    /// Estimate the measurement chain with the driver ([`ChainSetup`]): the delay, both
+    /// corners, offsets and hum, all of them, from the start values of a linear fit with the
+    /// chain.
     pub chain: bool,
 }
 
@@ -1059,17 +1055,9 @@ fn chain_of(c: &ChainSetup, th: &[f64], nl: usize, cov: Option<&DMatrix<f64>>) -
     let fs = c.terms.fs;
     let tc = &th[nl..];
     let sd = |k: usize| cov.map_or(f64::NAN, |m| m[(nl + k, nl + k)].max(0.0).sqrt());
-    let [tau, fu, fi] = c.values(tc);
-    let on = c.terms.on_flags();
-    let mut out = coilscope_core::chain::Chain { source: Some("estimated".into()), delay_i: tau / fs, hp_u: fu, hp_i: fi, ..Default::default() };
-    let mut k = 0;
-    for (n, key) in crate::linear::ChainTerms::NAMES.iter().enumerate() {
-        if on[n] {
-            out.sd.insert(key.to_string(), if n == 0 { sd(k) / fs } else { sd(k) });
-            out.fitted.push(key.to_string());
-            k += 1;
-        }
-    }
+    let [_, _, fi] = c.values(tc);
+    let mut out = crate::linear::ChainEstimate { values: c.values(tc), sd: c.terms.sds(cov, nl), on: c.terms.on(), fs }.to_chain();
+    let k = c.terms.count();
     // The offset behind a coupling of corner fi: its inverse maps dc to dc (1 + K) plus a ramp.
     let kk = (std::f64::consts::PI * fi / fs).tan();
     out.dc_u = c.voltage(tc).1;
@@ -1181,26 +1169,21 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             (split_vanished_le(scale_by_mms(&lin, opts.mms).map_err(Input)?), Some(lin))
         }
     };
-    // The measurement chain: the linear start found which of delay and couplings there are
-    // (given start values: a linear fit for the chain alone); offsets and hum are always in.
-    // Its start values come from a linear fit of its own: with the chain's freedom, the
-    // impedance fit of large-signal data let the LR-2 branch vanish (SB17 with AC coupling:
-    // R2 -> 1e-132 ohm), and the output error cannot leave such a start.
-    let chain_est = match opts.chain {
-        false => None,
-        true => {
-            let m = u.len().min((4.0 * fs) as usize);
-            let lin_opts = LinearOptions { chain: true, ..LinearOptions::LARGE_SIGNAL_START };
-            fit_linear_record(&u[..m], &i[..m], fs, origin, &lin_opts, |_| {}).map_err(Input)?.chain
-        }
-    };
-    // All three are estimated here: on a large-signal record the linear fit's sds are wide
-    // (distortion is most of its residual: SB17 with a 0.3-sample delay gave 0.34 +- 0.09),
-    // too wide to decide; the output error decides (see `chain_of`).
-    let setup = chain_est.as_ref().map(|_| ChainSetup::new(u_rec, i_rec, crate::linear::ChainTerms { fs, delay: true, hp_u: true, hp_i: true }));
-    let mut cth: Vec<f64> = match (&setup, &chain_est) {
-        (Some(s), Some(c)) => s.theta0(&c.values),
-        _ => vec![],
+    // The measurement chain. Its start values come from a linear fit of its own (the driver's
+    // start above is from one without: with the chain's freedom, the impedance fit of
+    // large-signal data let the LR-2 branch vanish, SB17 with AC coupling: R2 -> 1e-132 ohm).
+    // All three of delay and corners are estimated, whatever that fit kept: on a large-signal
+    // record its sds are wide (distortion is most of its residual: SB17 with a 0.3-sample delay
+    // gave 0.34 +- 0.09), too wide to decide. Offsets and hum are always in.
+    let (setup, mut cth) = if opts.chain {
+        let m = u.len().min((4.0 * fs) as usize);
+        let lin_opts = LinearOptions { chain: true, ..LinearOptions::LARGE_SIGNAL_START };
+        let est = fit_linear_record(&u[..m], &i[..m], fs, origin, &lin_opts, |_| {}).map_err(Input)?.chain;
+        let setup = ChainSetup::new(u_rec, i_rec, crate::linear::ChainTerms { fs, delay: true, hp_u: true, hp_i: true });
+        let th = setup.theta0(&est.map_or([0.0; 3], |c| c.values));
+        (Some(setup), th)
+    } else {
+        (None, vec![])
     };
     let (u0, i0) = match &setup {
         Some(s) => (s.voltage(&cth).0, s.target(&cth)),

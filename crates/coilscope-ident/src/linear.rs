@@ -405,9 +405,24 @@ pub const CHAIN_MIN: [f64; 3] = [0.005, 0.05, 0.05];
 pub const HUM_GUARD_HZ: f64 = 0.75;
 pub const HUM_HARMONICS: usize = 6;
 
+/// The mains lines (Hz): the harmonics of 50 Hz, then those of 60 Hz not among them (300 Hz
+/// is a line of both), up to [`HUM_HARMONICS`].
+pub fn mains_lines() -> Vec<f64> {
+    let mut lines: Vec<f64> = vec![];
+    for mains in [50.0, 60.0] {
+        for k in 1..=HUM_HARMONICS {
+            let f = mains * k as f64;
+            if !lines.contains(&f) {
+                lines.push(f);
+            }
+        }
+    }
+    lines
+}
+
 /// True when `f` (Hz) is within [`HUM_GUARD_HZ`] of a mains line.
 pub fn near_hum(f: f64) -> bool {
-    [50.0, 60.0].iter().any(|m| (1..=HUM_HARMONICS).any(|k| (f - k as f64 * m).abs() <= HUM_GUARD_HZ))
+    mains_lines().iter().any(|m| (f - m).abs() <= HUM_GUARD_HZ)
 }
 
 /// The transient term of a fit (see `CurrentError`): coefficients of `Q(s / omega0)`.
@@ -474,26 +489,16 @@ pub struct ChainTerms {
 impl ChainTerms {
     /// The three, in theta's order.
     pub const NAMES: [&'static str; 3] = ["delay_i", "hp_u", "hp_i"];
-    fn on(&self) -> [bool; 3] {
+    /// `[delay, hp_u, hp_i]` on or off.
+    pub fn on(&self) -> [bool; 3] {
         [self.delay, self.hp_u, self.hp_i]
     }
-    fn count(&self) -> usize {
+    /// How many are on (their entries in theta).
+    pub fn count(&self) -> usize {
         self.on().iter().filter(|b| **b).count()
     }
-    /// `[delay, hp_u, hp_i]` on or off.
-    pub fn on_flags(&self) -> [bool; 3] {
-        self.on()
-    }
-    /// How many are on.
-    pub fn values_count(&self) -> usize {
-        self.count()
-    }
-    /// `[delay samples, hp_u Hz, hp_i Hz]` of the entries of theta for those on.
-    pub fn values_of(&self, th: &[f64]) -> [f64; 3] {
-        self.values(th)
-    }
     /// `[delay samples, hp_u Hz, hp_i Hz]` from the chain's entries of theta (0 for those off).
-    fn values(&self, th: &[f64]) -> [f64; 3] {
+    pub fn values(&self, th: &[f64]) -> [f64; 3] {
         let mut v = [0.0; 3];
         let mut k = 0;
         for (n, on) in self.on().into_iter().enumerate() {
@@ -524,6 +529,20 @@ impl ChainTerms {
             d.push((c(tau, fu, fi + h) - c(tau, fu, fi - h)) / (2.0 * h));
         }
         (c0, d)
+    }
+
+    /// The sds of `[delay, hp_u, hp_i]` from a covariance whose chain entries start at `ci`;
+    /// NaN for those off and without a covariance.
+    pub fn sds(&self, cov: Option<&DMatrix<f64>>, ci: usize) -> [f64; 3] {
+        let mut sd = [f64::NAN; 3];
+        let mut k = ci;
+        for (n, on) in self.on().into_iter().enumerate() {
+            if on {
+                sd[n] = cov.map_or(f64::NAN, |c| c[(k, k)].max(0.0).sqrt());
+                k += 1;
+            }
+        }
+        sd
     }
 }
 
@@ -1177,20 +1196,10 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
         let ci = prob.chain_index();
         let cov = covariance_of(&prob, &s.theta, &free_of(&prob, &s.theta));
         let vals = terms.values(&s.theta[ci..]);
-        let mut keep = terms;
-        let mut k = ci;
-        for (n, on) in terms.on().into_iter().enumerate() {
-            if on {
-                let sd = cov.as_ref().map_or(f64::INFINITY, |c| c[(k, k)].max(0.0).sqrt());
-                let significant = vals[n].abs() > CHAIN_SIGNIFICANCE * sd && vals[n].abs() >= CHAIN_MIN[n] && (n == 0 || vals[n] > 0.0);
-                match n {
-                    0 => keep.delay = significant,
-                    1 => keep.hp_u = significant,
-                    _ => keep.hp_i = significant,
-                }
-                k += 1;
-            }
-        }
+        let sds = terms.sds(cov.as_ref(), ci);
+        // (NaN sds, those off or without a covariance, compare false: not significant.)
+        let significant = |n: usize| terms.on()[n] && vals[n].abs() > CHAIN_SIGNIFICANCE * sds[n] && vals[n].abs() >= CHAIN_MIN[n] && (n == 0 || vals[n] > 0.0);
+        let keep = ChainTerms { delay: significant(0), hp_u: significant(1), hp_i: significant(2), ..terms };
         if keep != terms {
             let mut th = s.theta[..ci].to_vec();
             let kv = keep.on();
@@ -1236,24 +1245,17 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
             at_bound.push("L3/R3 corner");
         }
     }
-    // Skewed channels: a current recorded late by tau samples multiplies U/I by
-    // e^{j 2 pi f tau / fs}, which no passive circuit does. Let the same fit shift the current
-    // channel: if that explains most of the error, the channels are skewed.
     let chain = opts.chain.then(|| {
         let terms = prob.chain.unwrap_or(ChainTerms { fs, delay: false, hp_u: false, hp_i: false });
         let ci = prob.chain_index();
-        let values = terms.values(&s.theta[ci..]);
-        let mut sd = [0.0; 3];
-        let mut k = ci;
-        for (n, on) in terms.on().into_iter().enumerate() {
-            if on {
-                sd[n] = cov.as_ref().map_or(f64::NAN, |c| c[(k, k)].max(0.0).sqrt());
-                k += 1;
-            }
-        }
-        ChainEstimate { values, sd, on: terms.on(), fs }
+        let on = terms.on();
+        let sds = terms.sds(cov.as_ref(), ci);
+        ChainEstimate { values: terms.values(&s.theta[ci..]), sd: std::array::from_fn(|n| if on[n] { sds[n] } else { 0.0 }), on, fs }
     });
-    // With the chain estimated, its delay is in the model (and reported there).
+    // Skewed channels: a current recorded late by tau samples multiplies U/I by
+    // e^{j 2 pi f tau / fs}, which no passive circuit does. Let the same fit shift the current
+    // channel: if that explains most of the error, the channels are skewed. With the chain
+    // estimated, its delay is in the model (and reported there).
     let current_delay = if opts.chain { None } else {
         let mut check = CurrentError { chain: Some(ChainTerms { fs, delay: true, hp_u: false, hp_i: false }), ..thin(&prob, SCOUT_BINS) };
         check.norm = prob_norm(&check);

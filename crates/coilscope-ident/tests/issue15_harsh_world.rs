@@ -76,13 +76,7 @@ fn harsh_at(name: &str, seed: u64, effects: Effects, fs: f64) -> Vec<String> {
     let e = Errors::of(q, &truth, [s.x_min, s.x_max]);
     let r: Vec<f64> = i[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect();
     let (floor, _) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", coilscope_core::simulate::rms(&i), 0.0);
-    let mut zmax: f64 = 0.0;
-    for (which, f) in [("Bl", &truth.bl), ("Kms", &truth.kms), ("Le", &truth.le)] {
-        let b = fit.band(which, 41);
-        for k in 0..b.x.len() {
-            zmax = zmax.max((b.value[k] - f.eval(b.x[k])).abs() / b.sd[k]);
-        }
-    }
+    let zmax = common::band_z(&fit, &truth, &["Bl", "Kms", "Le"]);
     let got_lambda = q.creep.as_ref().map_or(0.0, |c| c.lambda);
     let got_g2 = q.le_i.as_ref().map_or(0.0, |g| g.c[2]);
     let got_c2 = q.rms_v.as_ref().map_or(0.0, |r| r.c[2]);

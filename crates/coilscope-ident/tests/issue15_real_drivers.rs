@@ -37,13 +37,7 @@ fn check(file: &str, fit: &LargeFit, i: &[f64], truth: &Parameters, want: Effect
     let (floor, warnings) = coilscope_ident::checks::residual_warnings(&r, fit.fs, "large-signal fit", coilscope_core::simulate::rms(i), 0.0);
     println!("{file}: model {} ({:?}), order {}, {e}, residual {:.2e} ({:.1}x floor), lambda {:?}, L3/R3 {:?}", fit.layout.effects.model_name(), fit.effect_trials, fit.order, fit.residual_rel, floor.rms / floor.floor_rms, q.creep.as_ref().map(|c| c.lambda), q.l3r3);
     // The bands: the truth within 3 sd at every point of the reached range.
-    let mut zmax: f64 = 0.0;
-    for (name, f) in [("Bl", &truth.bl), ("Kms", &truth.kms), ("Le", &truth.le)] {
-        let b = fit.band(name, 41);
-        for k in 0..b.x.len() {
-            zmax = zmax.max((b.value[k] - f.eval(b.x[k])).abs() / b.sd[k]);
-        }
-    }
+    let zmax = common::band_z(fit, truth, &["Bl", "Kms", "Le"]);
     println!("{file}: the truth within {zmax:.2} sd of the bands");
     if zmax > 3.0 {
         bad.push(format!("{file}: the truth lies {zmax:.1} sd outside the bands"));
@@ -156,11 +150,7 @@ fn a_forced_model_without_the_effect_widens_its_bands_to_the_error() {
         let e = Errors::of(&fit.params, &truth, fit.x_range);
         let r: Vec<f64> = rec.i[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect();
         let (_, warnings) = coilscope_ident::checks::residual_warnings(&r, fit.fs, "large-signal fit", coilscope_core::simulate::rms(&rec.i), 0.0);
-        let mut z: f64 = 0.0;
-        for (name, f) in [("Bl", &truth.bl), ("Kms", &truth.kms)] {
-            let b = fit.band(name, 41);
-            z = z.max((0..b.x.len()).map(|k| (b.value[k] - f.eval(b.x[k])).abs() / b.sd[k]).fold(0.0, f64::max));
-        }
+        let z = common::band_z(&fit, &truth, &["Bl", "Kms"]);
         let z_re = (fit.params.re - truth.re).abs() / fit.sd()[0].1;
         println!("{file}, LR-2 forced: {e}, residual {:.2e}, truth within {z:.2} sd (Bl, Kms), Re {z_re:.2} sd, warnings {:?}", fit.residual_rel, warnings.iter().map(|w| w.code.as_ref()).collect::<Vec<_>>());
         if !(e.bl > 0.005 || e.kms > 0.005) {

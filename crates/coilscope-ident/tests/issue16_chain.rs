@@ -56,13 +56,7 @@ fn run(sds: bool) -> Vec<String> {
     if floor.rms > 2.0 * floor.floor_rms {
         bad.push(format!("residual {:.2}x its floor", floor.rms / floor.floor_rms));
     }
-    let mut zmax: f64 = 0.0;
-    for (name, f) in [("Bl", &truth.bl), ("Kms", &truth.kms), ("Le", &truth.le)] {
-        let b = fit.band(name, 41);
-        for k in 0..b.x.len() {
-            zmax = zmax.max((b.value[k] - f.eval(b.x[k])).abs() / b.sd[k]);
-        }
-    }
+    let zmax = common::band_z(&fit, &truth, &["Bl", "Kms", "Le"]);
     println!("the truth within {zmax:.2} sd of the bands");
     if sds && zmax > 3.0 {
         bad.push(format!("the truth lies {zmax:.1} sd outside the bands"));

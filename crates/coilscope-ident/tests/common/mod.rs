@@ -4,6 +4,23 @@
 pub mod slice;
 
 use coilscope_core::{Parameters, Poly};
+use coilscope_ident::large::LargeFit;
+
+/// Largest distance of the truth from the fit's bands, in sds, over 41 points of the reached
+/// range, for the curves named in `which` (`Bl`, `Kms`, `Le`).
+pub fn band_z(fit: &LargeFit, truth: &Parameters, which: &[&str]) -> f64 {
+    let mut z: f64 = 0.0;
+    for &name in which {
+        let f = match name {
+            "Bl" => &truth.bl,
+            "Kms" => &truth.kms,
+            _ => &truth.le,
+        };
+        let b = fit.band(name, 41);
+        z = z.max((0..b.x.len()).map(|k| (b.value[k] - f.eval(b.x[k])).abs() / b.sd[k]).fold(0.0, f64::max));
+    }
+    z
+}
 
 /// Largest |f - g| over [lo, hi], relative to g(0).
 pub fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
