@@ -8,6 +8,10 @@
 //! truth within 3 sd of the bands, the residual within 2x its floor; and the chain: the delay
 //! within 0.01 sample, the corners within 5 %, the offset within 5 %, each truth within 3 sd.
 //!
+//! And the `*-real-all` records of the three drivers (the chain plus creep, LR-3, Le(i) and
+//! Rms(v)): the same bounds, every effect chosen, lambda within 20 %, L3 and R3 within 5 %
+//! (spread over CI runs: one record per run, `COILSCOPE_SWEEP_SLICE`).
+//!
 //! Release profile: `cargo test --release -p coilscope-ident --test issue16_chain -- --ignored`.
 
 mod common;
@@ -20,7 +24,20 @@ use std::path::Path;
 #[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
 #[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue16_chain -- --ignored"]
 fn identify_estimates_the_chain_of_the_independent_real_chain_record() {
-    let bad = run(false);
+    let bad = run("sb17cac35-4", "sb17cac35-4-real-chain.wav", false);
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+}
+
+/// 3-4.5 min per record.
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+#[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue16_chain -- --ignored"]
+fn identify_estimates_the_chain_and_every_effect_of_the_real_all_records() {
+    let cases = common::slice::in_slice("issue16_chain real-all", vec!["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"]);
+    let mut bad = vec![];
+    for d in cases {
+        bad.extend(run(d, &format!("{d}-real-all.wav"), false));
+    }
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
 
@@ -32,14 +49,15 @@ fn identify_estimates_the_chain_of_the_independent_real_chain_record() {
 #[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
 #[ignore = "known open (issue 16): cargo test --release -p coilscope-ident --test issue16_chain -- --ignored known_open"]
 fn known_open_chain_sds_cover_the_truth() {
-    let bad = run(true);
+    let bad = run("sb17cac35-4", "sb17cac35-4-real-chain.wav", true);
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
 
-/// The checks; `sds`: also the truth within 3 sd (bands and chain).
-fn run(sds: bool) -> Vec<String> {
-    let file = "sb17cac35-4-real-chain.wav";
-    let truth = embedded_driver("sb17cac35-4").unwrap();
+/// The checks of `identify --chain auto` on `file`, a record of `driver` with the chain of
+/// the `-real-chain` record (and, for `-real-all`, the effects of its `world`); `sds`: also the
+/// truth within 3 sd (bands and chain).
+fn run(driver: &str, file: &str, sds: bool) -> Vec<String> {
+    let truth = embedded_driver(driver).unwrap();
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings");
     let rec = coilscope_io::read_recording(&dir.join(file), None).unwrap();
     let fs = rec.fs as f64;
@@ -51,25 +69,45 @@ fn run(sds: bool) -> Vec<String> {
     println!("{file}: {e}, residual {:.2e} ({:.2}x floor), chain {c:?}", fit.residual_rel, floor.rms / floor.floor_rms);
     let mut bad = vec![];
     if !(e.bl <= 0.02 && e.kms <= 0.03 && e.re <= 0.005 && e.le <= 0.05) {
-        bad.push(format!("{e}"));
+        bad.push(format!("{file}: {e}"));
+    }
+    if file.ends_with("-real-all.wav") {
+        // The world of these records (recordings README): LOG creep 0.07, L3 = 0.6 L2, R3 =
+        // 2.5 R2, Le(i) and Rms(v).
+        let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join(file.replace(".wav", ".info.json"))).unwrap()).unwrap();
+        let w = &info["world"];
+        let q = &fit.params;
+        let all = coilscope_ident::linear::Effects { creep: true, lr3: true, le_i: true, rms_v: true };
+        if fit.layout.effects != all {
+            bad.push(format!("{file}: chose {}, not {}", fit.layout.effects.model_name(), all.model_name()));
+        }
+        let lambda = q.creep.as_ref().map_or(0.0, |c| c.lambda);
+        if (lambda / 0.07 - 1.0).abs() > 0.2 {
+            bad.push(format!("{file}: lambda {lambda:.4}, true 0.07"));
+        }
+        let (l3, r3) = q.l3r3.unwrap_or((0.0, 0.0));
+        let (tl3, tr3) = (w["L3"].as_f64().unwrap(), w["R3"].as_f64().unwrap());
+        if (l3 / tl3 - 1.0).abs() > 0.05 || (r3 / tr3 - 1.0).abs() > 0.05 {
+            bad.push(format!("{file}: L3 {l3:.4e} R3 {r3:.4} (true {tl3:.4e}, {tr3:.4})"));
+        }
     }
     if floor.rms > 2.0 * floor.floor_rms {
-        bad.push(format!("residual {:.2}x its floor", floor.rms / floor.floor_rms));
+        bad.push(format!("{file}: residual {:.2}x its floor", floor.rms / floor.floor_rms));
     }
     let zmax = common::band_z(&fit, &truth, &["Bl", "Kms", "Le"]);
     println!("the truth within {zmax:.2} sd of the bands");
     if sds && zmax > 3.0 {
-        bad.push(format!("the truth lies {zmax:.1} sd outside the bands"));
+        bad.push(format!("{file}: the truth lies {zmax:.1} sd outside the bands"));
     }
     // The chain against the world of the record.
     for (key, got, want, tol) in [("delay_i", c.delay_i, 0.3 / fs, 0.01 / fs), ("hp_u", c.hp_u, 2.0, 0.1), ("hp_i", c.hp_i, 4.0, 0.2), ("dc_i", c.dc_i, 1e-3, 5e-5)] {
         let sd = c.sd[key];
         println!("{key}: {got:.6e} +- {sd:.2e} (true {want:.6e})");
         if (got - want).abs() > tol {
-            bad.push(format!("{key} {got:.4e}, true {want:.4e} (tolerance {tol:.1e})"));
+            bad.push(format!("{file}: {key} {got:.4e}, true {want:.4e} (tolerance {tol:.1e})"));
         }
         if sds && (got - want).abs() > 3.0 * sd {
-            bad.push(format!("{key} {got:.4e} +- {sd:.2e}: the truth {want:.4e} is {:.1} sd away", (got - want).abs() / sd));
+            bad.push(format!("{file}: {key} {got:.4e} +- {sd:.2e}: the truth {want:.4e} is {:.1} sd away", (got - want).abs() / sd));
         }
     }
     // Hum: 50 Hz, the 150 Hz line half of it (the current channel's own hum; what the voltage's
@@ -77,7 +115,7 @@ fn run(sds: bool) -> Vec<String> {
     let h = c.hum.expect("hum");
     assert_eq!(h.f, 50.0);
     if !(h.i[0][0] > 10.0 * h.i[1][0] && h.i[2][0] > 10.0 * h.i[1][0]) {
-        bad.push(format!("hum lines {:?}", h.i));
+        bad.push(format!("{file}: hum lines {:?}", h.i));
     }
     bad
 }
