@@ -97,8 +97,9 @@ struct FitArgs {
     scale: Option<Vec<f64>>,
     /// The measurement chain between the driver and the recorded channels: `auto` (estimated
     /// with the driver: the current channel's delay, both channels' AC coupling, offsets and
-    /// mains hum) or `none` (the channels are the driver's voltage and current, exactly).
-    /// `none` is the default while the chain is being validated (issue 16).
+    /// mains hum), `none` (the channels are the driver's voltage and current, exactly), or a
+    /// chain FILE from `coilscope calibrate` (delay, corners and gain known; each record's
+    /// offsets are found). `none` is the default while the chain is being validated.
     #[arg(long, default_value = "none")]
     chain: String,
     /// Result file (JSON, coilscope.result/1). `linear` also writes the measured impedance
@@ -107,13 +108,73 @@ struct FitArgs {
     out: PathBuf,
 }
 
-/// `--chain`: true to estimate it.
-fn parse_chain(text: &str) -> Result<bool, Failure> {
-    match text.trim() {
-        "auto" => Ok(true),
-        "none" => Ok(false),
-        other => Err(Failure::from(format!("--chain {other:?}: give `auto` (estimate the measurement chain) or `none` (ideal channels)"))),
+/// What `--chain` asks for.
+#[derive(Clone, Debug)]
+enum ChainChoice {
+    /// The channels are the driver's voltage and current, exactly.
+    Ideal,
+    /// Estimated with the driver.
+    Estimate,
+    /// Calibrated (`coilscope calibrate`): the records are inverted through it before the fit.
+    Calibrated(coilscope_core::chain::Chain),
+}
+
+impl ChainChoice {
+    fn estimate(&self) -> bool {
+        matches!(self, ChainChoice::Estimate)
     }
+
+    /// The physical voltage and current behind a record (a calibrated chain inverted, its
+    /// offsets found), and the chain to report; unchanged otherwise.
+    fn physical(&self, u: Vec<f64>, i: Vec<f64>, fs: f64) -> (Vec<f64>, Vec<f64>, Option<coilscope_core::chain::Chain>) {
+        match self {
+            ChainChoice::Calibrated(c) => {
+                let (u, i, dc_u, dc_i) = c.invert_calibrated(&u, &i, fs);
+                (u, i, Some(coilscope_core::chain::Chain { source: Some("calibrated".into()), dc_u, dc_i, ..c.clone() }))
+            }
+            _ => (u, i, None),
+        }
+    }
+}
+
+/// `--chain`: `auto`, `none`, or a chain file (`coilscope calibrate`'s, or a result with a
+/// `chain`).
+fn parse_chain(text: &str) -> Result<ChainChoice, Failure> {
+    match text.trim() {
+        "auto" => Ok(ChainChoice::Estimate),
+        "none" => Ok(ChainChoice::Ideal),
+        other => {
+            let path = Path::new(other);
+            if !path.exists() {
+                return Err(Failure::from(format!("--chain {other:?}: give `auto` (estimate the measurement chain), `none` (ideal channels), or a chain file written by `coilscope calibrate` (no such file)")));
+            }
+            load_chain(path).map(ChainChoice::Calibrated).map_err(Failure::from)
+        }
+    }
+}
+
+/// A chain file: `coilscope calibrate`'s, or a result file's `chain`.
+fn load_chain(path: &Path) -> Result<coilscope_core::chain::Chain, String> {
+    let name = path.display();
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{name}: cannot read the chain file ({e})"))?;
+    let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| format!("{name}: not JSON ({e})"))?;
+    let v = v.get("chain").cloned().unwrap_or(v);
+    let c: coilscope_core::chain::Chain = serde_json::from_value(v).map_err(|e| format!("{name}: not a chain ({e}); write one with `coilscope calibrate`"))?;
+    let bad = |k: &str, val: f64, valid: &str| Err(format!("{name}: {k} = {val} is not valid ({valid})"));
+    if !(c.delay_i.is_finite() && c.delay_i.abs() < 0.01) {
+        return bad("delay_i", c.delay_i, "seconds, |delay| < 10 ms");
+    }
+    for (k, fc) in [("hp_u", c.hp_u), ("hp_i", c.hp_i)] {
+        if !(fc.is_finite() && (0.0..100.0).contains(&fc)) {
+            return bad(k, fc, "Hz, 0 (DC-coupled) .. 100");
+        }
+    }
+    if let Some(g) = c.gain_i {
+        if !(g.is_finite() && g > 0.1 && g < 10.0) {
+            return bad("gain_i", g, "the current channel's gain against the voltage's, 0.1 .. 10");
+        }
+    }
+    Ok(c)
 }
 
 /// Limit thresholds and the thermal limit, shared by `diagnose` and `report`.
@@ -200,19 +261,37 @@ enum Command {
         #[arg(long, value_enum, default_value = "published")]
         world: World,
     },
-    /// Small-signal (Thiele/Small) parameters from the impedance of a recording.
+    /// Small-signal (Thiele/Small) parameters from the impedance of a recording, or of a
+    /// measured impedance file (--impedance Z.zma: REW, ARTA, LIMP, DATS, Klippel).
     Linear {
         /// Recording (WAV: voltage V, current A [, displacement m]).
-        recording: PathBuf,
+        #[arg(required_unless_present = "impedance", conflicts_with = "impedance")]
+        recording: Option<PathBuf>,
+        /// Impedance file instead of a recording: .zma (frequency Hz, magnitude ohm, phase
+        /// deg; `*` comment lines), .frd/.txt alike, or CSV with named columns.
+        #[arg(long, value_name = "Z.zma")]
+        impedance: Option<PathBuf>,
         /// Known moving mass (kg) for the absolute scale.
         #[arg(long)]
         mms: Option<f64>,
-        /// Added mass (kg) of the added-mass method; needs --with-mass.
+        /// Added mass (kg) of the added-mass method; needs --with-mass (records) or
+        /// --with-mass-impedance (impedance files).
         #[arg(long)]
         added_mass: Option<f64>,
         /// Recording of the same driver with the added mass.
-        #[arg(long)]
+        #[arg(long, conflicts_with = "impedance")]
         with_mass: Option<PathBuf>,
+        /// Impedance file of the same driver with the added mass.
+        #[arg(long, value_name = "Z2.zma", requires = "impedance")]
+        with_mass_impedance: Option<PathBuf>,
+        /// Impedance files: the fitted band `LO,HI` (Hz); default: every point up to 20 kHz.
+        /// Below a cone's break-up the model holds; above it, it does not.
+        #[arg(long, value_name = "LO,HI", requires = "impedance")]
+        band: Option<String>,
+        /// Impedance files: the RMS voltage of the measurement, for the displacement it
+        /// reached (fit.x_range); without it the level is unknown and x_range is [0, 0].
+        #[arg(long, requires = "impedance")]
+        volts: Option<f64>,
         /// Effects to fit besides LR-2: `auto` (the data decide: an effect is kept when it
         /// lowers the residual by 5 % or more), `none`, `creep` (LOG creep, lambda), `lr3` (a
         /// second para-inductance branch L3/R3), or `creep,lr3`. (Le(i) and Rms(v) vanish at
@@ -241,6 +320,25 @@ enum Command {
         effects: String,
         #[command(flatten)]
         fit: FitArgs,
+    },
+    /// Calibrate the measurement chain (the current channel's delay and gain against the
+    /// voltage channel, each channel's AC-coupling corner) from a record of a known resistor
+    /// in the driver's place, or of a loopback. Writes a chain file for `--chain FILE`.
+    Calibrate {
+        /// Recording (WAV: voltage, current) of broadband noise from 0.3 Hz, 40 s or more.
+        recording: PathBuf,
+        /// The resistor (ohm, measured) in the driver's place.
+        #[arg(long, required_unless_present = "loopback", conflicts_with = "loopback")]
+        resistor: Option<f64>,
+        /// Both channels record the same voltage (the gain is channel 2's over channel 1's).
+        #[arg(long)]
+        loopback: bool,
+        /// Scale factors of integer-PCM recordings (V, A per count).
+        #[arg(long, num_args = 2..=3, value_names = ["V", "A"])]
+        scale: Option<Vec<f64>>,
+        /// Chain file (JSON).
+        #[arg(long)]
+        out: PathBuf,
     },
     /// Dynamic measurement: play noise or music, ramp the level up from quiet, identify the
     /// model online, protect the driver (excursion, temperature, stiffness), stop on
@@ -464,10 +562,11 @@ fn main() -> ExitCode {
         Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world } => {
             cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world }).map_err(Failure::from)
         }
-        Command::Linear { recording, mms, added_mass, with_mass, effects, fit } => {
-            cmd_linear(&recording, mms, added_mass, with_mass.as_deref(), &effects, &fit)
+        Command::Linear { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit } => {
+            cmd_linear(LinearArgs { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit })
         }
-        Command::Identify { recording, mms, order, effects, fit } => parse_chain(&fit.chain).and_then(|chain| cmd_identify(&recording, mms, order, &effects, chain, fit.sd, fit.scale.as_deref(), &fit.out)),
+        Command::Identify { recording, mms, order, effects, fit } => parse_chain(&fit.chain).and_then(|chain| cmd_identify(&recording, mms, order, &effects, &chain, fit.sd, fit.scale.as_deref(), &fit.out)),
+        Command::Calibrate { recording, resistor, loopback, scale, out } => cmd_calibrate(&recording, resistor, loopback, scale.as_deref(), &out),
         Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
             cmd_measure(MeasureArgs { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
         }
@@ -598,28 +697,72 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
     Ok(())
 }
 
-fn cmd_linear(
-    path: &Path,
+/// `linear`'s arguments.
+struct LinearArgs {
+    recording: Option<PathBuf>,
+    impedance: Option<PathBuf>,
     mms: Option<f64>,
     added_mass: Option<f64>,
-    with_mass: Option<&Path>,
-    effects: &str,
-    fa: &FitArgs,
-) -> Result<(), Failure> {
+    with_mass: Option<PathBuf>,
+    with_mass_impedance: Option<PathBuf>,
+    band: Option<String>,
+    volts: Option<f64>,
+    effects: String,
+    fit: FitArgs,
+}
+
+/// `--band LO,HI` (Hz).
+fn parse_band(text: &str) -> Result<[f64; 2], Failure> {
+    let v: Vec<f64> = text.split([',', ':']).map(|t| t.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|_| format!("--band {text:?}: give LO,HI in Hz, e.g. 10,2000"))?;
+    match v[..] {
+        [lo, hi] if lo >= 0.0 && hi > lo && hi.is_finite() => Ok([lo, hi]),
+        _ => Err(Failure::from(format!("--band {text:?}: give LO,HI in Hz with 0 <= LO < HI, e.g. 10,2000"))),
+    }
+}
+
+fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     use coilscope_ident::linear::*;
-    let (sd, scale, out) = (fa.sd, fa.scale.as_deref(), fa.out.as_path());
-    let chain = parse_chain(&fa.chain)?;
+    let (sd, scale, out) = (a.fit.sd, a.fit.scale.as_deref(), a.fit.out.as_path());
+    let chain = parse_chain(&a.fit.chain)?;
+    let effects = parse_effects(&a.effects)?;
+    let band = a.band.as_deref().map(parse_band).transpose()?;
+    let (path, is_curve) = match (&a.recording, &a.impedance) {
+        (Some(p), None) => (p.clone(), false),
+        (None, Some(p)) => (p.clone(), true),
+        _ => return Err("give a recording or --impedance FILE (one of them)".into()),
+    };
     let origin = path.display().to_string();
-    let effects = parse_effects(effects)?;
-    let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
-    let fs = rec.fs as f64;
+    let (rec, calibrated) = if is_curve {
+        (None, None)
+    } else {
+        let mut r = read_recording(&path, scale).map_err(|e| e.to_string())?;
+        coilscope_ident::linear::check_hum(&r.u, &r.i, r.fs as f64, chain.estimate(), &origin)?;
+        let (u, i, c) = chain.physical(std::mem::take(&mut r.u), std::mem::take(&mut r.i), r.fs as f64);
+        (r.u, r.i) = (u, i);
+        (Some(r), c)
+    };
+    let chain_choice = chain;
+    let chain = chain_choice.estimate();
+    if is_curve && !matches!(chain_choice, ChainChoice::Ideal) {
+        return Err(Failure::from(format!("{origin}: an impedance curve has no measurement chain to estimate or invert (its tool calibrated it); --chain applies to records")));
+    }
+    let curve = if is_curve { Some(coilscope_io::impedance::read_impedance(&path).map_err(|e| e.to_string())?) } else { None };
+    let has_x = rec.as_ref().is_some_and(|r| r.x.is_some());
+    let with_mass = if is_curve { a.with_mass_impedance.as_ref() } else { a.with_mass.as_ref() };
+    let with_name = if is_curve { "--with-mass-impedance Z2.zma" } else { "--with-mass REC2.wav" };
     // Refuse a missing or doubled scale before spending time on the fit.
-    match (mms, added_mass, with_mass, &rec.x) {
-        (Some(_), None, None, _) | (None, Some(_), Some(_), _) | (None, None, None, Some(_)) => {}
-        (None, Some(_), None, _) | (None, None, Some(_), _) => return Err("--added-mass KG and --with-mass REC.wav go together".into()),
-        (Some(_), _, _, _) => return Err("give one scale: --mms, or --added-mass with --with-mass".into()),
-        (None, None, None, None) => {
-            return Err(Failure::from(format!("{origin}: no absolute scale: give --mms KG, or --added-mass KG --with-mass REC2.wav, or record a displacement channel (3)")))
+    match (a.mms, a.added_mass, with_mass, has_x) {
+        (Some(_), None, None, _) | (None, Some(_), Some(_), _) | (None, None, None, true) => {}
+        (None, Some(_), None, _) | (None, None, Some(_), _) => return Err(format!("--added-mass KG and {with_name} go together").into()),
+        (Some(_), _, _, _) => return Err(format!("give one scale: --mms, or --added-mass with {with_name}").into()),
+        (None, None, None, false) => {
+            let x = if is_curve { "" } else { ", or record a displacement channel (3)" };
+            return Err(Failure::from(format!("{origin}: no absolute scale: give --mms KG, or --added-mass KG {with_name}{x}")));
+        }
+    }
+    if let Some(v) = a.volts {
+        if !(v.is_finite() && v > 0.0 && v < 1000.0) {
+            return Err(Failure::from(format!("--volts {v}: give the measurement's RMS voltage (V, 0 .. 1000)")));
         }
     }
     let live = std::io::IsTerminal::is_terminal(&std::io::stderr());
@@ -628,24 +771,37 @@ fn cmd_linear(
             eprint!("\r  fitting impedance: iteration {:3}, residual {:.3e}   ", s.iteration, (2.0 * s.cost).sqrt());
         }
     };
-    let fit = fit_linear_record(&rec.u, &rec.i, fs, &origin, &LinearOptions { effects, chain, ..Default::default() }, progress)?;
+    let opts = LinearOptions { effects, chain, ..Default::default() };
+    let fit = match (&rec, &curve) {
+        (Some(r), _) => fit_linear_record(&r.u, &r.i, r.fs as f64, &origin, &opts, progress)?,
+        (_, Some(c)) => fit_impedance_curve(&c.f, &c.z, band, &origin, &opts, progress)?,
+        _ => unreachable!("one input was read"),
+    };
     if live {
         eprintln!();
     }
-    let (mms, method) = match (mms, added_mass, with_mass, &rec.x) {
-        (Some(m), None, None, _) => (m, ScaleMethod::Mms),
-        (None, Some(madd), Some(p2), _) => {
+    // The same model as the first fit: the resonance shift must compare like with like.
+    let same = LinearOptions { effects: EffectsChoice::Fixed(fit.effects), chain, ..Default::default() };
+    let (mms, method) = match (a.mms, a.added_mass, with_mass) {
+        (Some(m), None, None) => (m, ScaleMethod::Mms),
+        (None, Some(madd), Some(p2)) => {
             if !(madd.is_finite() && madd > 0.0 && madd < 2.0) {
                 return Err(Failure::from(format!("--added-mass {madd}: give the added mass in kg (0 .. 2 kg)")));
             }
             let o2 = p2.display().to_string();
-            let r2 = read_recording(p2, scale).map_err(|e| e.to_string())?;
-            // The same model as the first record: the resonance shift must compare like with like.
-            let same = LinearOptions { effects: EffectsChoice::Fixed(fit.effects), chain, ..Default::default() };
-            let fit2 = fit_linear_record(&r2.u, &r2.i, r2.fs as f64, &o2, &same, |_| {})?;
-            (added_mass_mms(&fit, &fit2, madd)?, ScaleMethod::AddedMass { added: madd, fs_with: fit2.fs() })
+            let fit2 = if is_curve {
+                let c2 = coilscope_io::impedance::read_impedance(p2).map_err(|e| e.to_string())?;
+                fit_impedance_curve(&c2.f, &c2.z, band, &o2, &same, |_| {})?
+            } else {
+                let r2 = read_recording(p2, scale).map_err(|e| e.to_string())?;
+                fit_linear_record(&r2.u, &r2.i, r2.fs as f64, &o2, &same, |_| {})?
+            };
+            added_mass_scale(&fit, &fit2, madd)?
         }
-        (None, None, None, Some(x)) => (scale_by_displacement(&fit, &rec.i, x, fs, &origin)?, ScaleMethod::Displacement),
+        (None, None, None) => {
+            let r = rec.as_ref().expect("a displacement channel is a record's");
+            (scale_by_displacement(&fit, &r.i, r.x.as_ref().expect("checked"), r.fs as f64, &origin)?, ScaleMethod::Displacement)
+        }
         _ => unreachable!("scale arguments were checked above"),
     };
     let mut params = scale_by_mms(&fit, mms)?;
@@ -654,33 +810,71 @@ fn cmd_linear(
         params.validate("--sd").map_err(|_| format!("--sd {s}: give the radiating area in m^2 (e.g. 0.0118)"))?;
     }
     params.source = Some(format!("coilscope linear {}", path.display()));
-    let x_pred = match &rec.x {
-        Some(x) => x.clone(),
-        None => predicted_displacement(&params, &rec.i, fs),
+    let x_range = match &rec {
+        Some(r) => {
+            let x_pred = match &r.x {
+                Some(x) => x.clone(),
+                None => predicted_displacement(&params, &r.i, r.fs as f64),
+            };
+            [x_pred.iter().cloned().fold(0.0, f64::min), x_pred.iter().cloned().fold(0.0, f64::max)]
+        }
+        None => a.volts.map_or([0.0, 0.0], |v| {
+            let c = curve.as_ref().expect("a curve");
+            let peak = curve_peak_displacement(&params, &c.f, &c.z, v);
+            [-peak, peak]
+        }),
     };
-    let x_range = [x_pred.iter().cloned().fold(0.0, f64::min), x_pred.iter().cloned().fold(0.0, f64::max)];
-    let mut result = coilscope_ident::linear::result(&params, &fit, &method, x_range, &path.display().to_string());
-    let (floor, warnings) = linear_warnings(&fit, &params, &rec.u, &rec.i, fs);
-    attach_warnings(&mut result, &floor, &warnings);
+    let mut result = coilscope_ident::linear::result(&params, &fit, &method, x_range, &origin);
+    if calibrated.is_some() {
+        result.chain = calibrated;
+    }
+    let warnings = match &rec {
+        Some(r) => {
+            let (floor, warnings) = linear_warnings(&fit, &params, &r.u, &r.i, r.fs as f64);
+            attach_warnings(&mut result, Some(&floor), &warnings);
+            warnings
+        }
+        None => {
+            let warnings = curve_warnings(&fit);
+            attach_warnings(&mut result, None, &warnings);
+            warnings
+        }
+    };
     write_json(out, &result).map_err(|e| e.to_string())?;
-    let zma = out.with_extension("zma");
     let csv = out.with_extension("csv");
-    coilscope_io::atomic_write(&zma, zma_text(&fit.h1).as_bytes()).map_err(|e| e.to_string())?;
+    let mut wrote = vec![out.display().to_string()];
+    if rec.is_some() {
+        let zma = out.with_extension("zma");
+        let (f, z) = fit.h1.coherent();
+        let comments = vec![format!("coilscope linear: H1 impedance of {origin} (coherent bins)"), "Data: Impedance (ohms), Phase (degrees)".to_string()];
+        coilscope_io::impedance::write_zma(&zma, &coilscope_io::impedance::ImpedanceCurve { f, z, comments }).map_err(|e| e.to_string())?;
+        wrote.push(zma.display().to_string());
+    }
     coilscope_io::atomic_write(&csv, impedance_csv(&fit.h1, &fit).as_bytes()).map_err(|e| e.to_string())?;
+    wrote.push(csv.display().to_string());
 
     let ts = thiele_small(&params);
     let u = &result.uncertainty;
     let pm = |k: &str, scale: f64| u.value(k).map(|v| format!("+- {:.2e}", v * scale)).unwrap_or_default();
-    println!("coilscope linear: {} ({:.2} s at {} Hz)", path.display(), rec.u.len() as f64 / fs, rec.fs);
-    println!("  fit {:.1} .. {:.0} Hz, {} bins, residual {:.3e} (current, relative RMS), {} iterations", fit.band[0], fit.band[1], fit.bins, fit.residual_rel, fit.iterations);
+    match (&rec, &curve) {
+        (Some(r), _) => {
+            println!("coilscope linear: {} ({:.2} s at {} Hz)", path.display(), r.u.len() as f64 / r.fs as f64, r.fs);
+            println!("  fit {:.1} .. {:.0} Hz, {} bins, residual {:.3e} (current, relative RMS), {} iterations", fit.band[0], fit.band[1], fit.bins, fit.residual_rel, fit.iterations);
+        }
+        (_, Some(c)) => {
+            println!("coilscope linear: {} (impedance file, {} points, {:.1} .. {:.0} Hz)", path.display(), c.f.len(), c.f[0], c.f[c.f.len() - 1]);
+            println!("  fit {:.1} .. {:.0} Hz, {} points, residual {:.3e} (impedance, relative RMS), {} iterations", fit.band[0], fit.band[1], fit.bins, fit.residual_rel, fit.iterations);
+        }
+        _ => unreachable!("one input was read"),
+    }
     let scale_text = match &method {
         ScaleMethod::Mms => "Mms given".to_string(),
-        ScaleMethod::AddedMass { added, fs_with } => format!("added mass {:.2} g, fs with mass {:.2} Hz", added * 1e3, fs_with),
+        ScaleMethod::AddedMass { added, fs_with, .. } => format!("added mass {:.3} g, fs with mass {:.3} Hz", added * 1e3, fs_with),
         ScaleMethod::Displacement => "displacement channel".to_string(),
     };
     println!("  scale: {scale_text}");
-    if let Some(c) = &fit.chain {
-        println!("  chain: {}", chain_words(&c.to_chain(), fs));
+    if let (Some(c), Some(r)) = (&fit.chain, &rec) {
+        println!("  chain: {}", chain_words(&c.to_chain(), r.fs as f64));
     }
     println!("  model: {} (tried: {})", fit.effects.model_name(), fit.tried.iter().map(|(m, r)| format!("{m} {r:.2e}")).collect::<Vec<_>>().join(", "));
     print_values(&params, u, &[]);
@@ -691,9 +885,29 @@ fn cmd_linear(
     if let Some(v) = ts.vas {
         println!("  {:<6} {:>12} {:<5}", "Vas", format!("{:.3}", v * 1e3), "l");
     }
-    println!("  x reached {:+.3} .. {:+.3} mm", x_range[0] * 1e3, x_range[1] * 1e3);
-    println!("  wrote {}, {}, {}", out.display(), zma.display(), csv.display());
+    if rec.is_some() || a.volts.is_some() {
+        println!("  x reached {:+.3} .. {:+.3} mm", x_range[0] * 1e3, x_range[1] * 1e3);
+    } else {
+        println!("  x reached: unknown (give --volts, the measurement's RMS voltage)");
+    }
+    println!("  wrote {}", wrote.join(", "));
     untrusted_if_warned(&warnings, out)
+}
+
+/// Peak displacement (m) of a driver with parameters `p` measured with impedance `z` at
+/// frequencies `f` by a sine (or stepped sweep) of `volts` RMS: the largest `sqrt(2) |U Bl /
+/// (Z j w Zm)|`, `Zm = j w Mms + Rms + Kms / (j w)` the mechanical impedance.
+fn curve_peak_displacement(p: &Parameters, f: &[f64], z: &[coilscope_core::Complex64], volts: f64) -> f64 {
+    use coilscope_core::Complex64;
+    let (bl, kms) = (p.bl.eval(0.0), p.kms.eval(0.0));
+    f.iter()
+        .zip(z)
+        .map(|(&f, &z)| {
+            let jw = Complex64::new(0.0, 2.0 * std::f64::consts::PI * f);
+            let zm = jw * p.mms + p.rms + kms / jw;
+            (std::f64::consts::SQRT_2 * volts * bl / (z * jw * zm)).norm()
+        })
+        .fold(0.0, f64::max)
 }
 
 /// The set's constants and values at rest, a line each, in the parameter schema's order and
@@ -742,8 +956,8 @@ fn parse_effects(text: &str) -> Result<coilscope_ident::linear::EffectsChoice, F
 
 /// Put the noise floor and the warnings into `fit` of a result (`fit.noise_floor`,
 /// `fit.warnings`, `fit.trustworthy`) and print the warnings.
-fn attach_warnings(result: &mut ResultFile, floor: &coilscope_ident::checks::NoiseFloor, warnings: &[coilscope_ident::checks::Warning]) {
-    result.fit.noise_floor = Some(*floor);
+fn attach_warnings(result: &mut ResultFile, floor: Option<&coilscope_ident::checks::NoiseFloor>, warnings: &[coilscope_ident::checks::Warning]) {
+    result.fit.noise_floor = floor.copied();
     result.fit.warnings = Some(warnings.to_vec());
     result.fit.trustworthy = Some(result.fit.trustworthy.unwrap_or(true) && warnings.is_empty());
     for w in warnings {
@@ -804,11 +1018,53 @@ fn post_inverse_of(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, origi
 }
 
 #[allow(clippy::too_many_arguments)]
-fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &str, chain: bool, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
-    use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, Stage};
+fn cmd_calibrate(path: &Path, resistor: Option<f64>, loopback: bool, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
     let origin = path.display().to_string();
+    let r = match (resistor, loopback) {
+        (Some(r), false) if r.is_finite() && r > 0.0 && r < 1e6 => r,
+        (Some(r), false) => return Err(Failure::from(format!("--resistor {r}: give the resistor's measured value in ohm (> 0)"))),
+        _ => 1.0,
+    };
     let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
     let fs = rec.fs as f64;
+    let cal = coilscope_ident::calibrate::calibrate(&rec.u, &rec.i, fs, r, &origin)?;
+    let mut chain = cal.chain.clone();
+    let info = serde_json::json!({
+        "format": "coilscope.chain/1",
+        "record": origin,
+        "fs_hz": fs,
+        "load": if loopback { "loopback".to_string() } else { format!("resistor {r} ohm") },
+        "band_hz": cal.band,
+        "bins": cal.bins,
+        "residual_in_noise": cal.residual_in_noise,
+        "residual_rel": cal.residual_rel,
+    });
+    for (k, v) in info.as_object().expect("an object") {
+        chain.other.insert(k.clone(), v.clone());
+    }
+    write_json(out, &chain).map_err(|e| e.to_string())?;
+    let sd = |k: &str| chain.sd.get(k).copied().unwrap_or(f64::NAN);
+    println!("coilscope calibrate: {} ({:.1} s at {} Hz, {})", origin, rec.u.len() as f64 / fs, rec.fs, if loopback { "loopback".to_string() } else { format!("resistor {r} ohm") });
+    println!("  fit {:.2} .. {:.0} Hz, {} bins, residual {:.2}x the noise ({:.2e} relative)", cal.band[0], cal.band[1], cal.bins, cal.residual_in_noise, cal.residual_rel);
+    println!("  current channel {:+.4} +- {:.4} samples late ({:+.3} us), gain {:.5} +- {:.1e} against the voltage's", chain.delay_i * fs, sd("delay_i") * fs, chain.delay_i * 1e6, chain.gain_i.unwrap_or(1.0), sd("gain_i"));
+    if chain.fitted.iter().any(|k| k == "hp_u") {
+        println!("  AC coupling: voltage {:.3} +- {:.3} Hz, current {:.3} +- {:.3} Hz", chain.hp_u, sd("hp_u"), chain.hp_i, sd("hp_i"));
+    } else if let Some(n) = chain.other.get("note").and_then(|v| v.as_str()) {
+        println!("  AC coupling: {n}");
+    }
+    println!("  wrote {} (use it as --chain {})", out.display(), out.display());
+    Ok(())
+}
+
+fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &str, chain_choice: &ChainChoice, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
+    use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, Stage};
+    let origin = path.display().to_string();
+    let mut rec = read_recording(path, scale).map_err(|e| e.to_string())?;
+    let fs = rec.fs as f64;
+    coilscope_ident::linear::check_hum(&rec.u, &rec.i, fs, chain_choice.estimate(), &origin)?;
+    let (u, i, calibrated) = chain_choice.physical(std::mem::take(&mut rec.u), std::mem::take(&mut rec.i), fs);
+    (rec.u, rec.i) = (u, i);
+    let chain = chain_choice.estimate();
     if let Some(o) = order {
         if !(2..=8).contains(&o) {
             return Err(Failure::from(format!("--order {o}: give a power-series order from 2 to 8")));
@@ -862,6 +1118,9 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
     fit.params.sd = sd;
     fit.params.source = Some(format!("coilscope identify {}", path.display()));
     let mut result = fit.result(&path.display().to_string(), &mms_source);
+    if calibrated.is_some() {
+        result.chain = calibrated;
+    }
     // The current error behind the estimated chain (its offsets and hum are fitted, not error).
     let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(
         &fit.i_phys[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect::<Vec<_>>(),
@@ -881,7 +1140,7 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
     if failure.is_some() {
         result.fit.trustworthy = Some(false);
     }
-    attach_warnings(&mut result, &floor, &warnings);
+    attach_warnings(&mut result, Some(&floor), &warnings);
     if let Some(pi) = &post {
         // Largest difference over the reached range, relative to the output-error value at rest.
         let dev = |a: &coilscope_core::Poly, b: &coilscope_core::Poly| {

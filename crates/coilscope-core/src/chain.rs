@@ -66,6 +66,11 @@ pub struct Chain {
     pub hp_u: f64,
     /// The same for the current channel (Hz).
     pub hp_i: f64,
+    /// Gain of the current channel against the voltage channel (recorded / true; absent:
+    /// 1): a sense resistor's tolerance, or two converter channels' different gains, as a
+    /// calibration measures it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gain_i: Option<f64>,
     /// Offset on the recorded voltage (V).
     pub dc_u: f64,
     /// Offset on the recorded current (A).
@@ -163,7 +168,8 @@ impl Chain {
     /// Channel records of the physical `u` (V) and `i` (A) at `fs`.
     pub fn apply(&self, u: &[f64], i: &[f64], fs: f64) -> (Vec<f64>, Vec<f64>) {
         let mut ur = hp(u, self.hp_u, fs);
-        let mut ir = hp(&delay(i, self.delay_i * fs), self.hp_i, fs);
+        let g = self.gain_i.unwrap_or(1.0);
+        let mut ir: Vec<f64> = hp(&delay(i, self.delay_i * fs), self.hp_i, fs).into_iter().map(|v| g * v).collect();
         let n = u.len();
         let (au, ai) = self.additive(n, fs);
         for m in 0..n {
@@ -179,17 +185,29 @@ impl Chain {
         let (au, ai) = self.additive(n, fs);
         let uc: Vec<f64> = (0..n).map(|m| u_rec[m] - au[m]).collect();
         let ic: Vec<f64> = (0..n).map(|m| i_rec[m] - ai[m]).collect();
-        (hp_inverse(&uc, self.hp_u, fs), delay(&hp_inverse(&ic, self.hp_i, fs), -self.delay_i * fs))
+        let g = self.gain_i.unwrap_or(1.0);
+        (hp_inverse(&uc, self.hp_u, fs), delay(&hp_inverse(&ic, self.hp_i, fs), -self.delay_i * fs).into_iter().map(|v| v / g).collect())
+    }
+
+    /// The physical `u`, `i` behind the records of a new measurement through a *calibrated*
+    /// chain (delay, corners, gain known; this record's offsets not): each channel's offset
+    /// is the one that leaves no mean and no trend behind its coupling ([`voltage_behind`]),
+    /// and hum is left in (the fit leaves its bins out). Returns `(u, i, dc_u, dc_i)`.
+    pub fn invert_calibrated(&self, u_rec: &[f64], i_rec: &[f64], fs: f64) -> (Vec<f64>, Vec<f64>, f64, f64) {
+        let (u, dc_u) = voltage_behind(u_rec, self.hp_u, fs);
+        let (i, dc_i) = voltage_behind(i_rec, self.hp_i, fs);
+        let g = self.gain_i.unwrap_or(1.0);
+        (u, delay(&i, -self.delay_i * fs).into_iter().map(|v| v / g).collect(), dc_u, dc_i)
     }
 
     /// What the chain multiplies the recorded `U/I` by at `f`: `Z_rec = Z * ratio`.
     pub fn impedance_factor(&self, f: f64, fs: f64) -> Complex64 {
-        hp_response(self.hp_u, f, fs) / hp_response(self.hp_i, f, fs) * Complex64::from_polar(1.0, 2.0 * PI * f * self.delay_i)
+        hp_response(self.hp_u, f, fs) / hp_response(self.hp_i, f, fs) * Complex64::from_polar(1.0 / self.gain_i.unwrap_or(1.0), 2.0 * PI * f * self.delay_i)
     }
 
     /// True when every quantity is 0 (an ideal chain).
     pub fn is_ideal(&self) -> bool {
-        self.delay_i == 0.0 && self.hp_u == 0.0 && self.hp_i == 0.0 && self.dc_u == 0.0 && self.dc_i == 0.0 && self.hum.is_none()
+        self.delay_i == 0.0 && self.hp_u == 0.0 && self.hp_i == 0.0 && self.gain_i.is_none_or(|g| g == 1.0) && self.dc_u == 0.0 && self.dc_i == 0.0 && self.hum.is_none()
     }
 }
 

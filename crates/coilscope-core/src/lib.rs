@@ -44,4 +44,7 @@ pub mod small_signal;
 pub use model::{Model, State};
 pub use params::{embedded_driver, embedded_driver_names, ParamError, Parameters};
 pub use poly::Poly;
+/// The complex type of every spectrum and impedance (re-exported so that callers need no
+/// `num-complex` of their own).
+pub use realfft::num_complex::Complex64;
 pub use simulate::{simulate, SimError, SimOptions, Simulator, Trace};

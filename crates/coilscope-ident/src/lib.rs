@@ -6,8 +6,10 @@
 //! * [`linear`]: small-signal parameters from the impedance (H1 estimate, LR-2 + motional
 //!   fit, absolute scale by Mms, added mass or displacement).
 
+//! * [`calibrate`]: a measurement chain's delay, corners and gain from a resistor record.
 //! * [`checks`]: the residual against its noise floor, and what a doubtful fit is named.
 
+pub mod calibrate;
 pub mod checks;
 pub mod large;
 pub mod linear;

@@ -63,7 +63,7 @@ pub fn check_channels(u: &[f64], i: &[f64], fs: f64, origin: &str) -> Result<(),
         let mean = x.iter().sum::<f64>() / x.len() as f64;
         if mean.abs() > 0.05 * r {
             return Err(format!(
-                "{origin}: {name} has a DC offset of {mean:.4} {unit} ({:.0} % of its RMS); re-zero the interface or high-pass the channel",
+                "{origin}: {name} has a DC offset of {mean:.4} {unit} ({:.0} % of its RMS); re-zero the interface, or let the fit take the offset with --chain auto (or --chain FILE from `coilscope calibrate`)",
                 100.0 * mean.abs() / r
             ));
         }
@@ -106,10 +106,29 @@ impl ImpedanceEstimate {
         self.suu[k] > 1e-6 * self.suu_max && self.coherence[k] >= min_coh
     }
 
-    /// Nearest bin to frequency `f`.
+    /// Nearest bin to frequency `f` (any increasing grid: a record's or a file's); halfway
+    /// between two, the upper one.
     pub fn bin(&self, f: f64) -> usize {
-        let df = self.f[1] - self.f[0];
-        ((f / df).round() as usize).min(self.f.len() - 1)
+        let k = self.f.partition_point(|&g| g < f);
+        if k == 0 {
+            0
+        } else if k == self.f.len() || f - self.f[k - 1] < self.f[k] - f {
+            k - 1
+        } else {
+            k
+        }
+    }
+
+    /// The coherent bins (coherence >= the fit's minimum) as frequencies and impedances: what
+    /// `linear` writes as `.zma`.
+    pub fn coherent(&self) -> (Vec<f64>, Vec<Complex64>) {
+        (0..self.f.len()).filter(|&k| self.f[k] > 0.0 && self.usable(k, MIN_COHERENCE)).map(|k| (self.f[k], self.z[k])).unzip()
+    }
+
+    /// A measured impedance curve (a file's) as an estimate: every point coherent and
+    /// excited.
+    pub fn from_curve(f: &[f64], z: &[Complex64]) -> ImpedanceEstimate {
+        ImpedanceEstimate { f: f.to_vec(), z: z.to_vec(), coherence: vec![1.0; f.len()], suu: vec![1.0; f.len()], suu_max: 1.0 }
     }
 }
 
@@ -418,6 +437,78 @@ pub fn mains_lines() -> Vec<f64> {
         }
     }
     lines
+}
+
+/// Mains hum between the channels: in the current the voltage does not explain, `E = I -
+/// U / Z` (whole-record DFT, `Z` the H1 estimate), so that the excitation, which fills the
+/// bins around a line in either channel alone, is taken out and the hum stands against the
+/// noise. Hum on the current channel shows in `E` as itself, hum on the voltage channel as
+/// `-hum / Z`. Returns the strongest line `(Hz, amplitude relative to the current's RMS,
+/// dB above the median of E's bins 2 to 10 Hz away)`; the amplitude is 0 for a line less
+/// than 10 dB above its neighbourhood. `None` for a record too short to resolve the lines.
+pub fn mains_hum(u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64, f64)> {
+    let n = u.len();
+    let df = fs / n as f64;
+    if df > 0.5 || n != i.len() {
+        return None;
+    }
+    let h1 = h1_impedance(u, i, fs, segment_length(n, fs));
+    let (us, is) = (rfft(u), rfft(i));
+    let total: f64 = is.iter().skip(1).map(|c| c.norm_sqr()).sum();
+    if total <= 0.0 {
+        return None;
+    }
+    let e = |k: usize| -> f64 {
+        let z = h1.z[h1.bin(k as f64 * df)];
+        if z.norm() > 0.0 && z.is_finite() { (is[k] - us[k] / z).norm_sqr() } else { is[k].norm_sqr() }
+    };
+    let bin = |f: f64| (f / df).round() as usize;
+    mains_lines()
+        .into_iter()
+        .filter(|&f| bin(f + 10.0) < is.len())
+        .map(|f| {
+            // The line's power over +-2 bins (a line between bins leaks into its neighbours).
+            let (k0, k1) = (bin(f).saturating_sub(2), bin(f) + 2);
+            let p_line: f64 = (k0..=k1).map(e).sum();
+            let neigh: Vec<f64> = (bin(f - 10.0)..=bin(f + 10.0)).filter(|&k| (k as f64 * df - f).abs() >= 2.0).map(e).collect();
+            let floor = crate::checks::median(neigh).max(1e-300) * 5.0;
+            let db = 10.0 * (p_line / floor).log10();
+            let rel = if db > 10.0 { ((p_line - floor) / total).sqrt() } else { 0.0 };
+            (f, rel, db)
+        })
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+}
+
+/// Hum above which a channel is refused even when the chain is estimated (its relative
+/// amplitude: -20 dB of the channel); without the chain, hum above [`HUM_REFUSED_IDEAL`]
+/// (-40 dB: 3 % on a 4 s SB17 record left a residual 13x the noise floor) is refused with
+/// the advice to estimate it.
+pub const HUM_REFUSED: f64 = 0.1;
+pub const HUM_REFUSED_IDEAL: f64 = 0.01;
+
+/// Refuse a record whose hum would dominate the fit: see [`HUM_REFUSED`].
+pub fn check_hum(u: &[f64], i: &[f64], fs: f64, chain_estimated: bool, origin: &str) -> Result<(), String> {
+    if let Some((f, rel, db)) = mains_hum(u, i, fs) {
+        let what = format!("{origin}: mains hum at {f:.0} Hz between the channels (on the current, or on the voltage through the driver) is {:.1} % of the current's RMS, {db:.0} dB above the noise next to it", 100.0 * rel);
+        if rel > HUM_REFUSED {
+            return Err(format!("{what}: far above the noise floor, it would dominate any fit. Fix the ground loop (one ground point, a balanced input, the shunt's ground at the card)"));
+        }
+        if !chain_estimated && rel > HUM_REFUSED_IDEAL {
+            return Err(format!("{what}: fix the ground loop, or let the fit take the hum with --chain auto"));
+        }
+    }
+    Ok(())
+}
+
+/// The current channel carries the voltage (or the load is a resistor): `U/I` flat in
+/// magnitude (within 2 % between its 5th and 95th percentiles) and in phase (within 1
+/// degree) over the coherent band, which no loudspeaker's impedance is.
+fn current_is_voltage(h1: &ImpedanceEstimate, bins: &[usize]) -> Option<(f64, f64)> {
+    let mut mags: Vec<f64> = bins.iter().map(|&k| h1.z[k].norm()).collect();
+    mags.sort_by(f64::total_cmp);
+    let (lo, hi) = (mags[mags.len() / 20], mags[mags.len() * 19 / 20]);
+    let phase = bins.iter().map(|&k| h1.z[k].arg().abs()).fold(0.0, f64::max).to_degrees();
+    (hi / lo < 1.02 && phase < 1.0).then(|| (crate::checks::median(mags), phase))
 }
 
 /// True when `f` (Hz) is within [`HUM_GUARD_HZ`] of a mains line.
@@ -899,9 +990,25 @@ pub enum Ends {
     AssumedAtRest,
 }
 
+/// The norm of a problem's current bins (its residual's scale).
+fn prob_norm(p: &CurrentError) -> f64 {
+    p.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt()
+}
+/// Every `step`-th element.
+fn keep<T: Copy>(v: &[T], step: usize) -> Vec<T> {
+    v.iter().step_by(step).copied().collect()
+}
+/// `p` on at most `most` bins, evenly picked (a scout for the starts).
+fn thin(p: &CurrentError, most: usize) -> CurrentError {
+    let step = p.f.len().div_ceil(most);
+    let mut t = CurrentError { f: keep(&p.f, step), u: keep(&p.u, step), i: keep(&p.i, step), w: keep(&p.w, step), norm: 1.0, map: p.map.clone(), omega0: p.omega0, n_transient: p.n_transient, effects: p.effects, chain: p.chain };
+    t.norm = t.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
+    t
+}
+
 /// [`fit_linear`] with [`LinearOptions`]: what to assume of the record's [`Ends`], and
 /// which effects to fit.
-pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
     if let EffectsChoice::Fixed(e) = opts.effects {
         if e.has_large_signal() {
             return Err(format!(
@@ -951,6 +1058,12 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
             h1.f[*low.last().expect("not empty")]
         ));
     }
+    if let Some((z, phase)) = current_is_voltage(&h1, &coherent) {
+        return Err(format!(
+            "{origin}: U/I is flat, {z:.4} (median) with phase within {phase:.2} degrees over {:.0} .. {:.0} Hz: no loudspeaker has that. Channel 2 records the voltage (or the load is a resistor): wire channel 2 across the sense resistor (for a resistor or loopback record, use `coilscope calibrate`)",
+            band[0], band[1]
+        ));
+    }
     let p0 = initial_guess(&h1, band[0], band[1]).map_err(|e| format!("{origin}: {e}"))?;
 
     // Whole-record DFT; keep bins inside the band whose H1 bin is excited and coherent.
@@ -983,22 +1096,81 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
             prob.w.push(w);
         }
     }
-    fn prob_norm(p: &CurrentError) -> f64 {
-        p.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt()
-    }
-    fn keep<T: Copy>(v: &[T], step: usize) -> Vec<T> {
-        v.iter().step_by(step).copied().collect()
-    }
-    fn thin(p: &CurrentError, most: usize) -> CurrentError {
-        let step = p.f.len().div_ceil(most);
-        let mut t = CurrentError { f: keep(&p.f, step), u: keep(&p.u, step), i: keep(&p.i, step), w: keep(&p.w, step), norm: 1.0, map: p.map.clone(), omega0: p.omega0, n_transient: p.n_transient, effects: p.effects, chain: p.chain };
-        t.norm = t.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
-        t
-    }
     prob.norm = prob.i.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
     if opts.chain {
         prob.chain = Some(ChainTerms { fs, delay: true, hp_u: true, hp_i: true });
     }
+    fit_bins(prob, h1, band, p0, opts, Some(fs), origin, observe)
+}
+
+/// The linear fit of a measured impedance curve `z` (ohm) at frequencies `f` (Hz, increasing),
+/// e.g. a `.zma` file: the same model, model choice ([`LinearOptions::effects`]) and
+/// uncertainty as for a record. `band` limits the fitted points (default: all up to 20 kHz).
+///
+/// Each point weighs alike and its error is relative, `1 - Z_measured / Z_model` (the
+/// current error of a record at unit current, `I - U/Z` with `U = Z_measured`, `I = 1`), so
+/// a log-spaced file weighs every octave alike, and `residual_rel` is the RMS relative
+/// impedance error. A curve is the average of a measurement, with no record ends
+/// ([`Ends::AssumedAtRest`]) and no measurement chain (a `.zma` is taken as calibrated; the
+/// option `chain` is refused).
+pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, origin: &str, opts: &LinearOptions, observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+    if opts.chain {
+        return Err(format!("{origin}: an impedance curve has no measurement chain to estimate (its tool calibrated it); --chain applies to records"));
+    }
+    if let EffectsChoice::Fixed(e) = opts.effects {
+        if e.has_large_signal() {
+            return Err(format!("{origin}: {} act only at large signal; an impedance curve takes none, creep, lr3 or auto", Effects { creep: false, lr3: false, ..e }.in_words()));
+        }
+    }
+    if f.len() != z.len() {
+        return Err(format!("{origin}: {} frequencies for {} impedance points", f.len(), z.len()));
+    }
+    let [lo, hi] = band.unwrap_or([0.0, 20000.0]);
+    if !(lo >= 0.0 && hi > lo) {
+        return Err(format!("{origin}: fit band {lo} .. {hi} Hz is empty (give LO < HI, Hz)"));
+    }
+    let keep: Vec<usize> = (0..f.len()).filter(|&k| f[k] > 0.0 && f[k] >= lo && f[k] <= hi).collect();
+    if keep.len() < 20 {
+        return Err(format!("{origin}: {} points between {lo:.0} and {hi:.0} Hz; at least 20 are needed", keep.len()));
+    }
+    let h1 = ImpedanceEstimate::from_curve(&keep.iter().map(|&k| f[k]).collect::<Vec<_>>(), &keep.iter().map(|&k| z[k]).collect::<Vec<_>>());
+    let band = [h1.f[0], *h1.f.last().expect("20 points")];
+    let zmed = crate::checks::median(h1.z.iter().map(|z| z.norm()).collect());
+    if zmed < 0.5 {
+        return Err(format!("{origin}: |Z| is {zmed:.3} ohm (median): an admittance, or a curve in other units? (an impedance file holds ohms)"));
+    }
+    let low: Vec<f64> = (0..h1.f.len()).filter(|&k| h1.f[k] <= 500.0).map(|k| h1.z[k].re).collect();
+    let re_med = crate::checks::median(if low.is_empty() { h1.z.iter().map(|z| z.re).collect() } else { low });
+    if re_med < 0.0 {
+        return Err(format!("{origin}: the impedance has a negative real part ({re_med:.3} ohm median below 500 Hz), which no passive driver has: a phase of the wrong sign or 180 degrees off"));
+    }
+    let p0 = initial_guess(&h1, band[0], band[1]).map_err(|e| format!("{origin}: {e}"))?;
+    let (mut lo_q, mut hi_q) = ([f64::NEG_INFINITY; 7], [f64::INFINITY; 7]);
+    lo_q[2] = (1.0 / (2.0 * PI * CORNER_ABOVE_BAND * band[1])).ln();
+    hi_q[2] = (1.0 / (2.0 * PI * band[0])).ln();
+    let n = h1.f.len();
+    let mut prob = CurrentError {
+        f: h1.f.clone(),
+        u: h1.z.clone(),
+        i: vec![Complex64::new(1.0, 0.0); n],
+        w: vec![1.0; n],
+        norm: 1.0,
+        map: ParamMap { lo: lo_q, hi: hi_q },
+        omega0: 2.0 * PI * (band[0] * band[1]).sqrt(),
+        n_transient: 0,
+        effects: Effects::NONE,
+        chain: None,
+    };
+    prob.norm = prob_norm(&prob);
+    fit_bins(prob, h1, band, p0, opts, None, origin, observe)
+}
+
+/// The fit proper, on the bins of `prob` (their `u`, `i` and weights set, `norm` too), from
+/// the start `p0` found on `h1` in `band`; `fs` is the record's rate (none for an impedance
+/// curve: no chain, no skew check).
+#[allow(clippy::too_many_arguments)]
+fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64; 7], opts: &LinearOptions, fs: Option<f64>, origin: &str, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+    let map = prob.map.clone();
     let n_chain = prob.chain.map_or(0, |c| c.count());
     // LM to convergence, or to a plateau: the cost lowered by less than PLATEAU_REL over
     // the last PLATEAU_ITERATIONS iterations. An effect the record does not have leaves a
@@ -1245,7 +1417,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
             at_bound.push("L3/R3 corner");
         }
     }
-    let chain = opts.chain.then(|| {
+    let chain = fs.filter(|_| opts.chain).map(|fs| {
         let terms = prob.chain.unwrap_or(ChainTerms { fs, delay: false, hp_u: false, hp_i: false });
         let ci = prob.chain_index();
         let on = terms.on();
@@ -1256,15 +1428,18 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     // e^{j 2 pi f tau / fs}, which no passive circuit does. Let the same fit shift the current
     // channel: if that explains most of the error, the channels are skewed. With the chain
     // estimated, its delay is in the model (and reported there).
-    let current_delay = if opts.chain { None } else {
-        let mut check = CurrentError { chain: Some(ChainTerms { fs, delay: true, hp_u: false, hp_i: false }), ..thin(&prob, SCOUT_BINS) };
-        check.norm = prob_norm(&check);
-        let mut th = s.theta.clone();
-        th.push(0.0);
-        let base = LmState::new(&check, th.clone()).cost;
-        let d = run(&check, th, MAX_ITERATIONS, &mut |_| {});
-        let at = check.chain_index();
-        (d.converged && d.cost < 0.25 * base && d.theta[at].abs() >= 0.05).then(|| (d.theta[at], 1.0 - (d.cost / base).sqrt()))
+    let current_delay = match fs {
+        Some(fs) if !opts.chain => {
+            let mut check = CurrentError { chain: Some(ChainTerms { fs, delay: true, hp_u: false, hp_i: false }), ..thin(&prob, SCOUT_BINS) };
+            check.norm = prob_norm(&check);
+            let mut th = s.theta.clone();
+            th.push(0.0);
+            let base = LmState::new(&check, th.clone()).cost;
+            let d = run(&check, th, MAX_ITERATIONS, &mut |_| {});
+            let at = check.chain_index();
+            (d.converged && d.cost < 0.25 * base && d.theta[at].abs() >= 0.05).then(|| (d.theta[at], 1.0 - (d.cost / base).sqrt()))
+        }
+        _ => None,
     };
     let transient = Transient { c: prob.transient(&s.theta).to_vec(), omega0: prob.omega0 };
     Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay, transient, effects: prob.effects, creep, lr3, tried, chain })
@@ -1322,9 +1497,31 @@ pub fn scale_by_mms(fit: &LinearFit, mms: f64) -> Result<Parameters, String> {
 }
 
 /// Moving mass from the resonance shift with a known added mass (kg):
-/// `Mms = Madd / ((fs / fs_with)^2 - 1)`.
+/// `Mms = Madd / (c (fs / fs_with)^2 - 1)`, with `c = K(fs_with) / K(fs)` the suspension's
+/// stiffness at the loaded resonance over that at the free one.
+///
+/// Without creep `c = 1`, the textbook formula. With creep the stiffness falls towards low
+/// frequencies (about `lambda` per decade, [`coilscope_core::creep`]), so the loaded
+/// resonance sits lower than a constant spring would put it, and the textbook formula takes
+/// that for mass: on the SEAS L16RN-X (lambda 0.18, 45 -> 31 Hz) it gave Mms 14.07 g, 6 %
+/// below the published 14.9-15.3 g; with `c` (from the free fit's lambda) 14.9 g.
 pub fn added_mass_mms(fit: &LinearFit, with_mass: &LinearFit, added: f64) -> Result<f64, String> {
-    let ratio = (fit.fs() / with_mass.fs()).powi(2);
+    added_mass_scale(fit, with_mass, added).map(|(m, _)| m)
+}
+
+/// Relative sd of a fit's resonance `fs = 1 / (2 pi sqrt(Lces Cmes))` (first order).
+fn fs_rel_sd(fit: &LinearFit) -> f64 {
+    0.5 * (fit.sigma_rel[5].powi(2) + fit.sigma_rel[6].powi(2)).sqrt()
+}
+
+/// [`added_mass_mms`] with its [`ScaleMethod`], whose relative sd of Mms follows from the
+/// two resonances' sds: `d ln Mms = -2 c r^2 / (c r^2 - 1) d ln r`, `r = fs / fs_with`.
+pub fn added_mass_scale(fit: &LinearFit, with_mass: &LinearFit, added: f64) -> Result<(f64, ScaleMethod), String> {
+    let c = fit.creep.map_or(1.0, |(lambda, _)| {
+        let w = |f: f64| coilscope_core::creep::bank(2.0 * PI * f).re;
+        1.0 + lambda * (w(with_mass.fs()) - w(fit.fs()))
+    });
+    let ratio = c * (fit.fs() / with_mass.fs()).powi(2);
     if !(ratio > 1.02) {
         return Err(format!(
             "the added mass moved the resonance only from {:.2} Hz to {:.2} Hz; add more mass (about Mms/2 or more)",
@@ -1332,7 +1529,9 @@ pub fn added_mass_mms(fit: &LinearFit, with_mass: &LinearFit, added: f64) -> Res
             with_mass.fs()
         ));
     }
-    Ok(added / (ratio - 1.0))
+    let r_rel = (fs_rel_sd(fit).powi(2) + fs_rel_sd(with_mass).powi(2)).sqrt();
+    let mms_sd_rel = 2.0 * ratio / (ratio - 1.0) * r_rel;
+    Ok((added / (ratio - 1.0), ScaleMethod::AddedMass { added, fs_with: with_mass.fs(), mms_sd_rel }))
 }
 
 /// Moving mass from a displacement channel `x` (m): fit `X = (Bl/Kms) G(f) I` with the known
@@ -1424,12 +1623,7 @@ pub fn linear_warnings(fit: &LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs
             ),
         ));
     }
-    for b in &fit.at_bound {
-        w.push(Warning::new(
-            "on-bound",
-            format!("the fit ended on the bound of {b}: the L2/R2 branch's corner is not between the fitted band's bottom and {CORNER_ABOVE_BAND} times its top ({:.0} .. {:.0} Hz), so L2 and R2 are not identified by this record", fit.band[0], CORNER_ABOVE_BAND * fit.band[1]),
-        ));
-    }
+    w.extend(bound_warnings(fit));
     let excess = (nf.rms.powi(2) - nf.floor_rms.powi(2)).max(0.0).sqrt() / rms(i);
     if nf.ratio > 2.0 && excess >= LINEAR_MATERIAL_EXCESS {
         let x = predicted_displacement(p, i, fs);
@@ -1448,6 +1642,46 @@ pub fn linear_warnings(fit: &LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs
         }
     }
     (nf, w)
+}
+
+/// A fit that ended on a bound, named.
+fn bound_warnings(fit: &LinearFit) -> Vec<crate::checks::Warning> {
+    fit.at_bound
+        .iter()
+        .map(|b| {
+            crate::checks::Warning::new(
+                "on-bound",
+                format!("the fit ended on the bound of {b}: the L2/R2 branch's corner is not between the fitted band's bottom and {CORNER_ABOVE_BAND} times its top ({:.0} .. {:.0} Hz), so L2 and R2 are not identified by this input", fit.band[0], CORNER_ABOVE_BAND * fit.band[1]),
+            )
+        })
+        .collect()
+}
+
+/// The RMS relative impedance error above which a fit of an impedance curve is not
+/// trusted. A good measurement of a driver that the model describes fits to well under 1 %
+/// (the SEAS L16RN-X's .zma to 10 kHz: 0.6 %); cone break-up, a box, or a wrong file leave
+/// several percent.
+pub const CURVE_RESIDUAL_WARN: f64 = 0.02;
+
+/// What makes a fit of an impedance curve doubtful: a bound, or a model that misses the
+/// curve (a file has no noise floor to compare with: the threshold is
+/// [`CURVE_RESIDUAL_WARN`]); the worst point is named.
+pub fn curve_warnings(fit: &LinearFit) -> Vec<crate::checks::Warning> {
+    let mut w = bound_warnings(fit);
+    if fit.residual_rel > CURVE_RESIDUAL_WARN {
+        let h = &fit.h1;
+        let err = |k: usize| (1.0 - h.z[k] / fit.impedance(h.f[k])).norm();
+        let worst = (0..h.f.len()).filter(|&k| h.f[k] >= fit.band[0] && h.f[k] <= fit.band[1]).max_by(|&a, &b| err(a).total_cmp(&err(b)));
+        let at = worst.map(|k| format!(" (worst {:.1} % at {:.0} Hz)", 100.0 * err(k), h.f[k])).unwrap_or_default();
+        w.push(crate::checks::Warning::new(
+            "model-misses-curve",
+            format!(
+                "the model misses the impedance curve by {:.1} % RMS{at}: cone break-up, a box or port, or a curve of something else. Fit a band the model holds in (--band LO,HI below the break-up), or check the file",
+                100.0 * fit.residual_rel
+            ),
+        ));
+    }
+    w
 }
 
 /// Share of a linear fit's current error `r` that the first-order (perturbation) effects of
@@ -1498,7 +1732,8 @@ fn large_signal_share(p: &Parameters, r: &[f64], i: &[f64], x: &[f64], fs: f64) 
 #[derive(Clone, Debug, PartialEq)]
 pub enum ScaleMethod {
     Mms,
-    AddedMass { added: f64, fs_with: f64 },
+    /// `mms_sd_rel`: the relative sd of the Mms it gave, from the two resonances' sds.
+    AddedMass { added: f64, fs_with: f64, mms_sd_rel: f64 },
     Displacement,
 }
 
@@ -1508,10 +1743,15 @@ pub fn result(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f
     let sd = |k: usize| fit.sigma_rel[k] * fit.p[k];
     // Relative uncertainties of the derived quantities, first order, independent terms.
     let s = fit.sigma_rel;
-    let fs_rel = 0.5 * (s[5].powi(2) + s[6].powi(2)).sqrt();
+    let fs_rel = fs_rel_sd(fit);
+    // The scale's own relative sd (added mass: from the resonances; a given Mms is exact).
+    let m = match method {
+        ScaleMethod::AddedMass { mms_sd_rel, .. } => *mms_sd_rel,
+        _ => 0.0,
+    };
     let scale = match method {
         ScaleMethod::Mms => Scale { method: "mms".into(), mms: Some(p.mms), ..Default::default() },
-        ScaleMethod::AddedMass { added, fs_with } => Scale { method: "added-mass".into(), added_mass: Some(*added), fs_with_mass: Some(*fs_with), ..Default::default() },
+        ScaleMethod::AddedMass { added, fs_with, .. } => Scale { method: "added-mass".into(), added_mass: Some(*added), fs_with_mass: Some(*fs_with), ..Default::default() },
         ScaleMethod::Displacement => Scale { method: "displacement".into(), ..Default::default() },
     };
     let mut unc = Uncertainty::new("standard deviations: cluster-robust sandwich covariance over groups of 16 neighbouring bins (holds when the residual is not white: distortion, model error); the scale input, e.g. Mms, is taken as exact");
@@ -1524,11 +1764,15 @@ pub fn result(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f
         ("Cmes", sd(5)),
         ("Lces", sd(6)),
         ("fs", fs_rel * ts.fs),
-        ("Bl", 0.5 * s[5] * p.bl.c[0]),
-        ("Kms", (0.25 * s[5].powi(2) + s[6].powi(2)).sqrt() * p.kms.c[0]),
-        ("Rms", (s[5].powi(2) + s[4].powi(2)).sqrt() * p.rms),
+        // Bl^2 = Mms / Cmes, Kms = Bl^2 / Lces, Rms = Bl^2 / Res (first order, independent).
+        ("Bl", 0.5 * (s[5].powi(2) + m * m).sqrt() * p.bl.c[0]),
+        ("Kms", (s[5].powi(2) + s[6].powi(2) + m * m).sqrt() * p.kms.c[0]),
+        ("Rms", (s[5].powi(2) + s[4].powi(2) + m * m).sqrt() * p.rms),
     ] {
         unc.set(key, v);
+    }
+    if m > 0.0 {
+        unc.set("Mms", m * p.mms);
     }
     if let Some((_, sd)) = fit.creep {
         unc.set("creep.lambda", sd);
@@ -1569,22 +1813,11 @@ impl ChainEstimate {
     }
 }
 
-/// The H1 impedance as `.zma` text (frequency Hz, magnitude ohm, phase deg), coherent bins.
-pub fn zma_text(h1: &ImpedanceEstimate) -> String {
-    let mut out = String::new();
-    for k in 1..h1.f.len() {
-        if h1.usable(k, MIN_COHERENCE) {
-            out.push_str(&format!("{:.4} {:.6} {:.4}\n", h1.f[k], h1.z[k].norm(), h1.z[k].arg().to_degrees()));
-        }
-    }
-    out
-}
-
 /// The H1 impedance as CSV with the model and the coherence.
 pub fn impedance_csv(h1: &ImpedanceEstimate, fit: &LinearFit) -> String {
     let mut out = String::from("frequency_hz,magnitude_ohm,phase_deg,real_ohm,imag_ohm,coherence,model_magnitude_ohm,model_phase_deg\n");
-    for k in 1..h1.f.len() {
-        if h1.usable(k, 0.0) {
+    for k in 0..h1.f.len() {
+        if h1.f[k] > 0.0 && h1.usable(k, 0.0) {
             let m = fit.impedance(h1.f[k]);
             let z = h1.z[k];
             out.push_str(&format!(

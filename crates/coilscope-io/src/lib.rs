@@ -8,11 +8,15 @@
 //!   `{"scale": [V per unit, A per unit, m per unit]}` or from the caller. For integer PCM a
 //!   "unit" is one integer count of the stored sample.
 //! * Parameter sets: an embedded driver name or a JSON file.
+//! * Impedance curves ([`impedance`]): `.zma`, `.frd`/`.txt` and CSV with named columns,
+//!   as REW, ARTA, LIMP, DATS and Klippel write them.
 //! * Every write is atomic (temporary file in the same directory, fsync, rename): a crash
 //!   never leaves a half-written file under the final name.
 //!
 //! Every error is one line naming the file, the channel or key, the value, and what would
 //! be valid.
+
+pub mod impedance;
 
 use coilscope_core::params::{embedded_driver, embedded_driver_names, Parameters};
 use std::fmt;

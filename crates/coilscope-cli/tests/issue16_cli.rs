@@ -1,0 +1,158 @@
+//! Issue 16 end to end: `coilscope linear --impedance` on a real measured .zma (the SEAS
+//! L16RN-X of `coilscope-ident/tests/data/seas_l16rnx`), with the added-mass file, and its
+//! refusals.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn coilscope(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_coilscope")).args(args).output().unwrap()
+}
+
+fn seas(name: &str) -> String {
+    let p: PathBuf = Path::new(env!("CARGO_MANIFEST_DIR")).join("../coilscope-ident/tests/data/seas_l16rnx").join(name);
+    p.to_str().unwrap().to_string()
+}
+
+#[test]
+fn linear_fits_a_measured_zma_with_an_added_mass_file() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("l16.json");
+    let o = coilscope(&[
+        "linear", "--impedance", &seas("L16RNX_0g_242_27mV.zma"), "--added-mass", "0.016048", "--with-mass-impedance", &seas("L16RNX_16_048g_242_27mV.zma"), "--band", "10,2000", "--volts", "0.24227", "--out", out.to_str().unwrap(),
+    ]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{text}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(text.contains("impedance file, 386 points") && text.contains("added mass 16.048 g"), "{text}");
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let bl = r["parameters"]["Bl"].as_f64().unwrap();
+    let mms = r["parameters"]["Mms"].as_f64().unwrap();
+    assert!((6.99..=7.08).contains(&bl) && (14.9e-3..=15.3e-3).contains(&mms), "Bl {bl}, Mms {mms}");
+    assert!(r["uncertainty"]["Mms"].as_f64().unwrap() > 0.0, "the added mass's Mms has an sd");
+    assert_eq!(r["fit"]["scale"]["method"], "added-mass");
+    assert_eq!(r["fit"]["trustworthy"], true);
+    // 242 mV on a 45 Hz woofer: a few tenths of a millimetre.
+    let x = r["fit"]["x_range"][1].as_f64().unwrap();
+    assert!(x > 0.1e-3 && x < 1e-3, "x_range {x}");
+    assert!(out.with_extension("csv").exists());
+}
+
+#[test]
+fn linear_on_a_zma_through_the_break_up_warns_and_exits_3() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("l16.json");
+    let o = coilscope(&["linear", "--impedance", &seas("L16RNX_0g_242_27mV.zma"), "--mms", "0.0151", "--out", out.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(3), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("model-misses-curve"));
+    assert!(out.exists(), "the result is kept");
+}
+
+#[test]
+fn linear_impedance_refusals_name_the_cause() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("x.json");
+    let out = out.to_str().unwrap();
+    let z = seas("L16RNX_0g_242_27mV.zma");
+    let mag_only = d.path().join("mag.zma");
+    std::fs::write(&mag_only, (0..30).map(|k| format!("{} {}\n", 10 + k, 6.0)).collect::<String>()).unwrap();
+    let cases: Vec<(Vec<&str>, &str)> = vec![
+        (vec!["linear", "--impedance", &z, "--out", out], "no absolute scale"),
+        (vec!["linear", "--impedance", &z, "--added-mass", "0.016", "--out", out], "--with-mass-impedance"),
+        (vec!["linear", "--impedance", mag_only.to_str().unwrap(), "--mms", "0.015", "--out", out], "needs the phase"),
+        (vec!["linear", "--impedance", &z, "--mms", "0.015", "--band", "2000,10", "--out", out], "--band"),
+        (vec!["linear", "--impedance", &z, "--mms", "0.015", "--chain", "auto", "--out", out], "no measurement chain"),
+    ];
+    for (args, want) in cases {
+        let o = coilscope(&args);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && e.contains(want), "{args:?}: {e}");
+    }
+}
+
+/// A card with skewed, AC-coupled channels and a current channel 1.5 % hot: `calibrate` on a
+/// 4.7 ohm resistor record writes the chain, and `linear --chain FILE` on a driver record
+/// through the same card gives the driver's parameters, where `--chain none` does not.
+#[test]
+fn calibrate_then_linear_with_the_chain_file() {
+    use coilscope_core::chain::Chain;
+    use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
+    use coilscope_io::{write_recording, Recording};
+    let d = tempfile::tempdir().unwrap();
+    let fs = 48000.0;
+    let card = Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, gain_i: Some(1.015), ..Default::default() };
+    let rec = |u: &[f64], i: &[f64], dc: [f64; 2], seed: u64, name: &str| {
+        let (mut ur, mut ir) = Chain { dc_u: dc[0], dc_i: dc[1], ..card.clone() }.apply(u, i, fs);
+        add_sensor_noise(&mut ur, 80.0, seed, "sensor-noise/voltage");
+        add_sensor_noise(&mut ir, 80.0, seed, "sensor-noise/current");
+        let p = d.path().join(name);
+        write_recording(&p, &Recording { fs: fs as u32, u: ur, i: ir, x: None }).unwrap();
+        p.to_str().unwrap().to_string()
+    };
+    let noise = generate(&Excitation::Pink { f_lo: 0.3, f_hi: 20000.0, crest: None }, &SignalSpec { fs, seconds: 40.0, rms: 1.0, fade: 0.0, seed: 11 }).unwrap();
+    let r_rec = rec(&noise, &noise.iter().map(|v| v / 4.7).collect::<Vec<_>>(), [0.002, 0.001], 11, "resistor.wav");
+    let chain_file = d.path().join("card.json");
+    let o = coilscope(&["calibrate", &r_rec, "--resistor", "4.7", "--out", chain_file.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{text}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(text.contains("samples late") && text.contains("AC coupling: voltage"), "{text}");
+    let c: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&chain_file).unwrap()).unwrap();
+    assert_eq!(c["source"], "calibrated");
+    assert!((c["delay_i"].as_f64().unwrap() * fs - 0.3).abs() < 0.01 && (c["gain_i"].as_f64().unwrap() - 1.015).abs() < 1e-3, "{c}");
+
+    // The driver through the same card (its own offsets), small signal.
+    let p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
+    let u0 = generate(&Excitation::Pink { f_lo: 5.0, f_hi: 20000.0, crest: None }, &SignalSpec { fs, seconds: 6.0, rms: 0.15, fade: 0.05, seed: 12 }).unwrap();
+    let tr = coilscope_core::simulate(&p, fs, &u0, &coilscope_core::SimOptions::default()).unwrap();
+    let d_rec = rec(&tr.u, &tr.i, [-0.003, 0.001], 12, "driver.wav");
+    let mms = p.mms.to_string();
+    let fit = |chain: &str, name: &str| -> serde_json::Value {
+        let out = d.path().join(name);
+        let o = coilscope(&["linear", &d_rec, "--mms", &mms, "--chain", chain, "--out", out.to_str().unwrap()]);
+        assert!(o.status.code().is_some_and(|c| c == 0 || c == 3), "{}", String::from_utf8_lossy(&o.stderr));
+        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap()
+    };
+    let with = fit(chain_file.to_str().unwrap(), "with.json");
+    let without = fit("none", "without.json");
+    let rel = |r: &serde_json::Value, k: &str, t: f64| (r["parameters"][k].as_f64().unwrap() / t - 1.0).abs();
+    let truth = [("Re", p.re, 0.005), ("Bl", p.bl.c[0], 0.02), ("Kms", p.kms.c[0], 0.03), ("Le", p.le.c[0], 0.05)];
+    for (k, t, tol) in truth {
+        assert!(rel(&with, k, t) < tol, "--chain card.json: {k} {} vs {t}", with["parameters"][k]);
+    }
+    assert_eq!(with["chain"]["source"], "calibrated");
+    // Without the calibration, the 1.5 % gain alone moves Re by 1.5 %.
+    assert!(rel(&without, "Re", p.re) > 0.01, "--chain none: Re {}", without["parameters"]["Re"]);
+}
+
+/// The chain's refusals, each named: swapped channels, an inverted current, a current
+/// channel that records the voltage, and hum far above the noise.
+#[test]
+fn linear_names_swapped_inverted_voltage_as_current_and_heavy_hum() {
+    use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
+    use coilscope_io::{write_recording, Recording};
+    let d = tempfile::tempdir().unwrap();
+    let fs = 48000.0;
+    let p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
+    let u0 = generate(&Excitation::Pink { f_lo: 5.0, f_hi: 20000.0, crest: None }, &SignalSpec { fs, seconds: 4.0, rms: 0.15, fade: 0.05, seed: 21 }).unwrap();
+    let tr = coilscope_core::simulate(&p, fs, &u0, &coilscope_core::SimOptions::default()).unwrap();
+    let (mut u, mut i) = (tr.u.clone(), tr.i.clone());
+    add_sensor_noise(&mut u, 70.0, 21, "sensor-noise/voltage");
+    add_sensor_noise(&mut i, 70.0, 21, "sensor-noise/current");
+    let i_rms = (i.iter().map(|v| v * v).sum::<f64>() / i.len() as f64).sqrt();
+    let hum: Vec<f64> = (0..i.len()).map(|k| i[k] + 0.3 * i_rms * (2.0 * std::f64::consts::PI * 50.0 * k as f64 / fs).sin()).collect();
+    let mild: Vec<f64> = (0..i.len()).map(|k| i[k] + 0.03 * i_rms * (2.0 * std::f64::consts::PI * 50.0 * k as f64 / fs).sin()).collect();
+    let cases: Vec<(&str, Vec<f64>, Vec<f64>, &str, &str)> = vec![
+        ("swapped", i.clone(), u.clone(), "none", "look swapped"),
+        ("inverted", u.clone(), i.iter().map(|v| -v).collect(), "none", "inverted"),
+        ("voltage-as-current", u.clone(), u.iter().map(|v| 0.5 * v).collect(), "none", "Channel 2 records the voltage"),
+        ("heavy-hum", u.clone(), hum, "auto", "far above the noise floor"),
+        ("hum-without-chain", u.clone(), mild, "none", "--chain auto"),
+    ];
+    for (name, uu, ii, chain, want) in cases {
+        let path = d.path().join(format!("{name}.wav"));
+        write_recording(&path, &Recording { fs: fs as u32, u: uu, i: ii, x: None }).unwrap();
+        let out = d.path().join(format!("{name}.json"));
+        let o = coilscope(&["linear", path.to_str().unwrap(), "--mms", "0.0154", "--chain", chain, "--out", out.to_str().unwrap()]);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && e.contains(want) && e.contains(&format!("{name}.wav")), "{name}: {e}");
+    }
+}

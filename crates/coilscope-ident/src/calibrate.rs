@@ -1,0 +1,220 @@
+//! Calibration of a measurement chain from a record of a known resistor (or a loopback).
+//!
+//! Wire a resistor `R` where the driver goes (or feed one signal into both channels: a
+//! loopback, `R = 1`), play broadband noise that reaches well below the card's coupling
+//! corners (down to 0.3 Hz), and record it as for a driver. Through the chain of
+//! [`coilscope_core::chain`] the recorded impedance is
+//!
+//! ```text
+//! Z_rec(f) = U_rec / I_rec = (R / g) H_u(f) / H_i(f) e^{j 2 pi f tau}
+//! ```
+//!
+//! with `H_u`, `H_i` the channels' first-order AC couplings (corners `hp_u`, `hp_i`), `tau`
+//! the current channel's delay against the voltage and `g` its gain against the voltage
+//! channel. A resistor's own impedance is `R` at every frequency, so whatever `Z_rec` does is
+//! the chain's. [`calibrate`] fits these four quantities to the H1 estimate of `Z_rec` over
+//! long segments (resolution 0.1 Hz or finer, so the corners are resolved), each bin
+//! weighted by its coherence (the H1's variance is `(1 - C) / (2 K C)` of `|Z|^2` with `K`
+//! averages), the bins next to mains lines left out. A constant offset is invisible in
+//! every bin but the DC one, which is not fitted.
+//!
+//! The corners are `hp = s^2` of the solver's unknowns `s`, so a DC-coupled channel (0 Hz)
+//! is reachable without a bound; the delay is in samples, the gain a logarithm.
+
+use crate::linear::{h1_impedance, near_hum, ImpedanceEstimate};
+use crate::lm::{lm_step, sandwich_covariance, LmState, Problem};
+use coilscope_core::chain::{hp_response, Chain};
+use coilscope_core::Complex64;
+use nalgebra::{DMatrix, DVector};
+use std::f64::consts::PI;
+
+/// A calibrated chain with how well the resistor model fitted.
+#[derive(Clone, Debug)]
+pub struct Calibration {
+    /// `source` "calibrated", `delay_i`, `hp_u`, `hp_i`, `gain_i`, with their sds.
+    pub chain: Chain,
+    /// The resistor (ohm; 1 for a loopback).
+    pub resistor: f64,
+    /// Fitted band (Hz) and bins.
+    pub band: [f64; 2],
+    pub bins: usize,
+    /// RMS of the weighted residual in units of the H1's own noise (about 1 when the record
+    /// is a resistor through this chain).
+    pub residual_in_noise: f64,
+    /// RMS relative error of the fitted `Z_rec`.
+    pub residual_rel: f64,
+}
+
+/// Coherence below which a bin is not used.
+const MIN_COHERENCE: f64 = 0.9;
+/// Weighted residual (in noise sds, RMS) above which the record is refused as not a
+/// resistor through a first-order chain.
+pub const MAX_RESIDUAL_IN_NOISE: f64 = 5.0;
+
+/// Segment length of the calibration's H1: a power of two, at most a quarter of the record
+/// (four averages or more), as long as gives 0.1 Hz or finer.
+fn segment(n: usize, fs: f64) -> usize {
+    let want = (fs / 0.1) as usize;
+    let mut seg = 1024usize;
+    while seg * 2 <= n / 4 && seg < want {
+        seg *= 2;
+    }
+    seg
+}
+
+struct ResistorProblem {
+    f: Vec<f64>,
+    z: Vec<Complex64>,
+    /// Per-bin weight: 1 / the H1's relative sd.
+    w: Vec<f64>,
+    fs: f64,
+}
+
+impl ResistorProblem {
+    /// Model `Z_rec` and its derivatives by `[ln(R/g), tau, s_u, s_i]`.
+    fn model(&self, th: &[f64], f: f64) -> (Complex64, [Complex64; 4]) {
+        let (a, tau, su, si) = (th[0], th[1], th[2], th[3]);
+        let (hu, hi) = (hp_response(su * su, f, self.fs), hp_response(si * si, f, self.fs));
+        let ph = Complex64::from_polar(a.exp(), 2.0 * PI * f * tau / self.fs);
+        let z = hu / hi * ph;
+        // d ln H / d fc of the bilinear high-pass, by a central difference (the response
+        // is smooth in fc; its analytic form through the pre-warping is not worth it).
+        let dln = |s: f64| {
+            let fc = s * s;
+            let h = 1e-6 * (fc + 1e-3);
+            let d = (hp_response(fc + h, f, self.fs).ln() - hp_response((fc - h).max(0.0), f, self.fs).ln()) / (fc + h - (fc - h).max(0.0));
+            d * 2.0 * s
+        };
+        let j = Complex64::new(0.0, 2.0 * PI * f / self.fs);
+        (z, [z, z * j, z * dln(su), -z * dln(si)])
+    }
+}
+
+impl Problem for ResistorProblem {
+    fn residual_jacobian(&self, th: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
+        let m = self.f.len();
+        let mut r = DVector::zeros(2 * m);
+        let mut jm = DMatrix::zeros(2 * m, 4);
+        for k in 0..m {
+            let (z, d) = self.model(th, self.f[k]);
+            // Relative error, weighted: (Z_h1 - Z) / |Z| w.
+            let scale = self.w[k] / z.norm();
+            let e = (self.z[k] - z) * scale;
+            r[2 * k] = e.re;
+            r[2 * k + 1] = e.im;
+            for c in 0..4 {
+                let dd = -d[c] * scale;
+                jm[(2 * k, c)] = dd.re;
+                jm[(2 * k + 1, c)] = dd.im;
+            }
+        }
+        (r, jm)
+    }
+}
+
+/// Calibrate the chain from a record of voltage `u` and current `i` (channel units: V and A,
+/// or anything proportional for a loopback) at `fs` through a resistor of `resistor` ohm
+/// (1 for a loopback). `origin` names the record in errors.
+pub fn calibrate(u: &[f64], i: &[f64], fs: f64, resistor: f64, origin: &str) -> Result<Calibration, String> {
+    if !(resistor.is_finite() && resistor > 0.0) {
+        return Err(format!("resistor {resistor} ohm: give its measured value (> 0), or a loopback"));
+    }
+    if u.len() != i.len() {
+        return Err(format!("{origin}: the channels differ in length ({} and {})", u.len(), i.len()));
+    }
+    let seconds = u.len() as f64 / fs;
+    if seconds < 20.0 {
+        return Err(format!("{origin}: {seconds:.1} s is too short for a calibration: record 40 s or more (the coupling corners need 0.1 Hz resolution and several averages)"));
+    }
+    let seg = segment(u.len(), fs);
+    let h1: ImpedanceEstimate = h1_impedance(u, i, fs, seg);
+    let averages = (2 * u.len() / seg).saturating_sub(1).max(1) as f64;
+    let df = fs / seg as f64;
+    let f_hi = 0.45 * fs;
+    let keep: Vec<usize> = (1..h1.f.len()).filter(|&k| h1.f[k] >= 2.0 * df && h1.f[k] <= f_hi && h1.usable(k, MIN_COHERENCE) && !near_hum(h1.f[k])).collect();
+    if keep.len() < 100 {
+        return Err(format!("{origin}: only {} coherent, excited bins; play broadband noise (0.3 Hz .. 20 kHz) at a level well above the noise", keep.len()));
+    }
+    let z: Vec<Complex64> = keep.iter().map(|&k| h1.z[k]).collect();
+    let f: Vec<f64> = keep.iter().map(|&k| h1.f[k]).collect();
+    let w: Vec<f64> = keep.iter().map(|&k| {
+        let c = h1.coherence[k].min(1.0 - 1e-12);
+        1.0 / ((1.0 - c) / (2.0 * averages * c)).sqrt().max(1e-7)
+    }).collect();
+    let zmed = crate::checks::median(z.iter().map(|z| z.norm()).collect());
+    let low_re = crate::checks::median(keep.iter().filter(|&&k| h1.f[k] > 20.0 && h1.f[k] < 2000.0).map(|&k| h1.z[k].re).collect());
+    if low_re < 0.0 {
+        return Err(format!("{origin}: U/I is negative ({low_re:.3} ohm median, 20 Hz .. 2 kHz): the current channel is inverted; swap its leads or invert its scale"));
+    }
+    // Start: the level from the mid band, the delay from the phase's slope above 1 kHz
+    // (unwrapped), both corners near 1 Hz (apart, so neither is favoured).
+    let mid: Vec<usize> = (0..f.len()).filter(|&k| f[k] > 100.0 && f[k] < 2000.0).collect();
+    let a0 = crate::checks::median(mid.iter().map(|&k| z[k].norm()).collect()).max(1e-12).ln();
+    let hi: Vec<usize> = (0..f.len()).filter(|&k| f[k] > 1000.0).collect();
+    let mut tau0 = 0.0;
+    if hi.len() > 10 {
+        let (mut prev, mut off) = (z[hi[0]].arg(), 0.0);
+        let (mut sff, mut sfp) = (0.0, 0.0);
+        for &k in &hi {
+            let mut ph = z[k].arg();
+            if ph + off - prev > PI {
+                off -= 2.0 * PI;
+            } else if ph + off - prev < -PI {
+                off += 2.0 * PI;
+            }
+            ph += off;
+            prev = ph;
+            sff += f[k] * f[k];
+            sfp += f[k] * ph;
+        }
+        tau0 = sfp / sff * fs / (2.0 * PI);
+    }
+    let prob = ResistorProblem { f, z, w, fs };
+    let mut s = LmState::new(&prob, vec![a0, tau0, 1.0, 1.2]);
+    while !s.converged && s.iteration < 200 {
+        s = lm_step(&prob, &s);
+    }
+    if !s.converged {
+        return Err(format!("{origin}: the calibration fit did not converge in {} iterations", s.iteration));
+    }
+    let th = s.theta.clone();
+    let (r, j) = prob.residual_jacobian(&th);
+    let m = prob.f.len();
+    let residual_in_noise = (r.norm_squared() / (2 * m) as f64).sqrt();
+    let residual_rel = ((0..m).map(|k| ((prob.z[k] - prob.model(&th, prob.f[k]).0) / prob.z[k].norm()).norm_sqr()).sum::<f64>() / m as f64).sqrt();
+    if residual_in_noise > MAX_RESIDUAL_IN_NOISE {
+        return Err(format!(
+            "{origin}: this does not look like a resistor through a first-order chain: the fit misses by {residual_in_noise:.1}x the noise (|U/I| median {zmed:.3}, {:.2} % RMS). A driver or a reactive load on the channels, a second-order coupling, or a gain that drifts",
+            100.0 * residual_rel
+        ));
+    }
+    let cov = sandwich_covariance(&j, &r, 32).ok_or_else(|| format!("{origin}: the calibration is not identifiable (singular Jacobian): excite below the coupling corners"))?;
+    let sd = |c: usize| cov[(c, c)].max(0.0).sqrt();
+    let (hp_u, hp_i) = (th[2] * th[2], th[3] * th[3]);
+    let gain = resistor * (-th[0]).exp();
+    // A resistor shows only H_u / H_i: a zero at hp_i over a pole at hp_u. Equal corners
+    // cancel, and then any common value fits: the two are resolved only when their
+    // difference stands out of its sd.
+    let diff_sd = 2.0 * (th[2] * th[2] * cov[(2, 2)] + th[3] * th[3] * cov[(3, 3)] - 2.0 * th[2] * th[3] * cov[(2, 3)]).max(0.0).sqrt();
+    let resolved = (hp_u - hp_i).abs() > 3.0 * diff_sd;
+    let mut chain = Chain { source: Some("calibrated".into()), delay_i: th[1] / fs, gain_i: Some(gain), ..Default::default() };
+    chain.sd.insert("delay_i".into(), sd(1) / fs);
+    chain.sd.insert("gain_i".into(), gain * sd(0));
+    chain.fitted = vec!["delay_i".into(), "gain_i".into()];
+    if resolved {
+        (chain.hp_u, chain.hp_i) = (hp_u, hp_i);
+        chain.sd.insert("hp_u".into(), 2.0 * th[2].abs() * sd(2));
+        chain.sd.insert("hp_i".into(), 2.0 * th[3].abs() * sd(3));
+        chain.fitted.extend(["hp_u".into(), "hp_i".into()]);
+    } else {
+        chain.other.insert(
+            "note".into(),
+            serde_json::Value::String(format!(
+                "the channels' AC-coupling corners are equal to within {:.3} Hz (3 sd): a resistor record measures only their difference, so the common corner is unknown and both are written as 0 (the same impedance); `identify --chain auto` estimates it from a driver record",
+                3.0 * diff_sd
+            )),
+        );
+    }
+    let band = [prob.f[0], prob.f[m - 1]];
+    Ok(Calibration { chain, resistor, band, bins: m, residual_in_noise, residual_rel })
+}
