@@ -124,15 +124,20 @@ impl ChainChoice {
         matches!(self, ChainChoice::Estimate)
     }
 
-    /// The physical voltage and current behind a record (a calibrated chain inverted, its
-    /// offsets found), and the chain to report; unchanged otherwise.
-    fn physical(&self, u: Vec<f64>, i: Vec<f64>, fs: f64) -> (Vec<f64>, Vec<f64>, Option<coilscope_core::chain::Chain>) {
+    /// Make `rec` the physical voltage and current behind the recorded channels: refuse heavy
+    /// hum ([`coilscope_ident::linear::check_hum`], stricter when the chain is not
+    /// estimated), then invert a calibrated chain (each record's offsets found). Returns the
+    /// chain to report (calibrated only).
+    fn prepare(&self, rec: &mut coilscope_io::Recording, origin: &str) -> Result<Option<coilscope_core::chain::Chain>, Failure> {
+        let fs = rec.fs as f64;
+        coilscope_ident::linear::check_hum(&rec.u, &rec.i, fs, self.estimate(), origin)?;
         match self {
             ChainChoice::Calibrated(c) => {
-                let (u, i, dc_u, dc_i) = c.invert_calibrated(&u, &i, fs);
-                (u, i, Some(coilscope_core::chain::Chain { source: Some("calibrated".into()), dc_u, dc_i, ..c.clone() }))
+                let (u, i, dc_u, dc_i) = c.invert_calibrated(&rec.u, &rec.i, fs);
+                (rec.u, rec.i) = (u, i);
+                Ok(Some(coilscope_core::chain::Chain { source: Some("calibrated".into()), dc_u, dc_i, ..c.clone() }))
             }
-            _ => (u, i, None),
+            _ => Ok(None),
         }
     }
 }
@@ -736,15 +741,13 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
         (None, None)
     } else {
         let mut r = read_recording(&path, scale).map_err(|e| e.to_string())?;
-        coilscope_ident::linear::check_hum(&r.u, &r.i, r.fs as f64, chain.estimate(), &origin)?;
-        let (u, i, c) = chain.physical(std::mem::take(&mut r.u), std::mem::take(&mut r.i), r.fs as f64);
-        (r.u, r.i) = (u, i);
+        let c = chain.prepare(&mut r, &origin)?;
         (Some(r), c)
     };
     let chain_choice = chain;
     let chain = chain_choice.estimate();
-    if is_curve && !matches!(chain_choice, ChainChoice::Ideal) {
-        return Err(Failure::from(format!("{origin}: an impedance curve has no measurement chain to estimate or invert (its tool calibrated it); --chain applies to records")));
+    if is_curve && matches!(chain_choice, ChainChoice::Calibrated(_)) {
+        return Err(Failure::from(format!("{origin}: an impedance curve has no measurement chain to invert (its tool calibrated it); --chain FILE applies to records")));
     }
     let curve = if is_curve { Some(coilscope_io::impedance::read_impedance(&path).map_err(|e| e.to_string())?) } else { None };
     let has_x = rec.as_ref().is_some_and(|r| r.x.is_some());
@@ -1061,9 +1064,7 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
     let origin = path.display().to_string();
     let mut rec = read_recording(path, scale).map_err(|e| e.to_string())?;
     let fs = rec.fs as f64;
-    coilscope_ident::linear::check_hum(&rec.u, &rec.i, fs, chain_choice.estimate(), &origin)?;
-    let (u, i, calibrated) = chain_choice.physical(std::mem::take(&mut rec.u), std::mem::take(&mut rec.i), fs);
-    (rec.u, rec.i) = (u, i);
+    let calibrated = chain_choice.prepare(&mut rec, &origin)?;
     let chain = chain_choice.estimate();
     if let Some(o) = order {
         if !(2..=8).contains(&o) {

@@ -679,6 +679,16 @@ fn bounded_theta(q: f64, lo: f64, hi: f64, margin: f64) -> f64 {
 }
 
 impl ParamMap {
+    /// The map of a fit over `band` (Hz): the LR-2 corner stays inside it, its upper bound a
+    /// few times the band's top (a corner just above it still shapes the impedance inside
+    /// the band; the microspeaker sets have theirs at 21 kHz).
+    fn for_band(band: [f64; 2]) -> ParamMap {
+        let (mut lo, mut hi) = ([f64::NEG_INFINITY; 7], [f64::INFINITY; 7]);
+        lo[2] = (1.0 / (2.0 * PI * CORNER_ABOVE_BAND * band[1])).ln();
+        hi[2] = (1.0 / (2.0 * PI * band[0])).ln();
+        ParamMap { lo, hi }
+    }
+
     fn q(&self, theta: &[f64]) -> [f64; 7] {
         std::array::from_fn(|k| if self.lo[k].is_finite() { self.lo[k] + (self.hi[k] - self.lo[k]) * logistic(theta[k]) } else { theta[k] })
     }
@@ -1006,17 +1016,22 @@ fn thin(p: &CurrentError, most: usize) -> CurrentError {
     t
 }
 
+/// The linear fit (of a record or a curve) takes no large-signal effect: they vanish at small
+/// currents and velocities.
+fn refuse_large_signal_effects(opts: &LinearOptions, origin: &str) -> Result<(), String> {
+    match opts.effects {
+        EffectsChoice::Fixed(e) if e.has_large_signal() => Err(format!(
+            "{origin}: {} act only at large signal (they vanish at small currents and velocities); the linear fit takes none, creep, lr3 or auto, and `identify` fits them",
+            Effects { creep: false, lr3: false, ..e }.in_words()
+        )),
+        _ => Ok(()),
+    }
+}
+
 /// [`fit_linear`] with [`LinearOptions`]: what to assume of the record's [`Ends`], and
 /// which effects to fit.
 pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
-    if let EffectsChoice::Fixed(e) = opts.effects {
-        if e.has_large_signal() {
-            return Err(format!(
-                "{origin}: {} act only at large signal (they vanish at small currents and velocities); the linear fit takes none, creep, lr3 or auto, and `identify` fits them",
-                Effects { creep: false, lr3: false, ..e }.in_words()
-            ));
-        }
-    }
+    refuse_large_signal_effects(opts, origin)?;
     check_channels(u, i, fs, origin)?;
     let h1 = h1_impedance(u, i, fs, segment_length(u.len(), fs));
     // Band: from the lowest excited, coherent bin to 0.45 fs (at most 20 kHz).
@@ -1074,13 +1089,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     let (uf, i_f) = (rfft(u), rfft(i));
     let df = fs / n as f64;
     let z_ref = rms(u) / rms(i);
-    // The LR-2 corner stays inside the fitted band (see `ParamMap`).
-    let (mut lo, mut hi) = ([f64::NEG_INFINITY; 7], [f64::INFINITY; 7]);
-    // Upper corner: a few times the band's top (a corner just above it still shapes the
-    // impedance inside the band; the microspeaker sets have theirs at 21 kHz).
-    lo[2] = (1.0 / (2.0 * PI * CORNER_ABOVE_BAND * band[1])).ln();
-    hi[2] = (1.0 / (2.0 * PI * band[0])).ln();
-    let map = ParamMap { lo, hi };
+    let map = ParamMap::for_band(band);
     let mut prob = CurrentError { f: vec![], u: vec![], i: vec![], w: vec![], norm: 1.0, map: map.clone(), omega0: 2.0 * PI * (band[0] * band[1]).sqrt(), n_transient: if opts.ends == Ends::Fitted { N_TRANSIENT } else { 0 }, effects: Effects::NONE, chain: None };
     for k in 1..uf.len() {
         let f = k as f64 * df;
@@ -1117,11 +1126,7 @@ pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, o
     if opts.chain {
         return Err(format!("{origin}: an impedance curve has no measurement chain to estimate (its tool calibrated it); --chain applies to records"));
     }
-    if let EffectsChoice::Fixed(e) = opts.effects {
-        if e.has_large_signal() {
-            return Err(format!("{origin}: {} act only at large signal; an impedance curve takes none, creep, lr3 or auto", Effects { creep: false, lr3: false, ..e }.in_words()));
-        }
-    }
+    refuse_large_signal_effects(opts, origin)?;
     if f.len() != z.len() {
         return Err(format!("{origin}: {} frequencies for {} impedance points", f.len(), z.len()));
     }
@@ -1145,9 +1150,6 @@ pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, o
         return Err(format!("{origin}: the impedance has a negative real part ({re_med:.3} ohm median below 500 Hz), which no passive driver has: a phase of the wrong sign or 180 degrees off"));
     }
     let p0 = initial_guess(&h1, band[0], band[1]).map_err(|e| format!("{origin}: {e}"))?;
-    let (mut lo_q, mut hi_q) = ([f64::NEG_INFINITY; 7], [f64::INFINITY; 7]);
-    lo_q[2] = (1.0 / (2.0 * PI * CORNER_ABOVE_BAND * band[1])).ln();
-    hi_q[2] = (1.0 / (2.0 * PI * band[0])).ln();
     let n = h1.f.len();
     let mut prob = CurrentError {
         f: h1.f.clone(),
@@ -1155,7 +1157,7 @@ pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, o
         i: vec![Complex64::new(1.0, 0.0); n],
         w: vec![1.0; n],
         norm: 1.0,
-        map: ParamMap { lo: lo_q, hi: hi_q },
+        map: ParamMap::for_band(band),
         omega0: 2.0 * PI * (band[0] * band[1]).sqrt(),
         n_transient: 0,
         effects: Effects::NONE,
