@@ -170,3 +170,24 @@ fn impedance_curves_refuse_what_no_driver_is() {
     assert!(e.contains("at least 20"), "{e}");
 }
 
+
+/// The round trip off the bundled woofers: two microspeakers (0.1 g, 2.7 g) and a large
+/// semi-inductive coil, over other bands and point counts (to 40 kHz, from 20 Hz).
+#[test]
+fn zma_round_trip_on_microspeakers_and_a_large_coil_over_other_bands() {
+    let dir = tempfile::tempdir().unwrap();
+    for name in ["microspeaker-0g1", "microspeaker-2g7", "large-coil"] {
+        let path = format!("{}/../../testdata/drivers/{name}.json", env!("CARGO_MANIFEST_DIR"));
+        let truth = Parameters::from_json_str(&std::fs::read_to_string(&path).unwrap(), &path).unwrap();
+        for (lo, hi, n) in [(5.0, 20000.0, 400), (20.0, 20000.0, 200), (10.0, 40000.0, 600)] {
+            let c = round_trip(&model_curve(&truth, lo, hi, n), dir.path(), "m.zma");
+            let fit = fit_curve(&c, Some([lo, hi]), EffectsChoice::Auto);
+            assert_eq!(fit.effects, Effects::NONE, "{name} {lo}-{hi} Hz: model {}", fit.effects.model_name());
+            assert!(coilscope_ident::linear::curve_warnings(&fit).is_empty(), "{name} {lo}-{hi} Hz");
+            let got = scale_by_mms(&fit, truth.mms).unwrap();
+            for (k, g, t) in rows(&got, &truth) {
+                assert!(rel(g, t) < 1e-4, "{name} {lo}-{hi} Hz, {n} points: {k} {g:.6e} vs truth {t:.6e}");
+            }
+        }
+    }
+}
