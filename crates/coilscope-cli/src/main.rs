@@ -14,6 +14,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use coilscope_core::excitation::{add_sensor_noise, crest_factor, generate, Excitation, SignalSpec};
 use coilscope_core::simulate::{simulate, SimOptions};
 use coilscope_core::small_signal::thiele_small;
+use coilscope_core::chain::SenseWiring;
 use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
 use coilscope_core::result::ResultFile;
 use coilscope_io::{load_parameters, read_recording, read_voltage, write_json, write_recording, Recording};
@@ -102,6 +103,16 @@ struct FitArgs {
     /// offsets are found). `none` is the default while the chain is being validated.
     #[arg(long, default_value = "none")]
     chain: String,
+    /// Where the voltage channel is connected: `terminals` (across the driver alone:
+    /// preferred) or `driver+shunt` (across driver and sense resistor in series, as a
+    /// low-side shunt with single-ended inputs gives; the shunt's drop is taken out, so give
+    /// --sense-ohm, measured four-wire).
+    /// Default: the chain file's wiring, else `terminals`.
+    #[arg(long, value_name = "WIRING")]
+    sense_wiring: Option<String>,
+    /// The sense resistor (ohm) of `--sense-wiring driver+shunt`.
+    #[arg(long, value_name = "OHM")]
+    sense_ohm: Option<f64>,
     /// Result file (JSON, coilscope.result/1). `linear` also writes the measured impedance
     /// beside it as .zma and .csv.
     #[arg(long)]
@@ -128,9 +139,22 @@ impl ChainChoice {
     /// hum ([`coilscope_ident::linear::check_hum`], stricter when the chain is not
     /// estimated), then invert a calibrated chain (each record's offsets found). Returns the
     /// chain to report (calibrated only).
-    fn prepare(&self, rec: &mut coilscope_io::Recording, origin: &str) -> Result<Option<coilscope_core::chain::Chain>, Failure> {
+    ///
+    /// A `driver+shunt` wiring's voltage record is first made a `terminals` one
+    /// ([`coilscope_ident::linear::remove_shunt_drop`], through this chain, or through the one
+    /// estimated for the purpose).
+    fn prepare(&self, rec: &mut coilscope_io::Recording, origin: &str, wiring: SenseWiring) -> Result<Option<coilscope_core::chain::Chain>, Failure> {
         let fs = rec.fs as f64;
         coilscope_ident::linear::check_hum(&rec.u, &rec.i, fs, self.estimate(), origin)?;
+        if wiring != SenseWiring::Terminals {
+            let ideal = coilscope_core::chain::Chain::default();
+            let known = match self {
+                ChainChoice::Ideal => Some(&ideal),
+                ChainChoice::Calibrated(c) => Some(c),
+                ChainChoice::Estimate => None,
+            };
+            rec.u = coilscope_ident::linear::remove_shunt_drop(&rec.u, &rec.i, fs, wiring, known, origin)?;
+        }
         match self {
             ChainChoice::Calibrated(c) => {
                 let (u, i, dc_u, dc_i) = c.invert_calibrated(&rec.u, &rec.i, fs);
@@ -139,6 +163,35 @@ impl ChainChoice {
             }
             _ => Ok(None),
         }
+    }
+}
+
+/// `--sense-wiring` and `--sense-ohm`.
+fn parse_wiring(wiring: &str, ohm: Option<f64>) -> Result<SenseWiring, Failure> {
+    let w = SenseWiring::parse(wiring, ohm).map_err(Failure::from)?;
+    if w == SenseWiring::Terminals && ohm.is_some() {
+        return Err(Failure::from("--sense-ohm is for --sense-wiring driver+shunt (the resistor whose drop the voltage channel records); with `terminals` the current channel is already in amperes".to_string()));
+    }
+    Ok(w)
+}
+
+/// The wiring of a fit: `--sense-wiring`/`--sense-ohm`, else a chain file's, else `terminals`.
+fn fit_wiring(a: &FitArgs, chain: &ChainChoice) -> Result<SenseWiring, Failure> {
+    match (&a.sense_wiring, chain) {
+        (Some(w), _) => parse_wiring(w, a.sense_ohm),
+        (None, ChainChoice::Calibrated(c)) if c.sense_wiring.is_some() => {
+            let w = c.sense_wiring.as_deref().unwrap_or_default();
+            SenseWiring::parse(w, a.sense_ohm.or(c.sense_ohm)).map_err(|e| Failure::from(format!("the chain file's sense_wiring {w:?}: {e}")))
+        }
+        (None, _) => parse_wiring("terminals", a.sense_ohm),
+    }
+}
+
+/// Record the wiring in a result's chain (a `driver+shunt` one always; `terminals` when a
+/// chain is reported anyway).
+fn mark_wiring(result: &mut ResultFile, wiring: SenseWiring) {
+    if wiring != SenseWiring::Terminals || result.chain.is_some() {
+        wiring.mark(result.chain.get_or_insert_with(Default::default));
     }
 }
 
@@ -265,6 +318,18 @@ enum Command {
         /// 0.05, an assumption) to a set without it, as `measure --virtual` does by default.
         #[arg(long, value_enum, default_value = "published")]
         world: World,
+        /// Record through this measurement chain (a chain file: `delay_i` s, `hp_u`, `hp_i`
+        /// Hz, `gain_i`, `dc_u` V, `dc_i` A, `hum`; as `coilscope calibrate` writes or a
+        /// result's `chain`), as a real sound card would; default: ideal channels.
+        #[arg(long, value_name = "FILE")]
+        chain: Option<PathBuf>,
+        /// Where the voltage channel is connected: `terminals` or `driver+shunt` (it then
+        /// also records the drop across --sense-ohm).
+        #[arg(long, default_value = "terminals", value_name = "WIRING")]
+        sense_wiring: String,
+        /// The sense resistor (ohm) of `--sense-wiring driver+shunt`.
+        #[arg(long, value_name = "OHM")]
+        sense_ohm: Option<f64>,
     },
     /// Small-signal (Thiele/Small) parameters from the impedance of a recording, or of a
     /// measured impedance file (--impedance Z.zma: REW, ARTA, LIMP, DATS, Klippel).
@@ -338,6 +403,14 @@ enum Command {
         /// Both channels record the same voltage (the gain is channel 2's over channel 1's).
         #[arg(long)]
         loopback: bool,
+        /// Where the voltage channel is connected: `terminals` (across the resistor alone) or
+        /// `driver+shunt` (across the resistor and the sense resistor in series); kept in the
+        /// chain file, so that records made with it later are read the same way.
+        #[arg(long, default_value = "terminals", value_name = "WIRING", conflicts_with = "loopback")]
+        sense_wiring: String,
+        /// The sense resistor (ohm) of `--sense-wiring driver+shunt`.
+        #[arg(long, value_name = "OHM")]
+        sense_ohm: Option<f64>,
         /// Scale factors of integer-PCM recordings (V, A per count).
         #[arg(long, num_args = 2..=3, value_names = ["V", "A"])]
         scale: Option<Vec<f64>>,
@@ -564,14 +637,14 @@ impl From<&str> for Failure {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result: Result<(), Failure> = match cli.command {
-        Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world } => {
-            cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world }).map_err(Failure::from)
+        Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world, chain, sense_wiring, sense_ohm } => {
+            parse_wiring(&sense_wiring, sense_ohm).and_then(|wiring| cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world, chain, wiring }).map_err(Failure::from))
         }
         Command::Linear { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit } => {
             cmd_linear(LinearArgs { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit })
         }
-        Command::Identify { recording, mms, order, effects, fit } => parse_chain(&fit.chain).and_then(|chain| cmd_identify(&recording, mms, order, &effects, &chain, fit.sd, fit.scale.as_deref(), &fit.out)),
-        Command::Calibrate { recording, resistor, loopback, scale, out } => cmd_calibrate(&recording, resistor, loopback, scale.as_deref(), &out),
+        Command::Identify { recording, mms, order, effects, fit } => parse_chain(&fit.chain).and_then(|chain| cmd_identify(&recording, mms, order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, fit.scale.as_deref(), &fit.out)),
+        Command::Calibrate { recording, resistor, loopback, scale, out, sense_wiring, sense_ohm } => parse_wiring(&sense_wiring, sense_ohm).and_then(|w| cmd_calibrate(&recording, resistor, loopback, w, scale.as_deref(), &out)),
         Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
             cmd_measure(MeasureArgs { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
         }
@@ -620,6 +693,8 @@ struct SimulateArgs {
     tones: usize,
     fade: f64,
     scale: Option<f64>,
+    chain: Option<PathBuf>,
+    wiring: SenseWiring,
 }
 
 /// Where the summary of a recording goes: `NAME.info.json` beside `NAME.wav`.
@@ -668,7 +743,14 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
     };
     let trace = simulate(&params, fs, &u, &SimOptions::default()).map_err(|e| e.to_string())?;
     let s = trace.summary();
-    let mut rec = Recording { fs: fs as u32, u: trace.u.clone(), i: trace.i.clone(), x: a.laser.then(|| trace.x.clone()) };
+    // The channels: the wiring, then the chain (the sensor noise after both).
+    let chain = a.chain.as_deref().map(load_chain).transpose()?.map(|c| coilscope_core::chain::Chain { source: Some("simulated".into()), ..c });
+    let u_channel = a.wiring.channel_voltage(&trace.u, &trace.i);
+    let (u_rec, i_rec) = match &chain {
+        Some(c) => c.apply(&u_channel, &trace.i, fs),
+        None => (u_channel, trace.i.clone()),
+    };
+    let mut rec = Recording { fs: fs as u32, u: u_rec, i: i_rec, x: a.laser.then(|| trace.x.clone()) };
     if let Some(db) = a.snr_db {
         add_sensor_noise(&mut rec.u, db, a.seed, "sensor-noise/voltage");
         add_sensor_noise(&mut rec.i, db, a.seed, "sensor-noise/current");
@@ -684,6 +766,7 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
         "driver": params.name.clone().unwrap_or_else(|| a.driver.clone()),
         "fs": fs, "samples": u.len(), "substeps": trace.substeps, "snr_db": a.snr_db, "laser": a.laser,
         "signal": what,
+        "chain": chain.map(|mut c| { a.wiring.mark(&mut c); c }).or_else(|| (a.wiring != SenseWiring::Terminals).then(|| { let mut c = coilscope_core::chain::Chain::default(); a.wiring.mark(&mut c); c })),
     });
     let info_file = info_path(&a.out);
     write_json(&info_file, &info).map_err(|e| e.to_string())?;
@@ -729,6 +812,7 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     use coilscope_ident::linear::*;
     let (sd, scale, out) = (a.fit.sd, a.fit.scale.as_deref(), a.fit.out.as_path());
     let chain = parse_chain(&a.fit.chain)?;
+    let wiring = fit_wiring(&a.fit, &chain)?;
     let effects = parse_effects(&a.effects)?;
     let band = a.band.as_deref().map(parse_band).transpose()?;
     let (path, is_curve) = match (&a.recording, &a.impedance) {
@@ -741,7 +825,7 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
         (None, None)
     } else {
         let mut r = read_recording(&path, scale).map_err(|e| e.to_string())?;
-        let c = chain.prepare(&mut r, &origin)?;
+        let c = chain.prepare(&mut r, &origin, wiring)?;
         (Some(r), c)
     };
     let chain_choice = chain;
@@ -749,7 +833,14 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     if is_curve && matches!(chain_choice, ChainChoice::Calibrated(_)) {
         return Err(Failure::from(format!("{origin}: an impedance curve has no measurement chain to invert (its tool calibrated it); --chain FILE applies to records")));
     }
-    let curve = if is_curve { Some(coilscope_io::impedance::read_impedance(&path).map_err(|e| e.to_string())?) } else { None };
+    // A curve measured across driver and shunt: the shunt is a plain series resistance.
+    let read_curve = |p: &Path| {
+        coilscope_io::impedance::read_impedance(p).map(|mut c| {
+            c.z.iter_mut().for_each(|z| *z -= wiring.series_ohm());
+            c
+        })
+    };
+    let curve = if is_curve { Some(read_curve(&path).map_err(|e| e.to_string())?) } else { None };
     let has_x = rec.as_ref().is_some_and(|r| r.x.is_some());
     let with_mass = if is_curve { a.with_mass_impedance.as_ref() } else { a.with_mass.as_ref() };
     let with_name = if is_curve { "--with-mass-impedance Z2.zma" } else { "--with-mass REC2.wav" };
@@ -793,10 +884,11 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
             }
             let o2 = p2.display().to_string();
             let fit2 = if is_curve {
-                let c2 = coilscope_io::impedance::read_impedance(p2).map_err(|e| e.to_string())?;
+                let c2 = read_curve(p2).map_err(|e| e.to_string())?;
                 fit_impedance_curve(&c2.f, &c2.z, band, &o2, &same, |_| {})?
             } else {
-                let r2 = read_recording(p2, scale).map_err(|e| e.to_string())?;
+                let mut r2 = read_recording(p2, scale).map_err(|e| e.to_string())?;
+                chain_choice.prepare(&mut r2, &o2, wiring)?;
                 fit_linear_record(&r2.u, &r2.i, r2.fs as f64, &o2, &same, |_| {})?
             };
             added_mass_scale(&fit, &fit2, madd)?
@@ -831,6 +923,7 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     if calibrated.is_some() {
         result.chain = calibrated;
     }
+    mark_wiring(&mut result, wiring);
     let warnings = match &rec {
         Some(r) => {
             let (floor, warnings) = linear_warnings(&fit, &params, &r.u, &r.i, r.fs as f64);
@@ -1021,7 +1114,7 @@ fn post_inverse_of(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, origi
 }
 
 #[allow(clippy::too_many_arguments)]
-fn cmd_calibrate(path: &Path, resistor: Option<f64>, loopback: bool, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
+fn cmd_calibrate(path: &Path, resistor: Option<f64>, loopback: bool, wiring: SenseWiring, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
     let origin = path.display().to_string();
     let r = match (resistor, loopback) {
         (Some(r), false) if r.is_finite() && r > 0.0 && r < 1e6 => r,
@@ -1030,8 +1123,12 @@ fn cmd_calibrate(path: &Path, resistor: Option<f64>, loopback: bool, scale: Opti
     };
     let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
     let fs = rec.fs as f64;
-    let cal = coilscope_ident::calibrate::calibrate(&rec.u, &rec.i, fs, r, &origin)?;
+    // Across resistor and shunt, the voltage channel sees both.
+    let cal = coilscope_ident::calibrate::calibrate(&rec.u, &rec.i, fs, r + wiring.series_ohm(), &origin)?;
     let mut chain = cal.chain.clone();
+    if !loopback {
+        wiring.mark(&mut chain);
+    }
     let info = serde_json::json!({
         "format": "coilscope.chain/1",
         "record": origin,
@@ -1059,12 +1156,13 @@ fn cmd_calibrate(path: &Path, resistor: Option<f64>, loopback: bool, scale: Opti
     Ok(())
 }
 
-fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &str, chain_choice: &ChainChoice, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
+#[allow(clippy::too_many_arguments)]
+fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &str, chain_choice: &ChainChoice, wiring: SenseWiring, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
     use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, Stage};
     let origin = path.display().to_string();
     let mut rec = read_recording(path, scale).map_err(|e| e.to_string())?;
     let fs = rec.fs as f64;
-    let calibrated = chain_choice.prepare(&mut rec, &origin)?;
+    let calibrated = chain_choice.prepare(&mut rec, &origin, wiring)?;
     let chain = chain_choice.estimate();
     if let Some(o) = order {
         if !(2..=8).contains(&o) {
@@ -1122,6 +1220,7 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
     if calibrated.is_some() {
         result.chain = calibrated;
     }
+    mark_wiring(&mut result, wiring);
     // The current error behind the estimated chain (its offsets and hum are fitted, not error).
     let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(
         &fit.i_phys[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect::<Vec<_>>(),

@@ -479,6 +479,31 @@ pub fn mains_hum(u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64, f64)> {
         .max_by(|a, b| a.1.total_cmp(&b.1))
 }
 
+/// The voltage record of a `driver+shunt` wiring made into that of a `terminals` wiring: the
+/// shunt's drop as the voltage channel recorded it taken out
+/// ([`coilscope_core::chain::Chain::remove_shunt_drop`]), through `chain` when it is known
+/// (ideal or calibrated), or through the chain estimated here (`None`): a linear fit of the
+/// record as it is, with the chain estimated, in which the shunt is simply part of Re (the
+/// delay, the corners and the gain do not depend on it). A `terminals` wiring is returned as
+/// it is.
+pub fn remove_shunt_drop(u_rec: &[f64], i_rec: &[f64], fs: f64, wiring: coilscope_core::chain::SenseWiring, chain: Option<&coilscope_core::chain::Chain>, origin: &str) -> Result<Vec<f64>, String> {
+    let rs = wiring.series_ohm();
+    if rs == 0.0 {
+        return Ok(u_rec.to_vec());
+    }
+    let estimated;
+    let c = match chain {
+        Some(c) => c,
+        None => {
+            let opts = LinearOptions { chain: true, ..Default::default() };
+            let fit = fit_linear_record(u_rec, i_rec, fs, origin, &opts, |_| {})?;
+            estimated = fit.chain.as_ref().map(|c| c.to_chain()).unwrap_or_default();
+            &estimated
+        }
+    };
+    Ok(c.remove_shunt_drop(u_rec, i_rec, rs, fs))
+}
+
 /// Hum above which a channel is refused even when the chain is estimated (its relative
 /// amplitude: -20 dB of the channel); without the chain, hum above [`HUM_REFUSED_IDEAL`]
 /// (-40 dB: 3 % on a 4 s SB17 record left a residual 13x the noise floor) is refused with
