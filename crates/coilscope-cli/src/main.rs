@@ -1366,6 +1366,17 @@ struct CardArgs {
     /// The sense resistor (ohm).
     #[arg(long, default_value_t = 0.1, value_name = "OHM")]
     sense_ohm: f64,
+    /// The card's calibration (a chain file from `coilscope calibrate`): its delay, AC
+    /// coupling and gain are corrected block by block, the offsets found in a 0.5 s silent
+    /// lead-in. With --virtual: the virtual driver is recorded through a simulated card with
+    /// this chain (its offsets and hum too) and measured through the correction.
+    #[arg(long, value_name = "FILE")]
+    chain: Option<PathBuf>,
+    /// Where the voltage input is connected: `terminals` (across the driver alone: preferred)
+    /// or `driver+shunt` (across driver and --sense-ohm in series: its drop is taken out).
+    /// Default: the chain file's, else `terminals`.
+    #[arg(long, value_name = "WIRING")]
+    sense_wiring: Option<String>,
 }
 
 #[cfg(feature = "soundcard")]
@@ -1474,6 +1485,31 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         }
         _ => return Err("give the device: --virtual DRIVER (embedded name or parameter file), --replay REC.wav or --card".into()),
     };
+    // The card's chain and wiring: corrected block by block (a virtual driver with a chain is
+    // recorded through a simulated card first).
+    let card_chain = a.card.chain.as_deref().map(load_chain).transpose()?;
+    let wiring = match (&a.card.sense_wiring, &card_chain) {
+        (Some(w), _) => SenseWiring::parse(w, Some(a.card.sense_ohm))?,
+        (None, Some(c)) if c.sense_wiring.is_some() => SenseWiring::parse(c.sense_wiring.as_deref().unwrap_or_default(), Some(c.sense_ohm.unwrap_or(a.card.sense_ohm)))?,
+        (None, _) => SenseWiring::Terminals,
+    };
+    let mut reported_chain = None;
+    if card_chain.is_some() || wiring != SenseWiring::Terminals {
+        if a.replay.is_some() {
+            return Err(Failure::from("--chain and --sense-wiring apply to --card and --virtual, not to a --replay (fit a record with `coilscope identify --chain FILE`)".to_string()));
+        }
+        let c = card_chain.clone().unwrap_or_default();
+        if a.virtual_driver.is_some() {
+            let full_scale = (a.card.u_volts_fs, a.card.i_volts_fs / a.card.sense_ohm);
+            device = Box::new(coilscope_measure::card::SimulatedCard::new(device, &coilscope_core::chain::Chain { source: Some("simulated".into()), ..c.clone() }, wiring, full_scale)?);
+        }
+        // The calibration knows the card, not this run's offsets or hum.
+        let cal = coilscope_core::chain::Chain { dc_u: 0.0, dc_i: 0.0, hum: None, ..c };
+        device = Box::new(coilscope_measure::card::Corrected::new(device, &cal, wiring)?);
+        let mut rc = coilscope_core::chain::Chain { source: Some("calibrated".into()), ..cal };
+        wiring.mark(&mut rc);
+        reported_chain = Some(rc);
+    }
     let fs = device.fs();
     let mut source = match &a.music {
         Some(m) => Source::music(m, fs)?,
@@ -1536,7 +1572,10 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         }
     };
     m.mms_source = mms_source;
-    let j = m.result();
+    let mut j = m.result();
+    if reported_chain.is_some() {
+        j.chain = reported_chain;
+    }
     write_json(&a.out.join("result.json"), &j).map_err(|e| e.to_string())?;
     let status = match m.stop_reason {
         _ if m.converged => "converged",

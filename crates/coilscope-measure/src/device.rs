@@ -48,6 +48,25 @@ pub trait Device {
     fn describe(&self) -> String;
 }
 
+/// A boxed device is a device (so that adapters such as [`crate::card::Corrected`] take one).
+impl<T: Device + ?Sized> Device for Box<T> {
+    fn fs(&self) -> f64 {
+        (**self).fs()
+    }
+    fn play(&mut self, drive: &[f64]) -> Result<Option<Block>, String> {
+        (**self).play(drive)
+    }
+    fn truth(&self) -> Option<Truth> {
+        (**self).truth()
+    }
+    fn controllable(&self) -> bool {
+        (**self).controllable()
+    }
+    fn describe(&self) -> String {
+        (**self).describe()
+    }
+}
+
 /// Extremes of the true state so far.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Truth {

@@ -5,6 +5,8 @@
 //! estimator of [`coilscope_ident::online`]), watches excursion and voice-coil temperature,
 //! protects the transducer and stops when the parameters have converged.
 //!
+//! * [`card`]: a sound card's measurement chain corrected block by block from a calibration
+//!   (`coilscope calibrate`), and a simulated card to test that path without hardware.
 //! * [`device`]: what is measured: the virtual transducer (default, no hardware) or a
 //!   replayed recording.
 //! * `soundcard` (feature `soundcard`): a sound card through cpal, with the voltage and
@@ -14,6 +16,7 @@
 //! * [`engine`]: the block loop, controller and protection; observers see every block.
 //! * [`store`]: the SQLite run database (crash-safe, one transaction per second).
 
+pub mod card;
 pub mod device;
 pub mod engine;
 pub mod signal;
