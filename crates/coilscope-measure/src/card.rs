@@ -331,7 +331,7 @@ impl<D: Device> Device for SimulatedCard<D> {
         // A clipped sample is a wrong sample: refused, as the sound card refuses it.
         if cu + ci > 0 {
             let (what, n, fsv, unit) = if cu > 0 { ("voltage", cu, self.full_scale.0, "V") } else { ("current", ci, self.full_scale.1, "A") };
-            return Err(format!("the simulated card's {what} channel clipped ({n} samples at its full scale of {fsv} {unit}): raise its full scale or lower --max-volts"));
+            return Err(format!("the simulated card's {what} channel clipped ({n} samples at its full scale of {fsv} {unit}): raise its full scale (measure: --u-volts-fs, --i-volts-fs) or lower --max-volts"));
         }
         Ok(Some(out))
     }
