@@ -187,11 +187,11 @@ fn fit_wiring(a: &FitArgs, chain: &ChainChoice) -> Result<SenseWiring, Failure> 
     }
 }
 
-/// Record the wiring in a result's chain (a `driver+shunt` one always; `terminals` when a
+/// Record the wiring in a reported chain (a `driver+shunt` one always; `terminals` when a
 /// chain is reported anyway).
-fn mark_wiring(result: &mut ResultFile, wiring: SenseWiring) {
-    if wiring != SenseWiring::Terminals || result.chain.is_some() {
-        wiring.mark(result.chain.get_or_insert_with(Default::default));
+fn mark_wiring(chain: &mut Option<coilscope_core::chain::Chain>, wiring: SenseWiring) {
+    if wiring != SenseWiring::Terminals || chain.is_some() {
+        wiring.mark(chain.get_or_insert_with(Default::default));
     }
 }
 
@@ -744,13 +744,14 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
     let trace = simulate(&params, fs, &u, &SimOptions::default()).map_err(|e| e.to_string())?;
     let s = trace.summary();
     // The channels: the wiring, then the chain (the sensor noise after both).
-    let chain = a.chain.as_deref().map(load_chain).transpose()?.map(|c| coilscope_core::chain::Chain { source: Some("simulated".into()), ..c });
+    let mut chain = a.chain.as_deref().map(load_chain).transpose()?.map(|c| coilscope_core::chain::Chain { source: Some("simulated".into()), ..c });
     let u_channel = a.wiring.channel_voltage(&trace.u, &trace.i);
     let (u_rec, i_rec) = match &chain {
         Some(c) => c.apply(&u_channel, &trace.i, fs),
         None => (u_channel, trace.i.clone()),
     };
     let mut rec = Recording { fs: fs as u32, u: u_rec, i: i_rec, x: a.laser.then(|| trace.x.clone()) };
+    mark_wiring(&mut chain, a.wiring);
     if let Some(db) = a.snr_db {
         add_sensor_noise(&mut rec.u, db, a.seed, "sensor-noise/voltage");
         add_sensor_noise(&mut rec.i, db, a.seed, "sensor-noise/current");
@@ -766,7 +767,7 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
         "driver": params.name.clone().unwrap_or_else(|| a.driver.clone()),
         "fs": fs, "samples": u.len(), "substeps": trace.substeps, "snr_db": a.snr_db, "laser": a.laser,
         "signal": what,
-        "chain": chain.map(|mut c| { a.wiring.mark(&mut c); c }).or_else(|| (a.wiring != SenseWiring::Terminals).then(|| { let mut c = coilscope_core::chain::Chain::default(); a.wiring.mark(&mut c); c })),
+        "chain": chain,
     });
     let info_file = info_path(&a.out);
     write_json(&info_file, &info).map_err(|e| e.to_string())?;
@@ -923,7 +924,7 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     if calibrated.is_some() {
         result.chain = calibrated;
     }
-    mark_wiring(&mut result, wiring);
+    mark_wiring(&mut result.chain, wiring);
     let warnings = match &rec {
         Some(r) => {
             let (floor, warnings) = linear_warnings(&fit, &params, &r.u, &r.i, r.fs as f64);
@@ -1220,7 +1221,7 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
     if calibrated.is_some() {
         result.chain = calibrated;
     }
-    mark_wiring(&mut result, wiring);
+    mark_wiring(&mut result.chain, wiring);
     // The current error behind the estimated chain (its offsets and hum are fitted, not error).
     let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(
         &fit.i_phys[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect::<Vec<_>>(),
@@ -1506,9 +1507,8 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         // The calibration knows the card, not this run's offsets or hum.
         let cal = coilscope_core::chain::Chain { dc_u: 0.0, dc_i: 0.0, hum: None, ..c };
         device = Box::new(coilscope_measure::card::Corrected::new(device, &cal, wiring)?);
-        let mut rc = coilscope_core::chain::Chain { source: Some("calibrated".into()), ..cal };
-        wiring.mark(&mut rc);
-        reported_chain = Some(rc);
+        reported_chain = Some(coilscope_core::chain::Chain { source: Some("calibrated".into()), ..cal });
+        mark_wiring(&mut reported_chain, wiring);
     }
     let fs = device.fs();
     let mut source = match &a.music {

@@ -42,13 +42,13 @@ pub struct Hum {
 }
 
 impl Hum {
+    /// The hum of `lines` (harmonics of `f` Hz) at time `t` (s).
+    pub fn at(f: f64, lines: &[[f64; 2]], t: f64) -> f64 {
+        lines.iter().enumerate().map(|(k, [a, ph])| a * (2.0 * PI * (k + 1) as f64 * f * t + ph).cos()).sum()
+    }
+
     fn signal(f: f64, lines: &[[f64; 2]], n: usize, fs: f64) -> Vec<f64> {
-        (0..n)
-            .map(|m| {
-                let t = m as f64 / fs;
-                lines.iter().enumerate().map(|(k, [a, ph])| a * (2.0 * PI * (k + 1) as f64 * f * t + ph).cos()).sum()
-            })
-            .collect()
+        (0..n).map(|m| Hum::at(f, lines, m as f64 / fs)).collect()
     }
 }
 
@@ -100,30 +100,62 @@ pub fn hp_coefficients(fc: f64, fs: f64) -> (f64, f64) {
     ((1.0 / (1.0 + k)), (1.0 - k) / (1.0 + k))
 }
 
+/// [`hp`] one sample at a time (for streams: a card's channel block by block).
+#[derive(Clone, Copy, Debug)]
+pub struct HighPass {
+    g: f64,
+    a: f64,
+    x1: f64,
+    y1: f64,
+}
+
+impl HighPass {
+    /// At rest, corner `fc` (Hz) at `fs`.
+    pub fn new(fc: f64, fs: f64) -> Self {
+        let (g, a) = hp_coefficients(fc, fs);
+        HighPass { g, a, x1: 0.0, y1: 0.0 }
+    }
+    /// The next output for input `x`.
+    pub fn push(&mut self, x: f64) -> f64 {
+        self.y1 = self.g * (x - self.x1) + self.a * self.y1;
+        self.x1 = x;
+        self.y1
+    }
+}
+
+/// [`hp_inverse`] one sample at a time.
+#[derive(Clone, Copy, Debug)]
+pub struct HighPassInverse {
+    g: f64,
+    a: f64,
+    x: f64,
+    y1: f64,
+}
+
+impl HighPassInverse {
+    /// At rest, undoing a corner `fc` (Hz) at `fs`.
+    pub fn new(fc: f64, fs: f64) -> Self {
+        let (g, a) = hp_coefficients(fc, fs);
+        HighPassInverse { g, a, x: 0.0, y1: 0.0 }
+    }
+    /// The input whose high-pass output is `y` next.
+    pub fn push(&mut self, y: f64) -> f64 {
+        self.x += (y - self.a * self.y1) / self.g;
+        self.y1 = y;
+        self.x
+    }
+}
+
 /// First-order bilinear high-pass of `x` (starting from rest).
 pub fn hp(x: &[f64], fc: f64, fs: f64) -> Vec<f64> {
-    let (g, a) = hp_coefficients(fc, fs);
-    let (mut xp, mut yp) = (0.0, 0.0);
-    x.iter()
-        .map(|&v| {
-            yp = g * (v - xp) + a * yp;
-            xp = v;
-            yp
-        })
-        .collect()
+    let mut f = HighPass::new(fc, fs);
+    x.iter().map(|&v| f.push(v)).collect()
 }
 
 /// The exact inverse of [`hp`]: the signal whose high-pass is `y`.
 pub fn hp_inverse(y: &[f64], fc: f64, fs: f64) -> Vec<f64> {
-    let (g, a) = hp_coefficients(fc, fs);
-    let (mut xp, mut yp) = (0.0, 0.0);
-    y.iter()
-        .map(|&v| {
-            xp += (v - a * yp) / g;
-            yp = v;
-            xp
-        })
-        .collect()
+    let mut f = HighPassInverse::new(fc, fs);
+    y.iter().map(|&v| f.push(v)).collect()
 }
 
 /// Frequency response of [`hp`] at `f` (Hz).

@@ -23,7 +23,7 @@
 //! Hum is not removed here (the online fit's noise takes it; `linear` and `identify` fit it).
 
 use crate::device::{Block, Device, Truth};
-use coilscope_core::chain::{hp_coefficients, Chain, SenseWiring};
+use coilscope_core::chain::{Chain, HighPass, HighPassInverse, Hum, SenseWiring};
 use std::collections::VecDeque;
 use std::f64::consts::PI;
 
@@ -83,49 +83,30 @@ fn bessel_i0(x: f64) -> f64 {
     sum
 }
 
-/// A first-order bilinear high-pass, one sample at a time.
-#[derive(Clone, Copy)]
-struct Hp {
-    g: f64,
-    a: f64,
-    x1: f64,
-    y1: f64,
-}
-
-impl Hp {
-    fn new(fc: f64, fs: f64) -> Self {
-        let (g, a) = hp_coefficients(fc, fs);
-        Hp { g, a, x1: 0.0, y1: 0.0 }
-    }
-    fn push(&mut self, x: f64) -> f64 {
-        self.y1 = self.g * (x - self.x1) + self.a * self.y1;
-        self.x1 = x;
-        self.y1
-    }
-}
-
 /// One channel's AC coupling at `fc` and offset undone, [`RESIDUAL_HP`] put in its place.
 struct Uncouple {
-    /// The exact inverse's state (`x[n] = x[n-1] + (y[n] - a y[n-1]) / g`).
-    g: f64,
-    a: f64,
-    x: f64,
-    y1: f64,
     /// The channel's offset (recorded units), found in the silent lead-in.
     dc: f64,
-    residual: Hp,
+    inverse: HighPassInverse,
+    residual: HighPass,
 }
 
 impl Uncouple {
     fn new(fc: f64, fs: f64) -> Self {
-        let (g, a) = hp_coefficients(fc, fs);
-        Uncouple { g, a, x: 0.0, y1: 0.0, dc: 0.0, residual: Hp::new(RESIDUAL_HP, fs) }
+        Uncouple { dc: 0.0, inverse: HighPassInverse::new(fc, fs), residual: HighPass::new(RESIDUAL_HP, fs) }
     }
     fn push(&mut self, y: f64) -> f64 {
-        let y = y - self.dc;
-        self.x += (y - self.a * self.y1) / self.g;
-        self.y1 = y;
-        self.residual.push(self.x)
+        self.residual.push(self.inverse.push(y - self.dc))
+    }
+}
+
+/// The current channel's delay in samples, if the streamed filters can take it.
+fn streamed_delay(chain: &Chain, fs: f64) -> Result<f64, String> {
+    let tau = chain.delay_i * fs;
+    if tau.is_finite() && tau.abs() < LATENCY as f64 - 1.0 {
+        Ok(tau)
+    } else {
+        Err(format!("the chain's delay_i {:.3e} s ({tau:.2} samples) is beyond what a streamed chain takes (|delay| < {} samples)", chain.delay_i, LATENCY - 1))
     }
 }
 
@@ -141,10 +122,7 @@ pub struct ChainCorrector {
 
 impl ChainCorrector {
     pub fn new(chain: &Chain, wiring: SenseWiring, fs: f64) -> Result<Self, String> {
-        let tau = chain.delay_i * fs;
-        if !(tau.is_finite() && tau.abs() < LATENCY as f64 - 1.0) {
-            return Err(format!("the chain's delay_i {:.3e} s ({tau:.2} samples) is beyond what the measurement corrects (|delay| < {} samples)", chain.delay_i, LATENCY - 1));
-        }
+        let tau = streamed_delay(chain, fs)?;
         Ok(ChainCorrector {
             u: Uncouple::new(chain.hp_u, fs),
             i: Uncouple::new(chain.hp_i, fs),
@@ -249,8 +227,8 @@ impl<D: Device> Device for Corrected<D> {
 /// `HP_fc(delayed) + dc + hum`, the current `gain_i` times that (as
 /// [`Chain::apply`], the delay by [`FracDelay`] and both channels [`LATENCY`] samples late).
 pub struct ChainStream {
-    hp_u: Hp,
-    hp_i: Hp,
+    hp_u: HighPass,
+    hp_i: HighPass,
     delay_u: FracDelay,
     delay_i: FracDelay,
     chain: Chain,
@@ -260,19 +238,15 @@ pub struct ChainStream {
 
 impl ChainStream {
     pub fn new(chain: &Chain, fs: f64) -> Result<Self, String> {
-        let tau = chain.delay_i * fs;
-        if !(tau.is_finite() && tau.abs() < LATENCY as f64 - 1.0) {
-            return Err(format!("delay_i {tau:.2} samples: a simulated card delays by less than {} samples", LATENCY - 1));
-        }
-        Ok(ChainStream { hp_u: Hp::new(chain.hp_u, fs), hp_i: Hp::new(chain.hp_i, fs), delay_u: FracDelay::new(0.0), delay_i: FracDelay::new(tau), chain: chain.clone(), fs, n: 0 })
+        let tau = streamed_delay(chain, fs)?;
+        Ok(ChainStream { hp_u: HighPass::new(chain.hp_u, fs), hp_i: HighPass::new(chain.hp_i, fs), delay_u: FracDelay::new(0.0), delay_i: FracDelay::new(tau), chain: chain.clone(), fs, n: 0 })
     }
 
     /// The recorded `(u, i)` of one physical sample pair at the channels' inputs.
     pub fn push(&mut self, u: f64, i: f64) -> (f64, f64) {
         let t = self.n as f64 / self.fs;
         self.n += 1;
-        let hum = |lines: &[[f64; 2]], f: f64| lines.iter().enumerate().map(|(k, [a, ph])| a * (2.0 * PI * (k + 1) as f64 * f * t + ph).cos()).sum::<f64>();
-        let (hu, hi) = self.chain.hum.as_ref().map_or((0.0, 0.0), |h| (hum(&h.u, h.f), hum(&h.i, h.f)));
+        let (hu, hi) = self.chain.hum.as_ref().map_or((0.0, 0.0), |h| (Hum::at(h.f, &h.u, t), Hum::at(h.f, &h.i, t)));
         let ur = self.hp_u.push(self.delay_u.push(u)) + self.chain.dc_u + hu;
         let ir = self.chain.gain_i.unwrap_or(1.0) * self.hp_i.push(self.delay_i.push(i)) + self.chain.dc_i + hi;
         (ur, ir)
@@ -349,7 +323,7 @@ impl<D: Device> Device for SimulatedCard<D> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use coilscope_core::chain::{hp, Hum};
+    use coilscope_core::chain::hp;
     use rand::SeedableRng;
     use rand_distr::{Distribution, StandardNormal};
 
