@@ -1141,7 +1141,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     if u.len() != i.len() {
         return Err(Input(format!("{origin}: voltage and current have different lengths ({} and {})", u.len(), i.len())));
     }
-    check_channels(u, i, fs, origin).map_err(Input)?;
+    check_channels(u, i, fs, opts.chain, origin).map_err(Input)?;
     if let Some(o) = opts.order {
         if !(MIN_ORDER..=MAX_ORDER).contains(&o) {
             return Err(Input(format!("power-series order {o} is not valid ({MIN_ORDER} ..= {MAX_ORDER})")));

@@ -54,14 +54,16 @@ const CORNER_ABOVE_BAND: f64 = 4.0;
 pub const MIN_COHERENCE: f64 = 0.8;
 
 /// Check the two channels for what would make a fit silently wrong. `origin` names the file.
-pub fn check_channels(u: &[f64], i: &[f64], fs: f64, origin: &str) -> Result<(), String> {
+/// `offsets_estimated`: the fit estimates the measurement chain, offsets included, so an
+/// offset is not refused.
+pub fn check_channels(u: &[f64], i: &[f64], fs: f64, offsets_estimated: bool, origin: &str) -> Result<(), String> {
     for (name, x, unit) in [("voltage (channel 1)", u, "V"), ("current (channel 2)", i, "A")] {
         let r = rms(x);
         if r < 1e-9 {
             return Err(format!("{origin}: {name} is silent (RMS {r:.3e} {unit}); check the wiring and the input gain"));
         }
         let mean = x.iter().sum::<f64>() / x.len() as f64;
-        if mean.abs() > 0.05 * r {
+        if !offsets_estimated && mean.abs() > 0.05 * r {
             return Err(format!(
                 "{origin}: {name} has a DC offset of {mean:.4} {unit} ({:.0} % of its RMS); re-zero the interface, or let the fit take the offset with --chain auto (or --chain FILE from `coilscope calibrate`)",
                 100.0 * mean.abs() / r
@@ -1057,7 +1059,7 @@ fn refuse_large_signal_effects(opts: &LinearOptions, origin: &str) -> Result<(),
 /// which effects to fit.
 pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
     refuse_large_signal_effects(opts, origin)?;
-    check_channels(u, i, fs, origin)?;
+    check_channels(u, i, fs, opts.chain, origin)?;
     let h1 = h1_impedance(u, i, fs, segment_length(u.len(), fs));
     // Band: from the lowest excited, coherent bin to 0.45 fs (at most 20 kHz).
     let f_hi = (0.45 * fs).min(20000.0);

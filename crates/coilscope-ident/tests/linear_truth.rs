@@ -196,6 +196,21 @@ mod bad_input {
         assert!(e.contains("current (channel 2) has a DC offset"), "{e}");
     }
 
+    /// Regression (found on the 0.1 g microspeaker through a card with a 0.5 mA offset, 8 % of
+    /// its current): the refusal advised `--chain auto` and fired with it too. With the chain
+    /// estimated the offset is the chain's, and the fit goes on.
+    #[test]
+    fn dc_offset_is_taken_by_the_estimated_chain() {
+        let r = good();
+        let off: Vec<f64> = r.i.iter().map(|v| v + 0.2 * rms(&r.i)).collect();
+        let e = err(&r.u, &off);
+        assert!(e.contains("--chain auto"), "{e}");
+        let opts = coilscope_ident::linear::LinearOptions { chain: true, ..Default::default() };
+        let fit = coilscope_ident::linear::fit_linear_record(&r.u, &off, 48000.0, "rec.wav", &opts, |_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let p = embedded_driver("sb17cac35-4").unwrap();
+        assert!((fit.p[0] / p.re - 1.0).abs() < 0.005, "Re {} vs {}", fit.p[0], p.re);
+    }
+
     #[test]
     fn too_little_coherence() {
         let r = good();
