@@ -225,6 +225,27 @@ pub const COVARIANCE_BLOCK_S: f64 = 0.05;
 /// the floor and nothing is widened.
 pub const MODEL_ERROR_RATIO: f64 = 1.5;
 
+/// Systematic sd of the estimated inter-channel delay (samples): our model's discretisation
+/// of the drive between samples against the continuous driver. Against the independent
+/// simulator (16x oversampled, then decimated) the delay came out 2.2e-4 sample short on SB17
+/// with no delay at all (`-large`) and 2.3e-4 short with 0.3 sample (`-real-chain`), with a
+/// statistical sd of 8e-6: the truth 28 sd away, and Le, which trades with the delay, 0.03 %
+/// off at 3.2 sd. [`with_systematic`] puts this into the covariance along the delay.
+pub const DELAY_SYSTEMATIC_SAMPLES: f64 = 1.5e-4;
+
+/// `cov` with a systematic sd `sys` added to unknown `k`, carried to the others along their
+/// regression on it: `cov + c c^T (sys / cov_kk)^2`, `c` = column `k`. An error `e` of `k` that
+/// the data do not see moves the others by `e c / cov_kk` (what conditioning on `k` would
+/// undo), so their sds grow by the share of their variance that `k` explains.
+pub fn with_systematic(cov: DMatrix<f64>, k: usize, sys: f64) -> DMatrix<f64> {
+    if k >= cov.ncols() || !(cov[(k, k)] > 0.0) {
+        return cov;
+    }
+    let ckk = cov[(k, k)];
+    let c = cov.column(k).into_owned();
+    &cov + (&c * c.transpose()) * (sys * sys / (ckk * ckk))
+}
+
 /// Scale of creep's lambda in theta.
 const LAMBDA_SCALE: f64 = 0.1;
 
@@ -606,23 +627,45 @@ fn run_layout<D: DualNum<Primitive = f64> + Copy>(
 /// behind the current channel's coupling and delay, less offsets and hum:
 ///
 /// ```text
-/// u   = hp_inverse(u_rec - dc_u, hp_u)            (dc_u: no mean, no trend; voltage_behind)
-/// r   = i_model(u) - ( delay(hp_inverse(i_rec, hp_i), -tau) - sum_k c_k b_k )
+/// u   = hp_inverse(u_rec - dc_u, hp_u)
+/// r   = W ( i_model(u) - ( delay(hp_inverse(i_rec, hp_i), -tau) - sum_k c_k b_k ) )
 /// ```
 ///
-/// The unknowns follow the layout's in theta: those of `terms` that are on (`tau` samples,
-/// `hp_u`, `hp_i` Hz), then the `c_k` of the basis `b_k`: a constant and a ramp (an offset
+/// `W` is a fixed whitening high-pass ([`ChainSetup::whiten_hz`]). The unknowns follow the
+/// layout's in theta: those of `terms` that are on (`tau` samples, `hp_u`, `hp_i` Hz), then
+/// `dc_u` (in [`ChainSetup::u_unit`]), then the `c_k` of the basis `b_k`: a constant and a ramp (an offset
 /// behind an AC coupling integrates into both) and a cosine and a sine at each mains line
 /// (50 and 60 Hz and their harmonics up to [`crate::linear::HUM_HARMONICS`]): the current
 /// channel's hum and what the voltage channel's hum drives through the driver. Linear in
 /// the `c_k`; `tau` and `hp_i` act on the record only (their Jacobian columns by central
-/// differences, no model run); `hp_u` changes the drive (two model runs).
+/// differences, no model run); `hp_u` and `dc_u` change the drive (two model runs each).
+///
+/// `dc_u`, the voltage channel's offset, is fitted with the driver. Behind the coupling it is
+/// a constant plus a ramp (`hp_inverse(1)[n] = 1/g + 2 K n`): a drive that moves the coil's
+/// rest position through the record, which the nonlinearities see. Taken instead as the
+/// offset that leaves the voltage least along that shape ([`voltage_behind`], now the start
+/// value), it also took the driver's own low-frequency content: on SB17's `-real-chain`
+/// record (no offset on the voltage) it gave -9e-5 V, Kms(x) came out tilted by +-0.2 % (the
+/// curve shifted along x) and the truth lay 13 sd outside its band; with the true 0 it is
+/// within 1 sd.
 pub struct ChainSetup {
     pub u_rec: Vec<f64>,
     pub i_rec: Vec<f64>,
     pub terms: crate::linear::ChainTerms,
     /// `(what, signal)`: `dc`, `ramp`, `cos 50`, `sin 50`, ...
     pub basis: Vec<(String, Vec<f64>)>,
+    /// Corner (Hz) of the whitening high-pass put on the residual and the Jacobian (0: none):
+    /// the current channel's coupling at the start estimate. Behind an inverted coupling the
+    /// sensor noise is no longer white: below the corner it grows as `fc / f`, a random walk
+    /// (1e-4 A over 10 s for SB17's 4 Hz current channel at 70 dB SNR, a hundred times the
+    /// residual's white part at the lowest frequencies). Unweighted, that walk pulled Kms 0.4 %
+    /// and the offset 2.4 % off while the sandwich's blocks (0.05 s) could not see it, and the
+    /// truth lay 13 sd outside the bands. A fixed filter (not moved with theta) is a constant
+    /// weighting: weighted least squares with the noise white again.
+    pub whiten_hz: f64,
+    /// Unit of `dc_u` in theta (V): 1e-5 of the recorded voltage's RMS (one unit is also the
+    /// step of its Jacobian column's central difference).
+    pub u_unit: f64,
 }
 
 impl ChainSetup {
@@ -638,25 +681,47 @@ impl ChainSetup {
             basis.push((format!("cos {f}"), (0..n).map(|m| a * (w * m as f64).cos()).collect()));
             basis.push((format!("sin {f}"), (0..n).map(|m| a * (w * m as f64).sin()).collect()));
         }
-        ChainSetup { u_rec: u_rec.to_vec(), i_rec: i_rec.to_vec(), terms, basis }
+        let u_unit = 1e-5 * coilscope_core::simulate::rms(u_rec).max(1e-12);
+        ChainSetup { u_rec: u_rec.to_vec(), i_rec: i_rec.to_vec(), terms, basis, whiten_hz: 0.0, u_unit }
+    }
+    /// `v` (a residual or a Jacobian column over the fitted samples) through the whitening
+    /// high-pass ([`ChainSetup::whiten_hz`]).
+    pub fn whiten(&self, v: &mut [f64]) {
+        if self.whiten_hz > 0.0 {
+            let mut f = coilscope_core::chain::HighPass::new(self.whiten_hz, self.terms.fs);
+            for x in v.iter_mut() {
+                *x = f.push(*x);
+            }
+        }
     }
     /// Unknowns of the chain in theta.
     pub fn n(&self) -> usize {
-        self.terms.count() + self.basis.len()
+        self.terms.count() + 1 + self.basis.len()
+    }
+    /// Index of `dc_u` in the chain's part of theta (the basis follows it).
+    pub fn dc_u_index(&self) -> usize {
+        self.terms.count()
     }
     /// `[tau samples, hp_u Hz, hp_i Hz]` of the chain's part of theta.
     pub fn values(&self, th_c: &[f64]) -> [f64; 3] {
         self.terms.values(th_c)
     }
-    /// The drive: the voltage behind the channel (and the offset removed, V).
+    /// The drive: the voltage behind the channel, its offset `dc_u` removed; and `dc_u` (V).
     pub fn voltage(&self, th_c: &[f64]) -> (Vec<f64>, f64) {
-        coilscope_core::chain::voltage_behind(&self.u_rec, self.values(th_c)[1], self.terms.fs)
+        let fu = self.values(th_c)[1];
+        let dc = th_c[self.dc_u_index()] * self.u_unit;
+        let mut u = coilscope_core::chain::hp_inverse(&self.u_rec, fu, self.terms.fs);
+        if dc != 0.0 {
+            let ones = coilscope_core::chain::hp_inverse(&vec![1.0; u.len()], fu, self.terms.fs);
+            u.iter_mut().zip(&ones).for_each(|(v, o)| *v -= dc * o);
+        }
+        (u, dc)
     }
     /// The current the model must match: behind coupling and delay, less the basis.
     pub fn target(&self, th_c: &[f64]) -> Vec<f64> {
         let [tau, _, fi] = self.values(th_c);
         let mut t = coilscope_core::chain::delay(&coilscope_core::chain::hp_inverse(&self.i_rec, fi, self.terms.fs), -tau);
-        let c = &th_c[self.terms.count()..];
+        let c = &th_c[self.dc_u_index() + 1..];
         for (ck, (_, b)) in c.iter().zip(&self.basis) {
             if *ck != 0.0 {
                 for (v, bv) in t.iter_mut().zip(b) {
@@ -671,6 +736,8 @@ impl ChainSetup {
     pub fn theta0(&self, est: &[f64; 3]) -> Vec<f64> {
         let on = self.terms.on();
         let mut th: Vec<f64> = (0..3).filter(|&k| on[k]).map(|k| est[k]).collect();
+        // dc_u from the projection (voltage_behind), then the basis.
+        th.push(coilscope_core::chain::voltage_behind(&self.u_rec, est[1], self.terms.fs).1 / self.u_unit);
         let nc = th.len();
         th.resize(self.n(), 0.0);
         let t = self.target(&th);
@@ -778,9 +845,14 @@ impl<'a> OutputError<'a> {
         Ok((x, i))
     }
 
+    /// The residual of theta, whitened when the chain says so ([`ChainSetup::whiten`]).
     fn residual_vec(&self, th: &[f64]) -> Option<DVector<f64>> {
         let (u, i) = self.signals(th);
-        self.residual_with(th, &u, &i)
+        let mut r = self.residual_with(th, &u, &i)?;
+        if let Some(c) = self.chain {
+            c.whiten(r.as_mut_slice());
+        }
+        Some(r)
     }
 
     /// The residual of theta for a given drive `u` and current to match `i`.
@@ -828,6 +900,16 @@ impl<'a> OutputError<'a> {
             cols.push(col);
             k += 1;
         }
+        // dc_u changes the drive: two runs of the model (one unit of step).
+        let (mut a, mut b) = (th.to_vec(), th.to_vec());
+        a[k] += 1.0;
+        b[k] -= 1.0;
+        let ra = self.residual_with(&a, &c.voltage(&a[nl..]).0, &target);
+        let rb = self.residual_with(&b, &c.voltage(&b[nl..]).0, &target);
+        cols.push(match (ra, rb) {
+            (Some(ra), Some(rb)) => ra.iter().zip(rb.iter()).map(|(x, y)| (x - y) / 2.0).collect(),
+            _ => vec![0.0; fit.len()],
+        });
         for (_, b) in &c.basis {
             cols.push(b[fit.clone()].to_vec());
         }
@@ -863,6 +945,11 @@ impl<'a> OutputError<'a> {
         j.columns_mut(0, nl).copy_from(&jl);
         for (k, col) in self.chain_columns(th, c).into_iter().enumerate() {
             j.column_mut(nl + k).copy_from_slice(&col);
+        }
+        if c.whiten_hz > 0.0 {
+            for mut col in j.column_iter_mut() {
+                c.whiten(col.as_mut_slice());
+            }
         }
         j
     }
@@ -1057,10 +1144,13 @@ fn chain_of(c: &ChainSetup, th: &[f64], nl: usize, cov: Option<&DMatrix<f64>>) -
     let sd = |k: usize| cov.map_or(f64::NAN, |m| m[(nl + k, nl + k)].max(0.0).sqrt());
     let [_, _, fi] = c.values(tc);
     let mut out = crate::linear::ChainEstimate { values: c.values(tc), sd: c.terms.sds(cov, nl), on: c.terms.on(), fs }.to_chain();
-    let k = c.terms.count();
+    let km = c.dc_u_index();
+    out.dc_u = tc[km] * c.u_unit;
+    out.sd.insert("dc_u".into(), sd(km) * c.u_unit);
+    out.fitted.push("dc_u".into());
+    let k = km + 1;
     // The offset behind a coupling of corner fi: its inverse maps dc to dc (1 + K) plus a ramp.
     let kk = (std::f64::consts::PI * fi / fs).tan();
-    out.dc_u = c.voltage(tc).1;
     let a = c.basis[0].1[0];
     out.dc_i = a * tc[k] / (1.0 + kk);
     out.sd.insert("dc_i".into(), a * sd(k) / (1.0 + kk));
@@ -1179,8 +1269,11 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         let m = u.len().min((4.0 * fs) as usize);
         let lin_opts = LinearOptions { chain: true, ..LinearOptions::LARGE_SIGNAL_START };
         let est = fit_linear_record(&u[..m], &i[..m], fs, origin, &lin_opts, |_| {}).map_err(Input)?.chain;
-        let setup = ChainSetup::new(u_rec, i_rec, crate::linear::ChainTerms { fs, delay: true, hp_u: true, hp_i: true });
-        let th = setup.theta0(&est.map_or([0.0; 3], |c| c.values));
+        let mut setup = ChainSetup::new(u_rec, i_rec, crate::linear::ChainTerms { fs, delay: true, hp_u: true, hp_i: true });
+        let values = est.map_or([0.0; 3], |c| c.values);
+        // Whiten at the start's current corner (at most 10 Hz, the excitation's lower end).
+        setup.whiten_hz = values[2].clamp(0.0, 10.0);
+        let th = setup.theta0(&values);
         (Some(setup), th)
     } else {
         (None, vec![])
@@ -1454,6 +1547,10 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         _ => crate::lm::covariance(&prob, &s.theta),
     };
     let cov = cov.map(|c| if excess > MODEL_ERROR_RATIO { c * (excess * excess) } else { c });
+    let cov = match (cov, setup) {
+        (Some(c), Some(ch)) if ch.terms.delay => Some(with_systematic(c, lay.slots().n, DELAY_SYSTEMATIC_SAMPLES)),
+        (c, _) => c,
+    };
     let x_range = x_model.iter().fold([0.0f64, 0.0f64], |[a, b], v| [a.min(*v), b.max(*v)]);
     let mut params = lay.parameters(&s.theta);
     params.x_range = Some(x_range);
@@ -1553,7 +1650,7 @@ impl LargeFit {
     /// The result file (`"format": "coilscope.result/1"`).
     pub fn result(&self, recording: &str, mms_source: &str) -> ResultFile {
         let mut unc = Uncertainty::new(
-            "standard deviations from the final Jacobian and the residual variance (sensor noise; Mms is taken as exact). Bands: value and sd on a grid over fit.x_range, the sd including a systematic 0.01 % of the value (measured against an independent simulator and its anti-alias chain); +-2 sd is about 95 %",
+            "standard deviations from the final Jacobian and the residual variance (sensor noise; Mms is taken as exact). Bands: value and sd on a grid over fit.x_range, the sd including a systematic 0.01 % of the value (measured against an independent simulator and its anti-alias chain); with the chain estimated, a systematic 1.5e-4 sample on its delay, carried to what correlates with it; +-2 sd is about 95 %",
         );
         self.layout.uncertainties(&|k| self.sd_theta(k), &|_| true, &mut unc);
         for which in ["Bl", "Kms", "Le"] {

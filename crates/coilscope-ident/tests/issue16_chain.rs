@@ -18,17 +18,25 @@ mod common;
 use common::Errors;
 use coilscope_core::embedded_driver;
 use coilscope_ident::large::{identify, IdentifyOptions};
+use coilscope_core::simulate::rms;
 use std::path::Path;
 
+/// The sds: the truth within 3 sd of the bands and of the chain (open until session 16: the
+/// bands missed the truth by 13 sd (Kms(x) tilted +-0.2 %: the voltage channel's offset taken
+/// as a projection that also took the driver's own low-frequency content; now fitted), the
+/// offset by 5 sd (the random walk of the sensor noise behind the inverted coupling; now
+/// whitened) and the delay by 26 sd (our discretisation against the continuous driver; now a
+/// stated systematic sd, `DELAY_SYSTEMATIC_SAMPLES`)).
 #[test]
 #[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
 #[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue16_chain -- --ignored"]
 fn identify_estimates_the_chain_of_the_independent_real_chain_record() {
-    let bad = run("sb17cac35-4", "sb17cac35-4-real-chain.wav", false);
+    let bad = run("sb17cac35-4", "sb17cac35-4-real-chain.wav", true);
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
 
-/// 3-4.5 min per record.
+/// 3-4.5 min per record. The sds are checked too (the chain's, and the bands: the truth within
+/// 3.0 sd on SB17, 2.5 on PTT4), except the bands of 18WU: known open below.
 #[test]
 #[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
 #[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue16_chain -- --ignored"]
@@ -36,20 +44,18 @@ fn identify_estimates_the_chain_and_every_effect_of_the_real_all_records() {
     let cases = common::slice::in_slice("issue16_chain real-all", vec!["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"]);
     let mut bad = vec![];
     for d in cases {
-        bad.extend(run(d, &format!("{d}-real-all.wav"), false));
+        bad.extend(run(d, &format!("{d}-real-all.wav"), d != "18wu-4741t-00"));
     }
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
 
-/// The sds: open. On this record the bands miss the truth by up to 13 sd (the curves
-/// themselves are within 0.4 %), the delay misses by 26 sd (0.2997 sample +- 9e-6 against
-/// 0.3) and the offset by 5 sd: the covariance does not yet carry the chain's model error
-/// (the independent simulator's anti-alias decimation against our band-limited delay).
+/// 18WU's `-real-all` record: the curves are within the bounds (Bl 0.05 %, Kms 0.13 %, Le
+/// 0.04 %) and the chain's sds cover its truth, but the bands miss the truth by 5.9 sd.
 #[test]
 #[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
 #[ignore = "known open (issue 16): cargo test --release -p coilscope-ident --test issue16_chain -- --ignored known_open"]
-fn known_open_chain_sds_cover_the_truth() {
-    let bad = run("sb17cac35-4", "sb17cac35-4-real-chain.wav", true);
+fn known_open_18wu_real_all_bands_cover_the_truth() {
+    let bad = run("18wu-4741t-00", "18wu-4741t-00-real-all.wav", true);
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
 
@@ -100,7 +106,7 @@ fn run(driver: &str, file: &str, sds: bool) -> Vec<String> {
         bad.push(format!("{file}: the truth lies {zmax:.1} sd outside the bands"));
     }
     // The chain against the world of the record.
-    for (key, got, want, tol) in [("delay_i", c.delay_i, 0.3 / fs, 0.01 / fs), ("hp_u", c.hp_u, 2.0, 0.1), ("hp_i", c.hp_i, 4.0, 0.2), ("dc_i", c.dc_i, 1e-3, 5e-5)] {
+    for (key, got, want, tol) in [("delay_i", c.delay_i, 0.3 / fs, 0.01 / fs), ("hp_u", c.hp_u, 2.0, 0.1), ("hp_i", c.hp_i, 4.0, 0.2), ("dc_i", c.dc_i, 1e-3, 5e-5), ("dc_u", c.dc_u, 0.0, 1e-3 * rms(&rec.u))] {
         let sd = c.sd[key];
         println!("{key}: {got:.6e} +- {sd:.2e} (true {want:.6e})");
         if (got - want).abs() > tol {
