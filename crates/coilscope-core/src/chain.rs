@@ -335,13 +335,19 @@ impl Chain {
     }
 }
 
+/// What a unit offset on a channel AC-coupled at `fc` (Hz) becomes behind the coupling's
+/// inverse, `n` samples: `hp_inverse(1)`, i.e. `1/g + 2 K m` at sample `m`.
+pub fn offset_behind(n: usize, fc: f64, fs: f64) -> Vec<f64> {
+    hp_inverse(&vec![1.0; n], fc, fs)
+}
+
 /// The physical voltage behind a voltage channel AC-coupled at `hp_u` (Hz) with an unknown
 /// offset: `hp_inverse(u_rec - dc_u)`, with `dc_u` the offset that leaves the result without a
 /// mean and a trend (an offset left in would be integrated into a ramp). Returns the voltage
 /// and `dc_u`.
 pub fn voltage_behind(u_rec: &[f64], hp_u: f64, fs: f64) -> (Vec<f64>, f64) {
     let x = hp_inverse(u_rec, hp_u, fs);
-    let ones = hp_inverse(&vec![1.0; u_rec.len()], hp_u, fs);
+    let ones = offset_behind(u_rec.len(), hp_u, fs);
     let (xo, oo) = x.iter().zip(&ones).fold((0.0, 0.0), |(a, b), (x, o)| (a + x * o, b + o * o));
     let dc = if oo > 0.0 { xo / oo } else { 0.0 };
     (x.iter().zip(&ones).map(|(x, o)| x - dc * o).collect(), dc)

@@ -657,11 +657,11 @@ pub struct ChainSetup {
     /// Corner (Hz) of the whitening high-pass put on the residual and the Jacobian (0: none):
     /// the current channel's coupling at the start estimate. Behind an inverted coupling the
     /// sensor noise is no longer white: below the corner it grows as `fc / f`, a random walk
-    /// (1e-4 A over 10 s for SB17's 4 Hz current channel at 70 dB SNR, a hundred times the
-    /// residual's white part at the lowest frequencies). Unweighted, that walk pulled Kms 0.4 %
-    /// and the offset 2.4 % off while the sandwich's blocks (0.05 s) could not see it, and the
-    /// truth lay 13 sd outside the bands. A fixed filter (not moved with theta) is a constant
-    /// weighting: weighted least squares with the noise white again.
+    /// (1e-4 A over 10 s for SB17's 4 Hz current channel at 70 dB SNR). Unweighted, that walk
+    /// pulled the current's offset 2.4 % off (5 sd) on SB17's `-real-chain` record, as the
+    /// sandwich's blocks (0.05 s) cannot see it (Kms's tilt there was `dc_u`'s, not this). A
+    /// fixed filter (not moved with theta) is a constant weighting: weighted least squares
+    /// with the noise white again.
     pub whiten_hz: f64,
     /// Unit of `dc_u` in theta (V): 1e-5 of the recorded voltage's RMS (one unit is also the
     /// step of its Jacobian column's central difference).
@@ -712,8 +712,8 @@ impl ChainSetup {
         let dc = th_c[self.dc_u_index()] * self.u_unit;
         let mut u = coilscope_core::chain::hp_inverse(&self.u_rec, fu, self.terms.fs);
         if dc != 0.0 {
-            let ones = coilscope_core::chain::hp_inverse(&vec![1.0; u.len()], fu, self.terms.fs);
-            u.iter_mut().zip(&ones).for_each(|(v, o)| *v -= dc * o);
+            let shape = coilscope_core::chain::offset_behind(u.len(), fu, self.terms.fs);
+            u.iter_mut().zip(&shape).for_each(|(v, o)| *v -= dc * o);
         }
         (u, dc)
     }
@@ -874,42 +874,41 @@ impl<'a> OutputError<'a> {
         let fit = self.fit.clone();
         let mut cols = vec![];
         let on = c.terms.on();
-        // The current to match does not depend on hp_u.
+        // The current to match does not depend on hp_u or dc_u.
         let target = c.target(&th[nl..]);
+        // Unknown `k` changes the drive: its column by a central difference of step `h`, two
+        // runs of the model.
+        let drive_column = |k: usize, h: f64| -> Vec<f64> {
+            let (mut a, mut b) = (th.to_vec(), th.to_vec());
+            a[k] += h;
+            b[k] -= h;
+            let ra = self.residual_with(&a, &c.voltage(&a[nl..]).0, &target);
+            let rb = self.residual_with(&b, &c.voltage(&b[nl..]).0, &target);
+            match (ra, rb) {
+                (Some(ra), Some(rb)) => ra.iter().zip(rb.iter()).map(|(x, y)| (x - y) / (2.0 * h)).collect(),
+                _ => vec![0.0; fit.len()],
+            }
+        };
         let mut k = nl;
         for (n, on) in on.into_iter().enumerate() {
             if !on {
                 continue;
             }
             let h = if n == 0 { 1e-3 } else { 1e-3 * th[k].abs().max(0.1) };
-            let (mut a, mut b) = (th.to_vec(), th.to_vec());
-            a[k] += h;
-            b[k] -= h;
             let col: Vec<f64> = if n == 1 {
-                // hp_u changes the drive: two runs of the model.
-                let ra = self.residual_with(&a, &c.voltage(&a[nl..]).0, &target);
-                let rb = self.residual_with(&b, &c.voltage(&b[nl..]).0, &target);
-                match (ra, rb) {
-                    (Some(ra), Some(rb)) => ra.iter().zip(rb.iter()).map(|(x, y)| (x - y) / (2.0 * h)).collect(),
-                    _ => vec![0.0; fit.len()],
-                }
+                drive_column(k, h)
             } else {
+                let (mut a, mut b) = (th.to_vec(), th.to_vec());
+                a[k] += h;
+                b[k] -= h;
                 let (ta, tb) = (c.target(&a[nl..]), c.target(&b[nl..]));
                 fit.clone().map(|m| -(ta[m] - tb[m]) / (2.0 * h)).collect()
             };
             cols.push(col);
             k += 1;
         }
-        // dc_u changes the drive: two runs of the model (one unit of step).
-        let (mut a, mut b) = (th.to_vec(), th.to_vec());
-        a[k] += 1.0;
-        b[k] -= 1.0;
-        let ra = self.residual_with(&a, &c.voltage(&a[nl..]).0, &target);
-        let rb = self.residual_with(&b, &c.voltage(&b[nl..]).0, &target);
-        cols.push(match (ra, rb) {
-            (Some(ra), Some(rb)) => ra.iter().zip(rb.iter()).map(|(x, y)| (x - y) / 2.0).collect(),
-            _ => vec![0.0; fit.len()],
-        });
+        // dc_u: one unit of step.
+        cols.push(drive_column(k, 1.0));
         for (_, b) in &c.basis {
             cols.push(b[fit.clone()].to_vec());
         }
@@ -946,10 +945,8 @@ impl<'a> OutputError<'a> {
         for (k, col) in self.chain_columns(th, c).into_iter().enumerate() {
             j.column_mut(nl + k).copy_from_slice(&col);
         }
-        if c.whiten_hz > 0.0 {
-            for mut col in j.column_iter_mut() {
-                c.whiten(col.as_mut_slice());
-            }
+        for mut col in j.column_iter_mut() {
+            c.whiten(col.as_mut_slice());
         }
         j
     }
@@ -1649,9 +1646,9 @@ impl LargeFit {
 
     /// The result file (`"format": "coilscope.result/1"`).
     pub fn result(&self, recording: &str, mms_source: &str) -> ResultFile {
-        let mut unc = Uncertainty::new(
-            "standard deviations from the final Jacobian and the residual variance (sensor noise; Mms is taken as exact). Bands: value and sd on a grid over fit.x_range, the sd including a systematic 0.01 % of the value (measured against an independent simulator and its anti-alias chain); with the chain estimated, a systematic 1.5e-4 sample on its delay, carried to what correlates with it; +-2 sd is about 95 %",
-        );
+        let mut unc = Uncertainty::new(format!(
+            "standard deviations from the final Jacobian and the residual variance (sensor noise; Mms is taken as exact). Bands: value and sd on a grid over fit.x_range, the sd including a systematic 0.01 % of the value (measured against an independent simulator and its anti-alias chain); with the chain estimated, a systematic {DELAY_SYSTEMATIC_SAMPLES:.1e} sample on its delay, carried to what correlates with it; +-2 sd is about 95 %"
+        ));
         self.layout.uncertainties(&|k| self.sd_theta(k), &|_| true, &mut unc);
         for which in ["Bl", "Kms", "Le"] {
             unc.set_band(which, self.band(which, 41));
