@@ -1218,19 +1218,50 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
     fit.params.sd = sd;
     fit.params.source = Some(format!("coilscope identify {}", path.display()));
     let mut result = fit.result(&path.display().to_string(), &mms_source);
+    // The skew check looks at the record without a chain: with the chain estimated or
+    // calibrated the delay is taken out (and reported in `chain`), so it would warn of what
+    // is already corrected.
+    let delay_handled = chain || calibrated.is_some();
     if calibrated.is_some() {
         result.chain = calibrated;
     }
     mark_wiring(&mut result.chain, wiring);
     // The current error behind the estimated chain (its offsets and hum are fitted, not error).
+    let k = fit.settle;
+    let r: Vec<f64> = fit.i_phys[k..].iter().zip(&fit.i_model[k..]).map(|(a, b)| a - b).collect();
     let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(
-        &fit.i_phys[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect::<Vec<_>>(),
+        &r,
         fs,
         "large-signal fit",
         coilscope_core::simulate::rms(&fit.i_phys),
         0.0,
     );
-    if let Some(lin) = &fit.linear {
+    // An error that follows the drive is a misfit even when its spectrum looks like a floor.
+    if !warnings.iter().any(|w| w.code == "residual-above-noise") {
+        let ratio = coilscope_ident::checks::drive_explained_ratio(&r, &fit.u_phys[k..], &fit.i_model[k..], &fit.x_model[k..], fs);
+        if ratio >= coilscope_ident::checks::DRIVE_RATIO_WARN {
+            warnings.push(coilscope_ident::checks::Warning::new(
+                "residual-follows-drive",
+                format!(
+                    "{:.0} % of the large-signal fit's current error ({:.3e} relative RMS) is a function of the drive and the model's own current, not noise (error {ratio:.2} times what is left; its spectrum's median, {:.1}x, hides it): the model does not describe this record. Likely causes: a recording chain that AC-couples or skews the channels (--chain auto, or calibrate the card and give --chain FILE), a DC offset, or effects the model lacks (--effects auto)",
+                    100.0 * (1.0 - 1.0 / (ratio * ratio)),
+                    fit.residual_rel,
+                    floor.ratio
+                ),
+            ));
+        }
+    }
+    let final_delay = if delay_handled { None } else { coilscope_ident::checks::residual_delay(&r, &fit.i_model[k..]) };
+    if let Some((tau, share)) = final_delay {
+        warnings.push(coilscope_ident::checks::Warning::new(
+            "current-delay",
+            format!(
+                "the current channel looks skewed against the voltage: shifting it {tau:+.2} samples ({:+.1} us at {fs} Hz; + is late) explains {:.0} % of the large-signal fit's error, and the fit has taken part of the skew into its parameters, so the skew can be larger. Channels of one interface sampled apart, or a wiring/latency mistake; the parameters are biased (Le, Kms(x), Bl(x)). Estimate the chain with --chain auto, or calibrate the card (coilscope calibrate) and give --chain FILE",
+                1e6 * tau / fs,
+                100.0 * share
+            ),
+        ));
+    } else if let Some(lin) = fit.linear.as_ref().filter(|_| !delay_handled) {
         if let Some((tau, share)) = lin.current_delay {
             warnings.push(coilscope_ident::checks::Warning::new(
                 "current-delay",

@@ -156,3 +156,65 @@ fn linear_names_swapped_inverted_voltage_as_current_and_heavy_hum() {
         assert!(!o.status.success() && e.contains(want) && e.contains(&format!("{name}.wav")), "{name}: {e}");
     }
 }
+
+/// `identify` through a card whose current channel is 0.5 sample late. Without a chain the
+/// skew is named (`current-delay`). With the chain estimated (`--chain auto`) or calibrated
+/// (`--chain FILE`, which had no test) the delay is taken out, and the warning, which came
+/// from the chain-less small-signal check and used to fire with the chain estimated too, is
+/// not given.
+#[test]
+fn identify_takes_a_card_delay_out_with_the_chain_auto_or_a_chain_file() {
+    use coilscope_core::chain::Chain;
+    let d = tempfile::tempdir().unwrap();
+    let fs = 48000.0;
+    let card = d.path().join("card.json");
+    let chain = Chain { source: Some("calibrated".into()), delay_i: 0.5 / fs, ..Default::default() };
+    std::fs::write(&card, serde_json::to_string_pretty(&chain).unwrap()).unwrap();
+    let rec = d.path().join("late.wav");
+    let o = coilscope(&["simulate", "sb17cac35-4", "--excitation", "pink", "--volts", "2.3", "--seconds", "6", "--snr-db", "70", "--seed", "5", "--chain", card.to_str().unwrap(), "--out", rec.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
+    let mms = p.mms.to_string();
+    let run = |chain: &str, name: &str| -> (String, serde_json::Value) {
+        let out = d.path().join(name);
+        let o = coilscope(&["identify", rec.to_str().unwrap(), "--mms", &mms, "--chain", chain, "--out", out.to_str().unwrap()]);
+        let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+        assert!(o.status.code().is_some_and(|c| c == 0 || c == 3), "--chain {chain}: {text}");
+        (text, serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap())
+    };
+    let has_delay_warning = |j: &serde_json::Value| j["fit"]["warnings"].as_array().is_some_and(|w| w.iter().any(|w| w["code"] == "current-delay"));
+    let (text, none) = run("none", "none.json");
+    assert!(has_delay_warning(&none) && text.contains("[current-delay]"), "--chain none: {text}");
+    for chain in ["auto", card.to_str().unwrap()] {
+        let (text, j) = run(chain, "with.json");
+        assert!(!has_delay_warning(&j) && !text.contains("[current-delay]"), "--chain {chain}: {text}");
+        let delay = j["chain"]["delay_i"].as_f64().unwrap() * fs;
+        assert!((delay - 0.5).abs() < 0.01, "--chain {chain}: delay {delay} samples");
+        // Bl and Kms at rest within the bounds, Le within its 5 %.
+        let at0 = |k: &str| j["parameters"][k].as_array().map_or_else(|| j["parameters"][k].as_f64().unwrap(), |c| c[0].as_f64().unwrap());
+        for (k, t, tol) in [("Bl", p.bl.c[0], 0.02), ("Kms", p.kms.c[0], 0.03), ("Le", p.le.c[0], 0.05), ("Re", p.re, 0.005)] {
+            assert!((at0(k) / t - 1.0).abs() < tol, "--chain {chain}: {k} {} vs {t}", at0(k));
+        }
+    }
+}
+
+/// The independent record of SB17 through a real chain (the current 0.3 sample late, 2 / 4
+/// Hz coupling, offsets, hum), fitted with the default `--chain none`: 6.3 % of the current
+/// is left unexplained, but the error's spectrum is a misfit everywhere, so its median, taken
+/// as the noise floor, rose with it (ratio 2.6, under the warning's 3) and `identify` exited 0
+/// with the result marked trustworthy. Now the error is regressed on the drive
+/// (`checks::drive_explained_ratio`: 1.82 here, 1.000-1.008 for fits that describe their
+/// record) and the fit is not trusted, with the chain named.
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+fn identify_without_the_chain_on_the_real_chain_record_is_not_trusted() {
+    let rec = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings/sb17cac35-4-real-chain.wav");
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("r.json");
+    let o = coilscope(&["identify", rec.to_str().unwrap(), "--mms", "0.015367", "--out", out.to_str().unwrap()]);
+    let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert_eq!(o.status.code(), Some(3), "{text}");
+    assert!(text.contains("[residual-follows-drive]") && text.contains("--chain auto"), "{text}");
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(j["fit"]["trustworthy"], false);
+}

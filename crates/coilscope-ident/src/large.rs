@@ -1132,6 +1132,37 @@ pub struct LargeFit {
     /// a chain): what `i_model` is to be compared with.
     pub u_phys: Vec<f64>,
     pub i_phys: Vec<f64>,
+    /// The order search's evidence on the truncation of the power series: the curves of the
+    /// chosen order and of the next one tried (and not kept), both fitted on the estimation
+    /// part (None: the order was given, or no higher order was tried). Their difference is
+    /// the bands' truncation part ([`LargeFit::band`]).
+    pub truncation: Option<Truncation>,
+}
+
+/// Bl(x), Kms(x) and Le(x) fitted at the chosen order and at the next order the search tried,
+/// on the same data ([`LargeFit::truncation`]).
+#[derive(Clone, Debug)]
+pub struct Truncation {
+    pub next_order: usize,
+    pub chosen: [Poly; 3],
+    pub next: [Poly; 3],
+}
+
+impl Truncation {
+    fn of(lay_chosen: &Layout, th_chosen: &[f64], lay_next: &Layout, th_next: &[f64]) -> Self {
+        let (a, b) = (lay_chosen.parameters(th_chosen), lay_next.parameters(th_next));
+        Truncation { next_order: lay_next.order, chosen: [a.bl, a.kms, a.le], next: [b.bl, b.kms, b.le] }
+    }
+
+    /// |next(x) - chosen(x)| of `Bl`, `Kms` or `Le`.
+    pub fn at(&self, which: &str, x: f64) -> f64 {
+        let k = match which {
+            "Bl" => 0,
+            "Kms" => 1,
+            _ => 2,
+        };
+        (self.next[k].eval(x) - self.chosen[k].eval(x)).abs()
+    }
 }
 
 /// The chain of a final theta (`nl` layout unknowns) with its sds from `cov`.
@@ -1404,6 +1435,11 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         }
     };
     let mut val_at_order = None;
+    // The next order tried on the same data: how much the curves would move with it.
+    let mut truncation = best_by_order.iter().position(|b| b.0 == order).and_then(|k| {
+        let next = best_by_order.get(k + 1)?;
+        Some(Truncation::of(&layout_for(order), &best_by_order[k].1, &layout_for(next.0), &next.1))
+    });
     if let Some((_, th, val)) = best_by_order.iter().find(|b| b.0 == order) {
         let lay = layout_for(order);
         current = Parameters { mms: opts.mms, ..lay.parameters(th) };
@@ -1484,15 +1520,20 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     // error by 2 %.
     let mut order = order;
     if opts.order.is_none() && effects != Effects::NONE {
-        let mut cur = estimate_validate(&layout_for(order).with_effects(effects), &current, re_track.as_deref(), &cth, &mut observe).3;
+        let (_, _, mut cur_th, mut cur) = estimate_validate(&layout_for(order).with_effects(effects), &current, re_track.as_deref(), &cth, &mut observe);
+        if order + 2 <= MAX_ORDER {
+            truncation = None;
+        }
         while order + 2 <= MAX_ORDER {
             let lay = layout_for(order + 2).with_effects(effects);
             let (_, est, th_val, val) = estimate_validate(&lay, &current, re_track.as_deref(), &cth, &mut observe);
             trials.push(OrderTrial { order: order + 2, estimation_rel: est, validation_rel: val, iterations: 0 });
             if !(val < 0.98 * cur) {
+                truncation = Some(Truncation::of(&layout_for(order).with_effects(effects), &cur_th, &lay, &th_val));
                 break;
             }
             (order, cur) = (order + 2, val);
+            cur_th = th_val.clone();
             current = Parameters { mms: opts.mms, ..lay.parameters(&th_val) };
             re_track = Some(lay.re_track(&th_val));
             cth = th_val[lay.slots().n..].to_vec();
@@ -1588,6 +1629,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         chain,
         u_phys,
         i_phys,
+        truncation,
     };
     if !converged {
         return Err(NotConverged { message: format!("{origin}: the large-signal fit did not converge ({stop_reason}); the best estimate is kept"), best: Box::new(fit) });
@@ -1632,7 +1674,8 @@ impl LargeFit {
             .zip(&value)
             .map(|(&x, v): (&f64, &f64)| {
                 let stat = self.cov.as_ref().map_or(f64::NAN, |c| self.layout.curve_sd(c, which, x));
-                stat.hypot(CURVE_SYSTEMATIC_REL * v)
+                let trunc = self.truncation.as_ref().map_or(0.0, |t| t.at(which, x));
+                stat.hypot(CURVE_SYSTEMATIC_REL * v).hypot(trunc)
             })
             .collect();
         Band { x, value, sd }
@@ -1647,7 +1690,11 @@ impl LargeFit {
     /// The result file (`"format": "coilscope.result/1"`).
     pub fn result(&self, recording: &str, mms_source: &str) -> ResultFile {
         let mut unc = Uncertainty::new(format!(
-            "standard deviations from the final Jacobian and the residual variance (sensor noise; Mms is taken as exact). Bands: value and sd on a grid over fit.x_range, the sd including a systematic 0.01 % of the value (measured against an independent simulator and its anti-alias chain); with the chain estimated, a systematic {DELAY_SYSTEMATIC_SAMPLES:.1e} sample on its delay, carried to what correlates with it; +-2 sd is about 95 %"
+            "standard deviations from the final Jacobian and the residual variance (sensor noise; Mms is taken as exact). Bands: value and sd on a grid over fit.x_range, the sd including a systematic 0.01 % of the value (measured against an independent simulator and its anti-alias chain); with the chain estimated, a systematic {DELAY_SYSTEMATIC_SAMPLES:.1e} sample on its delay, carried to what correlates with it{}; +-2 sd is about 95 %",
+            match &self.truncation {
+                Some(t) => format!("; and the power series' truncation: the difference between the curves of order {} and of order {} (the next the order search tried), both fitted on the same data", self.order, t.next_order),
+                None => String::new(),
+            }
         ));
         self.layout.uncertainties(&|k| self.sd_theta(k), &|_| true, &mut unc);
         for which in ["Bl", "Kms", "Le"] {
