@@ -218,3 +218,22 @@ fn identify_without_the_chain_on_the_real_chain_record_is_not_trusted() {
     let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
     assert_eq!(j["fit"]["trustworthy"], false);
 }
+
+/// `measure --replay` of the independent real-chain record without its calibration: loud
+/// (the estimate does not converge, the residual is named), and the report is written. It
+/// was refused: the estimate had driven the eddy-current branch to L2 = -4e-14 H, R2 = -2e-11
+/// ohm, which `measure` wrote and `report` would not read (the branch is now taken out when
+/// it vanishes: `engine::drop_vanished_branch`).
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+fn measure_replay_of_the_real_chain_record_without_its_calibration_is_loud_and_reported() {
+    let rec = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings/sb17cac35-4-real-chain.wav");
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("m");
+    let o = coilscope(&["measure", "--replay", rec.to_str().unwrap(), "--mms", "0.015367", "--out", out.to_str().unwrap()]);
+    let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert_eq!(o.status.code(), Some(3), "{text}");
+    assert!(text.contains("[residual-above-noise]"), "{text}");
+    assert!(!text.contains("report was not written"), "{text}");
+    assert!(out.join("report.html").exists(), "{text}");
+}

@@ -588,6 +588,28 @@ fn online_options(opts: &MeasureOptions, x_ref: f64, controllable: bool) -> Onli
 }
 
 /// Largest relative change of a curve over `[-r, r]`, relative to its value at rest.
+/// The eddy-current branch an estimate drove to nothing: L2 and R2 both a hair from zero (the
+/// replay of SB17's independent real-chain record without its calibration ended with L2 =
+/// -4e-14 H, R2 = -2e-11 ohm). Such a branch is the same model as none (its impedance is at
+/// most min(R2, w L2)), but a set with a non-positive L2 or R2 does not read back, so the
+/// report refused the result `measure` had just written. It is taken out; a branch that is
+/// not negligible is kept as estimated. Returns whether it was taken out.
+fn drop_vanished_branch(p: &mut Parameters, [lo, hi]: [f64; 2]) -> bool {
+    let Some((l2, r2)) = &p.l2r2 else { return false };
+    let (l2_min, l2_max) = l2.min_max_on(lo, hi);
+    let (r2_min, r2_max) = r2.min_max_on(lo, hi);
+    if l2_min > 0.0 && r2_min > 0.0 {
+        return false;
+    }
+    // |Z2| <= min(R2, w L2): negligible against Re up to 100 kHz.
+    let z2 = r2_min.abs().max(r2_max.abs()).min(2.0 * std::f64::consts::PI * 1e5 * l2_min.abs().max(l2_max.abs()));
+    if z2 < 1e-6 * p.re {
+        p.l2r2 = None;
+        return true;
+    }
+    false
+}
+
 fn curve_change(a: &Poly, b: &Poly, r: f64) -> f64 {
     let b0 = b.eval(0.0).abs().max(1e-300);
     (0..=40).map(|k| -r + 2.0 * r * k as f64 / 40.0).map(|x| (a.eval(x) - b.eval(x)).abs() / b0).fold(0.0, f64::max)
@@ -1132,6 +1154,7 @@ impl<'a> Engine<'a> {
         let effects = Effects { le_i: on.layout.effects.le_i && !dropped.le_i, rms_v: on.layout.effects.rms_v && !dropped.rms_v, ..on.layout.effects };
         let hold_range = if self.hold_range == [0.0, 0.0] { [-on.reach, on.reach] } else { self.hold_range };
         params.x_range = Some(hold_range);
+        drop_vanished_branch(&mut params, hold_range);
         let small = self.small.expect("set with the estimator");
         let mut re_cold = small.re;
         let mut re_cold_sd = self.re_cold_sd;
@@ -1401,5 +1424,28 @@ mod control_tests {
         // Far below the limit it comes back down, never below the start's cut-off.
         let d = control(&o, &ControlInput { x_limit: Some(4e-3), peak: 1e-3, per_volt: 1e-3, hp_fc: 5.1, ..quiet() });
         assert_eq!(d.hp_fc, Some(o.hp_hz));
+    }
+}
+
+#[cfg(test)]
+mod branch_tests {
+    use super::*;
+
+    #[test]
+    fn a_vanished_branch_is_taken_out_and_a_real_one_kept() {
+        let base = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
+        let range = [-4.19e-3, 4.65e-3];
+        // The replay's estimate: L2 -4e-14 H, R2 -2e-11 ohm.
+        let mut p = Parameters { l2r2: Some((Poly::constant(-4.4e-14), Poly::constant(-2.4e-11))), x_range: Some(range), ..base.clone() };
+        assert!(p.validate("vanished").is_err());
+        assert!(drop_vanished_branch(&mut p, range));
+        assert!(p.l2r2.is_none());
+        p.validate("vanished").unwrap();
+        // A physical branch, and an unphysical one that is not negligible: kept as estimated.
+        for l2r2 in [(Poly::constant(5.4e-4), Poly::constant(0.29)), (Poly::constant(-1e-4), Poly::constant(0.3))] {
+            let mut q = Parameters { l2r2: Some(l2r2.clone()), ..base.clone() };
+            assert!(!drop_vanished_branch(&mut q, range));
+            assert_eq!(q.l2r2, Some(l2r2));
+        }
     }
 }
