@@ -189,13 +189,13 @@ pub fn calibrate(u: &[f64], i: &[f64], fs: f64, resistor: f64, origin: &str) -> 
         ));
     }
     let cov = sandwich_covariance(&j, &r, 32).ok_or_else(|| format!("{origin}: the calibration is not identifiable (singular Jacobian): excite below the coupling corners"))?;
-    let sd = |c: usize| cov[(c, c)].max(0.0).sqrt();
+    let sd = |c: usize| crate::lm::sd_from_variance(cov[(c, c)]);
     let (hp_u, hp_i) = (th[2] * th[2], th[3] * th[3]);
     let gain = resistor * (-th[0]).exp();
     // A resistor shows only H_u / H_i: a zero at hp_i over a pole at hp_u. Equal corners
     // cancel, and then any common value fits: the two are resolved only when their
     // difference stands out of its sd.
-    let diff_sd = 2.0 * (th[2] * th[2] * cov[(2, 2)] + th[3] * th[3] * cov[(3, 3)] - 2.0 * th[2] * th[3] * cov[(2, 3)]).max(0.0).sqrt();
+    let diff_sd = 2.0 * crate::lm::sd_from_variance(th[2] * th[2] * cov[(2, 2)] + th[3] * th[3] * cov[(3, 3)] - 2.0 * th[2] * th[3] * cov[(2, 3)]);
     let resolved = (hp_u - hp_i).abs() > 3.0 * diff_sd;
     let mut chain = Chain { source: Some("calibrated".into()), delay_i: th[1] / fs, gain_i: Some(gain), ..Default::default() };
     chain.sd.insert("delay_i".into(), sd(1) / fs);

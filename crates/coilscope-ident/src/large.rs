@@ -338,7 +338,7 @@ impl Layout {
                 v += ga * cov[(a, b)] * gb;
             }
         }
-        v.max(0.0).sqrt()
+        crate::lm::sd_from_variance(v)
     }
 
     /// The model (thermal part off: the heating is carried by the `Re(t)` knots) and the knots.
@@ -1169,7 +1169,7 @@ impl Truncation {
 fn chain_of(c: &ChainSetup, th: &[f64], nl: usize, cov: Option<&DMatrix<f64>>) -> coilscope_core::chain::Chain {
     let fs = c.terms.fs;
     let tc = &th[nl..];
-    let sd = |k: usize| cov.map_or(f64::NAN, |m| m[(nl + k, nl + k)].max(0.0).sqrt());
+    let sd = |k: usize| cov.map_or(f64::NAN, |m| crate::lm::sd_from_variance(m[(nl + k, nl + k)]));
     let [_, _, fi] = c.values(tc);
     let mut out = crate::linear::ChainEstimate { values: c.values(tc), sd: c.terms.sds(cov, nl), on: c.terms.on(), fs }.to_chain();
     let km = c.dc_u_index();
@@ -1644,7 +1644,7 @@ pub use coilscope_core::result::Band;
 impl LargeFit {
     /// Standard deviation of theta entry `k`.
     fn sd_theta(&self, k: usize) -> f64 {
-        self.cov.as_ref().map(|c| c[(k, k)].max(0.0).sqrt()).unwrap_or(f64::NAN)
+        self.cov.as_ref().map(|c| crate::lm::sd_from_variance(c[(k, k)])).unwrap_or(f64::NAN)
     }
 
     /// Standard deviations (SI) of the fitted constants, in the schema's order: Re (at the

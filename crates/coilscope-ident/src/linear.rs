@@ -16,7 +16,7 @@
 //! `Res = Bl^2/Rms`, `Cmes = Mms/Bl^2`, `Lces = Bl^2/Kms`; the voltage alone determines these
 //! three, and one more number (Mms, an added mass, or the displacement) gives Bl.
 
-use crate::lm::{lm_step, sandwich_covariance, LmState, Problem};
+use crate::lm::{lm_step, sandwich_covariance, sd_from_variance, LmState, Problem};
 use coilscope_core::result::{Fit, ModelTrial, ResultFile, Scale, Uncertainty};
 use coilscope_core::fft::{irfft, rfft};
 use coilscope_core::params::Parameters;
@@ -656,7 +656,7 @@ impl ChainTerms {
         let mut k = ci;
         for (n, on) in self.on().into_iter().enumerate() {
             if on {
-                sd[n] = cov.map_or(f64::NAN, |c| c[(k, k)].max(0.0).sqrt());
+                sd[n] = cov.map_or(f64::NAN, |c| sd_from_variance(c[(k, k)]));
                 k += 1;
             }
         }
@@ -1422,17 +1422,17 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     let sigma_rel: [f64; 7] = match &cov {
         Some(c) => {
             let cq = |a: usize, b: usize| c[(a, b)] * dq[a] * dq[b];
-            std::array::from_fn(|k| if k == 2 { (cq(2, 2) + cq(3, 3) + 2.0 * cq(2, 3)).max(0.0).sqrt() } else { cq(k, k).max(0.0).sqrt() })
+            std::array::from_fn(|k| sd_from_variance(if k == 2 { cq(2, 2) + cq(3, 3) + 2.0 * cq(2, 3) } else { cq(k, k) }))
         }
         None => [f64::NAN; 7],
     };
-    let creep = prob.idx_lambda().map(|k| (s.theta[k], cov.as_ref().map_or(f64::NAN, |c| c[(k, k)].max(0.0).sqrt())));
+    let creep = prob.idx_lambda().map(|k| (s.theta[k], cov.as_ref().map_or(f64::NAN, |c| sd_from_variance(c[(k, k)]))));
     let lr3 = prob.idx_lr3().map(|k| {
         let (l3, r3) = ext.lr3.expect("LR-3 fitted");
         let d3 = prob.tau3(s.theta[k]).1;
         let sd = cov.as_ref().map_or([f64::NAN; 2], |c| {
             let (a, b) = (k, k + 1);
-            [(c[(a, a)] * d3 * d3 + c[(b, b)] + 2.0 * c[(a, b)] * d3).max(0.0).sqrt(), c[(b, b)].max(0.0).sqrt()]
+            [sd_from_variance(c[(a, a)] * d3 * d3 + c[(b, b)] + 2.0 * c[(a, b)] * d3), sd_from_variance(c[(b, b)])]
         });
         ([l3, r3], sd)
     });

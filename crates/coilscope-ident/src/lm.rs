@@ -65,6 +65,18 @@ pub fn lm_step<P: Problem>(p: &P, s: &LmState) -> LmState {
     LmState { lambda, iteration: s.iteration + 1, converged: true, last_decrease: 0.0, ..s.clone() }
 }
 
+/// Standard deviation from a variance taken off a covariance: a round-off below zero is 0, but
+/// an undefined variance (NaN: a singular or degenerate covariance) stays NaN. `v.max(0.0)`
+/// alone turns NaN into 0, and so a covariance that failed was reported as perfect
+/// certainty: `linear` on large-signal records printed +- 0 for every parameter.
+pub fn sd_from_variance(v: f64) -> f64 {
+    if v.is_nan() {
+        f64::NAN
+    } else {
+        v.max(0.0).sqrt()
+    }
+}
+
 /// Covariance of theta: `sigma^2 (J^T J)^-1` with `sigma^2 = |r|^2 / (m - n)`.
 pub fn covariance<P: Problem>(p: &P, theta: &[f64]) -> Option<DMatrix<f64>> {
     let (r, j) = p.residual_jacobian(theta);
@@ -108,6 +120,14 @@ pub fn sandwich_covariance(j: &DMatrix<f64>, r: &DVector<f64>, cluster: usize) -
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn an_undefined_variance_is_no_certainty() {
+        assert!(sd_from_variance(f64::NAN).is_nan());
+        assert_eq!(sd_from_variance(-1e-30), 0.0);
+        assert_eq!(sd_from_variance(4.0), 2.0);
+    }
+
     use super::*;
     use rand_distr::{Distribution, StandardNormal};
 

@@ -722,7 +722,7 @@ impl Online {
 
     /// Standard deviation of theta entry `k` (normalised units).
     pub fn sd_theta(&self, k: usize) -> f64 {
-        self.cov[(k, k)].max(0.0).sqrt()
+        crate::lm::sd_from_variance(self.cov[(k, k)])
     }
 
     /// Standard deviation (same unit as the curve) of `Bl`, `Kms` or `Le` at `x` from the
