@@ -1229,27 +1229,11 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
     // The current error behind the estimated chain (its offsets and hum are fitted, not error).
     let k = fit.settle;
     let r: Vec<f64> = fit.i_phys[k..].iter().zip(&fit.i_model[k..]).map(|(a, b)| a - b).collect();
-    let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(
-        &r,
-        fs,
-        "large-signal fit",
-        coilscope_core::simulate::rms(&fit.i_phys),
-        0.0,
-    );
+    let i_rms = coilscope_core::simulate::rms(&fit.i_phys);
+    let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", i_rms, 0.0);
     // An error that follows the drive is a misfit even when its spectrum looks like a floor.
     if !warnings.iter().any(|w| w.code == "residual-above-noise") {
-        let ratio = coilscope_ident::checks::drive_explained_ratio(&r, &fit.u_phys[k..], &fit.i_model[k..], &fit.x_model[k..], fs);
-        if ratio >= coilscope_ident::checks::DRIVE_RATIO_WARN {
-            warnings.push(coilscope_ident::checks::Warning::new(
-                "residual-follows-drive",
-                format!(
-                    "{:.0} % of the large-signal fit's current error ({:.3e} relative RMS) is a function of the drive and the model's own current, not noise (error {ratio:.2} times what is left; its spectrum's median, {:.1}x, hides it): the model does not describe this record. Likely causes: a recording chain that AC-couples or skews the channels (--chain auto, or calibrate the card and give --chain FILE), a DC offset, or effects the model lacks (--effects auto)",
-                    100.0 * (1.0 - 1.0 / (ratio * ratio)),
-                    fit.residual_rel,
-                    floor.ratio
-                ),
-            ));
-        }
+        warnings.extend(coilscope_ident::checks::drive_warning(&r, &fit.u_phys[k..], &fit.i_model[k..], &fit.x_model[k..], fs, "large-signal fit", i_rms, 0.0));
     }
     let final_delay = if delay_handled { None } else { coilscope_ident::checks::residual_delay(&r, &fit.i_model[k..]) };
     if let Some((tau, share)) = final_delay {

@@ -9,6 +9,11 @@ fn coilscope(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_coilscope")).args(args).output().unwrap()
 }
 
+/// stdout and stderr of a run, for messages and assertions.
+fn text(o: &Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
 fn seas(name: &str) -> String {
     let p: PathBuf = Path::new(env!("CARGO_MANIFEST_DIR")).join("../coilscope-ident/tests/data/seas_l16rnx").join(name);
     p.to_str().unwrap().to_string()
@@ -178,7 +183,7 @@ fn identify_takes_a_card_delay_out_with_the_chain_auto_or_a_chain_file() {
     let run = |chain: &str, name: &str| -> (String, serde_json::Value) {
         let out = d.path().join(name);
         let o = coilscope(&["identify", rec.to_str().unwrap(), "--mms", &mms, "--chain", chain, "--out", out.to_str().unwrap()]);
-        let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+        let text = text(&o);
         assert!(o.status.code().is_some_and(|c| c == 0 || c == 3), "--chain {chain}: {text}");
         (text, serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap())
     };
@@ -212,7 +217,7 @@ fn identify_without_the_chain_on_the_real_chain_record_is_not_trusted() {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("r.json");
     let o = coilscope(&["identify", rec.to_str().unwrap(), "--mms", "0.015367", "--out", out.to_str().unwrap()]);
-    let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    let text = text(&o);
     assert_eq!(o.status.code(), Some(3), "{text}");
     assert!(text.contains("[residual-follows-drive]") && text.contains("--chain auto"), "{text}");
     let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
@@ -231,7 +236,7 @@ fn measure_replay_of_the_real_chain_record_without_its_calibration_is_loud_and_r
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("m");
     let o = coilscope(&["measure", "--replay", rec.to_str().unwrap(), "--mms", "0.015367", "--out", out.to_str().unwrap()]);
-    let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    let text = text(&o);
     assert_eq!(o.status.code(), Some(3), "{text}");
     assert!(text.contains("[residual-above-noise]"), "{text}");
     assert!(!text.contains("report was not written"), "{text}");

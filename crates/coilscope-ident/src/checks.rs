@@ -325,3 +325,22 @@ pub fn drive_explained_ratio(r: &[f64], u: &[f64], i_model: &[f64], x_model: &[f
     let share = explained_share(&r[L..L + m], &g);
     (1.0 / (1.0 - share).max(1e-12)).sqrt()
 }
+
+/// The `residual-follows-drive` warning of the time-domain fit `what` (`r` = recorded -
+/// modelled current, on the samples of `u`, `i_model` and `x_model`): when
+/// [`drive_explained_ratio`] reaches [`DRIVE_RATIO_WARN`] and the misfit it explains is at
+/// least `min_misfit` of the current's RMS `i_rms` (`linear` asks for its material 0.5 %).
+pub fn drive_warning(r: &[f64], u: &[f64], i_model: &[f64], x_model: &[f64], fs: f64, what: &str, i_rms: f64, min_misfit: f64) -> Option<Warning> {
+    let ratio = drive_explained_ratio(r, u, i_model, x_model, fs);
+    let rms = (r.iter().map(|v| v * v).sum::<f64>() / r.len().max(1) as f64).sqrt();
+    let misfit = rms * (1.0 - 1.0 / (ratio * ratio)).max(0.0).sqrt() / i_rms.max(1e-300);
+    (ratio >= DRIVE_RATIO_WARN && misfit >= min_misfit).then(|| {
+        Warning::new(
+            "residual-follows-drive",
+            format!(
+                "{:.2} % of the current is a misfit of the {what} that follows the drive, not noise (its error is {ratio:.2} times what is left once the drive and the model's own current explain what they can; the median of its spectrum, taken as the noise floor, rises with such a misfit and hides it): the model does not describe this record. Likely causes: a recording chain that AC-couples or skews the channels (--chain auto, or calibrate the card and give --chain FILE), a DC offset, a large-signal record fitted as linear (coilscope identify), or effects the model lacks (--effects auto)",
+                100.0 * misfit
+            ),
+        )
+    })
+}

@@ -1435,12 +1435,13 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         }
     };
     let mut val_at_order = None;
+    let at_order = best_by_order.iter().position(|b| b.0 == order);
     // The next order tried on the same data: how much the curves would move with it.
-    let mut truncation = best_by_order.iter().position(|b| b.0 == order).and_then(|k| {
+    let mut truncation = at_order.and_then(|k| {
         let next = best_by_order.get(k + 1)?;
         Some(Truncation::of(&layout_for(order), &best_by_order[k].1, &layout_for(next.0), &next.1))
     });
-    if let Some((_, th, val)) = best_by_order.iter().find(|b| b.0 == order) {
+    if let Some((_, th, val)) = at_order.map(|k| &best_by_order[k]) {
         let lay = layout_for(order);
         current = Parameters { mms: opts.mms, ..lay.parameters(th) };
         re_track = Some(lay.re_track(th));
@@ -1521,9 +1522,9 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     let mut order = order;
     if opts.order.is_none() && effects != Effects::NONE {
         let (_, _, mut cur_th, mut cur) = estimate_validate(&layout_for(order).with_effects(effects), &current, re_track.as_deref(), &cth, &mut observe);
-        if order + 2 <= MAX_ORDER {
-            truncation = None;
-        }
+        // The pair without the effects no longer applies: the search below makes its own (none
+        // at the highest order, as above).
+        truncation = None;
         while order + 2 <= MAX_ORDER {
             let lay = layout_for(order + 2).with_effects(effects);
             let (_, est, th_val, val) = estimate_validate(&lay, &current, re_track.as_deref(), &cth, &mut observe);

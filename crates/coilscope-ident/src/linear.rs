@@ -1677,17 +1677,7 @@ pub fn linear_warnings(fit: &LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs
     // explained too little of it to call it a large-signal record).
     if !w.iter().any(|w| w.code == "residual-above-noise" || w.code == "large-signal-record") {
         let x = predicted_displacement(p, i, fs);
-        let ratio = crate::checks::drive_explained_ratio(&r, u, &i_model, &x, fs);
-        let misfit = rms(&r) * (1.0 - 1.0 / (ratio * ratio)).max(0.0).sqrt() / rms(i);
-        if ratio >= crate::checks::DRIVE_RATIO_WARN && misfit >= LINEAR_MATERIAL_EXCESS {
-            w.push(Warning::new(
-                "residual-follows-drive",
-                format!(
-                    "{:.1} % of the current is a misfit that follows the drive, not noise (the fit's error is {ratio:.2} times what is left once the drive explains what it can): the model does not describe this record. Likely causes: a recording chain that AC-couples or skews the channels (--chain auto, or calibrate the card and give --chain FILE), a DC offset, a large-signal record (coilscope identify), or effects the model lacks",
-                    100.0 * misfit
-                ),
-            ));
-        }
+        w.extend(crate::checks::drive_warning(&r, u, &i_model, &x, fs, "linear (small-signal) fit", rms(i), LINEAR_MATERIAL_EXCESS));
     }
     (nf, w)
 }

@@ -120,6 +120,8 @@ pub fn sandwich_covariance(j: &DMatrix<f64>, r: &DVector<f64>, cluster: usize) -
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+    use rand_distr::{Distribution, StandardNormal};
 
     #[test]
     fn an_undefined_variance_is_no_certainty() {
@@ -127,9 +129,6 @@ mod tests {
         assert_eq!(sd_from_variance(-1e-30), 0.0);
         assert_eq!(sd_from_variance(4.0), 2.0);
     }
-
-    use super::*;
-    use rand_distr::{Distribution, StandardNormal};
 
     /// Linear regression y = a + b t with noise whose level grows 20x along t: the classical
     /// sd of the slope is too small, the sandwich's covers the truth (Monte Carlo over 400

@@ -587,7 +587,6 @@ fn online_options(opts: &MeasureOptions, x_ref: f64, controllable: bool) -> Onli
     OnlineOptions { order: opts.order, x_ref, window: ONLINE_WINDOW_S, max_before: if controllable { f64::INFINITY } else { RESTART_RESIDUAL }, ..Default::default() }
 }
 
-/// Largest relative change of a curve over `[-r, r]`, relative to its value at rest.
 /// The eddy-current branch an estimate drove to nothing: L2 and R2 both a hair from zero (the
 /// replay of SB17's independent real-chain record without its calibration ended with L2 =
 /// -4e-14 H, R2 = -2e-11 ohm). Such a branch is the same model as none (its impedance is at
@@ -610,6 +609,7 @@ fn drop_vanished_branch(p: &mut Parameters, [lo, hi]: [f64; 2]) -> bool {
     false
 }
 
+/// Largest relative change of a curve over `[-r, r]`, relative to its value at rest.
 fn curve_change(a: &Poly, b: &Poly, r: f64) -> f64 {
     let b0 = b.eval(0.0).abs().max(1e-300);
     (0..=40).map(|k| -r + 2.0 * r * k as f64 / 40.0).map(|x| (a.eval(x) - b.eval(x)).abs() / b0).fold(0.0, f64::max)
