@@ -39,6 +39,13 @@ impl<D: DualNum<Primitive = f64> + Copy> Dynamics<D, { crate::model::NSTATE }> f
     }
 }
 
+impl<D: DualNum<Primitive = f64> + Copy> Dynamics<D, { crate::model::NLR3 }> for crate::model::ExtModel<D> {
+    #[inline]
+    fn deriv(&self, y: &[D; crate::model::NLR3], u: D) -> [D; crate::model::NLR3] {
+        crate::model::ExtModel::deriv_n(self, y, u)
+    }
+}
+
 impl<D: DualNum<Primitive = f64> + Copy> Dynamics<D, { crate::model::NEXT }> for crate::model::ExtModel<D> {
     #[inline]
     fn deriv(&self, y: &[D; crate::model::NEXT], u: D) -> [D; crate::model::NEXT] {

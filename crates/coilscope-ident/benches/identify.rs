@@ -80,9 +80,47 @@ fn jacobian_order4(b: divan::Bencher) {
     b.bench_local(|| prob.jacobian(&th));
 }
 
-/// One residual (8 s) of the order-4 problem, one core.
-#[divan::bench(sample_count = 5, sample_size = 1)]
+/// One residual (8 s) of the order-4 problem, one core. `residual` keeps the last theta's
+/// residual (LM asks for it again after accepting a step), so the samples alternate between
+/// two thetas: each is a full run of the model (the bench measured the cache until 2026-11).
+#[divan::bench(sample_count = 6, sample_size = 1)]
 fn residual_order4(b: divan::Bencher) {
     let (prob, th) = problem(rec("sb17cac35-4"));
-    b.bench_local(|| prob.residual(&th));
+    let mut other = th.clone();
+    other[0] *= 1.0 + 1e-9;
+    let mut flip = false;
+    b.bench_local(|| {
+        flip = !flip;
+        prob.residual(if flip { &th } else { &other })
+    });
+}
+
+/// The same residual with LR-3 (seven states) and with creep (all seventeen of the extended
+/// model), one core: what the effects search pays per model run.
+#[divan::bench(args = ["lr3", "creep"], sample_count = 6, sample_size = 1)]
+fn residual_order4_effects(b: divan::Bencher, which: &str) {
+    let r = rec("sb17cac35-4");
+    let mut p = r.p.clone();
+    let (l2, r2) = (p.l2r2.as_ref().unwrap().0.c[0], p.l2r2.as_ref().unwrap().1.c[0]);
+    let effects = match which {
+        "lr3" => {
+            p.l3r3 = Some((0.6 * l2, 2.5 * r2));
+            coilscope_ident::linear::Effects { lr3: true, ..coilscope_ident::linear::Effects::NONE }
+        }
+        _ => {
+            p.creep = Some(coilscope_core::params::Creep { lambda: 0.05, f_ref: None });
+            coilscope_ident::linear::Effects { creep: true, ..coilscope_ident::linear::Effects::NONE }
+        }
+    };
+    let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
+    let lay = Layout::new(4, 5, 2.0, 0.005, sc, true, p.mms).with_effects(effects);
+    let th = lay.theta_from(&p, None);
+    let prob = OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.stiffness_rate(), 0.05, 1);
+    let mut other = th.clone();
+    other[0] *= 1.0 + 1e-9;
+    let mut flip = false;
+    b.bench_local(|| {
+        flip = !flip;
+        prob.residual(if flip { &th } else { &other })
+    });
 }

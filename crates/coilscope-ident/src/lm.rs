@@ -22,13 +22,19 @@ pub struct LmState {
     pub iteration: usize,
     /// Relative cost decrease of the last accepted step.
     pub last_decrease: f64,
+    /// Gain ratio of the last accepted step: its cost decrease over the decrease the
+    /// linearised model `1/2 |r + J delta|^2` predicted for it (1: the model was exact over
+    /// the step; NaN before the first step).
+    pub gain_ratio: f64,
+    /// The damping the last accepted step was taken with.
+    pub step_lambda: f64,
     pub converged: bool,
 }
 
 impl LmState {
     pub fn new<P: Problem>(p: &P, theta: Vec<f64>) -> Self {
         let cost = 0.5 * p.residual(&theta).norm_squared();
-        LmState { theta, cost, lambda: 1e-3, iteration: 0, last_decrease: f64::INFINITY, converged: false }
+        LmState { theta, cost, lambda: 1e-3, iteration: 0, last_decrease: f64::INFINITY, gain_ratio: f64::NAN, step_lambda: f64::NAN, converged: false }
     }
 }
 
@@ -50,12 +56,16 @@ pub fn lm_step<P: Problem>(p: &P, s: &LmState) -> LmState {
             if cost.is_finite() && cost < s.cost {
                 let dec = (s.cost - cost) / s.cost.max(1e-300);
                 let step = delta.amax();
+                // The linearised model's decrease: -(g^T d + 1/2 d^T A d).
+                let predicted = -(g.dot(&delta) + 0.5 * delta.dot(&(&a * &delta)));
                 return LmState {
                     theta,
                     cost,
                     lambda: (lambda / 3.0).max(1e-12),
                     iteration: s.iteration + 1,
                     last_decrease: dec,
+                    gain_ratio: (s.cost - cost) / predicted,
+                    step_lambda: lambda,
                     converged: dec < 1e-12 || step < 1e-10,
                 };
             }
