@@ -1043,6 +1043,11 @@ fn split_vanished_le(mut p: Parameters) -> Parameters {
 /// also took the SB17 creep record, whose start has a small but real Le, and that fit failed.
 const LE_VANISHED: f64 = 1e-3;
 
+/// Largest share of the current (relative RMS after settling) the start model may miss
+/// before `identify` refuses the record: large records start at 2-5 % (SB17, 18WU, PTT4 at
+/// 85 % of their range).
+pub const START_MISS: f64 = 0.5;
+
 /// Periods of the resonance a record must hold after the start model settles. Measured
 /// (0.5 s at 96 kHz to +-2 mm, 70 dB): 18WU (23.6 Hz, 5.9 periods) within 0.03 % (Bl, Kms);
 /// the same driver with three times its mass (13.6 Hz, 3.4 periods) Bl 6.7 %, Re 9 % off at
@@ -1422,13 +1427,32 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     let probe = Layout::new(MIN_ORDER, n_re, knot_dt, 1e-3, scales.clone(), has_l2r2, opts.mms);
     let th0 = join(probe.theta_from(&start, None), &cth);
     let pr = OutputError::new(probe, u, i, fs, 0..u.len(), rate, f64::INFINITY, threads).with_chain(setup);
-    let (x0, _) = pr.trace(&th0, u.len()).map_err(|m| {
+    let (x0, i_start) = pr.trace(&th0, u.len()).map_err(|m| {
         let l2r2 = start.l2r2.as_ref().map_or(String::new(), |(l2, r2)| format!(", L2 {:.3e} H, R2 {:.3e} ohm", l2.c[0], r2.c[0]));
         Input(format!(
             "{origin}: the start model diverged at sample {m} (small-signal start: Re {:.3e} ohm, Le {:.3e} H{l2r2}, Bl {:.3e} T m, Kms {:.3e} N/m, Rms {:.3e} kg/s, {} RK4 sub-steps per sample)",
             start.re, start.le.c[0], start.bl.c[0], start.kms.c[0], start.rms, pr.substeps().0
         ))
     })?;
+    // A start that misses most of the current is no start: the large-signal fit cannot
+    // recover from it, and what it ends on says nothing about the record (the first second of
+    // a 3 s SB17 record, cut mid-signal: the impedance fit's model missed 99.98 % of the
+    // current, and the search ended in "too small to identify anything nonlinear").
+    let start_miss = {
+        let (mut e, mut t) = (0.0, 0.0);
+        for m in settle.min(u.len())..u.len() {
+            e += (i_start[m] - i[m]).powi(2);
+            t += i[m] * i[m];
+        }
+        (e / t.max(1e-300)).sqrt()
+    };
+    if !(start_miss <= START_MISS) {
+        return Err(Input(format!(
+            "{origin}: the small-signal start ({}) misses {:.0} % of the current over this {seconds:.2} s record: the record is too short or too irregular for it; record longer (2 s or more is typical)",
+            if opts.init.is_some() { "the one given" } else { "the impedance fit of the record" },
+            100.0 * start_miss
+        )));
+    }
     let reach0 = x0.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-6);
     let x_ref = reach0;
     let x_limit = 8.0 * reach0;
