@@ -552,7 +552,12 @@ impl Parameters {
 
     /// The reference frequency of the creep (Hz): `creep.f_ref`, or the resonance.
     pub fn creep_f_ref(&self) -> Option<f64> {
-        self.creep.as_ref().map(|c| c.f_ref.unwrap_or_else(|| (self.kms.c[0] / self.mms).sqrt() / (2.0 * std::f64::consts::PI)))
+        self.creep.as_ref().map(|c| c.f_ref.unwrap_or_else(|| self.resonance_hz()))
+    }
+
+    /// The mechanical resonance at rest, `sqrt(Kms(0) / Mms) / 2 pi` (Hz).
+    pub fn resonance_hz(&self) -> f64 {
+        (self.kms.c[0] / self.mms).sqrt() / (2.0 * std::f64::consts::PI)
     }
 
     /// Whether the set has an effect with states of its own (creep, LR-3), which needs

@@ -622,6 +622,10 @@ fn run_layout<D: DualNum<Primitive = f64> + Copy>(
     if !layout.effects.needs_ext_states() {
         let (mut model, knots) = layout.model(th);
         run_model(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, interp, len, x_limit, observe)
+    } else if !layout.effects.creep {
+        // LR-3 without creep: the seven states of `ExtModel::deriv_n`.
+        let (mut model, knots) = layout.ext_model(th);
+        run_model::<D, NLR3>(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, interp, len, x_limit, observe)
     } else {
         let (mut model, knots) = layout.ext_model(th);
         run_model::<D, NEXT>(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, interp, len, x_limit, observe)
@@ -1078,9 +1082,10 @@ pub fn search_window(x: &[f64], fs: f64, seconds: f64, share: f64) -> usize {
     if !(seconds > 0.0) || step == 0 {
         return n;
     }
-    let (lo, hi) = x.iter().fold((0.0f64, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
+    let extent = |part: &[f64]| part.iter().fold((0.0f64, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
+    let (lo, hi) = extent(x);
     let reaches = |part: &[f64], share: f64| {
-        let (a, b) = part.iter().fold((0.0f64, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
+        let (a, b) = extent(part);
         a <= share * lo && b >= share * hi
     };
     let mut end = 2 * step;
@@ -1290,8 +1295,6 @@ impl std::fmt::Display for IdentifyError {
     }
 }
 
-/// Run LM on `prob` from `theta` until an accepted step lowers the cost by less than `tol`
-/// (relative; Gauss-Newton's next step would gain far less) or `max_it` iterations. Returns the last state.
 /// A search stage ([`Stage::Estimate`]) stops after an accepted step that lowered the cost by
 /// less than this share, ...
 pub const SEARCH_SETTLED_DECREASE: f64 = 0.05;
@@ -1314,6 +1317,9 @@ fn settled(s: &LmState) -> bool {
     s.last_decrease < SEARCH_SETTLED_DECREASE && (s.gain_ratio - 1.0).abs() < SEARCH_SETTLED_GAIN && s.step_lambda <= SEARCH_SETTLED_LAMBDA
 }
 
+/// Run LM on `prob` from `theta` until an accepted step lowers the cost by less than `tol`
+/// (relative; Gauss-Newton's next step would gain far less) or `max_it` iterations. Returns the last state.
+/// A search stage also stops once [`settled`].
 fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: usize, observe: &mut dyn FnMut(&Progress)) -> LmState {
     let norm_i = prob.i[prob.fit.clone()].iter().map(|v| v * v).sum::<f64>().sqrt();
     let report = |s: &LmState, observe: &mut dyn FnMut(&Progress)| {
@@ -1410,7 +1416,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     // reaching +-2 mm gives Bl and Kms within 0.1 %): after the start model has settled it
     // must hold MIN_RESONANCE_PERIODS of the resonance, where the mechanical parameters
     // show. Reach is checked by the order search (`TooSmall`), the uncertainty says the rest.
-    let f_res = (start.kms.eval(0.0) / start.mms).sqrt() / (2.0 * std::f64::consts::PI);
+    let f_res = start.resonance_hz();
     let periods = (u.len().saturating_sub(settle)) as f64 / fs * f_res;
     if !(periods >= MIN_RESONANCE_PERIODS) {
         return Err(Input(format!(
@@ -1438,14 +1444,8 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     // recover from it, and what it ends on says nothing about the record (the first second of
     // a 3 s SB17 record, cut mid-signal: the impedance fit's model missed 99.98 % of the
     // current, and the search ended in "too small to identify anything nonlinear").
-    let start_miss = {
-        let (mut e, mut t) = (0.0, 0.0);
-        for m in settle.min(u.len())..u.len() {
-            e += (i_start[m] - i[m]).powi(2);
-            t += i[m] * i[m];
-        }
-        (e / t.max(1e-300)).sqrt()
-    };
+    let settled_part = settle.min(u.len())..u.len();
+    let start_miss = rel(&DVector::from_iterator(settled_part.len(), settled_part.clone().map(|m| i_start[m] - i[m])), &i[settled_part]);
     if !(start_miss <= START_MISS) {
         return Err(Input(format!(
             "{origin}: the small-signal start ({}) misses {:.0} % of the current over this {seconds:.2} s record: the record is too short or too irregular for it; record longer (2 s or more is typical)",
