@@ -19,24 +19,11 @@
 //! --ignored` (`.ci/run` runs it).
 
 mod common;
-use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
-use coilscope_core::params::Creep;
-use coilscope_core::simulate::{gain_for_peak, SimOptions};
-use coilscope_core::{embedded_driver, Parameters, Poly};
+use coilscope_core::chain::Chain;
 use coilscope_ident::large::{identify, IdentifyOptions};
 use coilscope_ident::linear::Effects;
+use common::world::record;
 use common::Errors;
-
-fn driver(name: &str) -> Parameters {
-    embedded_driver(name).unwrap_or_else(|| {
-        let path = format!("{}/../../testdata/drivers/{name}.json", env!("CARGO_MANIFEST_DIR"));
-        Parameters::from_json_str(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
-    })
-}
-
-fn peak(s: &[f64]) -> f64 {
-    s.iter().fold(0.0f64, |a, v| a.max(v.abs()))
-}
 
 /// Identify one driver with `effects` (all four: the harsh world); returns the problems found.
 fn harsh(name: &str, seed: u64, effects: Effects) -> Vec<String> {
@@ -45,27 +32,9 @@ fn harsh(name: &str, seed: u64, effects: Effects) -> Vec<String> {
 
 /// [`harsh`] at sample rate `fs` (Hz).
 fn harsh_at(name: &str, seed: u64, effects: Effects, fs: f64) -> Vec<String> {
-    let plain = driver(name);
-    let [lo, hi] = plain.x_range.unwrap();
-    let target = 0.85 * hi.min(-lo);
-    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.05, seed }).unwrap();
-    // The peak current and velocity of the plain driver at this level scale the effects.
-    let (_, tr0) = gain_for_peak(&plain, fs, &unit, target, &SimOptions::default()).unwrap();
-    let (i_pk, v_pk) = (peak(&tr0.i), peak(&tr0.v));
-    let (l2, r2) = plain.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
-    let (lambda, g2, c2) = (0.05, -0.03 / (i_pk * i_pk), 0.35 * plain.rms / (v_pk * v_pk));
-    let truth = Parameters {
-        creep: effects.creep.then_some(Creep { lambda, f_ref: None }),
-        l3r3: effects.lr3.then_some((0.5 * l2, 3.0 * r2)),
-        le_i: effects.le_i.then(|| Poly { c: vec![1.0, 0.005 / i_pk, g2] }),
-        rms_v: effects.rms_v.then(|| Poly { c: vec![plain.rms, 0.0, c2] }),
-        ..plain.clone()
-    };
-    let (_, tr) = gain_for_peak(&truth, fs, &unit, target, &SimOptions::default()).unwrap();
-    let s = tr.summary();
-    let (mut u, mut i) = (tr.u, tr.i);
-    add_sensor_noise(&mut u, 70.0, seed, "sensor-noise/voltage");
-    add_sensor_noise(&mut i, 70.0, seed, "sensor-noise/current");
+    let rec = record(name, seed, effects, fs, 8.0, |_, _| Chain::default());
+    let (truth, s, (u, i), (lambda, g2, c2)) = (&rec.truth, &rec.summary, (&rec.u, &rec.i), (rec.lambda, rec.g2, rec.c2));
+    let (l2, r2) = truth.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
     let label = format!("{name} ({}, seed {seed}, {} Hz)", effects.model_name(), fs);
     let fit = match identify(&u, &i, fs, &label, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}) {
         Ok(f) => f,

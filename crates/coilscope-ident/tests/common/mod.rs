@@ -2,6 +2,7 @@
 #![allow(dead_code)]
 
 pub mod slice;
+pub mod world;
 
 use coilscope_core::{Parameters, Poly};
 use coilscope_ident::large::LargeFit;
