@@ -1379,13 +1379,11 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             (split_vanished_le(scale_by_mms(&lin, opts.mms).map_err(Input)?), Some(lin))
         }
     };
-    // The measurement chain. Its start values come from a linear fit of its own (the driver's
-    // start above is from one without: with the chain's freedom, the impedance fit of
-    // large-signal data let the LR-2 branch vanish, SB17 with AC coupling: R2 -> 1e-132 ohm).
-    // All three of delay and corners are estimated, whatever that fit kept: on a large-signal
+    // The measurement chain. Its start values come from a linear fit of its own, whose driver
+    // is a second candidate for the driver's start (chosen below by which misses less). All
+    // three of delay and corners are estimated, whatever that fit kept: on a large-signal
     // record its sds are wide (distortion is most of its residual: SB17 with a 0.3-sample delay
     // gave 0.34 +- 0.09), too wide to decide. Offsets and hum are always in.
-    // The driver's start from the linear fit with the chain: a second candidate (below).
     let mut chain_start = None;
     let (setup, mut cth) = if opts.chain {
         let m = u.len().min((4.0 * fs) as usize);
