@@ -71,7 +71,11 @@ pub struct Chain {
     /// calibration measures it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub gain_i: Option<f64>,
-    /// Offset on the recorded voltage (V).
+    /// Offset on the recorded voltage (V). Behind a DC-coupled voltage channel a record
+    /// cannot tell it from a DC on the driver (that only moves the rest position); an
+    /// estimate there is the convention that the drive has no mean over the record, so the
+    /// curves' x = 0 is the rest position under the record's mean drive, and its sd is the
+    /// drive's own mean's (`coilscope_ident::large::ChainSetup`).
     pub dc_u: f64,
     /// Offset on the recorded current (A).
     pub dc_i: f64,

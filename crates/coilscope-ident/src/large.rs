@@ -246,6 +246,33 @@ pub fn with_systematic(cov: DMatrix<f64>, k: usize, sys: f64) -> DMatrix<f64> {
     &cov + (&c * c.transpose()) * (sys * sys / (ckk * ckk))
 }
 
+/// `cov` with a nuisance quantity of sd `sd` that the fit held at a convention: `cov + g g^T
+/// sd^2`, `g = (J^T J)^-1 J^T c`, with `c` the residual's derivative w.r.t. the nuisance. An
+/// error `e` of it moves the estimate by `-e g` (the least-squares answer to the residual
+/// change `e c`). `j` and `c` whitened alike.
+pub fn with_nuisance(cov: DMatrix<f64>, j: &DMatrix<f64>, c: &DVector<f64>, sd: f64) -> DMatrix<f64> {
+    let a = j.tr_mul(j);
+    let b = j.tr_mul(c);
+    let g = match a.clone().cholesky() {
+        Some(ch) => ch.solve(&b),
+        None => match a.try_inverse() {
+            Some(inv) => inv * b,
+            None => return cov,
+        },
+    };
+    &cov + (&g * g.transpose()) * (sd * sd)
+}
+
+/// A voltage channel whose coupling corner the search ends at or below (Hz) is taken as
+/// DC-coupled: its offset stays held in the final fit ([`ChainSetup::dc_u_free`]). Cards
+/// couple at 1-5 Hz; through DC-coupled cards the search ended within 4e-3 Hz of 0. (The
+/// linear start cannot decide: it gave 0 for SB17, 18WU and the large coil behind 1.5-4.5 Hz.)
+/// At 0.3 Hz an offset becomes a ramp of `2 K n` = 5.7 over 6 s at 48 kHz.
+pub const DC_COUPLED_HZ: f64 = 0.3;
+
+/// Upper end (Hz) of the drive's bins that give its spectrum at DC ([`ChainSetup::dc_u_sd`]).
+pub const DRIVE_MEAN_HZ: f64 = 1.0;
+
 /// Scale of creep's lambda in theta.
 const LAMBDA_SCALE: f64 = 0.1;
 
@@ -643,21 +670,32 @@ fn run_layout<D: DualNum<Primitive = f64> + Copy>(
 ///
 /// `W` is a fixed whitening high-pass ([`ChainSetup::whiten_hz`]). The unknowns follow the
 /// layout's in theta: those of `terms` that are on (`tau` samples, `hp_u`, `hp_i` Hz), then
-/// `dc_u` (in [`ChainSetup::u_unit`]), then the `c_k` of the basis `b_k`: a constant and a ramp (an offset
-/// behind an AC coupling integrates into both) and a cosine and a sine at each mains line
-/// (50 and 60 Hz and their harmonics up to [`crate::linear::HUM_HARMONICS`]): the current
-/// channel's hum and what the voltage channel's hum drives through the driver. Linear in
-/// the `c_k`; `tau` and `hp_i` act on the record only (their Jacobian columns by central
-/// differences, no model run); `hp_u` and `dc_u` change the drive (two model runs each).
+/// the `c_k` of the basis `b_k`: a constant and a ramp (an offset behind an AC coupling
+/// integrates into both) and a cosine and a sine at each mains line (50 and 60 Hz and their
+/// harmonics up to [`crate::linear::HUM_HARMONICS`]): the current channel's hum and what the
+/// voltage channel's hum drives through the driver. Linear in the `c_k`; `tau` and `hp_i` act
+/// on the record only (their Jacobian columns by central differences, no model run); `hp_u`
+/// changes the drive (two model runs).
 ///
-/// `dc_u`, the voltage channel's offset, is fitted with the driver. Behind the coupling it is
-/// a constant plus a ramp (`hp_inverse(1)[n] = 1/g + 2 K n`): a drive that moves the coil's
-/// rest position through the record, which the nonlinearities see. Taken instead as the
-/// offset that leaves the voltage least along that shape ([`voltage_behind`], now the start
-/// value), it also took the driver's own low-frequency content: on SB17's `-real-chain`
-/// record (no offset on the voltage) it gave -9e-5 V, Kms(x) came out tilted by +-0.2 % (the
-/// curve shifted along x) and the truth lay 13 sd outside its band; with the true 0 it is
-/// within 1 sd.
+/// `dc_u`, the voltage channel's offset, is an unknown only behind an AC coupling
+/// ([`ChainSetup::dc_u_free`]). There it becomes a constant plus a ramp
+/// (`hp_inverse(1)[n] = 1/g + 2 K n`): a drive that moves the coil's rest position through the
+/// record, which the nonlinearities see, so the data fix it. Held instead at the offset that
+/// leaves the voltage least along that shape ([`voltage_behind`]), it also took the driver's
+/// own low-frequency content: on SB17's `-real-chain` record (no offset on the voltage) it gave
+/// -9e-5 V, Kms(x) came out tilted by +-0.2 % and the truth lay 13 sd outside its band (through
+/// the harsh world's 1-5 Hz couplings: Kms 0.16-0.36 % off, the large coil 4.4 sd outside,
+/// where the fitted offset gives 0.002-0.02 %).
+///
+/// On a DC-coupled voltage channel the record cannot tell an offset of the card from a DC the
+/// amplifier puts on the driver: they differ only in a DC current, which moves the rest
+/// position, and curves shifted along x describe the driver about it exactly. Fitted there,
+/// `dc_u` wandered along that direction (5-40 mV off through the harsh world's DC-coupled
+/// cards, Kms 0.9-4.2 % off at the range's edges, bands 10-30x the error). So it is held at
+/// the convention that the drive has no mean over the record (x = 0 of the curves is the rest
+/// position under the record's mean drive), and the drive's own mean, which that convention
+/// cannot know, goes into the covariance ([`ChainSetup::dc_u_sd`], [`with_nuisance`]).
+#[derive(Clone)]
 pub struct ChainSetup {
     pub u_rec: Vec<f64>,
     pub i_rec: Vec<f64>,
@@ -673,8 +711,13 @@ pub struct ChainSetup {
     /// fixed filter (not moved with theta) is a constant weighting: weighted least squares
     /// with the noise white again.
     pub whiten_hz: f64,
-    /// Unit of `dc_u` in theta (V): 1e-5 of the recorded voltage's RMS (one unit is also the
-    /// step of its Jacobian column's central difference).
+    /// `dc_u` is an unknown (in [`ChainSetup::u_unit`], after the corners); otherwise it is
+    /// held at the offset that leaves the drive without a mean ([`ChainSetup::voltage`]).
+    /// Held through the search; free in the final fit when the search's voltage corner is
+    /// above [`DC_COUPLED_HZ`].
+    pub dc_u_free: bool,
+    /// Unit of a free `dc_u` in theta (V): 1e-5 of the recorded voltage's RMS (one unit is
+    /// also the step of its Jacobian column's central difference).
     pub u_unit: f64,
 }
 
@@ -692,7 +735,7 @@ impl ChainSetup {
             basis.push((format!("sin {f}"), (0..n).map(|m| a * (w * m as f64).sin()).collect()));
         }
         let u_unit = 1e-5 * coilscope_core::simulate::rms(u_rec).max(1e-12);
-        ChainSetup { u_rec: u_rec.to_vec(), i_rec: i_rec.to_vec(), terms, basis, whiten_hz: 0.0, u_unit }
+        ChainSetup { u_rec: u_rec.to_vec(), i_rec: i_rec.to_vec(), terms, basis, whiten_hz: 0.0, dc_u_free: false, u_unit }
     }
     /// `v` (a residual or a Jacobian column over the fitted samples) through the whitening
     /// high-pass ([`ChainSetup::whiten_hz`]).
@@ -706,20 +749,30 @@ impl ChainSetup {
     }
     /// Unknowns of the chain in theta.
     pub fn n(&self) -> usize {
-        self.terms.count() + 1 + self.basis.len()
+        self.basis_index() + self.basis.len()
     }
-    /// Index of `dc_u` in the chain's part of theta (the basis follows it).
-    pub fn dc_u_index(&self) -> usize {
-        self.terms.count()
+    /// Index of a free `dc_u` in the chain's part of theta.
+    pub fn dc_u_index(&self) -> Option<usize> {
+        self.dc_u_free.then(|| self.terms.count())
+    }
+    /// Index of the basis' first coefficient in the chain's part of theta.
+    pub fn basis_index(&self) -> usize {
+        self.terms.count() + self.dc_u_free as usize
     }
     /// `[tau samples, hp_u Hz, hp_i Hz]` of the chain's part of theta.
     pub fn values(&self, th_c: &[f64]) -> [f64; 3] {
         self.terms.values(th_c)
     }
-    /// The drive: the voltage behind the channel, its offset `dc_u` removed; and `dc_u` (V).
+    /// The drive: the voltage behind the channel (coupling `hp_u` of `th_c`), less the offset
+    /// `dc_u` (V); and `dc_u`. A free `dc_u` is theta's; a held one is the one that leaves the
+    /// drive least along the offset's shape ([`voltage_behind`]: on a DC-coupled channel,
+    /// without a mean).
     pub fn voltage(&self, th_c: &[f64]) -> (Vec<f64>, f64) {
         let fu = self.values(th_c)[1];
-        let dc = th_c[self.dc_u_index()] * self.u_unit;
+        let Some(k) = self.dc_u_index() else {
+            return coilscope_core::chain::voltage_behind(&self.u_rec, fu, self.terms.fs);
+        };
+        let dc = th_c[k] * self.u_unit;
         let mut u = coilscope_core::chain::hp_inverse(&self.u_rec, fu, self.terms.fs);
         if dc != 0.0 {
             let shape = coilscope_core::chain::offset_behind(u.len(), fu, self.terms.fs);
@@ -727,11 +780,45 @@ impl ChainSetup {
         }
         (u, dc)
     }
+    /// The voltage channel's offset (V) at coupling `hp_u` (Hz): see [`ChainSetup::voltage`].
+    pub fn dc_u(&self, hp_u: f64) -> f64 {
+        coilscope_core::chain::voltage_behind(&self.u_rec, hp_u, self.terms.fs).1
+    }
+    /// The sd (V) of `dc_u` that the drive's own mean leaves: the convention takes the drive's
+    /// mean over the record as 0, which it is only to within its sampling spread, about
+    /// `sqrt(S(0) / T)`. `S(0)` is read off the drive's lowest DFT bins (below
+    /// [`DRIVE_MEAN_HZ`], at least four; `E|X_k|^2 = E|X_0|^2` for a spectrum flat there);
+    /// behind an AC coupling, divided by the offset's shape's mean.
+    pub fn dc_u_sd(&self, th_c: &[f64]) -> f64 {
+        let fu = self.values(th_c)[1];
+        let (u, _) = self.voltage(th_c);
+        let n = u.len();
+        let fs = self.terms.fs;
+        let bins = ((DRIVE_MEAN_HZ * n as f64 / fs) as usize).max(4).min(n / 2);
+        let power: f64 = (1..=bins)
+            .map(|k| {
+                let w = 2.0 * std::f64::consts::PI * k as f64 / n as f64;
+                let (c, s) = u.iter().enumerate().fold((0.0, 0.0), |(c, s), (m, v)| (c + v * (w * m as f64).cos(), s + v * (w * m as f64).sin()));
+                c * c + s * s
+            })
+            .sum::<f64>()
+            / bins as f64;
+        // A drive mean m moves dc_u by m sum(s) / sum(s^2), s the offset's shape.
+        let shape = coilscope_core::chain::offset_behind(n, fu, fs);
+        let gain = shape.iter().sum::<f64>() / shape.iter().map(|v| v * v).sum::<f64>();
+        power.sqrt() / n as f64 * gain.abs()
+    }
     /// The current the model must match: behind coupling and delay, less the basis.
+    ///
+    /// The basis comes off before the delay, as the card added offset and hum before the
+    /// record was read: behind the inverted coupling an offset is a ramp that ends at up to
+    /// 1.7x the current's peak (1 % offset, 4.7 Hz), and delaying it by FFT rings at the
+    /// record's ends where the zero padding cuts it (taken off after the delay, that ringing
+    /// stayed in the residual).
     pub fn target(&self, th_c: &[f64]) -> Vec<f64> {
         let [tau, _, fi] = self.values(th_c);
-        let mut t = coilscope_core::chain::delay(&coilscope_core::chain::hp_inverse(&self.i_rec, fi, self.terms.fs), -tau);
-        let c = &th_c[self.dc_u_index() + 1..];
+        let mut t = coilscope_core::chain::hp_inverse(&self.i_rec, fi, self.terms.fs);
+        let c = &th_c[self.basis_index()..];
         for (ck, (_, b)) in c.iter().zip(&self.basis) {
             if *ck != 0.0 {
                 for (v, bv) in t.iter_mut().zip(b) {
@@ -739,15 +826,17 @@ impl ChainSetup {
                 }
             }
         }
-        t
+        coilscope_core::chain::delay(&t, -tau)
     }
     /// The chain's theta at the linear fit's estimate, the offset and ramp by least squares
     /// on the current behind the chain (the driver's current has neither), hum at 0.
     pub fn theta0(&self, est: &[f64; 3]) -> Vec<f64> {
         let on = self.terms.on();
         let mut th: Vec<f64> = (0..3).filter(|&k| on[k]).map(|k| est[k]).collect();
-        // dc_u from the projection (voltage_behind), then the basis.
-        th.push(coilscope_core::chain::voltage_behind(&self.u_rec, est[1], self.terms.fs).1 / self.u_unit);
+        if self.dc_u_free {
+            // A free dc_u starts at the projection (voltage_behind).
+            th.push(coilscope_core::chain::voltage_behind(&self.u_rec, est[1], self.terms.fs).1 / self.u_unit);
+        }
         let nc = th.len();
         th.resize(self.n(), 0.0);
         let t = self.target(&th);
@@ -878,24 +967,45 @@ impl<'a> OutputError<'a> {
         Some(r)
     }
 
+    /// The residual's derivative (whitened, as the Jacobian's columns) w.r.t. an error of
+    /// `dc_u` (per V) at theta: what the covariance needs to carry the drive's unknown mean
+    /// ([`ChainSetup::dc_u_sd`]) into the driver's parameters. Two runs of the model.
+    fn dc_u_column(&self, th: &[f64], c: &ChainSetup) -> Option<DVector<f64>> {
+        let tc = &th[self.n_layout()..];
+        let (u, _) = c.voltage(tc);
+        let target = c.target(tc);
+        let shape = coilscope_core::chain::offset_behind(u.len(), c.values(tc)[1], self.fs);
+        let h = 1e-4 * coilscope_core::simulate::rms(&u).max(1e-12);
+        // dc_u up by h takes h times the shape off the drive.
+        let ua: Vec<f64> = u.iter().zip(&shape).map(|(v, o)| v - h * o).collect();
+        let ub: Vec<f64> = u.iter().zip(&shape).map(|(v, o)| v + h * o).collect();
+        let mut col = (self.residual_with(th, &ua, &target)? - self.residual_with(th, &ub, &target)?) / (2.0 * h);
+        c.whiten(col.as_mut_slice());
+        Some(col)
+    }
+
     /// The chain's Jacobian columns (see [`ChainSetup`]).
     fn chain_columns(&self, th: &[f64], c: &ChainSetup) -> Vec<Vec<f64>> {
         let nl = self.n_layout();
         let fit = self.fit.clone();
         let mut cols = vec![];
         let on = c.terms.on();
-        // The current to match does not depend on hp_u or dc_u.
+        // The current to match does not depend on hp_u.
         let target = c.target(&th[nl..]);
-        // Unknown `k` changes the drive: its column by a central difference of step `h`, two
-        // runs of the model.
-        let drive_column = |k: usize, h: f64| -> Vec<f64> {
+        // The two thetas of unknown `k`'s central difference of step `h`, and their distance.
+        let pair = |k: usize, h: f64| -> (Vec<f64>, Vec<f64>, f64) {
             let (mut a, mut b) = (th.to_vec(), th.to_vec());
             a[k] += h;
             b[k] -= h;
+            (a, b, 2.0 * h)
+        };
+        // Unknown `k` changes the drive: its column by a difference, two runs of the model.
+        let drive_column = |k: usize, h: f64| -> Vec<f64> {
+            let (a, b, d) = pair(k, h);
             let ra = self.residual_with(&a, &c.voltage(&a[nl..]).0, &target);
             let rb = self.residual_with(&b, &c.voltage(&b[nl..]).0, &target);
             match (ra, rb) {
-                (Some(ra), Some(rb)) => ra.iter().zip(rb.iter()).map(|(x, y)| (x - y) / (2.0 * h)).collect(),
+                (Some(ra), Some(rb)) => ra.iter().zip(rb.iter()).map(|(x, y)| (x - y) / d).collect(),
                 _ => vec![0.0; fit.len()],
             }
         };
@@ -908,19 +1018,21 @@ impl<'a> OutputError<'a> {
             let col: Vec<f64> = if n == 1 {
                 drive_column(k, h)
             } else {
-                let (mut a, mut b) = (th.to_vec(), th.to_vec());
-                a[k] += h;
-                b[k] -= h;
+                let (a, b, d) = pair(k, h);
                 let (ta, tb) = (c.target(&a[nl..]), c.target(&b[nl..]));
-                fit.clone().map(|m| -(ta[m] - tb[m]) / (2.0 * h)).collect()
+                fit.clone().map(|m| -(ta[m] - tb[m]) / d).collect()
             };
             cols.push(col);
             k += 1;
         }
-        // dc_u: one unit of step.
-        cols.push(drive_column(k, 1.0));
+        if c.dc_u_free {
+            // dc_u: one unit of step.
+            cols.push(drive_column(k, 1.0));
+        }
+        // The basis, delayed as the target takes it off (see ChainSetup::target).
+        let tau = c.values(&th[nl..])[0];
         for (_, b) in &c.basis {
-            cols.push(b[fit.clone()].to_vec());
+            cols.push(coilscope_core::chain::delay(b, -tau)[fit.clone()].to_vec());
         }
         cols
     }
@@ -1238,22 +1350,39 @@ impl Truncation {
 }
 
 /// The chain of a final theta (`nl` layout unknowns) with its sds from `cov`.
-fn chain_of(c: &ChainSetup, th: &[f64], nl: usize, cov: Option<&DMatrix<f64>>) -> coilscope_core::chain::Chain {
+fn chain_of(c: &ChainSetup, th: &[f64], nl: usize, cov: Option<&DMatrix<f64>>, dc_u_sd: f64) -> coilscope_core::chain::Chain {
     let fs = c.terms.fs;
     let tc = &th[nl..];
     let sd = |k: usize| cov.map_or(f64::NAN, |m| crate::lm::sd_from_variance(m[(nl + k, nl + k)]));
     let [_, _, fi] = c.values(tc);
     let mut out = crate::linear::ChainEstimate { values: c.values(tc), sd: c.terms.sds(cov, nl), on: c.terms.on(), fs }.to_chain();
-    let km = c.dc_u_index();
-    out.dc_u = tc[km] * c.u_unit;
-    out.sd.insert("dc_u".into(), sd(km) * c.u_unit);
+    out.dc_u = c.voltage(tc).1;
+    let sd_dc = match c.dc_u_index() {
+        Some(km) => sd(km) * c.u_unit,
+        None => {
+            // Held, dc_u follows hp_u (ChainSetup::voltage): its sd is hp_u's, carried
+            // through, and the drive's own mean's (ChainSetup::dc_u_sd).
+            let fu = c.values(tc)[1];
+            let h = 1e-3 * fu.abs().max(0.1);
+            let slope = (c.dc_u(fu + h) - c.dc_u(fu - h)) / (2.0 * h);
+            let sd_u = c.terms.on()[1].then(|| out.sd.get("hp_u").copied()).flatten().unwrap_or(0.0);
+            (slope * sd_u).hypot(dc_u_sd)
+        }
+    };
+    out.sd.insert("dc_u".into(), sd_dc);
     out.fitted.push("dc_u".into());
-    let k = km + 1;
-    // The offset behind a coupling of corner fi: its inverse maps dc to dc (1 + K) plus a ramp.
+    let k = c.basis_index();
+    // The offset behind a coupling of corner fi: its inverse maps dc to dc (1 + K) plus a ramp
+    // 2 K dc per sample. Read off the ramp where the ramp is the larger part over the record
+    // (2 K n >= 1): the constant also takes what the inverted coupling makes of the hum (a
+    // sinusoid plus a constant set by its phase at the start), which put the current's offset
+    // 1.1 % off at 24 sd (PTT4 through every effect of a card); the ramp has none of it.
     let kk = (std::f64::consts::PI * fi / fs).tan();
     let a = c.basis[0].1[0];
-    out.dc_i = a * tc[k] / (1.0 + kk);
-    out.sd.insert("dc_i".into(), a * sd(k) / (1.0 + kk));
+    let n = c.basis[0].1.len() as f64;
+    let (dc_i, sd_i) = if 2.0 * kk * n >= 1.0 { (a * tc[k + 1] / (2.0 * kk * n), a * sd(k + 1) / (2.0 * kk * n)) } else { (a * tc[k] / (1.0 + kk), a * sd(k) / (1.0 + kk)) };
+    out.dc_i = dc_i;
+    out.sd.insert("dc_i".into(), sd_i);
     out.fitted.push("dc_i".into());
     // Hum: the mains family with the larger lines.
     let lines = |mains: f64| -> Vec<[f64; 2]> {
@@ -1697,6 +1826,30 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         }
     }
 
+    // The final fit's chain. Behind an AC coupling the voltage channel's offset is free (see
+    // ChainSetup), starting at the held value. The whitening follows the search's current
+    // corner: the linear start gave 0 behind 1.5-4.7 Hz couplings, and unwhitened, the
+    // sensor noise's random walk behind the inverted coupling pulled the current's offset
+    // 1.1 % off at 32 sd (PTT4 through every effect of a card).
+    let final_setup;
+    let setup = match setup {
+        Some(c) => {
+            let [_, fu, fi] = c.values(&cth);
+            let whiten_hz = fi.clamp(0.0, 10.0);
+            let free = c.dc_u_free || fu > DC_COUPLED_HZ;
+            if free != c.dc_u_free || (whiten_hz - c.whiten_hz).abs() > 0.1 * whiten_hz.max(c.whiten_hz) {
+                if free && !c.dc_u_free {
+                    cth.insert(c.terms.count(), c.voltage(&cth).1 / c.u_unit);
+                }
+                final_setup = ChainSetup { dc_u_free: free, whiten_hz, ..c.clone() };
+                Some(&final_setup)
+            } else {
+                Some(c)
+            }
+        }
+        None => None,
+    };
+
     // Final fit on the whole record.
     let lay = layout_for(order).with_effects(effects);
     let th = join(lay.theta_from(&current, re_track.as_deref()), &cth);
@@ -1737,11 +1890,24 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     // over blocks of COVARIANCE_BLOCK_S, which holds when the residual is coloured (the
     // classical sigma^2 (J^T J)^-1 takes it as white), then widened by the residual's excess
     // over its noise floor (see MODEL_ERROR_RATIO).
-    let cov = match prob.last_jacobian.lock().expect("jacobian cache").take() {
-        Some(j) if r.len() > j.ncols() => crate::lm::sandwich_covariance(&j, &r, ((COVARIANCE_BLOCK_S * fs) as usize).max(1)),
+    let jac = prob.last_jacobian.lock().expect("jacobian cache").take();
+    let cov = match &jac {
+        Some(j) if r.len() > j.ncols() => crate::lm::sandwich_covariance(j, &r, ((COVARIANCE_BLOCK_S * fs) as usize).max(1)),
         _ => crate::lm::covariance(&prob, &s.theta),
     };
     let cov = cov.map(|c| if excess > MODEL_ERROR_RATIO { c * (excess * excess) } else { c });
+    // The drive's own mean, which dc_u's convention takes as 0 (ChainSetup::voltage): on a
+    // DC-coupled voltage channel the curves shift with it, and nothing in the record can
+    // say by how much (through DC-coupled cards of the harsh world the truth was 5-23 sd
+    // outside bands that left it out).
+    let dc_u_sd = setup.filter(|c| !c.dc_u_free).map(|c| c.dc_u_sd(&s.theta[lay.slots().n..]));
+    let cov = match (cov, setup, dc_u_sd, &jac) {
+        (Some(cv), Some(c), Some(sd), Some(j)) => match prob.dc_u_column(&s.theta, c) {
+            Some(col) => Some(with_nuisance(cv, j, &col, sd)),
+            None => Some(cv),
+        },
+        (cv, ..) => cv,
+    };
     let cov = match (cov, setup) {
         (Some(c), Some(ch)) if ch.terms.delay => Some(with_systematic(c, lay.slots().n, DELAY_SYSTEMATIC_SAMPLES)),
         (c, _) => c,
@@ -1758,7 +1924,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     };
     let converged = s.converged || s.last_decrease == 0.0;
     let re_track = prob.re_track(&s.theta);
-    let chain = setup.map(|c| chain_of(c, &s.theta, lay.slots().n, cov.as_ref()));
+    let chain = setup.map(|c| chain_of(c, &s.theta, lay.slots().n, cov.as_ref(), dc_u_sd.unwrap_or(0.0)));
     let (u_phys, i_phys) = {
         let (a, b) = prob.signals(&s.theta);
         (a.into_owned(), b.into_owned())
