@@ -797,14 +797,8 @@ impl ChainSetup {
         let n = u.len();
         let fs = self.terms.fs;
         let bins = ((DRIVE_MEAN_HZ * n as f64 / fs) as usize).max(4).min(n / 2);
-        let power: f64 = (1..=bins)
-            .map(|k| {
-                let w = 2.0 * std::f64::consts::PI * k as f64 / n as f64;
-                let (c, s) = u.iter().enumerate().fold((0.0, 0.0), |(c, s), (m, v)| (c + v * (w * m as f64).cos(), s + v * (w * m as f64).sin()));
-                c * c + s * s
-            })
-            .sum::<f64>()
-            / bins as f64;
+        let spec = coilscope_core::fft::rfft(&u);
+        let power = spec[1..=bins].iter().map(|x| x.norm_sqr()).sum::<f64>() / bins as f64;
         // A drive mean m moves dc_u by m sum(s) / sum(s^2), s the offset's shape.
         let shape = coilscope_core::chain::offset_behind(n, fu, fs);
         let gain = shape.iter().sum::<f64>() / shape.iter().map(|v| v * v).sum::<f64>();
