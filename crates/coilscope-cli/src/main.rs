@@ -492,6 +492,29 @@ enum Command {
         /// The database (or the measurement directory holding run.sqlite).
         database: PathBuf,
     },
+    /// Pre-inverse compensation (seed paper 3.2.2.2.3, Fig. 6): the drive that makes the
+    /// driver's displacement, and so its sound pressure, follow its linear model's for an
+    /// input signal. The inverse of the model (normal form, Eq. 9) used as a controller.
+    Compensate {
+        /// Embedded driver name, parameter file or result file (JSON).
+        params: String,
+        /// The input signal (WAV, channel 1, volts): what the linear driver should play.
+        #[arg(long)]
+        input: PathBuf,
+        /// The compensated drive (mono 32-bit float WAV, volts): play this instead.
+        #[arg(long)]
+        out: PathBuf,
+        /// Clip the drive at this magnitude (V): the amplifier's limit.
+        #[arg(long)]
+        max_volts: Option<f64>,
+        /// Floor of the force factor Bl(x) + Le'(x) i the inverse divides by, relative to
+        /// Bl(0) (where Bl(x) falls at the ends of the gap, the current it asks for runs away).
+        #[arg(long, default_value_t = 0.2)]
+        min_force_factor: f64,
+        /// Scale factor of an integer-PCM --input (V per count).
+        #[arg(long)]
+        scale: Option<f64>,
+    },
     /// Predicted distortion of a parameter set (or result) by simulation to the steady state:
     /// HD2/HD3/THD of a sine, each nonlinearity's share and the Volterra prediction; the IMD of
     /// a two-tone (--freq2); a multitone spectrum (--multitone); sweeps (--sweep, --levels).
@@ -655,6 +678,7 @@ fn main() -> ExitCode {
         }
         Command::Diagnose { params, limits, json } => cmd_diagnose(&params, &limits, json).map_err(Failure::from),
         Command::Report { result, out, db, volts, limits } => cmd_report(&result, &out, db.as_deref(), volts, &limits).map_err(Failure::from),
+        Command::Compensate { params, input, out, max_volts, min_force_factor, scale } => cmd_compensate(&params, &input, &out, max_volts, min_force_factor, scale).map_err(Failure::from),
         Command::Drivers => cmd_drivers().map_err(Failure::from),
         Command::Check { params } => load_parameters(&params).map_err(|e| Failure::Error(e.to_string())).map(|p| print_params(&p)),
     };
@@ -1712,6 +1736,35 @@ struct DistortionArgs {
 
 fn print_json(v: &serde_json::Value) {
     println!("{}", serde_json::to_string_pretty(v).expect("JSON values serialise"));
+}
+
+/// `compensate`: the pre-inverse drive, and what the model predicts it does (the largest
+/// deviation of the displacement from the linear reference, plain and compensated).
+fn cmd_compensate(params: &str, input: &Path, out: &Path, max_volts: Option<f64>, min_force_factor: f64, scale: Option<f64>) -> Result<(), String> {
+    use coilscope_core::inverse::{compensate, CompensateOptions};
+    let p = coilscope_report::input_from(params)?.params;
+    let (fs, u) = read_voltage(input, scale.map(|s| vec![s]).as_deref()).map_err(|e| e.to_string())?;
+    if u.is_empty() {
+        return Err(format!("{}: the input has no samples", input.display()));
+    }
+    let c = compensate(&p, fs as f64, &u, &CompensateOptions { max_volts, min_force_factor }).map_err(|e| format!("{}: {e}", input.display()))?;
+    coilscope_io::write_voltage(out, fs, &c.drive).map_err(|e| e.to_string())?;
+    let dev = |x: &[f64]| x.iter().zip(&c.x_target).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+    let peak = c.x_target.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+    let sim = |d: &[f64]| simulate(&p, fs as f64, d, &SimOptions::default()).map(|t| dev(&t.x)).map_err(|e| e.to_string());
+    let name = p.name.clone().unwrap_or_else(|| params.to_string());
+    println!("coilscope compensate: {name}, {:.2} s at {fs} Hz", u.len() as f64 / fs as f64);
+    println!("  linear reference peak excursion {:.3} mm", peak * 1e3);
+    println!("  drive peak {:.3} V (input {:.3} V)", c.peak_volts, u.iter().fold(0.0f64, |a, v| a.max(v.abs())));
+    match (sim(&u), sim(&c.drive)) {
+        (Ok(a), Ok(b)) => println!("  the model's displacement off the linear reference (largest): plain {a:.3e} m, compensated {b:.3e} m"),
+        (Err(e), _) | (_, Err(e)) => println!("  (the model's check did not run: {e})"),
+    }
+    for w in &c.warnings {
+        println!("  warning: {w}");
+    }
+    println!("  wrote {}", out.display());
+    Ok(())
 }
 
 fn cmd_distortion(a: DistortionArgs) -> Result<(), String> {

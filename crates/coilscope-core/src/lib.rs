@@ -31,6 +31,7 @@ pub mod creep;
 pub mod excitation;
 pub mod fft;
 pub mod integrate;
+pub mod inverse;
 pub mod limits;
 pub mod model;
 pub mod normal_form;

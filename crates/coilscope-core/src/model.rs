@@ -176,7 +176,7 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
                 let r2 = r2p.eval(x);
                 let u2 = r2 * (i - i2);
                 // d(L2 i2)/dt = u2  =>  L2 di2/dt = u2 - L2' v i2
-                let di2 = (u2 - dl2 * v * i2) / l2;
+                let di2 = (u2 - dl2 * v * i2) * l2.recip();
                 (u2, dl2 * i2 * i2 * 0.5, di2, u2 * (i - i2))
             }
             None => (D::zero(), D::zero(), D::zero(), D::zero()),
@@ -184,16 +184,21 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
         // d(Le g(i) i)/dt = u - Re i - Bl v - u_L2R2  =>  Le h di/dt = ... - Le' v g i; the
         // reluctance force Le' G(i) (Le' i^2 / 2 without Le_i); the loss Rms(|v|) v.
         let (di, f_le, rms) = if self.le_i.is_none() && self.rms_v.is_none() {
-            ((u - re_t * i - bl * v - u_l2r2 - dle * v * i) / le, dle * i * i * 0.5, self.rms)
+            // Times the reciprocal rather than divided: the reciprocal starts as soon as Le(x)
+            // is known, alongside the numerator, instead of after it (RK4's stages wait on
+            // this value). With the constants' reciprocals below: the full model 2.59 -> 2.77 M
+            // samples/s on SB17, 2.32 -> 2.42 on 18WU (divan medians; the machine moves 5-10 %).
+            ((u - re_t * i - bl * v - u_l2r2 - dle * v * i) * le.recip(), dle * i * i * 0.5, self.rms)
         } else {
             self.flux_modulated(u - re_t * i - bl * v - u_l2r2, le, dle, i, v)
         };
         let force = bl * i - rms * v - kms * x + f_le + f_l2;
-        let dv = force / self.mms;
+        // Constants' reciprocals: independent of the state, so they do not wait on it.
+        let dv = force * self.mms.recip();
         let (dtv, dtm) = match &self.thermal {
             Some(t) => {
-                let flow = (tv - tm) / t.rtv;
-                ((re_t * i * i - flow) / t.ctv, (r2_loss + flow - tm / t.rtm) / t.ctm)
+                let flow = (tv - tm) * t.rtv.recip();
+                ((re_t * i * i - flow) * t.ctv.recip(), (r2_loss + flow - tm * t.rtm.recip()) * t.ctm.recip())
             }
             None => (D::zero(), D::zero()),
         };

@@ -302,6 +302,21 @@ pub fn write_recording(path: &Path, rec: &Recording) -> Result<(), IoError> {
     atomic_write(path, buf.get_ref())
 }
 
+/// Write a voltage signal (V) as a mono 32-bit float WAV (atomically): what `simulate
+/// --input` and [`read_voltage`] read back.
+pub fn write_voltage(path: &Path, fs: u32, u: &[f64]) -> Result<(), IoError> {
+    let spec = hound::WavSpec { channels: 1, sample_rate: fs, bits_per_sample: 32, sample_format: hound::SampleFormat::Float };
+    let mut buf = std::io::Cursor::new(Vec::with_capacity(u.len() * 4 + 64));
+    {
+        let mut w = hound::WavWriter::new(&mut buf, spec).map_err(|e| IoError(format!("{}: {e}", path.display())))?;
+        for &v in u {
+            w.write_sample(v as f32).map_err(|e| IoError(format!("{}: {e}", path.display())))?;
+        }
+        w.finalize().map_err(|e| IoError(format!("{}: {e}", path.display())))?;
+    }
+    atomic_write(path, buf.get_ref())
+}
+
 /// A parameter set from an embedded driver name or a JSON file path.
 pub fn load_parameters(spec: &str) -> Result<Parameters, IoError> {
     if let Some(p) = embedded_driver(spec) {

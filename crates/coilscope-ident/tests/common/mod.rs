@@ -18,7 +18,11 @@ pub fn band_z(fit: &LargeFit, truth: &Parameters, which: &[&str]) -> f64 {
             _ => &truth.le,
         };
         let b = fit.band(name, 41);
-        z = z.max((0..b.x.len()).map(|k| (b.value[k] - f.eval(b.x[k])).abs() / b.sd[k]).fold(0.0, f64::max));
+        let zs: Vec<f64> = (0..b.x.len()).map(|k| (b.value[k] - f.eval(b.x[k])) / b.sd[k]).collect();
+        if std::env::var("COILSCOPE_BAND_TRACE").is_ok() {
+            println!("{name}: z {:?}", zs.iter().step_by(4).map(|v| format!("{v:.2}")).collect::<Vec<_>>());
+        }
+        z = z.max(zs.iter().fold(0.0, |m, v| m.max(v.abs())));
     }
     z
 }
