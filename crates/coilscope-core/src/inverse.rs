@@ -97,6 +97,13 @@ pub fn linear_reference(p: &Parameters) -> Parameters {
 /// The drive that makes the transducer `p`, sampled at `fs`, follow the displacement of its
 /// linear reference driven by `input` (V). See the module documentation.
 pub fn compensate(p: &Parameters, fs: f64, input: &[f64], opts: &CompensateOptions) -> Result<Compensation, SimError> {
+    compensate_to(p, &linear_reference(p), fs, input, opts)
+}
+
+/// [`compensate`] towards the displacement of another `reference` set driven by `input`
+/// (normally a linear one: the pre-inverse identification keeps the reference fixed, from the
+/// small-signal parameters, while it adapts `p`).
+pub fn compensate_to(p: &Parameters, reference: &Parameters, fs: f64, input: &[f64], opts: &CompensateOptions) -> Result<Compensation, SimError> {
     if p.creep.is_some() || p.l3r3.is_some() {
         return Err(SimError::Input(
             "compensation of a set with creep or LR-3 is not implemented: both are linear and belong in the linear reference, which does not carry them yet; compensate the set without them (the nonlinearities Bl(x), Kms(x), Le(x), Le(i), Rms(v) are compensated)".into(),
@@ -110,7 +117,7 @@ pub fn compensate(p: &Parameters, fs: f64, input: &[f64], opts: &CompensateOptio
             return Err(SimError::Input(format!("max_volts {m} is not valid (a positive voltage)")));
         }
     }
-    let lin = linear_reference(p);
+    let lin = reference.clone();
     let reference = simulate(&lin, fs, input, &SimOptions::default()).map_err(|e| match e {
         SimError::OutOfRange { t, reason, .. } => SimError::Input(format!(
             "the linear reference leaves the driver's valid range at t = {t:.4} s ({reason}): the input asks for an excursion the parameter set does not describe; lower the input level"

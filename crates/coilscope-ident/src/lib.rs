@@ -16,3 +16,4 @@ pub mod linear;
 pub mod lm;
 pub mod online;
 pub mod post_inverse;
+pub mod pre_inverse;

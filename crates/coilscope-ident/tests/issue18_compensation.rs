@@ -64,5 +64,6 @@ fn compensation_with_identified_parameters_lowers_hd2_hd3_by_20_db() {
         db(hd(&comp, fs, f0, 3)),
         db(worst(&plain) / worst(&comp))
     );
-    assert!(worst(&comp) < 0.1 * worst(&plain), "the worst of HD2/HD3 fell by only {:.1} dB", db(worst(&plain) / worst(&comp)));
+    // The issue asks for 20 dB; the README gives 78.7 dB: fails below 60.
+    assert!(worst(&comp) < 1e-3 * worst(&plain), "the worst of HD2/HD3 fell by only {:.1} dB", db(worst(&plain) / worst(&comp)));
 }
