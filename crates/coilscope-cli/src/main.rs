@@ -54,7 +54,7 @@ impl World {
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum ExcitationKind {
-    /// IEC 60268-1 simulated programme signal (pink noise, band-limited, crest factor 2).
+    /// IEC 60268-1 simulated programme signal (Table II band levels; crest factor 2, --crest CF or inf).
     Noise,
     /// Band-limited pink noise (--band, --crest).
     Pink,
@@ -302,7 +302,7 @@ enum Command {
         /// Band of pink noise, multitone or sweep (Hz).
         #[arg(long, num_args = 2, value_names = ["LO", "HI"])]
         band: Option<Vec<f64>>,
-        /// Crest-factor target for pink noise and multitone.
+        /// Crest-factor target: noise (default 2; inf: not limited, Gaussian as IEC 60268-1 itself), pink noise, multitone.
         #[arg(long)]
         crest: Option<f64>,
         /// Number of multitone tones.
@@ -484,6 +484,10 @@ enum Command {
         /// Seed of the excitation and sensor noise.
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// Crest factor of the IEC 60268-1 noise (peak / RMS; default 2, as power tests use;
+        /// `inf`: not limited, Gaussian, as the standard itself). Its band levels stay Table II's.
+        #[arg(long)]
+        crest: Option<f64>,
     },
     /// List the sound devices (inputs and outputs) for measure --card (build with --features soundcard).
     Devices,
@@ -668,8 +672,8 @@ fn main() -> ExitCode {
         }
         Command::Identify { recording, mms, order, effects, fit } => parse_chain(&fit.chain).and_then(|chain| cmd_identify(&recording, mms, order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, fit.scale.as_deref(), &fit.out)),
         Command::Calibrate { recording, resistor, loopback, scale, out, sense_wiring, sense_ohm } => parse_wiring(&sense_wiring, sense_ohm).and_then(|w| cmd_calibrate(&recording, resistor, loopback, w, scale.as_deref(), &out)),
-        Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed } => {
-            cmd_measure(MeasureArgs { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed })
+        Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed, crest } => {
+            cmd_measure(MeasureArgs { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed, crest })
         }
         Command::Devices => cmd_devices().map_err(Failure::from),
         Command::Runs { database } => cmd_runs(&database).map_err(Failure::from),
@@ -753,7 +757,7 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
                 None => (10.0, (8000.0f64).min(0.45 * a.rate as f64)),
             };
             let exc = match a.excitation {
-                ExcitationKind::Noise => Excitation::Iec,
+                ExcitationKind::Noise => iec_noise(a.crest),
                 ExcitationKind::Pink => Excitation::Pink { f_lo: band.0, f_hi: band.1, crest: a.crest },
                 ExcitationKind::Sine => Excitation::Sine { freq: a.freq },
                 ExcitationKind::Multitone => Excitation::Multitone { f_lo: band.0, f_hi: band.1, count: a.tones, crest: a.crest },
@@ -1482,6 +1486,16 @@ struct MeasureArgs {
     noise: Vec<f64>,
     rate: u32,
     seed: u64,
+    crest: Option<f64>,
+}
+
+/// The IEC noise with `--crest` (None: the default crest [`coilscope_core::excitation::IEC_CREST`]).
+fn iec_noise(crest: Option<f64>) -> Excitation {
+    match crest {
+        None => Excitation::Iec,
+        Some(c) if c.is_infinite() => Excitation::IecCrest { crest: None },
+        Some(c) => Excitation::IecCrest { crest: Some(c) },
+    }
 }
 
 fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
@@ -1552,7 +1566,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     let fs = device.fs();
     let mut source = match &a.music {
         Some(m) => Source::music(m, fs)?,
-        None => Source::noise(&Excitation::Iec, fs, a.seed)?,
+        None => Source::noise(&iec_noise(a.crest), fs, a.seed)?,
     };
     let opts = coilscope_measure::MeasureOptions {
         mms,

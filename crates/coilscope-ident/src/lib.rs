@@ -17,3 +17,4 @@ pub mod lm;
 pub mod online;
 pub mod post_inverse;
 pub mod pre_inverse;
+pub mod thermal;

@@ -169,6 +169,9 @@ pub struct LiveStats {
     /// Sum of squared current error and of squared measured current (A²).
     pub err_sq: f64,
     pub i_sq: f64,
+    /// Sum of the live model's eddy-current loss `R2(x) (i - i2)^2` (W; 0 without LR-2): the
+    /// magnet's heat input ([`crate::thermal`]).
+    pub pm_sum: f64,
 }
 
 impl LiveStats {
@@ -394,6 +397,10 @@ impl Online {
             }
             st.err_sq += r * r;
             st.i_sq += self.i[k] * self.i[k];
+            if let Some((_, r2)) = &self.model.base().l2r2 {
+                let d = ik - s[idx::I2].re;
+                st.pm_sum += r2.eval(s[idx::X]).re * d * d;
+            }
             self.re_num += r * ir;
             self.re_den += ir * ir;
             self.re_err2 += r * r;

@@ -382,6 +382,11 @@ pub struct Measurement {
     pub events: Vec<(f64, String)>,
     /// (t, dT) once per second.
     pub dt_track: Vec<(f64, f64)>,
+    /// The two-node thermal model fitted to the run's tracked rise and powers (a run of at
+    /// least [`THERMAL_FIT_MIN_S`]); also in `params.thermal`. `Err`: why it was not fitted.
+    pub thermal_fit: Option<Result<coilscope_ident::thermal::ThermalFit, String>>,
+    /// What the thermal fit saw: every block after the small-signal stage.
+    pub thermal_track: coilscope_ident::thermal::ThermalTrack,
     pub truth: Option<Truth>,
     pub excitation: String,
     pub device: String,
@@ -677,6 +682,8 @@ pub struct Engine<'a> {
     steady_blocks: usize,
     events: Vec<(f64, String)>,
     dt_track: Vec<(f64, f64)>,
+    /// Every block after the small-signal stage: the tracked rise and the powers.
+    thermal_track: coilscope_ident::thermal::ThermalTrack,
     x_peak_max: f64,
     dtv_max: f64,
     hold_range: [f64; 2],
@@ -746,6 +753,7 @@ impl<'a> Engine<'a> {
             steady_blocks: 0,
             events: Vec::new(),
             dt_track: Vec::new(),
+            thermal_track: Default::default(),
             x_peak_max: 0.0,
             dtv_max: 0.0,
             hold_range: [0.0, 0.0],
@@ -929,6 +937,13 @@ impl<'a> Engine<'a> {
                 // carried forward along its trend over the last second.
                 let slope = (self.dtv_recent.last().unwrap() - self.dtv_recent[0]) / ((self.dtv_recent.len() - 1).max(1) as f64 * self.opts.block);
                 let dtv_ahead = dtv + THERMAL_LAG_S * slope.max(0.0);
+                if st.samples > 0 {
+                    let tt = &mut self.thermal_track;
+                    tt.t.push(t);
+                    tt.dtv.push(dtv);
+                    tt.pv.push(on.re() * st.i_sq / st.samples as f64);
+                    tt.pm.push(st.pm_sum / st.samples as f64);
+                }
                 live.x_min = st.x_min;
                 live.x_max = st.x_max;
                 live.re = on.re();
@@ -1169,6 +1184,14 @@ impl<'a> Engine<'a> {
             }
         }
         params.re = re_cold;
+        // The track is referred to the small-signal fit's Re (`small.re`): its sd, as a
+        // temperature, is an offset the fit cannot see.
+        let offset_sd = self.re_cold_sd / small.re / self.opts.alpha;
+        let thermal_fit = (seconds >= THERMAL_FIT_MIN_S).then(|| fit_thermal_track(&self.thermal_track, if offset_sd.is_finite() { offset_sd } else { 0.0 }));
+        if let Some(Ok(f)) = &thermal_fit {
+            let [rtv, ctv, rtm, ctm] = f.values;
+            params.thermal = Some(coilscope_core::params::Thermal { alpha: self.opts.alpha, rtv, ctv, rtm, ctm });
+        }
         Ok(Measurement {
             params,
             small,
@@ -1188,6 +1211,8 @@ impl<'a> Engine<'a> {
             updates: self.updates,
             events: self.events,
             dt_track: self.dt_track,
+            thermal_fit,
+            thermal_track: self.thermal_track,
             truth: self.device.truth(),
             excitation: self.source.name().to_string(),
             device: self.device.describe(),
@@ -1197,6 +1222,26 @@ impl<'a> Engine<'a> {
             dropped,
         })
     }
+}
+
+/// Shortest run (s) whose thermal track is fitted ([`coilscope_ident::thermal`]): the coil's
+/// time constant is seconds to tens of seconds, the magnet's minutes to an hour.
+pub const THERMAL_FIT_MIN_S: f64 = 120.0;
+
+/// The thermal fit of a run's track, from start values read off the track itself: the
+/// total resistance from the last rise over the mean coil power, split 60/40 between coil
+/// and magnet, a coil time constant of 10 s and a magnet one of 10 minutes.
+fn fit_thermal_track(tr: &coilscope_ident::thermal::ThermalTrack, offset_sd: f64) -> Result<coilscope_ident::thermal::ThermalFit, String> {
+    let n = tr.t.len();
+    if n == 0 {
+        return Err("no blocks were tracked".into());
+    }
+    let tail = n.saturating_sub(n / 10).min(n - 1);
+    let p_mean = tr.pv[tail..].iter().sum::<f64>() / (n - tail) as f64;
+    let rise = tr.dtv[tail..].iter().sum::<f64>() / (n - tail) as f64;
+    let r_total = if p_mean > 0.0 && rise > 0.0 { rise / p_mean } else { 3.0 };
+    let (rtv, rtm) = (0.6 * r_total, 0.4 * r_total);
+    coilscope_ident::thermal::fit_thermal(tr, [rtv, 10.0 / rtv, rtm, 600.0 / rtm], offset_sd)
 }
 
 /// Run a measurement: [`Engine::step`] until it stops, then [`Engine::finish`]. `observe`
@@ -1258,6 +1303,11 @@ impl Measurement {
         // Re is the cold value: its sd is the small-signal fit's. Of the rest, the effects the
         // final model keeps.
         unc.set("Re", self.re_cold_sd);
+        if let Some(Ok(f)) = &self.thermal_fit {
+            for (k, name) in coilscope_ident::thermal::ThermalFit::NAMES.iter().enumerate() {
+                unc.set(&format!("thermal.{name}"), f.sd[k]);
+            }
+        }
         let kept = self.effects.keys();
         self.online.layout.uncertainties(&|k| self.online.sd_theta(k), &|e| kept.contains(&e.key), &mut unc);
         let warnings = self.warnings();

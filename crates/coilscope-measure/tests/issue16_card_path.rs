@@ -102,7 +102,12 @@ fn the_same_card_without_its_calibration_is_off() {
     let m = run(&p, &mut dev);
     let e = errors(&m, &p);
     println!("uncorrected: Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re(cold) {:.3} %, Rms {:.3} %", 100.0 * e[0], 100.0 * e[1], 100.0 * e[2], 100.0 * e[3], 100.0 * e[4]);
-    assert!(e[3] > 0.02, "Re {:.4}", e[3]);
+    // Off: at least two of them more than twice the calibrated path's bounds (Bl, Kms 2 %,
+    // Le 5 %, Re, Rms 1 %). (Through the IEC Table II signal: Le 19.7 %, Rms 17.8 %, Re
+    // 1.13 %; through the signal before it, Re was 2 % off too.)
+    let bounds = [0.02, 0.02, 0.05, 0.01, 0.01];
+    let off = e.iter().zip(bounds).filter(|(v, b)| **v > 2.0 * b).count();
+    assert!(off >= 2, "only {off} of Bl, Kms, Le, Re, Rms are off by more than twice their bounds: {e:?}");
 }
 
 

@@ -241,6 +241,16 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         vec!["Bl rest-position shift".into(), diag.bl_shift_advice()],
         vec!["Polarity (Le asymmetry)".into(), format!("{}: Le(-{:.2} mm) = {:.4} mH, Le(+{:.2} mm) = {:.4} mH", diag.polarity.verdict, diag.polarity.at * 1e3, diag.polarity.le_minus * 1e3, diag.polarity.at * 1e3, diag.polarity.le_plus * 1e3)],
     ];
+    if let (Some(th), Some(unc)) = (p.thermal.as_ref(), result.map(|r| &r.uncertainty)) {
+        // A measured thermal model (a long `measure` run fits it): its values with their sds.
+        let sd = |k: &str| unc.value(&format!("thermal.{k}"));
+        if let (Some(a), Some(b), Some(c), Some(d)) = (sd("Rtv"), sd("Ctv"), sd("Rtm"), sd("Ctm")) {
+            rows.push(vec![
+                "Thermal model (fitted to this run's rise)".into(),
+                format!("Rtv {:.3} ± {a:.3} K/W, Ctv {:.2} ± {b:.2} J/K, Rtm {:.3} ± {c:.3} K/W, Ctm {:.0} ± {d:.0} J/K", th.rtv, th.ctv, th.rtm, th.ctm),
+            ]);
+        }
+    }
     if let Some(t) = &diag.thermal {
         rows.push(vec![format!("Continuous power in Re for +{:.0} K", t.dt_max), format!("{:.1} W (tau_v {:.1} s, tau_m {:.0} s)", t.p_max, t.tau_v, t.tau_m)]);
         rows.push(vec!["Voltage at that limit, worst sine".into(), format!("{:.2} V RMS at {:.0} Hz", t.volts_sine, t.f_sine)]);
