@@ -215,6 +215,14 @@ impl Probe {
             Output::Pressure => self.x.at(n, k) * C::new(0.0, k as f64 * 2.0 * PI * self.freq).powi(2),
         }
     }
+    /// The Volterra prediction of the complex ratios `(line 2 / line 1, line 3 / line 1)` of
+    /// `out` for a cosine of `volts` RMS (what [`crate::distortion::harmonics`] measures on
+    /// the full model, whose tone is a cosine): `H2 a / H1` and `H3 a^2 / H1`, `a` = peak / 2.
+    pub fn ratios(&self, out: Output, volts: f64) -> (C, C) {
+        let a = volts * std::f64::consts::SQRT_2 / 2.0;
+        let h1 = self.line(out, 1, 1);
+        (self.line(out, 2, 2) * a / h1, self.line(out, 3, 3) * a * a / h1)
+    }
     /// Volterra prediction of `(HD2, HD3)` of `out` for a sine of `volts` RMS.
     pub fn hd(&self, out: Output, volts: f64) -> (f64, f64) {
         let a = volts * std::f64::consts::SQRT_2 / 2.0;

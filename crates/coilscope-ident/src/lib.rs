@@ -18,3 +18,4 @@ pub mod online;
 pub mod post_inverse;
 pub mod pre_inverse;
 pub mod thermal;
+pub mod volterra;
