@@ -496,6 +496,32 @@ enum Command {
         /// The database (or the measurement directory holding run.sqlite).
         database: PathBuf,
     },
+    /// Static and quasi-static point-by-point measurement (seed paper 3.2.1; IEC 62458 10.2,
+    /// 10.3) on the virtual driver: a DC offset per working point, the static displacement
+    /// (laser) and the small-signal impedance at each; power series fitted to the points.
+    Quasistatic {
+        /// Virtual driver: embedded name or parameter file.
+        driver: String,
+        /// Result file (JSON: the fitted set, and every working point under `quasi_static`).
+        #[arg(long)]
+        out: PathBuf,
+        /// Working points (odd).
+        #[arg(long, default_value_t = 9)]
+        points: usize,
+        /// The outermost points as a share of the range on each side.
+        #[arg(long, default_value_t = 0.8)]
+        reach: f64,
+        /// Seconds each offset is held before the small signal (a creeping suspension needs
+        /// several: its slowest element relaxes in about 3 s).
+        #[arg(long, default_value_t = 5.0)]
+        hold: f64,
+        /// Power-series order of the fitted curves.
+        #[arg(long, default_value_t = 4)]
+        order: usize,
+        /// The virtual driver's world (`real` adds LOG creep 0.05).
+        #[arg(long, value_enum, default_value = "published")]
+        world: World,
+    },
     /// Pre-inverse compensation (seed paper 3.2.2.2.3, Fig. 6): the drive that makes the
     /// driver's displacement, and so its sound pressure, follow its linear model's for an
     /// input signal. The inverse of the model (normal form, Eq. 9) used as a controller.
@@ -683,6 +709,7 @@ fn main() -> ExitCode {
         Command::Diagnose { params, limits, json } => cmd_diagnose(&params, &limits, json).map_err(Failure::from),
         Command::Report { result, out, db, volts, limits } => cmd_report(&result, &out, db.as_deref(), volts, &limits).map_err(Failure::from),
         Command::Compensate { params, input, out, max_volts, min_force_factor, scale } => cmd_compensate(&params, &input, &out, max_volts, min_force_factor, scale).map_err(Failure::from),
+        Command::Quasistatic { driver, out, points, reach, hold, order, world } => cmd_quasistatic(&driver, &out, points, reach, hold, order, world).map_err(Failure::from),
         Command::Drivers => cmd_drivers().map_err(Failure::from),
         Command::Check { params } => load_parameters(&params).map_err(|e| Failure::Error(e.to_string())).map(|p| print_params(&p)),
     };
@@ -1750,6 +1777,57 @@ struct DistortionArgs {
 
 fn print_json(v: &serde_json::Value) {
     println!("{}", serde_json::to_string_pretty(v).expect("JSON values serialise"));
+}
+
+/// `quasistatic`: the point-by-point measurement on a virtual driver.
+fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f64, order: usize, world: World) -> Result<(), String> {
+    use coilscope_ident::quasi_static::{quasi_static, QuasiStaticOptions};
+    let p = world.apply(load_parameters(driver).map_err(|e| e.to_string())?);
+    let range = p.x_range.ok_or_else(|| format!("{driver}: the set has no x_range: the working points need the range they may go to"))?;
+    if !(reach > 0.0 && reach <= 1.0) {
+        return Err(format!("--reach {reach} is not valid (0 .. 1 of the range)"));
+    }
+    if !(hold >= 0.5 && hold <= 600.0) {
+        return Err(format!("--hold {hold} s is not valid (0.5 .. 600 s)"));
+    }
+    let fs = 48000.0;
+    let ac = generate(&Excitation::Pink { f_lo: 5.0, f_hi: 16000.0, crest: None }, &SignalSpec { fs, seconds: 2.0, rms: 1.0, fade: 0.0, seed: 1 })?;
+    // The small signal at about 2 % of the range at the resonance (a linear estimate).
+    let ts = thiele_small(&p);
+    let per_volt = p.bl.c[0] / (p.re * p.kms.c[0]) * ts.qts.max(0.3);
+    let ac_volts = (0.02 * range[1].min(-range[0]) / per_volt).clamp(0.01, 1.0);
+    let opts = QuasiStaticOptions { mms: p.mms, points, reach, range, hold_s: hold, record_s: 2.0, ac_volts, order, fs };
+    let play = |d: &[f64]| simulate(&p, fs, d, &SimOptions::default()).map(|t| (t.u, t.i, t.x)).map_err(|e| e.to_string());
+    let q = quasi_static(play, &ac, &opts)?;
+    let name = p.name.clone().unwrap_or_else(|| driver.to_string());
+    println!("coilscope quasistatic: {name}, {points} working points to {:.0} % of the range, {hold} s hold", reach * 100.0);
+    println!("  {:>8} {:>9} {:>9} {:>8} {:>8} {:>9} {:>9} {:>8}", "U_dc V", "x_dc mm", "I_dc A", "Re ohm", "Bl T m", "Kms N/m", "k_t N/m", "Le mH");
+    for w in &q.points {
+        println!("  {:>8.3} {:>9.3} {:>9.4} {:>8.4} {:>8.4} {:>9.1} {:>9.1} {:>8.4}", w.u_dc, w.x_dc * 1e3, w.i_dc, w.re_dc, w.bl, w.kms_static, w.k_tangent, w.le * 1e3);
+    }
+    println!("  stiffness at rest: dynamic (small signal at the resonance) {:.1} N/m, static (the secants' series) {:.1} N/m", q.k_dynamic_rest, q.params.kms.eval(0.0));
+    println!("  rest position 1.5 s after the largest offset is released: {:+.4} mm", q.rest_drift * 1e3);
+    let fit = coilscope_core::result::Fit {
+        method: Some("quasi-static point by point (seed paper 3.2.1; IEC 62458 10.2/10.3): DC offsets, static displacement and force balance for Kms, the small-signal impedance at each point for Bl and Le; power series fitted to the points".into()),
+        residual_rel: f64::NAN,
+        x_range: q.params.x_range.unwrap_or([0.0, 0.0]),
+        order: Some(order),
+        ..Default::default()
+    };
+    let lim = coilscope_core::limits::limits(&q.params, fit.x_range);
+    let mut r = ResultFile::new("quasi-static", &format!("virtual {name}"), q.params.clone(), fit, coilscope_core::result::Uncertainty::new("no sds yet: the point-by-point fits' sds are not carried to the series"), Some(&lim));
+    r.other.insert(
+        "quasi_static".into(),
+        json!({
+            "points": q.points.iter().map(|w| json!({"U_dc": w.u_dc, "I_dc": w.i_dc, "x_dc": w.x_dc, "Re_dc": w.re_dc, "Bl": w.bl, "Bl_eff": w.bl_eff, "Kms_static": w.kms_static, "k_tangent": w.k_tangent, "k_eff": w.k_eff, "Le": w.le})).collect::<Vec<_>>(),
+            "k_dynamic_rest": q.k_dynamic_rest,
+            "rest_drift_m": q.rest_drift,
+            "hold_s": hold,
+        }),
+    );
+    write_json(out, &r).map_err(|e| e.to_string())?;
+    println!("  wrote {}", out.display());
+    Ok(())
 }
 
 /// `compensate`: the pre-inverse drive, and what the model predicts it does (the largest

@@ -42,3 +42,25 @@ fn compensate_writes_a_drive_that_linearises_the_displacement() {
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("/nonexistent.wav"));
 }
+
+/// `coilscope quasistatic`: the point-by-point measurement on a virtual driver writes a
+/// quasi-static result with every working point, and names a bad option.
+#[test]
+fn quasistatic_writes_the_points_and_the_fitted_curves() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("qs.json");
+    let o = coilscope(&["quasistatic", "ptt4.0w04-01a", "--points", "5", "--hold", "1", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(text.contains("stiffness at rest: dynamic") && text.contains("rest position"), "{text}");
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(r["kind"], "quasi-static");
+    assert_eq!(r["quasi_static"]["points"].as_array().unwrap().len(), 5);
+    // The fitted Bl at rest is the driver's within 0.5 %.
+    let bl0 = r["parameters"]["Bl"][0].as_f64().unwrap();
+    let truth = coilscope_core::embedded_driver("ptt4.0w04-01a").unwrap().bl.c[0];
+    assert!((bl0 / truth - 1.0).abs() < 5e-3, "{bl0} vs {truth}");
+    let o = coilscope(&["quasistatic", "ptt4.0w04-01a", "--reach", "1.5", "--out", out.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--reach 1.5"));
+}

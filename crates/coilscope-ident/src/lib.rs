@@ -17,5 +17,6 @@ pub mod lm;
 pub mod online;
 pub mod post_inverse;
 pub mod pre_inverse;
+pub mod quasi_static;
 pub mod thermal;
 pub mod volterra;

@@ -1,0 +1,207 @@
+//! Static and quasi-static point-by-point measurement (seed paper 3.2.1; IEC 62458 10.2 and
+//! 10.3): the coil is held at a series of working points `x_dc` by a DC current, and at
+//! each one
+//!
+//! - the **static displacement** (a laser) gives the secant stiffness from the force
+//!   balance: `Kms(x_dc) x_dc = Bl(x_dc) I_dc + 1/2 Le'(x_dc) I_dc^2` (3.2.1.1, 3.2.1.2);
+//! - the **small-signal impedance** of a small noise on top of the DC (3.2.1.3), fitted like
+//!   any record ([`crate::linear::fit_linear_record`], Mms given), gives at the working point
+//!   `Le(x_dc)`, L2/R2, the effective force factor `Bl(x_dc) + Le'(x_dc) I_dc` (the DC
+//!   current's reluctance force adds to Bl in both directions of the coupling) and the
+//!   effective stiffness `k_t(x_dc) - Bl'(x_dc) I_dc - 1/2 Le''(x_dc) I_dc^2` (`k_t` the
+//!   tangent stiffness). The DC terms are taken off with the derivatives of the series fitted
+//!   to the points (two passes);
+//! - the **coil's resistance** `U_dc / I_dc`: the extra heat the DC current makes is tracked.
+//!
+//! The power series are fitted to the points: Bl and Le from the impedances, Kms from the
+//! static balances. The paper's caveats are measured, not assumed: a suspension that creeps
+//! gives a static stiffness below the dynamic one (its creep bank relaxes under a held
+//! offset), and after a large offset the rest position does not come straight back
+//! ([`QuasiStatic::rest_drift`]).
+//!
+//! The transducer is `play`: a drive in volts in, `(u, i, x)` out from rest (a virtual driver
+//! or, later, a card with a laser); so the method is the same on both.
+
+use crate::linear::{fit_linear_record, scale_by_mms, LinearOptions};
+use coilscope_core::{Parameters, Poly};
+use nalgebra::{DMatrix, DVector};
+
+/// Options of [`quasi_static`].
+#[derive(Clone, Debug)]
+pub struct QuasiStaticOptions {
+    /// Moving mass (kg): the absolute scale of the small-signal fits.
+    pub mms: f64,
+    /// Working points (odd: one at rest).
+    pub points: usize,
+    /// The outermost working points, as a share of the range on each side.
+    pub reach: f64,
+    /// The range (m): where the outermost points go (`[x_min, x_max]`).
+    pub range: [f64; 2],
+    /// Seconds the DC is held before the small signal is recorded (a creeping suspension
+    /// relaxes for seconds: the slowest element of a two-per-decade bank from 0.05 Hz is 3 s).
+    pub hold_s: f64,
+    /// Seconds of small signal recorded at each point.
+    pub record_s: f64,
+    /// The small signal's RMS voltage.
+    pub ac_volts: f64,
+    /// Power-series order of the fitted curves.
+    pub order: usize,
+    pub fs: f64,
+}
+
+/// One working point.
+#[derive(Clone, Debug)]
+pub struct WorkingPoint {
+    pub u_dc: f64,
+    pub i_dc: f64,
+    /// Static displacement (m).
+    pub x_dc: f64,
+    /// Coil resistance from the DC (ohm): heated by the DC current.
+    pub re_dc: f64,
+    /// The small-signal fit's effective force factor and stiffness, and Le, at the point.
+    pub bl_eff: f64,
+    pub k_eff: f64,
+    pub le: f64,
+    /// Bl(x_dc) with the reluctance term taken off.
+    pub bl: f64,
+    /// Secant stiffness from the static balance (NaN at rest).
+    pub kms_static: f64,
+    /// Tangent stiffness from the small signal, the DC terms taken off.
+    pub k_tangent: f64,
+}
+
+/// The measurement: the points, and the series fitted to them.
+#[derive(Clone, Debug)]
+pub struct QuasiStatic {
+    pub points: Vec<WorkingPoint>,
+    /// The start set with Bl(x), Kms(x) (static secant), Le(x) fitted to the points, Re the
+    /// cold value (the point at rest), `x_range` the points' span.
+    pub params: Parameters,
+    /// Displacement (m) 1.5 s after the largest positive offset is released to 0 V.
+    pub rest_drift: f64,
+    /// The small signal's stiffness at rest (N/m): the dynamic one, at the resonance. The
+    /// static `params.kms(0)` of a creeping suspension is below it.
+    pub k_dynamic_rest: f64,
+}
+
+/// Least-squares power series of `order` through `(x, y)` (fewer points: lower order).
+pub fn fit_series(x: &[f64], y: &[f64], order: usize) -> Poly {
+    let n = order.min(x.len().saturating_sub(1));
+    let scale = x.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-9);
+    let a = DMatrix::from_fn(x.len(), n + 1, |r, c| (x[r] / scale).powi(c as i32));
+    let b = DVector::from_column_slice(y);
+    let c = a.clone().svd(true, true).solve(&b, 1e-12).unwrap_or_else(|_| DVector::zeros(n + 1));
+    Poly { c: (0..=n).map(|j| c[j] / scale.powi(j as i32)).collect() }
+}
+
+/// The drive of a working point: a raised-cosine ramp to `u_dc` over 1 s, `hold` s of DC,
+/// then `ac` added.
+fn drive(u_dc: f64, hold: f64, ac: &[f64], fs: f64) -> Vec<f64> {
+    let ramp = fs as usize;
+    let held = (hold * fs) as usize;
+    (0..ramp + held + ac.len())
+        .map(|k| {
+            let dc = if k < ramp { u_dc * 0.5 * (1.0 - (std::f64::consts::PI * k as f64 / ramp as f64).cos()) } else { u_dc };
+            dc + if k >= ramp + held { ac[k - ramp - held] } else { 0.0 }
+        })
+        .collect()
+}
+
+fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len().max(1) as f64
+}
+
+/// Run the point-by-point measurement on `play` (`drive -> (u, i, x)`, from rest each time),
+/// with `ac` the small signal (unit RMS noise of at least `record_s`).
+pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>), String>, ac: &[f64], opts: &QuasiStaticOptions) -> Result<QuasiStatic, String> {
+    if opts.points < 3 || opts.points % 2 == 0 {
+        return Err(format!("{} working points: give an odd number, at least 3", opts.points));
+    }
+    let fs = opts.fs;
+    let nrec = (opts.record_s * fs) as usize;
+    if ac.len() < nrec {
+        return Err(format!("the small signal has {} samples, {nrec} needed", ac.len()));
+    }
+    let ac: Vec<f64> = ac[..nrec].iter().map(|v| v * opts.ac_volts).collect();
+    let settle = (0.25 * fs) as usize;
+    let point = |play: &mut dyn FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>), String>, u_dc: f64| -> Result<(WorkingPoint, Parameters), String> {
+        let d = drive(u_dc, opts.hold_s, &ac, fs);
+        let (u, i, x) = play(&d)?;
+        let from = d.len() - nrec + settle;
+        let (u, i, x) = (&u[from..], &i[from..], &x[from..]);
+        let (um, im, xm) = (mean(u), mean(i), mean(x));
+        let uac: Vec<f64> = u.iter().map(|v| v - um).collect();
+        let iac: Vec<f64> = i.iter().map(|v| v - im).collect();
+        let fit = fit_linear_record(&uac, &iac, fs, &format!("working point {:.3} V", u_dc), &LinearOptions::default(), |_| {})?;
+        let p = scale_by_mms(&fit, opts.mms)?;
+        // At rest the DC is only the drift of the noise: Re is the small-signal fit's there.
+        let re_dc = if u_dc != 0.0 { um / im } else { p.re };
+        let wp = WorkingPoint { u_dc, i_dc: im, x_dc: xm, re_dc, bl_eff: p.bl.c[0], k_eff: p.kms.c[0], le: p.le.c[0], bl: f64::NAN, kms_static: f64::NAN, k_tangent: f64::NAN };
+        Ok((wp, p))
+    };
+    // At rest: the small-signal set, and the linear map from volts to displacement.
+    let (rest, p0) = point(&mut play, 0.0)?;
+    let per_volt = rest.bl_eff / (p0.re * rest.k_eff);
+    let half = opts.points / 2;
+    let mut pts = vec![rest];
+    for side in [1.0f64, -1.0] {
+        let edge = if side > 0.0 { opts.range[1] } else { -opts.range[0] };
+        // Outward from rest: each point's volts from the last one's volts per metre (the
+        // suspension stiffens, so the linear map undershoots more and more).
+        let mut volts_per_m = 1.0 / per_volt;
+        for k in 1..=half {
+            let target = side * opts.reach * edge * k as f64 / half as f64;
+            let (wp, _) = point(&mut play, target * volts_per_m)?;
+            if wp.x_dc.abs() > 1e-9 {
+                volts_per_m = wp.u_dc / wp.x_dc;
+            }
+            pts.push(wp);
+        }
+    }
+    pts.sort_by(|a, b| a.x_dc.total_cmp(&b.x_dc));
+    // Two passes: series from the points, then the DC terms taken off with their derivatives.
+    let xs: Vec<f64> = pts.iter().map(|p| p.x_dc).collect();
+    let le = fit_series(&xs, &pts.iter().map(|p| p.le).collect::<Vec<_>>(), opts.order);
+    let dle = derivative(&le);
+    let ddle = derivative(&dle);
+    let mut bl = fit_series(&xs, &pts.iter().map(|p| p.bl_eff).collect::<Vec<_>>(), opts.order);
+    for _ in 0..2 {
+        for p in pts.iter_mut() {
+            p.bl = p.bl_eff - dle.eval(p.x_dc) * p.i_dc;
+        }
+        bl = fit_series(&xs, &pts.iter().map(|p| p.bl).collect::<Vec<_>>(), opts.order);
+    }
+    let dbl = derivative(&bl);
+    for p in pts.iter_mut() {
+        let (x, i) = (p.x_dc, p.i_dc);
+        p.k_tangent = p.k_eff + dbl.eval(x) * i + 0.5 * ddle.eval(x) * i * i;
+        if x.abs() > 1e-3 * opts.range[1].max(-opts.range[0]) {
+            p.kms_static = (bl.eval(x) * i + 0.5 * dle.eval(x) * i * i) / x;
+        }
+    }
+    // Kms: the static secants only (at rest the secant is 0/0; the small signal's stiffness
+    // there is the dynamic one, which a creeping suspension holds above the static).
+    let (kx, ky): (Vec<f64>, Vec<f64>) = pts.iter().filter(|p| p.kms_static.is_finite()).map(|p| (p.x_dc, p.kms_static)).unzip();
+    let kms = fit_series(&kx, &ky, opts.order);
+    let k_dynamic_rest = pts.iter().find(|p| p.u_dc == 0.0).map_or(f64::NAN, |p| p.k_tangent);
+    // The rest position after the largest positive offset: release it, wait a second.
+    let top = pts.iter().map(|p| p.u_dc).fold(0.0, f64::max);
+    let release: Vec<f64> = {
+        let mut d = drive(top, opts.hold_s, &[], fs);
+        let n = (fs as usize) * 2;
+        d.extend((0..n).map(|k| top * 0.5 * (1.0 + (std::f64::consts::PI * (k as f64 / (fs * 0.5)).min(1.0)).cos())));
+        d
+    };
+    let (_, _, xr) = play(&release)?;
+    let rest_drift = *xr.last().unwrap_or(&0.0);
+    let [lo, hi] = [xs[0], xs[xs.len() - 1]];
+    let params = Parameters { re: p0.re, bl, kms, le, x_range: Some([lo, hi]), source: Some("coilscope quasistatic (point by point, DC offset)".into()), ..p0 };
+    Ok(QuasiStatic { points: pts, params, rest_drift, k_dynamic_rest })
+}
+
+fn derivative(p: &Poly) -> Poly {
+    if p.c.len() <= 1 {
+        return Poly::constant(0.0);
+    }
+    Poly { c: p.c.iter().enumerate().skip(1).map(|(j, c)| c * j as f64).collect() }
+}
