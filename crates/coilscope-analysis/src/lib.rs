@@ -27,6 +27,7 @@
 
 pub mod diagnosis;
 pub mod distortion;
+pub mod live_distortion;
 pub mod volterra;
 
 /// `20 log10(r)`, with -400 dB for zero.

@@ -386,6 +386,23 @@ pub struct MeasurementRecord {
     pub protection_events: Vec<(f64, String)>,
     #[serde(default)]
     pub live_model_resets: usize,
+    /// Live distortion (seed paper 4.2), once per second after the small-signal stage: each
+    /// nonlinearity's contribution relative to the signal, from the live model.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub distortion: Vec<DistortionPoint>,
+}
+
+/// `measurement.distortion[]`: `[Bl, Kms, Le]` contributions (RMS over the second, relative
+/// to the signal's RMS) in displacement, current and sound pressure (cone acceleration), and
+/// the dominant nonlinearity in displacement and in sound pressure.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct DistortionPoint {
+    pub t: f64,
+    pub x: [f64; 3],
+    pub i: [f64; 3],
+    pub p: [f64; 3],
+    pub dominant_x: String,
+    pub dominant_p: String,
 }
 
 /// `measurement.small_signal`.

@@ -172,6 +172,8 @@ pub struct LiveStats {
     /// Sum of the live model's eddy-current loss `R2(x) (i - i2)^2` (W; 0 without LR-2): the
     /// magnet's heat input ([`crate::thermal`]).
     pub pm_sum: f64,
+    /// The live model's `[x, v, i]` at each sample (the live distortion's trajectory).
+    pub traj: Vec<[f64; 3]>,
 }
 
 impl LiveStats {
@@ -397,6 +399,7 @@ impl Online {
             }
             st.err_sq += r * r;
             st.i_sq += self.i[k] * self.i[k];
+            st.traj.push([x, s[idx::V].re, ik]);
             if let Some((_, r2)) = &self.model.base().l2r2 {
                 let d = ik - s[idx::I2].re;
                 st.pm_sum += r2.eval(s[idx::X]).re * d * d;

@@ -345,6 +345,8 @@ pub struct Live {
     /// the previous one (relative to the value at rest, over 90 % of the range).
     pub estimate: Option<Parameters>,
     pub change: Option<(f64, f64)>,
+    /// The block's live distortion (after the small-signal stage).
+    pub distortion: Option<coilscope_analysis::live_distortion::Contributions>,
 }
 
 /// The outcome.
@@ -387,6 +389,8 @@ pub struct Measurement {
     pub thermal_fit: Option<Result<coilscope_ident::thermal::ThermalFit, String>>,
     /// What the thermal fit saw: every block after the small-signal stage.
     pub thermal_track: coilscope_ident::thermal::ThermalTrack,
+    /// Live distortion, one point per second ([`coilscope_analysis::live_distortion`]).
+    pub distortion: Vec<coilscope_core::result::DistortionPoint>,
     pub truth: Option<Truth>,
     pub excitation: String,
     pub device: String,
@@ -684,6 +688,11 @@ pub struct Engine<'a> {
     dt_track: Vec<(f64, f64)>,
     /// Every block after the small-signal stage: the tracked rise and the powers.
     thermal_track: coilscope_ident::thermal::ThermalTrack,
+    /// The live distortion: the meter, the sums of squares of the current second's blocks,
+    /// and one point per second.
+    meter: Option<coilscope_analysis::live_distortion::DistortionMeter>,
+    dist_sum: ([f64; 9], usize),
+    distortion: Vec<coilscope_core::result::DistortionPoint>,
     x_peak_max: f64,
     dtv_max: f64,
     hold_range: [f64; 2],
@@ -754,6 +763,9 @@ impl<'a> Engine<'a> {
             events: Vec::new(),
             dt_track: Vec::new(),
             thermal_track: Default::default(),
+            meter: None,
+            dist_sum: ([0.0; 9], 0),
+            distortion: Vec::new(),
             x_peak_max: 0.0,
             dtv_max: 0.0,
             hold_range: [0.0, 0.0],
@@ -845,6 +857,7 @@ impl<'a> Engine<'a> {
             update: None,
             estimate: None,
             change: None,
+            distortion: None,
         };
         match self.online.as_mut() {
             None => {
@@ -900,6 +913,7 @@ impl<'a> Engine<'a> {
                     let mut on = Online::new(&p, self.fs, online_options(&self.opts, x_ref, self.controllable)).map_err(|e| e.0)?;
                     on.push(&self.u_small, &self.i_small).map_err(|e| e.0)?;
                     self.online = Some(on);
+                    self.meter = Some(coilscope_analysis::live_distortion::DistortionMeter::new(&p, self.fs));
                     self.small = Some(p);
                     self.stage = if self.controllable { Stage::Ramp } else { Stage::Hold };
                     if !self.controllable {
@@ -937,6 +951,25 @@ impl<'a> Engine<'a> {
                 // carried forward along its trend over the last second.
                 let slope = (self.dtv_recent.last().unwrap() - self.dtv_recent[0]) / ((self.dtv_recent.len() - 1).max(1) as f64 * self.opts.block);
                 let dtv_ahead = dtv + THERMAL_LAG_S * slope.max(0.0);
+                if let Some(c) = self.meter.as_mut().and_then(|m| m.process(&st.traj)) {
+                    use coilscope_analysis::live_distortion::Contributions;
+                    live.distortion = Some(c);
+                    let f: Vec<f64> = c.x.iter().chain(&c.i).chain(&c.p).copied().collect();
+                    for (a, v) in self.dist_sum.0.iter_mut().zip(&f) {
+                        *a += v * v;
+                    }
+                    self.dist_sum.1 += 1;
+                    if let Some(s) = store.as_deref_mut() {
+                        s.push_distortion(t, f.clone().try_into().expect("nine factors"), Contributions::dominant(&c.x), Contributions::dominant(&c.p));
+                    }
+                    if self.blocks.is_multiple_of(self.per_second) {
+                        let n = self.dist_sum.1 as f64;
+                        let m: Vec<f64> = self.dist_sum.0.iter().map(|a| (a / n).sqrt()).collect();
+                        let (x, i, p) = ([m[0], m[1], m[2]], [m[3], m[4], m[5]], [m[6], m[7], m[8]]);
+                        self.distortion.push(coilscope_core::result::DistortionPoint { t, x, i, p, dominant_x: Contributions::dominant(&x).into(), dominant_p: Contributions::dominant(&p).into() });
+                        self.dist_sum = ([0.0; 9], 0);
+                    }
+                }
                 if st.samples > 0 {
                     let tt = &mut self.thermal_track;
                     tt.t.push(t);
@@ -1043,6 +1076,9 @@ impl<'a> Engine<'a> {
                         self.kms_ratio = (0..=20).map(|k| 1.3 * reach * k as f64 / 20.0).map(|x| est.kms.eval(x).max(est.kms.eval(-x)) / k0).fold(0.0, f64::max);
                         self.checked_reach = reach;
                         live.estimate = Some(est.clone());
+                        if let Some(m) = self.meter.as_mut() {
+                            m.set_params(&est);
+                        }
                         self.prev_est = Some(est);
                         // Convergence: at level for 2 s, small window error, stable curves.
                         // The stable updates must span CONVERGED_SPAN_S (2 updates at the
@@ -1213,6 +1249,7 @@ impl<'a> Engine<'a> {
             dt_track: self.dt_track,
             thermal_fit,
             thermal_track: self.thermal_track,
+            distortion: self.distortion,
             truth: self.device.truth(),
             excitation: self.source.name().to_string(),
             device: self.device.describe(),
@@ -1349,6 +1386,7 @@ impl Measurement {
             small_signal: SmallSignalStage { parameters: self.small.clone(), thiele_small: coilscope_core::small_signal::thiele_small(&self.small) },
             protection_events: self.events.clone(),
             live_model_resets: self.online.resets,
+            distortion: self.distortion.clone(),
         });
         r
     }

@@ -10,6 +10,8 @@
 //! * `runs(id, started, device, options, status, seconds, heartbeat, result)`
 //! * `states(run, t, stage, u_rms, i_rms, gain, f_hp, x_min, x_max, dtv, re, residual)`
 //! * `estimates(run, t, residual, parameters)` (parameters as the contract's JSON)
+//! * `distortion(run, t, bl_x, kms_x, le_x, bl_i, kms_i, le_i, bl_p, kms_p, le_p, dominant_x,
+//!   dominant_p)`: the live distortion of each block (`coilscope_analysis::live_distortion`)
 
 use rusqlite::{params, Connection, OptionalExtension};
 use std::path::Path;
@@ -37,6 +39,7 @@ pub struct Store {
     path: String,
     pending: Vec<StateRow>,
     pending_est: Vec<(f64, f64, String)>,
+    pending_dist: Vec<(f64, [f64; 9], String, String)>,
 }
 
 fn now() -> f64 {
@@ -54,6 +57,8 @@ fn open(path: &Path) -> Result<Connection, String> {
          CREATE TABLE IF NOT EXISTS states(run INTEGER NOT NULL REFERENCES runs(id), t REAL NOT NULL, stage TEXT NOT NULL, u_rms REAL, i_rms REAL,
              gain REAL, f_hp REAL, x_min REAL, x_max REAL, dtv REAL, re REAL, residual REAL);
          CREATE TABLE IF NOT EXISTS estimates(run INTEGER NOT NULL REFERENCES runs(id), t REAL NOT NULL, residual REAL, parameters TEXT NOT NULL);
+         CREATE TABLE IF NOT EXISTS distortion(run INTEGER NOT NULL REFERENCES runs(id), t REAL NOT NULL, bl_x REAL, kms_x REAL, le_x REAL,
+             bl_i REAL, kms_i REAL, le_i REAL, bl_p REAL, kms_p REAL, le_p REAL, dominant_x TEXT, dominant_p TEXT);
          CREATE INDEX IF NOT EXISTS states_run_t ON states(run, t);",
     )
     .map_err(|e| format!("{}: not a coilscope run database, or damaged: {e}", path.display()))?;
@@ -68,7 +73,7 @@ impl Store {
         conn.execute("INSERT INTO runs(started, device, options, status, heartbeat) VALUES (?1, ?2, ?3, 'running', ?1)", params![t, device, options.to_string()])
             .map_err(|e| format!("{}: cannot start a run: {e}", path.display()))?;
         let run = conn.last_insert_rowid();
-        Ok(Store { conn, run, path: path.display().to_string(), pending: Vec::new(), pending_est: Vec::new() })
+        Ok(Store { conn, run, path: path.display().to_string(), pending: Vec::new(), pending_est: Vec::new(), pending_dist: Vec::new() })
     }
 
     pub fn push_state(&mut self, row: StateRow) {
@@ -77,6 +82,12 @@ impl Store {
 
     pub fn push_estimate(&mut self, t: f64, residual: f64, params: &serde_json::Value) {
         self.pending_est.push((t, residual, params.to_string()));
+    }
+
+    /// One block's live distortion: `[Bl, Kms, Le]` in x, then i, then p, and the dominant
+    /// ones in x and p.
+    pub fn push_distortion(&mut self, t: f64, f: [f64; 9], dominant_x: &str, dominant_p: &str) {
+        self.pending_dist.push((t, f, dominant_x.into(), dominant_p.into()));
     }
 
     /// Write everything pending in one transaction (call once per second of measurement).
@@ -94,11 +105,18 @@ impl Store {
             for (t, r, p) in &self.pending_est {
                 se.execute(params![self.run, t, r, p]).map_err(err)?;
             }
+            let mut sd = tx
+                .prepare_cached("INSERT INTO distortion(run, t, bl_x, kms_x, le_x, bl_i, kms_i, le_i, bl_p, kms_p, le_p, dominant_x, dominant_p) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13)")
+                .map_err(err)?;
+            for (t, f, dx, dp) in &self.pending_dist {
+                sd.execute(params![self.run, t, f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7], f[8], dx, dp]).map_err(err)?;
+            }
             tx.execute("UPDATE runs SET seconds = ?1, heartbeat = ?2 WHERE id = ?3", params![seconds, now(), self.run]).map_err(err)?;
         }
         tx.commit().map_err(err)?;
         self.pending.clear();
         self.pending_est.clear();
+        self.pending_dist.clear();
         Ok(())
     }
 
@@ -161,6 +179,30 @@ pub fn read_states(path: &Path, run: Option<i64>) -> Result<Vec<StateRow>, Strin
     };
     let mut st = conn.prepare(&format!("SELECT {STATE_COLUMNS} FROM states WHERE run = ?1 ORDER BY t")).map_err(err)?;
     let rows = st.query_map([run], state_row).map_err(err)?.collect::<Result<Vec<_>, _>>().map_err(err)?;
+    Ok(rows)
+}
+
+/// The live distortion rows of run `run` (the last run when `None`): `(t, [Bl, Kms, Le] in x,
+/// i, p, dominant in x)`, in time order.
+pub fn read_distortion(path: &Path, run: Option<i64>) -> Result<Vec<(f64, [f64; 9], String)>, String> {
+    let conn = open(path)?;
+    let err = |e: rusqlite::Error| format!("{}: cannot read the distortion: {e}", path.display());
+    let run = match run {
+        Some(r) => r,
+        None => conn.query_row("SELECT MAX(id) FROM runs", [], |r| r.get::<_, Option<i64>>(0)).map_err(err)?.ok_or_else(|| format!("{}: the database has no runs", path.display()))?,
+    };
+    let mut st = conn.prepare("SELECT t, bl_x, kms_x, le_x, bl_i, kms_i, le_i, bl_p, kms_p, le_p, dominant_x FROM distortion WHERE run = ?1 ORDER BY t").map_err(err)?;
+    let rows = st
+        .query_map([run], |r| {
+            let mut f = [0.0; 9];
+            for (k, v) in f.iter_mut().enumerate() {
+                *v = r.get::<_, Option<f64>>(k + 1)?.unwrap_or(f64::NAN);
+            }
+            Ok((r.get(0)?, f, r.get::<_, Option<String>>(10)?.unwrap_or_default()))
+        })
+        .map_err(err)?
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(err)?;
     Ok(rows)
 }
 

@@ -449,6 +449,35 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         b.chart(Chart::new("temperature-time", "Voice-coil temperature rise", "time (s)", "dT (K)").line("from the tracked Re", track), "Voice-coil temperature rise from the fitted Re(t).")?;
     }
 
+    // Live distortion (seed paper 4.2): each nonlinearity's contribution over the run.
+    if let Some(d) = result.and_then(|r| r.measurement.as_ref()).map(|m| &m.distortion).filter(|d| d.len() >= 2) {
+        let names = ["Bl(x)", "Kms(x)", "Le(x)"];
+        for (key, title, pick) in [("x", "displacement", 0usize), ("p", "sound pressure (cone acceleration)", 2)] {
+            let mut c = Chart::new(&format!("live-distortion-{key}"), &format!("Live distortion in {title}"), "time (s)", "contribution (% of the signal)");
+            for (k, name) in names.iter().enumerate() {
+                c = c.line(name, d.iter().map(|q| (q.t, 100.0 * [q.x, q.i, q.p][pick][k])).collect());
+            }
+            // The dominant nonlinearity over the run: its share of the seconds, and when it changed.
+            let dom: Vec<&str> = d.iter().map(|q| if pick == 0 { q.dominant_x.as_str() } else { q.dominant_p.as_str() }).collect();
+            let mut counts: Vec<(&str, usize)> = ["Bl", "Kms", "Le"].iter().map(|n| (*n, dom.iter().filter(|d| *d == n).count())).collect();
+            counts.sort_by(|a, b| b.1.cmp(&a.1));
+            let changes: Vec<String> = dom.windows(2).zip(d.iter().skip(1)).filter(|(w, _)| w[0] != w[1]).map(|(w, q)| format!("{} from {:.0} s", w[1], q.t)).collect();
+            let text = format!(
+                "Each nonlinearity's contribution to the {title}, from the live model (RMS over each second, relative to the signal's RMS). Dominant: {} in {} of {} s{}.",
+                counts[0].0,
+                counts[0].1,
+                dom.len(),
+                if changes.is_empty() { String::new() } else { format!("; it changed: {}", changes.join(", ")) }
+            );
+            b.chart(c, &text)?;
+        }
+        let mut c = String::from("t_s,Bl_x,Kms_x,Le_x,Bl_i,Kms_i,Le_i,Bl_p,Kms_p,Le_p,dominant_x,dominant_p\n");
+        for q in d {
+            let _ = writeln!(c, "{:.2},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{},{}", q.t, q.x[0], q.x[1], q.x[2], q.i[0], q.i[1], q.i[2], q.p[0], q.p[1], q.p[2], q.dominant_x, q.dominant_p);
+        }
+        csv.push(("live_distortion.csv".to_string(), c));
+    }
+
     let html = page(&input.title, p, &b.html);
     Ok(Report { html, charts: b.charts, csv, volts, volterra_divergence: divergence })
 }
