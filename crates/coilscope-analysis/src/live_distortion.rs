@@ -64,17 +64,11 @@ pub struct DistortionMeter {
     rest: [f64; 5],
 }
 
-fn derivative(p: &Poly) -> Poly {
-    if p.c.len() <= 1 {
-        return Poly::constant(0.0);
-    }
-    Poly { c: p.c.iter().enumerate().skip(1).map(|(j, c)| c * j as f64).collect() }
-}
 
 impl DistortionMeter {
     pub fn new(p: &Parameters, fs: f64) -> Self {
         let (step, rest) = Self::linear(p, fs);
-        DistortionMeter { fs, p: p.clone(), step, z: [Vector4::zeros(); 3], last: None, dle: derivative(&p.le), rest }
+        DistortionMeter { fs, p: p.clone(), step, z: [Vector4::zeros(); 3], last: None, dle: p.le.derivative(), rest }
     }
 
     /// A new estimate: the series and the linear model follow it; the states carry on.
@@ -82,7 +76,7 @@ impl DistortionMeter {
         let (step, rest) = Self::linear(p, self.fs);
         self.step = step;
         self.rest = rest;
-        self.dle = derivative(&p.le);
+        self.dle = p.le.derivative();
         self.p = p.clone();
     }
 

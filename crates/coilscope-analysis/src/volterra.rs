@@ -107,12 +107,6 @@ fn poly(f: &Poly, x: &Pert) -> Pert {
     acc
 }
 
-fn derivative(f: &Poly) -> Poly {
-    if f.c.len() < 2 {
-        return Poly::constant(0.0);
-    }
-    Poly { c: f.c.iter().enumerate().skip(1).map(|(j, c)| j as f64 * c).collect() }
-}
 
 /// Solve a complex 3x3 system by Gaussian elimination with partial pivoting.
 fn solve3(mut a: [[C; 3]; 3], mut b: [C; 3]) -> [C; 3] {
@@ -156,7 +150,7 @@ pub fn probe(p: &Parameters, freq: f64) -> Probe {
         Some((l2, r2)) => (Some(l2.clone()), r2.clone()),
         None => (None, Poly::constant(0.0)),
     };
-    let (dle, dl2) = (derivative(&p.le), l2.as_ref().map(derivative));
+    let (dle, dl2) = (p.le.derivative(), l2.as_ref().map(|f| f.derivative()));
     let mut u = Pert::zero(w);
     u.c[1][KMAX + 1] = C::new(1.0, 0.0);
     u.c[1][KMAX - 1] = C::new(1.0, 0.0);

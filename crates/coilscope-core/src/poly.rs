@@ -79,6 +79,14 @@ impl Poly<f64> {
         &self.c
     }
 
+    /// The derivative d f / d x as a series (a constant's is 0).
+    pub fn derivative(&self) -> Poly {
+        if self.c.len() < 2 {
+            return Poly::constant(0.0);
+        }
+        Poly { c: self.c.iter().enumerate().skip(1).map(|(j, c)| j as f64 * c).collect() }
+    }
+
     /// Lift to another scalar type (e.g. dual numbers with zero derivative parts).
     pub fn lift<D: DualNum<Primitive = f64> + Copy>(&self) -> Poly<D> {
         Poly { c: self.c.iter().map(|&c| D::from(c)).collect() }
@@ -127,6 +135,8 @@ mod tests {
             assert!((fd2 - ddf).abs() < 1e-4 * ddf.abs().max(1.0), "{fd2} vs {ddf}");
             let (f1, df1) = p.eval_d(x);
             assert_eq!((f1, df1), (f, df));
+            // The derivative series gives the same slope.
+            assert!((p.derivative().eval(x) - df).abs() < 1e-12 * df.abs().max(1e-12));
         }
     }
 

@@ -162,8 +162,8 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
     // Two passes: series from the points, then the DC terms taken off with their derivatives.
     let xs: Vec<f64> = pts.iter().map(|p| p.x_dc).collect();
     let le = fit_series(&xs, &pts.iter().map(|p| p.le).collect::<Vec<_>>(), opts.order);
-    let dle = derivative(&le);
-    let ddle = derivative(&dle);
+    let dle = le.derivative();
+    let ddle = dle.derivative();
     let mut bl = fit_series(&xs, &pts.iter().map(|p| p.bl_eff).collect::<Vec<_>>(), opts.order);
     for _ in 0..2 {
         for p in pts.iter_mut() {
@@ -171,7 +171,7 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
         }
         bl = fit_series(&xs, &pts.iter().map(|p| p.bl).collect::<Vec<_>>(), opts.order);
     }
-    let dbl = derivative(&bl);
+    let dbl = bl.derivative();
     for p in pts.iter_mut() {
         let (x, i) = (p.x_dc, p.i_dc);
         p.k_tangent = p.k_eff + dbl.eval(x) * i + 0.5 * ddle.eval(x) * i * i;
@@ -197,11 +197,4 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
     let [lo, hi] = [xs[0], xs[xs.len() - 1]];
     let params = Parameters { re: p0.re, bl, kms, le, x_range: Some([lo, hi]), source: Some("coilscope quasistatic (point by point, DC offset)".into()), ..p0 };
     Ok(QuasiStatic { points: pts, params, rest_drift, k_dynamic_rest })
-}
-
-fn derivative(p: &Poly) -> Poly {
-    if p.c.len() <= 1 {
-        return Poly::constant(0.0);
-    }
-    Poly { c: p.c.iter().enumerate().skip(1).map(|(j, c)| c * j as f64).collect() }
 }
