@@ -78,6 +78,120 @@ impl Problem for Kernels<'_> {
     }
 }
 
+/// A multitone whose diagonal lines can be read: `count` tone bins between `lo` and `hi`
+/// (bins of the period), about log-spaced, chosen so that no product of order 2 or 3 of the
+/// other tones (`+-f_a +- f_b`, `+-f_a +- f_b +- f_c`) lands on any tone's 2nd or 3rd
+/// harmonic bin, or on a fundamental: there the lines are `H2(f,f) a^2` and `H3(f,f,f) a^3`
+/// alone (to third order), as for a sine.
+pub fn readable_multitone(lo: usize, hi: usize, count: usize) -> Vec<usize> {
+    let ok = |set: &[usize]| {
+        let f: Vec<i64> = set.iter().map(|&v| v as i64).collect();
+        let n = f.len();
+        let fundamental = |v: i64| f.contains(&v);
+        let harmonic = |v: i64| f.iter().any(|&k| v == 2 * k || v == 3 * k);
+        // Order 2: f_a + f_b and |f_a - f_b|; 2 f_a belongs on its own bin.
+        for a in 0..n {
+            for b in a..n {
+                let sum = f[a] + f[b];
+                if (a != b && (harmonic(sum) || fundamental(sum))) || (a == b && (fundamental(sum) || f.iter().any(|&k| sum == 3 * k))) {
+                    return false;
+                }
+                let diff = (f[a] - f[b]).abs();
+                if a != b && (harmonic(diff) || fundamental(diff)) {
+                    return false;
+                }
+            }
+        }
+        // Order 3: +-f_a +- f_b +- f_c; 3 f_a belongs on its own bin, and products on a
+        // fundamental (f_k + f_a - f_a) are not read as kernel lines.
+        for a in 0..n {
+            for b in a..n {
+                for c in b..n {
+                    for (sb, sc) in [(1i64, 1i64), (1, -1), (-1, 1), (-1, -1)] {
+                        let v = (f[a] + sb * f[b] + sc * f[c]).abs();
+                        if a == b && b == c && sb == 1 && sc == 1 {
+                            continue;
+                        }
+                        if harmonic(v) {
+                            return false;
+                        }
+                    }
+                }
+            }
+        }
+        // Order 4: f_a +- f_b +- f_c +- f_d on a 2nd or 3rd harmonic (their lines are a
+        // level weaker than the third order's, but many, and Le's lines are the weakest).
+        for a in 0..n {
+            for b in 0..n {
+                for c in 0..n {
+                    for d in 0..n {
+                        for (sb, sc, sd) in [(1i64, 1i64, 1i64), (1, 1, -1), (1, -1, -1), (-1, -1, -1)] {
+                            let v = (f[a] + sb * f[b] + sc * f[c] + sd * f[d]).abs();
+                            if !harmonic(v) {
+                                continue;
+                            }
+                            // A tone's own harmonic through a pair that cancels (f_k + f_k +
+                            // f_a - f_a) is in a sine's line too: allowed.
+                            let mut net = vec![0i64; n];
+                            for (i, sg) in [(a, 1i64), (b, sb), (c, sc), (d, sd)] {
+                                net[i] += sg;
+                            }
+                            let own = net.iter().filter(|&&m| m != 0).count() == 1 && net.iter().any(|&m| m.abs() >= 2);
+                            if !own {
+                                return false;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        true
+    };
+    let mut set: Vec<usize> = vec![];
+    let ratio = (hi as f64 / lo as f64).powf(1.0 / count.max(2).saturating_sub(1) as f64);
+    for k in 0..count {
+        let want = (lo as f64 * ratio.powi(k as i32)).round() as usize;
+        // The nearest candidate (above, then below) that keeps the set readable.
+        for d in 0..want.max(1) {
+            let mut found = false;
+            for c in [want + d, want.saturating_sub(d)] {
+                if c < lo || c > hi || set.contains(&c) {
+                    continue;
+                }
+                let mut trial = set.clone();
+                trial.push(c);
+                if ok(&trial) {
+                    set = trial;
+                    found = true;
+                    break;
+                }
+            }
+            if found {
+                break;
+            }
+        }
+    }
+    set.sort();
+    set
+}
+
+/// The current's 2nd and 3rd harmonic ratios of each tone of a [`readable_multitone`] in a
+/// steady-state response, as [`Harmonics`] for [`identify_volterra`]: the line at `2 f_k`
+/// and `3 f_k` over the fundamental, each rotated back by the tone's phase (`a_k = A e^{j
+/// phi}` turns `H2 a^2 / (H1 a)` by `phi` and `H3 a^3 / (H1 a)` by `2 phi`).
+pub fn multitone_harmonics(r: &coilscope_analysis::distortion::Response, tones: &[coilscope_analysis::distortion::Tone]) -> Vec<Harmonics> {
+    use realfft::num_complex::Complex64 as C;
+    tones
+        .iter()
+        .map(|t| {
+            let f1 = r.line(Output::Current, t.bin);
+            let rot = |k: i32| C::from_polar(1.0, -(k as f64) * t.phase);
+            let lines = vec![(2usize, r.line(Output::Current, 2 * t.bin) / f1 * rot(1)), (3usize, r.line(Output::Current, 3 * t.bin) / f1 * rot(2))];
+            Harmonics { freq: r.freq(t.bin), volts: t.amplitude / std::f64::consts::SQRT_2, output: Output::Current, fundamental: f1, lines, x_dc: r.x_dc(), x_peak: r.x_peak }
+        })
+        .collect()
+}
+
 /// Fit Bl, Kms, Le to second order to the measured current harmonics `measured` (sines of
 /// [`coilscope_analysis::distortion::harmonics`] with `Output::Current`, at least two
 /// frequencies), the linear parameters and the start of the series from `start`.
