@@ -139,7 +139,6 @@ impl DistortionMeter {
             return None;
         }
         let ratio = |s: [f64; 3], t: f64| s.map(|v| (v / t).sqrt());
-        let _ = le0;
         Some(Contributions { x: ratio(sx, tx), i: ratio(si, ti), p: ratio(sp, tp) })
     }
 }
