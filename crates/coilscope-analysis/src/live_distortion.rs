@@ -36,6 +36,19 @@ pub struct Contributions {
 }
 
 impl Contributions {
+    /// `[Bl, Kms, Le]` in x, then in i, then in p.
+    pub fn flat(&self) -> [f64; 9] {
+        let mut f = [0.0; 9];
+        f[..3].copy_from_slice(&self.x);
+        f[3..6].copy_from_slice(&self.i);
+        f[6..].copy_from_slice(&self.p);
+        f
+    }
+    /// The inverse of [`Contributions::flat`].
+    pub fn from_flat(f: &[f64; 9]) -> Self {
+        Contributions { x: [f[0], f[1], f[2]], i: [f[3], f[4], f[5]], p: [f[6], f[7], f[8]] }
+    }
+
     /// The dominant nonlinearity of an output (`x`, `i` or `p` factors).
     pub fn dominant(f: &[f64; 3]) -> &'static str {
         let k = (0..3).max_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(1);

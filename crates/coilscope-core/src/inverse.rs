@@ -117,15 +117,15 @@ pub fn compensate_to(p: &Parameters, reference: &Parameters, fs: f64, input: &[f
             return Err(SimError::Input(format!("max_volts {m} is not valid (a positive voltage)")));
         }
     }
-    let lin = reference.clone();
-    let reference = simulate(&lin, fs, input, &SimOptions::default()).map_err(|e| match e {
+    let lin = reference;
+    let reference = simulate(lin, fs, input, &SimOptions::default()).map_err(|e| match e {
         SimError::OutOfRange { t, reason, .. } => SimError::Input(format!(
             "the linear reference leaves the driver's valid range at t = {t:.4} s ({reason}): the input asks for an excursion the parameter set does not describe; lower the input level"
         )),
         e => e,
     })?;
-    let ref_model = Model::new(&lin);
-    let ref_dual: Model<Dual64> = Model::lift_from(&lin);
+    let ref_model = Model::new(lin);
+    let ref_dual: Model<Dual64> = Model::lift_from(lin);
     let plant = Model::new(p);
     let plant_dual: Model<Dual64> = Model::lift_from(p);
     let bl0 = p.bl.c[0];
@@ -140,6 +140,16 @@ pub fn compensate_to(p: &Parameters, reference: &Parameters, fs: f64, input: &[f
         let j = ref_dual.deriv(&sd, Dual64::from(input[k]))[idx::V].eps;
         [s[idx::X], s[idx::V], d[idx::V], j]
     };
+    // `d(dv/dt)/di` (the effective force factor over Mms) held at or above the floor, and
+    // whether the floor acted: the slope both the current's Newton step and its rate divide by.
+    let floor = opts.min_force_factor * bl0.abs() / p.mms;
+    let floored = |slope: f64| -> (f64, bool) {
+        if slope.abs() < floor {
+            (floor.copysign(if slope == 0.0 { bl0 } else { slope }), true)
+        } else {
+            (slope, false)
+        }
+    };
     // The current that gives acceleration `a` at (x, v) with the other states of `c`, from
     // `i0`; and whether the force-factor floor acted.
     let current = |c: &State<f64>, a: f64, i0: f64| -> (f64, bool) {
@@ -149,15 +159,8 @@ pub fn compensate_to(p: &Parameters, reference: &Parameters, fs: f64, input: &[f
             let mut sd: State<Dual64> = std::array::from_fn(|j| Dual64::from(c[j]));
             sd[idx::I] = Dual64::new(i, 1.0);
             let dv = plant_dual.deriv(&sd, Dual64::from(0.0))[idx::V];
-            // d(dv)/di times Mms: the effective force factor.
-            let ff = dv.eps * p.mms;
-            let floor = opts.min_force_factor * bl0.abs();
-            let slope = if ff.abs() < floor {
-                limited = true;
-                floor.copysign(if ff == 0.0 { bl0 } else { ff }) / p.mms
-            } else {
-                dv.eps
-            };
+            let (slope, at_floor) = floored(dv.eps);
+            limited |= at_floor;
             let step = (dv.re - a) / slope;
             i -= step;
             if step.abs() <= 1e-13 * (i.abs() + 1e-9) {
@@ -185,12 +188,8 @@ pub fn compensate_to(p: &Parameters, reference: &Parameters, fs: f64, input: &[f
             plant_dual.deriv(&sd, Dual64::from(0.0))[idx::V].eps
         };
         let (e0, e1) = (seeded(0.0), seeded(1.0));
-        let mut slope = e1 - e0;
-        let floor = opts.min_force_factor * bl0.abs() / p.mms;
-        if slope.abs() < floor {
-            slope = floor.copysign(if slope == 0.0 { bl0 } else { slope });
-            limited = true;
-        }
+        let (slope, at_floor) = floored(e1 - e0);
+        limited |= at_floor;
         let di = (fl[3] - e0) / slope;
         // The voltage from the current equation, affine in u.
         let g = plant.deriv(&c, 1.0)[idx::I] - d0[idx::I];

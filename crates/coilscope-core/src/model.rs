@@ -51,6 +51,17 @@ pub struct ThermalModel<D> {
     pub ctm: D,
 }
 
+impl<D: DualNum<Primitive = f64> + Copy> ThermalModel<D> {
+    /// The two-node network's rates (K/s) of the coil and magnet rises `tv`, `tm` under the
+    /// powers `pv` into the coil and `pm` into the magnet (W), as formats.md writes them.
+    #[inline]
+    pub fn rates(&self, tv: D, tm: D, pv: D, pm: D) -> (D, D) {
+        // Constants' reciprocals: independent of the state, so they do not wait on it.
+        let flow = (tv - tm) * self.rtv.recip();
+        ((pv - flow) * self.ctv.recip(), (pm + flow - tm * self.rtm.recip()) * self.ctm.recip())
+    }
+}
+
 /// The model's constants and power series, in scalar type `D`.
 #[derive(Clone, Debug)]
 pub struct Model<D> {
@@ -196,10 +207,7 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
         // Constants' reciprocals: independent of the state, so they do not wait on it.
         let dv = force * self.mms.recip();
         let (dtv, dtm) = match &self.thermal {
-            Some(t) => {
-                let flow = (tv - tm) * t.rtv.recip();
-                ((re_t * i * i - flow) * t.ctv.recip(), (r2_loss + flow - tm * t.rtm.recip()) * t.ctm.recip())
-            }
+            Some(t) => t.rates(tv, tm, re_t * i * i, r2_loss),
             None => (D::zero(), D::zero()),
         };
         [v, dv, di, di2, dtv, dtm]

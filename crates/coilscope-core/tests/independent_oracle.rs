@@ -160,19 +160,13 @@ fn simulator_matches_the_oracle_on_a_stiff_microspeaker_and_a_large_coil() {
     }
 }
 
-/// `|X(f)| / |X(f0)|` for `f = order f0`: the displacement's harmonic distortion over `x`,
-/// a whole number of periods of `f0`.
+/// `|X(order f0)| / |X(f0)|` over `x`, a whole number of periods of `f0`.
 fn hd(x: &[f64], f0: f64, order: usize) -> f64 {
-    let line = |f: f64| {
-        let (mut re, mut im) = (0.0, 0.0);
-        for (k, v) in x.iter().enumerate() {
-            let ph = 2.0 * std::f64::consts::PI * f * k as f64 / FS;
-            re += v * ph.cos();
-            im += v * ph.sin();
-        }
-        re.hypot(im)
-    };
-    line(order as f64 * f0) / line(f0)
+    // A whole number of periods: the lines fall on the DFT's bins.
+    let bin = f0 * x.len() as f64 / FS;
+    assert!((bin - bin.round()).abs() < 1e-9, "{} periods of {f0} Hz", bin);
+    let s = coilscope_core::fft::rfft(x);
+    s[order * bin.round() as usize].norm() / s[bin.round() as usize].norm()
 }
 
 /// Issue 18 (compensation): a 30 Hz tone whose linear reference reaches 80 % of x_range,

@@ -24,7 +24,7 @@
 
 use coilscope_core::inverse::{compensate_to, CompensateOptions};
 use coilscope_core::poly::Poly;
-use coilscope_core::simulate::{simulate, SimOptions};
+use coilscope_core::simulate::{rms, simulate, SimOptions};
 use coilscope_core::Parameters;
 use nalgebra::{DMatrix, DVector};
 
@@ -83,11 +83,6 @@ fn with_theta(p: &Parameters, th: &[f64], order: usize) -> Parameters {
     q
 }
 
-fn rel_rms(e: &[f64], r: &[f64]) -> f64 {
-    let a: f64 = e.iter().map(|v| v * v).sum();
-    let b: f64 = r.iter().map(|v| v * v).sum();
-    (a / b.max(1e-300)).sqrt()
-}
 
 /// Adapt the controller from `start` so that `play` (the transducer: a drive in volts, the
 /// measured displacement in metres back, from rest) follows `reference` driven by `input`,
@@ -116,7 +111,7 @@ pub fn adapt(
             return Err(format!("the transducer returned {} samples for a drive of {}", x.len(), x_ref.len()));
         }
         let e: Vec<f64> = x.iter().zip(&x_ref).map(|(a, b)| a - b).collect();
-        let err = rel_rms(&e, &x_ref);
+        let err = rms(&e) / rms(&x_ref).max(1e-300);
         let accepted = best.as_ref().is_none_or(|(b, _)| err < *b);
         if accepted {
             best = Some((err, th.clone()));

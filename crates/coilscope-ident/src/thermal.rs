@@ -17,6 +17,8 @@
 //! constant) comes out with the large sd it deserves rather than a false precision.
 
 use crate::lm::{lm_step, LmState, Problem};
+use coilscope_core::integrate::{rk4_step, Dynamics};
+use coilscope_core::model::ThermalModel;
 use nalgebra::{DMatrix, DVector};
 
 /// Seconds per cluster of the sandwich covariance.
@@ -75,34 +77,41 @@ impl Fit<'_> {
             .collect()
     }
 
-    /// The coil rise at every block end for `[ln Rtv, ln Ctv, ln Rtm, ln Ctm]`.
+    /// The coil rise at every block end for `[ln Rtv, ln Ctv, ln Rtm, ln Ctm]`: the model's
+    /// own network ([`ThermalModel::rates`]) under the block's powers, by the project's RK4.
     fn rise(&self, th: &[f64]) -> Vec<f64> {
         let [rtv, ctv, rtm, ctm] = [th[0].exp(), th[1].exp(), th[2].exp(), th[3].exp()];
-        let f = |y: [f64; 2], pv: f64, pm: f64| {
-            let flow = (y[0] - y[1]) / rtv;
-            [(pv - flow) / ctv, (pm + flow - y[1] / rtm) / ctm]
-        };
+        let mut net = Network { m: ThermalModel { alpha: 0.0, rtv, ctv, rtm, ctm }, pv: 0.0, pm: 0.0 };
+        // Sub-steps keep RK4 inside its accuracy for a fast coil (h / tau <= 0.2).
+        let tau = (rtv * ctv).min(1.0 / (1.0 / (rtv * ctm) + 1.0 / (rtm * ctm)));
         let mut y = [0.0, 0.0];
         let mut t0 = 0.0;
         let mut out = Vec::with_capacity(self.tr.t.len());
         for k in 0..self.tr.t.len() {
-            let (pv, pm) = (self.tr.pv[k], self.tr.pm[k]);
+            (net.pv, net.pm) = (self.tr.pv[k], self.tr.pm[k]);
             let h = self.tr.t[k] - t0;
-            // Sub-steps keep RK4 inside its accuracy for a fast coil (h / tau <= 0.2).
-            let tau = (rtv * ctv).min(1.0 / (1.0 / (rtv * ctm) + 1.0 / (rtm * ctm)));
             let n = ((h / (0.2 * tau)).ceil() as usize).clamp(1, 1000);
-            let hs = h / n as f64;
             for _ in 0..n {
-                let k1 = f(y, pv, pm);
-                let k2 = f([y[0] + 0.5 * hs * k1[0], y[1] + 0.5 * hs * k1[1]], pv, pm);
-                let k3 = f([y[0] + 0.5 * hs * k2[0], y[1] + 0.5 * hs * k2[1]], pv, pm);
-                let k4 = f([y[0] + hs * k3[0], y[1] + hs * k3[1]], pv, pm);
-                y = [y[0] + hs / 6.0 * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0]), y[1] + hs / 6.0 * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1])];
+                y = rk4_step(&net, &y, h / n as f64, 0.0, 0.0, 0.0);
             }
             t0 = self.tr.t[k];
             out.push(y[0]);
         }
         out
+    }
+}
+
+/// The two-node network under held powers, as a system for the integrator (no input).
+struct Network {
+    m: ThermalModel<f64>,
+    pv: f64,
+    pm: f64,
+}
+
+impl Dynamics<f64, 2> for Network {
+    fn deriv(&self, y: &[f64; 2], _u: f64) -> [f64; 2] {
+        let (a, b) = self.m.rates(y[0], y[1], self.pv, self.pm);
+        [a, b]
     }
 }
 
@@ -128,12 +137,6 @@ impl Problem for Fit<'_> {
         }
         (r, j)
     }
-}
-
-/// The coil rise the two-node model `[Rtv, Ctv, Rtm, Ctm]` gives at every block end of
-/// `track`, under its powers, from a cold start.
-pub fn model_rise(track: &ThermalTrack, values: [f64; 4]) -> Vec<f64> {
-    Fit { tr: track }.rise(&values.map(f64::ln))
 }
 
 /// Fit the two-node model to `track` from `start` (`[Rtv, Ctv, Rtm, Ctm]`). `offset_sd` (K):

@@ -13,16 +13,11 @@ use std::path::Path;
 
 /// `|X(order f0)| / |X(f0)|` over a whole number of periods.
 fn hd(x: &[f64], fs: f64, f0: f64, order: usize) -> f64 {
-    let line = |f: f64| {
-        let (mut re, mut im) = (0.0, 0.0);
-        for (k, v) in x.iter().enumerate() {
-            let ph = 2.0 * std::f64::consts::PI * f * k as f64 / fs;
-            re += v * ph.cos();
-            im += v * ph.sin();
-        }
-        re.hypot(im)
-    };
-    line(order as f64 * f0) / line(f0)
+    // A whole number of periods: the lines fall on the DFT's bins.
+    let bin = f0 * x.len() as f64 / fs;
+    assert!((bin - bin.round()).abs() < 1e-9, "{} periods of {f0} Hz", bin);
+    let s = coilscope_core::fft::rfft(x);
+    s[order * bin.round() as usize].norm() / s[bin.round() as usize].norm()
 }
 
 #[test]

@@ -282,19 +282,16 @@ pub fn read_voltage(path: &Path, scale: Option<&[f64]>) -> Result<(u32, Vec<f64>
     Ok((ch.fs, ch.data.into_iter().next().unwrap_or_default()))
 }
 
-/// Write a recording as 32-bit float WAV in physical units (atomically).
-pub fn write_recording(path: &Path, rec: &Recording) -> Result<(), IoError> {
-    let nch = if rec.x.is_some() { 3 } else { 2 };
-    let spec = hound::WavSpec { channels: nch, sample_rate: rec.fs, bits_per_sample: 32, sample_format: hound::SampleFormat::Float };
-    let mut buf = std::io::Cursor::new(Vec::with_capacity(rec.u.len() * nch as usize * 4 + 64));
+/// Write channels of equal length as an interleaved 32-bit float WAV (atomically).
+fn write_float_wav(path: &Path, fs: u32, channels: &[&[f64]]) -> Result<(), IoError> {
+    let n = channels.first().map_or(0, |c| c.len());
+    let spec = hound::WavSpec { channels: channels.len() as u16, sample_rate: fs, bits_per_sample: 32, sample_format: hound::SampleFormat::Float };
+    let mut buf = std::io::Cursor::new(Vec::with_capacity(n * channels.len() * 4 + 64));
     {
         let mut w = hound::WavWriter::new(&mut buf, spec).map_err(|e| IoError(format!("{}: {e}", path.display())))?;
-        for k in 0..rec.u.len() {
-            let mut put = |v: f64| w.write_sample(v as f32).map_err(|e| IoError(format!("{}: {e}", path.display())));
-            put(rec.u[k])?;
-            put(rec.i[k])?;
-            if let Some(x) = &rec.x {
-                put(x[k])?;
+        for k in 0..n {
+            for c in channels {
+                w.write_sample(c[k] as f32).map_err(|e| IoError(format!("{}: {e}", path.display())))?;
             }
         }
         w.finalize().map_err(|e| IoError(format!("{}: {e}", path.display())))?;
@@ -302,19 +299,18 @@ pub fn write_recording(path: &Path, rec: &Recording) -> Result<(), IoError> {
     atomic_write(path, buf.get_ref())
 }
 
+/// Write a recording as 32-bit float WAV in physical units (atomically).
+pub fn write_recording(path: &Path, rec: &Recording) -> Result<(), IoError> {
+    match &rec.x {
+        Some(x) => write_float_wav(path, rec.fs, &[&rec.u, &rec.i, x]),
+        None => write_float_wav(path, rec.fs, &[&rec.u, &rec.i]),
+    }
+}
+
 /// Write a voltage signal (V) as a mono 32-bit float WAV (atomically): what `simulate
 /// --input` and [`read_voltage`] read back.
 pub fn write_voltage(path: &Path, fs: u32, u: &[f64]) -> Result<(), IoError> {
-    let spec = hound::WavSpec { channels: 1, sample_rate: fs, bits_per_sample: 32, sample_format: hound::SampleFormat::Float };
-    let mut buf = std::io::Cursor::new(Vec::with_capacity(u.len() * 4 + 64));
-    {
-        let mut w = hound::WavWriter::new(&mut buf, spec).map_err(|e| IoError(format!("{}: {e}", path.display())))?;
-        for &v in u {
-            w.write_sample(v as f32).map_err(|e| IoError(format!("{}: {e}", path.display())))?;
-        }
-        w.finalize().map_err(|e| IoError(format!("{}: {e}", path.display())))?;
-    }
-    atomic_write(path, buf.get_ref())
+    write_float_wav(path, fs, &[u])
 }
 
 /// A parameter set from an embedded driver name or a JSON file path.

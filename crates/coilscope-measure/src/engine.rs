@@ -954,19 +954,19 @@ impl<'a> Engine<'a> {
                 if let Some(c) = self.meter.as_mut().and_then(|m| m.process(&st.traj)) {
                     use coilscope_analysis::live_distortion::Contributions;
                     live.distortion = Some(c);
-                    let f: Vec<f64> = c.x.iter().chain(&c.i).chain(&c.p).copied().collect();
+                    let f = c.flat();
                     for (a, v) in self.dist_sum.0.iter_mut().zip(&f) {
                         *a += v * v;
                     }
                     self.dist_sum.1 += 1;
                     if let Some(s) = store.as_deref_mut() {
-                        s.push_distortion(t, f.clone().try_into().expect("nine factors"), Contributions::dominant(&c.x), Contributions::dominant(&c.p));
+                        s.push_distortion(t, f, Contributions::dominant(&c.x), Contributions::dominant(&c.p));
                     }
                     if self.blocks.is_multiple_of(self.per_second) {
+                        // RMS over the second's blocks.
                         let n = self.dist_sum.1 as f64;
-                        let m: Vec<f64> = self.dist_sum.0.iter().map(|a| (a / n).sqrt()).collect();
-                        let (x, i, p) = ([m[0], m[1], m[2]], [m[3], m[4], m[5]], [m[6], m[7], m[8]]);
-                        self.distortion.push(coilscope_core::result::DistortionPoint { t, x, i, p, dominant_x: Contributions::dominant(&x).into(), dominant_p: Contributions::dominant(&p).into() });
+                        let m = Contributions::from_flat(&self.dist_sum.0.map(|a| (a / n).sqrt()));
+                        self.distortion.push(coilscope_core::result::DistortionPoint { t, x: m.x, i: m.i, p: m.p, dominant_x: Contributions::dominant(&m.x).into(), dominant_p: Contributions::dominant(&m.p).into() });
                         self.dist_sum = ([0.0; 9], 0);
                     }
                 }

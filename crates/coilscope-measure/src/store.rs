@@ -167,16 +167,25 @@ fn state_row(r: &rusqlite::Row) -> rusqlite::Result<StateRow> {
 }
 
 /// Every stored state of run `run` (the last run when `None`), in time order.
-pub fn read_states(path: &Path, run: Option<i64>) -> Result<Vec<StateRow>, String> {
+/// An existing database, opened, and the run `run` (the last run when `None`).
+fn open_run(path: &Path, run: Option<i64>) -> Result<(Connection, i64), String> {
     if !path.exists() {
         return Err(format!("{}: no such run database (coilscope measure writes DIR/run.sqlite)", path.display()));
     }
     let conn = open(path)?;
-    let err = |e: rusqlite::Error| format!("{}: cannot read the states: {e}", path.display());
     let run = match run {
         Some(r) => r,
-        None => conn.query_row("SELECT MAX(id) FROM runs", [], |r| r.get::<_, Option<i64>>(0)).map_err(err)?.ok_or_else(|| format!("{}: the database has no runs", path.display()))?,
+        None => conn
+            .query_row("SELECT MAX(id) FROM runs", [], |r| r.get::<_, Option<i64>>(0))
+            .map_err(|e| format!("{}: cannot read the runs: {e}", path.display()))?
+            .ok_or_else(|| format!("{}: the database has no runs", path.display()))?,
     };
+    Ok((conn, run))
+}
+
+pub fn read_states(path: &Path, run: Option<i64>) -> Result<Vec<StateRow>, String> {
+    let (conn, run) = open_run(path, run)?;
+    let err = |e: rusqlite::Error| format!("{}: cannot read the states: {e}", path.display());
     let mut st = conn.prepare(&format!("SELECT {STATE_COLUMNS} FROM states WHERE run = ?1 ORDER BY t")).map_err(err)?;
     let rows = st.query_map([run], state_row).map_err(err)?.collect::<Result<Vec<_>, _>>().map_err(err)?;
     Ok(rows)
@@ -185,12 +194,8 @@ pub fn read_states(path: &Path, run: Option<i64>) -> Result<Vec<StateRow>, Strin
 /// The live distortion rows of run `run` (the last run when `None`): `(t, [Bl, Kms, Le] in x,
 /// i, p, dominant in x)`, in time order.
 pub fn read_distortion(path: &Path, run: Option<i64>) -> Result<Vec<(f64, [f64; 9], String)>, String> {
-    let conn = open(path)?;
+    let (conn, run) = open_run(path, run)?;
     let err = |e: rusqlite::Error| format!("{}: cannot read the distortion: {e}", path.display());
-    let run = match run {
-        Some(r) => r,
-        None => conn.query_row("SELECT MAX(id) FROM runs", [], |r| r.get::<_, Option<i64>>(0)).map_err(err)?.ok_or_else(|| format!("{}: the database has no runs", path.display()))?,
-    };
     let mut st = conn.prepare("SELECT t, bl_x, kms_x, le_x, bl_i, kms_i, le_i, bl_p, kms_p, le_p, dominant_x FROM distortion WHERE run = ?1 ORDER BY t").map_err(err)?;
     let rows = st
         .query_map([run], |r| {
