@@ -709,7 +709,7 @@ fn main() -> ExitCode {
         Command::Diagnose { params, limits, json } => cmd_diagnose(&params, &limits, json).map_err(Failure::from),
         Command::Report { result, out, db, volts, limits } => cmd_report(&result, &out, db.as_deref(), volts, &limits).map_err(Failure::from),
         Command::Compensate { params, input, out, max_volts, min_force_factor, scale } => cmd_compensate(&params, &input, &out, max_volts, min_force_factor, scale).map_err(Failure::from),
-        Command::Quasistatic { driver, out, points, reach, hold, order, world } => cmd_quasistatic(&driver, &out, points, reach, hold, order, world).map_err(Failure::from),
+        Command::Quasistatic { driver, out, points, reach, hold, order, world } => cmd_quasistatic(&driver, &out, points, reach, hold, order, world),
         Command::Drivers => cmd_drivers().map_err(Failure::from),
         Command::Check { params } => load_parameters(&params).map_err(|e| Failure::Error(e.to_string())).map(|p| print_params(&p)),
     };
@@ -1780,15 +1780,15 @@ fn print_json(v: &serde_json::Value) {
 }
 
 /// `quasistatic`: the point-by-point measurement on a virtual driver.
-fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f64, order: usize, world: World) -> Result<(), String> {
+fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f64, order: usize, world: World) -> Result<(), Failure> {
     use coilscope_ident::quasi_static::{quasi_static, QuasiStaticOptions};
     let p = world.apply(load_parameters(driver).map_err(|e| e.to_string())?);
     let range = p.x_range.ok_or_else(|| format!("{driver}: the set has no x_range: the working points need the range they may go to"))?;
     if !(reach > 0.0 && reach <= 1.0) {
-        return Err(format!("--reach {reach} is not valid (0 .. 1 of the range)"));
+        return Err(format!("--reach {reach} is not valid (0 .. 1 of the range)").into());
     }
     if !(hold >= 0.5 && hold <= 600.0) {
-        return Err(format!("--hold {hold} s is not valid (0.5 .. 600 s)"));
+        return Err(format!("--hold {hold} s is not valid (0.5 .. 600 s)").into());
     }
     let fs = 48000.0;
     let ac = generate(&Excitation::Pink { f_lo: 5.0, f_hi: 16000.0, crest: None }, &SignalSpec { fs, seconds: 2.0, rms: 1.0, fade: 0.0, seed: 1 })?;
@@ -1807,7 +1807,12 @@ fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f6
     }
     println!("  stiffness at rest: dynamic (small signal at the resonance) {:.1} N/m, static (the secants' series) {:.1} N/m", q.k_dynamic_rest, q.params.kms.eval(0.0));
     println!("  rest position 1.5 s after the largest offset is released: {:+.4} mm", q.rest_drift * 1e3);
+    for w in &q.warnings {
+        println!("  warning: {w}");
+    }
     let fit = coilscope_core::result::Fit {
+        trustworthy: Some(q.warnings.is_empty()),
+        warnings: Some(q.warnings.iter().map(|w| coilscope_core::result::Warning::new("quasi-static", w.clone())).collect()),
         method: Some("quasi-static point by point (seed paper 3.2.1; IEC 62458 10.2/10.3): DC offsets, static displacement and force balance for Kms, the small-signal impedance at each point for Bl and Le; power series fitted to the points".into()),
         residual_rel: f64::NAN,
         x_range: q.params.x_range.unwrap_or([0.0, 0.0]),
@@ -1827,7 +1832,11 @@ fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f6
     );
     write_json(out, &r).map_err(|e| e.to_string())?;
     println!("  wrote {}", out.display());
-    Ok(())
+    if q.warnings.is_empty() {
+        Ok(())
+    } else {
+        Err(Failure::Untrusted(format!("{}: {}", out.display(), q.warnings.join("; "))))
+    }
 }
 
 /// `compensate`: the pre-inverse drive, and what the model predicts it does (the largest

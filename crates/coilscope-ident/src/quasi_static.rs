@@ -82,10 +82,23 @@ pub struct QuasiStatic {
     /// The small signal's stiffness at rest (N/m): the dynamic one, at the resonance. The
     /// static `params.kms(0)` of a creeping suspension is below it.
     pub k_dynamic_rest: f64,
+    /// What makes the curves doubtful, named: a coil the DC heated far (its Re rose by more
+    /// than [`MAX_RE_RISE`]). (Points short of the reach asked for are not: `params.x_range`
+    /// is the span they reached.)
+    pub warnings: Vec<String>,
 }
+
+/// Largest rise of the coil's resistance under a working point's DC before the result is
+/// called doubtful (20 %: about 50 K of copper). A microspeaker with a 2 s thermal time
+/// constant held at its excursion limit by DC heats hundreds of kelvin (0.1 g: Re 7.5 -> 27
+/// ohm), its current and so its reach collapse, and its curves came out 70-125 % off.
+pub const MAX_RE_RISE: f64 = 0.2;
 
 /// Least-squares power series of `order` through `(x, y)` (fewer points: lower order).
 pub fn fit_series(x: &[f64], y: &[f64], order: usize) -> Poly {
+    if x.is_empty() {
+        return Poly::constant(f64::NAN);
+    }
     let n = order.min(x.len().saturating_sub(1));
     let scale = x.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-9);
     let a = DMatrix::from_fn(x.len(), n + 1, |r, c| (x[r] / scale).powi(c as i32));
@@ -182,6 +195,14 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
     // Kms: the static secants only (at rest the secant is 0/0; the small signal's stiffness
     // there is the dynamic one, which a creeping suspension holds above the static).
     let (kx, ky): (Vec<f64>, Vec<f64>) = pts.iter().filter(|p| p.kms_static.is_finite()).map(|p| (p.x_dc, p.kms_static)).unzip();
+    if kx.len() < 2 {
+        let seen: Vec<String> = pts.iter().map(|p| format!("{:.3} V: x {:.4} mm, Bl_eff {:.4}", p.u_dc, p.x_dc * 1e3, p.bl_eff)).collect();
+        return Err(format!(
+            "only {} working point(s) gave a static stiffness, at least 2 are needed: the coil did not move off rest, or the small-signal fits at the points failed (raise the small signal's level) ({})",
+            kx.len(),
+            seen.join(", ")
+        ));
+    }
     let kms = fit_series(&kx, &ky, opts.order);
     let k_dynamic_rest = pts.iter().find(|p| p.u_dc == 0.0).map_or(f64::NAN, |p| p.k_tangent);
     // The rest position after the largest positive offset: release it, wait a second.
@@ -195,6 +216,15 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
     let (_, _, xr) = play(&release)?;
     let rest_drift = *xr.last().unwrap_or(&0.0);
     let [lo, hi] = [xs[0], xs[xs.len() - 1]];
+    let mut warnings = vec![];
+    let hot = pts.iter().map(|p| p.re_dc / p0.re - 1.0).fold(0.0, f64::max);
+    if hot > MAX_RE_RISE {
+        warnings.push(format!(
+            "the DC heated the coil: its resistance rose by {:.0} % (about {:.0} K) at the outermost points; the current, the reach and the curves there are not trustworthy (shorten --hold, fewer points, or measure with a displacement offset that needs no current: an added mass or pressure)",
+            100.0 * hot,
+            hot / coilscope_core::params::ALPHA_COPPER
+        ));
+    }
     let params = Parameters { re: p0.re, bl, kms, le, x_range: Some([lo, hi]), source: Some("coilscope quasistatic (point by point, DC offset)".into()), ..p0 };
-    Ok(QuasiStatic { points: pts, params, rest_drift, k_dynamic_rest })
+    Ok(QuasiStatic { points: pts, params, rest_drift, k_dynamic_rest, warnings })
 }

@@ -43,6 +43,7 @@ fn quasi_static_curves_without_creep_are_within_2_percent() {
         println!("{name}: over 80 % of the range Bl {:.3} %, Kms {:.3} %, Le {:.3} %; rest drift {:.4} mm", 100.0 * eb, 100.0 * ek, 100.0 * el, q.rest_drift * 1e3);
         assert!(eb < 0.01 && ek < 0.01, "{name}: Bl {eb:.4}, Kms {ek:.4}");
         assert!(q.rest_drift.abs() < 1e-3 * hi, "{name}: the rest position moved by {} mm without creep", q.rest_drift * 1e3);
+        assert!(q.warnings.is_empty(), "{name}: {:?}", q.warnings);
     }
 }
 
@@ -59,4 +60,19 @@ fn with_creep_the_static_stiffness_is_below_the_dynamic_by_the_creep_model() {
     println!("dynamic {:.1} N/m, static {:.1} N/m: difference {measured:.2} N/m, the creep model {kc:.2} N/m; rest drift {:.4} mm", q.k_dynamic_rest, q.params.kms.eval(0.0), q.rest_drift * 1e3);
     assert!((measured / kc - 1.0).abs() < 0.05, "static-dynamic difference {measured} N/m, the creep model {kc} N/m");
     assert!(q.rest_drift > 1e-3 * hi, "after the largest offset the rest position should lag (creep): {} mm", q.rest_drift * 1e3);
+}
+
+/// Off the woofers: the 0.1 g microspeaker (2 s thermal time constant) held at its range by
+/// DC heats hundreds of kelvin, its reach collapses and its curves come out 70-125 % off; the
+/// result must say so (`warnings`), not look like a measurement.
+#[test]
+fn a_coil_the_dc_heats_far_is_named() {
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers");
+    let p = Parameters::from_json_str(&std::fs::read_to_string(format!("{dir}/microspeaker-0g1.json")).unwrap(), "microspeaker").unwrap();
+    let ac = generate(&Excitation::Pink { f_lo: 5.0, f_hi: 16000.0, crest: None }, &SignalSpec { fs: FS, seconds: 2.0, rms: 1.0, fade: 0.0, seed: 7 }).unwrap();
+    let opts = QuasiStaticOptions { mms: p.mms, points: 9, reach: 0.8, range: p.x_range.unwrap(), hold_s: 5.0, record_s: 2.0, ac_volts: 0.1, order: 4, fs: FS };
+    let play = |d: &[f64]| simulate(&p, FS, d, &SimOptions::default()).map(|t| (t.u, t.i, t.x)).map_err(|e| e.to_string());
+    let q = quasi_static(play, &ac, &opts).unwrap();
+    println!("{:?}", q.warnings);
+    assert!(q.warnings.iter().any(|w| w.contains("the DC heated the coil")), "{:?}", q.warnings);
 }
