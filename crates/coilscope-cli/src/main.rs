@@ -64,6 +64,10 @@ enum ExcitationKind {
     Multitone,
     /// Logarithmic sweep over --band.
     Sweep,
+    /// Periodic (1 s) multitone whose tones' 2nd and 3rd harmonics can be read, for
+    /// `identify --method volterra` (--band, --tones, --crest); about half the resonance to
+    /// 20 times it, at a small level.
+    Readable,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -144,8 +148,14 @@ impl ChainChoice {
     /// ([`coilscope_ident::linear::remove_shunt_drop`], through this chain, or through the one
     /// estimated for the purpose).
     fn prepare(&self, rec: &mut coilscope_io::Recording, origin: &str, wiring: SenseWiring) -> Result<Option<coilscope_core::chain::Chain>, Failure> {
+        coilscope_ident::linear::check_hum(&rec.u, &rec.i, rec.fs as f64, self.estimate(), origin)?;
+        self.undo(rec, origin, wiring)
+    }
+
+    /// The record as the driver's terminals saw it: the shunt's drop taken out, a calibrated
+    /// chain inverted (no hum check: the Volterra method reads lines that avoid the mains).
+    fn undo(&self, rec: &mut coilscope_io::Recording, origin: &str, wiring: SenseWiring) -> Result<Option<coilscope_core::chain::Chain>, Failure> {
         let fs = rec.fs as f64;
-        coilscope_ident::linear::check_hum(&rec.u, &rec.i, fs, self.estimate(), origin)?;
         if wiring != SenseWiring::Terminals {
             let ideal = coilscope_core::chain::Chain::default();
             let known = match self {
@@ -388,6 +398,18 @@ enum Command {
         /// Le(i): g(i) = 1 + g1 i + g2 i^2) and `rmsv` (velocity-dependent loss Rms + c2 v^2).
         #[arg(long, default_value = "auto")]
         effects: String,
+        /// `full`: the output-error fit of the whole nonlinear model (any excitation, any
+        /// level). `volterra`: the seed paper's Volterra method (3.2.2.1) on a record of
+        /// `simulate --excitation readable` at small level: the 2nd and 3rd harmonic of each
+        /// tone give the kernels H2, H3, and Bl, Kms, Le are fitted to second order with the
+        /// linear part from --start; it fails at high level (the distortion feeds back), which
+        /// the result's warnings say.
+        #[arg(long, default_value = "full", value_parser = ["full", "volterra"])]
+        method: String,
+        /// `--method volterra`: the small-signal parameters (a result of `coilscope linear`,
+        /// or a parameter set; only the values at rest are used).
+        #[arg(long, value_name = "FILE")]
+        start: Option<String>,
         #[command(flatten)]
         fit: FitArgs,
     },
@@ -696,7 +718,15 @@ fn main() -> ExitCode {
         Command::Linear { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit } => {
             cmd_linear(LinearArgs { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit })
         }
-        Command::Identify { recording, mms, order, effects, fit } => parse_chain(&fit.chain).and_then(|chain| cmd_identify(&recording, mms, order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, fit.scale.as_deref(), &fit.out)),
+        Command::Identify { recording, method, start, mms, order, effects, fit } => parse_chain(&fit.chain).and_then(|chain| {
+            if method == "volterra" {
+                cmd_identify_volterra(&recording, start.as_deref(), mms, order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, fit.scale.as_deref(), &fit.out)
+            } else if start.is_some() {
+                Err(Failure::from("--start is the Volterra method's small-signal set (--method volterra); the full identification finds its own start"))
+            } else {
+                cmd_identify(&recording, mms, order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, fit.scale.as_deref(), &fit.out)
+            }
+        }),
         Command::Calibrate { recording, resistor, loopback, scale, out, sense_wiring, sense_ohm } => parse_wiring(&sense_wiring, sense_ohm).and_then(|w| cmd_calibrate(&recording, resistor, loopback, w, scale.as_deref(), &out)),
         Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed, crest } => {
             cmd_measure(MeasureArgs { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed, crest })
@@ -789,6 +819,7 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
                 ExcitationKind::Sine => Excitation::Sine { freq: a.freq },
                 ExcitationKind::Multitone => Excitation::Multitone { f_lo: band.0, f_hi: band.1, count: a.tones, crest: a.crest },
                 ExcitationKind::Sweep => Excitation::Sweep { f_lo: band.0, f_hi: band.1 },
+                ExcitationKind::Readable => Excitation::Readable { f_lo: band.0, f_hi: band.1, count: a.tones, crest: a.crest },
             };
             let spec = SignalSpec { fs: a.rate as f64, seconds: a.seconds, rms: volts, fade: a.fade, seed: a.seed };
             let u = generate(&exc, &spec)?;
@@ -1340,6 +1371,121 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
             untrusted_if_warned(&warnings, out)
         }
     }
+}
+
+/// `identify --method volterra`: the seed paper's Volterra identification (3.2.2.1) on a
+/// recorded readable multitone. Every number traces to `coilscope_ident::volterra`: the lines
+/// (`record_lines`), the ratios and their noise (`RecordLines::harmonics`), the fit and its
+/// covariance (`identify_volterra_weighted`), the truncation check (`truncation_check`).
+#[allow(clippy::too_many_arguments)]
+fn cmd_identify_volterra(path: &Path, start: Option<&str>, mms: Option<f64>, order: Option<usize>, effects: &str, chain_choice: &ChainChoice, wiring: SenseWiring, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
+    use coilscope_ident::checks::Warning;
+    use coilscope_ident::volterra::{identify_volterra_weighted, record_lines, truncation_check};
+    let origin = path.display().to_string();
+    if let Some(o) = order.filter(|&o| o != 2) {
+        return Err(Failure::from(format!("--order {o}: the Volterra method gives the series to second order (the kernels to third order depend on x^0 .. x^2 only); leave --order out")));
+    }
+    if effects != "auto" && effects != "none" {
+        return Err(Failure::from(format!("--effects {effects}: the Volterra method fits Bl, Kms, Le to the kernels of the start's linear model; its effects (creep, LR-3) come from --start")));
+    }
+    if mms.is_some() {
+        return Err(Failure::from("--mms: the Volterra method takes the moving mass (and the rest of the linear part) from --start"));
+    }
+    let start_spec = start.ok_or("--method volterra needs --start FILE: the small-signal parameters (run `coilscope linear` on a noise record of the driver, or give a parameter set)")?;
+    let start = coilscope_report::input_from(start_spec)?.params;
+    let start = Parameters {
+        bl: coilscope_core::Poly::constant(start.bl.c[0]),
+        kms: coilscope_core::Poly::constant(start.kms.c[0]),
+        le: coilscope_core::Poly::constant(start.le.c[0]),
+        l2r2: start.l2r2.map(|(l, r)| (coilscope_core::Poly::constant(l.c[0]), coilscope_core::Poly::constant(r.c[0]))),
+        sd: sd.or(start.sd),
+        ..start
+    };
+    let mut rec = read_recording(path, scale).map_err(|e| e.to_string())?;
+    if matches!(chain_choice, ChainChoice::Estimate) {
+        return Err(Failure::from("--chain auto: the Volterra method does not estimate a chain (its lines carry no transient to tell it); calibrate the card (`coilscope calibrate`) and give --chain FILE, or --chain none"));
+    }
+    let calibrated = chain_choice.undo(&mut rec, &origin, wiring)?;
+    let fs = rec.fs as f64;
+    let t0 = std::time::Instant::now();
+    let lines = record_lines(&rec.u, &rec.i, fs, &origin)?;
+    let (measured, noise) = lines.harmonics(&start);
+    let fit = identify_volterra_weighted(&start, &measured, Some(&noise))?;
+    let trunc = truncation_check(&fit, &lines, &measured, &noise)?;
+    let chi2 = fit.chi2_dof.unwrap_or(f64::NAN);
+    // The reach: the fitted model driven by the record.
+    let mut q = fit.params.clone();
+    q.x_range = None;
+    let trace = simulate(&q, fs, &rec.u, &SimOptions::default()).map_err(|e| format!("{origin}: the fitted model under the record: {e}"))?;
+    let from = lines.starts[0];
+    let reach = trace.x[from..].iter().fold([0.0f64, 0.0f64], |a, &v| [a[0].min(v), a[1].max(v)]);
+    q.x_range = Some(reach);
+    q.source = Some(format!("coilscope identify --method volterra {origin}"));
+    let mut warnings = vec![];
+    if chi2 > 2.0 || trunc > 1.0 {
+        warnings.push(Warning::new(
+            "volterra-truncation",
+            format!(
+                "the level is too high for the third-order Volterra series: the kernels leave {chi2:.1} times the lines' noise variance unexplained, and the fitted model's own full response differs from its kernels by {trunc:.1} times it. The distortion feeds back into the nonlinearities (seed paper 3.2.2.1) and the fitted coefficients absorb it: lower the level, or use the full identification (`--method full`, on noise at high level)"
+            ),
+        ));
+    }
+    let mut unc = coilscope_core::result::Uncertainty::new(format!(
+        "Volterra method: sd of the second-order series from the kernel fit's covariance, the lines' noise from the scatter of {} periods (scaled up by the fit's chi^2 per degree of freedom where above 1); the values at rest are --start's (sd 0 at x = 0). The truncation of the series is not in the sd: see the warnings",
+        lines.starts.len()
+    ));
+    for which in ["Bl", "Kms", "Le"] {
+        let band = fit.band(which, reach, 21);
+        // A nonlinearity smaller than its sd over the reach is not resolved.
+        let f = match which {
+            "Bl" => &q.bl,
+            "Kms" => &q.kms,
+            _ => &q.le,
+        };
+        let size = band.x.iter().map(|&x| (f.eval(x) - f.c[0]).abs()).fold(0.0, f64::max);
+        let worst_sd = band.sd.iter().cloned().fold(0.0, f64::max);
+        if worst_sd > size {
+            warnings.push(Warning::new(
+                "volterra-unresolved",
+                format!("{which}(x): its change over the reach ({:.3} % of its value at rest) is smaller than its sd ({:.3} %): the record does not resolve this nonlinearity (its lines are at the noise; record longer, or at a somewhat higher level)", 100.0 * size / f.c[0].abs(), 100.0 * worst_sd / f.c[0].abs()),
+            ));
+        }
+        unc.set_band(which, band);
+    }
+    let result_fit = coilscope_core::result::Fit {
+        method: Some(format!(
+            "Volterra (seed paper 3.2.2.1): H2, H3 of a readable multitone ({} tones, {}-{} Hz, {} steady periods averaged); Bl, Kms, Le to second order fitted to the current's 2nd and 3rd harmonic ratios; linear part from {start_spec}",
+            lines.bins.len(),
+            lines.bins[0],
+            lines.bins[lines.bins.len() - 1],
+            lines.starts.len()
+        )),
+        residual_rel: fit.misfit,
+        x_range: reach,
+        order: Some(2),
+        model: "LR-2, Bl/Kms/Le to second order".into(),
+        ..Default::default()
+    };
+    let lim = coilscope_core::limits::limits(&q, reach);
+    let mut result = ResultFile::new("large-signal", &origin, q.clone(), result_fit, unc, Some(&lim));
+    result.chain = calibrated;
+    result.other.insert(
+        "volterra".into(),
+        json!({
+            "tones_hz": lines.bins, "periods": lines.starts.len(), "chi2_dof": chi2, "truncation": trunc,
+            "lines": measured.iter().zip(&noise).map(|(h, n)| json!({"freq": h.freq, "volts_rms": h.volts, "ratio2": [h.ratio(2).re, h.ratio(2).im], "ratio3": [h.ratio(3).re, h.ratio(3).im], "sd2": n[0], "sd3": n[1]})).collect::<Vec<_>>(),
+        }),
+    );
+    attach_warnings(&mut result, None, &warnings);
+    write_json(out, &result).map_err(|e| e.to_string())?;
+    let pct = |f: &coilscope_core::Poly, x: f64| 100.0 * (f.eval(x) / f.c[0] - 1.0);
+    println!("coilscope identify --method volterra: {origin}, {} tones {}-{} Hz, {} periods, {:.2} s", lines.bins.len(), lines.bins[0], lines.bins[lines.bins.len() - 1], lines.starts.len(), t0.elapsed().as_secs_f64());
+    println!("  reach {:+.3} .. {:+.3} mm; kernel chi^2/dof {chi2:.2}, truncation {trunc:.2} (both about 1 or less where the series holds)", 1e3 * reach[0], 1e3 * reach[1]);
+    for (name, f) in [("Bl", &q.bl), ("Kms", &q.kms), ("Le", &q.le)] {
+        println!("  {name:>3}(x) at the reach: {:+.2} % / {:+.2} % of its value at rest", pct(f, reach[0]), pct(f, reach[1]));
+    }
+    println!("  result: {}", out.display());
+    untrusted_if_warned(&warnings, out)
 }
 
 fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::large::LargeFit, result: &ResultFile, seconds: f64) {

@@ -117,7 +117,16 @@ pub enum Excitation {
     Multitone { f_lo: f64, f_hi: f64, count: usize, crest: Option<f64> },
     /// Exponential (logarithmic) sweep over the whole duration.
     Sweep { f_lo: f64, f_hi: f64 },
+    /// The Volterra identification's multitone (`identify --method volterra`): periodic in
+    /// [`READABLE_PERIOD`] (tones on whole hertz), about `count` tones in the band chosen by
+    /// [`readable_multitone`] so that each tone's 2nd and 3rd harmonic can be read, random
+    /// phases, optional crest target. The fades and the first periods are the settling; the
+    /// steady periods are averaged.
+    Readable { f_lo: f64, f_hi: f64, count: usize, crest: Option<f64> },
 }
+
+/// The period of [`Excitation::Readable`] (s): its tones sit on whole hertz.
+pub const READABLE_PERIOD: f64 = 1.0;
 
 /// Duration, level and randomness of a generated signal.
 #[derive(Clone, Debug, PartialEq)]
@@ -208,6 +217,28 @@ pub fn generate(exc: &Excitation, spec: &SignalSpec) -> Result<Vec<f64>, String>
                 None => x,
             }
         }
+        Excitation::Readable { f_lo, f_hi, count, crest } => {
+            check_band(fs, f_lo, f_hi)?;
+            let np = fs * READABLE_PERIOD;
+            if (np - np.round()).abs() > 1e-9 {
+                return Err(format!("the readable multitone is periodic in {READABLE_PERIOD} s: the sample rate {fs} Hz must be a whole number of hertz"));
+            }
+            let np = np.round() as usize;
+            let bins = readable_multitone(f_lo.ceil() as usize, f_hi.floor() as usize, count);
+            if bins.len() < 2 {
+                return Err(format!("only {} readable tone(s) between {f_lo} and {f_hi} Hz: widen the band", bins.len()));
+            }
+            let mut spec = vec![Complex64::new(0.0, 0.0); np / 2 + 1];
+            for &b in &bins {
+                spec[b] = Complex64::from_polar(1.0, rng.random::<f64>() * 2.0 * PI);
+            }
+            let mag: Vec<f64> = spec.iter().map(|c| c.norm()).collect();
+            let period = match crest {
+                Some(c) => reduce_crest(irfft(&spec, np), &mag, c),
+                None => irfft(&spec, np),
+            };
+            (0..n).map(|k| period[k % np]).collect()
+        }
         Excitation::Sweep { f_lo, f_hi } => {
             check_band(fs, f_lo, f_hi)?;
             let t_total = n as f64 / fs;
@@ -221,6 +252,111 @@ pub fn generate(exc: &Excitation, spec: &SignalSpec) -> Result<Vec<f64>, String>
     }
     apply_fades(&mut x, fs, fade);
     Ok(x)
+}
+
+/// A multitone whose diagonal lines can be read: `count` tone bins between `lo` and `hi`
+/// (bins of the period), about log-spaced, chosen so that no product of order 2 or 3 of the
+/// other tones (`+-f_a +- f_b`, `+-f_a +- f_b +- f_c`) lands on any tone's 2nd or 3rd
+/// harmonic bin, or on a fundamental: there the lines are `H2(f,f) a^2` and `H3(f,f,f) a^3`
+/// alone (to third order), as for a sine. With a 1 s period (bins are hertz) no tone, and no
+/// tone's 2nd or 3rd harmonic, sits on a mains line (a multiple of 50 or 60 Hz), where hum
+/// would add to the line.
+pub fn readable_multitone(lo: usize, hi: usize, count: usize) -> Vec<usize> {
+    let mains = |c: usize| [1, 2, 3].iter().any(|m| (m * c) % 50 == 0 || (m * c) % 60 == 0);
+    let ok = |set: &[usize]| !mains(*set.last().expect("a trial set")) && is_readable_multitone(set);
+    let mut set: Vec<usize> = vec![];
+    let ratio = (hi as f64 / lo as f64).powf(1.0 / count.max(2).saturating_sub(1) as f64);
+    for k in 0..count {
+        let want = (lo as f64 * ratio.powi(k as i32)).round() as usize;
+        // The nearest candidate (above, then below) that keeps the set readable.
+        for d in 0..want.max(1) {
+            let mut found = false;
+            for c in [want + d, want.saturating_sub(d)] {
+                if c < lo || c > hi || set.contains(&c) {
+                    continue;
+                }
+                let mut trial = set.clone();
+                trial.push(c);
+                if ok(&trial) {
+                    set = trial;
+                    found = true;
+                    break;
+                }
+            }
+            if found {
+                break;
+            }
+        }
+    }
+    set.sort();
+    set
+}
+
+/// Whether the diagonal lines of a multitone on `set` (bins of its period) can be read: no
+/// product of order 2 or 3 of other tones on a tone's 2nd or 3rd harmonic (or on a
+/// fundamental), nor of order 4 on a harmonic (see [`readable_multitone`]).
+pub fn is_readable_multitone(set: &[usize]) -> bool {
+    let f: Vec<i64> = set.iter().map(|&v| v as i64).collect();
+    let n = f.len();
+    let fundamental = |v: i64| f.contains(&v);
+    let harmonic = |v: i64| f.iter().any(|&k| v == 2 * k || v == 3 * k);
+    // Order 2: f_a + f_b and |f_a - f_b|; 2 f_a belongs on its own bin.
+    for a in 0..n {
+        for b in a..n {
+            let sum = f[a] + f[b];
+            if (a != b && (harmonic(sum) || fundamental(sum))) || (a == b && (fundamental(sum) || f.iter().any(|&k| sum == 3 * k))) {
+                return false;
+            }
+            let diff = (f[a] - f[b]).abs();
+            if a != b && (harmonic(diff) || fundamental(diff)) {
+                return false;
+            }
+        }
+    }
+    // Order 3: +-f_a +- f_b +- f_c; 3 f_a belongs on its own bin, and products on a
+    // fundamental (f_k + f_a - f_a) are not read as kernel lines.
+    for a in 0..n {
+        for b in a..n {
+            for c in b..n {
+                for (sb, sc) in [(1i64, 1i64), (1, -1), (-1, 1), (-1, -1)] {
+                    let v = (f[a] + sb * f[b] + sc * f[c]).abs();
+                    if a == b && b == c && sb == 1 && sc == 1 {
+                        continue;
+                    }
+                    if harmonic(v) {
+                        return false;
+                    }
+                }
+            }
+        }
+    }
+    // Order 4: f_a +- f_b +- f_c +- f_d on a 2nd or 3rd harmonic (their lines are a
+    // level weaker than the third order's, but many, and Le's lines are the weakest).
+    for a in 0..n {
+        for b in 0..n {
+            for c in 0..n {
+                for d in 0..n {
+                    for (sb, sc, sd) in [(1i64, 1i64, 1i64), (1, 1, -1), (1, -1, -1), (-1, -1, -1)] {
+                        let v = (f[a] + sb * f[b] + sc * f[c] + sd * f[d]).abs();
+                        if !harmonic(v) {
+                            continue;
+                        }
+                        // A tone's own harmonic through a pair that cancels (f_k + f_k +
+                        // f_a - f_a) is in a sine's line too: allowed.
+                        let mut net = vec![0i64; n];
+                        for (i, sg) in [(a, 1i64), (b, sb), (c, sc), (d, sd)] {
+                            net[i] += sg;
+                        }
+                        let own = net.iter().filter(|&&m| m != 0).count() == 1 && net.iter().any(|&m| m.abs() >= 2);
+                        if !own {
+                            return false;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    true
 }
 
 /// Bin indices of `count` log-spaced tones in `[f_lo, f_hi]` for a record of `n` samples
