@@ -491,6 +491,13 @@ enum Command {
         /// Long-term test at a fixed level (V rms); the high-pass keeps x in range.
         #[arg(long)]
         volts: Option<f64>,
+        /// Long-term test: from this many seconds on, hold the lower --cool-volts (a cooling
+        /// phase: heating and cooling separate the coil's and the magnet's thermal paths).
+        #[arg(long, value_name = "S", requires = "cool_volts")]
+        cool_after: Option<f64>,
+        /// The cooling phase's level (V rms), below --volts.
+        #[arg(long, value_name = "V", requires = "cool_after")]
+        cool_volts: Option<f64>,
         /// Stop without convergence after this many seconds.
         #[arg(long, default_value_t = 60.0)]
         max_seconds: f64,
@@ -728,8 +735,8 @@ fn main() -> ExitCode {
             }
         }),
         Command::Calibrate { recording, resistor, loopback, scale, out, sense_wiring, sense_ohm } => parse_wiring(&sense_wiring, sense_ohm).and_then(|w| cmd_calibrate(&recording, resistor, loopback, w, scale.as_deref(), &out)),
-        Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed, crest } => {
-            cmd_measure(MeasureArgs { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, max_seconds, order, noise, rate, seed, crest })
+        Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, cool_after, cool_volts, max_seconds, order, noise, rate, seed, crest } => {
+            cmd_measure(MeasureArgs { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, cool: cool_after.zip(cool_volts), max_seconds, order, noise, rate, seed, crest })
         }
         Command::Devices => cmd_devices().map_err(Failure::from),
         Command::Runs { database } => cmd_runs(&database).map_err(Failure::from),
@@ -1653,6 +1660,7 @@ struct MeasureArgs {
     start_volts: f64,
     music: Option<PathBuf>,
     duration: Option<f64>,
+    cool: Option<(f64, f64)>,
     volts: Option<f64>,
     max_seconds: f64,
     order: usize,
@@ -1750,6 +1758,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         start_volts: a.start_volts,
         duration: a.duration,
         hold_volts: a.volts,
+        cool: a.cool,
         max_seconds: a.max_seconds.max(a.duration.unwrap_or(0.0)),
         order: a.order,
         interrupt: Some(interrupt_flag()),
@@ -1757,7 +1766,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     };
     opts.validate()?;
     std::fs::create_dir_all(&a.out).map_err(|e| format!("{}: cannot create the output directory: {e}", a.out.display()))?;
-    let options = json!({"target_x": opts.target_x, "max_dt": opts.max_dt, "kms_limit": opts.kms_limit, "max_volts": opts.max_volts, "duration": opts.duration, "volts": opts.hold_volts, "excitation": source.name(), "mms": mms});
+    let options = json!({"target_x": opts.target_x, "max_dt": opts.max_dt, "kms_limit": opts.kms_limit, "max_volts": opts.max_volts, "duration": opts.duration, "volts": opts.hold_volts, "cool": opts.cool, "excitation": source.name(), "mms": mms});
     let mut store = Store::create(&a.out.join("run.sqlite"), &device.describe(), &options)?;
     let tty = std::io::stderr().is_terminal();
     let mut last_print = -1.0;

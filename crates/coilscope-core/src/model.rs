@@ -49,15 +49,18 @@ pub struct ThermalModel<D> {
     pub ctv: D,
     pub rtm: D,
     pub ctm: D,
+    /// Convection cooling (s/m): `Rtv(v) = Rtv / (1 + rv |v|)`.
+    pub rv: D,
 }
 
 impl<D: DualNum<Primitive = f64> + Copy> ThermalModel<D> {
     /// The two-node network's rates (K/s) of the coil and magnet rises `tv`, `tm` under the
-    /// powers `pv` into the coil and `pm` into the magnet (W), as formats.md writes them.
+    /// powers `pv` into the coil and `pm` into the magnet (W), as formats.md writes them, at
+    /// coil speed `speed` = |v| (m/s; the convection cooling's `Rtv(v) = Rtv / (1 + rv |v|)`).
     #[inline]
-    pub fn rates(&self, tv: D, tm: D, pv: D, pm: D) -> (D, D) {
+    pub fn rates(&self, tv: D, tm: D, pv: D, pm: D, speed: D) -> (D, D) {
         // Constants' reciprocals: independent of the state, so they do not wait on it.
-        let flow = (tv - tm) * self.rtv.recip();
+        let flow = (tv - tm) * self.rtv.recip() * (self.rv * speed + 1.0);
         ((pv - flow) * self.ctv.recip(), (pm + flow - tm * self.rtm.recip()) * self.ctm.recip())
     }
 }
@@ -121,6 +124,7 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
                 ctv: D::from(t.ctv),
                 rtm: D::from(t.rtm),
                 ctm: D::from(t.ctm),
+                rv: D::from(t.rv),
             }),
             le_i: p.le_i.as_ref().map(|g| g.lift()),
             rms_v: p.rms_v.as_ref().map(|r| r.lift()),
@@ -207,7 +211,7 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
         // Constants' reciprocals: independent of the state, so they do not wait on it.
         let dv = force * self.mms.recip();
         let (dtv, dtm) = match &self.thermal {
-            Some(t) => t.rates(tv, tm, re_t * i * i, r2_loss),
+            Some(t) => t.rates(tv, tm, re_t * i * i, r2_loss, v.abs()),
             None => (D::zero(), D::zero()),
         };
         [v, dv, di, di2, dtv, dtm]
@@ -560,5 +564,15 @@ mod tests {
         let r2 = p.l2r2.as_ref().unwrap().1.c[0];
         assert!((d[idx::TV] - (re_t * 4.0 - 7.0 / t.rtv) / t.ctv).abs() < 1e-12);
         assert!((d[idx::TM] - (r2 * 1.5 * 1.5 + 7.0 / t.rtv - 3.0 / t.rtm) / t.ctm).abs() < 1e-12);
+        // Convection: at 0.5 m/s (either direction) with rv 2 s/m the coil-to-magnet flow
+        // doubles; the heat leaving the coil is the heat reaching the magnet.
+        let mut q = p.clone();
+        q.thermal.as_mut().unwrap().rv = 2.0;
+        let m = Model::new(&q);
+        for v in [0.5, -0.5] {
+            let d = m.deriv(&[0.0, v, 2.0, 0.5, 10.0, 3.0], 0.0);
+            assert!((d[idx::TV] - (re_t * 4.0 - 2.0 * 7.0 / t.rtv) / t.ctv).abs() < 1e-12);
+            assert!((d[idx::TM] - (r2 * 1.5 * 1.5 + 2.0 * 7.0 / t.rtv - 3.0 / t.rtm) / t.ctm).abs() < 1e-12);
+        }
     }
 }

@@ -30,6 +30,11 @@ pub struct Thermal {
     pub rtm: f64,
     /// Magnet heat capacity (J/K).
     pub ctm: f64,
+    /// Convection cooling of the coil (s/m): the coil-to-magnet resistance falls with the
+    /// coil's speed, `Rtv(v) = Rtv / (1 + rv |v|)` (the form of Klippel's heat-transfer
+    /// model, AES 2003; instantaneous |v|, which the thermal time constants average). 0: none
+    /// (the key `thermal.rv` is then absent from the file).
+    pub rv: f64,
 }
 
 /// LOG creep of the suspension (`creep`, see [`crate::creep`] for its realisation).
@@ -254,7 +259,11 @@ impl Parameters {
                     None => ALPHA_COPPER,
                     Some(v) => ctx.number("thermal.alpha", v)?,
                 };
-                Some(Thermal { alpha, rtv: get("Rtv")?, ctv: get("Ctv")?, rtm: get("Rtm")?, ctm: get("Ctm")? })
+                let rv = match t.get("rv") {
+                    None => 0.0,
+                    Some(v) => ctx.number("thermal.rv", v)?,
+                };
+                Some(Thermal { alpha, rtv: get("Rtv")?, ctv: get("Ctv")?, rtm: get("Rtm")?, ctm: get("Ctm")?, rv })
             }
             Some(other) => {
                 return Err(ctx.err("thermal", format!("expected an object {{alpha, Rtv, Ctv, Rtm, Ctm}}, found {}", describe(other))))
@@ -420,6 +429,9 @@ impl Parameters {
                     return Err(ctx.err(k, format!("{v} must be > 0")));
                 }
             }
+            if !(t.rv >= 0.0 && t.rv < 1000.0) {
+                return Err(ctx.err("thermal.rv", format!("{} s/m is not valid (0 .. 1000 s/m: Rtv(v) = Rtv / (1 + rv |v|), v in m/s)", t.rv)));
+            }
             if !(t.alpha >= 0.0 && t.alpha < 0.02) {
                 return Err(ctx.err("thermal.alpha", format!("{} 1/K is not plausible (copper: 0.00393, aluminium: 0.0040)", t.alpha)));
             }
@@ -484,6 +496,7 @@ impl Parameters {
             "thermal.Ctv" => thermal(&|t| t.ctv),
             "thermal.Rtm" => thermal(&|t| t.rtm),
             "thermal.Ctm" => thermal(&|t| t.ctm),
+            "thermal.rv" => self.thermal.as_ref().filter(|t| t.rv > 0.0).map(|t| V::Number(t.rv)),
             "x_range" => self.x_range.map(V::Range),
             _ => None,
         }
@@ -675,6 +688,7 @@ mod tests {
         p.le_i = Some(Poly { c: vec![1.0, -0.01, -0.002] });
         p.rms_v = Some(Poly { c: vec![p.rms, 0.0, 0.3] });
         p.sd = Some(0.0133);
+        p.thermal.as_mut().unwrap().rv = 1.5;
         p.validate("all").unwrap();
         for e in crate::schema::ENTRIES {
             assert!(p.get(e.key).is_some(), "{} unreachable", e.key);
@@ -688,6 +702,13 @@ mod tests {
         // Absent entries are absent.
         let bare = p.three_state();
         assert!(bare.get("L2").is_none() && bare.get("thermal.Rtv").is_none() && bare.get("Le_i").is_none());
+        // No convection: the key is absent from the file, and a negative one is named.
+        let plain = embedded_driver("sb17cac35-4").unwrap();
+        assert!(plain.to_json_value()["thermal"].get("rv").is_none());
+        let mut v = plain.to_json_value();
+        v["thermal"]["rv"] = (-1.0).into();
+        let e = Parameters::from_json_value(&v, "neg").and_then(|p| p.validate("neg").map(|_| p)).unwrap_err().to_string();
+        assert!(e.contains("thermal.rv"), "{e}");
     }
 
     #[test]

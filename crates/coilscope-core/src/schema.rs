@@ -65,15 +65,23 @@ pub struct Entry {
     /// An entry that describes how coilscope realises an effect (fixed values, written for
     /// outside tools), not a parameter of the driver.
     pub realisation: bool,
+    /// A key coilscope adds to the file contract (a new optional key, as the contract
+    /// allows; older files without it stay valid).
+    pub extension: bool,
     pub meaning: &'static str,
 }
 
 const fn e(key: &'static str, unit: &'static str, kind: Kind, component: Component, required: bool, display: (&'static str, f64), meaning: &'static str) -> Entry {
-    Entry { key, unit, kind, component, required, display, realisation: false, meaning }
+    Entry { key, unit, kind, component, required, display, realisation: false, extension: false, meaning }
+}
+
+/// An optional key beyond the file contract's (see [`Entry::extension`]).
+const fn extension(key: &'static str, unit: &'static str, component: Component, meaning: &'static str) -> Entry {
+    Entry { key, unit, kind: Kind::Number, component, required: false, display: (unit, 1.0), realisation: false, extension: true, meaning }
 }
 
 const fn realisation(key: &'static str, unit: &'static str, meaning: &'static str) -> Entry {
-    Entry { key, unit, kind: Kind::Number, component: Component::Suspension, required: false, display: (unit, 1.0), realisation: true, meaning }
+    Entry { key, unit, kind: Kind::Number, component: Component::Suspension, required: false, display: (unit, 1.0), realisation: true, extension: false, meaning }
 }
 
 use Component as C;
@@ -106,6 +114,7 @@ pub const ENTRIES: &[Entry] = &[
     e("thermal.Ctv", "J/K", K::Number, C::Thermal, false, ("J/K", 1.0), "voice-coil heat capacity"),
     e("thermal.Rtm", "K/W", K::Number, C::Thermal, false, ("K/W", 1.0), "magnet to ambient thermal resistance"),
     e("thermal.Ctm", "J/K", K::Number, C::Thermal, false, ("J/K", 1.0), "magnet heat capacity"),
+    extension("thermal.rv", "s/m", C::Thermal, "convection cooling: Rtv(v) = Rtv / (1 + rv |v|)"),
     e("x_range", "m", K::Range, C::About, false, ("mm", 1e3), "[x_min, x_max]: where the x-dependent functions are valid"),
 ];
 
@@ -206,10 +215,11 @@ mod tests {
     #[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
     fn every_key_is_in_the_file_contract() {
         // The contract names each key (dotted ones by their last part, in their object's row);
-        // the creep bank's realisation keys are its "further keys".
+        // the creep bank's realisation keys are its "further keys"; coilscope's extensions
+        // (new optional keys) are not in it.
         let spec = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/spec/formats.md"))
             .expect("shared/spec/formats.md (set COILSCOPE_NO_SHARED=1 to skip, reported as ignored)");
-        for e in ENTRIES.iter().filter(|e| !e.realisation) {
+        for e in ENTRIES.iter().filter(|e| !e.realisation && !e.extension) {
             let last = e.key.rsplit('.').next().unwrap();
             assert!(spec.contains(&format!("`{last}`")) || spec.contains(&format!("`{}`", e.key)), "formats.md does not name {}", e.key);
         }

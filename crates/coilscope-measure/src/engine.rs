@@ -128,6 +128,11 @@ pub struct MeasureOptions {
     pub duration: Option<f64>,
     /// Long-term test at a fixed level (V rms): the high-pass keeps x in range.
     pub hold_volts: Option<f64>,
+    /// Long-term test with a cooling phase: `(after s, V rms)`: from `after` seconds on the
+    /// level is held at the lower `V`, so the coil and the magnet cool under a small,
+    /// known power. Heating and cooling together separate the coil's path from the magnet's
+    /// (the thermal fit's Rtm and Ctm), and cooling at a lower velocity shows convection.
+    pub cool: Option<(f64, f64)>,
     /// Block length (s).
     pub block: f64,
     /// Seconds between recursive updates.
@@ -157,6 +162,7 @@ impl Default for MeasureOptions {
             max_seconds: 60.0,
             duration: None,
             hold_volts: None,
+            cool: None,
             block: 0.1,
             update_seconds: 1.0,
             order: 6,
@@ -184,6 +190,12 @@ impl MeasureOptions {
         }
         if let Some(v) = self.hold_volts {
             check(v > 0.0 && v <= self.max_volts, format!("--volts {v} V is not valid (0 .. max-volts {} V)", self.max_volts))?;
+        }
+        if let Some((after, v)) = self.cool {
+            let (d, hold) = (self.duration.unwrap_or(0.0), self.hold_volts.unwrap_or(0.0));
+            check(self.duration.is_some() && self.hold_volts.is_some(), "--cool-after/--cool-volts need a long-term test at a fixed level (--duration S --volts V)".to_string())?;
+            check(after.is_finite() && after > self.small_seconds && after < d, format!("--cool-after {after} s is not valid (between the small-signal stage, {} s, and --duration {d} s)", self.small_seconds))?;
+            check(v.is_finite() && v > 0.0 && v < hold, format!("--cool-volts {v} V is not valid (0 .. --volts {hold} V: the cooling level is the lower one)"))?;
         }
         check((2..=8).contains(&self.order), format!("--order {} is not valid (2 ..= 8)", self.order))?;
         check(self.max_seconds >= self.small_seconds + 2.0, format!("--max-seconds {} s is not valid (at least {} s)", self.max_seconds, self.small_seconds + 2.0))?;
@@ -976,6 +988,8 @@ impl<'a> Engine<'a> {
                     tt.dtv.push(dtv);
                     tt.pv.push(on.re() * st.i_sq / st.samples as f64);
                     tt.pm.push(st.pm_sum / st.samples as f64);
+                    // The live model's mean coil speed (the convection cooling's input).
+                    tt.speed.push(if st.traj.is_empty() { f64::NAN } else { st.traj.iter().map(|s| s[1].abs()).sum::<f64>() / st.traj.len() as f64 });
                 }
                 live.x_min = st.x_min;
                 live.x_max = st.x_max;
@@ -1107,8 +1121,10 @@ impl<'a> Engine<'a> {
                         self.recent_peaks.remove(0);
                     }
                     let per_volt = self.recent_peaks.iter().cloned().fold(0.0, f64::max);
+                    // The cooling phase of a long-term test: the held level drops.
+                    let cooling = self.opts.cool.filter(|&(after, _)| t >= after).map(|(_, v)| MeasureOptions { hold_volts: Some(v), interrupt: None, ..self.opts.clone() });
                     let d = control(
-                        &self.opts,
+                        cooling.as_ref().unwrap_or(&self.opts),
                         &ControlInput {
                             since_temp_cut: t - self.last_temp_cut, gain: self.gain, block_seconds: n as f64 / self.fs, peak, per_volt, x_limit, kms_ratio: self.kms_ratio, checked_reach: self.checked_reach, last_change: self.changes.last().map(|c| c.0), last_excess: self.last_excess, dtv, dtv_ahead, temp_cut: self.temp_cut, hp_fc: self.hp.fc },
                     );
@@ -1226,7 +1242,7 @@ impl<'a> Engine<'a> {
         let thermal_fit = (seconds >= THERMAL_FIT_MIN_S).then(|| fit_thermal_track(&self.thermal_track, if offset_sd.is_finite() { offset_sd } else { 0.0 }));
         if let Some(Ok(f)) = &thermal_fit {
             let [rtv, ctv, rtm, ctm] = f.values;
-            params.thermal = Some(coilscope_core::params::Thermal { alpha: self.opts.alpha, rtv, ctv, rtm, ctm });
+            params.thermal = Some(coilscope_core::params::Thermal { alpha: self.opts.alpha, rtv, ctv, rtm, ctm, rv: f.rv.map_or(0.0, |r| r.0) });
         }
         Ok(Measurement {
             params,
@@ -1344,6 +1360,9 @@ impl Measurement {
             for (k, name) in coilscope_ident::thermal::ThermalFit::NAMES.iter().enumerate() {
                 unc.set(&format!("thermal.{name}"), f.sd[k]);
             }
+            if let Some((_, sd)) = f.rv {
+                unc.set("thermal.rv", sd);
+            }
         }
         let kept = self.effects.keys();
         self.online.layout.uncertainties(&|k| self.online.sd_theta(k), &|e| kept.contains(&e.key), &mut unc);
@@ -1367,7 +1386,14 @@ impl Measurement {
         let lim = coilscope_core::limits::limits(&self.params, self.x_range);
         let mut r = ResultFile::new("large-signal", &self.device, self.params.clone(), fit, unc, Some(&lim));
         r.thermal = Some(Thermal {
-            note: format!("voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = {} 1/K; Re_cold is the small-signal stage's record refitted with the final model when converged, else the stage's impedance fit", self.alpha),
+            note: format!(
+                "voice-coil temperature rise from the tracked Re: (Re(t)/Re_cold - 1)/alpha, alpha = {} 1/K; Re_cold is the small-signal stage's record refitted with the final model when converged, else the stage's impedance fit{}",
+                self.alpha,
+                match &self.thermal_fit {
+                    Some(Ok(f)) if !f.convection_note.is_empty() => format!(". Thermal fit: {}", f.convection_note),
+                    _ => String::new(),
+                }
+            ),
             re_cold: Some(self.re_cold),
             re_cold_sd: Some(self.re_cold_sd),
             re_end: Some(self.re_end),
