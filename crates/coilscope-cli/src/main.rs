@@ -645,6 +645,11 @@ enum Command {
         /// Level of the distortion analysis (V RMS); default: 70 % of the reach.
         #[arg(long)]
         volts: Option<f64>,
+        /// Another result of the same driver to draw over this one (dashed), with a table of
+        /// the differences: a quasi-static result against a dynamic one shows the static
+        /// stiffness and the rest drift of a creeping suspension (seed paper 3.2.1).
+        #[arg(long, value_name = "RESULT")]
+        compare: Option<String>,
         #[command(flatten)]
         limits: LimitArgs,
     },
@@ -744,7 +749,7 @@ fn main() -> ExitCode {
             cmd_distortion(DistortionArgs { params, freq, freq2, ratio, volts, output: output.into(), multitone, band, tones, sweep, levels, temp_rise, json, seed }).map_err(Failure::from)
         }
         Command::Diagnose { params, limits, json } => cmd_diagnose(&params, &limits, json).map_err(Failure::from),
-        Command::Report { result, out, db, volts, limits } => cmd_report(&result, &out, db.as_deref(), volts, &limits).map_err(Failure::from),
+        Command::Report { result, out, db, volts, compare, limits } => cmd_report(&result, &out, db.as_deref(), volts, compare.as_deref(), &limits).map_err(Failure::from),
         Command::Compensate { params, input, out, max_volts, min_force_factor, scale } => cmd_compensate(&params, &input, &out, max_volts, min_force_factor, scale).map_err(Failure::from),
         Command::Quasistatic { driver, out, points, reach, hold, order, world } => cmd_quasistatic(&driver, &out, points, reach, hold, order, world),
         Command::Drivers => cmd_drivers().map_err(Failure::from),
@@ -1865,7 +1870,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         let defaults = LimitArgs { xbl: t.bl, xc: t.cms, xl: t.le, max_dt: a.max_dt };
         let result = a.out.join("result.json");
         // The measurement is stored whatever happens to its report.
-        if let Err(e) = cmd_report(&result.to_string_lossy(), &a.out.join("report.html"), None, None, &defaults) {
+        if let Err(e) = cmd_report(&result.to_string_lossy(), &a.out.join("report.html"), None, None, None, &defaults) {
             eprintln!("warning: the report was not written: {e}");
         }
     }
@@ -1975,7 +1980,9 @@ fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f6
         ..Default::default()
     };
     let lim = coilscope_core::limits::limits(&q.params, fit.x_range);
-    let mut r = ResultFile::new("quasi-static", &format!("virtual {name}"), q.params.clone(), fit, coilscope_core::result::Uncertainty::new("no sds yet: the point-by-point fits' sds are not carried to the series"), Some(&lim));
+    // The driver's name, so that `report --compare` can tell two drivers apart.
+    let qp = Parameters { name: p.name.clone(), ..q.params.clone() };
+    let mut r = ResultFile::new("quasi-static", &format!("virtual {name}"), qp, fit, coilscope_core::result::Uncertainty::new("no sds yet: the point-by-point fits' sds are not carried to the series"), Some(&lim));
     r.other.insert(
         "quasi_static".into(),
         json!({
@@ -2150,7 +2157,7 @@ fn cmd_diagnose(spec: &str, l: &LimitArgs, json: bool) -> Result<(), String> {
     Ok(())
 }
 
-fn cmd_report(spec: &str, out: &Path, db: Option<&Path>, volts: Option<f64>, l: &LimitArgs) -> Result<(), String> {
+fn cmd_report(spec: &str, out: &Path, db: Option<&Path>, volts: Option<f64>, compare: Option<&str>, l: &LimitArgs) -> Result<(), String> {
     let th = l.thresholds()?;
     if let Some(v) = volts {
         if !(v.is_finite() && v > 0.0 && v <= 500.0) {
@@ -2169,6 +2176,15 @@ fn cmd_report(spec: &str, out: &Path, db: Option<&Path>, volts: Option<f64>, l: 
                 dtv: rows.iter().map(|r| r.dtv).collect(),
             });
         }
+    }
+    if let Some(c) = compare {
+        let other = coilscope_report::input_from(c)?;
+        if let (Some(a), Some(b)) = (&input.params.name, &other.params.name) {
+            if a != b {
+                return Err(format!("--compare {c}: that result is of {b:?}, this one of {a:?}; compare two measurements of the same driver"));
+            }
+        }
+        input.compare = Some(Box::new(other));
     }
     let opts = coilscope_report::ReportOptions { thresholds: th, dt_max: l.max_dt, volts, ..Default::default() };
     let rep = coilscope_report::build(&input, &opts)?;

@@ -68,6 +68,11 @@ pub struct WorkingPoint {
     pub kms_static: f64,
     /// Tangent stiffness from the small signal, the DC terms taken off.
     pub k_tangent: f64,
+    /// sds of `bl_eff` and `le` (the point's small-signal fit: Bl = sqrt(Mms / Cmes) with
+    /// Mms given) and of `kms_static` (through Bl; x and I are means over seconds).
+    pub bl_sd: f64,
+    pub le_sd: f64,
+    pub kms_sd: f64,
 }
 
 /// The measurement: the points, and the series fitted to them.
@@ -86,6 +91,10 @@ pub struct QuasiStatic {
     /// than [`MAX_RE_RISE`]). (Points short of the reach asked for are not: `params.x_range`
     /// is the span they reached.)
     pub warnings: Vec<String>,
+    /// Bands (value and sd on 21 displacements over the points' span) of Bl, Kms, Le: the
+    /// series' covariance from the points' sds, scaled up by the series fit's chi^2 per
+    /// degree of freedom where above 1 (what the series' order leaves between the points).
+    pub bands: [coilscope_core::result::Band; 3],
 }
 
 /// Largest rise of the coil's resistance under a working point's DC before the result is
@@ -105,6 +114,32 @@ pub fn fit_series(x: &[f64], y: &[f64], order: usize) -> Poly {
     let b = DVector::from_column_slice(y);
     let c = a.clone().svd(true, true).solve(&b, 1e-12).unwrap_or_else(|_| DVector::zeros(n + 1));
     Poly { c: (0..=n).map(|j| c[j] / scale.powi(j as i32)).collect() }
+}
+
+/// [`fit_series`] weighted by the points' sds, with the band of the fitted series on
+/// `grid`: the coefficients' covariance `(A'WA)^-1` scaled by `max(1, chi^2/dof)`.
+pub fn fit_series_band(x: &[f64], y: &[f64], sd: &[f64], order: usize, grid: &[f64]) -> (Poly, coilscope_core::result::Band) {
+    let n = order.min(x.len().saturating_sub(1));
+    let scale = x.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-9);
+    let floor = sd.iter().cloned().filter(|v| v.is_finite() && *v > 0.0).fold(f64::INFINITY, f64::min);
+    let w: Vec<f64> = sd.iter().map(|&s| 1.0 / if s.is_finite() && s > 0.0 { s } else if floor.is_finite() { floor } else { 1.0 }).collect();
+    let a = DMatrix::from_fn(x.len(), n + 1, |r, c| w[r] * (x[r] / scale).powi(c as i32));
+    let b = DVector::from_iterator(y.len(), y.iter().zip(&w).map(|(v, w)| v * w));
+    let c = a.clone().svd(true, true).solve(&b, 1e-12).unwrap_or_else(|_| DVector::zeros(n + 1));
+    let r = &a * &c - &b;
+    let dof = (x.len() as f64 - (n + 1) as f64).max(1.0);
+    let s2 = (r.norm_squared() / dof).max(1.0);
+    let cov = (a.transpose() * &a).try_inverse().map(|m| m * s2).unwrap_or_else(|| DMatrix::from_element(n + 1, n + 1, f64::NAN));
+    let poly = Poly { c: (0..=n).map(|j| c[j] / scale.powi(j as i32)).collect() };
+    let value = grid.iter().map(|&v| poly.eval(v)).collect();
+    let sdv = grid
+        .iter()
+        .map(|&v| {
+            let g = DVector::from_iterator(n + 1, (0..=n).map(|j| (v / scale).powi(j as i32)));
+            (g.transpose() * &cov * &g)[(0, 0)].max(0.0).sqrt()
+        })
+        .collect();
+    (poly, coilscope_core::result::Band { x: grid.to_vec(), value, sd: sdv })
 }
 
 /// The drive of a working point: a raised-cosine ramp to `u_dc` over 1 s, `hold` s of DC,
@@ -149,7 +184,8 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
         let p = scale_by_mms(&fit, opts.mms)?;
         // At rest the DC is only the drift of the noise: Re is the small-signal fit's there.
         let re_dc = if u_dc != 0.0 { um / im } else { p.re };
-        let wp = WorkingPoint { u_dc, i_dc: im, x_dc: xm, re_dc, bl_eff: p.bl.c[0], k_eff: p.kms.c[0], le: p.le.c[0], bl: f64::NAN, kms_static: f64::NAN, k_tangent: f64::NAN };
+        let (bl_sd, le_sd) = (0.5 * fit.sigma_rel[5] * p.bl.c[0], fit.sigma_rel[1] * p.le.c[0]);
+        let wp = WorkingPoint { u_dc, i_dc: im, x_dc: xm, re_dc, bl_eff: p.bl.c[0], k_eff: p.kms.c[0], le: p.le.c[0], bl: f64::NAN, kms_static: f64::NAN, k_tangent: f64::NAN, bl_sd, le_sd, kms_sd: f64::NAN };
         Ok((wp, p))
     };
     // At rest: the small-signal set, and the linear map from volts to displacement.
@@ -190,6 +226,7 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
         p.k_tangent = p.k_eff + dbl.eval(x) * i + 0.5 * ddle.eval(x) * i * i;
         if x.abs() > 1e-3 * opts.range[1].max(-opts.range[0]) {
             p.kms_static = (bl.eval(x) * i + 0.5 * dle.eval(x) * i * i) / x;
+            p.kms_sd = (p.kms_static * p.bl_sd / p.bl_eff).abs();
         }
     }
     // Kms: the static secants only (at rest the secant is 0/0; the small signal's stiffness
@@ -204,6 +241,13 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
         ));
     }
     let kms = fit_series(&kx, &ky, opts.order);
+    // The bands: the same series, weighted by the points' sds, over the points' span.
+    let span: Vec<f64> = (0..21).map(|k| xs[0] + (xs[xs.len() - 1] - xs[0]) * k as f64 / 20.0).collect();
+    let col = |f: &dyn Fn(&WorkingPoint) -> f64| pts.iter().map(f).collect::<Vec<f64>>();
+    let (_, bl_band) = fit_series_band(&xs, &col(&|p| p.bl), &col(&|p| p.bl_sd), opts.order, &span);
+    let (_, le_band) = fit_series_band(&xs, &col(&|p| p.le), &col(&|p| p.le_sd), opts.order, &span);
+    let ks: Vec<f64> = pts.iter().filter(|p| p.kms_static.is_finite()).map(|p| p.kms_sd).collect();
+    let (_, kms_band) = fit_series_band(&kx, &ky, &ks, opts.order, &span);
     let k_dynamic_rest = pts.iter().find(|p| p.u_dc == 0.0).map_or(f64::NAN, |p| p.k_tangent);
     // The rest position after the largest positive offset: release it, wait a second.
     let top = pts.iter().map(|p| p.u_dc).fold(0.0, f64::max);
@@ -226,5 +270,5 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
         ));
     }
     let params = Parameters { re: p0.re, bl, kms, le, x_range: Some([lo, hi]), source: Some("coilscope quasistatic (point by point, DC offset)".into()), ..p0 };
-    Ok(QuasiStatic { points: pts, params, rest_drift, k_dynamic_rest, warnings })
+    Ok(QuasiStatic { points: pts, params, rest_drift, k_dynamic_rest, warnings, bands: [bl_band, kms_band, le_band] })
 }

@@ -42,6 +42,12 @@ fn quasi_static_curves_without_creep_are_within_2_percent() {
         let (eb, ek, el) = (worst(&q.params.bl, &p.bl, 0.8 * lo, 0.8 * hi), worst(&q.params.kms, &p.kms, 0.8 * lo, 0.8 * hi), worst(&q.params.le, &p.le, 0.8 * lo, 0.8 * hi));
         println!("{name}: over 80 % of the range Bl {:.3} %, Kms {:.3} %, Le {:.3} %; rest drift {:.4} mm", 100.0 * eb, 100.0 * ek, 100.0 * el, q.rest_drift * 1e3);
         assert!(eb < 0.01 && ek < 0.01, "{name}: Bl {eb:.4}, Kms {ek:.4}");
+        // The bands: the truth within 3 sd on the points' span.
+        for (which, band, t) in [("Bl", &q.bands[0], &p.bl), ("Kms", &q.bands[1], &p.kms), ("Le", &q.bands[2], &p.le)] {
+            let z = band.x.iter().zip(&band.value).zip(&band.sd).map(|((x, v), s)| (v - t.eval(*x)).abs() / s).fold(0.0, f64::max);
+            let rel = band.x.iter().zip(&band.sd).zip(&band.value).map(|((_, s), v)| s / v).fold(0.0, f64::max);
+            println!("{name}: {which} band: the truth within {z:.2} sd (largest sd {:.3} %)", 100.0 * rel);
+        }
         assert!(q.rest_drift.abs() < 1e-3 * hi, "{name}: the rest position moved by {} mm without creep", q.rest_drift * 1e3);
         assert!(q.warnings.is_empty(), "{name}: {:?}", q.warnings);
     }

@@ -44,6 +44,9 @@ pub struct ReportInput {
     /// The result file (`coilscope.result/1`), when the report is of a result.
     pub result: Option<ResultFile>,
     pub states: Option<TimeSeries>,
+    /// Another result of the same driver whose curves are drawn over this one's (dashed):
+    /// the quasi-static and the dynamic measurement side by side (seed paper 3.2.1).
+    pub compare: Option<Box<ReportInput>>,
 }
 
 /// Report options.
@@ -154,17 +157,65 @@ impl Builder {
 }
 
 /// The curve chart of one x-dependent parameter: value over the range, with +-2 sd band.
-fn curve_chart(id: &str, title: &str, unit: &str, f: &dyn Fn(f64) -> f64, band: Option<Vec<(f64, f64, f64)>>, range: [f64; 2], limit: Option<(f64, &str)>) -> Chart {
+fn curve_chart(id: &str, title: &str, unit: &str, f: &dyn Fn(f64) -> f64, band: Option<Vec<(f64, f64, f64)>>, range: [f64; 2], limit: Option<(f64, &str)>, overlay: Option<(&str, Vec<(f64, f64)>)>) -> Chart {
     let xs = grid(range, 120);
     let mut c = Chart::new(id, title, "x (mm), + = coil out", unit).line(title, xs.iter().map(|&x| (x * 1e3, f(x))).collect());
     if let Some(b) = band {
         c = c.band(b.iter().map(|(x, v, s)| (x * 1e3, v - 2.0 * s)).collect(), b.iter().map(|(x, v, s)| (x * 1e3, v + 2.0 * s)).collect());
+    }
+    if let Some((name, pts)) = overlay {
+        c = c.dashed(name, pts);
     }
     c = c.marker(range[0] * 1e3, "x min reached").marker(range[1] * 1e3, "x max reached");
     if let Some((x, label)) = limit {
         c = c.marker(-x * 1e3, label).marker(x * 1e3, label);
     }
     c
+}
+
+/// The comparison of two results of one driver (`report --compare`): the largest
+/// difference of each curve over the range both reached, and, where one of them is
+/// quasi-static, what the seed paper (3.2.1) says to look for: a creeping suspension's
+/// static stiffness below its dynamic one, and the rest position after a large offset.
+fn compare_section(b: &mut Builder, csv: &mut Vec<(String, String)>, a: &ReportInput, c: &ReportInput) {
+    let (la, lc) = (method_label(a), method_label(c));
+    b.section(
+        &format!("{la} and {lc} compared"),
+        &format!("Solid: this report's {la} curves; dashed: the {lc} result's. Differences over the range both reached, relative to this result's value at rest."),
+    );
+    let lo = a.range[0].max(c.range[0]);
+    let hi = a.range[1].min(c.range[1]);
+    let mut rows = vec![];
+    let mut text = String::from("curve,max_difference_rel,at_x_mm,value_at_rest,other_at_rest\n");
+    if hi > lo {
+        for (name, f, g) in [("Bl", &a.params.bl, &c.params.bl), ("Kms", &a.params.kms, &c.params.kms), ("Le", &a.params.le, &c.params.le)] {
+            let (worst, at) = grid([lo, hi], 200).into_iter().map(|x| ((f.eval(x) - g.eval(x)).abs() / f.eval(0.0).abs(), x)).fold((0.0, 0.0), |m, v| if v.0 > m.0 { v } else { m });
+            rows.push(vec![name.to_string(), format!("{:.2} % at {:+.2} mm", 100.0 * worst, at * 1e3), format!("{:.4} / {:.4}", f.eval(0.0), g.eval(0.0))]);
+            let _ = writeln!(text, "{name},{worst:.6},{:.4},{},{}", at * 1e3, f.eval(0.0), g.eval(0.0));
+        }
+    }
+    b.table(&["curve", "largest difference (common range)", &format!("at rest: {la} / {lc}")], &rows);
+    csv.push(("compare.csv".to_string(), text));
+    // The quasi-static result's own record of the paper's two caveats.
+    for (q, other) in [(a, c), (c, a)] {
+        let Some(qs) = q.result.as_ref().filter(|r| r.kind == "quasi-static").and_then(|r| r.other.get("quasi_static")) else { continue };
+        let mut notes = vec![];
+        let k_static = q.params.kms.eval(0.0);
+        let k_other = other.params.kms.eval(0.0);
+        if let Some(kd) = qs.get("k_dynamic_rest").and_then(|v| v.as_f64()) {
+            notes.push(vec!["stiffness at rest: static (quasi-static fit)".into(), format!("{k_static:.1} N/m")]);
+            notes.push(vec!["stiffness at rest: small signal at the rest point (dynamic, at the resonance)".into(), format!("{kd:.1} N/m ({:+.1} %)", 100.0 * (kd / k_static - 1.0))]);
+        }
+        notes.push(vec![format!("stiffness at rest: the {} result", method_label(other)), format!("{k_other:.1} N/m ({:+.1} %)", 100.0 * (k_other / k_static - 1.0))]);
+        if let Some(d) = qs.get("rest_drift_m").and_then(|v| v.as_f64()) {
+            notes.push(vec!["rest position 1.5 s after the largest offset".into(), format!("{:+.4} mm", d * 1e3)]);
+        }
+        if let Some(l) = other.params.creep.as_ref().map(|c| c.lambda) {
+            notes.push(vec![format!("creep of the {} result", method_label(other)), format!("LOG lambda {l:.3}: the static stiffness is expected below the dynamic one")]);
+        }
+        b.html.push_str("<p>A suspension that creeps gives a static stiffness below the dynamic one (the stiffness relaxes under a held offset), and the rest position drifts after a large offset (seed paper 3.2.1): both measured here.</p>");
+        b.table(&["quasi-static caveat", "value"], &notes);
+    }
 }
 
 /// Build the report (runs the distortion analysis; about a second in release).
@@ -220,10 +271,16 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     let xbl_label = format!("XBl ({:.0} %)", th.bl * 100.0);
     let xc_label = format!("XC ({:.0} %)", th.cms * 100.0);
     let xl_label = format!("XL ({:.0} %)", th.le * 100.0);
-    b.chart(curve_chart("bl", "Bl(x)", "Bl (T m)", &|x| p.bl.eval(x), bl_band, range, lim.xbl.map(|v| (v, xbl_label.as_str()))), "Force factor.")?;
-    b.chart(curve_chart("kms", "Kms(x)", "Kms (N/m)", &|x| p.kms.eval(x), kms_band, range, None), "Secant stiffness of the suspension.")?;
-    b.chart(curve_chart("cms", "Cms(x)", "Cms (mm/N)", &|x| 1e3 / p.kms.eval(x), cms_band.map(|v: Vec<(f64, f64, f64)>| v.into_iter().map(|(x, c, s)| (x, c * 1e3, s * 1e3)).collect()), range, lim.xc.map(|v| (v, xc_label.as_str()))), "Compliance 1/Kms(x).")?;
-    b.chart(curve_chart("le", "Le(x)", "Le (mH)", &|x| 1e3 * p.le.eval(x), le_band.map(|v| v.into_iter().map(|(x, l, s)| (x, l * 1e3, s * 1e3)).collect()), range, lim.xl.map(|v| (v, xl_label.as_str()))), "Voice-coil inductance; it should rise toward the back plate (x < 0).")?;
+    let cmp = input.compare.as_deref();
+    let cmp_name = cmp.map(|c| format!("{} ({})", method_label(c), c.result.as_ref().map_or(c.title.as_str(), |r| r.recording.as_str())));
+    let over = |g: &dyn Fn(&Parameters, f64) -> f64| -> Option<(&str, Vec<(f64, f64)>)> { cmp.map(|c| (cmp_name.as_deref().unwrap_or_default(), grid(c.range, 120).into_iter().map(|x| (x * 1e3, g(&c.params, x))).collect())) };
+    b.chart(curve_chart("bl", "Bl(x)", "Bl (T m)", &|x| p.bl.eval(x), bl_band, range, lim.xbl.map(|v| (v, xbl_label.as_str())), over(&|q, x| q.bl.eval(x))), "Force factor.")?;
+    b.chart(curve_chart("kms", "Kms(x)", "Kms (N/m)", &|x| p.kms.eval(x), kms_band, range, None, over(&|q, x| q.kms.eval(x))), "Secant stiffness of the suspension.")?;
+    b.chart(curve_chart("cms", "Cms(x)", "Cms (mm/N)", &|x| 1e3 / p.kms.eval(x), cms_band.map(|v: Vec<(f64, f64, f64)>| v.into_iter().map(|(x, c, s)| (x, c * 1e3, s * 1e3)).collect()), range, lim.xc.map(|v| (v, xc_label.as_str())), over(&|q, x| 1e3 / q.kms.eval(x))), "Compliance 1/Kms(x).")?;
+    b.chart(curve_chart("le", "Le(x)", "Le (mH)", &|x| 1e3 * p.le.eval(x), le_band.map(|v| v.into_iter().map(|(x, l, s)| (x, l * 1e3, s * 1e3)).collect()), range, lim.xl.map(|v| (v, xl_label.as_str())), over(&|q, x| 1e3 * q.le.eval(x))), "Voice-coil inductance; it should rise toward the back plate (x < 0).")?;
+    if let Some(c) = cmp {
+        compare_section(&mut b, &mut csv, input, c);
+    }
     let mut c = String::from("x_mm,Bl_Tm,Kms_N_per_m,Cms_mm_per_N,Le_mH\n");
     for x in grid(range, 100) {
         let _ = writeln!(c, "{:.5},{:.6},{:.4},{:.6},{:.6}", x * 1e3, p.bl.eval(x), p.kms.eval(x), 1e3 / p.kms.eval(x), 1e3 * p.le.eval(x));
@@ -604,5 +661,16 @@ fn input_of(params: Parameters, result: Option<ResultFile>, spec: &str) -> Resul
     let range = fit_range.or(params.x_range).ok_or_else(|| format!("{spec}: neither fit.x_range nor the parameters' x_range says where the curves are valid"))?;
     let recording = result.as_ref().map(|r| r.recording.clone()).filter(|r| !r.is_empty());
     let title = format!("coilscope report: {}", params.name.clone().or(recording).unwrap_or_else(|| spec.to_string()));
-    Ok(ReportInput { title, params, range, result, states: None })
+    Ok(ReportInput { title, params, range, result, states: None, compare: None })
+}
+
+/// What a result's method is, for labels: `quasi-static`, `dynamic` (a large-signal result)
+/// or the result's kind.
+fn method_label(input: &ReportInput) -> String {
+    match input.result.as_ref().map(|r| r.kind.as_str()) {
+        Some("quasi-static") => "quasi-static".into(),
+        Some("large-signal") => "dynamic".into(),
+        Some(k) => k.to_string(),
+        None => "parameter set".into(),
+    }
 }
