@@ -1982,7 +1982,14 @@ fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f6
     let lim = coilscope_core::limits::limits(&q.params, fit.x_range);
     // The driver's name, so that `report --compare` can tell two drivers apart.
     let qp = Parameters { name: p.name.clone(), ..q.params.clone() };
-    let mut r = ResultFile::new("quasi-static", &format!("virtual {name}"), qp, fit, coilscope_core::result::Uncertainty::new("no sds yet: the point-by-point fits' sds are not carried to the series"), Some(&lim));
+    let mut unc = coilscope_core::result::Uncertainty::new(format!(
+        "bands of the series from the working points' sds (each point's small-signal fit, at least {} % of the value), scaled up by the series fit's chi^2 per degree of freedom where above 1",
+        100.0 * coilscope_ident::quasi_static::POINT_SD_FLOOR
+    ));
+    for (which, band) in ["Bl", "Kms", "Le"].iter().zip(&q.bands) {
+        unc.set_band(which, band.clone());
+    }
+    let mut r = ResultFile::new("quasi-static", &format!("virtual {name}"), qp, fit, unc, Some(&lim));
     r.other.insert(
         "quasi_static".into(),
         json!({

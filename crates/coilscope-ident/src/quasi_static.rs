@@ -103,6 +103,12 @@ pub struct QuasiStatic {
 /// ohm), its current and so its reach collapse, and its curves came out 70-125 % off.
 pub const MAX_RE_RISE: f64 = 0.2;
 
+/// The smallest relative sd of a working point's Bl and Le (0.1 %): the small signal moves
+/// the coil by about 2 % of the range, over which Bl(x), Kms(x), Le(x) change, and its linear
+/// fit reads that as about 0.1 % on the values at the point, beyond its own sds (SB17 and
+/// PTT4 with the fits' sds alone: the truth at 2.5-4.6 sd of the bands).
+pub const POINT_SD_FLOOR: f64 = 1e-3;
+
 /// Least-squares power series of `order` through `(x, y)` (fewer points: lower order).
 pub fn fit_series(x: &[f64], y: &[f64], order: usize) -> Poly {
     if x.is_empty() {
@@ -184,7 +190,9 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
         let p = scale_by_mms(&fit, opts.mms)?;
         // At rest the DC is only the drift of the noise: Re is the small-signal fit's there.
         let re_dc = if u_dc != 0.0 { um / im } else { p.re };
-        let (bl_sd, le_sd) = (0.5 * fit.sigma_rel[5] * p.bl.c[0], fit.sigma_rel[1] * p.le.c[0]);
+        // The fit's own sds, with a floor of POINT_SD_FLOOR for what a linear fit of a small
+        // signal on a nonlinear driver leaves (see the constant).
+        let (bl_sd, le_sd) = ((0.5 * fit.sigma_rel[5]).max(POINT_SD_FLOOR) * p.bl.c[0], fit.sigma_rel[1].max(POINT_SD_FLOOR) * p.le.c[0]);
         let wp = WorkingPoint { u_dc, i_dc: im, x_dc: xm, re_dc, bl_eff: p.bl.c[0], k_eff: p.kms.c[0], le: p.le.c[0], bl: f64::NAN, kms_static: f64::NAN, k_tangent: f64::NAN, bl_sd, le_sd, kms_sd: f64::NAN };
         Ok((wp, p))
     };
@@ -261,6 +269,14 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
     let rest_drift = *xr.last().unwrap_or(&0.0);
     let [lo, hi] = [xs[0], xs[xs.len() - 1]];
     let mut warnings = vec![];
+    if kx.len() < opts.order + 3 {
+        warnings.push(format!(
+            "{} static points for a series of order {}: the stiffness between the points is interpolated with fewer than 2 points to spare, nothing checks it (with 5 points PTT4's Kms came out 3 % off near rest); give --points {} or more, or a lower --order",
+            kx.len(),
+            opts.order,
+            opts.order + 4 + (opts.order % 2)
+        ));
+    }
     let hot = pts.iter().map(|p| p.re_dc / p0.re - 1.0).fold(0.0, f64::max);
     if hot > MAX_RE_RISE {
         warnings.push(format!(

@@ -47,6 +47,7 @@ fn quasi_static_curves_without_creep_are_within_2_percent() {
             let z = band.x.iter().zip(&band.value).zip(&band.sd).map(|((x, v), s)| (v - t.eval(*x)).abs() / s).fold(0.0, f64::max);
             let rel = band.x.iter().zip(&band.sd).zip(&band.value).map(|((_, s), v)| s / v).fold(0.0, f64::max);
             println!("{name}: {which} band: the truth within {z:.2} sd (largest sd {:.3} %)", 100.0 * rel);
+            assert!(z <= 3.0, "{name}: {which}: the truth {z:.2} sd outside the band");
         }
         assert!(q.rest_drift.abs() < 1e-3 * hi, "{name}: the rest position moved by {} mm without creep", q.rest_drift * 1e3);
         assert!(q.warnings.is_empty(), "{name}: {:?}", q.warnings);
