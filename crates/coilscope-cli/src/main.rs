@@ -721,7 +721,20 @@ impl From<&str> for Failure {
     }
 }
 
+/// A reader that closes the pipe early (`coilscope quasistatic ... | head`) ends the program
+/// quietly, as it does any Unix tool, instead of a panic in `println!` (Rust ignores SIGPIPE
+/// by default, so the write fails and `println!` panics).
+#[cfg(unix)]
+fn restore_sigpipe() {
+    // SAFETY: setting a signal's disposition to its default, before any thread starts.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 fn main() -> ExitCode {
+    #[cfg(unix)]
+    restore_sigpipe();
     let cli = Cli::parse();
     let result: Result<(), Failure> = match cli.command {
         Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world, chain, sense_wiring, sense_ohm } => {

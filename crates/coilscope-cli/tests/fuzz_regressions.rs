@@ -55,3 +55,18 @@ fn result_json_inputs_give_errors_or_inputs() {
         }
     }
 }
+
+/// Seen in session 21: `coilscope quasistatic ... | head` panicked in `println!` on the
+/// closed pipe ("failed printing to stdout: Broken pipe"). A closed pipe ends the program
+/// quietly, as any Unix tool.
+#[cfg(unix)]
+#[test]
+fn a_closed_pipe_is_not_a_panic() {
+    use std::process::{Command, Stdio};
+    let mut child = Command::new(env!("CARGO_BIN_EXE_coilscope")).args(["check", "sb17cac35-4"]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    // Close the read end before the program writes.
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+}
