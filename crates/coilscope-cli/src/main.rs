@@ -550,6 +550,11 @@ enum Command {
         /// The virtual driver's world (`real` adds LOG creep 0.05).
         #[arg(long, value_enum, default_value = "published")]
         world: World,
+        /// How the coil is held off rest: `current` (a DC current: it heats the coil),
+        /// `mass` (an added mass under gravity) or `pressure` (on the diaphragm; needs the
+        /// set's Sd): no current, so no heating (IEC 62458 10.2/10.3).
+        #[arg(long, default_value = "current", value_parser = ["current", "mass", "pressure"])]
+        offset: String,
     },
     /// Pre-inverse compensation (seed paper 3.2.2.2.3, Fig. 6): the drive that makes the
     /// driver's displacement, and so its sound pressure, follow its linear model's for an
@@ -764,7 +769,7 @@ fn main() -> ExitCode {
         Command::Diagnose { params, limits, json } => cmd_diagnose(&params, &limits, json).map_err(Failure::from),
         Command::Report { result, out, db, volts, compare, limits } => cmd_report(&result, &out, db.as_deref(), volts, compare.as_deref(), &limits).map_err(Failure::from),
         Command::Compensate { params, input, out, max_volts, min_force_factor, scale } => cmd_compensate(&params, &input, &out, max_volts, min_force_factor, scale).map_err(Failure::from),
-        Command::Quasistatic { driver, out, points, reach, hold, order, world } => cmd_quasistatic(&driver, &out, points, reach, hold, order, world),
+        Command::Quasistatic { driver, out, points, reach, hold, order, world, offset } => cmd_quasistatic(&driver, &out, points, reach, hold, order, world, &offset),
         Command::Drivers => cmd_drivers().map_err(Failure::from),
         Command::Check { params } => load_parameters(&params).map_err(|e| Failure::Error(e.to_string())).map(|p| print_params(&p)),
     };
@@ -1953,8 +1958,9 @@ fn print_json(v: &serde_json::Value) {
 }
 
 /// `quasistatic`: the point-by-point measurement on a virtual driver.
-fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f64, order: usize, world: World) -> Result<(), Failure> {
-    use coilscope_ident::quasi_static::{quasi_static, QuasiStaticOptions};
+#[allow(clippy::too_many_arguments)]
+fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f64, order: usize, world: World, offset: &str) -> Result<(), Failure> {
+    use coilscope_ident::quasi_static::{quasi_static, Offset, Push, QuasiStaticOptions};
     let p = world.apply(load_parameters(driver).map_err(|e| e.to_string())?);
     let range = p.x_range.ok_or_else(|| format!("{driver}: the set has no x_range: the working points need the range they may go to"))?;
     if !(reach > 0.0 && reach <= 1.0) {
@@ -1969,24 +1975,34 @@ fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f6
     let ts = thiele_small(&p);
     let per_volt = p.bl.c[0] / (p.re * p.kms.c[0]) * ts.qts.max(0.3);
     let ac_volts = (0.02 * range[1].min(-range[0]) / per_volt).clamp(0.01, 1.0);
-    let opts = QuasiStaticOptions { mms: p.mms, points, reach, range, hold_s: hold, record_s: 2.0, ac_volts, order, fs };
-    let play = |d: &[f64]| simulate(&p, fs, d, &SimOptions::default()).map(|t| (t.u, t.i, t.x)).map_err(|e| e.to_string());
+    let offset = match offset {
+        "mass" => Offset::Mass,
+        "pressure" => Offset::Pressure { sd: p.sd.ok_or_else(|| format!("{driver}: --offset pressure needs the diaphragm's area: the set has no Sd (m^2)"))? },
+        _ => Offset::Current,
+    };
+    let opts = QuasiStaticOptions { mms: p.mms, points, reach, range, hold_s: hold, record_s: 2.0, ac_volts, order, fs, offset };
+    let play = |d: &[f64], push: Push| {
+        let q = Parameters { mms: p.mms + push.added_mass, ..p.clone() };
+        simulate(&q, fs, d, &SimOptions { force: push.force, ..Default::default() }).map(|t| (t.u, t.i, t.x)).map_err(|e| e.to_string())
+    };
     let q = quasi_static(play, &ac, &opts)?;
     let name = p.name.clone().unwrap_or_else(|| driver.to_string());
-    println!("coilscope quasistatic: {name}, {points} working points to {:.0} % of the range, {hold} s hold", reach * 100.0);
+    println!("coilscope quasistatic: {name}, {points} working points to {:.0} % of the range, {hold} s hold, offset by {}", reach * 100.0, opts.offset_name());
     println!("  {:>8} {:>9} {:>9} {:>8} {:>8} {:>9} {:>9} {:>8}", "U_dc V", "x_dc mm", "I_dc A", "Re ohm", "Bl T m", "Kms N/m", "k_t N/m", "Le mH");
     for w in &q.points {
         println!("  {:>8.3} {:>9.3} {:>9.4} {:>8.4} {:>8.4} {:>9.1} {:>9.1} {:>8.4}", w.u_dc, w.x_dc * 1e3, w.i_dc, w.re_dc, w.bl, w.kms_static, w.k_tangent, w.le * 1e3);
     }
     println!("  stiffness at rest: dynamic (small signal at the resonance) {:.1} N/m, static (the secants' series) {:.1} N/m", q.k_dynamic_rest, q.params.kms.eval(0.0));
-    println!("  rest position 1.5 s after the largest offset is released: {:+.4} mm", q.rest_drift * 1e3);
+    if q.rest_drift.is_finite() {
+        println!("  rest position 1.5 s after the largest offset is released: {:+.4} mm", q.rest_drift * 1e3);
+    }
     for w in &q.warnings {
         println!("  warning: {w}");
     }
     let fit = coilscope_core::result::Fit {
         trustworthy: Some(q.warnings.is_empty()),
         warnings: Some(q.warnings.iter().map(|w| coilscope_core::result::Warning::new("quasi-static", w.clone())).collect()),
-        method: Some("quasi-static point by point (seed paper 3.2.1; IEC 62458 10.2/10.3): DC offsets, static displacement and force balance for Kms, the small-signal impedance at each point for Bl and Le; power series fitted to the points".into()),
+        method: Some(format!("quasi-static point by point (seed paper 3.2.1; IEC 62458 10.2/10.3): offsets by {}, static displacement and force balance for Kms, the small-signal impedance at each point for Bl and Le; power series fitted to the points", opts.offset_name())),
         residual_rel: f64::NAN,
         x_range: q.params.x_range.unwrap_or([0.0, 0.0]),
         order: Some(order),
@@ -2006,7 +2022,8 @@ fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f6
     r.other.insert(
         "quasi_static".into(),
         json!({
-            "points": q.points.iter().map(|w| json!({"U_dc": w.u_dc, "I_dc": w.i_dc, "x_dc": w.x_dc, "Re_dc": w.re_dc, "Bl": w.bl, "Bl_eff": w.bl_eff, "Kms_static": w.kms_static, "k_tangent": w.k_tangent, "k_eff": w.k_eff, "Le": w.le})).collect::<Vec<_>>(),
+            "offset": opts.offset_name(),
+            "points": q.points.iter().map(|w| json!({"U_dc": w.u_dc, "I_dc": w.i_dc, "force_N": w.force, "added_mass_kg": w.push.added_mass, "pressure_Pa": match offset { Offset::Pressure { sd } => w.force / sd, _ => 0.0 }, "x_dc": w.x_dc, "Re_dc": w.re_dc, "Bl": w.bl, "Bl_eff": w.bl_eff, "Kms_static": w.kms_static, "k_tangent": w.k_tangent, "k_eff": w.k_eff, "Le": w.le})).collect::<Vec<_>>(),
             "k_dynamic_rest": q.k_dynamic_rest,
             "rest_drift_m": q.rest_drift,
             "hold_s": hold,

@@ -67,6 +67,14 @@ fn quasistatic_writes_the_points_and_the_fitted_curves() {
     let bl0 = r["parameters"]["Bl"][0].as_f64().unwrap();
     let truth = coilscope_core::embedded_driver("ptt4.0w04-01a").unwrap().bl.c[0];
     assert!((bl0 / truth - 1.0).abs() < 5e-3, "{bl0} vs {truth}");
+    // By pressure (the set's Sd): no current at any point, the pressure recorded.
+    let o = coilscope(&["quasistatic", "ptt4.0w04-01a", "--offset", "pressure", "--hold", "1", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(r["quasi_static"]["offset"], "pressure on the diaphragm");
+    let pts = r["quasi_static"]["points"].as_array().unwrap();
+    assert!(pts.iter().all(|w| w["I_dc"].as_f64().unwrap().abs() < 1e-3));
+    assert!(pts.iter().any(|w| w["pressure_Pa"].as_f64().unwrap() > 100.0), "{pts:?}");
     let o = coilscope(&["quasistatic", "ptt4.0w04-01a", "--reach", "1.5", "--out", out.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("--reach 1.5"));

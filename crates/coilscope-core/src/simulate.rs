@@ -16,11 +16,35 @@ use crate::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
 pub struct Plant {
     model: Model<f64>,
     ext: Option<(ExtModel<f64>, ExtState<f64>)>,
+    /// A constant external force on the cone over the moving mass (m/s^2; 0: none).
+    accel: f64,
+}
+
+/// A system with a constant acceleration added to its velocity's rate: an external force
+/// on the cone (`SimOptions::force`).
+struct Pushed<'a, S> {
+    sys: &'a S,
+    accel: f64,
+}
+
+impl<S: crate::integrate::Dynamics<f64, N>, const N: usize> crate::integrate::Dynamics<f64, N> for Pushed<'_, S> {
+    #[inline]
+    fn deriv(&self, y: &[f64; N], u: f64) -> [f64; N] {
+        let mut d = self.sys.deriv(y, u);
+        d[idx::V] += self.accel;
+        d
+    }
 }
 
 impl Plant {
     pub fn new(params: &Parameters) -> Self {
-        Plant { model: Model::new(params), ext: params.needs_ext_states().then(|| (ExtModel::new(params), [0.0; NEXT])) }
+        Plant { model: Model::new(params), ext: params.needs_ext_states().then(|| (ExtModel::new(params), [0.0; NEXT])), accel: 0.0 }
+    }
+
+    /// The plant with a constant external force `force` (N, + pushes the coil out) on the
+    /// cone: an added mass under gravity, or a pressure on the diaphragm.
+    pub fn with_force(params: &Parameters, force: f64) -> Self {
+        Plant { accel: force / params.mms, ..Plant::new(params) }
     }
 
     /// Why the model is not valid at `state` (`None`: it is). With `Le_i`, the voice coil's
@@ -39,11 +63,13 @@ impl Plant {
     /// Advance `state` by one sample period `dt`, the input at the points of
     /// [`crate::integrate::Interpolator::fill`].
     pub fn step(&mut self, state: &mut State<f64>, dt: f64, u_points: &[f64]) {
+        let accel = self.accel;
         match &mut self.ext {
-            None => *state = rk4_sample(&self.model, state, dt, u_points),
+            None if accel == 0.0 => *state = rk4_sample(&self.model, state, dt, u_points),
+            None => *state = rk4_sample(&Pushed { sys: &self.model, accel }, state, dt, u_points),
             Some((model, s)) => {
                 s[..NSTATE].copy_from_slice(state);
-                *s = rk4_sample(model, s, dt, u_points);
+                *s = if accel == 0.0 { rk4_sample(model, s, dt, u_points) } else { rk4_sample(&Pushed { sys: &*model, accel }, s, dt, u_points) };
                 state.copy_from_slice(&s[..NSTATE]);
             }
         }
@@ -69,11 +95,15 @@ pub struct SimOptions {
     pub initial: State<f64>,
     /// Allowed extrapolation past `x_range` (fraction of the half-width).
     pub range_margin: f64,
+    /// A constant external force on the cone (N, + pushes the coil out) from the start: an
+    /// added mass under gravity (give the set `Mms` with the mass added) or a pressure on the
+    /// diaphragm (`p Sd`). The quasi-static method's offsets without current.
+    pub force: f64,
 }
 
 impl Default for SimOptions {
     fn default() -> Self {
-        SimOptions { substeps: None, initial: [0.0; NSTATE], range_margin: RANGE_MARGIN }
+        SimOptions { substeps: None, initial: [0.0; NSTATE], range_margin: RANGE_MARGIN, force: 0.0 }
     }
 }
 
@@ -206,7 +236,7 @@ impl Simulator {
         let n = opts.substeps.unwrap_or_else(|| substeps_for(params.stiffness_rate(), fs)).max(1);
         let bounds = params.x_range.map(|[lo, hi]| [lo * (1.0 + opts.range_margin), hi * (1.0 + opts.range_margin)]);
         Ok(Simulator {
-            plant: Plant::new(params),
+            plant: Plant::with_force(params, opts.force),
             params: params.clone(),
             fs,
             interp: Interpolator::new(n),

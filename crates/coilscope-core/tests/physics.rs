@@ -273,3 +273,23 @@ fn simulator_with_every_effect_matches_tiny_step_reference() {
         assert!(ei < 1e-5 && ex < 1.5e-6, "{name}: current {ei:.3e}, displacement {ex:.3e}");
     }
 }
+
+/// An external force on the cone (`SimOptions::force`: an added mass under gravity, a
+/// pressure): at rest under it the suspension holds it, `Kms(x) x = F` (the secant
+/// stiffness of the contract), with no current; on every bundled driver, both directions,
+/// at 60 % of the range.
+#[test]
+fn an_external_force_is_held_by_the_suspension() {
+    for name in embedded_driver_names() {
+        let p = embedded_driver(name).unwrap();
+        let [lo, hi] = p.x_range.unwrap();
+        for target in [0.6 * hi, 0.6 * lo] {
+            let force = p.kms.eval(target) * target;
+            let t = simulate(&p, 48000.0, &vec![0.0; 96000], &SimOptions { force, ..Default::default() }).unwrap();
+            let x = *t.x.last().unwrap();
+            let held = p.kms.eval(x) * x;
+            assert!((held / force - 1.0).abs() < 1e-6, "{name}: Kms(x) x = {held} N at x = {} mm, the force {force} N", x * 1e3);
+            assert!(t.i.last().unwrap().abs() < 1e-9, "{name}: current {} A at rest", t.i.last().unwrap());
+        }
+    }
+}

@@ -47,6 +47,57 @@ pub struct QuasiStaticOptions {
     /// Power-series order of the fitted curves.
     pub order: usize,
     pub fs: f64,
+    /// How the coil is held off rest.
+    pub offset: Offset,
+}
+
+impl QuasiStaticOptions {
+    /// How the points are held, in words.
+    pub fn offset_name(&self) -> &'static str {
+        self.offset.name()
+    }
+}
+
+/// How the quasi-static method holds the coil at a working point (IEC 62458 10.2/10.3).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Offset {
+    /// A DC current through the coil: it heats the coil, and its reluctance force and the
+    /// DC terms of the small signal are taken off with the fitted series' derivatives.
+    Current,
+    /// An added mass under gravity (the driver facing up for x < 0, down for x > 0): no
+    /// current, but the moving mass grows by the mass (the small-signal fit is scaled by it).
+    Mass,
+    /// A pressure on the diaphragm of area `sd` (m^2) (a sealed box pumped up or down): no
+    /// current and no added mass.
+    Pressure { sd: f64 },
+}
+
+/// What [`quasi_static`]'s `play` is asked to hold besides the drive: a constant external
+/// force on the cone (N, + pushes the coil out) and the mass added to the cone (kg).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Push {
+    pub force: f64,
+    pub added_mass: f64,
+}
+
+/// Gravity (m/s^2) of the added-mass offsets.
+pub const GRAVITY: f64 = 9.80665;
+
+impl Offset {
+    fn push(self, force: f64) -> Push {
+        match self {
+            Offset::Current => Push::default(),
+            Offset::Mass => Push { force, added_mass: force.abs() / GRAVITY },
+            Offset::Pressure { .. } => Push { force, added_mass: 0.0 },
+        }
+    }
+    fn name(self) -> &'static str {
+        match self {
+            Offset::Current => "DC current",
+            Offset::Mass => "added mass under gravity",
+            Offset::Pressure { .. } => "pressure on the diaphragm",
+        }
+    }
 }
 
 /// One working point.
@@ -54,6 +105,10 @@ pub struct QuasiStaticOptions {
 pub struct WorkingPoint {
     pub u_dc: f64,
     pub i_dc: f64,
+    /// The external force holding the point (N; 0 with a DC current offset), and the
+    /// pressure (Pa) or added mass (kg) that makes it.
+    pub force: f64,
+    pub push: Push,
     /// Static displacement (m).
     pub x_dc: f64,
     /// Coil resistance from the DC (ohm): heated by the DC current.
@@ -165,9 +220,10 @@ fn mean(v: &[f64]) -> f64 {
     v.iter().sum::<f64>() / v.len().max(1) as f64
 }
 
-/// Run the point-by-point measurement on `play` (`drive -> (u, i, x)`, from rest each time),
-/// with `ac` the small signal (unit RMS noise of at least `record_s`).
-pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>), String>, ac: &[f64], opts: &QuasiStaticOptions) -> Result<QuasiStatic, String> {
+/// Run the point-by-point measurement on `play` (`(drive, push) -> (u, i, x)`, from rest
+/// each time, the push's force and added mass held from the start), with `ac` the small
+/// signal (unit RMS noise of at least `record_s`).
+pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>), String>, ac: &[f64], opts: &QuasiStaticOptions) -> Result<QuasiStatic, String> {
     if opts.points < 3 || opts.points % 2 == 0 {
         return Err(format!("{} working points: give an odd number, at least 3", opts.points));
     }
@@ -178,27 +234,35 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
     }
     let ac: Vec<f64> = ac[..nrec].iter().map(|v| v * opts.ac_volts).collect();
     let settle = (0.25 * fs) as usize;
-    let point = |play: &mut dyn FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>), String>, u_dc: f64| -> Result<(WorkingPoint, Parameters), String> {
+    if let Offset::Pressure { sd } = opts.offset {
+        if !(sd.is_finite() && sd > 0.0 && sd < 2.0) {
+            return Err(format!("the pressure offset needs the diaphragm's area Sd (m^2, e.g. 0.0133); {sd} is not valid"));
+        }
+    }
+    let point = |play: &mut dyn FnMut(&[f64], Push) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>), String>, u_dc: f64, push: Push| -> Result<(WorkingPoint, Parameters), String> {
         let d = drive(u_dc, opts.hold_s, &ac, fs);
-        let (u, i, x) = play(&d)?;
+        let (u, i, x) = play(&d, push)?;
         let from = d.len() - nrec + settle;
         let (u, i, x) = (&u[from..], &i[from..], &x[from..]);
         let (um, im, xm) = (mean(u), mean(i), mean(x));
         let uac: Vec<f64> = u.iter().map(|v| v - um).collect();
         let iac: Vec<f64> = i.iter().map(|v| v - im).collect();
-        let fit = fit_linear_record(&uac, &iac, fs, &format!("working point {:.3} V", u_dc), &LinearOptions::default(), |_| {})?;
-        let p = scale_by_mms(&fit, opts.mms)?;
+        let fit = fit_linear_record(&uac, &iac, fs, &format!("working point {:.3} V, {:.3} N", u_dc, push.force), &LinearOptions::default(), |_| {})?;
+        // An added mass moves with the cone: the small-signal fit's absolute scale.
+        let mut p = scale_by_mms(&fit, opts.mms + push.added_mass)?;
+        p.mms = opts.mms;
         // At rest the DC is only the drift of the noise: Re is the small-signal fit's there.
         let re_dc = if u_dc != 0.0 { um / im } else { p.re };
         // The fit's own sds, with a floor of POINT_SD_FLOOR for what a linear fit of a small
         // signal on a nonlinear driver leaves (see the constant).
         let (bl_sd, le_sd) = ((0.5 * fit.sigma_rel[5]).max(POINT_SD_FLOOR) * p.bl.c[0], fit.sigma_rel[1].max(POINT_SD_FLOOR) * p.le.c[0]);
-        let wp = WorkingPoint { u_dc, i_dc: im, x_dc: xm, re_dc, bl_eff: p.bl.c[0], k_eff: p.kms.c[0], le: p.le.c[0], bl: f64::NAN, kms_static: f64::NAN, k_tangent: f64::NAN, bl_sd, le_sd, kms_sd: f64::NAN };
+        let wp = WorkingPoint { u_dc, i_dc: im, force: push.force, push, x_dc: xm, re_dc, bl_eff: p.bl.c[0], k_eff: p.kms.c[0], le: p.le.c[0], bl: f64::NAN, kms_static: f64::NAN, k_tangent: f64::NAN, bl_sd, le_sd, kms_sd: f64::NAN };
         Ok((wp, p))
     };
     // At rest: the small-signal set, and the linear map from volts to displacement.
-    let (rest, p0) = point(&mut play, 0.0)?;
+    let (rest, p0) = point(&mut play, 0.0, Push::default())?;
     let per_volt = rest.bl_eff / (p0.re * rest.k_eff);
+    let per_newton = 1.0 / rest.k_eff;
     let half = opts.points / 2;
     let mut pts = vec![rest];
     for side in [1.0f64, -1.0] {
@@ -206,11 +270,16 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
         // Outward from rest: each point's volts from the last one's volts per metre (the
         // suspension stiffens, so the linear map undershoots more and more).
         let mut volts_per_m = 1.0 / per_volt;
+        let mut newtons_per_m = 1.0 / per_newton;
         for k in 1..=half {
             let target = side * opts.reach * edge * k as f64 / half as f64;
-            let (wp, _) = point(&mut play, target * volts_per_m)?;
+            let (wp, _) = match opts.offset {
+                Offset::Current => point(&mut play, target * volts_per_m, Push::default())?,
+                o => point(&mut play, 0.0, o.push(target * newtons_per_m))?,
+            };
             if wp.x_dc.abs() > 1e-9 {
                 volts_per_m = wp.u_dc / wp.x_dc;
+                newtons_per_m = wp.force / wp.x_dc;
             }
             pts.push(wp);
         }
@@ -233,8 +302,10 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
         let (x, i) = (p.x_dc, p.i_dc);
         p.k_tangent = p.k_eff + dbl.eval(x) * i + 0.5 * ddle.eval(x) * i * i;
         if x.abs() > 1e-3 * opts.range[1].max(-opts.range[0]) {
-            p.kms_static = (bl.eval(x) * i + 0.5 * dle.eval(x) * i * i) / x;
-            p.kms_sd = (p.kms_static * p.bl_sd / p.bl_eff).abs();
+            p.kms_static = (p.force + bl.eval(x) * i + 0.5 * dle.eval(x) * i * i) / x;
+            // Through Bl when the current holds the point; a force is known (a mass, a
+            // pressure): its own share, taken as the floor.
+            p.kms_sd = if p.force != 0.0 { (p.kms_static * POINT_SD_FLOOR).abs() } else { (p.kms_static * p.bl_sd / p.bl_eff).abs() };
         }
     }
     // Kms: the static secants only (at rest the secant is 0/0; the small signal's stiffness
@@ -257,16 +328,18 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
     let ks: Vec<f64> = pts.iter().filter(|p| p.kms_static.is_finite()).map(|p| p.kms_sd).collect();
     let (_, kms_band) = fit_series_band(&kx, &ky, &ks, opts.order, &span);
     let k_dynamic_rest = pts.iter().find(|p| p.u_dc == 0.0).map_or(f64::NAN, |p| p.k_tangent);
-    // The rest position after the largest positive offset: release it, wait a second.
-    let top = pts.iter().map(|p| p.u_dc).fold(0.0, f64::max);
-    let release: Vec<f64> = {
+    // The rest position after the largest positive offset: release it, wait a second. (A
+    // held force is constant over a play: its release is not simulated.)
+    let rest_drift = if opts.offset == Offset::Current {
+        let top = pts.iter().map(|p| p.u_dc).fold(0.0, f64::max);
         let mut d = drive(top, opts.hold_s, &[], fs);
         let n = (fs as usize) * 2;
         d.extend((0..n).map(|k| top * 0.5 * (1.0 + (std::f64::consts::PI * (k as f64 / (fs * 0.5)).min(1.0)).cos())));
-        d
+        let (_, _, xr) = play(&d, Push::default())?;
+        *xr.last().unwrap_or(&0.0)
+    } else {
+        f64::NAN
     };
-    let (_, _, xr) = play(&release)?;
-    let rest_drift = *xr.last().unwrap_or(&0.0);
     let [lo, hi] = [xs[0], xs[xs.len() - 1]];
     let mut warnings = vec![];
     if kx.len() < opts.order + 3 {
@@ -285,6 +358,6 @@ pub fn quasi_static(mut play: impl FnMut(&[f64]) -> Result<(Vec<f64>, Vec<f64>, 
             hot / coilscope_core::params::ALPHA_COPPER
         ));
     }
-    let params = Parameters { re: p0.re, bl, kms, le, x_range: Some([lo, hi]), source: Some("coilscope quasistatic (point by point, DC offset)".into()), ..p0 };
+    let params = Parameters { re: p0.re, bl, kms, le, x_range: Some([lo, hi]), source: Some(format!("coilscope quasistatic (point by point, offset by {})", opts.offset.name())), ..p0 };
     Ok(QuasiStatic { points: pts, params, rest_drift, k_dynamic_rest, warnings, bands: [bl_band, kms_band, le_band] })
 }

@@ -207,7 +207,7 @@ fn compare_section(b: &mut Builder, csv: &mut Vec<(String, String)>, a: &ReportI
             notes.push(vec!["stiffness at rest: small signal at the rest point (dynamic, at the resonance)".into(), format!("{kd:.1} N/m ({:+.1} %)", 100.0 * (kd / k_static - 1.0))]);
         }
         notes.push(vec![format!("stiffness at rest: the {} result", method_label(other)), format!("{k_other:.1} N/m ({:+.1} %)", 100.0 * (k_other / k_static - 1.0))]);
-        if let Some(d) = qs.get("rest_drift_m").and_then(|v| v.as_f64()) {
+        if let Some(d) = qs.get("rest_drift_m").and_then(|v| v.as_f64()).filter(|d| d.is_finite()) {
             notes.push(vec!["rest position 1.5 s after the largest offset".into(), format!("{:+.4} mm", d * 1e3)]);
         }
         if let Some(l) = other.params.creep.as_ref().map(|c| c.lambda) {
