@@ -518,6 +518,54 @@ enum Command {
         #[arg(long)]
         crest: Option<f64>,
     },
+    /// Write a result for another tool: the thermal model as a speakersafetyd configuration,
+    /// the power series as a KLIPPEL-style table (CSV, millimetres), or the small-signal
+    /// impedance as .zma / .frd.
+    #[command(group(clap::ArgGroup::new("format").required(true).args(["speakersafetyd", "power_series", "zma", "frd"])))]
+    Export {
+        /// Result file (coilscope.result/1), parameter file or embedded driver name.
+        result: String,
+        /// speakersafetyd configuration (INI): tr_coil, tr_magnet, tau_coil, tau_magnet from
+        /// the thermal parameters, t_limit and the machine's keys from the options below.
+        #[arg(long)]
+        speakersafetyd: bool,
+        /// The power series of Bl, Kms, Le (and L2, R2) in N/A/mm^n, N/mm/mm^n, mH/mm^n (CSV).
+        #[arg(long)]
+        power_series: bool,
+        /// The small-signal impedance at rest, 5 Hz .. 20 kHz, as .zma (REW, ARTA, LIMP, ...).
+        #[arg(long)]
+        zma: bool,
+        /// The same as .frd (frequency, ohm, degrees), as crossover tools read impedance.
+        #[arg(long)]
+        frd: bool,
+        /// The file to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// speakersafetyd: the speaker's section name (`[Speaker/NAME]`).
+        #[arg(long, default_value = "Speaker")]
+        name: String,
+        /// speakersafetyd: the coil's absolute temperature limit (degrees C).
+        #[arg(long, default_value_t = 120.0)]
+        t_limit: f64,
+        /// speakersafetyd: the ambient temperature the daemon assumes (degrees C).
+        #[arg(long, default_value_t = 35.0)]
+        t_ambient: f64,
+        /// speakersafetyd: the I/V-sense capture's channels, the current and voltage channel,
+        /// and their full scales (A, V).
+        #[arg(long, default_value_t = 2)]
+        channels: usize,
+        #[arg(long, default_value_t = 0)]
+        is_chan: usize,
+        #[arg(long, default_value_t = 1)]
+        vs_chan: usize,
+        #[arg(long, default_value_t = 3.75)]
+        is_scale: f64,
+        #[arg(long, default_value_t = 14.0)]
+        vs_scale: f64,
+        /// speakersafetyd: the speaker group (speakers of a group share a gain).
+        #[arg(long, default_value_t = 0)]
+        group: usize,
+    },
     /// List the sound devices (inputs and outputs) for measure --card (build with --features soundcard).
     Devices,
     /// List the runs of a measurement database (DIR/run.sqlite), including interrupted ones.
@@ -771,6 +819,10 @@ fn main() -> ExitCode {
         Command::Compensate { params, input, out, max_volts, min_force_factor, scale } => cmd_compensate(&params, &input, &out, max_volts, min_force_factor, scale).map_err(Failure::from),
         Command::Quasistatic { driver, out, points, reach, hold, order, world, offset } => cmd_quasistatic(&driver, &out, points, reach, hold, order, world, &offset),
         Command::Drivers => cmd_drivers().map_err(Failure::from),
+        Command::Export { result, speakersafetyd, power_series, zma, frd, out, name, t_limit, t_ambient, channels, is_chan, vs_chan, is_scale, vs_scale, group } => {
+            let o = coilscope_io::export::SafetydOptions { name, t_limit, t_ambient, channels, is_chan, vs_chan, is_scale, vs_scale, group, ..Default::default() };
+            cmd_export(&result, speakersafetyd, power_series, zma, frd, &out, &o).map_err(Failure::from)
+        }
         Command::Check { params } => load_parameters(&params).map_err(|e| Failure::Error(e.to_string())).map(|p| print_params(&p)),
     };
     match result {
@@ -2036,6 +2088,34 @@ fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f6
     } else {
         Err(Failure::Untrusted(format!("{}: {}", out.display(), q.warnings.join("; "))))
     }
+}
+
+/// `export`: one file for another tool, written atomically.
+fn cmd_export(spec: &str, speakersafetyd: bool, power_series: bool, zma: bool, frd: bool, out: &Path, o: &coilscope_io::export::SafetydOptions) -> Result<(), String> {
+    use coilscope_io::export;
+    let input = coilscope_report::input_from(spec)?;
+    let mut p = input.params;
+    // A measured set has no name of its own: the result's device or recording names it.
+    if p.name.is_none() {
+        p.name = input.result.map(|r| r.recording).filter(|r| !r.is_empty());
+    }
+    let (text, what) = if speakersafetyd {
+        (export::speakersafetyd(&p, o).map_err(|e| format!("{spec}: {e}"))?, "speakersafetyd configuration")
+    } else if power_series {
+        (export::power_series_csv(&p), "power series (mm)")
+    } else {
+        let curve = export::impedance_curve(&p, 5.0, 20_000.0, 400);
+        if zma {
+            (coilscope_io::impedance::zma_text(&curve), "impedance (.zma)")
+        } else if frd {
+            (export::frd_text(&curve), "impedance (.frd)")
+        } else {
+            return Err("give the format: --speakersafetyd, --power-series, --zma or --frd".into());
+        }
+    };
+    coilscope_io::atomic_write(out, text.as_bytes()).map_err(|e| e.to_string())?;
+    println!("wrote {} ({what})", out.display());
+    Ok(())
 }
 
 /// `compensate`: the pre-inverse drive, and what the model predicts it does (the largest

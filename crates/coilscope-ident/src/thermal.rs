@@ -194,7 +194,15 @@ pub fn fit_thermal(track: &ThermalTrack, start: [f64; 4], offset_sd: f64) -> Res
         f.convection_note = if speeds.is_empty() { "convection not tested: no speed track".into() } else { format!("convection not tested: the coil's mean speed stayed within {:.3} .. {:.3} m/s (a level schedule with a cooling phase tells it)", lo, hi) };
         return Ok(f);
     }
-    let with = fit_variant(track, start, offset_sd, Some(&plain))?;
+    // A convection fit the track cannot support (a singular covariance) leaves the plain fit.
+    let with = match fit_variant(track, start, offset_sd, Some(&plain)) {
+        Ok(w) => w,
+        Err(e) => {
+            let mut f = plain;
+            f.convection_note = format!("convection not supported by the data (its fit: {e})");
+            return Ok(f);
+        }
+    };
     let (rv, sd) = with.rv.expect("the convection variant fits rv");
     let supported = rv > 3.0 * sd && with.residual_k < 0.95 * plain.residual_k;
     let note = format!(

@@ -16,6 +16,7 @@
 //! Every error is one line naming the file, the channel or key, the value, and what would
 //! be valid.
 
+pub mod export;
 pub mod impedance;
 
 use coilscope_core::params::{embedded_driver, embedded_driver_names, Parameters};

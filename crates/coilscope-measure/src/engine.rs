@@ -1391,6 +1391,8 @@ impl Measurement {
                 self.alpha,
                 match &self.thermal_fit {
                     Some(Ok(f)) if !f.convection_note.is_empty() => format!(". Thermal fit: {}", f.convection_note),
+                    Some(Err(e)) => format!(". No thermal parameters: the thermal fit failed: {e}"),
+                    None => format!(". No thermal parameters: the run was shorter than the thermal fit's {THERMAL_FIT_MIN_S} s"),
                     _ => String::new(),
                 }
             ),
