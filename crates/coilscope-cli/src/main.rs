@@ -2284,6 +2284,18 @@ fn cmd_report(spec: &str, out: &Path, db: Option<&Path>, volts: Option<f64>, com
     let mut input = coilscope_report::input_from(spec)?;
     let db_path = db.map(Path::to_path_buf).or_else(|| Path::new(spec).parent().map(|d| d.join("run.sqlite")).filter(|p| p.exists()));
     if let Some(path) = db_path {
+        // The database must be this measurement's: its last run's device is the result's.
+        if let (Some(m), Some(run)) = (input.result.as_ref().and_then(|r| r.measurement.as_ref()), coilscope_measure::store::list_runs(&path)?.last()) {
+            if run.device != m.device {
+                return Err(format!(
+                    "{}: its last run (#{}) measured {:?}, but {spec} is of {:?}: give the run database of this measurement (--db), or none",
+                    path.display(),
+                    run.id,
+                    run.device,
+                    m.device
+                ));
+            }
+        }
         let rows = coilscope_measure::store::read_states(&path, None)?;
         if !rows.is_empty() {
             input.states = Some(coilscope_report::TimeSeries {

@@ -60,11 +60,14 @@ pub struct Chart {
     pub bands: Vec<Band>,
     /// Vertical lines at x with a label.
     pub markers: Vec<(f64, String)>,
+    /// The lowest value the y axis shows (a decibel axis stops at what is measurable; the
+    /// points below it are drawn on it).
+    pub y_floor: Option<f64>,
 }
 
 impl Chart {
     pub fn new(id: &str, title: &str, x_label: &str, y_label: &str) -> Self {
-        Chart { id: id.into(), title: title.into(), x_label: x_label.into(), y_label: y_label.into(), log_x: false, series: vec![], bands: vec![], markers: vec![] }
+        Chart { id: id.into(), title: title.into(), x_label: x_label.into(), y_label: y_label.into(), log_x: false, series: vec![], bands: vec![], markers: vec![], y_floor: None }
     }
     pub fn log_x(mut self) -> Self {
         self.log_x = true;
@@ -83,6 +86,11 @@ impl Chart {
         self.bands.push(Band { of, lo, hi });
         self
     }
+    /// Clip the y axis at `floor` (see [`Chart::y_floor`]).
+    pub fn floor(mut self, floor: f64) -> Self {
+        self.y_floor = Some(floor);
+        self
+    }
     pub fn marker(mut self, x: f64, label: &str) -> Self {
         self.markers.push((x, label.into()));
         self
@@ -94,7 +102,8 @@ impl Chart {
 
     /// Points with finite coordinates (and positive x on a log axis), axis-transformed.
     fn clean(&self, pts: &[(f64, f64)]) -> Vec<(f64, f64)> {
-        pts.iter().filter(|(x, y)| x.is_finite() && y.is_finite() && (!self.log_x || *x > 0.0)).map(|&(x, y)| (self.tx(x), y)).collect()
+        let floor = self.y_floor.unwrap_or(f64::NEG_INFINITY);
+        pts.iter().filter(|(x, y)| x.is_finite() && y.is_finite() && (!self.log_x || *x > 0.0)).map(|&(x, y)| (self.tx(x), y.max(floor))).collect()
     }
 
     fn bounds(&self) -> Option<((f64, f64), (f64, f64))> {
@@ -113,8 +122,37 @@ impl Chart {
             x = (x.0 - 0.5, x.1 + 0.5);
         }
         let pad = if y.1 > y.0 { 0.06 * (y.1 - y.0) } else { 0.5 * y.0.abs().max(1e-12) };
-        y = (y.0 - pad, y.1 + pad);
+        // Room above the data for the legend (upper right): a line per series.
+        let legend = if self.series.len() > 1 { 0.075 * self.series.len() as f64 * (y.1 - y.0 + 2.0 * pad) } else { 0.0 };
+        y = (y.0 - pad, y.1 + pad + legend);
         Some((x, y))
+    }
+
+    /// Tick positions of the x axis: on a log axis the 1-2-5 values of each decade (in
+    /// log10), so that labels read 20, 50, 100, 200, ... rather than 158, 251, 398; on a
+    /// linear axis about ten round steps.
+    fn x_keys(&self, x0: f64, x1: f64) -> Vec<f64> {
+        if self.log_x {
+            let mut keys = vec![];
+            let steps: &[f64] = if x1 - x0 > 2.5 { &[1.0] } else if x1 - x0 > 1.2 { &[1.0, 2.0, 5.0] } else { &[1.0, 1.5, 2.0, 3.0, 5.0, 7.0] };
+            for d in (x0.floor() as i32 - 1)..=(x1.ceil() as i32) {
+                for m in steps {
+                    let v = (m * 10f64.powi(d)).log10();
+                    if v >= x0 && v <= x1 {
+                        keys.push(v);
+                    }
+                }
+            }
+            keys
+        } else {
+            let span = x1 - x0;
+            let raw = span / 10.0;
+            let mag = 10f64.powf(raw.log10().floor());
+            let step = [1.0, 2.0, 5.0, 10.0].iter().map(|m| m * mag).find(|s| span / s <= 12.0).unwrap_or(10.0 * mag);
+            let first = (x0 / step).ceil() as i64;
+            let last = (x1 / step).floor() as i64;
+            (first..=last).map(|k| k as f64 * step).collect()
+        }
     }
 
     /// Draw on any plotters backend.
@@ -151,33 +189,50 @@ impl Chart {
             let a = v.abs();
             if a != 0.0 && !(1e-2..1e4).contains(&a) { format!("{v:.2e}") } else { format!("{v:.3}").trim_end_matches('0').trim_end_matches('.').to_string() }
         };
+        // The x ticks are ours (x_keys: 1-2-5 per decade on a log axis): the mesh draws the
+        // y axis, and the x grid lines and labels are drawn below at the keys.
         chart
             .configure_mesh()
             .x_desc(&self.x_label)
             .y_desc(&self.y_label)
-            .x_label_formatter(&fmt_x)
+            .x_labels(0)
+            .disable_x_mesh()
             .y_label_formatter(&fmt_y)
             .label_style(("sans-serif", 13))
             .light_line_style(RGBColor(235, 235, 235))
             .draw()
             .map_err(e)?;
+        let keys = self.x_keys(x0, x1);
+        let grid = RGBColor(225, 225, 225);
+        for &k in &keys {
+            chart.draw_series(std::iter::once(PathElement::new(vec![(k, y0), (k, y1)], grid.stroke_width(1)))).map_err(e)?;
+            let (px, py) = chart.backend_coord(&(k, y0));
+            let text = fmt_x(&k);
+            let w = 7 * text.chars().count() as i32 / 2;
+            root.draw(&Text::new(text, (px - w, py + 6), ("sans-serif", 13).into_font().color(&BLACK))).map_err(e)?;
+            root.draw(&PathElement::new(vec![(px, py), (px, py + 4)], BLACK.stroke_width(1))).map_err(e)?;
+        }
         for b in &self.bands {
             let c = PALETTE[b.of % PALETTE.len()];
             let mut poly = self.clean(&b.lo);
             poly.extend(self.clean(&b.hi).into_iter().rev());
             chart.draw_series(std::iter::once(Polygon::new(poly, c.mix(0.22).filled()))).map_err(e)?;
         }
+        let mut placed: Vec<(f64, f64)> = vec![];
         for (x, label) in &self.markers {
             let tx = self.tx(*x);
             if !(x0..=x1).contains(&tx) {
                 continue;
             }
+            // A label near one already placed goes a line lower, so that none covers another.
+            let near = placed.iter().filter(|(px, _)| (px - tx).abs() < 0.0125 * (x1 - x0) * label.chars().count().max(6) as f64).count();
+            placed.push((tx, 0.0));
             let grey = RGBColor(110, 110, 110);
             chart.draw_series(DashedLineSeries::new(vec![(tx, y0), (tx, y1)], 6, 4, grey.stroke_width(1))).map_err(e)?;
             // Labels right of the middle are written to the left of their line, so they stay inside.
             let width = 0.0125 * (x1 - x0) * label.chars().count() as f64;
             let lx = if tx > 0.5 * (x0 + x1) { tx - width - 0.005 * (x1 - x0) } else { tx + 0.005 * (x1 - x0) };
-            chart.draw_series(std::iter::once(Text::new(label.clone(), (lx, y1 - 0.04 * (y1 - y0)), ("sans-serif", 12).into_font().color(&grey)))).map_err(e)?;
+            chart.draw_series(std::iter::once(Text::new(label.clone(), (lx, y1 - (0.04 + 0.05 * near as f64) * (y1 - y0)), ("sans-serif", 12).into_font().color(&grey)))).map_err(e)?;
         }
         for (k, s) in self.series.iter().enumerate() {
             let c = PALETTE[k % PALETTE.len()];
@@ -255,5 +310,27 @@ mod tests {
     fn a_chart_without_finite_data_is_an_error() {
         let c = Chart::new("empty", "E", "x", "y").line("nan", vec![(f64::NAN, 1.0)]);
         assert!(c.svg((200, 100)).unwrap_err().contains("no finite data"));
+    }
+}
+
+#[cfg(test)]
+mod axis_tests {
+    use super::*;
+
+    /// Issue 19: a log frequency axis is ticked at 1-2-5 per decade (labels 20, 50, 100, ...
+    /// rather than 158, 251, 398), and a decibel axis stops at its floor.
+    #[test]
+    fn log_ticks_are_round_and_the_floor_clips() {
+        let c = Chart::new("f", "F", "frequency (Hz)", "dB").log_x().line("a", vec![(20.0, -30.0), (5000.0, -200.0)]).floor(-100.0);
+        let keys = c.x_keys(20f64.log10(), 5000f64.log10());
+        let hz: Vec<f64> = keys.iter().map(|k| 10f64.powf(*k)).collect();
+        for want in [20.0, 50.0, 100.0, 200.0, 500.0, 1000.0, 2000.0, 5000.0] {
+            assert!(hz.iter().any(|h| (h / want - 1.0).abs() < 1e-9), "{want} Hz not a tick: {hz:?}");
+        }
+        assert!(hz.iter().all(|h| { let m = h / 10f64.powf(h.log10().floor()); [1.0, 2.0, 5.0].iter().any(|r| (m - r).abs() < 1e-9) }), "{hz:?}");
+        let ((_, _), (y0, _)) = c.bounds().unwrap();
+        assert!(y0 >= -100.0 - 0.1 * 70.0, "the axis goes below the floor: {y0}");
+        let s = c.svg((640, 400)).unwrap();
+        assert!(s.contains(">1k<") || s.contains(">1k </") || s.contains("1k"), "the 1 kHz label");
     }
 }

@@ -84,6 +84,19 @@ fn esc(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
 }
 
+/// Four significant digits, without an exponent between 1e-3 and 1e6.
+fn sig(v: f64) -> String {
+    let a = v.abs();
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v}");
+    }
+    if !(1e-3..1e6).contains(&a) {
+        return format!("{v:.3e}");
+    }
+    let digits = (3 - a.log10().floor() as i32).max(0) as usize;
+    format!("{v:.digits$}")
+}
+
 fn fmt(v: f64) -> String {
     let a = v.abs();
     if v == 0.0 {
@@ -109,6 +122,10 @@ fn band_of(result: Option<&ResultFile>, key: &str) -> Option<Vec<(f64, f64, f64)
 fn dbp(r: f64) -> f64 {
     db(r).max(-160.0)
 }
+
+/// The lowest distortion level the charts show (dB re the fundamental): what a measurement
+/// through a good 24-bit card can resolve; below it a prediction is drawn on the floor.
+const DB_FLOOR: f64 = -100.0;
 
 fn grid(range: [f64; 2], n: usize) -> Vec<f64> {
     (0..=n).map(|k| range[0] + (range[1] - range[0]) * k as f64 / n as f64).collect()
@@ -233,16 +250,41 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     let mut csv = Vec::new();
 
     // --- Parameters ---------------------------------------------------------------------
-    b.section("Parameters", "Values at rest (x = 0); SI units. Small-signal figures from the linearised model at rest.");
-    // Every constant of the parameter schema the set has, and the functions of x at rest.
-    let mut rows: Vec<Vec<String>> = p.values_at_rest().map(|(e, v)| vec![e.label(), fmt(v), e.unit_text().to_string()]).collect();
-    for (k, v, u) in [("fs", ts.fs, "Hz"), ("Qms", ts.qms, ""), ("Qes", ts.qes, ""), ("Qts", ts.qts, "")] {
-        rows.push(vec![k.into(), fmt(v), u.into()]);
+    b.section("Parameters", "Values at rest (x = 0), in the units engineers read them in; ± one standard deviation where the result carries it. Small-signal figures from the linearised model at rest.");
+    // Every constant of the parameter schema the set has, and the functions of x at rest,
+    // each in its display unit, with its sd: a number's own, a curve's band at rest.
+    let sd_of = |key: &str| -> Option<f64> {
+        let u = &result?.uncertainty;
+        u.value(key).or_else(|| {
+            let b = u.band(key)?;
+            let k = (0..b.x.len()).min_by(|&i, &j| b.x[i].abs().total_cmp(&b.x[j].abs()))?;
+            Some(b.sd[k]).filter(|s| s.is_finite())
+        })
+    };
+    let pm = |sd: Option<f64>, factor: f64| sd.filter(|s| *s > 0.0).map(|s| format!("± {}", sig(s * factor))).unwrap_or_default();
+    let mut rows: Vec<Vec<String>> = p.values_at_rest().map(|(e, v)| vec![e.label(), sig(v * e.display.1), pm(sd_of(e.key), e.display.1), e.display.0.to_string()]).collect();
+    // Thiele/Small and the derived figures (no sd of their own).
+    let bl0 = p.bl.c[0];
+    let qtp = {
+        // Total Q with the electrical losses the para-inductance adds at the resonance:
+        // the real part of the blocked electrical impedance there in place of Re.
+        let w = 2.0 * std::f64::consts::PI * ts.fs;
+        let jw = realfft::num_complex::Complex64::new(0.0, w);
+        let mut ze = p.re + jw * p.le.c[0];
+        if let Some((l2, r2)) = &p.l2r2 {
+            ze += jw * l2.c[0] * r2.c[0] / (jw * l2.c[0] + r2.c[0]);
+        }
+        let qes_p = w * p.mms * ze.re / (bl0 * bl0);
+        ts.qms * qes_p / (ts.qms + qes_p)
+    };
+    for (k, v, u) in [("fs", ts.fs, "Hz"), ("Qms", ts.qms, ""), ("Qes", ts.qes, ""), ("Qts", ts.qts, ""), ("Qtp (with the eddy-current losses at fs)", qtp, ""), ("Cms", 1e3 * ts.cms, "mm/N"), ("Res (Bl²/Rms)", bl0 * bl0 / p.rms, "ohm")] {
+        rows.push(vec![k.into(), sig(v), String::new(), u.into()]);
     }
-    if let Some(v) = ts.vas {
-        rows.push(vec!["Vas".into(), fmt(v * 1e3), "l".into()]);
+    match ts.vas {
+        Some(v) => rows.push(vec!["Vas".into(), sig(v * 1e3), String::new(), "l".into()]),
+        None => rows.push(vec!["Vas".into(), "—".into(), String::new(), "(needs Sd)".into()]),
     }
-    b.table(&["parameter", "value", "unit"], &rows);
+    b.table(&["parameter", "value", "sd", "unit"], &rows);
     let mut series_rows = vec![];
     let funcs: Vec<(String, &coilscope_core::Poly)> = coilscope_core::schema::ENTRIES
         .iter()
@@ -260,10 +302,14 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     let heads: Vec<String> = std::iter::once("power series".to_string()).chain((0..order).map(|j| format!("c{j}"))).collect();
     b.table(&heads.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &series_rows);
 
-    // --- Curves ---------------------------------------------------------------------------
-    b.section("Nonlinear parameters", "Solid: identified curve over the reached range; shaded: +-2 standard deviations (when the result carries them); dashed verticals: the reached range and the limits.");
+    // A small-signal result (constant curves) gets no nonlinear sections: nothing in it
+    // supports them.
+    let nonlinear = [&p.bl, &p.kms, &p.le].iter().any(|f| f.c.iter().skip(1).any(|c| *c != 0.0));
     let th = opts.thresholds;
     let lim = &diag.limits;
+    if nonlinear {
+    // --- Curves ---------------------------------------------------------------------------
+    b.section("Nonlinear parameters", "Solid: identified curve over the reached range; shaded: +-2 standard deviations (when the result carries them); dashed verticals: the reached range and the limits.");
     let bl_band = band_of(result, "Bl");
     let kms_band = band_of(result, "Kms");
     let le_band = band_of(result, "Le");
@@ -287,9 +333,21 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     }
     csv.push(("curves.csv".to_string(), c));
 
+    } else {
+        b.html.push_str("<p>This is a small-signal result: its Bl, Kms and Le are constants, so it has no nonlinear curves, displacement limits or distortion to show. Measure the large-signal parameters with <code>coilscope measure</code> or <code>coilscope identify</code>.</p>");
+    }
+
     // --- Limits and diagnosis -------------------------------------------------------------
     b.section("Limits and diagnosis", "IEC 62458 / Klippel displacement limits over the reached range (thresholds as given), the Bl symmetry point, the polarity check and the thermal power handling.");
+    let xmax = [(lim.xbl, "XBl"), (lim.xc, "XC"), (lim.xl, "XL")].into_iter().filter_map(|(v, n)| v.map(|v| (v, n))).min_by(|a, b| a.0.total_cmp(&b.0));
     let mut rows = vec![
+        vec![
+            "Xmax = min(XBl, XC, XL)".into(),
+            match xmax {
+                Some((v, n)) => format!("{:.2} mm (limited by {n})", v * 1e3),
+                None => format!("beyond the reached range (+-{:.2} mm): no limit reached", (-range[0]).min(range[1]) * 1e3),
+            },
+        ],
         vec![format!("XBl (Bl {:.0} %)", th.bl * 100.0), mm(lim.xbl)],
         vec![format!("XC (Cms {:.0} %)", th.cms * 100.0), mm(lim.xc)],
         vec![format!("XL (Le {:.0} %)", th.le * 100.0), mm(lim.xl)],
@@ -298,6 +356,9 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         vec!["Bl rest-position shift".into(), diag.bl_shift_advice()],
         vec!["Polarity (Le asymmetry)".into(), format!("{}: Le(-{:.2} mm) = {:.4} mH, Le(+{:.2} mm) = {:.4} mH", diag.polarity.verdict, diag.polarity.at * 1e3, diag.polarity.le_minus * 1e3, diag.polarity.at * 1e3, diag.polarity.le_plus * 1e3)],
     ];
+    if !nonlinear {
+        rows.clear();
+    }
     if let (Some(th), Some(unc)) = (p.thermal.as_ref(), result.map(|r| &r.uncertainty)) {
         // A measured thermal model (a long `measure` run fits it): its values with their sds.
         let sd = |k: &str| unc.value(&format!("thermal.{k}"));
@@ -344,20 +405,26 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         let k = (0..3).max_by(|&i, &j| score[i].total_cmp(&score[j])).unwrap_or(0);
         Nonlinearity::ALL[k]
     };
-    rows.push(vec!["Dominant nonlinearity".into(), format!("{} (largest harmonic distortion alone, summed over {:.0} .. {:.0} Hz at {:.2} V)", dominant.name(), f_lo, f_hi, volts)]);
-    b.table(&["limit", "value"], &rows);
+    if nonlinear {
+        rows.push(vec!["Dominant nonlinearity".into(), format!("{} (largest harmonic distortion alone, summed over {:.0} .. {:.0} Hz at {:.2} V)", dominant.name(), f_lo, f_hi, volts)]);
+    }
+    if !rows.is_empty() {
+        b.table(&["limit", "value"], &rows);
+    }
 
+    let mut divergence = None;
+    if nonlinear {
     b.section(
         "Distortion",
         &format!("Predicted by simulating the identified model to its periodic steady state (sine of {volts:.2} V RMS; sound pressure in the far field, proportional to cone acceleration). Each nonlinearity's contribution is the model with only that nonlinearity left."),
     );
     let line = |f: &dyn Fn(&Analysis) -> f64| sweep.iter().map(|a| (a.total.freq, dbp(f(a)))).collect::<Vec<_>>();
     b.chart(
-        Chart::new("hd", "Harmonic distortion", "frequency (Hz)", "dB re fundamental").log_x().line("HD2", line(&|a| a.total.hd(2))).line("HD3", line(&|a| a.total.hd(3))).line("THD", line(&|a| a.total.thd())).marker(ts.fs, "fs"),
+        Chart::new("hd", "Harmonic distortion", "frequency (Hz)", "dB re fundamental").log_x().floor(DB_FLOOR).line("HD2", line(&|a| a.total.hd(2))).line("HD3", line(&|a| a.total.hd(3))).line("THD", line(&|a| a.total.thd())).marker(ts.fs, "fs"),
         "HD2, HD3 and THD of the sound pressure over frequency.",
     )?;
     for order in [2usize, 3] {
-        let mut c = Chart::new(&format!("contrib-hd{order}"), &format!("HD{order}: each nonlinearity alone"), "frequency (Hz)", "dB re fundamental").log_x().line("total", line(&|a| a.total.hd(order)));
+        let mut c = Chart::new(&format!("contrib-hd{order}"), &format!("HD{order}: each nonlinearity alone"), "frequency (Hz)", "dB re fundamental").log_x().floor(DB_FLOOR).line("total", line(&|a| a.total.hd(order)));
         for (k, nl) in Nonlinearity::ALL.iter().enumerate() {
             c = c.dashed(nl.name(), sweep.iter().map(|a| (a.total.freq, dbp(a.parts[k].1.hd(order)))).collect());
         }
@@ -385,8 +452,9 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
             rows_v.extend(r);
         }
     }
-    let divergence = divergence_level(&rows_v, 1.0);
+    divergence = divergence_level(&rows_v, 1.0);
     let mut c = Chart::new("volterra", &format!("Volterra series vs full model at {:.1} Hz", f_v), "level (V RMS)", "dB re fundamental")
+        .floor(DB_FLOOR)
         .log_x()
         .line("HD2 full", rows_v.iter().map(|r| (r.volts, dbp(r.full.hd(2)))).collect())
         .line("HD3 full", rows_v.iter().map(|r| (r.volts, dbp(r.full.hd(3)))).collect())
@@ -463,11 +531,14 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
             .collect();
         b.chart(
             Chart::new("multitone", &format!("Multitone distortion (30 tones, MTD {:.1} dB)", db(mt.mtd)), "frequency (Hz)", "dB re mean tone")
+                .floor(DB_FLOOR)
                 .log_x()
                 .line("tones", mt.tones.iter().map(|(f, a)| (*f, dbp(a / ref_level))).collect())
                 .line("distortion per 1/3 octave", dist),
             "Sound-pressure spectrum of a 30-tone multitone: the tones and the distortion that falls between them.",
         )?;
+    }
+
     }
 
     // --- Impedance --------------------------------------------------------------------------
