@@ -24,7 +24,7 @@ fn report_tables_sds_and_what_the_result_supports() {
     let o = coilscope(&["report", &p("large.json"), "--out", &p("large.html")]);
     assert!(o.status.success(), "{}", text(&o));
     let html = std::fs::read_to_string(p("large.html")).unwrap();
-    for want in ["Xmax = min(XBl, XC, XL)", "<td>Vas</td>", "<td>Cms</td>", "Res (Bl²/Rms)", "Qtp", "Dominant nonlinearity", "± "] {
+    for want in ["Xmax = min(XBl, XC, XL)", "<td>Vas</td>", "<td>Cms</td>", "Res (Bl²/Rms)", "Qtp", "Dominant nonlinearity", "± ", "plot-bl-symmetry", "plot-kms-symmetry", "plot-ak"] {
         assert!(html.contains(want), "the large-signal report lacks {want:?}");
     }
     // Engineering units: Mms in g, Le in mH.

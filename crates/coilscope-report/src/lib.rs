@@ -324,6 +324,35 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     b.chart(curve_chart("kms", "Kms(x)", "Kms (N/m)", &|x| p.kms.eval(x), kms_band, range, None, over(&|q, x| q.kms.eval(x))), "Secant stiffness of the suspension.")?;
     b.chart(curve_chart("cms", "Cms(x)", "Cms (mm/N)", &|x| 1e3 / p.kms.eval(x), cms_band.map(|v: Vec<(f64, f64, f64)>| v.into_iter().map(|(x, c, s)| (x, c * 1e3, s * 1e3)).collect()), range, lim.xc.map(|v| (v, xc_label.as_str())), over(&|q, x| 1e3 / q.kms.eval(x))), "Compliance 1/Kms(x).")?;
     b.chart(curve_chart("le", "Le(x)", "Le (mH)", &|x| 1e3 * p.le.eval(x), le_band.map(|v| v.into_iter().map(|(x, l, s)| (x, l * 1e3, s * 1e3)).collect()), range, lim.xl.map(|v| (v, xl_label.as_str())), over(&|q, x| 1e3 * q.le.eval(x))), "Voice-coil inductance; it should rise toward the back plate (x < 0).")?;
+    // Symmetry against amplitude (as LSI plots it): the offset that makes Bl(x) and Kms(x)
+    // symmetric over +-x_peak, and the stiffness asymmetry Ak(x_peak).
+    let a = (-range[0]).min(range[1]);
+    let amps: Vec<f64> = (1..=19).map(|k| 0.05 * k as f64 * a).collect();
+    let sym = |f: &coilscope_core::Poly| amps.iter().filter_map(|&amp| coilscope_core::limits::symmetry_point(f, amp, range).map(|s| (amp * 1e3, s * 1e3))).collect::<Vec<_>>();
+    let ak: Vec<(f64, f64)> = amps.iter().map(|&amp| (amp * 1e3, 100.0 * (p.kms.eval(amp) - p.kms.eval(-amp)) / p.kms.eval(amp).max(p.kms.eval(-amp)))).collect();
+    let (bl_sym, kms_sym) = (sym(&p.bl), sym(&p.kms));
+    if !bl_sym.is_empty() {
+        b.chart(
+            Chart::new("bl-symmetry", "Bl symmetry point against amplitude", "amplitude x_peak (mm)", "Xsym (mm), + = coil out").line("Xsym of Bl", bl_sym.clone()),
+            "The rest-position offset that would make Bl(x) symmetric over +-x_peak (Bl(Xsym - x_peak) = Bl(Xsym + x_peak)). A coil off the gap's centre shows as an offset that stays the same over amplitude; an asymmetric field, as one that changes.",
+        )?;
+    }
+    if !kms_sym.is_empty() {
+        b.chart(
+            Chart::new("kms-symmetry", "Kms symmetry point against amplitude", "amplitude x_peak (mm)", "offset (mm), + = coil out").line("Kms symmetry point", kms_sym.clone()),
+            "The offset that would make Kms(x) symmetric over +-x_peak: where the suspension is centred at each amplitude.",
+        )?;
+    }
+    b.chart(
+        Chart::new("ak", "Stiffness asymmetry Ak against amplitude", "amplitude x_peak (mm)", "Ak (%)").line("Ak", ak.clone()),
+        "Ak(x_peak) = (Kms(x_peak) - Kms(-x_peak)) / the larger of the two (IEC 62458): the suspension's asymmetry at each amplitude; it drives a DC displacement.",
+    )?;
+    let mut sc = String::from("x_peak_mm,Xsym_Bl_mm,Xsym_Kms_mm,Ak_percent\n");
+    for (k, &amp) in amps.iter().enumerate() {
+        let find = |v: &[(f64, f64)]| v.iter().find(|(x, _)| (x - amp * 1e3).abs() < 1e-12).map_or(String::new(), |(_, s)| format!("{s:.5}"));
+        let _ = writeln!(sc, "{:.5},{},{},{:.4}", amp * 1e3, find(&bl_sym), find(&kms_sym), ak[k].1);
+    }
+    csv.push(("symmetry.csv".to_string(), sc));
     if let Some(c) = cmp {
         compare_section(&mut b, &mut csv, input, c);
     }
