@@ -550,16 +550,19 @@ enum Command {
         /// speakersafetyd: the ambient temperature the daemon assumes (degrees C).
         #[arg(long, default_value_t = 35.0)]
         t_ambient: f64,
-        /// speakersafetyd: the I/V-sense capture's channels, the current and voltage channel,
-        /// and their full scales (A, V).
+        /// speakersafetyd: channels of the machine's I/V-sense capture.
         #[arg(long, default_value_t = 2)]
         channels: usize,
+        /// speakersafetyd: the capture channel of this speaker's current sense.
         #[arg(long, default_value_t = 0)]
         is_chan: usize,
+        /// speakersafetyd: the capture channel of this speaker's voltage sense.
         #[arg(long, default_value_t = 1)]
         vs_chan: usize,
+        /// speakersafetyd: the current sense's full scale (A).
         #[arg(long, default_value_t = 3.75)]
         is_scale: f64,
+        /// speakersafetyd: the voltage sense's full scale (V).
         #[arg(long, default_value_t = 14.0)]
         vs_scale: f64,
         /// speakersafetyd: the speaker group (speakers of a group share a gain).
