@@ -1,0 +1,88 @@
+"""coilscope from Python: large-signal loudspeaker parameters from voltage and current.
+
+Signals are numpy arrays in SI units (V, A, m, m/s, K); parameter sets and results are dicts
+in the coilscope file contract (``coilscope.parameters/1``, ``coilscope.result/1``): power
+series as ascending coefficient lists in metres, uncertainties under ``uncertainty``. A
+parameter set may be given as such a dict, a result dict, an embedded driver's name (see
+:func:`drivers`) or a JSON file's path. Errors raise ``ValueError`` with the message the
+command line prints.
+
+>>> import coilscope
+>>> p = coilscope.parameters("sb17cac35-4")
+>>> u = coilscope.generate("pink", 48000, 4.0, 2.0, band=(10, 8000))
+>>> trace = coilscope.simulate(p, u, 48000)
+>>> result = coilscope.identify(u, trace["i"], 48000, mms=p["Mms"])
+"""
+
+import json
+
+import numpy as np
+
+from . import _coilscope as _c
+
+__all__ = ["drivers", "parameters", "generate", "simulate", "linear", "identify", "measure_virtual", "measure_replay", "distortion", "poly"]
+
+
+def _spec(p):
+    if isinstance(p, dict):
+        return json.dumps(p)
+    return str(p)
+
+
+def _floats(a, name):
+    a = np.asarray(a, dtype=float)
+    if a.ndim != 1:
+        raise ValueError(f"{name}: a one-dimensional array of samples is needed, got shape {a.shape}")
+    return a.tolist()
+
+
+def drivers():
+    """The embedded real drivers' names (Klippel LSI parameters)."""
+    return list(_c.drivers())
+
+
+def parameters(spec):
+    """A parameter set as a dict (validated): from a dict, a result dict, a name or a file."""
+    return json.loads(_c.parameters(_spec(spec)))
+
+
+def poly(coefficients, x):
+    """Evaluate a contract power series (a number or ascending coefficients in metres) at x (m)."""
+    c = np.atleast_1d(np.asarray(coefficients, dtype=float))
+    return np.polynomial.polynomial.polyval(np.asarray(x, dtype=float), c)
+
+
+def generate(kind, fs, seconds, rms, seed=1, band=None, freq=None, tones=30, fade=0.05):
+    """A seeded excitation (V): noise (IEC 60268-1), pink, sine, multitone, sweep, readable."""
+    return np.asarray(_c.generate(kind, float(fs), float(seconds), float(rms), int(seed), None if band is None else (float(band[0]), float(band[1])), None if freq is None else float(freq), int(tones), float(fade)))
+
+
+def simulate(params, u, fs):
+    """The virtual transducer driven by voltage u (V): dict of arrays x, v, i, tv, tm."""
+    x, v, i, tv, tm = _c.simulate(_spec(params), float(fs), _floats(u, "u"))
+    return {"u": np.asarray(u, dtype=float), "x": np.asarray(x), "v": np.asarray(v), "i": np.asarray(i), "tv": np.asarray(tv), "tm": np.asarray(tm)}
+
+
+def linear(u, i, fs, mms):
+    """Small-signal (Thiele/Small) fit of a record, Mms given (kg): the result dict."""
+    return json.loads(_c.linear(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms)))
+
+
+def identify(u, i, fs, mms, order=None):
+    """Large-signal identification of a record (Mms given, kg): the result dict."""
+    return json.loads(_c.identify(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), None if order is None else int(order)))
+
+
+def measure_virtual(driver, seed=1, fs=48000.0, max_seconds=60.0):
+    """A dynamic measurement of a virtual driver (IEC noise, ramp, protection): the result dict."""
+    return json.loads(_c.measure_virtual(_spec(driver), int(seed), float(fs), float(max_seconds)))
+
+
+def measure_replay(u, i, fs, mms, max_seconds=600.0):
+    """The online estimator on a recording: the result dict."""
+    return json.loads(_c.measure_replay(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), float(max_seconds)))
+
+
+def distortion(params, freq, volts, output="pressure"):
+    """Harmonic distortion of a sine (HD2, HD3, THD, each nonlinearity, Volterra): a dict."""
+    return json.loads(_c.distortion(_spec(params), float(freq), float(volts), output))

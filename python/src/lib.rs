@@ -1,0 +1,192 @@
+//! Python bindings of coilscope (`import coilscope`): the module `coilscope._coilscope`,
+//! wrapped by `coilscope/__init__.py` into numpy arrays and dicts.
+//!
+//! Parameter sets and results cross as the file contract's JSON text (`coilscope.parameters/1`,
+//! `coilscope.result/1`), so that Python sees exactly what the files hold; signals cross as
+//! sequences of floats (numpy arrays in, lists out, turned into arrays by the wrapper). Long
+//! computations release the GIL. Every error is a `ValueError` whose message is the one the
+//! command line prints.
+
+use coilscope_core::excitation::{generate as gen, Excitation, SignalSpec};
+use coilscope_core::simulate::{simulate as sim, SimOptions};
+use coilscope_core::Parameters;
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+fn err<E: std::fmt::Display>(e: E) -> PyErr {
+    PyValueError::new_err(e.to_string())
+}
+
+/// A parameter set from JSON text, an embedded driver's name or a file path.
+fn params_from(spec: &str) -> PyResult<Parameters> {
+    if spec.trim_start().starts_with('{') {
+        let v: serde_json::Value = serde_json::from_str(spec).map_err(|e| err(format!("parameters: not JSON ({e})")))?;
+        // A result file gives its parameters.
+        let v = if v.get("format").and_then(|f| f.as_str()).is_some_and(|f| f.starts_with("coilscope.result")) { v["parameters"].clone() } else { v };
+        let p = Parameters::from_json_value(&v, "parameters").map_err(err)?;
+        p.validate("parameters").map_err(err)?;
+        Ok(p)
+    } else {
+        coilscope_io::load_parameters(spec).map_err(err)
+    }
+}
+
+fn check_fs(fs: f64) -> PyResult<()> {
+    if !(fs.is_finite() && (1000.0..=1.0e6).contains(&fs)) {
+        return Err(err(format!("sample rate {fs} Hz is not valid (1 kHz .. 1 MHz)")));
+    }
+    Ok(())
+}
+
+fn check_pair(u: &[f64], i: &[f64]) -> PyResult<()> {
+    if u.len() != i.len() {
+        return Err(err(format!("voltage and current differ in length ({} and {} samples)", u.len(), i.len())));
+    }
+    if let Some(k) = u.iter().chain(i).position(|v| !v.is_finite()) {
+        return Err(err(format!("sample {k} of the voltage/current is not finite")));
+    }
+    Ok(())
+}
+
+/// The embedded real drivers' names.
+#[pyfunction]
+fn drivers() -> Vec<String> {
+    coilscope_core::embedded_driver_names().iter().map(|s| s.to_string()).collect()
+}
+
+/// A parameter set (JSON text, embedded name or file) as contract JSON text, validated.
+#[pyfunction]
+fn parameters(spec: &str) -> PyResult<String> {
+    Ok(params_from(spec)?.to_json_value().to_string())
+}
+
+/// A seeded excitation (V): `noise` (IEC 60268-1), `pink`, `sine`, `multitone`, `sweep`,
+/// `readable` (the Volterra method's multitone).
+#[pyfunction]
+#[pyo3(signature = (kind, fs, seconds, rms, seed=1, band=None, freq=None, tones=30, fade=0.05))]
+#[allow(clippy::too_many_arguments)]
+fn generate(kind: &str, fs: f64, seconds: f64, rms: f64, seed: u64, band: Option<(f64, f64)>, freq: Option<f64>, tones: usize, fade: f64) -> PyResult<Vec<f64>> {
+    let (lo, hi) = band.unwrap_or((10.0, (8000.0f64).min(0.45 * fs)));
+    let exc = match kind {
+        "noise" => Excitation::Iec,
+        "pink" => Excitation::Pink { f_lo: lo, f_hi: hi, crest: None },
+        "sine" => Excitation::Sine { freq: freq.ok_or_else(|| err("a sine needs freq (Hz)"))? },
+        "multitone" => Excitation::Multitone { f_lo: lo, f_hi: hi, count: tones, crest: None },
+        "sweep" => Excitation::Sweep { f_lo: lo, f_hi: hi },
+        "readable" => Excitation::Readable { f_lo: lo, f_hi: hi, count: tones, crest: None },
+        other => return Err(err(format!("excitation {other:?}: give noise, pink, sine, multitone, sweep or readable"))),
+    };
+    gen(&exc, &SignalSpec { fs, seconds, rms, fade, seed }).map_err(err)
+}
+
+/// Simulate a voltage record on a parameter set: `(x m, v m/s, i A, coil rise K, magnet rise K)`.
+#[pyfunction]
+#[allow(clippy::type_complexity)]
+fn simulate(py: Python<'_>, params: &str, fs: f64, u: Vec<f64>) -> PyResult<(Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>)> {
+    let p = params_from(params)?;
+    check_fs(fs)?;
+    let t = py.allow_threads(|| sim(&p, fs, &u, &SimOptions::default())).map_err(err)?;
+    Ok((t.x, t.v, t.i, t.tv, t.tm))
+}
+
+/// The small-signal fit of a record (`coilscope linear`, Mms given): the result as JSON text.
+#[pyfunction]
+fn linear(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64) -> PyResult<String> {
+    use coilscope_ident::linear::{fit_linear_record, predicted_displacement, result, scale_by_mms, LinearOptions, ScaleMethod};
+    check_fs(fs)?;
+    check_pair(&u, &i)?;
+    py.allow_threads(|| {
+        let fit = fit_linear_record(&u, &i, fs, "python", &LinearOptions::default(), |_| {})?;
+        let p = scale_by_mms(&fit, mms)?;
+        let x = predicted_displacement(&p, &i, fs);
+        let range = [x.iter().cloned().fold(0.0, f64::min), x.iter().cloned().fold(0.0, f64::max)];
+        Ok::<_, String>(result(&p, &fit, &ScaleMethod::Mms, range, "python").to_json_value().to_string())
+    })
+    .map_err(err)
+}
+
+/// The large-signal identification of a record (`coilscope identify`): the result as JSON
+/// text. `order`: the power series' order (default: chosen on held-out data).
+#[pyfunction]
+#[pyo3(signature = (u, i, fs, mms, order=None))]
+fn identify(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, order: Option<usize>) -> PyResult<String> {
+    use coilscope_ident::large::{identify as ident, IdentifyError, IdentifyOptions};
+    check_fs(fs)?;
+    check_pair(&u, &i)?;
+    if let Some(o) = order.filter(|o| !(2..=8).contains(o)) {
+        return Err(err(format!("order {o}: give a power-series order from 2 to 8")));
+    }
+    let opts = IdentifyOptions { mms, order, ..Default::default() };
+    py.allow_threads(|| match ident(&u, &i, fs, "python", &opts, |_| {}) {
+        Ok(f) => Ok(f.result("python", "given").to_json_value().to_string()),
+        Err(IdentifyError::NotConverged { message, best }) => {
+            let mut r = best.result("python", "given");
+            r.fit.trustworthy = Some(false);
+            r.fit.stop_reason = Some(message);
+            Ok(r.to_json_value().to_string())
+        }
+        Err(e) => Err(e.to_string()),
+    })
+    .map_err(err)
+}
+
+fn run_measure(py: Python<'_>, dev: &mut (dyn coilscope_measure::device::Device + Send), fs: f64, mms: f64, seed: u64, max_seconds: f64) -> PyResult<String> {
+    use coilscope_measure::signal::Source;
+    use coilscope_measure::{measure, MeasureOptions};
+    let mut src = Source::noise(&Excitation::Iec, fs, seed).map_err(err)?;
+    let opts = MeasureOptions { mms, max_seconds, ..Default::default() };
+    opts.validate().map_err(err)?;
+    let m = py.allow_threads(|| measure(dev, &mut src, &opts, None, |_| {})).map_err(err)?;
+    Ok(m.result().to_json_value().to_string())
+}
+
+/// A dynamic measurement of a virtual driver (`coilscope measure --virtual`, IEC noise,
+/// 0.1 mV / 0.1 mA sensor noise): the result as JSON text.
+#[pyfunction]
+#[pyo3(signature = (driver, seed=1, fs=48000.0, max_seconds=60.0))]
+fn measure_virtual(py: Python<'_>, driver: &str, seed: u64, fs: f64, max_seconds: f64) -> PyResult<String> {
+    let p = params_from(driver)?;
+    let mut dev = coilscope_measure::device::VirtualDevice::new(&p, fs, (1e-4, 1e-4), seed).map_err(err)?;
+    run_measure(py, &mut dev, fs, p.mms, seed, max_seconds)
+}
+
+/// The online estimator on a recording (`coilscope measure --replay`): the result as JSON text.
+#[pyfunction]
+#[pyo3(signature = (u, i, fs, mms, max_seconds=600.0))]
+fn measure_replay(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, max_seconds: f64) -> PyResult<String> {
+    check_fs(fs)?;
+    check_pair(&u, &i)?;
+    let mut dev = coilscope_measure::device::ReplayDevice::from_samples("python", fs, u, i);
+    run_measure(py, &mut dev, fs, mms, 1, max_seconds)
+}
+
+/// Harmonic distortion of a sine on a parameter set, each nonlinearity's share and the
+/// Volterra prediction (`coilscope distortion --json`): JSON text.
+#[pyfunction]
+#[pyo3(signature = (params, freq, volts, output="pressure"))]
+fn distortion(py: Python<'_>, params: &str, freq: f64, volts: f64, output: &str) -> PyResult<String> {
+    use coilscope_analysis::distortion::{analyse, Output, SteadyOptions};
+    let p = params_from(params)?;
+    let out = match output {
+        "pressure" => Output::Pressure,
+        "displacement" => Output::Displacement,
+        "current" => Output::Current,
+        o => return Err(err(format!("output {o:?}: give pressure, displacement or current"))),
+    };
+    let a = py.allow_threads(|| analyse(&p, freq, volts, out, &SteadyOptions::default())).map_err(err)?;
+    Ok(a.to_json().to_string())
+}
+
+#[pymodule]
+fn _coilscope(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(drivers, m)?)?;
+    m.add_function(wrap_pyfunction!(parameters, m)?)?;
+    m.add_function(wrap_pyfunction!(generate, m)?)?;
+    m.add_function(wrap_pyfunction!(simulate, m)?)?;
+    m.add_function(wrap_pyfunction!(linear, m)?)?;
+    m.add_function(wrap_pyfunction!(identify, m)?)?;
+    m.add_function(wrap_pyfunction!(measure_virtual, m)?)?;
+    m.add_function(wrap_pyfunction!(measure_replay, m)?)?;
+    m.add_function(wrap_pyfunction!(distortion, m)?)?;
+    Ok(())
+}

@@ -1,0 +1,83 @@
+"""Truth-based tests of the Python package: simulate a real driver, identify it, compare
+with the truth; the physics checked (energy of the suspension, a known transfer function)."""
+
+import numpy as np
+import pytest
+
+import coilscope
+
+FS = 48000.0
+
+
+def test_drivers_and_parameters_round_trip():
+    names = coilscope.drivers()
+    assert "sb17cac35-4" in names
+    p = coilscope.parameters("sb17cac35-4")
+    assert p["format"] == "coilscope.parameters/1"
+    assert coilscope.parameters(p) == p
+    with pytest.raises(ValueError, match="Mms"):
+        bad = dict(p)
+        bad["Mms"] = -1.0
+        coilscope.parameters(bad)
+
+
+def test_simulate_holds_the_static_balance():
+    p = coilscope.parameters("ptt4.0w04-01a")
+    # A DC voltage: the current is U / Re(T) (the coil warms), and at rest the coil sits
+    # where the suspension holds the force, Kms(x) x = Bl(x) i.
+    u = np.full(int(2 * FS), 0.5)
+    t = coilscope.simulate(p, u, FS)
+    # Not the very last samples: the band-limited input sees the silence after the record.
+    x = t["x"][-1000]
+    i = t["i"][-1000]
+    re_t = p["Re"] * (1 + p["thermal"]["alpha"] * t["tv"][-1000])
+    assert abs(i / (0.5 / re_t) - 1) < 1e-6
+    kms_x = coilscope.poly(p["Kms"], x) * x
+    assert abs(kms_x / (coilscope.poly(p["Bl"], x) * i) - 1) < 1e-5
+
+
+def test_linear_and_identify_find_the_truth():
+    p = coilscope.parameters("ptt4.0w04-01a")
+    u = coilscope.generate("pink", FS, 4.0, 0.3, seed=3, band=(5, 16000))
+    t = coilscope.simulate(p, u, FS)
+    lin = coilscope.linear(u, t["i"], FS, p["Mms"])
+    bl = lin["parameters"]["Bl"]
+    bl0 = bl if isinstance(bl, float) else bl[0]
+    assert abs(bl0 / coilscope.poly(p["Bl"], 0.0) - 1) < 0.01
+    assert abs(lin["parameters"]["Re"] / p["Re"] - 1) < 0.005
+    # Large signal: pink noise reaching most of the range.
+    u = coilscope.generate("pink", FS, 6.0, 2.5, seed=4, band=(10, 8000))
+    t = coilscope.simulate(p, u, FS)
+    r = coilscope.identify(u, t["i"], FS, p["Mms"], order=6)
+    q = r["parameters"]
+    lo, hi = r["fit"]["x_range"]
+    xs = np.linspace(0.8 * lo, 0.8 * hi, 41)
+    for key in ("Bl", "Kms"):
+        err = np.max(np.abs(coilscope.poly(q[key], xs) / coilscope.poly(p[key], xs) - 1))
+        assert err < 0.01, (key, err)
+    assert r["uncertainty"]["Bl_band"]["sd"]
+
+
+def test_measure_virtual_converges_and_replay_runs():
+    r = coilscope.measure_virtual("sb17cac35-4", seed=2)
+    assert r["fit"]["converged"], r["fit"].get("stop_reason")
+    p = coilscope.parameters("sb17cac35-4")
+    lo, hi = r["fit"]["x_range"]
+    xs = np.linspace(lo, hi, 41)
+    err = np.max(np.abs(coilscope.poly(r["parameters"]["Bl"], xs) / coilscope.poly(p["Bl"], xs) - 1))
+    assert err < 0.02, err
+    u = coilscope.generate("noise", FS, 10.0, 2.0, seed=5)
+    t = coilscope.simulate(p, u, FS)
+    rr = coilscope.measure_replay(u, t["i"], FS, p["Mms"])
+    assert rr["parameters"]["Re"] > 0
+
+
+def test_distortion_and_errors():
+    d = coilscope.distortion("sb17cac35-4", 40.0, 2.0)
+    assert 1e-4 < d["HD2"] < 0.3 and "contributions" in d
+    with pytest.raises(ValueError, match="sample rate"):
+        coilscope.simulate("sb17cac35-4", np.zeros(100), 10.0)
+    with pytest.raises(ValueError, match="differ in length"):
+        coilscope.linear(np.zeros(100), np.zeros(99), FS, 0.01)
+    with pytest.raises(ValueError, match="one-dimensional"):
+        coilscope.simulate("sb17cac35-4", np.zeros((2, 2)), FS)
