@@ -19,8 +19,8 @@
 use coilscope_core::excitation::{generate, Excitation, SignalSpec};
 use coilscope_core::fft::rfft;
 use coilscope_core::limits::{limits_with, Limits, Thresholds};
-use coilscope_core::small_signal::impedance;
 use coilscope_core::params::Thermal;
+use coilscope_core::small_signal::impedance;
 use coilscope_core::Parameters;
 use realfft::num_complex::Complex64 as C;
 use serde_json::{json, Value};
@@ -108,16 +108,7 @@ pub fn thermal_handling(p: &Parameters, dt_max: f64) -> Option<ThermalHandling> 
     }
     let iec = heat / power;
     let volts_iec = (dt_max / iec).sqrt();
-    Some(ThermalHandling {
-        dt_max,
-        tau_v: t.rtv * t.ctv,
-        tau_m: t.rtm * t.ctm,
-        p_max: dt_max / (t.rtv + t.rtm),
-        volts_sine: (dt_max / worst).sqrt(),
-        f_sine,
-        volts_iec,
-        p_nominal_iec: volts_iec * volts_iec / p.re,
-    })
+    Some(ThermalHandling { dt_max, tau_v: t.rtv * t.ctv, tau_m: t.rtm * t.ctm, p_max: dt_max / (t.rtv + t.rtm), volts_sine: (dt_max / worst).sqrt(), f_sine, volts_iec, p_nominal_iec: volts_iec * volts_iec / p.re })
 }
 
 /// Limits, shift, polarity and thermal handling of a set over its reached range.
@@ -141,12 +132,7 @@ impl Diagnosis {
             Some(s) if s.abs() < 0.02 * self.limits.reach.max(1e-9) => {
                 format!("Bl(x) is symmetric within {:.2} mm: no shift needed", 0.02 * self.limits.reach * 1e3)
             }
-            Some(s) => format!(
-                "Bl(x) is centred at {:+.2} mm: move the voice-coil rest position {:.2} mm {}",
-                s * 1e3,
-                s.abs() * 1e3,
-                if s > 0.0 { "outward (coil out, away from the back plate)" } else { "inward (toward the back plate)" }
-            ),
+            Some(s) => format!("Bl(x) is centred at {:+.2} mm: move the voice-coil rest position {:.2} mm {}", s * 1e3, s.abs() * 1e3, if s > 0.0 { "outward (coil out, away from the back plate)" } else { "inward (toward the back plate)" }),
             None => "the Bl(x) symmetry point lies outside the reached range".into(),
         }
     }

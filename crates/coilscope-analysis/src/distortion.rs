@@ -197,10 +197,7 @@ fn check_periodic(p: &Parameters, exc: &Periodic) -> Result<(), AnalysisError> {
     }
     for t in &exc.tones {
         if t.bin == 0 || !(t.amplitude.is_finite() && t.amplitude >= 0.0 && t.amplitude <= 1000.0) || !t.phase.is_finite() {
-            return Err(AnalysisError::Input(format!(
-                "tone on bin {} with amplitude {} V is not valid (bin >= 1, 0 .. 1000 V peak)",
-                t.bin, t.amplitude
-            )));
+            return Err(AnalysisError::Input(format!("tone on bin {} with amplitude {} V is not valid (bin >= 1, 0 .. 1000 V peak)", t.bin, t.amplitude)));
         }
     }
     p.validate("distortion").map_err(|e| AnalysisError::Input(e.to_string()))
@@ -252,12 +249,7 @@ fn run_steady(q: &Parameters, exc: &Periodic, opts: &SteadyOptions) -> Result<Re
             }
             if let Some([lo, hi]) = bounds {
                 if x < lo || x > hi {
-                    return Err(AnalysisError::Range(format!(
-                        "x = {:.3} mm is outside x_range [{:.3}, {:.3}] mm + 10 %, where the parameters are not valid; lower the level",
-                        x * 1e3,
-                        lo / 1.1 * 1e3,
-                        hi / 1.1 * 1e3
-                    )));
+                    return Err(AnalysisError::Range(format!("x = {:.3} mm is outside x_range [{:.3}, {:.3}] mm + 10 %, where the parameters are not valid; lower the level", x * 1e3, lo / 1.1 * 1e3, hi / 1.1 * 1e3)));
                 }
             }
             xs[m] = x;
@@ -358,11 +350,7 @@ fn sine_harmonics(q: &Parameters, freq: f64, volts: f64, output: Output, opts: &
     let exc = Periodic { period, tones: vec![Tone { bin, amplitude: volts * SQRT_2, phase: 0.0 }] };
     let r = run_steady(q, &exc, opts)?;
     let fund = r.line(output, bin);
-    let lines = (2..=opts.harmonics.max(2))
-        .map(|h| h * bin)
-        .take_while(|&b| b <= r.max_bin())
-        .map(|b| (b / bin, r.line(output, b) / fund))
-        .collect();
+    let lines = (2..=opts.harmonics.max(2)).map(|h| h * bin).take_while(|&b| b <= r.max_bin()).map(|b| (b / bin, r.line(output, b) / fund)).collect();
     Ok(Harmonics { freq, volts, output, fundamental: fund, lines, x_dc: r.x_dc(), x_peak: r.x_peak })
 }
 
@@ -411,10 +399,7 @@ impl Analysis {
 /// Harmonic distortion of a sine, total and per nonlinearity.
 pub fn analyse(p: &Parameters, freq: f64, volts: f64, output: Output, opts: &SteadyOptions) -> Result<Analysis, AnalysisError> {
     let total = harmonics(p, freq, volts, output, opts)?;
-    let parts = Nonlinearity::ALL
-        .iter()
-        .map(|&nl| sine_harmonics(&with_only(p, &[nl], opts.dt_coil), freq, volts, output, opts).map(|h| (nl, h)))
-        .collect::<Result<Vec<_>, _>>()?;
+    let parts = Nonlinearity::ALL.iter().map(|&nl| sine_harmonics(&with_only(p, &[nl], opts.dt_coil), freq, volts, output, opts).map(|h| (nl, h))).collect::<Result<Vec<_>, _>>()?;
     Ok(Analysis { total, parts })
 }
 
@@ -466,9 +451,7 @@ pub fn intermod(p: &Parameters, f1: f64, f2: f64, volts: f64, ratio: f64, output
     let products = [k2 - 2 * k1, k2 - k1, k2 + k1, k2 + 2 * k1];
     let others: Vec<usize> = (1..=6).map(|h| h * k1).chain([k2, 2 * k2]).collect();
     if products.iter().any(|b| others.contains(b)) {
-        return Err(AnalysisError::Input(format!(
-            "--freq2 {f2} Hz puts intermodulation lines on harmonics of --freq {f1} Hz; move f2 off a multiple of f1"
-        )));
+        return Err(AnalysisError::Input(format!("--freq2 {f2} Hz puts intermodulation lines on harmonics of --freq {f1} Hz; move f2 off a multiple of f1")));
     }
     // Total RMS `volts`: A1^2 (1 + ratio^2) / 2 = volts^2.
     let a1 = volts * (2.0 / (1.0 + ratio * ratio)).sqrt();
@@ -479,18 +462,7 @@ pub fn intermod(p: &Parameters, f1: f64, f2: f64, volts: f64, ratio: f64, output
     let lev = |b: usize| r.line(output, b).norm() / ref2;
     let labels = ["f2-2f1", "f2-f1", "f2+f1", "f2+2f1"];
     let lines = labels.iter().zip(products).map(|(l, b)| (l.to_string(), r.freq(b), lev(b))).collect();
-    Ok(Intermod {
-        f1,
-        f2: r.freq(k2),
-        volts,
-        amplitude_ratio: ratio,
-        output,
-        d2: lev(products[1]) + lev(products[2]),
-        d3: lev(products[0]) + lev(products[3]),
-        lines,
-        x_dc: r.x_dc(),
-        x_peak: r.x_peak,
-    })
+    Ok(Intermod { f1, f2: r.freq(k2), volts, amplitude_ratio: ratio, output, d2: lev(products[1]) + lev(products[2]), d3: lev(products[0]) + lev(products[3]), lines, x_dc: r.x_dc(), x_peak: r.x_peak })
 }
 
 /// A multitone's distortion spectrum.
@@ -531,9 +503,7 @@ pub fn multitone(p: &Parameters, f_lo: f64, f_hi: f64, count: usize, volts: f64,
         return Err(AnalysisError::Input(format!("multitone {count} tones in {f_lo} .. {f_hi} Hz is not valid (2 .. 200 tones, f_hi > f_lo)")));
     }
     let period = 1.0;
-    let mut bins: Vec<usize> = (0..count)
-        .map(|k| (f_lo * (f_hi / f_lo).powf(k as f64 / (count - 1) as f64)).round().max(1.0) as usize)
-        .collect();
+    let mut bins: Vec<usize> = (0..count).map(|k| (f_lo * (f_hi / f_lo).powf(k as f64 / (count - 1) as f64)).round().max(1.0) as usize).collect();
     bins.dedup();
     let mut rng = named_rng(seed, "multitone-phase");
     let amp = volts * (2.0 / bins.len() as f64).sqrt();
@@ -547,7 +517,11 @@ pub fn multitone(p: &Parameters, f_lo: f64, f_hi: f64, count: usize, volts: f64,
     let mut d = Vec::new();
     for b in 1..=top {
         let a = r.line(output, b).norm();
-        if bins.contains(&b) { t.push((r.freq(b), a)) } else { d.push((r.freq(b), a)) }
+        if bins.contains(&b) {
+            t.push((r.freq(b), a))
+        } else {
+            d.push((r.freq(b), a))
+        }
     }
     let pt: f64 = t.iter().map(|x| x.1 * x.1).sum();
     let pd: f64 = d.iter().map(|x| x.1 * x.1).sum();
@@ -600,12 +574,7 @@ impl LevelRow {
 pub fn level_sweep(p: &Parameters, freq: f64, levels: &[f64], output: Output, opts: &SteadyOptions) -> Result<Vec<LevelRow>, AnalysisError> {
     let q = with_only(p, &Nonlinearity::ALL, opts.dt_coil);
     let pr = crate::volterra::probe(&q, freq);
-    levels
-        .iter()
-        .map(|&v| {
-            harmonics(p, freq, v, output, opts).map(|full| LevelRow { volts: v, full, volterra: pr.hd(output, v), volterra_x_dc: pr.x_dc(v) })
-        })
-        .collect()
+    levels.iter().map(|&v| harmonics(p, freq, v, output, opts).map(|full| LevelRow { volts: v, full, volterra: pr.hd(output, v), volterra_x_dc: pr.x_dc(v) })).collect()
 }
 
 /// The lowest level of a sweep at which the Volterra series is off by more than `tol_db`.

@@ -32,7 +32,11 @@ pub mod volterra;
 
 /// `20 log10(r)`, with -400 dB for zero.
 pub fn db(r: f64) -> f64 {
-    if r > 0.0 { 20.0 * r.log10() } else { -400.0 }
+    if r > 0.0 {
+        20.0 * r.log10()
+    } else {
+        -400.0
+    }
 }
 
 /// Errors of the analysis, each naming the value and what would be valid.

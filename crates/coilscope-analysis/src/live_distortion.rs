@@ -77,7 +77,6 @@ pub struct DistortionMeter {
     rest: [f64; 5],
 }
 
-
 impl DistortionMeter {
     pub fn new(p: &Parameters, fs: f64) -> Self {
         let (step, rest) = Self::linear(p, fs);
@@ -127,11 +126,7 @@ impl DistortionMeter {
         for &[x, v, i] in traj {
             let di = self.last.map_or(0.0, |l| (i - l[2]) * self.fs);
             let (bl, kms, le, dle) = (self.p.bl.eval(x), self.p.kms.eval(x), self.p.le.eval(x), self.dle.eval(x));
-            let src = [
-                Vector2::new((bl - bl0) * i, -(bl - bl0) * v),
-                Vector2::new(-(kms - k0) * x, 0.0),
-                Vector2::new(0.5 * dle * i * i, -((le - le0) * di + dle * v * i)),
-            ];
+            let src = [Vector2::new((bl - bl0) * i, -(bl - bl0) * v), Vector2::new(-(kms - k0) * x, 0.0), Vector2::new(0.5 * dle * i * i, -((le - le0) * di + dle * v * i))];
             for k in 0..3 {
                 let z = self.z[k];
                 // Acceleration of the contribution at this instant (with the force's direct part).

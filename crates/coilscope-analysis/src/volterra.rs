@@ -107,7 +107,6 @@ fn poly(f: &Poly, x: &Pert) -> Pert {
     acc
 }
 
-
 /// Solve a complex 3x3 system by Gaussian elimination with partial pivoting.
 fn solve3(mut a: [[C; 3]; 3], mut b: [C; 3]) -> [C; 3] {
     for col in 0..3 {
@@ -181,11 +180,7 @@ pub fn probe(p: &Parameters, freq: f64) -> Probe {
                 Some(l2) => [C::new(0.0, 0.0), C::new(-r0, 0.0), s * l2.c[0] + r0],
                 None => [C::new(0.0, 0.0), C::new(0.0, 0.0), C::new(-1.0, 0.0)],
             };
-            let j = [
-                [-s * b0, -(s * l0) - re - r0, C::new(r0, 0.0)],
-                row_l2,
-                [-(s * s * m) - s * rm - k0, C::new(b0, 0.0), C::new(0.0, 0.0)],
-            ];
+            let j = [[-s * b0, -(s * l0) - re - r0, C::new(r0, 0.0)], row_l2, [-(s * s * m) - s * rm - k0, C::new(b0, 0.0), C::new(0.0, 0.0)]];
             let d = solve3(j, [-e1.at(n, k), -e2.at(n, k), -e3.at(n, k)]);
             let ki = (k + KMAX as isize) as usize;
             x.c[n][ki] = d[0];

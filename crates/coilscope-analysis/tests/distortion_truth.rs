@@ -7,9 +7,9 @@
 //! * Limits: XBl / XC / XL from the published sampled curves (linear interpolation), not from
 //!   the power series.
 
+use coilscope_analysis::db;
 use coilscope_analysis::distortion::{analyse, divergence_level, harmonics, level_for_excursion, level_sweep, with_only, Nonlinearity, Output, SteadyOptions};
 use coilscope_analysis::volterra::probe;
-use coilscope_analysis::db;
 use coilscope_core::model::{idx, NSTATE};
 use coilscope_core::{embedded_driver, Model, Parameters};
 use std::f64::consts::{PI, SQRT_2};
@@ -165,9 +165,7 @@ fn limits_agree_with_the_published_curves() {
         let p = embedded_driver(name).unwrap();
         let text = std::fs::read_to_string(format!("{}/../../../shared/drivers/{name}.json", env!("CARGO_MANIFEST_DIR"))).unwrap();
         let v: serde_json::Value = serde_json::from_str(&text).unwrap();
-        let curve = |key: &str| -> Vec<(f64, f64)> {
-            v["published_curves"][key].as_array().unwrap().iter().map(|pt| (pt[0].as_f64().unwrap(), pt[1].as_f64().unwrap())).collect()
-        };
+        let curve = |key: &str| -> Vec<(f64, f64)> { v["published_curves"][key].as_array().unwrap().iter().map(|pt| (pt[0].as_f64().unwrap(), pt[1].as_f64().unwrap())).collect() };
         let range = p.x_range.unwrap();
         let a = reach(&p);
         let l = coilscope_core::limits::limits(&p, range);

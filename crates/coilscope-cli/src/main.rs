@@ -11,12 +11,12 @@
 //! | 130 | interrupted (Ctrl-C): the result so far is written and marked interrupted |
 
 use clap::{Parser, Subcommand, ValueEnum};
+use coilscope_core::chain::SenseWiring;
 use coilscope_core::excitation::{add_sensor_noise, crest_factor, generate, Excitation, SignalSpec};
+use coilscope_core::result::ResultFile;
 use coilscope_core::simulate::{simulate, SimOptions};
 use coilscope_core::small_signal::thiele_small;
-use coilscope_core::chain::SenseWiring;
 use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
-use coilscope_core::result::ResultFile;
 use coilscope_io::{load_parameters, read_recording, read_voltage, write_json, write_recording, Recording};
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -123,8 +123,9 @@ struct FitArgs {
     out: PathBuf,
 }
 
-/// What `--chain` asks for.
+/// What `--chain` asks for (one per command: its size does not matter).
 #[derive(Clone, Debug)]
+#[allow(clippy::large_enum_variant)]
 enum ChainChoice {
     /// The channels are the driver's voltage and current, exactly.
     Ideal,
@@ -735,10 +736,7 @@ fn parse_length(s: &str) -> Result<f64, String> {
         "um" | "µm" => v * 1e-6,
         "" => {
             if v != 0.0 && !(1e-5..=0.1).contains(&v.abs()) {
-                return Err(format!(
-                    "{v} m = {} mm is not a plausible excursion: did you mean {v}mm? (a bare number is metres)",
-                    v * 1e3
-                ));
+                return Err(format!("{v} m = {} mm is not a plausible excursion: did you mean {v}mm? (a bare number is metres)", v * 1e3));
             }
             v
         }
@@ -793,9 +791,8 @@ fn main() -> ExitCode {
     restore_sigpipe();
     let cli = Cli::parse();
     let result: Result<(), Failure> = match cli.command {
-        Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world, chain, sense_wiring, sense_ohm } => {
-            parse_wiring(&sense_wiring, sense_ohm).and_then(|wiring| cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world, chain, wiring }).map_err(Failure::from))
-        }
+        Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world, chain, sense_wiring, sense_ohm } => parse_wiring(&sense_wiring, sense_ohm)
+            .and_then(|wiring| cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world, chain, wiring }).map_err(Failure::from)),
         Command::Linear { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit } => {
             cmd_linear(LinearArgs { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit })
         }
@@ -810,7 +807,30 @@ fn main() -> ExitCode {
         }),
         Command::Calibrate { recording, resistor, loopback, scale, out, sense_wiring, sense_ohm } => parse_wiring(&sense_wiring, sense_ohm).and_then(|w| cmd_calibrate(&recording, resistor, loopback, w, scale.as_deref(), &out)),
         Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, cool_after, cool_volts, max_seconds, order, noise, rate, seed, crest } => {
-            cmd_measure(MeasureArgs { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, cool: cool_after.zip(cool_volts), max_seconds, order, noise, rate, seed, crest })
+            cmd_measure(MeasureArgs {
+                no_report,
+                virtual_driver,
+                world,
+                card,
+                replay,
+                out,
+                mms,
+                target_x,
+                max_dt,
+                kms_limit,
+                max_volts,
+                start_volts,
+                music,
+                duration,
+                volts,
+                cool: cool_after.zip(cool_volts),
+                max_seconds,
+                order,
+                noise,
+                rate,
+                seed,
+                crest,
+            })
         }
         Command::Devices => cmd_devices().map_err(Failure::from),
         Command::Runs { database } => cmd_runs(&database).map_err(Failure::from),
@@ -1033,7 +1053,7 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     }
     let live = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let progress = |s: &coilscope_ident::lm::LmState| {
-        if live && (s.iteration % 5 == 0 || s.converged) {
+        if live && (s.iteration.is_multiple_of(5) || s.converged) {
             eprint!("\r  fitting impedance: iteration {:3}, residual {:.3e}   ", s.iteration, (2.0 * s.cost).sqrt());
         }
     };
@@ -1210,7 +1230,11 @@ fn chain_words(c: &coilscope_core::chain::Chain, fs: f64) -> String {
     if let Some(h) = &c.hum {
         parts.push(format!("hum at {} Hz: {}", h.f, h.i.iter().map(|l| format!("{:.2e}", l[0])).collect::<Vec<_>>().join(", ") + " A"));
     }
-    if parts.is_empty() { "ideal (no delay or AC coupling found)".to_string() } else { parts.join(", ") }
+    if parts.is_empty() {
+        "ideal (no delay or AC coupling found)".to_string()
+    } else {
+        parts.join(", ")
+    }
 }
 
 /// `--effects`: `auto`, or a list for [`coilscope_ident::linear::Effects::parse`].
@@ -1249,8 +1273,7 @@ fn resonance(p: &Parameters) -> f64 {
 fn print_params(p: &Parameters) {
     let ts = thiele_small(p);
     println!("{}", p.name.as_deref().unwrap_or("(unnamed)"));
-    println!("  Re {:.3} ohm, Le(0) {:.4} mH, Bl(0) {:.3} T m, Kms(0) {:.1} N/m, Mms {:.3} g, Rms {:.3} kg/s",
-        p.re, p.le.c[0] * 1e3, p.bl.c[0], p.kms.c[0], p.mms * 1e3, p.rms);
+    println!("  Re {:.3} ohm, Le(0) {:.4} mH, Bl(0) {:.3} T m, Kms(0) {:.1} N/m, Mms {:.3} g, Rms {:.3} kg/s", p.re, p.le.c[0] * 1e3, p.bl.c[0], p.kms.c[0], p.mms * 1e3, p.rms);
     if let Some((l2, r2)) = &p.l2r2 {
         println!("  L2 {:.4} mH, R2 {:.3} ohm", l2.c[0] * 1e3, r2.c[0]);
     }
@@ -1420,7 +1443,11 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
         if let Some((tau, share)) = lin.current_delay {
             warnings.push(coilscope_ident::checks::Warning::new(
                 "current-delay",
-                format!("the current channel is {tau:.2} samples {} the voltage (shifting it explains {:.0} % of the small-signal fit's error): the channels are skewed, and Le, L2/R2 and Bl are biased", if tau > 0.0 { "late against" } else { "early against" }, 100.0 * share),
+                format!(
+                    "the current channel is {tau:.2} samples {} the voltage (shifting it explains {:.0} % of the small-signal fit's error): the channels are skewed, and Le, L2/R2 and Bl are biased",
+                    if tau > 0.0 { "late against" } else { "early against" },
+                    100.0 * share
+                ),
             ));
         }
     }
@@ -1434,18 +1461,9 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
             let [lo, hi] = fit.x_range;
             (0..=200).map(|k| lo + (hi - lo) * k as f64 / 200.0).map(|x| (a.eval(x) - b.eval(x)).abs()).fold(0.0, f64::max) / b.eval(0.0).abs()
         };
-        let diff = [
-            ("Bl", dev(&pi.bl, &fit.params.bl)),
-            ("Kms", dev(&pi.kms, &fit.params.kms)),
-            ("Le", dev(&pi.le, &fit.params.le)),
-            ("Mms", (pi.mms / fit.params.mms - 1.0).abs()),
-            ("Rms", (pi.rms / fit.params.rms - 1.0).abs()),
-        ];
-        result.cross_check = Some(coilscope_core::result::CrossCheck {
-            method: "post-inverse equation error with the measured displacement".into(),
-            parameters: pi.clone(),
-            max_rel_difference: diff.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
-        });
+        let diff = [("Bl", dev(&pi.bl, &fit.params.bl)), ("Kms", dev(&pi.kms, &fit.params.kms)), ("Le", dev(&pi.le, &fit.params.le)), ("Mms", (pi.mms / fit.params.mms - 1.0).abs()), ("Rms", (pi.rms / fit.params.rms - 1.0).abs())];
+        result.cross_check =
+            Some(coilscope_core::result::CrossCheck { method: "post-inverse equation error with the measured displacement".into(), parameters: pi.clone(), max_rel_difference: diff.iter().map(|(k, v)| (k.to_string(), *v)).collect() });
     }
     write_json(out, &result).map_err(|e| e.to_string())?;
     print_large_summary(path, &rec, &fit, &result, t0.elapsed().as_secs_f64());
@@ -1532,7 +1550,11 @@ fn cmd_identify_volterra(path: &Path, start: Option<&str>, mms: Option<f64>, ord
         if worst_sd > size {
             warnings.push(Warning::new(
                 "volterra-unresolved",
-                format!("{which}(x): its change over the reach ({:.3} % of its value at rest) is smaller than its sd ({:.3} %): the record does not resolve this nonlinearity (its lines are at the noise; record longer, or at a somewhat higher level)", 100.0 * size / f.c[0].abs(), 100.0 * worst_sd / f.c[0].abs()),
+                format!(
+                    "{which}(x): its change over the reach ({:.3} % of its value at rest) is smaller than its sd ({:.3} %): the record does not resolve this nonlinearity (its lines are at the noise; record longer, or at a somewhat higher level)",
+                    100.0 * size / f.c[0].abs(),
+                    100.0 * worst_sd / f.c[0].abs()
+                ),
             ));
         }
         unc.set_band(which, band);
@@ -1859,11 +1881,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
             last_print = l.t;
             let state = format!("x {:+6.2} .. {:+6.2} mm  dT {:5.1} K  Re {:.4} ohm  err {:.1e}", l.x_min * 1e3, l.x_max * 1e3, l.dtv, l.re, l.residual);
             // A replay's level was set when it was recorded: no drive level, no controller.
-            let line = if controllable {
-                format!("t {:6.1} s  {:<12} {:7.3} V  {state}  limited by {}", l.t, l.stage.name(), l.volts, l.limited_by)
-            } else {
-                format!("t {:6.1} s  {state}", l.t)
-            };
+            let line = if controllable { format!("t {:6.1} s  {:<12} {:7.3} V  {state}  limited by {}", l.t, l.stage.name(), l.volts, l.limited_by) } else { format!("t {:6.1} s  {state}", l.t) };
             if tty {
                 eprint!("\r{line}   ");
             } else {
@@ -1878,7 +1896,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         Ok(m) => m,
         Err(e) => {
             // Nothing was estimated yet (the small-signal stage failed): the result says so.
-            let j = coilscope_core::result::FailedResult::new(&e, &device.describe(), &source.name());
+            let j = coilscope_core::result::FailedResult::new(&e, &device.describe(), source.name());
             let _ = write_json(&a.out.join("result.json"), &j);
             let _ = store.finish(0.0, &format!("failed: {e}"), Some(&j));
             return Err(Failure::from(format!("{e}; written to {}", a.out.join("result.json").display())));
@@ -2021,7 +2039,7 @@ fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f6
     if !(reach > 0.0 && reach <= 1.0) {
         return Err(format!("--reach {reach} is not valid (0 .. 1 of the range)").into());
     }
-    if !(hold >= 0.5 && hold <= 600.0) {
+    if !(0.5..=600.0).contains(&hold) {
         return Err(format!("--hold {hold} s is not valid (0.5 .. 600 s)").into());
     }
     let fs = 48000.0;
@@ -2057,7 +2075,10 @@ fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f6
     let fit = coilscope_core::result::Fit {
         trustworthy: Some(q.warnings.is_empty()),
         warnings: Some(q.warnings.iter().map(|w| coilscope_core::result::Warning::new("quasi-static", w.clone())).collect()),
-        method: Some(format!("quasi-static point by point (seed paper 3.2.1; IEC 62458 10.2/10.3): offsets by {}, static displacement and force balance for Kms, the small-signal impedance at each point for Bl and Le; power series fitted to the points", opts.offset_name())),
+        method: Some(format!(
+            "quasi-static point by point (seed paper 3.2.1; IEC 62458 10.2/10.3): offsets by {}, static displacement and force balance for Kms, the small-signal impedance at each point for Bl and Le; power series fitted to the points",
+            opts.offset_name()
+        )),
         residual_rel: f64::NAN,
         x_range: q.params.x_range.unwrap_or([0.0, 0.0]),
         order: Some(order),
@@ -2290,23 +2311,12 @@ fn cmd_report(spec: &str, out: &Path, db: Option<&Path>, volts: Option<f64>, com
         // The database must be this measurement's: its last run's device is the result's.
         if let (Some(m), Some(run)) = (input.result.as_ref().and_then(|r| r.measurement.as_ref()), coilscope_measure::store::list_runs(&path)?.last()) {
             if run.device != m.device {
-                return Err(format!(
-                    "{}: its last run (#{}) measured {:?}, but {spec} is of {:?}: give the run database of this measurement (--db), or none",
-                    path.display(),
-                    run.id,
-                    run.device,
-                    m.device
-                ));
+                return Err(format!("{}: its last run (#{}) measured {:?}, but {spec} is of {:?}: give the run database of this measurement (--db), or none", path.display(), run.id, run.device, m.device));
             }
         }
         let rows = coilscope_measure::store::read_states(&path, None)?;
         if !rows.is_empty() {
-            input.states = Some(coilscope_report::TimeSeries {
-                t: rows.iter().map(|r| r.t).collect(),
-                x_min: rows.iter().map(|r| r.x_min).collect(),
-                x_max: rows.iter().map(|r| r.x_max).collect(),
-                dtv: rows.iter().map(|r| r.dtv).collect(),
-            });
+            input.states = Some(coilscope_report::TimeSeries { t: rows.iter().map(|r| r.t).collect(), x_min: rows.iter().map(|r| r.x_min).collect(), x_max: rows.iter().map(|r| r.x_max).collect(), dtv: rows.iter().map(|r| r.dtv).collect() });
         }
     }
     if let Some(c) = compare {

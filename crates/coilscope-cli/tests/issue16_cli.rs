@@ -23,9 +23,7 @@ fn seas(name: &str) -> String {
 fn linear_fits_a_measured_zma_with_an_added_mass_file() {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("l16.json");
-    let o = coilscope(&[
-        "linear", "--impedance", &seas("L16RNX_0g_242_27mV.zma"), "--added-mass", "0.016048", "--with-mass-impedance", &seas("L16RNX_16_048g_242_27mV.zma"), "--band", "10,2000", "--volts", "0.24227", "--out", out.to_str().unwrap(),
-    ]);
+    let o = coilscope(&["linear", "--impedance", &seas("L16RNX_0g_242_27mV.zma"), "--added-mass", "0.016048", "--with-mass-impedance", &seas("L16RNX_16_048g_242_27mV.zma"), "--band", "10,2000", "--volts", "0.24227", "--out", out.to_str().unwrap()]);
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{text}\n{}", String::from_utf8_lossy(&o.stderr));
     assert!(text.contains("impedance file, 386 points") && text.contains("added mass 16.048 g"), "{text}");

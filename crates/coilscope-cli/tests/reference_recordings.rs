@@ -141,10 +141,7 @@ fn issue14_replay_of_a_single_large_recording_without_lead_in() {
         let p = embedded_driver(name).unwrap();
         let rec = dir.join(format!("{name}-large.wav"));
         let res = out.path().join(name);
-        let o = Command::new(env!("CARGO_BIN_EXE_coilscope"))
-            .args(["measure", "--replay", rec.to_str().unwrap(), "--mms", &p.mms.to_string(), "--no-report", "--out", res.to_str().unwrap()])
-            .output()
-            .unwrap();
+        let o = Command::new(env!("CARGO_BIN_EXE_coilscope")).args(["measure", "--replay", rec.to_str().unwrap(), "--mms", &p.mms.to_string(), "--no-report", "--out", res.to_str().unwrap()]).output().unwrap();
         let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
         assert!(o.status.success(), "{name}: {text}");
         // Output that fits a replay: no drive level, no controller.

@@ -92,17 +92,7 @@ fn bad_distortion_input_gets_clear_errors() {
     assert!(text(&o).contains(blocker.to_str().unwrap()), "{}", text(&o));
 }
 
-const CHROMIUM_FLAGS: [&str; 9] = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--hide-scrollbars",
-];
+const CHROMIUM_FLAGS: [&str; 9] = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync", "--hide-scrollbars"];
 
 fn chromium() -> String {
     let c = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
@@ -113,14 +103,7 @@ fn chromium() -> String {
 /// Run Chromium on a page; return (stdout, console lines from its log).
 fn run_chromium(page: &Path, extra: &[&str]) -> (String, Vec<String>) {
     let profile = tempfile::tempdir().unwrap();
-    let o = Command::new(chromium())
-        .args(CHROMIUM_FLAGS)
-        .arg(format!("--user-data-dir={}", profile.path().display()))
-        .args(["--enable-logging=stderr", "--v=0"])
-        .args(extra)
-        .arg(format!("file://{}", page.display()))
-        .output()
-        .unwrap();
+    let o = Command::new(chromium()).args(CHROMIUM_FLAGS).arg(format!("--user-data-dir={}", profile.path().display())).args(["--enable-logging=stderr", "--v=0"]).args(extra).arg(format!("file://{}", page.display())).output().unwrap();
     let log = String::from_utf8_lossy(&o.stderr).into_owned();
     let console = log.lines().filter(|l| l.contains("CONSOLE")).map(str::to_string).collect();
     (String::from_utf8_lossy(&o.stdout).into_owned(), console)

@@ -434,15 +434,7 @@ mod tests {
         let fs = 48000.0;
         let n = 96000;
         let (u, i) = (noise(2, n), noise(3, n));
-        let c = Chain {
-            delay_i: 0.3 / fs,
-            hp_u: 2.0,
-            hp_i: 4.0,
-            dc_u: 0.01,
-            dc_i: 1e-3,
-            hum: Some(Hum { f: 50.0, u: vec![[1e-3, 0.2], [0.0, 0.0], [5e-4, 1.0]], i: vec![[1e-4, -0.5]] }),
-            ..Chain::default()
-        };
+        let c = Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, dc_u: 0.01, dc_i: 1e-3, hum: Some(Hum { f: 50.0, u: vec![[1e-3, 0.2], [0.0, 0.0], [5e-4, 1.0]], i: vec![[1e-4, -0.5]] }), ..Chain::default() };
         let (ur, ir) = c.apply(&u, &i, fs);
         let (ub, ib) = c.invert(&ur, &ir, fs);
         // Exact but at the record's ends: what a fractional delay moves past them is not
@@ -471,11 +463,7 @@ mod tests {
         let (u, i) = (noise(4, n), noise(5, n));
         let rs = 0.47;
         let w = SenseWiring::DriverPlusShunt { ohm: rs };
-        for c in [
-            Chain::default(),
-            Chain { delay_i: 0.4 / fs, hp_u: 1.0, hp_i: 5.0, dc_u: 0.02, dc_i: -2e-3, gain_i: Some(1.03), ..Chain::default() },
-            Chain { delay_i: -0.2 / fs, hp_u: 3.0, hp_i: 3.0, ..Chain::default() },
-        ] {
+        for c in [Chain::default(), Chain { delay_i: 0.4 / fs, hp_u: 1.0, hp_i: 5.0, dc_u: 0.02, dc_i: -2e-3, gain_i: Some(1.03), ..Chain::default() }, Chain { delay_i: -0.2 / fs, hp_u: 3.0, hp_i: 3.0, ..Chain::default() }] {
             let (ur, ir) = c.apply(&w.channel_voltage(&u, &i), &i, fs);
             let (ut, _) = c.apply(&u, &i, fs);
             let got = c.remove_shunt_drop(&ur, &ir, rs, fs);

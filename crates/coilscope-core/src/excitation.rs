@@ -10,12 +10,12 @@
 //! which keeps the spectrum exact. All signals start and end with raised-cosine fades so
 //! that the transducer starts and ends at rest.
 
+use crate::fft::irfft;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use realfft::num_complex::Complex64;
 use realfft::RealFftPlanner;
-use crate::fft::irfft;
 use std::f64::consts::PI;
 
 /// A deterministic RNG for one purpose: the stream is chosen by the name (FNV-1a hash).
@@ -156,7 +156,7 @@ pub fn generate(exc: &Excitation, spec: &SignalSpec) -> Result<Vec<f64>, String>
     if !(seconds.is_finite() && seconds > 0.0 && seconds <= 24.0 * 3600.0) {
         return Err(format!("duration {seconds} s is not valid (0 .. 86400 s)"));
     }
-    if !(rms.is_finite() && rms >= 0.0 && rms <= 1000.0) {
+    if !(rms.is_finite() && (0.0..=1000.0).contains(&rms)) {
         return Err(format!("level {rms} V RMS is not valid (0 .. 1000 V)"));
     }
     let n = (fs * seconds).round() as usize;
@@ -262,7 +262,7 @@ pub fn generate(exc: &Excitation, spec: &SignalSpec) -> Result<Vec<f64>, String>
 /// tone's 2nd or 3rd harmonic, sits on a mains line (a multiple of 50 or 60 Hz), where hum
 /// would add to the line.
 pub fn readable_multitone(lo: usize, hi: usize, count: usize) -> Vec<usize> {
-    let mains = |c: usize| [1, 2, 3].iter().any(|m| (m * c) % 50 == 0 || (m * c) % 60 == 0);
+    let mains = |c: usize| [1, 2, 3].iter().any(|m| (m * c).is_multiple_of(50) || (m * c).is_multiple_of(60));
     let ok = |set: &[usize]| !mains(*set.last().expect("a trial set")) && is_readable_multitone(set);
     let mut set: Vec<usize> = vec![];
     let ratio = (hi as f64 / lo as f64).powf(1.0 / count.max(2).saturating_sub(1) as f64);
@@ -465,10 +465,14 @@ mod tests {
         let mut buf = x.to_vec();
         let mut out = fft.make_output_vec();
         fft.process(&mut buf, &mut out).unwrap();
-        out.iter().enumerate().filter(|(k, _)| {
-            let f = *k as f64 * fs / n as f64;
-            f >= lo && f < hi
-        }).map(|(_, c)| c.norm_sqr()).sum()
+        out.iter()
+            .enumerate()
+            .filter(|(k, _)| {
+                let f = *k as f64 * fs / n as f64;
+                f >= lo && f < hi
+            })
+            .map(|(_, c)| c.norm_sqr())
+            .sum()
     }
 
     /// Issue 18: the IEC signal's one-third-octave band levels (IEC 225 base-ten bands,
@@ -478,11 +482,7 @@ mod tests {
     /// with the band, its level and the table's.
     #[test]
     fn iec_signal_meets_every_table_ii_band_on_30_s_records() {
-        let cases: Vec<(Excitation, f64, u64)> = (1..=3)
-            .map(|seed| (Excitation::Iec, 48000.0, seed))
-            .chain((1..=3).map(|seed| (Excitation::IecCrest { crest: None }, 48000.0, seed)))
-            .chain([(Excitation::Iec, 96000.0, 4)])
-            .collect();
+        let cases: Vec<(Excitation, f64, u64)> = (1..=3).map(|seed| (Excitation::Iec, 48000.0, seed)).chain((1..=3).map(|seed| (Excitation::IecCrest { crest: None }, 48000.0, seed))).chain([(Excitation::Iec, 96000.0, 4)]).collect();
         let mut worst_margin = f64::INFINITY;
         for (exc, fs, seed) in cases {
             let x = generate(&exc, &SignalSpec { fs, seconds: 30.0, rms: 1.0, fade: 0.0, seed }).unwrap();

@@ -20,7 +20,7 @@ pub fn irfft(spec: &[Complex64], n: usize) -> Vec<f64> {
     let c2r = planner.plan_fft_inverse(n);
     let mut s = spec.to_vec();
     s[0].im = 0.0;
-    if n % 2 == 0 {
+    if n.is_multiple_of(2) {
         let last = s.len() - 1;
         s[last].im = 0.0;
     }

@@ -171,11 +171,7 @@ impl Interpolator {
         out[0] = at(m as isize);
         out[2 * self.n] = at(m as isize + 1);
         let start = m as isize + 1 - HALF_TAPS as isize;
-        let win: [f64; 2 * HALF_TAPS] = if start >= 0 && (start as usize + 2 * HALF_TAPS) <= u.len() {
-            u[start as usize..start as usize + 2 * HALF_TAPS].try_into().expect("window length")
-        } else {
-            std::array::from_fn(|k| at(start + k as isize))
-        };
+        let win: [f64; 2 * HALF_TAPS] = if start >= 0 && (start as usize + 2 * HALF_TAPS) <= u.len() { u[start as usize..start as usize + 2 * HALF_TAPS].try_into().expect("window length") } else { std::array::from_fn(|k| at(start + k as isize)) };
         for (j, w) in self.weights.iter().enumerate() {
             out[j + 1] = dot(w, &win);
         }

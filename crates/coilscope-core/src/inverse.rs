@@ -82,16 +82,7 @@ pub struct Compensation {
 /// a constant `Rms`, no thermal model (Re cold). Creep and LR-3 are kept (they are linear).
 pub fn linear_reference(p: &Parameters) -> Parameters {
     let at_rest = |f: &Poly| Poly::constant(f.c[0]);
-    Parameters {
-        bl: at_rest(&p.bl),
-        kms: at_rest(&p.kms),
-        le: at_rest(&p.le),
-        l2r2: p.l2r2.as_ref().map(|(l2, r2)| (at_rest(l2), at_rest(r2))),
-        le_i: None,
-        rms_v: None,
-        thermal: None,
-        ..p.clone()
-    }
+    Parameters { bl: at_rest(&p.bl), kms: at_rest(&p.kms), le: at_rest(&p.le), l2r2: p.l2r2.as_ref().map(|(l2, r2)| (at_rest(l2), at_rest(r2))), le_i: None, rms_v: None, thermal: None, ..p.clone() }
 }
 
 /// The drive that makes the transducer `p`, sampled at `fs`, follow the displacement of its
@@ -119,9 +110,7 @@ pub fn compensate_to(p: &Parameters, reference: &Parameters, fs: f64, input: &[f
     }
     let lin = reference;
     let reference = simulate(lin, fs, input, &SimOptions::default()).map_err(|e| match e {
-        SimError::OutOfRange { t, reason, .. } => SimError::Input(format!(
-            "the linear reference leaves the driver's valid range at t = {t:.4} s ({reason}): the input asks for an excursion the parameter set does not describe; lower the input level"
-        )),
+        SimError::OutOfRange { t, reason, .. } => SimError::Input(format!("the linear reference leaves the driver's valid range at t = {t:.4} s ({reason}): the input asks for an excursion the parameter set does not describe; lower the input level")),
         e => e,
     })?;
     let ref_model = Model::new(lin);
@@ -239,20 +228,10 @@ pub fn compensate_to(p: &Parameters, reference: &Parameters, fs: f64, input: &[f
         fl = fl1;
     }
     if out.clipped > 0 {
-        out.warnings.push(format!(
-            "the drive was clipped at {:.3} V in {} of {} samples: there the transducer does not follow the linear reference (raise max_volts or lower the input)",
-            opts.max_volts.unwrap_or(f64::INFINITY),
-            out.clipped,
-            n
-        ));
+        out.warnings.push(format!("the drive was clipped at {:.3} V in {} of {} samples: there the transducer does not follow the linear reference (raise max_volts or lower the input)", opts.max_volts.unwrap_or(f64::INFINITY), out.clipped, n));
     }
     if out.force_factor_limited > 0 {
-        out.warnings.push(format!(
-            "the force factor fell below {:.0} % of Bl(0) in {} of {} samples: there the compensation is partial (the current it needs runs away as Bl(x) falls)",
-            100.0 * opts.min_force_factor,
-            out.force_factor_limited,
-            n
-        ));
+        out.warnings.push(format!("the force factor fell below {:.0} % of Bl(0) in {} of {} samples: there the compensation is partial (the current it needs runs away as Bl(x) falls)", 100.0 * opts.min_force_factor, out.force_factor_limited, n));
     }
     Ok(out)
 }

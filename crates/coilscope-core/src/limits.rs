@@ -80,7 +80,11 @@ fn first_crossing(a: f64, crossed: impl Fn(f64) -> bool) -> Option<f64> {
             let (mut lo, mut hi) = (prev, x);
             for _ in 0..60 {
                 let mid = 0.5 * (lo + hi);
-                if crossed(mid) { hi = mid } else { lo = mid }
+                if crossed(mid) {
+                    hi = mid
+                } else {
+                    lo = mid
+                }
             }
             return Some(hi);
         }
@@ -105,7 +109,11 @@ pub fn symmetry_point(f: &Poly, amp: f64, range: [f64; 2]) -> Option<f64> {
             let (mut l, mut h) = (a, b);
             for _ in 0..60 {
                 let m = 0.5 * (l + h);
-                if g(l) * g(m) <= 0.0 { h = m } else { l = m }
+                if g(l) * g(m) <= 0.0 {
+                    h = m
+                } else {
+                    l = m
+                }
             }
             let s = 0.5 * (l + h);
             if best.is_none_or(|b: f64| s.abs() < b.abs()) {
@@ -131,11 +139,7 @@ pub fn limits_with(p: &Parameters, range: [f64; 2], th: Thresholds) -> Limits {
     let xc = first_crossing(a, |x| p.kms.eval(x).max(p.kms.eval(-x)) >= k0 / th.cms);
     let xl = first_crossing(a, |x| ((p.le.eval(x) / le0 - 1.0).abs()).max((p.le.eval(-x) / le0 - 1.0).abs()) >= th.le);
     // The largest amplitude (0.8 a down to 0.2 a) whose symmetry point lies inside the range.
-    let (xsym, amp) = (2..=8)
-        .rev()
-        .map(|k| 0.1 * k as f64 * a)
-        .find_map(|amp| symmetry_point(&p.bl, amp, range).map(|s| (Some(s), amp)))
-        .unwrap_or((None, 0.8 * a));
+    let (xsym, amp) = (2..=8).rev().map(|k| 0.1 * k as f64 * a).find_map(|amp| symmetry_point(&p.bl, amp, range).map(|s| (Some(s), amp))).unwrap_or((None, 0.8 * a));
     let (kp, km) = (p.kms.eval(a), p.kms.eval(-a));
     Limits { thresholds: th, range, reach: a, xbl, xc, xl, xsym, xsym_amplitude: amp, ak: 100.0 * (kp - km) / kp.max(km) }
 }

@@ -118,14 +118,7 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
             kms: p.kms.lift(),
             mms: D::from(p.mms),
             rms: D::from(p.rms),
-            thermal: p.thermal.as_ref().map(|t| ThermalModel {
-                alpha: D::from(t.alpha),
-                rtv: D::from(t.rtv),
-                ctv: D::from(t.ctv),
-                rtm: D::from(t.rtm),
-                ctm: D::from(t.ctm),
-                rv: D::from(t.rv),
-            }),
+            thermal: p.thermal.as_ref().map(|t| ThermalModel { alpha: D::from(t.alpha), rtv: D::from(t.rtv), ctv: D::from(t.ctv), rtm: D::from(t.rtm), ctm: D::from(t.ctm), rv: D::from(t.rv) }),
             le_i: p.le_i.as_ref().map(|g| g.lift()),
             rms_v: p.rms_v.as_ref().map(|r| r.lift()),
         }
@@ -428,7 +421,11 @@ mod tests {
         let (mut a, mut b) = (-0.005, 0.005);
         for _ in 0..100 {
             let c = 0.5 * (a + b);
-            if f(a) * f(c) <= 0.0 { b = c } else { a = c }
+            if f(a) * f(c) <= 0.0 {
+                b = c
+            } else {
+                a = c
+            }
         }
         let x = 0.5 * (a + b);
         let d = m.deriv(&[x, 0.0, i, 0.0, 0.0, 0.0], p.re * i);
@@ -514,7 +511,20 @@ mod tests {
             let n = 2000;
             let f = |s: f64| p.le.eval(x) * g.eval(s) * s;
             let hh = i / n as f64;
-            (0..=n).map(|k| f(k as f64 * hh) * if k == 0 || k == n { 1.0 } else if k % 2 == 1 { 4.0 } else { 2.0 }).sum::<f64>() * hh / 3.0
+            (0..=n)
+                .map(|k| {
+                    f(k as f64 * hh)
+                        * if k == 0 || k == n {
+                            1.0
+                        } else if k % 2 == 1 {
+                            4.0
+                        } else {
+                            2.0
+                        }
+                })
+                .sum::<f64>()
+                * hh
+                / 3.0
         };
         let f_rel = (coenergy(x + 1e-6) - coenergy(x - 1e-6)) / 2e-6;
         let f_rest = p.bl.eval(x) * i - p.rms * v - p.kms.eval(x) * x + 0.5 * l2.eval_d(x).1 * i2 * i2;

@@ -140,24 +140,13 @@ impl Ctx<'_> {
     fn series(&self, key: &str, v: &Value) -> Result<Poly, ParamError> {
         match v {
             Value::Number(_) => Ok(Poly::constant(self.number(key, v)?)),
-            Value::Array(items) if items.is_empty() => Err(self.err(
-                key,
-                "empty power series; give a number or ascending coefficients [c0, c1, ...] in SI (x in metres)",
-            )),
+            Value::Array(items) if items.is_empty() => Err(self.err(key, "empty power series; give a number or ascending coefficients [c0, c1, ...] in SI (x in metres)")),
             Value::Array(items) => {
                 let mut c = Vec::with_capacity(items.len());
                 for (j, item) in items.iter().enumerate() {
                     match item {
-                        Value::Number(_) => c.push(
-                            self.number(key, item)
-                                .map_err(|e| self.err(key, format!("coefficient c{j}: {}", e.message)))?,
-                        ),
-                        other => {
-                            return Err(self.err(
-                                key,
-                                format!("coefficient c{j} must be a number, found {}", describe(other)),
-                            ))
-                        }
+                        Value::Number(_) => c.push(self.number(key, item).map_err(|e| self.err(key, format!("coefficient c{j}: {}", e.message)))?),
+                        other => return Err(self.err(key, format!("coefficient c{j} must be a number, found {}", describe(other)))),
                     }
                 }
                 if c.len() > 16 {
@@ -165,10 +154,7 @@ impl Ctx<'_> {
                 }
                 Ok(Poly { c })
             }
-            other => Err(self.err(
-                key,
-                format!("expected a number or an array of power-series coefficients, found {}", describe(other)),
-            )),
+            other => Err(self.err(key, format!("expected a number or an array of power-series coefficients, found {}", describe(other)))),
         }
     }
 }
@@ -187,20 +173,14 @@ fn describe(v: &Value) -> String {
 impl Parameters {
     /// Parse and validate a parameter set from JSON text. `origin` names it in errors.
     pub fn from_json_str(text: &str, origin: &str) -> Result<Self, ParamError> {
-        let value: Value = serde_json::from_str(text).map_err(|e| ParamError {
-            origin: origin.to_string(),
-            key: String::new(),
-            message: format!("not valid JSON ({e}); a parameter set is a JSON object, see shared/spec/formats.md"),
-        })?;
+        let value: Value = serde_json::from_str(text).map_err(|e| ParamError { origin: origin.to_string(), key: String::new(), message: format!("not valid JSON ({e}); a parameter set is a JSON object, see shared/spec/formats.md") })?;
         Self::from_json_value(&value, origin)
     }
 
     /// Parse and validate a parameter set from a JSON value.
     pub fn from_json_value(value: &Value, origin: &str) -> Result<Self, ParamError> {
         let ctx = Ctx { origin };
-        let obj = value.as_object().ok_or_else(|| {
-            ctx.err("", format!("expected a JSON object with keys {}; found {}", crate::schema::required_keys(), describe(value)))
-        })?;
+        let obj = value.as_object().ok_or_else(|| ctx.err("", format!("expected a JSON object with keys {}; found {}", crate::schema::required_keys(), describe(value))))?;
         if let Some(f) = obj.get("format") {
             if f.as_str() != Some(PARAMETERS_FORMAT) {
                 return Err(ctx.err("format", format!("{} is not {PARAMETERS_FORMAT:?}", describe(f))));
@@ -215,9 +195,7 @@ impl Parameters {
                 }
             }
         }
-        let required = |key: &str| -> Result<&Value, ParamError> {
-            obj.get(key).ok_or_else(|| ctx.err(key, format!("missing (required: {})", crate::schema::required_keys())))
-        };
+        let required = |key: &str| -> Result<&Value, ParamError> { obj.get(key).ok_or_else(|| ctx.err(key, format!("missing (required: {})", crate::schema::required_keys()))) };
         let text = |key: &str| -> Result<Option<String>, ParamError> {
             match obj.get(key) {
                 None | Some(Value::Null) => Ok(None),
@@ -241,12 +219,8 @@ impl Parameters {
         let sd = obj.get("Sd").map(|v| ctx.number("Sd", v)).transpose()?;
         let x_range = match obj.get("x_range") {
             None => None,
-            Some(Value::Array(a)) if a.len() == 2 => {
-                Some([ctx.number("x_range", &a[0])?, ctx.number("x_range", &a[1])?])
-            }
-            Some(other) => {
-                return Err(ctx.err("x_range", format!("expected [x_min, x_max] in metres, found {}", describe(other))))
-            }
+            Some(Value::Array(a)) if a.len() == 2 => Some([ctx.number("x_range", &a[0])?, ctx.number("x_range", &a[1])?]),
+            Some(other) => return Err(ctx.err("x_range", format!("expected [x_min, x_max] in metres, found {}", describe(other)))),
         };
         let thermal = match obj.get("thermal") {
             None | Some(Value::Null) => None,
@@ -265,9 +239,7 @@ impl Parameters {
                 };
                 Some(Thermal { alpha, rtv: get("Rtv")?, ctv: get("Ctv")?, rtm: get("Rtm")?, ctm: get("Ctm")?, rv })
             }
-            Some(other) => {
-                return Err(ctx.err("thermal", format!("expected an object {{alpha, Rtv, Ctv, Rtm, Ctm}}, found {}", describe(other))))
-            }
+            Some(other) => return Err(ctx.err("thermal", format!("expected an object {{alpha, Rtv, Ctv, Rtm, Ctm}}, found {}", describe(other)))),
         };
         let creep = match obj.get("creep") {
             None | Some(Value::Null) => None,
@@ -278,7 +250,10 @@ impl Parameters {
                     if let Some(v) = c.get(k) {
                         let got = ctx.number(&format!("creep.{k}"), v)?;
                         if (got - want).abs() > 1e-9 * want {
-                            return Err(ctx.err(&format!("creep.{k}"), format!("{got}: coilscope realises creep with {} Maxwell elements per decade from {} to {} Hz; {k} must be {want} (or absent)", crate::creep::PER_DECADE, crate::creep::F_MIN, crate::creep::F_MAX)));
+                            return Err(ctx.err(
+                                &format!("creep.{k}"),
+                                format!("{got}: coilscope realises creep with {} Maxwell elements per decade from {} to {} Hz; {k} must be {want} (or absent)", crate::creep::PER_DECADE, crate::creep::F_MIN, crate::creep::F_MAX),
+                            ));
                         }
                     }
                 }
@@ -300,27 +275,8 @@ impl Parameters {
         };
         let le_i = obj.get("Le_i").map(|v| ctx.series("Le_i", v)).transpose()?;
         let rms_v = obj.get("Rms_v").map(|v| ctx.series("Rms_v", v)).transpose()?;
-        let extra: Map<String, Value> =
-            obj.iter().filter(|(k, _)| !known_keys.contains(&k.as_str())).map(|(k, v)| (k.clone(), v.clone())).collect();
-        let p = Parameters {
-            name: text("name")?,
-            source: text("source")?,
-            re,
-            le,
-            l2r2,
-            bl,
-            kms,
-            mms,
-            rms,
-            sd,
-            creep,
-            l3r3,
-            le_i,
-            rms_v,
-            thermal,
-            x_range,
-            extra,
-        };
+        let extra: Map<String, Value> = obj.iter().filter(|(k, _)| !known_keys.contains(&k.as_str())).map(|(k, v)| (k.clone(), v.clone())).collect();
+        let p = Parameters { name: text("name")?, source: text("source")?, re, le, l2r2, bl, kms, mms, rms, sd, creep, l3r3, le_i, rms_v, thermal, x_range, extra };
         p.validate(origin)?;
         Ok(p)
     }
@@ -343,10 +299,7 @@ impl Parameters {
         }
         // Plausibility: a loudspeaker, headphone, microspeaker or shaker, in SI units.
         if self.mms > 2.0 {
-            return Err(ctx.err("Mms", format!(
-                "{} kg is not a plausible moving mass (expected 1e-6 .. 2 kg); it looks like grams: {} g = {} kg",
-                self.mms, self.mms, self.mms / 1000.0
-            )));
+            return Err(ctx.err("Mms", format!("{} kg is not a plausible moving mass (expected 1e-6 .. 2 kg); it looks like grams: {} g = {} kg", self.mms, self.mms, self.mms / 1000.0)));
         }
         if self.mms < 1e-7 {
             return Err(ctx.err("Mms", format!("{} kg is implausibly small (expected 1e-6 .. 2 kg)", self.mms)));
@@ -356,10 +309,7 @@ impl Parameters {
         }
         let le0 = self.le.c[0];
         if le0 > 0.1 {
-            return Err(ctx.err("Le", format!(
-                "Le(0) = {le0} H is not a plausible voice-coil inductance (expected < 0.1 H); it looks like millihenry: {le0} mH = {} H",
-                le0 / 1000.0
-            )));
+            return Err(ctx.err("Le", format!("Le(0) = {le0} H is not a plausible voice-coil inductance (expected < 0.1 H); it looks like millihenry: {le0} mH = {} H", le0 / 1000.0)));
         }
         let bl0 = self.bl.c[0];
         if bl0 > 200.0 {
@@ -367,10 +317,7 @@ impl Parameters {
         }
         let kms0 = self.kms.c[0];
         if kms0 > 0.0 && kms0 < 0.5 {
-            return Err(ctx.err("Kms", format!(
-                "Kms(0) = {kms0} N/m is implausibly soft; it looks like a compliance Cms in m/N: Kms = 1/Cms = {:.4} N/m",
-                1.0 / kms0
-            )));
+            return Err(ctx.err("Kms", format!("Kms(0) = {kms0} N/m is implausibly soft; it looks like a compliance Cms in m/N: Kms = 1/Cms = {:.4} N/m", 1.0 / kms0)));
         }
         if let Some(sd) = self.sd {
             if !(sd > 0.0) {
@@ -417,10 +364,7 @@ impl Parameters {
                 return Err(ctx.err("x_range", format!("[{lo}, {hi}] must contain the rest position: x_min < 0 < x_max (m)")));
             }
             if hi - lo > 0.2 {
-                return Err(ctx.err("x_range", format!(
-                    "[{lo}, {hi}] m spans more than 0.2 m; it looks like millimetres: [{lo}, {hi}] mm = [{}, {}] m",
-                    lo / 1000.0, hi / 1000.0
-                )));
+                return Err(ctx.err("x_range", format!("[{lo}, {hi}] m spans more than 0.2 m; it looks like millimetres: [{lo}, {hi}] mm = [{}, {}] m", lo / 1000.0, hi / 1000.0)));
             }
         }
         if let Some(t) = &self.thermal {
@@ -450,9 +394,7 @@ impl Parameters {
             let (mn, _) = p.min_max_on(lo, hi);
             if !(mn > 0.0) {
                 let xm = argmin_on(p, lo, hi);
-                return Err(ctx.err(key, format!(
-                    "{key}(x) must be > 0 {where_}, but {key}({xm:.6} m) = {mn:.6e} {unit}; check the coefficients (SI: x in metres) or narrow x_range"
-                )));
+                return Err(ctx.err(key, format!("{key}(x) must be > 0 {where_}, but {key}({xm:.6} m) = {mn:.6e} {unit}; check the coefficients (SI: x in metres) or narrow x_range")));
             }
         }
         Ok(())
@@ -506,10 +448,7 @@ impl Parameters {
     /// order, without the creep bank's realisation keys: what a table of values shows.
     pub fn values_at_rest(&self) -> impl Iterator<Item = (&'static crate::schema::Entry, f64)> + '_ {
         use crate::schema::{Kind, ENTRIES};
-        ENTRIES
-            .iter()
-            .filter(|e| !e.realisation && matches!(e.kind, Kind::Number | Kind::SeriesX))
-            .filter_map(|e| self.get(e.key).and_then(|v| v.at_rest()).map(|v| (e, v)))
+        ENTRIES.iter().filter(|e| !e.realisation && matches!(e.kind, Kind::Number | Kind::SeriesX)).filter_map(|e| self.get(e.key).and_then(|v| v.at_rest()).map(|v| (e, v)))
     }
 
     /// Write the set as contract JSON (constants as numbers, series in x as a number when
@@ -615,18 +554,11 @@ fn series_json(p: &Poly) -> Value {
 
 fn argmin_on(p: &Poly, lo: f64, hi: f64) -> f64 {
     let n = 2000;
-    (0..=n)
-        .map(|k| lo + (hi - lo) * k as f64 / n as f64)
-        .min_by(|a, b| p.eval(*a).total_cmp(&p.eval(*b)))
-        .unwrap_or(0.0)
+    (0..=n).map(|k| lo + (hi - lo) * k as f64 / n as f64).min_by(|a, b| p.eval(*a).total_cmp(&p.eval(*b))).unwrap_or(0.0)
 }
 
 /// The real drivers bundled with coilscope (Klippel LSI measurements, see `drivers/README`).
-pub const EMBEDDED_DRIVERS: &[(&str, &str)] = &[
-    ("sb17cac35-4", include_str!("../drivers/sb17cac35-4.json")),
-    ("ptt4.0w04-01a", include_str!("../drivers/ptt4.0w04-01a.json")),
-    ("18wu-4741t-00", include_str!("../drivers/18wu-4741t-00.json")),
-];
+pub const EMBEDDED_DRIVERS: &[(&str, &str)] = &[("sb17cac35-4", include_str!("../drivers/sb17cac35-4.json")), ("ptt4.0w04-01a", include_str!("../drivers/ptt4.0w04-01a.json")), ("18wu-4741t-00", include_str!("../drivers/18wu-4741t-00.json"))];
 
 /// The names of the embedded drivers.
 pub fn embedded_driver_names() -> Vec<&'static str> {
@@ -635,10 +567,7 @@ pub fn embedded_driver_names() -> Vec<&'static str> {
 
 /// An embedded driver by name (case-insensitive), or None.
 pub fn embedded_driver(name: &str) -> Option<Parameters> {
-    EMBEDDED_DRIVERS.iter().find(|(n, _)| n.eq_ignore_ascii_case(name)).map(|(n, text)| {
-        Parameters::from_json_str(text, &format!("embedded driver {n}"))
-            .expect("embedded drivers are validated by the test suite")
-    })
+    EMBEDDED_DRIVERS.iter().find(|(n, _)| n.eq_ignore_ascii_case(name)).map(|(n, text)| Parameters::from_json_str(text, &format!("embedded driver {n}")).expect("embedded drivers are validated by the test suite"))
 }
 
 #[cfg(test)]

@@ -217,8 +217,7 @@ mod tests {
         // The contract names each key (dotted ones by their last part, in their object's row);
         // the creep bank's realisation keys are its "further keys"; coilscope's extensions
         // (new optional keys) are not in it.
-        let spec = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/spec/formats.md"))
-            .expect("shared/spec/formats.md (set COILSCOPE_NO_SHARED=1 to skip, reported as ignored)");
+        let spec = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/spec/formats.md")).expect("shared/spec/formats.md (set COILSCOPE_NO_SHARED=1 to skip, reported as ignored)");
         for e in ENTRIES.iter().filter(|e| !e.realisation && !e.extension) {
             let last = e.key.rsplit('.').next().unwrap();
             assert!(spec.contains(&format!("`{last}`")) || spec.contains(&format!("`{}`", e.key)), "formats.md does not name {}", e.key);

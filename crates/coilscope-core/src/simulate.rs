@@ -55,9 +55,7 @@ impl Plant {
         self.model.le_i.as_ref()?;
         let i = state[idx::I];
         let h = self.model.le_i_incremental(i);
-        (!(h >= MIN_INCREMENTAL_LE)).then(|| {
-            format!("Le_i drives the incremental inductance to {:.0} % of Le(x) at i = {i:.3} A (below {:.0} %: the flux series is extrapolated past its valid current)", 100.0 * h, 100.0 * MIN_INCREMENTAL_LE)
-        })
+        (!(h >= MIN_INCREMENTAL_LE)).then(|| format!("Le_i drives the incremental inductance to {:.0} % of Le(x) at i = {i:.3} A (below {:.0} %: the flux series is extrapolated past its valid current)", 100.0 * h, 100.0 * MIN_INCREMENTAL_LE))
     }
 
     /// Advance `state` by one sample period `dt`, the input at the points of
@@ -117,25 +115,15 @@ pub enum SimError {
 }
 
 fn fmt_state(s: &State<f64>) -> String {
-    format!(
-        "x = {:.4} mm, v = {:.4} m/s, i = {:.4} A, i2 = {:.4} A, dTv = {:.3} K, dTm = {:.3} K",
-        s[idx::X] * 1e3,
-        s[idx::V],
-        s[idx::I],
-        s[idx::I2],
-        s[idx::TV],
-        s[idx::TM]
-    )
+    format!("x = {:.4} mm, v = {:.4} m/s, i = {:.4} A, i2 = {:.4} A, dTv = {:.3} K, dTm = {:.3} K", s[idx::X] * 1e3, s[idx::V], s[idx::I], s[idx::I2], s[idx::TV], s[idx::TM])
 }
 
 impl fmt::Display for SimError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            SimError::OutOfRange { t, sample, state, reason } => write!(
-                f,
-                "simulation stopped at t = {t:.6} s (sample {sample}): {reason}; state: {}. Lower the level, add a high-pass, or use parameters measured over a wider range",
-                fmt_state(state)
-            ),
+            SimError::OutOfRange { t, sample, state, reason } => {
+                write!(f, "simulation stopped at t = {t:.6} s (sample {sample}): {reason}; state: {}. Lower the level, add a high-pass, or use parameters measured over a wider range", fmt_state(state))
+            }
             SimError::Input(m) => write!(f, "{m}"),
         }
     }
@@ -235,16 +223,7 @@ impl Simulator {
         }
         let n = opts.substeps.unwrap_or_else(|| substeps_for(params.stiffness_rate(), fs)).max(1);
         let bounds = params.x_range.map(|[lo, hi]| [lo * (1.0 + opts.range_margin), hi * (1.0 + opts.range_margin)]);
-        Ok(Simulator {
-            plant: Plant::with_force(params, opts.force),
-            params: params.clone(),
-            fs,
-            interp: Interpolator::new(n),
-            bounds,
-            range: params.x_range,
-            state: opts.initial,
-            scratch: vec![0.0; 2 * n + 1],
-        })
+        Ok(Simulator { plant: Plant::with_force(params, opts.force), params: params.clone(), fs, interp: Interpolator::new(n), bounds, range: params.x_range, state: opts.initial, scratch: vec![0.0; 2 * n + 1] })
     }
 
     /// Sub-steps per sample.
@@ -266,13 +245,7 @@ impl Simulator {
             Some([lo, hi]) => {
                 if x < lo || x > hi {
                     let r = self.range.unwrap_or([lo, hi]);
-                    return fail(format!(
-                        "x = {:.3} mm is outside x_range [{:.3}, {:.3}] mm (+{:.0} % margin), where the parameters are not valid",
-                        x * 1e3,
-                        r[0] * 1e3,
-                        r[1] * 1e3,
-                        100.0 * (hi / r[1] - 1.0)
-                    ));
+                    return fail(format!("x = {:.3} mm is outside x_range [{:.3}, {:.3}] mm (+{:.0} % margin), where the parameters are not valid", x * 1e3, r[0] * 1e3, r[1] * 1e3, 100.0 * (hi / r[1] - 1.0)));
                 }
             }
             None => {
@@ -311,18 +284,7 @@ pub fn simulate(params: &Parameters, fs: f64, u: &[f64], opts: &SimOptions) -> R
     }
     let mut sim = Simulator::new(params, fs, opts)?;
     let n = u.len();
-    let mut tr = Trace {
-        fs,
-        u: u.to_vec(),
-        x: Vec::with_capacity(n),
-        v: Vec::with_capacity(n),
-        i: Vec::with_capacity(n),
-        i2: Vec::with_capacity(n),
-        tv: Vec::with_capacity(n),
-        tm: Vec::with_capacity(n),
-        substeps: sim.substeps(),
-        range_excess: 0.0,
-    };
+    let mut tr = Trace { fs, u: u.to_vec(), x: Vec::with_capacity(n), v: Vec::with_capacity(n), i: Vec::with_capacity(n), i2: Vec::with_capacity(n), tv: Vec::with_capacity(n), tm: Vec::with_capacity(n), substeps: sim.substeps(), range_excess: 0.0 };
     let range = params.x_range;
     let mut excess: f64 = 0.0;
     sim.run(u, |_, s| {

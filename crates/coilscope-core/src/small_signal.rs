@@ -62,14 +62,7 @@ pub fn thiele_small(p: &Parameters) -> ThieleSmall {
     let qms = ws * p.mms / p.rms;
     let qes = ws * p.mms * p.re / (bl * bl);
     let cms = 1.0 / kms;
-    ThieleSmall {
-        fs: ws / (2.0 * PI),
-        qms,
-        qes,
-        qts: qms * qes / (qms + qes),
-        cms,
-        vas: p.sd.map(|sd| RHO_AIR * C_AIR * C_AIR * sd * sd * cms),
-    }
+    ThieleSmall { fs: ws / (2.0 * PI), qms, qes, qts: qms * qes / (qms + qes), cms, vas: p.sd.map(|sd| RHO_AIR * C_AIR * C_AIR * sd * sd * cms) }
 }
 
 #[cfg(test)]

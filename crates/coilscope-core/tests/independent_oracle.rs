@@ -182,7 +182,13 @@ fn compensation_lowers_the_displacement_distortion_at_30_hz_in_the_oracle() {
     let n = (seconds * FS) as usize;
     let fade = 0.1;
     let tone = |t: f64, volts: f64| {
-        let env = if t <= 0.0 { 0.0 } else if t < fade { 0.5 - 0.5 * (std::f64::consts::PI * t / fade).cos() } else { 1.0 };
+        let env = if t <= 0.0 {
+            0.0
+        } else if t < fade {
+            0.5 - 0.5 * (std::f64::consts::PI * t / fade).cos()
+        } else {
+            1.0
+        };
         env * volts * (2.0 * std::f64::consts::PI * f0 * t).sin()
     };
     for name in embedded_driver_names() {

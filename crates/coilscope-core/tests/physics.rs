@@ -4,10 +4,10 @@
 use coilscope_core::excitation::{generate, Excitation, SignalSpec};
 use coilscope_core::integrate::{rk4_sample, Dynamics, Interpolator};
 use coilscope_core::model::{ExtModel, Model, NEXT, NSTATE};
-use coilscope_core::simulate::{rms, simulate, SimOptions};
 use coilscope_core::poly::Poly;
-use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
+use coilscope_core::simulate::{rms, simulate, SimOptions};
 use coilscope_core::small_signal::impedance;
+use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
 use realfft::num_complex::Complex64;
 
 const FS: f64 = 48000.0;
@@ -102,10 +102,14 @@ fn simulated_impedance(p: &Parameters, f: f64) -> Complex64 {
     let u: Vec<f64> = (0..2 * n).map(|k| 1e-3 * (2.0 * std::f64::consts::PI * f * k as f64 / FS).sin()).collect();
     let tr = simulate(p, FS, &u, &SimOptions::default()).unwrap();
     let coef = |x: &[f64]| -> Complex64 {
-        x[n..].iter().enumerate().map(|(k, v)| {
-            let ph = 2.0 * std::f64::consts::PI * f * (n + k) as f64 / FS;
-            Complex64::new(ph.cos(), -ph.sin()) * *v
-        }).sum::<Complex64>()
+        x[n..]
+            .iter()
+            .enumerate()
+            .map(|(k, v)| {
+                let ph = 2.0 * std::f64::consts::PI * f * (n + k) as f64 / FS;
+                Complex64::new(ph.cos(), -ph.sin()) * *v
+            })
+            .sum::<Complex64>()
     };
     coef(&tr.u) / coef(&tr.i)
 }
@@ -153,11 +157,13 @@ fn other_sample_rates_give_the_same_physics() {
     let p = embedded_driver("18wu-4741t-00").unwrap();
     let peak = |fs: f64| {
         let n = (0.5 * fs) as usize;
-        let u: Vec<f64> = (0..n).map(|k| {
-            let t = k as f64 / fs;
-            let w = (std::f64::consts::PI * t / 0.5).sin().powi(2);
-            4.0 * w * (2.0 * std::f64::consts::PI * 70.0 * t).sin()
-        }).collect();
+        let u: Vec<f64> = (0..n)
+            .map(|k| {
+                let t = k as f64 / fs;
+                let w = (std::f64::consts::PI * t / 0.5).sin().powi(2);
+                4.0 * w * (2.0 * std::f64::consts::PI * 70.0 * t).sin()
+            })
+            .collect();
         let s = simulate(&p, fs, &u, &SimOptions::default()).unwrap().summary();
         (s.x_max, s.x_min, s.dt_end)
     };

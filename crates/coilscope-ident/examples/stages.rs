@@ -39,15 +39,7 @@ fn main() {
     if chain {
         let peak = |v: &[f64]| v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
         let (pu, pi) = (peak(&u), peak(&i));
-        let card = Chain {
-            delay_i: 0.3 / fs,
-            hp_u: 2.0,
-            hp_i: 4.0,
-            dc_u: 5e-3 * pu,
-            dc_i: 5e-3 * pi,
-            hum: Some(Hum { f: 50.0, u: vec![[1e-3 * pu, 0.3]], i: vec![[1e-3 * pi, 1.1]] }),
-            ..Default::default()
-        };
+        let card = Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, dc_u: 5e-3 * pu, dc_i: 5e-3 * pi, hum: Some(Hum { f: 50.0, u: vec![[1e-3 * pu, 0.3]], i: vec![[1e-3 * pi, 1.1]] }), ..Default::default() };
         (u, i) = card.apply(&u, &i, fs);
     }
     add_sensor_noise(&mut u, 70.0, 1, "sensor-noise/voltage");
@@ -58,17 +50,7 @@ fn main() {
     let fit = identify(&u, &i, fs, &name, &IdentifyOptions { mms: p.mms, effects, chain, ..Default::default() }, |pr| {
         let t = t0.elapsed().as_secs_f64();
         let s = pr.state;
-        println!(
-            "{t:7.3} s (+{:.3}) {:?} it {} error {:.3e} unknowns {} decrease {:.2e} gain ratio {:.3} damping {:.1e}",
-            t - last,
-            pr.stage,
-            s.iteration,
-            pr.residual_rel,
-            s.theta.len(),
-            s.last_decrease,
-            s.gain_ratio,
-            s.step_lambda
-        );
+        println!("{t:7.3} s (+{:.3}) {:?} it {} error {:.3e} unknowns {} decrease {:.2e} gain ratio {:.3} damping {:.1e}", t - last, pr.stage, s.iteration, pr.residual_rel, s.theta.len(), s.last_decrease, s.gain_ratio, s.step_lambda);
         last = t;
     });
     match fit {

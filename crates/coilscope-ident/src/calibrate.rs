@@ -137,10 +137,13 @@ pub fn calibrate(u: &[f64], i: &[f64], fs: f64, resistor: f64, origin: &str) -> 
     }
     let z: Vec<Complex64> = keep.iter().map(|&k| h1.z[k]).collect();
     let f: Vec<f64> = keep.iter().map(|&k| h1.f[k]).collect();
-    let w: Vec<f64> = keep.iter().map(|&k| {
-        let c = h1.coherence[k].min(1.0 - 1e-12);
-        1.0 / ((1.0 - c) / (2.0 * averages * c)).sqrt().max(1e-7)
-    }).collect();
+    let w: Vec<f64> = keep
+        .iter()
+        .map(|&k| {
+            let c = h1.coherence[k].min(1.0 - 1e-12);
+            1.0 / ((1.0 - c) / (2.0 * averages * c)).sqrt().max(1e-7)
+        })
+        .collect();
     let zmed = crate::checks::median(z.iter().map(|z| z.norm()).collect());
     let low_re = crate::checks::median(keep.iter().filter(|&&k| h1.f[k] > 20.0 && h1.f[k] < 2000.0).map(|&k| h1.z[k].re).collect());
     if low_re < 0.0 {

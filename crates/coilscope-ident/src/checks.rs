@@ -123,108 +123,6 @@ pub fn explained_share(r: &[f64], regressors: &[Vec<f64>]) -> f64 {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use coilscope_core::excitation::named_rng;
-    use rand::Rng;
-    use rand_distr::StandardNormal;
-
-    fn white(n: usize, sd: f64, seed: u64) -> Vec<f64> {
-        let mut rng = named_rng(seed, "checks/white");
-        (0..n).map(|_| sd * rng.sample::<f64, _>(StandardNormal)).collect()
-    }
-
-    #[test]
-    fn white_noise_sits_at_its_floor() {
-        for seed in 1..6 {
-            let r = white(96_000, 1e-4, seed);
-            let nf = noise_floor(&r, 48000.0);
-            assert!((nf.ratio - 1.0).abs() < 0.1, "seed {seed}: ratio {}", nf.ratio);
-            assert!((nf.floor_rms / 1e-4 - 1.0).abs() < 0.1, "seed {seed}: floor {}", nf.floor_rms);
-            let (_, w) = residual_warnings(&r, 48000.0, "test fit", 1.0, 0.0);
-            assert!(w.is_empty(), "{w:?}");
-        }
-    }
-
-    #[test]
-    fn a_low_frequency_model_error_and_a_dc_offset_are_named() {
-        let fs = 48000.0;
-        let mut r = white(96_000, 1e-4, 7);
-        // A model error at 40 Hz, ten times the noise.
-        for (k, v) in r.iter_mut().enumerate() {
-            *v += 1.4e-3 * (2.0 * std::f64::consts::PI * 40.0 * k as f64 / fs).sin();
-        }
-        let (nf, w) = residual_warnings(&r, fs, "test fit", 1.0, 0.0);
-        assert!(nf.ratio > 5.0, "{}", nf.ratio);
-        assert!(w.iter().any(|w| w.code == "residual-above-noise"), "{w:?}");
-        let r: Vec<f64> = white(96_000, 1e-4, 8).iter().map(|v| v + 2e-3).collect();
-        let (_, w) = residual_warnings(&r, fs, "test fit", 1.0, 0.0);
-        assert!(w.iter().any(|w| w.code == "dc-offset-current" && w.message.contains("2.000e-3")), "{w:?}");
-    }
-
-    #[test]
-    fn the_explained_share_tells_noise_from_a_modelled_error() {
-        let n = 48_000;
-        let g: Vec<f64> = (0..n).map(|k| (k as f64 * 0.003).sin() * (k as f64 * 0.011).sin()).collect();
-        let noise = white(n, 1e-3, 3);
-        assert!(explained_share(&noise, std::slice::from_ref(&g)) < 0.01);
-        let r: Vec<f64> = (0..n).map(|k| 0.01 * g[k] + noise[k]).collect();
-        assert!(explained_share(&r, &[g]) > 0.9);
-    }
-
-    /// A band-limited "current" (sum of tones up to 5 kHz) and its copy `tau` samples late
-    /// (exact for the tones), with noise of 1e-3 of it.
-    fn tones(n: usize, fs: f64, tau: f64) -> Vec<f64> {
-        let f = [37.0, 113.0, 421.0, 1290.0, 4870.0];
-        (0..n).map(|k| f.iter().enumerate().map(|(j, f)| (2.0 * std::f64::consts::PI * f * (k as f64 - tau) / fs + j as f64).sin()).sum()).collect()
-    }
-
-    #[test]
-    fn a_skew_in_the_error_is_found_with_its_sign_and_noise_is_not() {
-        let (n, fs) = (48_000, 48000.0);
-        let model = tones(n, fs, 0.0);
-        for (seed, tau) in [(1u64, 0.3), (2, -0.2), (3, 0.05)] {
-            let noise = white(n, 1e-3, seed);
-            let rec: Vec<f64> = tones(n, fs, tau).iter().zip(&noise).map(|(a, b)| a + b).collect();
-            let r: Vec<f64> = rec.iter().zip(&model).map(|(a, b)| a - b).collect();
-            let (got, share) = residual_delay(&r, &model).unwrap_or_else(|| panic!("seed {seed}: a skew of {tau} not found"));
-            // First order in tau, with a central difference for i': within 10 % (6 % here,
-            // the 4.9 kHz tone's difference is 7 % short of its derivative).
-            assert!((got - tau).abs() < 0.1 * tau.abs() + 2e-3, "seed {seed}: {got} for {tau}");
-            assert!(share > 0.5, "seed {seed}: {share}");
-            assert!(residual_delay(&noise, &model).is_none(), "seed {seed}: noise called a skew");
-        }
-    }
-
-    #[test]
-    fn an_error_that_follows_the_drive_is_told_from_noise() {
-        let (n, fs) = (48_000, 48000.0);
-        let i = tones(n, fs, 0.0);
-        let u: Vec<f64> = i.iter().map(|v| 4.0 * v).collect();
-        let x: Vec<f64> = tones(n, fs, 7.0).iter().map(|v| 1e-3 * v).collect();
-        for seed in 1..4u64 {
-            let noise = white(n, 1e-3, seed);
-            let ratio = drive_explained_ratio(&noise, &u, &i, &x, fs);
-            assert!(ratio < 1.01, "seed {seed}: noise gives {ratio}");
-            // An AC coupling left in the current: its first-order high-pass at 3 Hz removes
-            // i's low-passed part, 30 times the noise.
-            let a = (-2.0 * std::f64::consts::PI * 3.0 / fs).exp();
-            let mut lp = 0.0;
-            let r: Vec<f64> = i.iter().zip(&noise).map(|(v, e)| {
-                lp = a * lp + (1.0 - a) * v;
-                e - lp
-            }).collect();
-            let ratio = drive_explained_ratio(&r, &u, &i, &x, fs);
-            assert!(ratio > 3.0, "seed {seed}: an AC coupling gives {ratio}");
-            // Le(i) left out: i^2 i', at the noise's level.
-            let r: Vec<f64> = (0..n).map(|k| noise[k] + if k > 0 && k + 1 < n { 2e-2 * i[k] * i[k] * (i[k + 1] - i[k - 1]) } else { 0.0 }).collect();
-            let ratio = drive_explained_ratio(&r, &u, &i, &x, fs);
-            assert!(ratio > DRIVE_RATIO_WARN, "seed {seed}: Le(i) left out gives {ratio}");
-        }
-    }
-}
-
 /// Share of a fit's current error that a skew of the current channel explains, above which
 /// the channels are said to be skewed ([`residual_delay`]).
 pub const DELAY_SHARE_WARN: f64 = 0.3;
@@ -315,10 +213,13 @@ pub fn drive_explained_ratio(r: &[f64], u: &[f64], i_model: &[f64], x_model: &[f
         let a = (-2.0 * std::f64::consts::PI * fc / fs).exp();
         for s in [i_model, u] {
             let mut y = 0.0;
-            let full: Vec<f64> = s[..n].iter().map(|v| {
-                y = a * y + (1.0 - a) * v;
-                y
-            }).collect();
+            let full: Vec<f64> = s[..n]
+                .iter()
+                .map(|v| {
+                    y = a * y + (1.0 - a) * v;
+                    y
+                })
+                .collect();
             g.push(full[L..L + m].to_vec());
         }
     }
@@ -343,4 +244,110 @@ pub fn drive_warning(r: &[f64], u: &[f64], i_model: &[f64], x_model: &[f64], fs:
             ),
         )
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use coilscope_core::excitation::named_rng;
+    use rand::Rng;
+    use rand_distr::StandardNormal;
+
+    fn white(n: usize, sd: f64, seed: u64) -> Vec<f64> {
+        let mut rng = named_rng(seed, "checks/white");
+        (0..n).map(|_| sd * rng.sample::<f64, _>(StandardNormal)).collect()
+    }
+
+    #[test]
+    fn white_noise_sits_at_its_floor() {
+        for seed in 1..6 {
+            let r = white(96_000, 1e-4, seed);
+            let nf = noise_floor(&r, 48000.0);
+            assert!((nf.ratio - 1.0).abs() < 0.1, "seed {seed}: ratio {}", nf.ratio);
+            assert!((nf.floor_rms / 1e-4 - 1.0).abs() < 0.1, "seed {seed}: floor {}", nf.floor_rms);
+            let (_, w) = residual_warnings(&r, 48000.0, "test fit", 1.0, 0.0);
+            assert!(w.is_empty(), "{w:?}");
+        }
+    }
+
+    #[test]
+    fn a_low_frequency_model_error_and_a_dc_offset_are_named() {
+        let fs = 48000.0;
+        let mut r = white(96_000, 1e-4, 7);
+        // A model error at 40 Hz, ten times the noise.
+        for (k, v) in r.iter_mut().enumerate() {
+            *v += 1.4e-3 * (2.0 * std::f64::consts::PI * 40.0 * k as f64 / fs).sin();
+        }
+        let (nf, w) = residual_warnings(&r, fs, "test fit", 1.0, 0.0);
+        assert!(nf.ratio > 5.0, "{}", nf.ratio);
+        assert!(w.iter().any(|w| w.code == "residual-above-noise"), "{w:?}");
+        let r: Vec<f64> = white(96_000, 1e-4, 8).iter().map(|v| v + 2e-3).collect();
+        let (_, w) = residual_warnings(&r, fs, "test fit", 1.0, 0.0);
+        assert!(w.iter().any(|w| w.code == "dc-offset-current" && w.message.contains("2.000e-3")), "{w:?}");
+    }
+
+    #[test]
+    fn the_explained_share_tells_noise_from_a_modelled_error() {
+        let n = 48_000;
+        let g: Vec<f64> = (0..n).map(|k| (k as f64 * 0.003).sin() * (k as f64 * 0.011).sin()).collect();
+        let noise = white(n, 1e-3, 3);
+        assert!(explained_share(&noise, std::slice::from_ref(&g)) < 0.01);
+        let r: Vec<f64> = (0..n).map(|k| 0.01 * g[k] + noise[k]).collect();
+        assert!(explained_share(&r, &[g]) > 0.9);
+    }
+
+    /// A band-limited "current" (sum of tones up to 5 kHz) and its copy `tau` samples late
+    /// (exact for the tones), with noise of 1e-3 of it.
+    fn tones(n: usize, fs: f64, tau: f64) -> Vec<f64> {
+        let f = [37.0, 113.0, 421.0, 1290.0, 4870.0];
+        (0..n).map(|k| f.iter().enumerate().map(|(j, f)| (2.0 * std::f64::consts::PI * f * (k as f64 - tau) / fs + j as f64).sin()).sum()).collect()
+    }
+
+    #[test]
+    fn a_skew_in_the_error_is_found_with_its_sign_and_noise_is_not() {
+        let (n, fs) = (48_000, 48000.0);
+        let model = tones(n, fs, 0.0);
+        for (seed, tau) in [(1u64, 0.3), (2, -0.2), (3, 0.05)] {
+            let noise = white(n, 1e-3, seed);
+            let rec: Vec<f64> = tones(n, fs, tau).iter().zip(&noise).map(|(a, b)| a + b).collect();
+            let r: Vec<f64> = rec.iter().zip(&model).map(|(a, b)| a - b).collect();
+            let (got, share) = residual_delay(&r, &model).unwrap_or_else(|| panic!("seed {seed}: a skew of {tau} not found"));
+            // First order in tau, with a central difference for i': within 10 % (6 % here,
+            // the 4.9 kHz tone's difference is 7 % short of its derivative).
+            assert!((got - tau).abs() < 0.1 * tau.abs() + 2e-3, "seed {seed}: {got} for {tau}");
+            assert!(share > 0.5, "seed {seed}: {share}");
+            assert!(residual_delay(&noise, &model).is_none(), "seed {seed}: noise called a skew");
+        }
+    }
+
+    #[test]
+    fn an_error_that_follows_the_drive_is_told_from_noise() {
+        let (n, fs) = (48_000, 48000.0);
+        let i = tones(n, fs, 0.0);
+        let u: Vec<f64> = i.iter().map(|v| 4.0 * v).collect();
+        let x: Vec<f64> = tones(n, fs, 7.0).iter().map(|v| 1e-3 * v).collect();
+        for seed in 1..4u64 {
+            let noise = white(n, 1e-3, seed);
+            let ratio = drive_explained_ratio(&noise, &u, &i, &x, fs);
+            assert!(ratio < 1.01, "seed {seed}: noise gives {ratio}");
+            // An AC coupling left in the current: its first-order high-pass at 3 Hz removes
+            // i's low-passed part, 30 times the noise.
+            let a = (-2.0 * std::f64::consts::PI * 3.0 / fs).exp();
+            let mut lp = 0.0;
+            let r: Vec<f64> = i
+                .iter()
+                .zip(&noise)
+                .map(|(v, e)| {
+                    lp = a * lp + (1.0 - a) * v;
+                    e - lp
+                })
+                .collect();
+            let ratio = drive_explained_ratio(&r, &u, &i, &x, fs);
+            assert!(ratio > 3.0, "seed {seed}: an AC coupling gives {ratio}");
+            // Le(i) left out: i^2 i', at the noise's level.
+            let r: Vec<f64> = (0..n).map(|k| noise[k] + if k > 0 && k + 1 < n { 2e-2 * i[k] * i[k] * (i[k + 1] - i[k - 1]) } else { 0.0 }).collect();
+            let ratio = drive_explained_ratio(&r, &u, &i, &x, fs);
+            assert!(ratio > DRIVE_RATIO_WARN, "seed {seed}: Le(i) left out gives {ratio}");
+        }
+    }
 }

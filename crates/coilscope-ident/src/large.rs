@@ -637,17 +637,7 @@ fn run_model<D: DualNum<Primitive = f64> + Copy, const N: usize>(
 /// [`run_model`] with the layout's model for theta: [`Model`], or [`ExtModel`] when the
 /// layout fits effects with states of their own.
 #[allow(clippy::too_many_arguments)]
-fn run_layout<D: DualNum<Primitive = f64> + Copy>(
-    layout: &Layout,
-    th: &[D],
-    heat: &[Vec<f64>],
-    u: &[f64],
-    fs: f64,
-    interp: &Interpolator,
-    len: usize,
-    x_limit: f64,
-    observe: impl FnMut(usize, &[D]),
-) -> Result<(), usize> {
+fn run_layout<D: DualNum<Primitive = f64> + Copy>(layout: &Layout, th: &[D], heat: &[Vec<f64>], u: &[f64], fs: f64, interp: &Interpolator, len: usize, x_limit: f64, observe: impl FnMut(usize, &[D])) -> Result<(), usize> {
     if !layout.effects.needs_ext_states() {
         let (mut model, knots) = layout.model(th);
         run_model(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, interp, len, x_limit, observe)
@@ -1603,7 +1593,12 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         let l2r2 = start.l2r2.as_ref().map_or(String::new(), |(l2, r2)| format!(", L2 {:.3e} H, R2 {:.3e} ohm", l2.c[0], r2.c[0]));
         Input(format!(
             "{origin}: the start model diverged at sample {m} (small-signal start: Re {:.3e} ohm, Le {:.3e} H{l2r2}, Bl {:.3e} T m, Kms {:.3e} N/m, Rms {:.3e} kg/s, {} RK4 sub-steps per sample)",
-            start.re, start.le.c[0], start.bl.c[0], start.kms.c[0], start.rms, substeps_for(rate, fs)
+            start.re,
+            start.le.c[0],
+            start.bl.c[0],
+            start.kms.c[0],
+            start.rms,
+            substeps_for(rate, fs)
         ))
     })?;
     // A start that misses most of the current is no start: the large-signal fit cannot
@@ -1746,17 +1741,8 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             effect_trials.push((Effects::NONE.model_name(), base_val));
             let (mut at, mut at_val) = (Effects::NONE, base_val);
             loop {
-                let singles = [
-                    Effects { creep: true, ..Effects::NONE },
-                    Effects { lr3: true, ..Effects::NONE },
-                    Effects { le_i: true, ..Effects::NONE },
-                    Effects { rms_v: true, ..Effects::NONE },
-                ];
-                let cands: Vec<(Effects, Effects)> = singles
-                    .iter()
-                    .filter(|&&one| at.union(one) != at)
-                    .map(|&one| (one, at.union(one)))
-                    .collect();
+                let singles = [Effects { creep: true, ..Effects::NONE }, Effects { lr3: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }];
+                let cands: Vec<(Effects, Effects)> = singles.iter().filter(|&&one| at.union(one) != at).map(|&one| (one, at.union(one))).collect();
                 let mut best: Option<(Effects, f64, Parameters, Vec<f64>, Vec<f64>)> = None;
                 for (one, e) in cands {
                     let lay = layout_for(order).with_effects(e);

@@ -17,10 +17,10 @@
 //! three, and one more number (Mms, an added mass, or the displacement) gives Bl.
 
 use crate::lm::{lm_step, sandwich_covariance, sd_from_variance, LmState, Problem};
-use coilscope_core::result::{Fit, ModelTrial, ResultFile, Scale, Uncertainty};
 use coilscope_core::fft::{irfft, rfft};
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
+use coilscope_core::result::{Fit, ModelTrial, ResultFile, Scale, Uncertainty};
 use coilscope_core::simulate::rms;
 use nalgebra::{DMatrix, DVector};
 use realfft::num_complex::Complex64;
@@ -72,14 +72,9 @@ pub fn check_channels(u: &[f64], i: &[f64], fs: f64, offsets_estimated: bool, or
         // Clipping shows as flat runs at the extremes: three or more consecutive samples
         // equal (to 1e-6 of the peak) at 99.9 % of the peak or more.
         let peak = x.iter().fold(0.0f64, |a, v| a.max(v.abs()));
-        let flat = x
-            .windows(3)
-            .filter(|w| w[1].abs() >= 0.999 * peak && (w[0] - w[1]).abs() <= 1e-6 * peak && (w[2] - w[1]).abs() <= 1e-6 * peak)
-            .count();
+        let flat = x.windows(3).filter(|w| w[1].abs() >= 0.999 * peak && (w[0] - w[1]).abs() <= 1e-6 * peak && (w[2] - w[1]).abs() <= 1e-6 * peak).count();
         if flat > 8 {
-            return Err(format!(
-                "{origin}: {name} is clipped: {flat} samples sit flat at its peak {peak:.4} {unit}; lower the level or the input gain"
-            ));
+            return Err(format!("{origin}: {name} is clipped: {flat} samples sit flat at its peak {peak:.4} {unit}; lower the level or the input gain"));
         }
     }
     let seconds = u.len() as f64 / fs;
@@ -175,9 +170,7 @@ pub fn h1_impedance(u: &[f64], i: &[f64], fs: f64, seg: usize) -> ImpedanceEstim
     let norm = 1.0 / (count.max(1) as f64 * win.iter().map(|w| w * w).sum::<f64>());
     let f = (0..nb).map(|k| k as f64 * fs / seg as f64).collect();
     let z = (0..nb).map(|k| if sii[k] > 0.0 { siu[k] / sii[k] } else { Complex64::new(0.0, 0.0) }).collect();
-    let coherence = (0..nb)
-        .map(|k| if suu[k] > 0.0 && sii[k] > 0.0 { siu[k].norm_sqr() / (suu[k] * sii[k]) } else { 0.0 })
-        .collect();
+    let coherence = (0..nb).map(|k| if suu[k] > 0.0 && sii[k] > 0.0 { siu[k].norm_sqr() / (suu[k] * sii[k]) } else { 0.0 }).collect();
     let suu: Vec<f64> = suu.iter().map(|s| s * norm).collect();
     let suu_max = suu.iter().cloned().fold(0.0, f64::max);
     ImpedanceEstimate { f, z, coherence, suu, suu_max }
@@ -343,15 +336,7 @@ fn impedance_ext(p: &[f64; 7], e: &Ext, f: f64) -> (Complex64, [Complex64; 7], [
     let zm = 1.0 / y;
     let mut z = re + jw * le + z2 + zm;
     let zm2 = zm * zm;
-    let g = [
-        Complex64::new(re, 0.0),
-        jw * le,
-        jw * r2 * r2 / (d2 * d2) * l2,
-        zl2 * zl2 / (d2 * d2) * r2,
-        zm2 / res,
-        -zm2 * (jw * cmes + dkappa_half / (jw * lces)),
-        zm2 * (kappa - dkappa_half) / (jw * lces),
-    ];
+    let g = [Complex64::new(re, 0.0), jw * le, jw * r2 * r2 / (d2 * d2) * l2, zl2 * zl2 / (d2 * d2) * r2, zm2 / res, -zm2 * (jw * cmes + dkappa_half / (jw * lces)), zm2 * (kappa - dkappa_half) / (jw * lces)];
     let mut gx = [zero; 3];
     if e.creep.is_some() {
         gx[0] = -zm2 * bank_rel / (jw * lces);
@@ -462,7 +447,11 @@ pub fn mains_hum(u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64, f64)> {
     }
     let e = |k: usize| -> f64 {
         let z = h1.z[h1.bin(k as f64 * df)];
-        if z.norm() > 0.0 && z.is_finite() { (is[k] - us[k] / z).norm_sqr() } else { is[k].norm_sqr() }
+        if z.norm() > 0.0 && z.is_finite() {
+            (is[k] - us[k] / z).norm_sqr()
+        } else {
+            is[k].norm_sqr()
+        }
     };
     let bin = |f: f64| (f / df).round() as usize;
     mains_lines()
@@ -631,9 +620,7 @@ impl ChainTerms {
     /// entries of theta (those on, in order).
     fn factor(&self, th: &[f64], f: f64) -> (Complex64, Vec<Complex64>) {
         let [tau, fu, fi] = self.values(th);
-        let c = |tau: f64, fu: f64, fi: f64| {
-            Complex64::from_polar(1.0, -2.0 * PI * f * tau / self.fs) * coilscope_core::chain::hp_response(fi, f, self.fs) / coilscope_core::chain::hp_response(fu, f, self.fs)
-        };
+        let c = |tau: f64, fu: f64, fi: f64| Complex64::from_polar(1.0, -2.0 * PI * f * tau / self.fs) * coilscope_core::chain::hp_response(fi, f, self.fs) / coilscope_core::chain::hp_response(fu, f, self.fs);
         let c0 = c(tau, fu, fi);
         let h = 1e-4;
         let mut d = vec![];
@@ -732,15 +719,7 @@ impl ParamMap {
     }
     /// `theta` of natural coordinates `q` (bounded ones pulled 1 % inside their bounds).
     fn theta(&self, q: &[f64; 7]) -> Vec<f64> {
-        (0..7)
-            .map(|k| {
-                if self.lo[k].is_finite() {
-                    bounded_theta(q[k], self.lo[k], self.hi[k], 0.01)
-                } else {
-                    q[k]
-                }
-            })
-            .collect()
+        (0..7).map(|k| if self.lo[k].is_finite() { bounded_theta(q[k], self.lo[k], self.hi[k], 0.01) } else { q[k] }).collect()
     }
     /// Impedance-model parameters `[Re, Le, L2, R2, Res, Cmes, Lces]` (SI).
     fn params(&self, theta: &[f64]) -> [f64; 7] {
@@ -883,9 +862,9 @@ impl Problem for CurrentError {
             let (tr, mut dlnp, mut dlnpx, basis) = transient_term(&p, &ext, self.transient(theta), self.omega0, self.f[k]);
             // From d/d ln p to d/dq: L2 = tau2 R2, so ln R2 moves L2 too (L3 likewise).
             g[3] += g[2];
-            dlnp[3] = dlnp[3] + dlnp[2];
+            dlnp[3] += dlnp[2];
             gx[2] += gx[1];
-            dlnpx[2] = dlnpx[2] + dlnpx[1];
+            dlnpx[2] += dlnpx[1];
             let (shift, dshift) = self.shift_d(theta, k);
             let wk = self.w[k] / self.norm;
             let e = (self.i[k] - self.u[k] * shift / z) / self.norm - wk * tr;
@@ -953,10 +932,7 @@ fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<[f64; 7], S
     // 2 kHz above a resonance that the nonlinearity smears (a 2.9 mH / 6.7 mH coil at 85 %
     // of its range gave 1.9 kHz for 35 Hz; issue 15).
     let held = 3;
-    let crossing = (held..low.len().saturating_sub(held))
-        .filter(|&j| (j - held..j).all(|a| h1.z[low[a]].im > 0.0) && (j..j + held).all(|a| h1.z[low[a]].im <= 0.0))
-        .map(|j| low[j])
-        .max_by(|&a, &b| h1.z[a].re.total_cmp(&h1.z[b].re));
+    let crossing = (held..low.len().saturating_sub(held)).filter(|&j| (j - held..j).all(|a| h1.z[low[a]].im > 0.0) && (j..j + held).all(|a| h1.z[low[a]].im <= 0.0)).map(|j| low[j]).max_by(|&a, &b| h1.z[a].re.total_cmp(&h1.z[b].re));
     let kpk = match crossing {
         Some(k) => k,
         None => *low.iter().max_by(|&&a, &&b| h1.z[a].re.total_cmp(&h1.z[b].re)).ok_or("no usable bins below 2 kHz")?,
@@ -1047,10 +1023,9 @@ fn thin(p: &CurrentError, most: usize) -> CurrentError {
 /// currents and velocities.
 fn refuse_large_signal_effects(opts: &LinearOptions, origin: &str) -> Result<(), String> {
     match opts.effects {
-        EffectsChoice::Fixed(e) if e.has_large_signal() => Err(format!(
-            "{origin}: {} act only at large signal (they vanish at small currents and velocities); the linear fit takes none, creep, lr3 or auto, and `identify` fits them",
-            Effects { creep: false, lr3: false, ..e }.in_words()
-        )),
+        EffectsChoice::Fixed(e) if e.has_large_signal() => {
+            Err(format!("{origin}: {} act only at large signal (they vanish at small currents and velocities); the linear fit takes none, creep, lr3 or auto, and `identify` fits them", Effects { creep: false, lr3: false, ..e }.in_words()))
+        }
         _ => Ok(()),
     }
 }
@@ -1081,9 +1056,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     // Swapped channels: U/I of a loudspeaker is ohms, its inverse is siemens-small.
     let zmed = crate::checks::median(coherent.iter().map(|&k| h1.z[k].norm()).collect());
     if zmed < 0.5 {
-        return Err(format!(
-            "{origin}: |U/I| is {zmed:.3} ohm (median); channels 1 and 2 look swapped (voltage must be channel 1, current channel 2), or the current scale is wrong"
-        ));
+        return Err(format!("{origin}: |U/I| is {zmed:.3} ohm (median); channels 1 and 2 look swapped (voltage must be channel 1, current channel 2), or the current scale is wrong"));
     }
     // Inverted current: a passive impedance has a positive real part at every frequency.
     // Below 500 Hz, where a channel skew of a sample or two rotates the phase by a few
@@ -1117,7 +1090,18 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     let df = fs / n as f64;
     let z_ref = rms(u) / rms(i);
     let map = ParamMap::for_band(band);
-    let mut prob = CurrentError { f: vec![], u: vec![], i: vec![], w: vec![], norm: 1.0, map: map.clone(), omega0: 2.0 * PI * (band[0] * band[1]).sqrt(), n_transient: if opts.ends == Ends::Fitted { N_TRANSIENT } else { 0 }, effects: Effects::NONE, chain: None };
+    let mut prob = CurrentError {
+        f: vec![],
+        u: vec![],
+        i: vec![],
+        w: vec![],
+        norm: 1.0,
+        map: map.clone(),
+        omega0: 2.0 * PI * (band[0] * band[1]).sqrt(),
+        n_transient: if opts.ends == Ends::Fitted { N_TRANSIENT } else { 0 },
+        effects: Effects::NONE,
+        chain: None,
+    };
     for k in 1..uf.len() {
         let f = k as f64 * df;
         if f < band[0] || f > band[1] {
@@ -1552,11 +1536,7 @@ pub fn added_mass_scale(fit: &LinearFit, with_mass: &LinearFit, added: f64) -> R
     });
     let ratio = c * (fit.fs() / with_mass.fs()).powi(2);
     if !(ratio > 1.02) {
-        return Err(format!(
-            "the added mass moved the resonance only from {:.2} Hz to {:.2} Hz; add more mass (about Mms/2 or more)",
-            fit.fs(),
-            with_mass.fs()
-        ));
+        return Err(format!("the added mass moved the resonance only from {:.2} Hz to {:.2} Hz; add more mass (about Mms/2 or more)", fit.fs(), with_mass.fs()));
     }
     let r_rel = (fs_rel_sd(fit).powi(2) + fs_rel_sd(with_mass).powi(2)).sqrt();
     let mms_sd_rel = 2.0 * ratio / (ratio - 1.0) * r_rel;
@@ -1638,9 +1618,7 @@ pub fn linear_warnings(fit: &LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs
     // The current error over the fitted band only (outside it nothing was fitted, and
     // above fs/3 a simulator's or a converter's band-limiting is not the driver's).
     let i_model = model_current(fit, u, fs);
-    let r = filter_record(&i.iter().zip(&i_model).map(|(a, b)| a - b).collect::<Vec<_>>(), fs, |_, f| {
-        Complex64::new(if f >= fit.band[0] && f <= fit.band[1] { 1.0 } else { 0.0 }, 0.0)
-    });
+    let r = filter_record(&i.iter().zip(&i_model).map(|(a, b)| a - b).collect::<Vec<_>>(), fs, |_, f| Complex64::new(if f >= fit.band[0] && f <= fit.band[1] { 1.0 } else { 0.0 }, 0.0));
     let (nf, mut w) = residual_warnings(&r, fs, "linear (small-signal) fit", rms(i), LINEAR_MATERIAL_EXCESS);
     if let Some((tau, share)) = fit.current_delay {
         w.push(Warning::new(
@@ -1689,7 +1667,11 @@ fn bound_warnings(fit: &LinearFit) -> Vec<crate::checks::Warning> {
         .map(|b| {
             crate::checks::Warning::new(
                 "on-bound",
-                format!("the fit ended on the bound of {b}: the L2/R2 branch's corner is not between the fitted band's bottom and {CORNER_ABOVE_BAND} times its top ({:.0} .. {:.0} Hz), so L2 and R2 are not identified by this input", fit.band[0], CORNER_ABOVE_BAND * fit.band[1]),
+                format!(
+                    "the fit ended on the bound of {b}: the L2/R2 branch's corner is not between the fitted band's bottom and {CORNER_ABOVE_BAND} times its top ({:.0} .. {:.0} Hz), so L2 and R2 are not identified by this input",
+                    fit.band[0],
+                    CORNER_ABOVE_BAND * fit.band[1]
+                ),
             )
         })
         .collect()
@@ -1713,10 +1695,7 @@ pub fn curve_warnings(fit: &LinearFit) -> Vec<crate::checks::Warning> {
         let at = worst.map(|k| format!(" (worst {:.1} % at {:.0} Hz)", 100.0 * err(k), h.f[k])).unwrap_or_default();
         w.push(crate::checks::Warning::new(
             "model-misses-curve",
-            format!(
-                "the model misses the impedance curve by {:.1} % RMS{at}: cone break-up, a box or port, or a curve of something else. Fit a band the model holds in (--band LO,HI below the break-up), or check the file",
-                100.0 * fit.residual_rel
-            ),
+            format!("the model misses the impedance curve by {:.1} % RMS{at}: cone break-up, a box or port, or a curve of something else. Fit a band the model holds in (--band LO,HI below the break-up), or check the file", 100.0 * fit.residual_rel),
         ));
     }
     w
@@ -1771,7 +1750,11 @@ fn large_signal_share(p: &Parameters, r: &[f64], i: &[f64], x: &[f64], fs: f64) 
 pub enum ScaleMethod {
     Mms,
     /// `mms_sd_rel`: the relative sd of the Mms it gave, from the two resonances' sds.
-    AddedMass { added: f64, fs_with: f64, mms_sd_rel: f64 },
+    AddedMass {
+        added: f64,
+        fs_with: f64,
+        mms_sd_rel: f64,
+    },
     Displacement,
 }
 
@@ -1858,10 +1841,7 @@ pub fn impedance_csv(h1: &ImpedanceEstimate, fit: &LinearFit) -> String {
         if h1.f[k] > 0.0 && h1.usable(k, 0.0) {
             let m = fit.impedance(h1.f[k]);
             let z = h1.z[k];
-            out.push_str(&format!(
-                "{:.4},{:.6},{:.4},{:.6},{:.6},{:.5},{:.6},{:.4}\n",
-                h1.f[k], z.norm(), z.arg().to_degrees(), z.re, z.im, h1.coherence[k], m.norm(), m.arg().to_degrees()
-            ));
+            out.push_str(&format!("{:.4},{:.6},{:.4},{:.6},{:.6},{:.5},{:.6},{:.4}\n", h1.f[k], z.norm(), z.arg().to_degrees(), z.re, z.im, h1.coherence[k], m.norm(), m.arg().to_degrees()));
         }
     }
     out
@@ -1877,11 +1857,11 @@ mod tests {
         for f in [15.0, 32.0, 300.0, 5000.0] {
             let (z, g) = model_impedance_and_gradient(&p, f);
             for k in 0..7 {
-                let h = 1e-6;
+                let h = 1e-6_f64;
                 let mut a = p;
                 let mut b = p;
-                a[k] *= (h as f64).exp();
-                b[k] *= (-h as f64).exp();
+                a[k] *= h.exp();
+                b[k] *= (-h).exp();
                 let fd = (model_impedance(&a, f) - model_impedance(&b, f)) / (2.0 * h);
                 // Central differences: truncation ~h^2 |g|, round-off ~eps |Z| / h.
                 let tol = 1e-6 * g[k].norm() + 1e-9 * z.norm();

@@ -58,16 +58,7 @@ pub fn lm_step<P: Problem>(p: &P, s: &LmState) -> LmState {
                 let step = delta.amax();
                 // The linearised model's decrease: -(g^T d + 1/2 d^T A d).
                 let predicted = -(g.dot(&delta) + 0.5 * delta.dot(&(&a * &delta)));
-                return LmState {
-                    theta,
-                    cost,
-                    lambda: (lambda / 3.0).max(1e-12),
-                    iteration: s.iteration + 1,
-                    last_decrease: dec,
-                    gain_ratio: (s.cost - cost) / predicted,
-                    step_lambda: lambda,
-                    converged: dec < 1e-12 || step < 1e-10,
-                };
+                return LmState { theta, cost, lambda: (lambda / 3.0).max(1e-12), iteration: s.iteration + 1, last_decrease: dec, gain_ratio: (s.cost - cost) / predicted, step_lambda: lambda, converged: dec < 1e-12 || step < 1e-10 };
             }
         }
         lambda *= 4.0;
@@ -191,7 +182,11 @@ mod tests {
             let r = DVector::from_fn(m, |k, _| th[0] * (th[1] * self.t[k]).exp() - self.y[k]);
             let j = DMatrix::from_fn(m, 2, |k, c| {
                 let e = (th[1] * self.t[k]).exp();
-                if c == 0 { e } else { th[0] * self.t[k] * e }
+                if c == 0 {
+                    e
+                } else {
+                    th[0] * self.t[k] * e
+                }
             });
             (r, j)
         }

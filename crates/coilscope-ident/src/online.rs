@@ -377,13 +377,7 @@ impl Online {
                         self.live = [Dual64::from(0.0); NEXT];
                         continue;
                     }
-                    _ => {
-                        return Err(OnlineError(format!(
-                            "the live model ran away at t = {:.3} s (x = {:.3e} m) and no earlier estimate is left to fall back to: the estimate no longer describes the transducer",
-                            self.t(),
-                            x
-                        )))
-                    }
+                    _ => return Err(OnlineError(format!("the live model ran away at t = {:.3} s (x = {:.3e} m) and no earlier estimate is left to fall back to: the estimate no longer describes the transducer", self.t(), x))),
                 }
             }
             let (ik, ir) = (s[idx::I].re, s[idx::I].eps);
@@ -414,7 +408,7 @@ impl Online {
             }
             self.live = self.model.step(&self.live, dt, &pd);
             self.pos += 1;
-            if self.pos % SNAP_EVERY == 0 {
+            if self.pos.is_multiple_of(SNAP_EVERY) {
                 self.snaps.push((self.pos, self.live_ext()));
             }
             if self.re_count >= re_block {

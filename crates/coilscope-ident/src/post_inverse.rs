@@ -126,15 +126,10 @@ pub fn equation_error(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, l2
     }
     let (mms, rms) = (k[0], k[1]);
     if bl.eval(0.0) < 0.0 {
-        return Err(format!(
-            "{origin}: the displacement channel (3) has inverted polarity: Bl(0) comes out {:.3} T m; x > 0 must be coil out for positive current",
-            bl.eval(0.0)
-        ));
+        return Err(format!("{origin}: the displacement channel (3) has inverted polarity: Bl(0) comes out {:.3} T m; x > 0 must be coil out for positive current", bl.eval(0.0)));
     }
     if !(mms > 0.0 && rms > 0.0 && re > 0.0 && bl.eval(0.0) > 0.0) {
-        return Err(format!(
-            "{origin}: the equation-error estimate is not physical (Mms {mms:.4e} kg, Rms {rms:.4e} kg/s, Re {re:.4e} ohm); check the displacement channel's scale and polarity"
-        ));
+        return Err(format!("{origin}: the equation-error estimate is not physical (Mms {mms:.4e} kg, Rms {rms:.4e} kg/s, Re {re:.4e} ohm); check the displacement channel's scale and polarity"));
     }
     let x_range = [x.iter().cloned().fold(f64::INFINITY, f64::min), x.iter().cloned().fold(f64::NEG_INFINITY, f64::max)];
     Ok(Parameters {

@@ -83,19 +83,10 @@ fn with_theta(p: &Parameters, th: &[f64], order: usize) -> Parameters {
     q
 }
 
-
 /// Adapt the controller from `start` so that `play` (the transducer: a drive in volts, the
 /// measured displacement in metres back, from rest) follows `reference` driven by `input`,
 /// one update per block. `observe` sees each block.
-pub fn adapt(
-    start: &Parameters,
-    reference: &Parameters,
-    input: &[f64],
-    fs: f64,
-    mut play: impl FnMut(&[f64]) -> Result<Vec<f64>, String>,
-    opts: &PreInverseOptions,
-    mut observe: impl FnMut(&Update),
-) -> Result<PreInverseFit, String> {
+pub fn adapt(start: &Parameters, reference: &Parameters, input: &[f64], fs: f64, mut play: impl FnMut(&[f64]) -> Result<Vec<f64>, String>, opts: &PreInverseOptions, mut observe: impl FnMut(&Update)) -> Result<PreInverseFit, String> {
     let order = opts.order;
     let x_ref = simulate(reference, fs, input, &SimOptions::default()).map_err(|e| format!("the reference: {e}"))?.x;
     let drive_of = |th: &[f64]| compensate_to(&with_theta(start, th, order), reference, fs, input, &opts.limits).map(|c| c.drive).map_err(|e| format!("the controller: {e}"));

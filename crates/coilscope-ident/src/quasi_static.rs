@@ -183,7 +183,18 @@ pub fn fit_series_band(x: &[f64], y: &[f64], sd: &[f64], order: usize, grid: &[f
     let n = order.min(x.len().saturating_sub(1));
     let scale = x.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-9);
     let floor = sd.iter().cloned().filter(|v| v.is_finite() && *v > 0.0).fold(f64::INFINITY, f64::min);
-    let w: Vec<f64> = sd.iter().map(|&s| 1.0 / if s.is_finite() && s > 0.0 { s } else if floor.is_finite() { floor } else { 1.0 }).collect();
+    let w: Vec<f64> = sd
+        .iter()
+        .map(|&s| {
+            1.0 / if s.is_finite() && s > 0.0 {
+                s
+            } else if floor.is_finite() {
+                floor
+            } else {
+                1.0
+            }
+        })
+        .collect();
     let a = DMatrix::from_fn(x.len(), n + 1, |r, c| w[r] * (x[r] / scale).powi(c as i32));
     let b = DVector::from_iterator(y.len(), y.iter().zip(&w).map(|(v, w)| v * w));
     let c = a.clone().svd(true, true).solve(&b, 1e-12).unwrap_or_else(|_| DVector::zeros(n + 1));
@@ -224,7 +235,7 @@ fn mean(v: &[f64]) -> f64 {
 /// each time, the push's force and added mass held from the start), with `ac` the small
 /// signal (unit RMS noise of at least `record_s`).
 pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>), String>, ac: &[f64], opts: &QuasiStaticOptions) -> Result<QuasiStatic, String> {
-    if opts.points < 3 || opts.points % 2 == 0 {
+    if opts.points < 3 || opts.points.is_multiple_of(2) {
         return Err(format!("{} working points: give an odd number, at least 3", opts.points));
     }
     let fs = opts.fs;
@@ -313,11 +324,7 @@ pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<(Vec<f64>, Vec<
     let (kx, ky): (Vec<f64>, Vec<f64>) = pts.iter().filter(|p| p.kms_static.is_finite()).map(|p| (p.x_dc, p.kms_static)).unzip();
     if kx.len() < 2 {
         let seen: Vec<String> = pts.iter().map(|p| format!("{:.3} V: x {:.4} mm, Bl_eff {:.4}", p.u_dc, p.x_dc * 1e3, p.bl_eff)).collect();
-        return Err(format!(
-            "only {} working point(s) gave a static stiffness, at least 2 are needed: the coil did not move off rest, or the small-signal fits at the points failed (raise the small signal's level) ({})",
-            kx.len(),
-            seen.join(", ")
-        ));
+        return Err(format!("only {} working point(s) gave a static stiffness, at least 2 are needed: the coil did not move off rest, or the small-signal fits at the points failed (raise the small signal's level) ({})", kx.len(), seen.join(", ")));
     }
     let kms = fit_series(&kx, &ky, opts.order);
     // The bands: the same series, weighted by the points' sds, over the points' span.

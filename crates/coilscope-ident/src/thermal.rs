@@ -69,7 +69,11 @@ struct Fit<'a> {
 
 impl Fit<'_> {
     fn n_theta(&self) -> usize {
-        if self.convection { 6 } else { 5 }
+        if self.convection {
+            6
+        } else {
+            5
+        }
     }
 
     /// The tracked rise the model predicts: the coil rise `lag` seconds before each block end
@@ -88,7 +92,11 @@ impl Fit<'_> {
                 let j = t.partition_point(|&v| v < tq);
                 let (t0, r0) = if j == 0 { (0.0, 0.0) } else { (t[j - 1], rise[j - 1]) };
                 let (t1, r1) = if j < t.len() { (t[j], rise[j]) } else { (t0, r0) };
-                if t1 > t0 { r0 + (r1 - r0) * (tq - t0) / (t1 - t0) } else { r0 }
+                if t1 > t0 {
+                    r0 + (r1 - r0) * (tq - t0) / (t1 - t0)
+                } else {
+                    r0
+                }
             })
             .collect()
     }
@@ -191,7 +199,8 @@ pub fn fit_thermal(track: &ThermalTrack, start: [f64; 4], offset_sd: f64) -> Res
     let (lo, hi) = speeds.iter().fold((f64::INFINITY, 0.0f64), |a, &v| (a.0.min(v), a.1.max(v)));
     if speeds.len() < n || !(hi > 0.0) || hi < 1.5 * lo {
         let mut f = plain;
-        f.convection_note = if speeds.is_empty() { "convection not tested: no speed track".into() } else { format!("convection not tested: the coil's mean speed stayed within {:.3} .. {:.3} m/s (a level schedule with a cooling phase tells it)", lo, hi) };
+        f.convection_note =
+            if speeds.is_empty() { "convection not tested: no speed track".into() } else { format!("convection not tested: the coil's mean speed stayed within {:.3} .. {:.3} m/s (a level schedule with a cooling phase tells it)", lo, hi) };
         return Ok(f);
     }
     // A convection fit the track cannot support (a singular covariance) leaves the plain fit.

@@ -205,7 +205,6 @@ pub struct RecordLines {
     pub i: Vec<Vec<[C; 3]>>,
 }
 
-
 impl RecordLines {
     /// The impedance `U/I` at each tone's fundamental, averaged over the periods.
     pub fn impedance(&self) -> (Vec<f64>, Vec<C>) {
@@ -274,10 +273,7 @@ pub fn record_lines(u: &[f64], i: &[f64], fs: f64, origin: &str) -> Result<Recor
         ));
     }
     if steady.len() < 3 {
-        return Err(format!(
-            "{origin}: {} steady period(s) of {READABLE_PERIOD} s ({periods} in the record): the Volterra method averages at least 3 after the first; record 6 s or more of `--excitation readable`",
-            steady.len()
-        ));
+        return Err(format!("{origin}: {} steady period(s) of {READABLE_PERIOD} s ({periods} in the record): the Volterra method averages at least 3 after the first; record 6 s or more of `--excitation readable`", steady.len()));
     }
     let spec = |x: &[f64], k: usize| -> Vec<C> {
         let s = &x[k * np..(k + 1) * np];

@@ -115,12 +115,7 @@ fn identify_never_fails_on_a_large_semi_inductive_coil() {
 #[test]
 #[ignore = "release-profile sweep: cargo test --release -p coilscope-ident --test issue14_identify_sweep -- --ignored"]
 fn identify_follows_the_fast_heating_of_microspeakers() {
-    let cases = vec![
-        ("microspeaker-0g1", 0.85, 1, FS),
-        ("microspeaker-2g7", 0.4, 1, FS),
-        ("microspeaker-2g7", 0.4, 2, FS),
-        ("microspeaker-0g1", 0.85, 2, FS),
-    ];
+    let cases = vec![("microspeaker-0g1", 0.85, 1, FS), ("microspeaker-2g7", 0.4, 1, FS), ("microspeaker-2g7", 0.4, 2, FS), ("microspeaker-0g1", 0.85, 2, FS)];
     fast_heating(common::slice::in_slice("microspeakers", cases));
 }
 
@@ -129,7 +124,8 @@ fn fast_heating(cases: Vec<(&str, f64, u64, f64)>) {
     for (name, share, seed, fs) in cases {
         let p = driver(name);
         let (u, i, s) = record(&p, fs, 8.0, share, seed);
-        let label = format!("{name} at {:.0} % seed {seed}, {:.0} kHz (heats {:.0} K)", 100.0 * share, fs / 1e3, s.dt_max);        match identify(&u, &i, fs, &label, &IdentifyOptions { mms: p.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() }, |_| {}) {
+        let label = format!("{name} at {:.0} % seed {seed}, {:.0} kHz (heats {:.0} K)", 100.0 * share, fs / 1e3, s.dt_max);
+        match identify(&u, &i, fs, &label, &IdentifyOptions { mms: p.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() }, |_| {}) {
             Ok(fit) => {
                 let e = Errors::of(&fit.params, &p, [s.x_min, s.x_max]);
                 let r: Vec<f64> = fit.i_model.iter().zip(&i).skip(fit.settle).map(|(a, b)| a - b).collect();

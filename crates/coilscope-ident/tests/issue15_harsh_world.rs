@@ -36,16 +36,16 @@ fn harsh_at(name: &str, seed: u64, effects: Effects, fs: f64) -> Vec<String> {
     let (truth, s, (u, i), (lambda, g2, c2)) = (&rec.truth, &rec.summary, (&rec.u, &rec.i), (rec.lambda, rec.g2, rec.c2));
     let (l2, r2) = truth.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
     let label = format!("{name} ({}, seed {seed}, {} Hz)", effects.model_name(), fs);
-    let fit = match identify(&u, &i, fs, &label, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}) {
+    let fit = match identify(u, i, fs, &label, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}) {
         Ok(f) => f,
         Err(e) => return vec![format!("{label}: {e}")],
     };
     let mut bad = vec![];
     let q = &fit.params;
-    let e = Errors::of(q, &truth, [s.x_min, s.x_max]);
+    let e = Errors::of(q, truth, [s.x_min, s.x_max]);
     let r: Vec<f64> = i[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect();
-    let (floor, _) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", coilscope_core::simulate::rms(&i), 0.0);
-    let zmax = common::band_z(&fit, &truth, &["Bl", "Kms", "Le"]);
+    let (floor, _) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", coilscope_core::simulate::rms(i), 0.0);
+    let zmax = common::band_z(&fit, truth, &["Bl", "Kms", "Le"]);
     let got_lambda = q.creep.as_ref().map_or(0.0, |c| c.lambda);
     let got_g2 = q.le_i.as_ref().map_or(0.0, |g| g.c[2]);
     let got_c2 = q.rms_v.as_ref().map_or(0.0, |r| r.c[2]);

@@ -84,7 +84,7 @@ fn check(name: &str, truth: &Parameters, seed: u64, bad: &mut Vec<String>, zs: &
     let names = ["Re", "Le", "L2", "R2", "Res", "Cmes", "Lces"];
     for k in 0..7 {
         let e = rel(fit.p[k], tv[k]);
-        let z = e.abs() / (fit.sigma_rel[k].powi(2) ).sqrt();
+        let z = e.abs() / (fit.sigma_rel[k].powi(2)).sqrt();
         line += &format!(", {} {:+.3} % ({z:.1} sd)", names[k], 100.0 * e);
         zs.push(z);
     }
@@ -105,7 +105,7 @@ fn check(name: &str, truth: &Parameters, seed: u64, bad: &mut Vec<String>, zs: &
     if let (Some((l3, r3)), Some((v, sd))) = (truth.l3r3, fit.lr3) {
         for (n, got, want, s) in [("L3", v[0], l3, sd[0]), ("R3", v[1], r3, sd[1])] {
             let e = rel(got, want);
-            let z = e.abs() / (s * s ).sqrt();
+            let z = e.abs() / (s * s).sqrt();
             line += &format!(", {n} {:+.3} % ({z:.1} sd)", 100.0 * e);
             zs.push(z);
         }

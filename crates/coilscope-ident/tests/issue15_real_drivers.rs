@@ -14,10 +14,10 @@
 //! `cargo test --release -p coilscope-ident --test issue15_real_drivers -- --ignored`.
 
 mod common;
-use common::Errors;
 use coilscope_core::{embedded_driver, Parameters};
 use coilscope_ident::large::{identify, IdentifyOptions, LargeFit};
 use coilscope_ident::linear::Effects;
+use common::Errors;
 use std::path::Path;
 
 fn run(file: &str, truth: &Parameters) -> (LargeFit, Vec<f64>) {
@@ -35,7 +35,16 @@ fn check(file: &str, fit: &LargeFit, i: &[f64], truth: &Parameters, want: Effect
     let e = Errors::of(q, truth, fit.x_range);
     let r: Vec<f64> = i[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect();
     let (floor, warnings) = coilscope_ident::checks::residual_warnings(&r, fit.fs, "large-signal fit", coilscope_core::simulate::rms(i), 0.0);
-    println!("{file}: model {} ({:?}), order {}, {e}, residual {:.2e} ({:.1}x floor), lambda {:?}, L3/R3 {:?}", fit.layout.effects.model_name(), fit.effect_trials, fit.order, fit.residual_rel, floor.rms / floor.floor_rms, q.creep.as_ref().map(|c| c.lambda), q.l3r3);
+    println!(
+        "{file}: model {} ({:?}), order {}, {e}, residual {:.2e} ({:.1}x floor), lambda {:?}, L3/R3 {:?}",
+        fit.layout.effects.model_name(),
+        fit.effect_trials,
+        fit.order,
+        fit.residual_rel,
+        floor.rms / floor.floor_rms,
+        q.creep.as_ref().map(|c| c.lambda),
+        q.l3r3
+    );
     // The bands: the truth within 3 sd at every point of the reached range.
     let zmax = common::band_z(fit, truth, &["Bl", "Kms", "Le"]);
     println!("{file}: the truth within {zmax:.2} sd of the bands");
@@ -99,10 +108,7 @@ fn identify_finds_le_i_and_rms_v_in_the_independent_real_leirv_record() {
     let g = fit.params.le_i.as_ref().map_or(vec![1.0, 0.0, 0.0], |g| g.c.clone());
     let c2 = fit.params.rms_v.as_ref().map_or(0.0, |r| r.c[2]);
     let (g2_true, c2_true) = (-0.015, 0.284);
-    println!(
-        "{file}: g1 {:.3e} +- {:.1e}, g2 {:.5e} +- {:.1e} (true {g2_true}), Rms {:.5} (true {}), c2 {c2:.5} +- {:.1e} (true {c2_true})",
-        g[1], sd("Le_i", 1), g[2], sd("Le_i", 2), fit.params.rms, truth.rms, sd("Rms_v", 2)
-    );
+    println!("{file}: g1 {:.3e} +- {:.1e}, g2 {:.5e} +- {:.1e} (true {g2_true}), Rms {:.5} (true {}), c2 {c2:.5} +- {:.1e} (true {c2_true})", g[1], sd("Le_i", 1), g[2], sd("Le_i", 2), fit.params.rms, truth.rms, sd("Rms_v", 2));
     for (name, got, want, s) in [("g2", g[2], g2_true, sd("Le_i", 2)), ("c2", c2, c2_true, sd("Rms_v", 2))] {
         if (got / want - 1.0).abs() > 0.2 || (got - want).abs() > 3.0 * s {
             bad.push(format!("{name} {got:.5} +- {s:.5} vs {want}"));

@@ -15,10 +15,10 @@
 //! Release profile: `cargo test --release -p coilscope-ident --test issue16_chain -- --ignored`.
 
 mod common;
-use common::Errors;
 use coilscope_core::embedded_driver;
-use coilscope_ident::large::{identify, IdentifyOptions};
 use coilscope_core::simulate::rms;
+use coilscope_ident::large::{identify, IdentifyOptions};
+use common::Errors;
 use std::path::Path;
 
 /// The sds: the truth within 3 sd of the bands and of the chain (open until session 16: the

@@ -56,9 +56,7 @@ fn case(name: &str, seed: u64, card: Card, effects: Effects) -> Vec<String> {
     let c = fit.chain.clone().expect("the chain is estimated");
     let truth = &rec.chain;
     let mut chain_z = vec![];
-    for (key, got, want) in
-        [("delay_i", c.delay_i * fs, truth.delay_i * fs), ("hp_u", c.hp_u, truth.hp_u), ("hp_i", c.hp_i, truth.hp_i), ("dc_u", c.dc_u, truth.dc_u), ("dc_i", c.dc_i, truth.dc_i)]
-    {
+    for (key, got, want) in [("delay_i", c.delay_i * fs, truth.delay_i * fs), ("hp_u", c.hp_u, truth.hp_u), ("hp_i", c.hp_i, truth.hp_i), ("dc_u", c.dc_u, truth.dc_u), ("dc_i", c.dc_i, truth.dc_i)] {
         let sd = c.sd.get(key).copied().unwrap_or(f64::NAN) * if key == "delay_i" { fs } else { 1.0 };
         let z = (got - want).abs() / sd;
         chain_z.push(format!("{key} {got:.4e} ({want:.4e}, {z:.1} sd)"));

@@ -170,7 +170,6 @@ fn impedance_curves_refuse_what_no_driver_is() {
     assert!(e.contains("at least 20"), "{e}");
 }
 
-
 /// The round trip off the bundled woofers: two microspeakers (0.1 g, 2.7 g) and a large
 /// semi-inductive coil, over other bands and point counts (to 40 kHz, from 20 Hz).
 #[test]

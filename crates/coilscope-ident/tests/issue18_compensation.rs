@@ -5,9 +5,9 @@
 //! displacement's HD2 and HD3 must fall by at least 20 dB (with the true set it falls by
 //! 90-126 dB: `coilscope-core/tests/independent_oracle.rs`).
 
+use coilscope_core::embedded_driver;
 use coilscope_core::inverse::{compensate, linear_reference, CompensateOptions};
 use coilscope_core::simulate::{simulate, SimOptions};
-use coilscope_core::embedded_driver;
 use coilscope_ident::large::{identify, IdentifyOptions};
 use std::path::Path;
 

@@ -10,11 +10,11 @@
 //! within 0.2 % (measured <= 0.05 %): the noise does not bias the pre-inverse (the paper's point against the
 //! post-inverse).
 
+use coilscope_core::embedded_driver;
+use coilscope_core::excitation::add_sensor_noise;
 use coilscope_core::inverse::linear_reference;
 use coilscope_core::poly::Poly;
 use coilscope_core::simulate::{simulate, SimOptions};
-use coilscope_core::embedded_driver;
-use coilscope_core::excitation::add_sensor_noise;
 use coilscope_ident::pre_inverse::{adapt, PreInverseOptions};
 
 #[test]

@@ -35,8 +35,21 @@ fn quasi_static_curves_without_creep_are_within_2_percent() {
         let p = embedded_driver(name).unwrap();
         let q = run(&p, 2.0);
         for w in &q.points {
-            println!("{name}: {:+.3} V  x {:+.3} mm  I {:+.4} A  Re {:.4}  Bl {:.4} (eff {:.4}, true {:.4})  Kms {:.1} (true {:.1})  k_t {:.1}  Le {:.4} mH (true {:.4})",
-                w.u_dc, w.x_dc * 1e3, w.i_dc, w.re_dc, w.bl, w.bl_eff, p.bl.eval(w.x_dc), w.kms_static, p.kms.eval(w.x_dc), w.k_tangent, w.le * 1e3, p.le.eval(w.x_dc) * 1e3);
+            println!(
+                "{name}: {:+.3} V  x {:+.3} mm  I {:+.4} A  Re {:.4}  Bl {:.4} (eff {:.4}, true {:.4})  Kms {:.1} (true {:.1})  k_t {:.1}  Le {:.4} mH (true {:.4})",
+                w.u_dc,
+                w.x_dc * 1e3,
+                w.i_dc,
+                w.re_dc,
+                w.bl,
+                w.bl_eff,
+                p.bl.eval(w.x_dc),
+                w.kms_static,
+                p.kms.eval(w.x_dc),
+                w.k_tangent,
+                w.le * 1e3,
+                p.le.eval(w.x_dc) * 1e3
+            );
         }
         let [lo, hi] = p.x_range.unwrap();
         let (eb, ek, el) = (worst(&q.params.bl, &p.bl, 0.8 * lo, 0.8 * hi), worst(&q.params.kms, &p.kms, 0.8 * lo, 0.8 * hi), worst(&q.params.le, &p.le, 0.8 * lo, 0.8 * hi));

@@ -43,7 +43,15 @@ fn run(name: &str, fracs: &[f64]) -> Vec<(f64, f64, [f64; 3], f64)> {
         let fit = identify_volterra(&start, &measured).unwrap();
         let q: &Parameters = &fit.params;
         let e = [err(&q.bl, &truth.bl, xs), err(&q.kms, &truth.kms, xs), err(&q.le, &truth.le, xs)];
-        println!("{name} at {:.1} % of the range ({volts:.2} V): Bl {:.2} %, Kms {:.2} %, Le {:.2} % of their 2nd-order nonlinearity over +-{:.1} mm; kernel misfit {:.2e}", 100.0 * frac, 100.0 * e[0], 100.0 * e[1], 100.0 * e[2], xs * 1e3, fit.misfit);
+        println!(
+            "{name} at {:.1} % of the range ({volts:.2} V): Bl {:.2} %, Kms {:.2} %, Le {:.2} % of their 2nd-order nonlinearity over +-{:.1} mm; kernel misfit {:.2e}",
+            100.0 * frac,
+            100.0 * e[0],
+            100.0 * e[1],
+            100.0 * e[2],
+            xs * 1e3,
+            fit.misfit
+        );
         rows.push((frac, volts, e, fit.misfit));
     }
     rows

@@ -66,15 +66,7 @@ const INDEPENDENT: Tol = Tol { bl_kms: 5e-4, le: 5e-4, re_rms: 4e-4 };
 fn assert_truth(label: &str, fit: &LargeFit, truth: &Parameters, range: [f64; 2], tol: &Tol) {
     let q = &fit.params;
     let e = Errors::of(q, truth, range);
-    println!(
-        "{label}: order {}, residual {:.2e}, errors {e}, x {:.2}..{:.2} mm (truth {:.2}..{:.2})",
-        fit.order,
-        fit.residual_rel,
-        fit.x_range[0] * 1e3,
-        fit.x_range[1] * 1e3,
-        range[0] * 1e3,
-        range[1] * 1e3
-    );
+    println!("{label}: order {}, residual {:.2e}, errors {e}, x {:.2}..{:.2} mm (truth {:.2}..{:.2})", fit.order, fit.residual_rel, fit.x_range[0] * 1e3, fit.x_range[1] * 1e3, range[0] * 1e3, range[1] * 1e3);
     assert!(e.bl <= tol.bl_kms, "{label}: Bl off by {:.3} %", 100.0 * e.bl);
     assert!(e.kms <= tol.bl_kms, "{label}: Kms off by {:.3} %", 100.0 * e.kms);
     assert!(e.le <= tol.le, "{label}: Le off by {:.3} %", 100.0 * e.le);
@@ -131,15 +123,7 @@ fn start_with_kms_twice_too_high() {
     let p = embedded_driver("sb17cac35-4").unwrap();
     let rec = record(&p, 48000.0, 8.0, 0.85, 70.0, 14);
     let c0 = |f: &Poly| Poly::constant(f.eval(0.0));
-    let start = Parameters {
-        le: c0(&p.le),
-        bl: c0(&p.bl),
-        kms: Poly::constant(2.0 * p.kms.eval(0.0)),
-        l2r2: p.l2r2.clone(),
-        thermal: None,
-        x_range: None,
-        ..p.clone()
-    };
+    let start = Parameters { le: c0(&p.le), bl: c0(&p.bl), kms: Poly::constant(2.0 * p.kms.eval(0.0)), l2r2: p.l2r2.clone(), thermal: None, x_range: None, ..p.clone() };
     let fit = run(&rec, IdentifyOptions { mms: p.mms, effects: LR2, init: Some(start), order: Some(4), ..Default::default() });
     assert_eq!(fit.order, 4);
     assert_truth("sb17 from Kms x2", &fit, &p, rec.x_range, &AT_70_DB);

@@ -60,13 +60,7 @@ fn order_truncation_is_in_the_bands() {
             Ok(fit) => {
                 let e = Errors::of(&fit.params, &p, [s.x_min, s.x_max]);
                 let z = common::band_z(&fit, &p, &["Bl", "Kms", "Le"]);
-                let line = format!(
-                    "{label}: order {} (next tried {:?}), x {:.2} .. {:.2} mm, {e}, the truth within {z:.2} sd of the bands",
-                    fit.order,
-                    fit.truncation.as_ref().map(|t| t.next_order),
-                    1e3 * s.x_min,
-                    1e3 * s.x_max
-                );
+                let line = format!("{label}: order {} (next tried {:?}), x {:.2} .. {:.2} mm, {e}, the truth within {z:.2} sd of the bands", fit.order, fit.truncation.as_ref().map(|t| t.next_order), 1e3 * s.x_min, 1e3 * s.x_max);
                 println!("{line}");
                 if !(e.bl <= 0.02 && e.kms <= 0.03 && e.le <= 0.05 && e.re <= 0.005) {
                     failures.push(format!("{line}: beyond the issue's bounds"));

@@ -79,12 +79,16 @@ pub fn speakersafetyd(p: &Parameters, o: &SafetydOptions) -> Result<String, Stri
     let who = p.name.clone().unwrap_or_else(|| "driver".into());
     let mut s = String::new();
     s.push_str(&format!("; speakersafetyd configuration written by coilscope for {who}\n"));
-    s.push_str(&format!("; thermal model: Rtv {:.4} K/W, Ctv {:.4} J/K, Rtm {:.4} K/W, Ctm {:.2} J/K{}\n", t.rtv, t.ctv, t.rtm, t.ctm, if t.rv > 0.0 { format!(", convection rv {:.3} s/m (not in speakersafetyd's model: its coil resistance is the one at rest, the conservative one)", t.rv) } else { String::new() }));
-    s.push_str("; [Globals], [Controls], is_scale, vs_scale, is_chan, vs_chan and group describe the machine, not the driver: edit them for yours\n\n");
     s.push_str(&format!(
-        "[Globals]\nvisense_pcm = 2\nt_ambient = {:.1}\nt_hysteresis = {:.1}\nt_window = {:.1}\nchannels = {}\nperiod = 4096\nlink_gains = True\n\n",
-        o.t_ambient, o.t_hysteresis, o.t_window, o.channels
+        "; thermal model: Rtv {:.4} K/W, Ctv {:.4} J/K, Rtm {:.4} K/W, Ctm {:.2} J/K{}\n",
+        t.rtv,
+        t.ctv,
+        t.rtm,
+        t.ctm,
+        if t.rv > 0.0 { format!(", convection rv {:.3} s/m (not in speakersafetyd's model: its coil resistance is the one at rest, the conservative one)", t.rv) } else { String::new() }
     ));
+    s.push_str("; [Globals], [Controls], is_scale, vs_scale, is_chan, vs_chan and group describe the machine, not the driver: edit them for yours\n\n");
+    s.push_str(&format!("[Globals]\nvisense_pcm = 2\nt_ambient = {:.1}\nt_hysteresis = {:.1}\nt_window = {:.1}\nchannels = {}\nperiod = 4096\nlink_gains = True\n\n", o.t_ambient, o.t_hysteresis, o.t_window, o.channels));
     s.push_str("[Controls]\nvsense = VSENSE Switch\nisense = ISENSE Switch\namp_gain = Amp Gain Volume\nvolume = Speaker Volume\n\n");
     s.push_str(&format!(
         "[Speaker/{}]\ngroup = {}\ntr_coil = {:.4}\ntr_magnet = {:.4}\ntau_coil = {:.4}\ntau_magnet = {:.4}\nt_limit = {:.1}\nt_headroom = {:.1}\nz_nominal = {:.4}\na_t_20c = {:.8}\na_t_35c = {:.8}\nis_scale = {}\nvs_scale = {}\nis_chan = {}\nvs_chan = {}\n",

@@ -148,11 +148,7 @@ pub fn parse_impedance(text: &str, name: &str) -> Result<ImpedanceCurve, IoError
                 }
                 let limit = if rad { std::f64::consts::PI * 1.001 } else { 180.5 };
                 if !(ph.is_finite() && ph.abs() <= limit) {
-                    return Err(IoError(format!(
-                        "{name}, line {line_no}: phase {ph} {} at {fk} Hz is outside +-{}",
-                        if rad { "rad" } else { "deg" },
-                        if rad { "pi" } else { "180 (a .zma phase is in degrees)" }
-                    )));
+                    return Err(IoError(format!("{name}, line {line_no}: phase {ph} {} at {fk} Hz is outside +-{}", if rad { "rad" } else { "deg" }, if rad { "pi" } else { "180 (a .zma phase is in degrees)" })));
                 }
                 Complex64::from_polar(mag, if rad { ph } else { ph.to_radians() })
             }

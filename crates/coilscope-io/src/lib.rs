@@ -63,14 +63,18 @@ pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     if let Ok(m) = std::fs::metadata(&target) {
         let t = m.file_type();
         if t.is_fifo() || t.is_char_device() {
-            return std::fs::OpenOptions::new()
-                .write(true)
-                .open(&target)
-                .and_then(|mut f| f.write_all(bytes))
-                .map_err(|e| IoError(format!("{}: cannot write ({e})", path.display())));
+            return std::fs::OpenOptions::new().write(true).open(&target).and_then(|mut f| f.write_all(bytes)).map_err(|e| IoError(format!("{}: cannot write ({e})", path.display())));
         }
         if !t.is_file() {
-            let what = if t.is_dir() { "a directory" } else if t.is_block_device() { "a block device" } else if t.is_socket() { "a socket" } else { "not a regular file" };
+            let what = if t.is_dir() {
+                "a directory"
+            } else if t.is_block_device() {
+                "a block device"
+            } else if t.is_socket() {
+                "a socket"
+            } else {
+                "not a regular file"
+            };
             return err(format!("{}: is {what}; give the path of a file to write", path.display()));
         }
     }
@@ -146,8 +150,7 @@ pub fn read_sidecar_scale(path: &Path) -> Result<Option<Vec<f64>>, IoError> {
         return Ok(None);
     }
     let text = std::fs::read_to_string(&side).map_err(|e| IoError(format!("{}: cannot read ({e})", side.display())))?;
-    let v: serde_json::Value = serde_json::from_str(&text)
-        .map_err(|e| IoError(format!("{}: not valid JSON ({e}); expected {{\"scale\": [V, A, m per unit]}}", side.display())))?;
+    let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| IoError(format!("{}: not valid JSON ({e}); expected {{\"scale\": [V, A, m per unit]}}", side.display())))?;
     let Some(arr) = v.get("scale").and_then(|s| s.as_array()) else {
         return err(format!("{}: key `scale`: missing or not an array; expected {{\"scale\": [V, A, m per unit]}}", side.display()));
     };
@@ -188,9 +191,7 @@ fn channels_from<R: std::io::Read>(mut reader: hound::WavReader<R>, shown: &str,
     let spec = reader.spec();
     let nch = spec.channels as usize;
     if nch == 0 || nch > max_channels {
-        return err(format!(
-            "{shown}: {nch} channels; expected 1 to {max_channels} (1 voltage V, 2 current A, 3 displacement m)"
-        ));
+        return err(format!("{shown}: {nch} channels; expected 1 to {max_channels} (1 voltage V, 2 current A, 3 displacement m)"));
     }
     if !(1000..=1_000_000).contains(&spec.sample_rate) {
         return err(format!("{shown}: sample rate {} Hz is not valid (1 kHz .. 1 MHz)", spec.sample_rate));
@@ -201,11 +202,7 @@ fn channels_from<R: std::io::Read>(mut reader: hound::WavReader<R>, shown: &str,
             return err(format!("{shown}: {} scale factors for {nch} channels; give one per channel (V, A, m per unit)", s.len()));
         }
     } else if !is_float {
-        return err(format!(
-            "{shown}: {}-bit integer PCM needs scale factors: a sidecar {} with {{\"scale\": [V, A, m per count]}}, or --scale",
-            spec.bits_per_sample,
-            sidecar_name(shown)
-        ));
+        return err(format!("{shown}: {}-bit integer PCM needs scale factors: a sidecar {} with {{\"scale\": [V, A, m per count]}}, or --scale", spec.bits_per_sample, sidecar_name(shown)));
     }
     // The header's length is a claim: never reserve more than the file can hold.
     let frames = (reader.duration() as u64).min(file_len / (nch as u64 * (spec.bits_per_sample as u64).div_ceil(8).max(1))) as usize;
@@ -214,11 +211,7 @@ fn channels_from<R: std::io::Read>(mut reader: hound::WavReader<R>, shown: &str,
         let ch = k % nch;
         if !v.is_finite() {
             let n = k / nch;
-            return err(format!(
-                "{shown}: {} sample {n} (t = {:.6} s) is {v}; samples must be finite",
-                CHANNEL_NAMES[ch],
-                n as f64 / spec.sample_rate as f64
-            ));
+            return err(format!("{shown}: {} sample {n} (t = {:.6} s) is {v}; samples must be finite", CHANNEL_NAMES[ch], n as f64 / spec.sample_rate as f64));
         }
         data[ch].push(v);
         Ok(())
@@ -269,9 +262,7 @@ fn recording_of(ch: Channels, shown: &str) -> Result<Recording, IoError> {
         let mean = x.iter().sum::<f64>() / x.len().max(1) as f64;
         let sd = (x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / x.len().max(1) as f64).sqrt();
         if !(sd > 1e-12) {
-            return err(format!(
-                "{shown}: channel 3 (displacement) is silent (sd {sd:.2e} m): the laser is dead, unplugged or out of range; fix it, or record without channel 3 and give --mms KG"
-            ));
+            return err(format!("{shown}: channel 3 (displacement) is silent (sd {sd:.2e} m): the laser is dead, unplugged or out of range; fix it, or record without channel 3 and give --mms KG"));
         }
     }
     Ok(Recording { fs: ch.fs, u, i, x })
@@ -321,10 +312,7 @@ pub fn load_parameters(spec: &str) -> Result<Parameters, IoError> {
     }
     let path = Path::new(spec);
     if !path.exists() {
-        return err(format!(
-            "{spec}: neither an embedded driver ({}) nor an existing parameter file",
-            embedded_driver_names().join(", ")
-        ));
+        return err(format!("{spec}: neither an embedded driver ({}) nor an existing parameter file", embedded_driver_names().join(", ")));
     }
     let text = std::fs::read_to_string(path).map_err(|e| IoError(format!("{spec}: cannot read ({e})")))?;
     Parameters::from_json_str(&text, spec).map_err(|e| IoError(e.to_string()))

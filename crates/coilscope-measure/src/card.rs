@@ -123,14 +123,7 @@ pub struct ChainCorrector {
 impl ChainCorrector {
     pub fn new(chain: &Chain, wiring: SenseWiring, fs: f64) -> Result<Self, String> {
         let tau = streamed_delay(chain, fs)?;
-        Ok(ChainCorrector {
-            u: Uncouple::new(chain.hp_u, fs),
-            i: Uncouple::new(chain.hp_i, fs),
-            delay_u: FracDelay::new(tau),
-            delay_i: FracDelay::new(0.0),
-            gain_i: chain.gain_i.unwrap_or(1.0),
-            rs: wiring.series_ohm(),
-        })
+        Ok(ChainCorrector { u: Uncouple::new(chain.hp_u, fs), i: Uncouple::new(chain.hp_i, fs), delay_u: FracDelay::new(tau), delay_i: FracDelay::new(0.0), gain_i: chain.gain_i.unwrap_or(1.0), rs: wiring.series_ohm() })
     }
 
     /// Samples of silence to record before the measurement, for the offsets (0.5 s: a whole
@@ -148,7 +141,11 @@ impl ChainCorrector {
     pub fn offsets_from_silence(&mut self, u_rec: &[f64], i_rec: &[f64]) -> (f64, f64) {
         let half = |x: &[f64]| {
             let t = &x[x.len() / 2..];
-            if t.is_empty() { 0.0 } else { t.iter().sum::<f64>() / t.len() as f64 }
+            if t.is_empty() {
+                0.0
+            } else {
+                t.iter().sum::<f64>() / t.len() as f64
+            }
         };
         self.u.dc = half(u_rec);
         self.i.dc = half(i_rec);
@@ -183,14 +180,7 @@ impl<D: Device> Corrected<D> {
 
     pub fn new(inner: D, chain: &Chain, wiring: SenseWiring) -> Result<Self, String> {
         let corrector = ChainCorrector::new(chain, wiring, inner.fs())?;
-        let what = format!(
-            "corrected for its chain (current {:.3} samples late, AC coupling {:.2} / {:.2} Hz, gain {:.4}; {} wiring)",
-            chain.delay_i * inner.fs(),
-            chain.hp_u,
-            chain.hp_i,
-            chain.gain_i.unwrap_or(1.0),
-            wiring.name()
-        );
+        let what = format!("corrected for its chain (current {:.3} samples late, AC coupling {:.2} / {:.2} Hz, gain {:.4}; {} wiring)", chain.delay_i * inner.fs(), chain.hp_u, chain.hp_i, chain.gain_i.unwrap_or(1.0), wiring.name());
         Ok(Corrected { inner, corrector, what, led_in: false, offsets: (0.0, 0.0) })
     }
 }
@@ -390,11 +380,9 @@ mod tests {
         let (u, i) = (noise(3, n), noise(4, n));
         let rs = 0.1;
         let w = SenseWiring::DriverPlusShunt { ohm: rs };
-        for c in [
-            Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, gain_i: Some(0.985), dc_u: 0.01 * 4.0, dc_i: 0.01 * 4.0, ..Default::default() },
-            Chain { delay_i: -0.45 / fs, hp_u: 5.0, hp_i: 1.0, dc_u: -0.02, ..Default::default() },
-            Chain::default(),
-        ] {
+        for c in
+            [Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, gain_i: Some(0.985), dc_u: 0.01 * 4.0, dc_i: 0.01 * 4.0, ..Default::default() }, Chain { delay_i: -0.45 / fs, hp_u: 5.0, hp_i: 1.0, dc_u: -0.02, ..Default::default() }, Chain::default()]
+        {
             let mut card = ChainStream::new(&c, fs).unwrap();
             let mut fix = ChainCorrector::new(&c, w, fs).unwrap();
             // The lead-in: silence through the card, with sensor noise.

@@ -13,8 +13,8 @@
 use coilscope_core::excitation::named_rng;
 use coilscope_core::integrate::{substeps_for, Interpolator, HALF_TAPS};
 use coilscope_core::model::{idx, State, NSTATE};
-use coilscope_core::simulate::Plant;
 use coilscope_core::params::Parameters;
+use coilscope_core::simulate::Plant;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;

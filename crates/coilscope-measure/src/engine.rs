@@ -311,7 +311,9 @@ impl StopReason {
             ),
             StopReason::NoConvergence { max_seconds } => format!("no convergence within {max_seconds} s (--max-seconds): the best estimate is kept; raise --max-seconds, or check the residual and warnings"),
             StopReason::DurationOver { seconds } => format!("long-term test: the duration of {seconds} s is over"),
-            StopReason::ReplayEnded { seconds } => format!("the replayed recording ended after {seconds:.1} s before the estimate converged: the best estimate is kept; a replay needs about 2 s of quiet (small-signal) lead-in, then 8 s or more at high level"),
+            StopReason::ReplayEnded { seconds } => {
+                format!("the replayed recording ended after {seconds:.1} s before the estimate converged: the best estimate is kept; a replay needs about 2 s of quiet (small-signal) lead-in, then 8 s or more at high level")
+            }
             StopReason::DeviceEmpty => "the device delivered no samples".into(),
             StopReason::Interrupted { t } => format!("interrupted at {t:.1} s: the estimate so far is kept"),
             StopReason::Failed { t, message } => format!("failed at {t:.1} s: {message}; the estimate so far is kept (not trustworthy)"),
@@ -1016,8 +1018,7 @@ impl<'a> Engine<'a> {
                         // from a batch large-signal fit of the last seconds instead.
                         if !self.controllable && up.before > RESTART_RESIDUAL && self.restarts < MAX_RESTARTS && self.recent_u.len() as f64 >= RESTART_S * self.fs - 1.0 {
                             if let Some((b, _, reach)) = batch_start(&self.recent_u, &self.recent_i, self.fs, self.opts.mms) {
-                                let fresh = Online::new(&b, self.fs, online_options(&self.opts, 1.5 * reach.max(1e-6), self.controllable))
-                                    .and_then(|mut f| f.push(&self.recent_u, &self.recent_i).map(|_| f));
+                                let fresh = Online::new(&b, self.fs, online_options(&self.opts, 1.5 * reach.max(1e-6), self.controllable)).and_then(|mut f| f.push(&self.recent_u, &self.recent_i).map(|_| f));
                                 if let Ok(f) = fresh {
                                     *on = f;
                                     self.restarts += 1;
@@ -1100,7 +1101,15 @@ impl<'a> Engine<'a> {
                         let n = self.changes.len();
                         let k = ((CONVERGED_SPAN_S / every).round() as usize).max(2);
                         // Not while the ramp only pauses to explore toward the stiffness limit.
-                        if self.opts.duration.is_none() && self.stage == Stage::Hold && !matches!(self.last_why, LimitedBy::Exploration | LimitedBy::Settling) && t - self.hold_since >= 2.0 && n >= k && up.before < 0.02 && self.last_excess <= CONVERGED_EXCESS && self.changes[n - k..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE) {
+                        if self.opts.duration.is_none()
+                            && self.stage == Stage::Hold
+                            && !matches!(self.last_why, LimitedBy::Exploration | LimitedBy::Settling)
+                            && t - self.hold_since >= 2.0
+                            && n >= k
+                            && up.before < 0.02
+                            && self.last_excess <= CONVERGED_EXCESS
+                            && self.changes[n - k..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE)
+                        {
                             self.converged = true;
                             self.stop_reason = Some(StopReason::Converged { t, residual: up.before, updates: k });
                         }
@@ -1126,7 +1135,21 @@ impl<'a> Engine<'a> {
                     let d = control(
                         cooling.as_ref().unwrap_or(&self.opts),
                         &ControlInput {
-                            since_temp_cut: t - self.last_temp_cut, gain: self.gain, block_seconds: n as f64 / self.fs, peak, per_volt, x_limit, kms_ratio: self.kms_ratio, checked_reach: self.checked_reach, last_change: self.changes.last().map(|c| c.0), last_excess: self.last_excess, dtv, dtv_ahead, temp_cut: self.temp_cut, hp_fc: self.hp.fc },
+                            since_temp_cut: t - self.last_temp_cut,
+                            gain: self.gain,
+                            block_seconds: n as f64 / self.fs,
+                            peak,
+                            per_volt,
+                            x_limit,
+                            kms_ratio: self.kms_ratio,
+                            checked_reach: self.checked_reach,
+                            last_change: self.changes.last().map(|c| c.0),
+                            last_excess: self.last_excess,
+                            dtv,
+                            dtv_ahead,
+                            temp_cut: self.temp_cut,
+                            hp_fc: self.hp.fc,
+                        },
                     );
                     let (g, why) = (d.gain, d.why);
                     if why == LimitedBy::Temperature && g < self.gain {
@@ -1174,7 +1197,7 @@ impl<'a> Engine<'a> {
         }
         live.stage = self.stage;
         self.last_why = live.limited_by;
-        if let Some(s) = store.as_deref_mut() {
+        if let Some(s) = store {
             s.push_state(StateRow {
                 t,
                 stage: self.stage.name().into(),
@@ -1432,7 +1455,22 @@ mod control_tests {
 
     /// Nothing binds: 1 V, 0.1 s blocks, 0.5 mm/V remembered, no limit, cold coil.
     fn quiet() -> ControlInput {
-        ControlInput { gain: 1.0, block_seconds: 0.1, peak: 0.5e-3, per_volt: 0.5e-3, x_limit: None, kms_ratio: 1.0, checked_reach: 0.0, last_change: None, last_excess: f64::NAN, dtv: 0.0, dtv_ahead: 0.0, temp_cut: false, since_temp_cut: f64::INFINITY, hp_fc: 5.0 }
+        ControlInput {
+            gain: 1.0,
+            block_seconds: 0.1,
+            peak: 0.5e-3,
+            per_volt: 0.5e-3,
+            x_limit: None,
+            kms_ratio: 1.0,
+            checked_reach: 0.0,
+            last_change: None,
+            last_excess: f64::NAN,
+            dtv: 0.0,
+            dtv_ahead: 0.0,
+            temp_cut: false,
+            since_temp_cut: f64::INFINITY,
+            hp_fc: 5.0,
+        }
     }
 
     fn close(a: f64, b: f64) -> bool {

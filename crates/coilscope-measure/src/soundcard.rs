@@ -51,21 +51,7 @@ pub struct SoundCardOptions {
 
 impl Default for SoundCardOptions {
     fn default() -> Self {
-        SoundCardOptions {
-            output: None,
-            input: None,
-            fs: 48000.0,
-            out_channels: 2,
-            drive_channel: 0,
-            in_channels: 2,
-            u_channel: 0,
-            i_channel: 1,
-            out_volts_fs: 10.0,
-            u_volts_fs: 10.0,
-            i_volts_fs: 1.0,
-            sense_ohm: 0.1,
-            timeout: Duration::from_secs(2),
-        }
+        SoundCardOptions { output: None, input: None, fs: 48000.0, out_channels: 2, drive_channel: 0, in_channels: 2, u_channel: 0, i_channel: 1, out_volts_fs: 10.0, u_volts_fs: 10.0, i_volts_fs: 1.0, sense_ohm: 0.1, timeout: Duration::from_secs(2) }
     }
 }
 
@@ -105,8 +91,7 @@ pub fn list_devices() -> Result<(Vec<String>, Vec<String>), String> {
 /// The input (or output) devices with their names.
 fn devices(host: &cpal::Host, input: bool) -> Result<Vec<(String, cpal::Device)>, String> {
     let what = if input { "input" } else { "output" };
-    let list: Vec<cpal::Device> = if input { host.input_devices().map(|d| d.collect()) } else { host.output_devices().map(|d| d.collect()) }
-        .map_err(|e| format!("cannot list the {what} sound devices ({:?} host): {e}", host.id()))?;
+    let list: Vec<cpal::Device> = if input { host.input_devices().map(|d| d.collect()) } else { host.output_devices().map(|d| d.collect()) }.map_err(|e| format!("cannot list the {what} sound devices ({:?} host): {e}", host.id()))?;
     Ok(list.into_iter().filter_map(|d| d.name().ok().map(|n| (n, d))).collect())
 }
 

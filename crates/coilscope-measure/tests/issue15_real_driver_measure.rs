@@ -25,13 +25,7 @@ fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
 /// of SB17 and PTT4 at 85 % of their range).
 fn real(p: &Parameters) -> Parameters {
     let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
-    Parameters {
-        creep: Some(Creep { lambda: 0.05, f_ref: None }),
-        l3r3: Some((0.5 * l2, 3.0 * r2)),
-        le_i: Some(Poly { c: vec![1.0, 0.0, -0.03 / 16.0] }),
-        rms_v: Some(Poly { c: vec![p.rms, 0.0, 0.35 * p.rms / 0.25] }),
-        ..p.clone()
-    }
+    Parameters { creep: Some(Creep { lambda: 0.05, f_ref: None }), l3r3: Some((0.5 * l2, 3.0 * r2)), le_i: Some(Poly { c: vec![1.0, 0.0, -0.03 / 16.0] }), rms_v: Some(Poly { c: vec![p.rms, 0.0, 0.35 * p.rms / 0.25] }), ..p.clone() }
 }
 
 fn run(p: &Parameters, seed: u64) -> Measurement {

@@ -31,16 +31,7 @@ fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
 }
 
 fn card(fs: f64) -> Chain {
-    Chain {
-        delay_i: 0.3 / fs,
-        hp_u: 2.0,
-        hp_i: 4.0,
-        gain_i: Some(1.015),
-        dc_u: 0.05,
-        dc_i: 0.01,
-        hum: Some(Hum { f: 50.0, u: vec![[3e-4, 0.4]], i: vec![[5e-5, -1.2], [0.0, 0.0], [2e-5, 0.3]] }),
-        ..Default::default()
-    }
+    Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, gain_i: Some(1.015), dc_u: 0.05, dc_i: 0.01, hum: Some(Hum { f: 50.0, u: vec![[3e-4, 0.4]], i: vec![[5e-5, -1.2], [0.0, 0.0], [2e-5, 0.3]] }), ..Default::default() }
 }
 
 const WIRING: SenseWiring = SenseWiring::DriverPlusShunt { ohm: 0.1 };
@@ -75,7 +66,15 @@ fn measure_through_a_calibrated_card_gives_the_driver() {
         let e = errors(&m, &p);
         println!(
             "{name}: {} in {:.1} s, offsets {dc_u:.4} V {dc_i:.4} A; Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re(cold) {:.3} %, Rms {:.3} %; x {:.2}..{:.2} mm",
-            m.stop_reason, m.seconds, 100.0 * e[0], 100.0 * e[1], 100.0 * e[2], 100.0 * e[3], 100.0 * e[4], m.x_range[0] * 1e3, m.x_range[1] * 1e3
+            m.stop_reason,
+            m.seconds,
+            100.0 * e[0],
+            100.0 * e[1],
+            100.0 * e[2],
+            100.0 * e[3],
+            100.0 * e[4],
+            m.x_range[0] * 1e3,
+            m.x_range[1] * 1e3
         );
         if !m.converged {
             bad.push(format!("{name}: {}", m.stop_reason));
@@ -110,7 +109,6 @@ fn the_same_card_without_its_calibration_is_off() {
     assert!(off >= 2, "only {off} of Bl, Kms, Le, Re, Rms are off by more than twice their bounds: {e:?}");
 }
 
-
 /// Off the tested path: other drivers (18WU, the 0.1 g microspeaker of `testdata/drivers`),
 /// rates (44.1, 96 kHz), seeds and cards (the delay on either side, corners 1-5 Hz, gains
 /// 0.98-1.02, either wiring). Every run must either converge within the bounds above or stop
@@ -120,12 +118,15 @@ fn the_same_card_without_its_calibration_is_off() {
 #[ignore = "release-profile sweep: cargo test --release -p coilscope-measure --test issue16_card_path -- --ignored"]
 fn cards_drivers_rates_and_seeds() {
     let micro = coilscope_io::load_parameters(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../testdata/drivers/microspeaker-0g1.json").to_str().unwrap()).unwrap();
-    let cases: Vec<(Parameters, f64, u64, Chain, SenseWiring)> = slice::in_slice("issue16_card_path sweep", vec![
-        (embedded_driver("18wu-4741t-00").unwrap(), 48000.0, 3, Chain { delay_i: -0.4 / 48000.0, hp_u: 5.0, hp_i: 1.0, gain_i: Some(0.98), dc_u: -0.1, dc_i: 0.02, ..Default::default() }, WIRING),
-        (embedded_driver("ptt4.0w04-01a").unwrap(), 44100.0, 4, Chain { delay_i: 0.5 / 44100.0, hp_u: 1.0, hp_i: 3.0, gain_i: Some(1.02), dc_u: 0.02, dc_i: -0.005, ..Default::default() }, SenseWiring::Terminals),
-        (embedded_driver("sb17cac35-4").unwrap(), 96000.0, 5, Chain { delay_i: 0.1 / 96000.0, hp_u: 3.0, hp_i: 5.0, gain_i: Some(1.01), dc_u: 0.01, dc_i: 0.01, ..Default::default() }, SenseWiring::DriverPlusShunt { ohm: 0.22 }),
-        (micro, 48000.0, 6, Chain { delay_i: 0.3 / 48000.0, hp_u: 2.0, hp_i: 4.0, gain_i: Some(1.015), dc_u: 0.005, dc_i: 0.001, ..Default::default() }, SenseWiring::DriverPlusShunt { ohm: 0.5 }),
-    ]);
+    let cases: Vec<(Parameters, f64, u64, Chain, SenseWiring)> = slice::in_slice(
+        "issue16_card_path sweep",
+        vec![
+            (embedded_driver("18wu-4741t-00").unwrap(), 48000.0, 3, Chain { delay_i: -0.4 / 48000.0, hp_u: 5.0, hp_i: 1.0, gain_i: Some(0.98), dc_u: -0.1, dc_i: 0.02, ..Default::default() }, WIRING),
+            (embedded_driver("ptt4.0w04-01a").unwrap(), 44100.0, 4, Chain { delay_i: 0.5 / 44100.0, hp_u: 1.0, hp_i: 3.0, gain_i: Some(1.02), dc_u: 0.02, dc_i: -0.005, ..Default::default() }, SenseWiring::Terminals),
+            (embedded_driver("sb17cac35-4").unwrap(), 96000.0, 5, Chain { delay_i: 0.1 / 96000.0, hp_u: 3.0, hp_i: 5.0, gain_i: Some(1.01), dc_u: 0.01, dc_i: 0.01, ..Default::default() }, SenseWiring::DriverPlusShunt { ohm: 0.22 }),
+            (micro, 48000.0, 6, Chain { delay_i: 0.3 / 48000.0, hp_u: 2.0, hp_i: 4.0, gain_i: Some(1.015), dc_u: 0.005, dc_i: 0.001, ..Default::default() }, SenseWiring::DriverPlusShunt { ohm: 0.5 }),
+        ],
+    );
     let mut bad = vec![];
     let mut passed = 0;
     for (p, fs, seed, c, w) in cases {
@@ -144,7 +145,17 @@ fn cards_drivers_rates_and_seeds() {
             }
         };
         let e = errors(&m, &p);
-        println!("{name} at {fs} Hz, {}: {} in {:.1} s; Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.3} %, Rms {:.3} %", w.name(), if m.converged { "converged" } else { "not converged" }, m.seconds, 100.0 * e[0], 100.0 * e[1], 100.0 * e[2], 100.0 * e[3], 100.0 * e[4]);
+        println!(
+            "{name} at {fs} Hz, {}: {} in {:.1} s; Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.3} %, Rms {:.3} %",
+            w.name(),
+            if m.converged { "converged" } else { "not converged" },
+            m.seconds,
+            100.0 * e[0],
+            100.0 * e[1],
+            100.0 * e[2],
+            100.0 * e[3],
+            100.0 * e[4]
+        );
         let within = e[0] <= 0.02 && e[1] <= 0.02 && e[2] <= 0.05 && e[3] <= 0.01 && e[4] <= 0.01;
         let bundled = !name.to_lowercase().contains("micro");
         if m.converged && !within {

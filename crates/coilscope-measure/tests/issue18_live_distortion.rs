@@ -7,8 +7,8 @@
 //! estimate are the truth's within 0.1 % (measured 0.01 %).
 
 use coilscope_analysis::live_distortion::DistortionMeter;
-use coilscope_core::excitation::Excitation;
 use coilscope_core::embedded_driver;
+use coilscope_core::excitation::Excitation;
 use coilscope_core::simulate::{simulate, SimOptions};
 use coilscope_measure::device::VirtualDevice;
 use coilscope_measure::signal::Source;

@@ -21,14 +21,7 @@ fn ensure_font() {
 }
 
 /// Colours of the series, in order.
-pub const PALETTE: [RGBColor; 6] = [
-    RGBColor(0x1f, 0x5f, 0xbf),
-    RGBColor(0xd6, 0x27, 0x28),
-    RGBColor(0x2c, 0xa0, 0x2c),
-    RGBColor(0xff, 0x7f, 0x0e),
-    RGBColor(0x94, 0x67, 0xbd),
-    RGBColor(0x17, 0x17, 0x17),
-];
+pub const PALETTE: [RGBColor; 6] = [RGBColor(0x1f, 0x5f, 0xbf), RGBColor(0xd6, 0x27, 0x28), RGBColor(0x2c, 0xa0, 0x2c), RGBColor(0xff, 0x7f, 0x0e), RGBColor(0x94, 0x67, 0xbd), RGBColor(0x17, 0x17, 0x17)];
 
 /// One curve.
 #[derive(Clone, Debug)]
@@ -97,7 +90,11 @@ impl Chart {
     }
 
     fn tx(&self, x: f64) -> f64 {
-        if self.log_x { x.max(1e-30).log10() } else { x }
+        if self.log_x {
+            x.max(1e-30).log10()
+        } else {
+            x
+        }
     }
 
     /// Points with finite coordinates (and positive x on a log axis), axis-transformed.
@@ -107,12 +104,7 @@ impl Chart {
     }
 
     fn bounds(&self) -> Option<((f64, f64), (f64, f64))> {
-        let all: Vec<(f64, f64)> = self
-            .series
-            .iter()
-            .flat_map(|s| self.clean(&s.points))
-            .chain(self.bands.iter().flat_map(|b| self.clean(&b.lo).into_iter().chain(self.clean(&b.hi))))
-            .collect();
+        let all: Vec<(f64, f64)> = self.series.iter().flat_map(|s| self.clean(&s.points)).chain(self.bands.iter().flat_map(|b| self.clean(&b.lo).into_iter().chain(self.clean(&b.hi)))).collect();
         if all.is_empty() {
             return None;
         }
@@ -134,7 +126,13 @@ impl Chart {
     fn x_keys(&self, x0: f64, x1: f64) -> Vec<f64> {
         if self.log_x {
             let mut keys = vec![];
-            let steps: &[f64] = if x1 - x0 > 2.5 { &[1.0] } else if x1 - x0 > 1.2 { &[1.0, 2.0, 5.0] } else { &[1.0, 1.5, 2.0, 3.0, 5.0, 7.0] };
+            let steps: &[f64] = if x1 - x0 > 2.5 {
+                &[1.0]
+            } else if x1 - x0 > 1.2 {
+                &[1.0, 2.0, 5.0]
+            } else {
+                &[1.0, 1.5, 2.0, 3.0, 5.0, 7.0]
+            };
             for d in (x0.floor() as i32 - 1)..=(x1.ceil() as i32) {
                 for m in steps {
                     let v = (m * 10f64.powi(d)).log10();
@@ -162,13 +160,7 @@ impl Chart {
         root.fill(&WHITE).map_err(e)?;
         let ((x0, x1), (y0, y1)) = self.bounds().ok_or_else(|| format!("chart {}: no finite data to draw", self.id))?;
         let log = self.log_x;
-        let mut chart = ChartBuilder::on(&root)
-            .caption(&self.title, ("sans-serif", 18))
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(70)
-            .build_cartesian_2d(x0..x1, y0..y1)
-            .map_err(e)?;
+        let mut chart = ChartBuilder::on(&root).caption(&self.title, ("sans-serif", 18)).margin(12).x_label_area_size(40).y_label_area_size(70).build_cartesian_2d(x0..x1, y0..y1).map_err(e)?;
         let fmt_x = move |v: &f64| {
             if log {
                 let f = 10f64.powf(*v);
@@ -187,21 +179,15 @@ impl Chart {
         };
         let fmt_y = |v: &f64| {
             let a = v.abs();
-            if a != 0.0 && !(1e-2..1e4).contains(&a) { format!("{v:.2e}") } else { format!("{v:.3}").trim_end_matches('0').trim_end_matches('.').to_string() }
+            if a != 0.0 && !(1e-2..1e4).contains(&a) {
+                format!("{v:.2e}")
+            } else {
+                format!("{v:.3}").trim_end_matches('0').trim_end_matches('.').to_string()
+            }
         };
         // The x ticks are ours (x_keys: 1-2-5 per decade on a log axis): the mesh draws the
         // y axis, and the x grid lines and labels are drawn below at the keys.
-        chart
-            .configure_mesh()
-            .x_desc(&self.x_label)
-            .y_desc(&self.y_label)
-            .x_labels(0)
-            .disable_x_mesh()
-            .y_label_formatter(&fmt_y)
-            .label_style(("sans-serif", 13))
-            .light_line_style(RGBColor(235, 235, 235))
-            .draw()
-            .map_err(e)?;
+        chart.configure_mesh().x_desc(&self.x_label).y_desc(&self.y_label).x_labels(0).disable_x_mesh().y_label_formatter(&fmt_y).label_style(("sans-serif", 13)).light_line_style(RGBColor(235, 235, 235)).draw().map_err(e)?;
         let keys = self.x_keys(x0, x1);
         let grid = RGBColor(225, 225, 225);
         for &k in &keys {
@@ -238,22 +224,11 @@ impl Chart {
             let c = PALETTE[k % PALETTE.len()];
             let pts = self.clean(&s.points);
             let style = c.stroke_width(2);
-            let anno = if s.dashed {
-                chart.draw_series(DashedLineSeries::new(pts, 8, 5, style)).map_err(e)?
-            } else {
-                chart.draw_series(LineSeries::new(pts, style)).map_err(e)?
-            };
+            let anno = if s.dashed { chart.draw_series(DashedLineSeries::new(pts, 8, 5, style)).map_err(e)? } else { chart.draw_series(LineSeries::new(pts, style)).map_err(e)? };
             anno.label(s.name.clone()).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2)));
         }
         if self.series.len() > 1 {
-            chart
-                .configure_series_labels()
-                .background_style(WHITE.mix(0.85))
-                .border_style(RGBColor(200, 200, 200))
-                .label_font(("sans-serif", 13))
-                .position(SeriesLabelPosition::UpperRight)
-                .draw()
-                .map_err(e)?;
+            chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(RGBColor(200, 200, 200)).label_font(("sans-serif", 13)).position(SeriesLabelPosition::UpperRight).draw().map_err(e)?;
         }
         root.present().map_err(e)?;
         Ok(())
@@ -327,7 +302,13 @@ mod axis_tests {
         for want in [20.0, 50.0, 100.0, 200.0, 500.0, 1000.0, 2000.0, 5000.0] {
             assert!(hz.iter().any(|h| (h / want - 1.0).abs() < 1e-9), "{want} Hz not a tick: {hz:?}");
         }
-        assert!(hz.iter().all(|h| { let m = h / 10f64.powf(h.log10().floor()); [1.0, 2.0, 5.0].iter().any(|r| (m - r).abs() < 1e-9) }), "{hz:?}");
+        assert!(
+            hz.iter().all(|h| {
+                let m = h / 10f64.powf(h.log10().floor());
+                [1.0, 2.0, 5.0].iter().any(|r| (m - r).abs() < 1e-9)
+            }),
+            "{hz:?}"
+        );
         let ((_, _), (y0, _)) = c.bounds().unwrap();
         assert!(y0 >= -100.0 - 0.1 * 70.0, "the axis goes below the floor: {y0}");
         let s = c.svg((640, 400)).unwrap();

@@ -18,9 +18,9 @@ use coilscope_analysis::diagnosis::diagnose;
 use coilscope_analysis::distortion::{self, analyse, divergence_level, intermod, level_for_excursion, level_sweep, log_frequencies, multitone, Analysis, Nonlinearity, Output, SteadyOptions};
 use coilscope_analysis::{db, volterra};
 use coilscope_core::limits::Thresholds;
+use coilscope_core::result::ResultFile;
 use coilscope_core::small_signal::{impedance, thiele_small};
 use coilscope_core::Parameters;
-use coilscope_core::result::ResultFile;
 use serde_json::Value;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -146,13 +146,7 @@ impl Builder {
     fn chart(&mut self, c: Chart, caption: &str) -> Result<(), String> {
         let svg = c.svg(SVG_SIZE)?;
         let svg = svg.trim_start_matches("<?xml version=\"1.0\" encoding=\"UTF-8\"?>").trim();
-        let _ = write!(
-            self.html,
-            "<figure class=\"plot\" id=\"plot-{id}\" data-series=\"{n}\">{svg}<figcaption>{cap} <a href=\"#\" data-png=\"{id}.png\">PNG</a></figcaption></figure>",
-            id = esc(&c.id),
-            n = c.series.len(),
-            cap = esc(caption)
-        );
+        let _ = write!(self.html, "<figure class=\"plot\" id=\"plot-{id}\" data-series=\"{n}\">{svg}<figcaption>{cap} <a href=\"#\" data-png=\"{id}.png\">PNG</a></figcaption></figure>", id = esc(&c.id), n = c.series.len(), cap = esc(caption));
         self.charts.push(c);
         Ok(())
     }
@@ -196,10 +190,7 @@ fn curve_chart(id: &str, title: &str, unit: &str, f: &dyn Fn(f64) -> f64, band: 
 /// static stiffness below its dynamic one, and the rest position after a large offset.
 fn compare_section(b: &mut Builder, csv: &mut Vec<(String, String)>, a: &ReportInput, c: &ReportInput) {
     let (la, lc) = (method_label(a), method_label(c));
-    b.section(
-        &format!("{la} and {lc} compared"),
-        &format!("Solid: this report's {la} curves; dashed: the {lc} result's. Differences over the range both reached, relative to this result's value at rest."),
-    );
+    b.section(&format!("{la} and {lc} compared"), &format!("Solid: this report's {la} curves; dashed: the {lc} result's. Differences over the range both reached, relative to this result's value at rest."));
     let lo = a.range[0].max(c.range[0]);
     let hi = a.range[1].min(c.range[1]);
     let mut rows = vec![];
@@ -308,60 +299,74 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     let th = opts.thresholds;
     let lim = &diag.limits;
     if nonlinear {
-    // --- Curves ---------------------------------------------------------------------------
-    b.section("Nonlinear parameters", "Solid: identified curve over the reached range; shaded: +-2 standard deviations (when the result carries them); dashed verticals: the reached range and the limits.");
-    let bl_band = band_of(result, "Bl");
-    let kms_band = band_of(result, "Kms");
-    let le_band = band_of(result, "Le");
-    let cms_band = kms_band.as_ref().map(|v| v.iter().map(|(x, k, s)| (*x, 1.0 / k, s / (k * k))).collect());
-    let xbl_label = format!("XBl ({:.0} %)", th.bl * 100.0);
-    let xc_label = format!("XC ({:.0} %)", th.cms * 100.0);
-    let xl_label = format!("XL ({:.0} %)", th.le * 100.0);
-    let cmp = input.compare.as_deref();
-    let cmp_name = cmp.map(|c| format!("{} ({})", method_label(c), c.result.as_ref().map_or(c.title.as_str(), |r| r.recording.as_str())));
-    let over = |g: &dyn Fn(&Parameters, f64) -> f64| -> Option<(&str, Vec<(f64, f64)>)> { cmp.map(|c| (cmp_name.as_deref().unwrap_or_default(), grid(c.range, 120).into_iter().map(|x| (x * 1e3, g(&c.params, x))).collect())) };
-    b.chart(curve_chart("bl", "Bl(x)", "Bl (T m)", &|x| p.bl.eval(x), bl_band, range, lim.xbl.map(|v| (v, xbl_label.as_str())), over(&|q, x| q.bl.eval(x))), "Force factor.")?;
-    b.chart(curve_chart("kms", "Kms(x)", "Kms (N/m)", &|x| p.kms.eval(x), kms_band, range, None, over(&|q, x| q.kms.eval(x))), "Secant stiffness of the suspension.")?;
-    b.chart(curve_chart("cms", "Cms(x)", "Cms (mm/N)", &|x| 1e3 / p.kms.eval(x), cms_band.map(|v: Vec<(f64, f64, f64)>| v.into_iter().map(|(x, c, s)| (x, c * 1e3, s * 1e3)).collect()), range, lim.xc.map(|v| (v, xc_label.as_str())), over(&|q, x| 1e3 / q.kms.eval(x))), "Compliance 1/Kms(x).")?;
-    b.chart(curve_chart("le", "Le(x)", "Le (mH)", &|x| 1e3 * p.le.eval(x), le_band.map(|v| v.into_iter().map(|(x, l, s)| (x, l * 1e3, s * 1e3)).collect()), range, lim.xl.map(|v| (v, xl_label.as_str())), over(&|q, x| 1e3 * q.le.eval(x))), "Voice-coil inductance; it should rise toward the back plate (x < 0).")?;
-    // Symmetry against amplitude (as LSI plots it): the offset that makes Bl(x) and Kms(x)
-    // symmetric over +-x_peak, and the stiffness asymmetry Ak(x_peak).
-    let a = (-range[0]).min(range[1]);
-    let amps: Vec<f64> = (1..=19).map(|k| 0.05 * k as f64 * a).collect();
-    let sym = |f: &coilscope_core::Poly| amps.iter().filter_map(|&amp| coilscope_core::limits::symmetry_point(f, amp, range).map(|s| (amp * 1e3, s * 1e3))).collect::<Vec<_>>();
-    let ak: Vec<(f64, f64)> = amps.iter().map(|&amp| (amp * 1e3, 100.0 * (p.kms.eval(amp) - p.kms.eval(-amp)) / p.kms.eval(amp).max(p.kms.eval(-amp)))).collect();
-    let (bl_sym, kms_sym) = (sym(&p.bl), sym(&p.kms));
-    if !bl_sym.is_empty() {
+        // --- Curves ---------------------------------------------------------------------------
+        b.section("Nonlinear parameters", "Solid: identified curve over the reached range; shaded: +-2 standard deviations (when the result carries them); dashed verticals: the reached range and the limits.");
+        let bl_band = band_of(result, "Bl");
+        let kms_band = band_of(result, "Kms");
+        let le_band = band_of(result, "Le");
+        let cms_band = kms_band.as_ref().map(|v| v.iter().map(|(x, k, s)| (*x, 1.0 / k, s / (k * k))).collect());
+        let xbl_label = format!("XBl ({:.0} %)", th.bl * 100.0);
+        let xc_label = format!("XC ({:.0} %)", th.cms * 100.0);
+        let xl_label = format!("XL ({:.0} %)", th.le * 100.0);
+        let cmp = input.compare.as_deref();
+        let cmp_name = cmp.map(|c| format!("{} ({})", method_label(c), c.result.as_ref().map_or(c.title.as_str(), |r| r.recording.as_str())));
+        let over = |g: &dyn Fn(&Parameters, f64) -> f64| -> Option<(&str, Vec<(f64, f64)>)> { cmp.map(|c| (cmp_name.as_deref().unwrap_or_default(), grid(c.range, 120).into_iter().map(|x| (x * 1e3, g(&c.params, x))).collect())) };
+        b.chart(curve_chart("bl", "Bl(x)", "Bl (T m)", &|x| p.bl.eval(x), bl_band, range, lim.xbl.map(|v| (v, xbl_label.as_str())), over(&|q, x| q.bl.eval(x))), "Force factor.")?;
+        b.chart(curve_chart("kms", "Kms(x)", "Kms (N/m)", &|x| p.kms.eval(x), kms_band, range, None, over(&|q, x| q.kms.eval(x))), "Secant stiffness of the suspension.")?;
         b.chart(
+            curve_chart(
+                "cms",
+                "Cms(x)",
+                "Cms (mm/N)",
+                &|x| 1e3 / p.kms.eval(x),
+                cms_band.map(|v: Vec<(f64, f64, f64)>| v.into_iter().map(|(x, c, s)| (x, c * 1e3, s * 1e3)).collect()),
+                range,
+                lim.xc.map(|v| (v, xc_label.as_str())),
+                over(&|q, x| 1e3 / q.kms.eval(x)),
+            ),
+            "Compliance 1/Kms(x).",
+        )?;
+        b.chart(
+            curve_chart("le", "Le(x)", "Le (mH)", &|x| 1e3 * p.le.eval(x), le_band.map(|v| v.into_iter().map(|(x, l, s)| (x, l * 1e3, s * 1e3)).collect()), range, lim.xl.map(|v| (v, xl_label.as_str())), over(&|q, x| 1e3 * q.le.eval(x))),
+            "Voice-coil inductance; it should rise toward the back plate (x < 0).",
+        )?;
+        // Symmetry against amplitude (as LSI plots it): the offset that makes Bl(x) and Kms(x)
+        // symmetric over +-x_peak, and the stiffness asymmetry Ak(x_peak).
+        let a = (-range[0]).min(range[1]);
+        let amps: Vec<f64> = (1..=19).map(|k| 0.05 * k as f64 * a).collect();
+        let sym = |f: &coilscope_core::Poly| amps.iter().filter_map(|&amp| coilscope_core::limits::symmetry_point(f, amp, range).map(|s| (amp * 1e3, s * 1e3))).collect::<Vec<_>>();
+        let ak: Vec<(f64, f64)> = amps.iter().map(|&amp| (amp * 1e3, 100.0 * (p.kms.eval(amp) - p.kms.eval(-amp)) / p.kms.eval(amp).max(p.kms.eval(-amp)))).collect();
+        let (bl_sym, kms_sym) = (sym(&p.bl), sym(&p.kms));
+        if !bl_sym.is_empty() {
+            b.chart(
             Chart::new("bl-symmetry", "Bl symmetry point against amplitude", "amplitude x_peak (mm)", "Xsym (mm), + = coil out").line("Xsym of Bl", bl_sym.clone()),
             "The rest-position offset that would make Bl(x) symmetric over +-x_peak (Bl(Xsym - x_peak) = Bl(Xsym + x_peak)). A coil off the gap's centre shows as an offset that stays the same over amplitude; an asymmetric field, as one that changes.",
         )?;
-    }
-    if !kms_sym.is_empty() {
+        }
+        if !kms_sym.is_empty() {
+            b.chart(
+                Chart::new("kms-symmetry", "Kms symmetry point against amplitude", "amplitude x_peak (mm)", "offset (mm), + = coil out").line("Kms symmetry point", kms_sym.clone()),
+                "The offset that would make Kms(x) symmetric over +-x_peak: where the suspension is centred at each amplitude.",
+            )?;
+        }
         b.chart(
-            Chart::new("kms-symmetry", "Kms symmetry point against amplitude", "amplitude x_peak (mm)", "offset (mm), + = coil out").line("Kms symmetry point", kms_sym.clone()),
-            "The offset that would make Kms(x) symmetric over +-x_peak: where the suspension is centred at each amplitude.",
+            Chart::new("ak", "Stiffness asymmetry Ak against amplitude", "amplitude x_peak (mm)", "Ak (%)").line("Ak", ak.clone()),
+            "Ak(x_peak) = (Kms(x_peak) - Kms(-x_peak)) / the larger of the two (IEC 62458): the suspension's asymmetry at each amplitude; it drives a DC displacement.",
         )?;
-    }
-    b.chart(
-        Chart::new("ak", "Stiffness asymmetry Ak against amplitude", "amplitude x_peak (mm)", "Ak (%)").line("Ak", ak.clone()),
-        "Ak(x_peak) = (Kms(x_peak) - Kms(-x_peak)) / the larger of the two (IEC 62458): the suspension's asymmetry at each amplitude; it drives a DC displacement.",
-    )?;
-    let mut sc = String::from("x_peak_mm,Xsym_Bl_mm,Xsym_Kms_mm,Ak_percent\n");
-    for (k, &amp) in amps.iter().enumerate() {
-        let find = |v: &[(f64, f64)]| v.iter().find(|(x, _)| (x - amp * 1e3).abs() < 1e-12).map_or(String::new(), |(_, s)| format!("{s:.5}"));
-        let _ = writeln!(sc, "{:.5},{},{},{:.4}", amp * 1e3, find(&bl_sym), find(&kms_sym), ak[k].1);
-    }
-    csv.push(("symmetry.csv".to_string(), sc));
-    if let Some(c) = cmp {
-        compare_section(&mut b, &mut csv, input, c);
-    }
-    let mut c = String::from("x_mm,Bl_Tm,Kms_N_per_m,Cms_mm_per_N,Le_mH\n");
-    for x in grid(range, 100) {
-        let _ = writeln!(c, "{:.5},{:.6},{:.4},{:.6},{:.6}", x * 1e3, p.bl.eval(x), p.kms.eval(x), 1e3 / p.kms.eval(x), 1e3 * p.le.eval(x));
-    }
-    csv.push(("curves.csv".to_string(), c));
-
+        let mut sc = String::from("x_peak_mm,Xsym_Bl_mm,Xsym_Kms_mm,Ak_percent\n");
+        for (k, &amp) in amps.iter().enumerate() {
+            let find = |v: &[(f64, f64)]| v.iter().find(|(x, _)| (x - amp * 1e3).abs() < 1e-12).map_or(String::new(), |(_, s)| format!("{s:.5}"));
+            let _ = writeln!(sc, "{:.5},{},{},{:.4}", amp * 1e3, find(&bl_sym), find(&kms_sym), ak[k].1);
+        }
+        csv.push(("symmetry.csv".to_string(), sc));
+        if let Some(c) = cmp {
+            compare_section(&mut b, &mut csv, input, c);
+        }
+        let mut c = String::from("x_mm,Bl_Tm,Kms_N_per_m,Cms_mm_per_N,Le_mH\n");
+        for x in grid(range, 100) {
+            let _ = writeln!(c, "{:.5},{:.6},{:.4},{:.6},{:.6}", x * 1e3, p.bl.eval(x), p.kms.eval(x), 1e3 / p.kms.eval(x), 1e3 * p.le.eval(x));
+        }
+        csv.push(("curves.csv".to_string(), c));
     } else {
         b.html.push_str("<p>This is a small-signal result: its Bl, Kms and Le are constants, so it has no nonlinear curves, displacement limits or distortion to show. Measure the large-signal parameters with <code>coilscope measure</code> or <code>coilscope identify</code>.</p>");
     }
@@ -392,10 +397,7 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         // A measured thermal model (a long `measure` run fits it): its values with their sds.
         let sd = |k: &str| unc.value(&format!("thermal.{k}"));
         if let (Some(a), Some(b), Some(c), Some(d)) = (sd("Rtv"), sd("Ctv"), sd("Rtm"), sd("Ctm")) {
-            rows.push(vec![
-                "Thermal model (fitted to this run's rise)".into(),
-                format!("Rtv {:.3} ± {a:.3} K/W, Ctv {:.2} ± {b:.2} J/K, Rtm {:.3} ± {c:.3} K/W, Ctm {:.0} ± {d:.0} J/K", th.rtv, th.ctv, th.rtm, th.ctm),
-            ]);
+            rows.push(vec!["Thermal model (fitted to this run's rise)".into(), format!("Rtv {:.3} ± {a:.3} K/W, Ctv {:.2} ± {b:.2} J/K, Rtm {:.3} ± {c:.3} K/W, Ctm {:.0} ± {d:.0} J/K", th.rtv, th.ctv, th.rtm, th.ctm)]);
         }
     }
     if let Some(t) = &diag.thermal {
@@ -443,75 +445,75 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
 
     let mut divergence = None;
     if nonlinear {
-    b.section(
+        b.section(
         "Distortion",
         &format!("Predicted by simulating the identified model to its periodic steady state (sine of {volts:.2} V RMS; sound pressure in the far field, proportional to cone acceleration). Each nonlinearity's contribution is the model with only that nonlinearity left."),
     );
-    let line = |f: &dyn Fn(&Analysis) -> f64| sweep.iter().map(|a| (a.total.freq, dbp(f(a)))).collect::<Vec<_>>();
-    b.chart(
-        Chart::new("hd", "Harmonic distortion", "frequency (Hz)", "dB re fundamental").log_x().floor(DB_FLOOR).line("HD2", line(&|a| a.total.hd(2))).line("HD3", line(&|a| a.total.hd(3))).line("THD", line(&|a| a.total.thd())).marker(ts.fs, "fs"),
-        "HD2, HD3 and THD of the sound pressure over frequency.",
-    )?;
-    for order in [2usize, 3] {
-        let mut c = Chart::new(&format!("contrib-hd{order}"), &format!("HD{order}: each nonlinearity alone"), "frequency (Hz)", "dB re fundamental").log_x().floor(DB_FLOOR).line("total", line(&|a| a.total.hd(order)));
-        for (k, nl) in Nonlinearity::ALL.iter().enumerate() {
-            c = c.dashed(nl.name(), sweep.iter().map(|a| (a.total.freq, dbp(a.parts[k].1.hd(order)))).collect());
+        let line = |f: &dyn Fn(&Analysis) -> f64| sweep.iter().map(|a| (a.total.freq, dbp(f(a)))).collect::<Vec<_>>();
+        b.chart(
+            Chart::new("hd", "Harmonic distortion", "frequency (Hz)", "dB re fundamental").log_x().floor(DB_FLOOR).line("HD2", line(&|a| a.total.hd(2))).line("HD3", line(&|a| a.total.hd(3))).line("THD", line(&|a| a.total.thd())).marker(ts.fs, "fs"),
+            "HD2, HD3 and THD of the sound pressure over frequency.",
+        )?;
+        for order in [2usize, 3] {
+            let mut c = Chart::new(&format!("contrib-hd{order}"), &format!("HD{order}: each nonlinearity alone"), "frequency (Hz)", "dB re fundamental").log_x().floor(DB_FLOOR).line("total", line(&|a| a.total.hd(order)));
+            for (k, nl) in Nonlinearity::ALL.iter().enumerate() {
+                c = c.dashed(nl.name(), sweep.iter().map(|a| (a.total.freq, dbp(a.parts[k].1.hd(order)))).collect());
+            }
+            b.chart(c, &format!("HD{order} of the full model (solid) and of each nonlinearity alone (dashed)."))?;
         }
-        b.chart(c, &format!("HD{order} of the full model (solid) and of each nonlinearity alone (dashed)."))?;
-    }
-    let mut c = String::from("f_Hz,HD2_dB,HD3_dB,THD_dB,HD2_Bl_dB,HD2_Kms_dB,HD2_Le_dB,HD3_Bl_dB,HD3_Kms_dB,HD3_Le_dB,x_dc_mm,dominant\n");
-    for a in &sweep {
-        let _ = write!(c, "{:.3},{:.3},{:.3},{:.3}", a.total.freq, db(a.total.hd(2)), db(a.total.hd(3)), db(a.total.thd()));
-        for order in [2, 3] {
-            for (_, h) in &a.parts {
-                let _ = write!(c, ",{:.3}", db(h.hd(order)));
+        let mut c = String::from("f_Hz,HD2_dB,HD3_dB,THD_dB,HD2_Bl_dB,HD2_Kms_dB,HD2_Le_dB,HD3_Bl_dB,HD3_Kms_dB,HD3_Le_dB,x_dc_mm,dominant\n");
+        for a in &sweep {
+            let _ = write!(c, "{:.3},{:.3},{:.3},{:.3}", a.total.freq, db(a.total.hd(2)), db(a.total.hd(3)), db(a.total.thd()));
+            for order in [2, 3] {
+                for (_, h) in &a.parts {
+                    let _ = write!(c, ",{:.3}", db(h.hd(order)));
+                }
+            }
+            let _ = writeln!(c, ",{:.5},{}", a.total.x_dc * 1e3, a.dominant().key());
+        }
+        csv.push(("distortion.csv".to_string(), c));
+
+        // Volterra against the full model over level, at resonance.
+        let f_v = ts.fs;
+        let v_top = level_for_excursion(p, &[f_v], 0.9 * (-range[0]).min(range[1]));
+        let levels: Vec<f64> = (0..=12).map(|k| v_top * 10f64.powf((k as f64 - 12.0) / 10.0)).collect();
+        let mut rows_v = Vec::new();
+        for &v in &levels {
+            if let Ok(r) = level_sweep(p, f_v, &[v], Output::Pressure, &sopts) {
+                rows_v.extend(r);
             }
         }
-        let _ = writeln!(c, ",{:.5},{}", a.total.x_dc * 1e3, a.dominant().key());
-    }
-    csv.push(("distortion.csv".to_string(), c));
-
-    // Volterra against the full model over level, at resonance.
-    let f_v = ts.fs;
-    let v_top = level_for_excursion(p, &[f_v], 0.9 * (-range[0]).min(range[1]));
-    let levels: Vec<f64> = (0..=12).map(|k| v_top * 10f64.powf((k as f64 - 12.0) / 10.0)).collect();
-    let mut rows_v = Vec::new();
-    for &v in &levels {
-        if let Ok(r) = level_sweep(p, f_v, &[v], Output::Pressure, &sopts) {
-            rows_v.extend(r);
+        divergence = divergence_level(&rows_v, 1.0);
+        let mut c = Chart::new("volterra", &format!("Volterra series vs full model at {:.1} Hz", f_v), "level (V RMS)", "dB re fundamental")
+            .floor(DB_FLOOR)
+            .log_x()
+            .line("HD2 full", rows_v.iter().map(|r| (r.volts, dbp(r.full.hd(2)))).collect())
+            .line("HD3 full", rows_v.iter().map(|r| (r.volts, dbp(r.full.hd(3)))).collect())
+            .dashed("HD2 Volterra", rows_v.iter().map(|r| (r.volts, dbp(r.volterra.0))).collect())
+            .dashed("HD3 Volterra", rows_v.iter().map(|r| (r.volts, dbp(r.volterra.1))).collect());
+        if let Some(v) = divergence {
+            c = c.marker(v, "Volterra off by 1 dB");
         }
-    }
-    divergence = divergence_level(&rows_v, 1.0);
-    let mut c = Chart::new("volterra", &format!("Volterra series vs full model at {:.1} Hz", f_v), "level (V RMS)", "dB re fundamental")
-        .floor(DB_FLOOR)
-        .log_x()
-        .line("HD2 full", rows_v.iter().map(|r| (r.volts, dbp(r.full.hd(2)))).collect())
-        .line("HD3 full", rows_v.iter().map(|r| (r.volts, dbp(r.full.hd(3)))).collect())
-        .dashed("HD2 Volterra", rows_v.iter().map(|r| (r.volts, dbp(r.volterra.0))).collect())
-        .dashed("HD3 Volterra", rows_v.iter().map(|r| (r.volts, dbp(r.volterra.1))).collect());
-    if let Some(v) = divergence {
-        c = c.marker(v, "Volterra off by 1 dB");
-    }
-    b.chart(
-        c,
-        &match divergence {
-            Some(v) => format!("The third-order Volterra series follows the model at small level and fails from {v:.2} V (off by more than 1 dB): the distortion feeds back into its own generation."),
-            None => "The third-order Volterra series stays within 1 dB of the model over the levels shown.".to_string(),
-        },
-    )?;
-    let mut c = String::from("volts_rms,HD2_full_dB,HD3_full_dB,HD2_volterra_dB,HD3_volterra_dB\n");
-    for r in &rows_v {
-        let _ = writeln!(c, "{:.5},{:.3},{:.3},{:.3},{:.3}", r.volts, db(r.full.hd(2)), db(r.full.hd(3)), db(r.volterra.0), db(r.volterra.1));
-    }
-    csv.push(("volterra.csv".to_string(), c));
-    // The Volterra identification (seed paper 3.2.2.1) against level, on this model.
-    let nonlinear = [&p.bl, &p.kms, &p.le].iter().any(|f| f.c.len() > 1);
-    if nonlinear {
-        let model = Parameters { x_range: Some(range), ..p.clone() };
-        let fracs = [0.025, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9];
-        if let Ok(rows) = coilscope_ident::volterra::level_study(&model, &fracs) {
-            let pct = |k: usize| rows.iter().map(|r| (100.0 * r.frac, db(r.err[k]))).collect::<Vec<_>>();
-            b.chart(
+        b.chart(
+            c,
+            &match divergence {
+                Some(v) => format!("The third-order Volterra series follows the model at small level and fails from {v:.2} V (off by more than 1 dB): the distortion feeds back into its own generation."),
+                None => "The third-order Volterra series stays within 1 dB of the model over the levels shown.".to_string(),
+            },
+        )?;
+        let mut c = String::from("volts_rms,HD2_full_dB,HD3_full_dB,HD2_volterra_dB,HD3_volterra_dB\n");
+        for r in &rows_v {
+            let _ = writeln!(c, "{:.5},{:.3},{:.3},{:.3},{:.3}", r.volts, db(r.full.hd(2)), db(r.full.hd(3)), db(r.volterra.0), db(r.volterra.1));
+        }
+        csv.push(("volterra.csv".to_string(), c));
+        // The Volterra identification (seed paper 3.2.2.1) against level, on this model.
+        let nonlinear = [&p.bl, &p.kms, &p.le].iter().any(|f| f.c.len() > 1);
+        if nonlinear {
+            let model = Parameters { x_range: Some(range), ..p.clone() };
+            let fracs = [0.025, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9];
+            if let Ok(rows) = coilscope_ident::volterra::level_study(&model, &fracs) {
+                let pct = |k: usize| rows.iter().map(|r| (100.0 * r.frac, db(r.err[k]))).collect::<Vec<_>>();
+                b.chart(
                 Chart::new("volterra-identification", "Volterra identification against level (this model)", "peak displacement (% of the range)", "error (dB re the 2nd-order nonlinearity)")
                     .log_x()
                     .line("Bl", pct(0))
@@ -519,55 +521,54 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
                     .line("Le", pct(2)),
                 "Bl, Kms and Le fitted to the Volterra kernels (H2, H3) of a readable multitone run on this model, against the peak displacement: the method is exact where the third-order series is (small level) and fails as the distortion feeds back into the nonlinearities (seed paper 3.2.2.1). The error is the largest difference from the model's own second-order series over half the range, over the size of that series' nonlinearity (0 dB: an error as large as the nonlinearity; -20 dB: 10 %). `identify --method volterra` warns on a record where this happens; the full identification has no such limit.",
             )?;
-            let mut c = String::from("x_peak_over_range,volts_rms,Bl_error,Kms_error,Le_error,kernel_misfit\n");
-            for r in &rows {
-                let _ = writeln!(c, "{:.4},{:.5},{:.5},{:.5},{:.5},{:.4e}", r.frac, r.volts, r.err[0], r.err[1], r.err[2], r.misfit);
+                let mut c = String::from("x_peak_over_range,volts_rms,Bl_error,Kms_error,Le_error,kernel_misfit\n");
+                for r in &rows {
+                    let _ = writeln!(c, "{:.4},{:.5},{:.5},{:.5},{:.5},{:.4e}", r.frac, r.volts, r.err[0], r.err[1], r.err[2], r.misfit);
+                }
+                csv.push(("volterra_identification.csv".to_string(), c));
             }
-            csv.push(("volterra_identification.csv".to_string(), c));
         }
-    }
-    let kern: Vec<(f64, [realfft::num_complex::Complex64; 3])> = freqs.iter().map(|&f| (f, volterra::probe(&distortion::with_only(p, &Nonlinearity::ALL, 0.0), f).kernels())).collect();
-    b.chart(
-        Chart::new("kernels", "Volterra kernels on the diagonal (displacement)", "frequency (Hz)", "dB re 1 m/V^n")
-            .log_x()
-            .line("|H1(f)|", kern.iter().map(|(f, k)| (*f, db(k[0].norm()))).collect())
-            .line("|H2(f,f)|", kern.iter().map(|(f, k)| (*f, db(k[1].norm()))).collect())
-            .line("|H3(f,f,f)|", kern.iter().map(|(f, k)| (*f, db(k[2].norm()))).collect()),
-        "First three kernels' transfer functions, from the power series by harmonic probing.",
-    )?;
-
-    // Two-tone IMD and multitone.
-    let mut drows = Vec::new();
-    for f in [ts.fs / 2.0, ts.fs, 3.0 * ts.fs] {
-        if let Ok(a) = sweep_point(p, f, volts, &sopts) {
-            drows.push(vec![format!("sine {f:.1} Hz"), format!("{:.1} dB", db(a.total.hd(2))), format!("{:.1} dB", db(a.total.hd(3))), format!("{:.1} dB", db(a.total.thd())), format!("{:+.3} mm", a.total.x_dc * 1e3), a.dominant().name().into()]);
-        }
-    }
-    let (f1, f2) = (ts.fs.max(10.0), (ts.fs * 20.0).max(700.0).min(4000.0) + 0.37 * ts.fs);
-    if let Ok(im) = intermod(p, f1, f2, volts, 1.0, Output::Pressure, &sopts) {
-        drows.push(vec![format!("two-tone {:.1} + {:.1} Hz", im.f1, im.f2), format!("d2 {:.1} dB", db(im.d2)), format!("d3 {:.1} dB", db(im.d3)), String::new(), format!("{:+.3} mm", im.x_dc * 1e3), String::new()]);
-    }
-    b.table(&["excitation", "HD2 / d2", "HD3 / d3", "THD", "DC displacement", "dominant"], &drows);
-    if let Ok(mt) = multitone(p, f_lo, 10_000.0, 30, volts, Output::Pressure, 1, &sopts) {
-        let ref_level = (mt.tones.iter().map(|t| t.1 * t.1).sum::<f64>() / mt.tones.len() as f64).sqrt();
-        let bands = log_frequencies(f_lo, 20_000.0, 3);
-        let dist: Vec<(f64, f64)> = bands
-            .windows(2)
-            .filter_map(|w| {
-                let pw: f64 = mt.distortion.iter().filter(|(f, _)| *f >= w[0] && *f < w[1]).map(|(_, a)| a * a).sum();
-                (pw > 0.0).then(|| ((w[0] * w[1]).sqrt(), db(pw.sqrt() / ref_level)))
-            })
-            .collect();
+        let kern: Vec<(f64, [realfft::num_complex::Complex64; 3])> = freqs.iter().map(|&f| (f, volterra::probe(&distortion::with_only(p, &Nonlinearity::ALL, 0.0), f).kernels())).collect();
         b.chart(
-            Chart::new("multitone", &format!("Multitone distortion (30 tones, MTD {:.1} dB)", db(mt.mtd)), "frequency (Hz)", "dB re mean tone")
-                .floor(DB_FLOOR)
+            Chart::new("kernels", "Volterra kernels on the diagonal (displacement)", "frequency (Hz)", "dB re 1 m/V^n")
                 .log_x()
-                .line("tones", mt.tones.iter().map(|(f, a)| (*f, dbp(a / ref_level))).collect())
-                .line("distortion per 1/3 octave", dist),
-            "Sound-pressure spectrum of a 30-tone multitone: the tones and the distortion that falls between them.",
+                .line("|H1(f)|", kern.iter().map(|(f, k)| (*f, db(k[0].norm()))).collect())
+                .line("|H2(f,f)|", kern.iter().map(|(f, k)| (*f, db(k[1].norm()))).collect())
+                .line("|H3(f,f,f)|", kern.iter().map(|(f, k)| (*f, db(k[2].norm()))).collect()),
+            "First three kernels' transfer functions, from the power series by harmonic probing.",
         )?;
-    }
 
+        // Two-tone IMD and multitone.
+        let mut drows = Vec::new();
+        for f in [ts.fs / 2.0, ts.fs, 3.0 * ts.fs] {
+            if let Ok(a) = sweep_point(p, f, volts, &sopts) {
+                drows.push(vec![format!("sine {f:.1} Hz"), format!("{:.1} dB", db(a.total.hd(2))), format!("{:.1} dB", db(a.total.hd(3))), format!("{:.1} dB", db(a.total.thd())), format!("{:+.3} mm", a.total.x_dc * 1e3), a.dominant().name().into()]);
+            }
+        }
+        let (f1, f2) = (ts.fs.max(10.0), (ts.fs * 20.0).clamp(700.0, 4000.0) + 0.37 * ts.fs);
+        if let Ok(im) = intermod(p, f1, f2, volts, 1.0, Output::Pressure, &sopts) {
+            drows.push(vec![format!("two-tone {:.1} + {:.1} Hz", im.f1, im.f2), format!("d2 {:.1} dB", db(im.d2)), format!("d3 {:.1} dB", db(im.d3)), String::new(), format!("{:+.3} mm", im.x_dc * 1e3), String::new()]);
+        }
+        b.table(&["excitation", "HD2 / d2", "HD3 / d3", "THD", "DC displacement", "dominant"], &drows);
+        if let Ok(mt) = multitone(p, f_lo, 10_000.0, 30, volts, Output::Pressure, 1, &sopts) {
+            let ref_level = (mt.tones.iter().map(|t| t.1 * t.1).sum::<f64>() / mt.tones.len() as f64).sqrt();
+            let bands = log_frequencies(f_lo, 20_000.0, 3);
+            let dist: Vec<(f64, f64)> = bands
+                .windows(2)
+                .filter_map(|w| {
+                    let pw: f64 = mt.distortion.iter().filter(|(f, _)| *f >= w[0] && *f < w[1]).map(|(_, a)| a * a).sum();
+                    (pw > 0.0).then(|| ((w[0] * w[1]).sqrt(), db(pw.sqrt() / ref_level)))
+                })
+                .collect();
+            b.chart(
+                Chart::new("multitone", &format!("Multitone distortion (30 tones, MTD {:.1} dB)", db(mt.mtd)), "frequency (Hz)", "dB re mean tone")
+                    .floor(DB_FLOOR)
+                    .log_x()
+                    .line("tones", mt.tones.iter().map(|(f, a)| (*f, dbp(a / ref_level))).collect())
+                    .line("distortion per 1/3 octave", dist),
+                "Sound-pressure spectrum of a 30-tone multitone: the tones and the distortion that falls between them.",
+            )?;
+        }
     }
 
     // --- Impedance --------------------------------------------------------------------------
@@ -639,7 +640,7 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
             // The dominant nonlinearity over the run: its share of the seconds, and when it changed.
             let dom: Vec<&str> = d.iter().map(|q| if pick == 0 { q.dominant_x.as_str() } else { q.dominant_p.as_str() }).collect();
             let mut counts: Vec<(&str, usize)> = ["Bl", "Kms", "Le"].iter().map(|n| (*n, dom.iter().filter(|d| *d == n).count())).collect();
-            counts.sort_by(|a, b| b.1.cmp(&a.1));
+            counts.sort_by_key(|c| std::cmp::Reverse(c.1));
             let changes: Vec<String> = dom.windows(2).zip(d.iter().skip(1)).filter(|(w, _)| w[0] != w[1]).map(|(w, q)| format!("{} from {:.0} s", w[1], q.t)).collect();
             let text = format!(
                 "Each nonlinearity's contribution to the {title}, from the live model (RMS over each second, relative to the signal's RMS). Dominant: {} in {} of {} s{}.",

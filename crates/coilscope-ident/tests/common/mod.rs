@@ -44,13 +44,7 @@ pub struct Errors {
 
 impl Errors {
     pub fn of(q: &Parameters, truth: &Parameters, range: [f64; 2]) -> Self {
-        Errors {
-            bl: worst(&q.bl, &truth.bl, range),
-            kms: worst(&q.kms, &truth.kms, range),
-            le: worst(&q.le, &truth.le, range),
-            re: (q.re / truth.re - 1.0).abs(),
-            rms: (q.rms / truth.rms - 1.0).abs(),
-        }
+        Errors { bl: worst(&q.bl, &truth.bl, range), kms: worst(&q.kms, &truth.kms, range), le: worst(&q.le, &truth.le, range), re: (q.re / truth.re - 1.0).abs(), rms: (q.rms / truth.rms - 1.0).abs() }
     }
 }
 

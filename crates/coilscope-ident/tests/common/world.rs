@@ -108,6 +108,9 @@ impl Card {
         // at half of the fundamental.
         let rms = coilscope_core::simulate::rms;
         let (au, ai) = (1e-3 * rms(u) * 2f64.sqrt() / 1.25f64.sqrt(), 1e-3 * rms(i) * 2f64.sqrt() / 1.25f64.sqrt());
+        // 6.28, not TAU: the seeded phases of the recorded cases stay the ones their figures
+        // came from.
+        #[allow(clippy::approx_constant)]
         let ph: [f64; 4] = std::array::from_fn(|_| rng.random_range(0.0..6.28));
         let hum = Hum { f: mains, u: vec![[au, ph[0]], [0.0, 0.0], [0.5 * au, ph[1]]], i: vec![[ai, ph[2]], [0.0, 0.0], [0.5 * ai, ph[3]]] };
         let voltage_late = rng.random_bool(0.5);
