@@ -134,17 +134,9 @@ pub fn impedance_curve(p: &Parameters, f_lo: f64, f_hi: f64, points: usize) -> c
 }
 
 /// `.frd` text of an impedance (frequency Hz, magnitude ohm, phase degrees; `*` comments),
-/// as crossover tools (VituixCAD, XSim) read impedance in FRD form.
+/// as crossover tools (VituixCAD, XSim) read impedance in FRD form: the `.zma` layout.
 pub fn frd_text(curve: &crate::impedance::ImpedanceCurve) -> String {
-    let mut out = String::new();
-    for c in &curve.comments {
-        out.push_str(&format!("* {c}\n"));
-    }
-    out.push_str("* Freq(Hz) Impedance(Ohm) Phase(Deg)\n");
-    for (f, z) in curve.f.iter().zip(&curve.z) {
-        out.push_str(&format!("{:.6} {:.6} {:.4}\n", f, z.norm(), z.arg().to_degrees()));
-    }
-    out
+    crate::impedance::curve_text(curve, "Impedance")
 }
 
 #[cfg(test)]

@@ -181,11 +181,17 @@ pub fn read_impedance(path: &Path) -> Result<ImpedanceCurve, IoError> {
 /// (Hz, ohm, degrees) with 9 significant digits, so that reading it back gives the curve to
 /// 1e-8 relative.
 pub fn zma_text(curve: &ImpedanceCurve) -> String {
+    curve_text(curve, "Magnitude")
+}
+
+/// The text of [`zma_text`] with `magnitude` naming the second column (`.frd` files of an
+/// impedance call it `Impedance`; the layout is the same).
+pub fn curve_text(curve: &ImpedanceCurve, magnitude: &str) -> String {
     let mut out = String::new();
     for c in &curve.comments {
         out.push_str(&format!("* {c}\n"));
     }
-    out.push_str("* Freq(Hz) Magnitude(Ohm) Phase(Deg)\n");
+    out.push_str(&format!("* Freq(Hz) {magnitude}(Ohm) Phase(Deg)\n"));
     for (f, z) in curve.f.iter().zip(&curve.z) {
         out.push_str(&format!("{:.9e} {:.9e} {:+.9e}\n", f, z.norm(), z.arg().to_degrees()));
     }
