@@ -177,16 +177,20 @@ pub fn fit_series(x: &[f64], y: &[f64], order: usize) -> Poly {
     Poly { c: (0..=n).map(|j| c[j] / scale.powi(j as i32)).collect() }
 }
 
-/// [`fit_series`] weighted by the points' sds, with the band of the fitted series on
-/// `grid`: the coefficients' covariance `(A'WA)^-1` scaled by `max(1, chi^2/dof)`.
+/// [`fit_series`] with its band on `grid`: the reported series itself (the band's values
+/// are the curve the result carries) and the sd of that least-squares estimator from the
+/// points' sds, `B A' diag(sd^2) A B` with `B = (A'A)^-1`, scaled up by the points' chi^2
+/// per degree of freedom about the series where above 1 (what the order leaves between
+/// them). A point without a usable sd takes the smallest of the others.
 pub fn fit_series_band(x: &[f64], y: &[f64], sd: &[f64], order: usize, grid: &[f64]) -> (Poly, coilscope_core::result::Band) {
-    let n = order.min(x.len().saturating_sub(1));
+    let poly = fit_series(x, y, order);
+    let n = poly.c.len() - 1;
     let scale = x.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-9);
     let floor = sd.iter().cloned().filter(|v| v.is_finite() && *v > 0.0).fold(f64::INFINITY, f64::min);
-    let w: Vec<f64> = sd
+    let sd: Vec<f64> = sd
         .iter()
         .map(|&s| {
-            1.0 / if s.is_finite() && s > 0.0 {
+            if s.is_finite() && s > 0.0 {
                 s
             } else if floor.is_finite() {
                 floor
@@ -195,14 +199,11 @@ pub fn fit_series_band(x: &[f64], y: &[f64], sd: &[f64], order: usize, grid: &[f
             }
         })
         .collect();
-    let a = DMatrix::from_fn(x.len(), n + 1, |r, c| w[r] * (x[r] / scale).powi(c as i32));
-    let b = DVector::from_iterator(y.len(), y.iter().zip(&w).map(|(v, w)| v * w));
-    let c = a.clone().svd(true, true).solve(&b, 1e-12).unwrap_or_else(|_| DVector::zeros(n + 1));
-    let r = &a * &c - &b;
-    let dof = (x.len() as f64 - (n + 1) as f64).max(1.0);
-    let s2 = (r.norm_squared() / dof).max(1.0);
-    let cov = (a.transpose() * &a).try_inverse().map(|m| m * s2).unwrap_or_else(|| DMatrix::from_element(n + 1, n + 1, f64::NAN));
-    let poly = Poly { c: (0..=n).map(|j| c[j] / scale.powi(j as i32)).collect() };
+    let a = DMatrix::from_fn(x.len(), n + 1, |r, c| (x[r] / scale).powi(c as i32));
+    let chi2: f64 = x.iter().zip(y).zip(&sd).map(|((&xv, &yv), s)| ((yv - poly.eval(xv)) / s).powi(2)).sum();
+    let s2 = (chi2 / (x.len() as f64 - (n + 1) as f64).max(1.0)).max(1.0);
+    let meat = a.transpose() * DMatrix::from_diagonal(&DVector::from_iterator(sd.len(), sd.iter().map(|s| s * s))) * &a;
+    let cov = (a.transpose() * &a).try_inverse().map(|b| &b * meat * &b * s2).unwrap_or_else(|| DMatrix::from_element(n + 1, n + 1, f64::NAN));
     let value = grid.iter().map(|&v| poly.eval(v)).collect();
     let sdv = grid
         .iter()
@@ -298,15 +299,19 @@ pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<(Vec<f64>, Vec<
     pts.sort_by(|a, b| a.x_dc.total_cmp(&b.x_dc));
     // Two passes: series from the points, then the DC terms taken off with their derivatives.
     let xs: Vec<f64> = pts.iter().map(|p| p.x_dc).collect();
-    let le = fit_series(&xs, &pts.iter().map(|p| p.le).collect::<Vec<_>>(), opts.order);
+    // Each series with its band over the points' span (the band's values are the series).
+    let span: Vec<f64> = (0..21).map(|k| xs[0] + (xs[xs.len() - 1] - xs[0]) * k as f64 / 20.0).collect();
+    let col = |pts: &[WorkingPoint], f: &dyn Fn(&WorkingPoint) -> f64| pts.iter().map(f).collect::<Vec<f64>>();
+    let (le, le_band) = fit_series_band(&xs, &col(&pts, &|p| p.le), &col(&pts, &|p| p.le_sd), opts.order, &span);
     let dle = le.derivative();
     let ddle = dle.derivative();
-    let mut bl = fit_series(&xs, &pts.iter().map(|p| p.bl_eff).collect::<Vec<_>>(), opts.order);
+    let mut bl = fit_series(&xs, &col(&pts, &|p| p.bl_eff), opts.order);
+    let mut bl_band = Default::default();
     for _ in 0..2 {
         for p in pts.iter_mut() {
             p.bl = p.bl_eff - dle.eval(p.x_dc) * p.i_dc;
         }
-        bl = fit_series(&xs, &pts.iter().map(|p| p.bl).collect::<Vec<_>>(), opts.order);
+        (bl, bl_band) = fit_series_band(&xs, &col(&pts, &|p| p.bl), &col(&pts, &|p| p.bl_sd), opts.order, &span);
     }
     let dbl = bl.derivative();
     for p in pts.iter_mut() {
@@ -326,14 +331,8 @@ pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<(Vec<f64>, Vec<
         let seen: Vec<String> = pts.iter().map(|p| format!("{:.3} V: x {:.4} mm, Bl_eff {:.4}", p.u_dc, p.x_dc * 1e3, p.bl_eff)).collect();
         return Err(format!("only {} working point(s) gave a static stiffness, at least 2 are needed: the coil did not move off rest, or the small-signal fits at the points failed (raise the small signal's level) ({})", kx.len(), seen.join(", ")));
     }
-    let kms = fit_series(&kx, &ky, opts.order);
-    // The bands: the same series, weighted by the points' sds, over the points' span.
-    let span: Vec<f64> = (0..21).map(|k| xs[0] + (xs[xs.len() - 1] - xs[0]) * k as f64 / 20.0).collect();
-    let col = |f: &dyn Fn(&WorkingPoint) -> f64| pts.iter().map(f).collect::<Vec<f64>>();
-    let (_, bl_band) = fit_series_band(&xs, &col(&|p| p.bl), &col(&|p| p.bl_sd), opts.order, &span);
-    let (_, le_band) = fit_series_band(&xs, &col(&|p| p.le), &col(&|p| p.le_sd), opts.order, &span);
     let ks: Vec<f64> = pts.iter().filter(|p| p.kms_static.is_finite()).map(|p| p.kms_sd).collect();
-    let (_, kms_band) = fit_series_band(&kx, &ky, &ks, opts.order, &span);
+    let (kms, kms_band) = fit_series_band(&kx, &ky, &ks, opts.order, &span);
     let k_dynamic_rest = pts.iter().find(|p| p.u_dc == 0.0).map_or(f64::NAN, |p| p.k_tangent);
     // The rest position after the largest positive offset: release it, wait a second. (A
     // held force is constant over a play: its release is not simulated.)

@@ -232,18 +232,20 @@ fn fit_variant(track: &ThermalTrack, start: [f64; 4], offset_sd: f64, from: Opti
     let peak = track.dtv.iter().fold(0.0f64, |a, v| a.max(*v));
     let prob = Fit { tr: track, convection: from.is_some() };
     let starts: Vec<Vec<f64>> = match from {
-        Some(f) => [0.0, 0.5, 2.0]
-            .iter()
-            .map(|&rv| {
-                // The plain fit's Rtv is the mean of Rtv(v) over the run: start the resistance
-                // at rest that much higher.
-                let mean_speed = track.speed.iter().sum::<f64>() / n as f64;
-                let mut th: Vec<f64> = f.values.iter().map(|v| v.ln()).collect();
-                th[0] += (1.0 + rv * mean_speed).ln();
-                th.extend([f.lag_s, rv]);
-                th
-            })
-            .collect(),
+        Some(f) => {
+            // The plain fit's Rtv is the mean of Rtv(v) over the run: start the resistance at
+            // rest that much higher.
+            let mean_speed = track.speed.iter().sum::<f64>() / n as f64;
+            [0.0, 0.5, 2.0]
+                .iter()
+                .map(|&rv| {
+                    let mut th: Vec<f64> = f.values.iter().map(|v| v.ln()).collect();
+                    th[0] += (1.0 + rv * mean_speed).ln();
+                    th.extend([f.lag_s, rv]);
+                    th
+                })
+                .collect()
+        }
         None => {
             // The valley of the magnet is long and flat (a run shorter than the magnet's
             // time constant barely bends its rise): from one start LM can slide along it to

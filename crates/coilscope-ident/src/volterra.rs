@@ -141,6 +141,13 @@ pub fn identify_volterra(start: &Parameters, measured: &[Harmonics]) -> Result<V
     identify_volterra_weighted(start, measured, None)
 }
 
+/// The sd a harmonic ratio is weighed with: its measured noise `noise`, with a floor of
+/// 1e-3 of the tone's distortion `size` (`|ratio2| + |ratio3|`), so that a noise-free line
+/// does not take all the weight. The fit and the truncation check weigh alike.
+fn line_sd(noise: f64, size: f64) -> f64 {
+    noise.hypot(1e-3 * size)
+}
+
 /// [`identify_volterra`] with the measured lines' noise: `noise[k]` the sd of the real (and
 /// of the imaginary) part of tone `k`'s 2nd and 3rd harmonic ratio. The residual is weighted
 /// by it (with a floor of 1e-3 of the tone's distortion, so that a noise-free line does not
@@ -164,7 +171,7 @@ pub fn identify_volterra_weighted(start: &Parameters, measured: &[Harmonics], no
         .map(|(k, h)| {
             let size = (h.hd(2) + h.hd(3)).max(1e-12);
             match noise {
-                Some(n) => [0, 1].map(|o| 1.0 / n[k][o].hypot(1e-3 * size)),
+                Some(n) => [0, 1].map(|o| 1.0 / line_sd(n[k][o], size)),
                 None => [1.0 / size; 2],
             }
         })
@@ -206,13 +213,6 @@ pub struct RecordLines {
 }
 
 impl RecordLines {
-    /// The impedance `U/I` at each tone's fundamental, averaged over the periods.
-    pub fn impedance(&self) -> (Vec<f64>, Vec<C>) {
-        let p = self.u.len() as f64;
-        let z = (0..self.bins.len()).map(|k| self.u.iter().map(|u| u[k][0]).sum::<C>() / p / (self.i.iter().map(|i| i[k][0]).sum::<C>() / p)).collect();
-        (self.bins.iter().map(|&b| b as f64 / coilscope_core::excitation::READABLE_PERIOD).collect(), z)
-    }
-
     /// The current's 2nd and 3rd harmonic ratios of each tone (as [`multitone_harmonics`]
     /// gives them on a simulated steady state), averaged over the periods, and their noise
     /// (the sd of the mean of the real and imaginary parts, from the scatter between periods).
@@ -339,7 +339,7 @@ pub fn truncation_check(fit: &VolterraFit, lines: &RecordLines, measured: &[Harm
         let (r2, r3) = probe(&fit.params, m.freq).ratios(Output::Current, m.volts);
         let size = m.hd(2) + m.hd(3);
         for (d, s) in [(h.ratio(2) - r2, n[0]), (h.ratio(3) - r3, n[1])] {
-            let s = s.hypot(1e-3 * size);
+            let s = line_sd(s, size);
             sum += (d.re / s).powi(2) + (d.im / s).powi(2);
             count += 2;
         }
