@@ -518,6 +518,8 @@ enum Command {
         /// `inf`: not limited, Gaussian, as the standard itself). Its band levels stay Table II's.
         #[arg(long)]
         crest: Option<f64>,
+        #[command(flatten)]
+        serve: ServeArgs,
     },
     /// Write a result for another tool: the thermal model as a speakersafetyd configuration,
     /// the power series as a KLIPPEL-style table (CSV, millimetres), or the small-signal
@@ -806,7 +808,7 @@ fn main() -> ExitCode {
             }
         }),
         Command::Calibrate { recording, resistor, loopback, scale, out, sense_wiring, sense_ohm } => parse_wiring(&sense_wiring, sense_ohm).and_then(|w| cmd_calibrate(&recording, resistor, loopback, w, scale.as_deref(), &out)),
-        Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, cool_after, cool_volts, max_seconds, order, noise, rate, seed, crest } => {
+        Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, cool_after, cool_volts, max_seconds, order, noise, rate, seed, crest, serve } => {
             cmd_measure(MeasureArgs {
                 no_report,
                 virtual_driver,
@@ -830,6 +832,7 @@ fn main() -> ExitCode {
                 rate,
                 seed,
                 crest,
+                serve,
             })
         }
         Command::Devices => cmd_devices().map_err(Failure::from),
@@ -1768,6 +1771,30 @@ struct MeasureArgs {
     rate: u32,
     seed: u64,
     crest: Option<f64>,
+    serve: ServeArgs,
+}
+
+/// `measure --serve`: the live page (`coilscope_live`), an observer of the run.
+#[derive(clap::Args, Debug, Clone)]
+struct ServeArgs {
+    /// Serve a live page of the measurement at ADDR (IP:PORT; without a value 127.0.0.1:8640;
+    /// port 0 picks a free one): traces of u, i, x, v, the temperature, the curves with their
+    /// bands as they converge, the level, protection and convergence state, the live
+    /// distortion, and the report's link at the end. It only watches: nothing on the page
+    /// changes the run. Embedded page, no network needed.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = coilscope_live::DEFAULT_ADDR)]
+    serve: Option<String>,
+    /// Allow --serve on an address other than loopback (anyone who reaches it sees the run).
+    #[arg(long, requires = "serve")]
+    serve_public: bool,
+    /// After the run, keep serving the page and the report it links for this many seconds
+    /// (Ctrl-C ends it sooner).
+    #[arg(long, value_name = "S", default_value_t = 300.0)]
+    serve_linger: f64,
+    /// Play a virtual or replayed run at FACTOR times real time (1: as a sound card would).
+    /// Default: as fast as the computer can; 1 with --serve, so that the page is watchable.
+    #[arg(long, value_name = "FACTOR")]
+    pace: Option<f64>,
 }
 
 /// The IEC noise with `--crest` (None: the default crest [`coilscope_core::excitation::IEC_CREST`]).
@@ -1849,6 +1876,24 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         Some(m) => Source::music(m, fs)?,
         None => Source::noise(&iec_noise(a.crest), fs, a.seed)?,
     };
+    // The live page, before the first block; a virtual or replayed run is paced to real time
+    // for it unless --pace says otherwise (a sound card is paced by its clock).
+    let pace = match (a.serve.pace, a.card.card) {
+        (Some(_), true) => return Err(Failure::from("--pace applies to --virtual and --replay; a sound card plays in real time".to_string())),
+        (Some(f), false) if !(f > 0.0 && f.is_finite()) => return Err(Failure::from(format!("--pace {f}: give a positive factor of real time (1: real time, 4: four times faster)"))),
+        (Some(f), false) => Some(f),
+        (None, false) if a.serve.serve.is_some() => Some(1.0),
+        (None, _) => None,
+    };
+    if !(a.serve.serve_linger >= 0.0 && a.serve.serve_linger.is_finite()) {
+        return Err(Failure::from(format!("--serve-linger {}: give seconds, 0 or more", a.serve.serve_linger)));
+    }
+    let server = a.serve.serve.as_deref().map(|addr| coilscope_live::LiveServer::start(addr, a.serve.serve_public)).transpose()?;
+    if let Some(s) = &server {
+        s.info(&device.describe(), source.name(), device.controllable(), fs);
+        eprintln!("live page: {}", s.url());
+    }
+    let interrupt = interrupt_flag();
     let opts = coilscope_measure::MeasureOptions {
         mms,
         target_x: a.target_x,
@@ -1861,7 +1906,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         cool: a.cool,
         max_seconds: a.max_seconds.max(a.duration.unwrap_or(0.0)),
         order: a.order,
-        interrupt: Some(interrupt_flag()),
+        interrupt: Some(interrupt.clone()),
         ..Default::default()
     };
     opts.validate()?;
@@ -1876,7 +1921,17 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     } else {
         eprintln!("identifying from the {} (run {} in {})", device.describe(), store.run, a.out.join("run.sqlite").display());
     }
+    let started = std::time::Instant::now();
     let result = coilscope_measure::measure(device.as_mut(), &mut source, &opts, Some(&mut store), |l| {
+        if let Some(s) = &server {
+            s.block(l);
+        }
+        if let Some(f) = pace {
+            let due = std::time::Duration::from_secs_f64(l.t / f);
+            if let Some(wait) = due.checked_sub(started.elapsed()) {
+                std::thread::sleep(wait);
+            }
+        }
         if l.t - last_print >= 1.0 || l.update.is_some() && tty {
             last_print = l.t;
             let state = format!("x {:+6.2} .. {:+6.2} mm  dT {:5.1} K  Re {:.4} ohm  err {:.1e}", l.x_min * 1e3, l.x_max * 1e3, l.dtv, l.re, l.residual);
@@ -1899,6 +1954,10 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
             let j = coilscope_core::result::FailedResult::new(&e, &device.describe(), source.name());
             let _ = write_json(&a.out.join("result.json"), &j);
             let _ = store.finish(0.0, &format!("failed: {e}"), Some(&j));
+            if let Some(s) = server {
+                s.done("failed", &e, None);
+                linger(s, a.serve.serve_linger, &interrupt);
+            }
             return Err(Failure::from(format!("{e}; written to {}", a.out.join("result.json").display())));
         }
     };
@@ -1965,6 +2024,10 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
             eprintln!("warning: the report was not written: {e}");
         }
     }
+    if let Some(s) = server {
+        s.done(status, &m.stop_reason.describe(), (!a.no_report).then_some(a.out.as_path()));
+        linger(s, a.serve.serve_linger, &interrupt);
+    }
     let written = a.out.join("result.json");
     match m.stop_reason {
         coilscope_measure::StopReason::Interrupted { .. } => Err(Failure::Interrupted(format!("{}; written to {}", m.stop_reason.describe(), written.display()))),
@@ -1972,6 +2035,21 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         ref r if !r.is_success() => Err(Failure::Untrusted(format!("{}; written to {}", r.describe(), written.display()))),
         _ => Ok(()),
     }
+}
+
+/// Keep the live page (and the report it links) served for `seconds` after the run, or until
+/// Ctrl-C.
+fn linger(server: coilscope_live::LiveServer, seconds: f64, interrupt: &std::sync::atomic::AtomicBool) {
+    if seconds > 0.0 {
+        eprintln!("live page: the run is over; serving {} and its report for {seconds:.0} s more (Ctrl-C ends it)", server.url());
+        let end = std::time::Instant::now() + std::time::Duration::from_secs_f64(seconds);
+        // A Ctrl-C during the run has already been answered by the run's end.
+        interrupt.store(false, std::sync::atomic::Ordering::SeqCst);
+        while std::time::Instant::now() < end && !interrupt.load(std::sync::atomic::Ordering::SeqCst) {
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
+    }
+    server.stop();
 }
 
 /// A flag that Ctrl-C (SIGINT) sets: the measurement finishes its block, writes its result,

@@ -158,6 +158,21 @@ fn report_of_a_measurement_renders_in_chromium_with_every_plot_drawn() {
     let plots = layout["plots"].as_array().unwrap();
     assert_eq!(plots.len(), ids.len());
 
+    // No legend box covers a data line (issue 19), in any chart of this measured result's
+    // report (the time charts and the live distortion among them), at both sizes.
+    let mut input = coilscope_report::input_from(run.join("result.json").to_str().unwrap()).unwrap();
+    let rows = coilscope_measure::store::read_states(&run.join("run.sqlite"), None).unwrap();
+    input.states = Some(coilscope_report::TimeSeries { t: rows.iter().map(|r| r.t).collect(), x_min: rows.iter().map(|r| r.x_min).collect(), x_max: rows.iter().map(|r| r.x_max).collect(), dtv: rows.iter().map(|r| r.dtv).collect() });
+    let rep = coilscope_report::build(&input, &coilscope_report::ReportOptions::default()).unwrap();
+    let with_legend: Vec<&coilscope_report::chart::Chart> = rep.charts.iter().filter(|c| c.series.len() > 1).collect();
+    assert!(with_legend.iter().any(|c| c.id == "x-time") && with_legend.iter().any(|c| c.id == "live-distortion-x"), "{:?}", with_legend.iter().map(|c| &c.id).collect::<Vec<_>>());
+    for c in with_legend {
+        for size in [coilscope_report::ReportOptions::default().png_size, coilscope_report::SVG_SIZE] {
+            let n = c.legend_covers_data(size).unwrap();
+            assert_eq!(n, 0, "the legend of {} covers {n} pixels of its data lines at {size:?}", c.id);
+        }
+    }
+
     // Screenshot of the whole page; every plot's box must hold its data colours.
     let shot = dir.path().join("shot.png");
     let (_, console) = run_chromium(&html, &[&format!("--window-size=1000,{height}"), &format!("--screenshot={}", shot.display())]);

@@ -361,6 +361,44 @@ pub struct Live {
     pub change: Option<(f64, f64)>,
     /// The block's live distortion (after the small-signal stage).
     pub distortion: Option<coilscope_analysis::live_distortion::Contributions>,
+    /// The block's signals, as envelopes: the measured u and i, and the live model's x and v
+    /// (empty during the small-signal stage, before there is a model).
+    pub trace: Trace,
+    /// After an update: Bl, Kms and Le with their sds on [`LIVE_BAND_POINTS`] points over
+    /// the estimator's reach (the bands the result will carry, as they converge).
+    pub bands: Vec<(&'static str, coilscope_core::result::Band)>,
+}
+
+/// Bins of a block's [`Trace`].
+pub const TRACE_BINS: usize = 20;
+/// Points of a live band ([`Live::bands`]).
+pub const LIVE_BAND_POINTS: usize = 41;
+
+/// A block's signals for a live view: the minimum and maximum over each of [`TRACE_BINS`]
+/// equal parts of the block (an envelope keeps every crest a plain decimation would skip).
+#[derive(Clone, Debug, Default)]
+pub struct Trace {
+    /// Seconds one bin spans.
+    pub dt: f64,
+    /// Voltage (V) and current (A) as measured.
+    pub u: Vec<[f64; 2]>,
+    pub i: Vec<[f64; 2]>,
+    /// The live model's displacement (m) and velocity (m/s).
+    pub x: Vec<[f64; 2]>,
+    pub v: Vec<[f64; 2]>,
+}
+
+/// `[min, max]` of each of `bins` equal parts of `s` (fewer when `s` is shorter).
+pub fn envelope(s: impl ExactSizeIterator<Item = f64> + Clone, bins: usize) -> Vec<[f64; 2]> {
+    let n = s.len();
+    let bins = bins.min(n);
+    let mut out = vec![[f64::INFINITY, f64::NEG_INFINITY]; bins];
+    for (k, v) in s.enumerate() {
+        let b = &mut out[k * bins / n];
+        b[0] = b[0].min(v);
+        b[1] = b[1].max(v);
+    }
+    out
 }
 
 /// The outcome.
@@ -872,6 +910,8 @@ impl<'a> Engine<'a> {
             estimate: None,
             change: None,
             distortion: None,
+            trace: Trace { dt: n as f64 / self.fs / TRACE_BINS.min(n) as f64, u: envelope(blk.u.iter().copied(), TRACE_BINS), i: envelope(blk.i.iter().copied(), TRACE_BINS), ..Default::default() },
+            bands: vec![],
         };
         match self.online.as_mut() {
             None => {
@@ -995,6 +1035,8 @@ impl<'a> Engine<'a> {
                 }
                 live.x_min = st.x_min;
                 live.x_max = st.x_max;
+                live.trace.x = envelope(st.traj.iter().map(|s| s[0]), TRACE_BINS);
+                live.trace.v = envelope(st.traj.iter().map(|s| s[1]), TRACE_BINS);
                 live.re = on.re();
                 live.dtv = dtv;
                 live.residual = st.residual_rel();
@@ -1090,6 +1132,10 @@ impl<'a> Engine<'a> {
                         let k0 = est.kms.eval(0.0);
                         self.kms_ratio = (0..=20).map(|k| 1.3 * reach * k as f64 / 20.0).map(|x| est.kms.eval(x).max(est.kms.eval(-x)) / k0).fold(0.0, f64::max);
                         self.checked_reach = reach;
+                        let xs: Vec<f64> = (0..LIVE_BAND_POINTS).map(|k| reach * (2.0 * k as f64 / (LIVE_BAND_POINTS - 1) as f64 - 1.0)).collect();
+                        live.bands = [("Bl", &est.bl), ("Kms", &est.kms), ("Le", &est.le)]
+                            .map(|(which, f)| (which, coilscope_core::result::Band { x: xs.clone(), value: xs.iter().map(|&x| f.eval(x)).collect(), sd: xs.iter().map(|&x| on.curve_sd(which, x)).collect() }))
+                            .into();
                         live.estimate = Some(est.clone());
                         if let Some(m) = self.meter.as_mut() {
                             m.set_params(&est);
@@ -1601,5 +1647,19 @@ mod branch_tests {
             assert!(!drop_vanished_branch(&mut q, range));
             assert_eq!(q.l2r2, Some(l2r2));
         }
+    }
+
+    #[test]
+    fn envelope_keeps_every_extreme_of_each_part() {
+        // 10 samples in 4 parts: sample k falls in part k * 4 / 10 (3, 2, 3, 2 samples).
+        let s = [0.0, 5.0, -1.0, 2.0, -7.0, 3.0, 1.0, 0.5, 9.0, -2.0];
+        let e = envelope(s.iter().copied(), 4);
+        assert_eq!(e, vec![[-1.0, 5.0], [-7.0, 2.0], [0.5, 3.0], [-2.0, 9.0]]);
+        let all_min = e.iter().map(|b| b[0]).fold(f64::INFINITY, f64::min);
+        let all_max = e.iter().map(|b| b[1]).fold(f64::NEG_INFINITY, f64::max);
+        assert_eq!((all_min, all_max), (-7.0, 9.0));
+        // Fewer samples than parts: one part per sample.
+        assert_eq!(envelope([1.0, 2.0].into_iter(), 20), vec![[1.0, 1.0], [2.0, 2.0]]);
+        assert!(envelope(std::iter::empty::<f64>(), 20).is_empty());
     }
 }

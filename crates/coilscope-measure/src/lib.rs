@@ -24,4 +24,4 @@ pub mod signal;
 pub mod soundcard;
 pub mod store;
 
-pub use engine::{control, measure, ControlDecision, ControlInput, Engine, LimitedBy, Live, MeasureOptions, Measurement, Stage, StopReason};
+pub use engine::{control, measure, ControlDecision, ControlInput, Engine, LimitedBy, Live, MeasureOptions, Measurement, Stage, StopReason, Trace};

@@ -155,6 +155,11 @@ impl Chart {
 
     /// Draw on any plotters backend.
     pub fn draw<DB: DrawingBackend>(&self, root: DrawingArea<DB, plotters::coord::Shift>) -> Result<(), String> {
+        self.draw_with(root, true)
+    }
+
+    /// Draw, with or without the legend (the legend test compares the two).
+    fn draw_with<DB: DrawingBackend>(&self, root: DrawingArea<DB, plotters::coord::Shift>, legend: bool) -> Result<(), String> {
         ensure_font();
         let e = |err: DrawingAreaErrorKind<DB::ErrorType>| format!("chart {}: {err}", self.id);
         root.fill(&WHITE).map_err(e)?;
@@ -227,7 +232,7 @@ impl Chart {
             let anno = if s.dashed { chart.draw_series(DashedLineSeries::new(pts, 8, 5, style)).map_err(e)? } else { chart.draw_series(LineSeries::new(pts, style)).map_err(e)? };
             anno.label(s.name.clone()).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2)));
         }
-        if self.series.len() > 1 {
+        if legend && self.series.len() > 1 {
             chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(RGBColor(200, 200, 200)).label_font(("sans-serif", 13)).position(SeriesLabelPosition::UpperRight).draw().map_err(e)?;
         }
         root.present().map_err(e)?;
@@ -241,11 +246,29 @@ impl Chart {
         Ok(out)
     }
 
+    /// The chart's pixels (RGB).
+    fn rgb(&self, size: (u32, u32), legend: bool) -> Result<image::RgbImage, String> {
+        let mut buf = vec![0u8; (size.0 * size.1 * 3) as usize];
+        self.draw_with(BitMapBackend::with_buffer(&mut buf, size).into_drawing_area(), legend)?;
+        Ok(image::RgbImage::from_raw(size.0, size.1, buf).ok_or("PNG buffer size mismatch")?)
+    }
+
+    /// The layout check of issue 19: how many pixels of the data lines the legend box covers
+    /// at `size` (0 for a good layout). The box is where the chart drawn with and without its
+    /// legend differs; the data lines are the pixels of a series colour in the chart drawn
+    /// without it.
+    pub fn legend_covers_data(&self, size: (u32, u32)) -> Result<usize, String> {
+        let (with, without) = (self.rgb(size, true)?, self.rgb(size, false)?);
+        let diff: Vec<(u32, u32)> = with.enumerate_pixels().filter(|(x, y, p)| without.get_pixel(*x, *y) != *p).map(|(x, y, _)| (x, y)).collect();
+        let (Some(x0), Some(x1)) = (diff.iter().map(|p| p.0).min(), diff.iter().map(|p| p.0).max()) else { return Ok(0) };
+        let (y0, y1) = (diff.iter().map(|p| p.1).min().unwrap_or(0), diff.iter().map(|p| p.1).max().unwrap_or(0));
+        let colours: Vec<[u8; 3]> = (0..self.series.len()).map(|k| PALETTE[k % PALETTE.len()].rgb().into()).collect();
+        Ok(without.enumerate_pixels().filter(|(x, y, p)| (x0..=x1).contains(x) && (y0..=y1).contains(y) && colours.contains(&p.0)).count())
+    }
+
     /// The chart as PNG bytes.
     pub fn png(&self, size: (u32, u32)) -> Result<Vec<u8>, String> {
-        let mut buf = vec![0u8; (size.0 * size.1 * 3) as usize];
-        self.draw(BitMapBackend::with_buffer(&mut buf, size).into_drawing_area())?;
-        let img = image::RgbImage::from_raw(size.0, size.1, buf).ok_or("PNG buffer size mismatch")?;
+        let img = self.rgb(size, true)?;
         let mut bytes = Vec::new();
         img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png).map_err(|e| format!("chart {}: PNG encoding failed: {e}", self.id))?;
         Ok(bytes)
@@ -313,5 +336,22 @@ mod axis_tests {
         assert!(y0 >= -100.0 - 0.1 * 70.0, "the axis goes below the floor: {y0}");
         let s = c.svg((640, 400)).unwrap();
         assert!(s.contains(">1k<") || s.contains(">1k </") || s.contains("1k"), "the 1 kHz label");
+    }
+}
+
+#[cfg(test)]
+mod legend_tests {
+    use super::*;
+
+    #[test]
+    fn the_legend_check_catches_a_legend_over_data() {
+        // The negative control: a line through the upper right corner, where the legend sits.
+        let c = Chart::new("t", "T", "x", "y").line("a", (0..=100).map(|k| (k as f64, if k > 60 { 10.0 } else { 0.0 })).collect()).line("b", vec![(0.0, 0.0), (100.0, 10.0)]);
+        // Its room above the data is kept: a legend there covers nothing...
+        assert_eq!(c.legend_covers_data((960, 560)).unwrap(), 0);
+        // ... and one drawn with no room is caught.
+        let mut tight = c.clone();
+        tight.series.extend((0..6).map(|k| Series { name: format!("s{k}"), points: vec![(0.0, 0.0), (100.0, 10.0)], dashed: false }));
+        assert!(tight.legend_covers_data((960, 300)).unwrap() > 0);
     }
 }

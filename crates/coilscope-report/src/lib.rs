@@ -78,7 +78,7 @@ pub struct Report {
     pub volterra_divergence: Option<f64>,
 }
 
-const SVG_SIZE: (u32, u32) = (760, 440);
+pub const SVG_SIZE: (u32, u32) = (760, 440);
 
 fn esc(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
@@ -773,5 +773,29 @@ fn method_label(input: &ReportInput) -> String {
         Some("large-signal") => "dynamic".into(),
         Some(k) => k.to_string(),
         None => "parameter set".into(),
+    }
+}
+
+#[cfg(test)]
+mod legend_overlap {
+    use super::*;
+
+    /// Issue 19: no legend box covers a data line, in any chart of the reports of the bundled
+    /// drivers, at the PNG size and at the inline SVG's size.
+    #[test]
+    fn no_legend_covers_a_data_line() {
+        let mut checked = 0;
+        for driver in ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"] {
+            let input = input_from(driver).unwrap();
+            let report = build(&input, &ReportOptions::default()).unwrap();
+            for c in report.charts.iter().filter(|c| c.series.len() > 1) {
+                for size in [ReportOptions::default().png_size, SVG_SIZE] {
+                    let n = c.legend_covers_data(size).unwrap();
+                    assert_eq!(n, 0, "{driver}: the legend of chart {} covers {n} pixels of its data lines at {size:?}", c.id);
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked >= 12, "only {checked} charts with a legend were checked");
     }
 }
