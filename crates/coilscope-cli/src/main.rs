@@ -458,7 +458,7 @@ enum Command {
         #[command(flatten)]
         card: CardArgs,
         /// Replay a recording (WAV: voltage, current, and optionally displacement) instead of driving a device; its displacement channel (a laser) gives the absolute scale when --mms is not given.
-        #[arg(long, value_name = "WAV")]
+        #[arg(long, value_name = "WAV", conflicts_with = "card")]
         replay: Option<PathBuf>,
         /// Output directory.
         #[arg(long)]
@@ -583,8 +583,9 @@ enum Command {
     /// 10.3) on the virtual driver: a DC offset per working point, the static displacement
     /// (laser) and the small-signal impedance at each; power series fitted to the points.
     Quasistatic {
-        /// Virtual driver: embedded name or parameter file.
-        driver: String,
+        /// Virtual driver: embedded name or parameter file (not with --card).
+        #[arg(required_unless_present = "card", conflicts_with = "card")]
+        driver: Option<String>,
         /// Result file (JSON: the fitted set, and every working point under `quasi_static`).
         #[arg(long)]
         out: PathBuf,
@@ -609,6 +610,27 @@ enum Command {
         /// set's Sd): no current, so no heating (IEC 62458 10.2/10.3).
         #[arg(long, default_value = "current", value_parser = ["current", "mass", "pressure"])]
         offset: String,
+        /// With --card: the driver's moving mass (kg), the small-signal fits' absolute scale.
+        #[arg(long, requires = "card")]
+        mms: Option<f64>,
+        /// With --card: how far the working points may go on each side, a length with its
+        /// unit (the driver's Xmax from its data sheet, or less: 4mm).
+        #[arg(long, value_name = "LENGTH", value_parser = parse_length, requires = "card")]
+        xmax: Option<f64>,
+        /// With --card and --offset pressure: the diaphragm's area Sd (m^2).
+        #[arg(long, value_name = "M2", requires = "card")]
+        sd: Option<f64>,
+        /// With --card: the small signal's level at each point (V rms at the terminals).
+        #[arg(long, value_name = "V", default_value_t = 0.1)]
+        ac_volts: f64,
+        /// With --card: the sample rate (Hz).
+        #[arg(long, default_value_t = 48000)]
+        rate: u32,
+        /// A real driver through a sound card (feature soundcard): the points are held by an
+        /// added mass or a pressure (a card's output cannot hold a DC current), the terminal
+        /// asks you to apply each one and to read the static displacement on a gauge.
+        #[command(flatten)]
+        card: CardArgs,
     },
     /// Pre-inverse compensation (seed paper 3.2.2.2.3, Fig. 6): the drive that makes the
     /// driver's displacement, and so its sound pressure, follow its linear model's for an
@@ -843,7 +865,9 @@ fn main() -> ExitCode {
         Command::Diagnose { params, limits, json } => cmd_diagnose(&params, &limits, json).map_err(Failure::from),
         Command::Report { result, out, db, volts, compare, limits } => cmd_report(&result, &out, db.as_deref(), volts, compare.as_deref(), &limits).map_err(Failure::from),
         Command::Compensate { params, input, out, max_volts, min_force_factor, scale } => cmd_compensate(&params, &input, &out, max_volts, min_force_factor, scale).map_err(Failure::from),
-        Command::Quasistatic { driver, out, points, reach, hold, order, world, offset } => cmd_quasistatic(&driver, &out, points, reach, hold, order, world, &offset),
+        Command::Quasistatic { driver, out, points, reach, hold, order, world, offset, mms, xmax, sd, ac_volts, rate, card } => {
+            cmd_quasistatic(QuasiArgs { driver, out, points, reach, hold, order, world, offset, mms, xmax, sd, ac_volts, rate, card })
+        }
         Command::Drivers => cmd_drivers().map_err(Failure::from),
         Command::Export { result, speakersafetyd, power_series, zma, frd, out, name, t_limit, t_ambient, channels, is_chan, vs_chan, is_scale, vs_scale, group } => {
             let o = coilscope_io::export::SafetydOptions { name, t_limit, t_ambient, channels, is_chan, vs_chan, is_scale, vs_scale, group, ..Default::default() };
@@ -1658,7 +1682,7 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
 struct CardArgs {
     /// Measure a real transducer through a sound card (output -> amplifier -> driver; inputs:
     /// terminal voltage and the voltage across a sense resistor).
-    #[arg(long, conflicts_with = "replay")]
+    #[arg(long)]
     card: bool,
     /// Output device (as `coilscope devices` lists it); default: the system's default.
     #[arg(long, value_name = "NAME", requires = "card")]
@@ -2110,34 +2134,87 @@ fn print_json(v: &serde_json::Value) {
 
 /// `quasistatic`: the point-by-point measurement on a virtual driver.
 #[allow(clippy::too_many_arguments)]
-fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f64, order: usize, world: World, offset: &str) -> Result<(), Failure> {
-    use coilscope_ident::quasi_static::{quasi_static, Offset, Push, QuasiStaticOptions};
-    let p = world.apply(load_parameters(driver).map_err(|e| e.to_string())?);
-    let range = p.x_range.ok_or_else(|| format!("{driver}: the set has no x_range: the working points need the range they may go to"))?;
+struct QuasiArgs {
+    driver: Option<String>,
+    out: PathBuf,
+    points: usize,
+    reach: f64,
+    hold: f64,
+    order: usize,
+    world: World,
+    offset: String,
+    mms: Option<f64>,
+    xmax: Option<f64>,
+    sd: Option<f64>,
+    ac_volts: f64,
+    rate: u32,
+    card: CardArgs,
+}
+
+fn cmd_quasistatic(a: QuasiArgs) -> Result<(), Failure> {
+    use coilscope_ident::quasi_static::{quasi_static, Offset, Played, Push, QuasiStaticOptions};
+    let (out, points, reach, hold, order) = (a.out.as_path(), a.points, a.reach, a.hold, a.order);
     if !(reach > 0.0 && reach <= 1.0) {
         return Err(format!("--reach {reach} is not valid (0 .. 1 of the range)").into());
     }
     if !(0.5..=600.0).contains(&hold) {
         return Err(format!("--hold {hold} s is not valid (0.5 .. 600 s)").into());
     }
-    let fs = 48000.0;
+    let fs = if a.card.card { a.rate as f64 } else { 48000.0 };
     let ac = generate(&Excitation::Pink { f_lo: 5.0, f_hi: 16000.0, crest: None }, &SignalSpec { fs, seconds: 2.0, rms: 1.0, fade: 0.0, seed: 1 })?;
-    // The small signal at about 2 % of the range at the resonance (a linear estimate).
-    let ts = thiele_small(&p);
-    let per_volt = p.bl.c[0] / (p.re * p.kms.c[0]) * ts.qts.max(0.3);
-    let ac_volts = (0.02 * range[1].min(-range[0]) / per_volt).clamp(0.01, 1.0);
-    let offset = match offset {
-        "mass" => Offset::Mass,
-        "pressure" => Offset::Pressure { sd: p.sd.ok_or_else(|| format!("{driver}: --offset pressure needs the diaphragm's area: the set has no Sd (m^2)"))? },
-        _ => Offset::Current,
+    let (q, opts, set_name, name, device, offset) = if a.card.card {
+        // A real driver: what the virtual set would tell, the user gives.
+        let mms = a.mms.ok_or("quasistatic --card needs --mms KG (the moving mass: the absolute scale of the small-signal fits)")?;
+        let xmax = a.xmax.ok_or("quasistatic --card needs --xmax LENGTH: how far the working points may go on each side (the driver's Xmax from its data sheet, or less)")?;
+        if !(mms > 0.0 && mms < 10.0) {
+            return Err(format!("--mms {mms} kg is not valid (0 .. 10 kg)").into());
+        }
+        if !(a.ac_volts > 0.0 && a.ac_volts <= 5.0) {
+            return Err(format!("--ac-volts {} is not valid (0 .. 5 V rms)", a.ac_volts).into());
+        }
+        let offset = match a.offset.as_str() {
+            "mass" => Offset::Mass,
+            "pressure" => Offset::Pressure { sd: a.sd.ok_or("quasistatic --card --offset pressure needs --sd M2 (the diaphragm's area)")? },
+            _ => return Err("quasistatic --card: a sound card's output is AC-coupled and cannot hold a DC current through the coil; hold the points by --offset mass (masses on the cone) or --offset pressure (a sealed box)".to_string().into()),
+        };
+        let mut device = open_card(&a.card, a.rate)?;
+        if let Some(path) = a.card.chain.as_deref() {
+            let c = load_chain(path)?;
+            let wiring = match &a.card.sense_wiring {
+                Some(w) => SenseWiring::parse(w, Some(a.card.sense_ohm))?,
+                None => SenseWiring::parse(c.sense_wiring.as_deref().unwrap_or("terminals"), Some(c.sense_ohm.unwrap_or(a.card.sense_ohm)))?,
+            };
+            let cal = coilscope_core::chain::Chain { dc_u: 0.0, dc_i: 0.0, hum: None, ..c };
+            device = Box::new(coilscope_measure::card::Corrected::new(device, &cal, wiring)?);
+        }
+        let describe = device.describe();
+        let opts = QuasiStaticOptions { mms, points, reach, range: [-xmax, xmax], hold_s: hold, record_s: 2.0, ac_volts: a.ac_volts, order, fs, offset };
+        let mut operator = coilscope_measure::quasi_static_card::PromptOperator::new(std::io::stdin().lock(), std::io::stderr(), a.sd);
+        eprintln!("quasistatic on {describe}: {points} working points to {:.0} % of +-{:.2} mm, offset by {}; a gauge on the cone reads the static displacement (q stops)", reach * 100.0, xmax * 1e3, opts.offset_name());
+        let q = quasi_static(coilscope_measure::quasi_static_card::card_play(device.as_mut(), &mut operator, offset, 4800), &ac, &opts)?;
+        (q, opts, None, "the driver on the card".to_string(), describe, offset)
+    } else {
+        let driver = a.driver.as_deref().unwrap_or_default();
+        let p = a.world.apply(load_parameters(driver).map_err(|e| e.to_string())?);
+        let range = p.x_range.ok_or_else(|| format!("{driver}: the set has no x_range: the working points need the range they may go to"))?;
+        // The small signal at about 2 % of the range at the resonance (a linear estimate).
+        let ts = thiele_small(&p);
+        let per_volt = p.bl.c[0] / (p.re * p.kms.c[0]) * ts.qts.max(0.3);
+        let ac_volts = (0.02 * range[1].min(-range[0]) / per_volt).clamp(0.01, 1.0);
+        let offset = match a.offset.as_str() {
+            "mass" => Offset::Mass,
+            "pressure" => Offset::Pressure { sd: p.sd.ok_or_else(|| format!("{driver}: --offset pressure needs the diaphragm's area: the set has no Sd (m^2)"))? },
+            _ => Offset::Current,
+        };
+        let opts = QuasiStaticOptions { mms: p.mms, points, reach, range, hold_s: hold, record_s: 2.0, ac_volts, order, fs, offset };
+        let play = |d: &[f64], push: Push| {
+            let q = Parameters { mms: p.mms + push.added_mass, ..p.clone() };
+            simulate(&q, fs, d, &SimOptions { force: push.force, ..Default::default() }).map(|t| Played::from((t.u, t.i, t.x))).map_err(|e| e.to_string())
+        };
+        let q = quasi_static(play, &ac, &opts)?;
+        let name = p.name.clone().unwrap_or_else(|| driver.to_string());
+        (q, opts, p.name.clone(), name.clone(), format!("virtual {name}"), offset)
     };
-    let opts = QuasiStaticOptions { mms: p.mms, points, reach, range, hold_s: hold, record_s: 2.0, ac_volts, order, fs, offset };
-    let play = |d: &[f64], push: Push| {
-        let q = Parameters { mms: p.mms + push.added_mass, ..p.clone() };
-        simulate(&q, fs, d, &SimOptions { force: push.force, ..Default::default() }).map(|t| (t.u, t.i, t.x)).map_err(|e| e.to_string())
-    };
-    let q = quasi_static(play, &ac, &opts)?;
-    let name = p.name.clone().unwrap_or_else(|| driver.to_string());
     println!("coilscope quasistatic: {name}, {points} working points to {:.0} % of the range, {hold} s hold, offset by {}", reach * 100.0, opts.offset_name());
     println!("  {:>8} {:>9} {:>9} {:>8} {:>8} {:>9} {:>9} {:>8}", "U_dc V", "x_dc mm", "I_dc A", "Re ohm", "Bl T m", "Kms N/m", "k_t N/m", "Le mH");
     for w in &q.points {
@@ -2164,7 +2241,7 @@ fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f6
     };
     let lim = coilscope_core::limits::limits(&q.params, fit.x_range);
     // The driver's name, so that `report --compare` can tell two drivers apart.
-    let qp = Parameters { name: p.name.clone(), ..q.params.clone() };
+    let qp = Parameters { name: set_name, ..q.params.clone() };
     let mut unc = coilscope_core::result::Uncertainty::new(format!(
         "bands of the series from the working points' sds (each point's small-signal fit, at least {} % of the value), scaled up by the series fit's chi^2 per degree of freedom where above 1",
         100.0 * coilscope_ident::quasi_static::POINT_SD_FLOOR
@@ -2172,7 +2249,7 @@ fn cmd_quasistatic(driver: &str, out: &Path, points: usize, reach: f64, hold: f6
     for (which, band) in ["Bl", "Kms", "Le"].iter().zip(&q.bands) {
         unc.set_band(which, band.clone());
     }
-    let mut r = ResultFile::new("quasi-static", &format!("virtual {name}"), qp, fit, unc, Some(&lim));
+    let mut r = ResultFile::new("quasi-static", &device, qp, fit, unc, Some(&lim));
     r.other.insert(
         "quasi_static".into(),
         json!({

@@ -111,3 +111,31 @@ fn report_compares_quasi_static_with_dynamic_curves() {
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("same driver"));
 }
+
+fn text(o: &Output) -> String {
+    format!("{}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+/// `quasistatic --card`: what a sound card cannot do, and what a real driver must be told,
+/// is named before any device is opened (the card path itself is tested headless in
+/// coilscope-measure's `issue18_quasistatic_card.rs`).
+#[test]
+fn quasistatic_card_names_what_it_needs() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("q.json");
+    let out = out.to_str().unwrap();
+    for (args, want) in [
+        (vec!["--xmax", "4mm", "--offset", "mass"], "needs --mms KG"),
+        (vec!["--mms", "0.015", "--offset", "mass"], "needs --xmax LENGTH"),
+        (vec!["--mms", "0.015", "--xmax", "4mm"], "cannot hold a DC current"),
+        (vec!["--mms", "0.015", "--xmax", "4mm", "--offset", "pressure"], "needs --sd M2"),
+        (vec!["--mms=-1", "--xmax", "4mm", "--offset", "mass"], "--mms -1 kg is not valid"),
+    ] {
+        let o = coilscope(&[&["quasistatic", "--card", "--out", out][..], &args[..]].concat());
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {}", text(&o));
+        assert!(text(&o).contains(want), "{args:?}: {}", text(&o));
+    }
+    // A virtual driver and --card are one or the other.
+    let o = coilscope(&["quasistatic", "sb17cac35-4", "--card", "--out", out]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+}

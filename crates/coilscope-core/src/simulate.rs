@@ -47,6 +47,16 @@ impl Plant {
         Plant { accel: force / params.mms, ..Plant::new(params) }
     }
 
+    /// Change the external force and the parameters (an added mass) mid-run; the extended
+    /// states (creep, LR-3, ...) carry on where they were.
+    pub fn set_force(&mut self, params: &Parameters, force: f64) {
+        let ext = self.ext.take().map(|(_, s)| s);
+        *self = Plant::with_force(params, force);
+        if let (Some((_, s)), Some(old)) = (self.ext.as_mut(), ext) {
+            *s = old;
+        }
+    }
+
     /// Why the model is not valid at `state` (`None`: it is). With `Le_i`, the voice coil's
     /// incremental inductance `Le(x) h(i)` must stay above [`MIN_INCREMENTAL_LE`] of `Le(x)`:
     /// past that, the series is extrapolated beyond any measured current (and at zero the

@@ -80,6 +80,23 @@ pub struct Push {
     pub added_mass: f64,
 }
 
+/// One play of a working point: `u` (V), `i` (A) and `x` (m) from the start of the drive,
+/// and the push actually applied where it differs from the one asked for (an operator who
+/// placed 12.5 g where 12.3 g was asked; `None`: as asked).
+#[derive(Clone, Debug, Default)]
+pub struct Played {
+    pub u: Vec<f64>,
+    pub i: Vec<f64>,
+    pub x: Vec<f64>,
+    pub applied: Option<Push>,
+}
+
+impl From<(Vec<f64>, Vec<f64>, Vec<f64>)> for Played {
+    fn from((u, i, x): (Vec<f64>, Vec<f64>, Vec<f64>)) -> Self {
+        Played { u, i, x, applied: None }
+    }
+}
+
 /// Gravity (m/s^2) of the added-mass offsets.
 pub const GRAVITY: f64 = 9.80665;
 
@@ -235,7 +252,7 @@ fn mean(v: &[f64]) -> f64 {
 /// Run the point-by-point measurement on `play` (`(drive, push) -> (u, i, x)`, from rest
 /// each time, the push's force and added mass held from the start), with `ac` the small
 /// signal (unit RMS noise of at least `record_s`).
-pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>), String>, ac: &[f64], opts: &QuasiStaticOptions) -> Result<QuasiStatic, String> {
+pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<Played, String>, ac: &[f64], opts: &QuasiStaticOptions) -> Result<QuasiStatic, String> {
     if opts.points < 3 || opts.points.is_multiple_of(2) {
         return Err(format!("{} working points: give an odd number, at least 3", opts.points));
     }
@@ -251,9 +268,13 @@ pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<(Vec<f64>, Vec<
             return Err(format!("the pressure offset needs the diaphragm's area Sd (m^2, e.g. 0.0133); {sd} is not valid"));
         }
     }
-    let point = |play: &mut dyn FnMut(&[f64], Push) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>), String>, u_dc: f64, push: Push| -> Result<(WorkingPoint, Parameters), String> {
+    let point = |play: &mut dyn FnMut(&[f64], Push) -> Result<Played, String>, u_dc: f64, push: Push| -> Result<(WorkingPoint, Parameters), String> {
         let d = drive(u_dc, opts.hold_s, &ac, fs);
-        let (u, i, x) = play(&d, push)?;
+        let Played { u, i, x, applied } = play(&d, push)?;
+        let push = applied.unwrap_or(push);
+        if u.len() < d.len() || i.len() < d.len() || x.len() < d.len() {
+            return Err(format!("working point {u_dc:.3} V, {:.3} N: {} / {} / {} samples of u / i / x for a drive of {}", push.force, u.len(), i.len(), x.len(), d.len()));
+        }
         let from = d.len() - nrec + settle;
         let (u, i, x) = (&u[from..], &i[from..], &x[from..]);
         let (um, im, xm) = (mean(u), mean(i), mean(x));
@@ -341,8 +362,7 @@ pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<(Vec<f64>, Vec<
         let mut d = drive(top, opts.hold_s, &[], fs);
         let n = (fs as usize) * 2;
         d.extend((0..n).map(|k| top * 0.5 * (1.0 + (std::f64::consts::PI * (k as f64 / (fs * 0.5)).min(1.0)).cos())));
-        let (_, _, xr) = play(&d, Push::default())?;
-        *xr.last().unwrap_or(&0.0)
+        *play(&d, Push::default())?.x.last().unwrap_or(&0.0)
     } else {
         f64::NAN
     };

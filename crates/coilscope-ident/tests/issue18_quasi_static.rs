@@ -13,14 +13,14 @@ use coilscope_core::excitation::{generate, Excitation, SignalSpec};
 use coilscope_core::params::Creep;
 use coilscope_core::simulate::{simulate, SimOptions};
 use coilscope_core::{embedded_driver, Parameters, Poly};
-use coilscope_ident::quasi_static::{quasi_static, Offset, Push, QuasiStatic, QuasiStaticOptions};
+use coilscope_ident::quasi_static::{quasi_static, Offset, Played, Push, QuasiStatic, QuasiStaticOptions};
 
 const FS: f64 = 48000.0;
 
 fn run(p: &Parameters, hold_s: f64) -> QuasiStatic {
     let ac = generate(&Excitation::Pink { f_lo: 5.0, f_hi: 16000.0, crest: None }, &SignalSpec { fs: FS, seconds: 2.0, rms: 1.0, fade: 0.0, seed: 7 }).unwrap();
     let opts = QuasiStaticOptions { mms: p.mms, points: 9, reach: 0.8, range: p.x_range.unwrap(), hold_s, record_s: 2.0, ac_volts: 0.1, order: 4, fs: FS, offset: Offset::Current };
-    let play = |d: &[f64], _: Push| simulate(p, FS, d, &SimOptions::default()).map(|t| (t.u, t.i, t.x)).map_err(|e| e.to_string());
+    let play = |d: &[f64], _: Push| simulate(p, FS, d, &SimOptions::default()).map(|t| Played::from((t.u, t.i, t.x))).map_err(|e| e.to_string());
     quasi_static(play, &ac, &opts).unwrap()
 }
 
@@ -91,7 +91,7 @@ fn a_coil_the_dc_heats_far_is_named() {
     let p = Parameters::from_json_str(&std::fs::read_to_string(format!("{dir}/microspeaker-0g1.json")).unwrap(), "microspeaker").unwrap();
     let ac = generate(&Excitation::Pink { f_lo: 5.0, f_hi: 16000.0, crest: None }, &SignalSpec { fs: FS, seconds: 2.0, rms: 1.0, fade: 0.0, seed: 7 }).unwrap();
     let opts = QuasiStaticOptions { mms: p.mms, points: 9, reach: 0.8, range: p.x_range.unwrap(), hold_s: 5.0, record_s: 2.0, ac_volts: 0.1, order: 4, fs: FS, offset: Offset::Current };
-    let play = |d: &[f64], _: Push| simulate(&p, FS, d, &SimOptions::default()).map(|t| (t.u, t.i, t.x)).map_err(|e| e.to_string());
+    let play = |d: &[f64], _: Push| simulate(&p, FS, d, &SimOptions::default()).map(|t| Played::from((t.u, t.i, t.x))).map_err(|e| e.to_string());
     let q = quasi_static(play, &ac, &opts).unwrap();
     println!("{:?}", q.warnings);
     assert!(q.warnings.iter().any(|w| w.contains("the DC heated the coil")), "{:?}", q.warnings);
@@ -102,7 +102,7 @@ fn run_with(p: &Parameters, offset: Offset, ac_volts: f64) -> QuasiStatic {
     let opts = QuasiStaticOptions { mms: p.mms, points: 9, reach: 0.8, range: p.x_range.unwrap(), hold_s: 2.0, record_s: 2.0, ac_volts, order: 4, fs: FS, offset };
     let play = |d: &[f64], push: Push| {
         let q = Parameters { mms: p.mms + push.added_mass, ..p.clone() };
-        simulate(&q, FS, d, &SimOptions { force: push.force, ..Default::default() }).map(|t| (t.u, t.i, t.x)).map_err(|e| e.to_string())
+        simulate(&q, FS, d, &SimOptions { force: push.force, ..Default::default() }).map(|t| Played::from((t.u, t.i, t.x))).map_err(|e| e.to_string())
     };
     quasi_static(play, &ac, &opts).unwrap()
 }

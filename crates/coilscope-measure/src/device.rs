@@ -131,6 +131,19 @@ impl VirtualDevice {
     pub fn params(&self) -> &Parameters {
         &self.params
     }
+
+    /// Hold a constant external force on the cone (N, + pushes the coil out) with a mass
+    /// added to it (kg) from the next sample on: the quasi-static method's added mass under
+    /// gravity or pressure on the diaphragm, applied by hand.
+    pub fn set_push(&mut self, force: f64, added_mass: f64) {
+        let p = Parameters { mms: self.params.mms + added_mass, ..self.params.clone() };
+        self.plant.set_force(&p, force);
+    }
+
+    /// The true displacement now (m): what a dial gauge on the cone reads.
+    pub fn x_now(&self) -> f64 {
+        self.state[idx::X]
+    }
 }
 
 impl Device for VirtualDevice {

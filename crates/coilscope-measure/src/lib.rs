@@ -19,6 +19,7 @@
 pub mod card;
 pub mod device;
 pub mod engine;
+pub mod quasi_static_card;
 pub mod signal;
 #[cfg(feature = "soundcard")]
 pub mod soundcard;
