@@ -1730,6 +1730,17 @@ struct CardArgs {
     sense_wiring: Option<String>,
 }
 
+impl CardArgs {
+    /// The sense wiring: `--sense-wiring`, else the chain file's, else `terminals`.
+    fn wiring(&self, chain: Option<&coilscope_core::chain::Chain>) -> Result<SenseWiring, String> {
+        match (&self.sense_wiring, chain) {
+            (Some(w), _) => SenseWiring::parse(w, Some(self.sense_ohm)),
+            (None, Some(c)) if c.sense_wiring.is_some() => SenseWiring::parse(c.sense_wiring.as_deref().unwrap_or_default(), Some(c.sense_ohm.unwrap_or(self.sense_ohm))),
+            (None, _) => Ok(SenseWiring::Terminals),
+        }
+    }
+}
+
 #[cfg(feature = "soundcard")]
 fn open_card(c: &CardArgs, rate: u32) -> Result<Box<dyn coilscope_measure::device::Device>, String> {
     use coilscope_measure::soundcard::{SoundCardDevice, SoundCardOptions};
@@ -1874,11 +1885,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     // The card's chain and wiring: corrected block by block (a virtual driver with a chain is
     // recorded through a simulated card first).
     let card_chain = a.card.chain.as_deref().map(load_chain).transpose()?;
-    let wiring = match (&a.card.sense_wiring, &card_chain) {
-        (Some(w), _) => SenseWiring::parse(w, Some(a.card.sense_ohm))?,
-        (None, Some(c)) if c.sense_wiring.is_some() => SenseWiring::parse(c.sense_wiring.as_deref().unwrap_or_default(), Some(c.sense_ohm.unwrap_or(a.card.sense_ohm)))?,
-        (None, _) => SenseWiring::Terminals,
-    };
+    let wiring = a.card.wiring(card_chain.as_ref())?;
     let mut reported_chain = None;
     if card_chain.is_some() || wiring != SenseWiring::Terminals {
         if a.replay.is_some() {
@@ -2180,10 +2187,7 @@ fn cmd_quasistatic(a: QuasiArgs) -> Result<(), Failure> {
         let mut device = open_card(&a.card, a.rate)?;
         if let Some(path) = a.card.chain.as_deref() {
             let c = load_chain(path)?;
-            let wiring = match &a.card.sense_wiring {
-                Some(w) => SenseWiring::parse(w, Some(a.card.sense_ohm))?,
-                None => SenseWiring::parse(c.sense_wiring.as_deref().unwrap_or("terminals"), Some(c.sense_ohm.unwrap_or(a.card.sense_ohm)))?,
-            };
+            let wiring = a.card.wiring(Some(&c))?;
             let cal = coilscope_core::chain::Chain { dc_u: 0.0, dc_i: 0.0, hum: None, ..c };
             device = Box::new(coilscope_measure::card::Corrected::new(device, &cal, wiring)?);
         }
