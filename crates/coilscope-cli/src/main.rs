@@ -385,8 +385,15 @@ enum Command {
     /// Large-signal parameters (Bl(x), Kms(x), Le(x), L2, R2, Rms, Re(t)) from a recording of
     /// voltage and current at high level: output-error fit of the nonlinear model.
     Identify {
-        /// Recording (WAV: voltage V, current A [, displacement m]).
-        recording: PathBuf,
+        /// Recording (WAV: voltage V, current A [, displacement m]). Several recordings (a
+        /// production line's batch): --out is a directory, each result is OUT/NAME.json, and
+        /// the recordings are identified --jobs at a time.
+        #[arg(required = true, num_args = 1..)]
+        recording: Vec<PathBuf>,
+        /// With several recordings: how many are identified at once (default: one per core,
+        /// each on one core).
+        #[arg(long)]
+        jobs: Option<usize>,
         /// Moving mass (kg), the absolute scale. Without it, a displacement channel (3) gives it.
         #[arg(long)]
         mms: Option<f64>,
@@ -820,13 +827,19 @@ fn main() -> ExitCode {
         Command::Linear { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit } => {
             cmd_linear(LinearArgs { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit })
         }
-        Command::Identify { recording, method, start, mms, order, effects, fit } => parse_chain(&fit.chain).and_then(|chain| {
-            if method == "volterra" {
-                cmd_identify_volterra(&recording, start.as_deref(), mms, order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, fit.scale.as_deref(), &fit.out)
+        Command::Identify { recording, jobs, method, start, mms, order, effects, fit } => parse_chain(&fit.chain).and_then(|chain| {
+            if recording.len() > 1 {
+                return cmd_identify_batch(&recording, jobs, &fit.out);
+            }
+            let recording = &recording[0];
+            if jobs.is_some() {
+                Err(Failure::from("--jobs applies to several recordings (a batch); one recording uses every core by itself"))
+            } else if method == "volterra" {
+                cmd_identify_volterra(recording, start.as_deref(), mms, order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, fit.scale.as_deref(), &fit.out)
             } else if start.is_some() {
                 Err(Failure::from("--start is the Volterra method's small-signal set (--method volterra); the full identification finds its own start"))
             } else {
-                cmd_identify(&recording, mms, order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, fit.scale.as_deref(), &fit.out)
+                cmd_identify(recording, mms, order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, fit.scale.as_deref(), &fit.out)
             }
         }),
         Command::Calibrate { recording, resistor, loopback, scale, out, sense_wiring, sense_ohm } => parse_wiring(&sense_wiring, sense_ohm).and_then(|w| cmd_calibrate(&recording, resistor, loopback, w, scale.as_deref(), &out)),
@@ -1421,7 +1434,9 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
         }
     };
     let init = post.as_ref().map(|p| Parameters { mms, x_range: None, ..p.clone() });
-    let opts = IdentifyOptions { mms, order, init, effects: parse_effects(effects)?, chain, ..Default::default() };
+    // A batch's worker runs on one core (`cmd_identify_batch`).
+    let threads = std::env::var(JOB_THREADS).ok().and_then(|v| v.parse().ok()).unwrap_or(0);
+    let opts = IdentifyOptions { mms, order, init, effects: parse_effects(effects)?, chain, threads, ..Default::default() };
     let (fit, failure) = match identify(&rec.u, &rec.i, fs, &origin, &opts, progress) {
         Ok(f) => (f, None),
         Err(IdentifyError::NotConverged { message, best }) => (*best, Some(message)),
@@ -1500,6 +1515,100 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
             println!("  result: {}", out.display());
             untrusted_if_warned(&warnings, out)
         }
+    }
+}
+
+/// The environment variable that sets `identify`'s Jacobian threads (a batch's workers: 1).
+const JOB_THREADS: &str = "COILSCOPE_THREADS";
+
+/// `identify A.wav B.wav ... --out DIR`: each recording identified by a worker process of
+/// this program with the same options (`OUT/NAME.json`), `jobs` at a time, each on one core:
+/// on a production line whole records in parallel keep every core busy, where one record's
+/// fit leaves a second core partly idle. A worker's failure is its recording's, not the
+/// batch's; the exit code is the worst of the workers'.
+fn cmd_identify_batch(recordings: &[PathBuf], jobs: Option<usize>, out: &Path) -> Result<(), Failure> {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let jobs = jobs.unwrap_or(cores);
+    if jobs == 0 {
+        return Err(Failure::from("--jobs 0: give at least 1"));
+    }
+    if out.is_file() || out.extension().is_some_and(|e| e == "json") {
+        return Err(Failure::from(format!("{}: with {} recordings --out is a directory (each result is OUT/NAME.json)", out.display(), recordings.len())));
+    }
+    let mut names = std::collections::BTreeMap::new();
+    for r in recordings {
+        let stem = r.file_stem().map(|s| s.to_string_lossy().into_owned()).ok_or_else(|| format!("{}: not a file name", r.display()))?;
+        if let Some(other) = names.insert(stem.clone(), r) {
+            return Err(Failure::from(format!("{} and {} would both write {}.json: give recordings with different names", other.display(), r.display(), stem)));
+        }
+    }
+    std::fs::create_dir_all(out).map_err(|e| format!("{}: cannot create the output directory: {e}", out.display()))?;
+    let exe = std::env::current_exe().map_err(|e| format!("cannot find this program to start the workers: {e}"))?;
+    // The worker's arguments: this invocation's, less the recordings, --out and --jobs.
+    let given: Vec<std::ffi::OsString> = std::env::args_os().skip(1).collect();
+    let mut options = vec![];
+    let mut k = 0;
+    while k < given.len() {
+        let a = given[k].to_string_lossy();
+        let takes_value = |flag: &str| a == flag;
+        if takes_value("--out") || takes_value("--jobs") {
+            k += 2;
+            continue;
+        }
+        if a.starts_with("--out=") || a.starts_with("--jobs=") || recordings.iter().any(|r| r.as_os_str() == given[k]) {
+            k += 1;
+            continue;
+        }
+        options.push(given[k].clone());
+        k += 1;
+    }
+    let t0 = std::time::Instant::now();
+    let queue = std::sync::Mutex::new(recordings.iter().collect::<std::collections::VecDeque<_>>());
+    let done = std::sync::Mutex::new(vec![]);
+    std::thread::scope(|scope| {
+        for _ in 0..jobs.min(recordings.len()) {
+            scope.spawn(|| loop {
+                let Some(r) = queue.lock().unwrap_or_else(|e| e.into_inner()).pop_front() else { break };
+                let stem = r.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+                let result = out.join(format!("{stem}.json"));
+                let t = std::time::Instant::now();
+                let o = std::process::Command::new(&exe).args(&options).arg(r).arg("--out").arg(&result).env(JOB_THREADS, "1").stdin(std::process::Stdio::null()).output();
+                let (code, text) = match o {
+                    Ok(o) => (o.status.code().unwrap_or(2), format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))),
+                    Err(e) => (2, format!("cannot start a worker: {e}")),
+                };
+                // Each recording's report whole, as it finishes.
+                let mut stdout = std::io::stdout().lock();
+                use std::io::Write as _;
+                let _ = writeln!(
+                    stdout,
+                    "== {} ({:.1} s, exit {code})
+{}",
+                    r.display(),
+                    t.elapsed().as_secs_f64(),
+                    text.trim_end()
+                );
+                done.lock().unwrap_or_else(|e| e.into_inner()).push((r.clone(), code, result));
+            });
+        }
+    });
+    let mut done = done.into_inner().unwrap_or_else(|e| e.into_inner());
+    done.sort();
+    println!("batch: {} recordings in {:.1} s, {jobs} at a time", done.len(), t0.elapsed().as_secs_f64());
+    for (r, code, result) in &done {
+        let what = match code {
+            0 => format!("ok: {}", result.display()),
+            3 => format!("written but not trustworthy (see its warnings): {}", result.display()),
+            _ => "failed (see its report above)".to_string(),
+        };
+        println!("  {:<40} {what}", r.display().to_string());
+    }
+    let worst = done.iter().map(|d| d.1).max().unwrap_or(0);
+    let bad = done.iter().filter(|d| d.1 != 0).count();
+    match worst {
+        0 => Ok(()),
+        3 => Err(Failure::Untrusted(format!("{bad} of {} recordings gave results that are not trustworthy", done.len()))),
+        _ => Err(Failure::Error(format!("{bad} of {} recordings failed or are not trustworthy", done.len()))),
     }
 }
 
