@@ -23,14 +23,18 @@ struct Rec {
 }
 
 fn record(name: &str) -> Rec {
+    record_seed(name, 1)
+}
+
+fn record_seed(name: &str, seed: u64) -> Rec {
     let p = embedded_driver(name).unwrap();
     let [lo, hi] = p.x_range.unwrap();
     let target = 0.85 * hi.min(-lo);
-    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs: FS, seconds: 8.0, rms: 1.0, fade: 0.05, seed: 1 }).unwrap();
+    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs: FS, seconds: 8.0, rms: 1.0, fade: 0.05, seed }).unwrap();
     let (_, tr) = gain_for_peak(&p, FS, &unit, target, &SimOptions::default()).unwrap();
     let (mut u, mut i) = (tr.u, tr.i);
-    add_sensor_noise(&mut u, 70.0, 1, "sensor-noise/voltage");
-    add_sensor_noise(&mut i, 70.0, 1, "sensor-noise/current");
+    add_sensor_noise(&mut u, 70.0, seed, "sensor-noise/voltage");
+    add_sensor_noise(&mut i, 70.0, seed, "sensor-noise/current");
     Rec { p, u, i }
 }
 
@@ -62,6 +66,29 @@ fn identify_8s_effects_auto(name: &str) {
     let r = rec(name);
     let f = identify(&r.u, &r.i, FS, "bench", &IdentifyOptions { mms: r.p.mms, ..Default::default() }, |_| {}).unwrap();
     assert!(f.residual_rel < 0.01);
+}
+
+/// A production line's batch (issue 17): four 8 s SB17 records (seeds 1-4, LR-2), identified
+/// one at a time on all cores (`workers` 1: what four `identify` calls do), or by one worker
+/// per core each on one core (`workers` 2: what `identify A B C D --out DIR` does, less
+/// its process start-up, a few milliseconds).
+#[divan::bench(args = [1, 2], sample_count = 2, sample_size = 1)]
+fn batch_of_4_sb17(workers: usize) {
+    static RECS: OnceLock<Vec<Rec>> = OnceLock::new();
+    let recs = RECS.get_or_init(|| (1..=4).map(|s| record_seed("sb17cac35-4", s)).collect());
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let threads = if workers == 1 { 0 } else { 1 };
+    std::thread::scope(|scope| {
+        for _ in 0..workers {
+            scope.spawn(|| {
+                while let Some(r) = recs.get(next.fetch_add(1, std::sync::atomic::Ordering::Relaxed)) {
+                    let lr2 = coilscope_ident::linear::EffectsChoice::Fixed(coilscope_ident::linear::Effects::NONE);
+                    let f = identify(&r.u, &r.i, FS, "bench", &IdentifyOptions { mms: r.p.mms, effects: lr2, threads, ..Default::default() }, |_| {}).unwrap();
+                    assert!(f.residual_rel < 0.01);
+                }
+            });
+        }
+    });
 }
 
 fn problem(r: &'static Rec) -> (OutputError<'static>, Vec<f64>) {
