@@ -2177,6 +2177,9 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     }
 }
 
+/// Set while the live page lingers after the run: Ctrl-C then ends the serving, and says so.
+static LINGERING: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
 /// Keep the live page (and the report it links) served for `seconds` after the run, or until
 /// Ctrl-C.
 fn linger(server: coilscope_live::LiveServer, seconds: f64, interrupt: &std::sync::atomic::AtomicBool) {
@@ -2184,6 +2187,7 @@ fn linger(server: coilscope_live::LiveServer, seconds: f64, interrupt: &std::syn
         eprintln!("live page: the run is over; serving {} and its report for {seconds:.0} s more (Ctrl-C ends it)", server.url());
         let end = std::time::Instant::now() + std::time::Duration::from_secs_f64(seconds);
         // A Ctrl-C during the run has already been answered by the run's end.
+        LINGERING.store(true, std::sync::atomic::Ordering::SeqCst);
         interrupt.store(false, std::sync::atomic::Ordering::SeqCst);
         while std::time::Instant::now() < end && !interrupt.load(std::sync::atomic::Ordering::SeqCst) {
             std::thread::sleep(std::time::Duration::from_millis(100));
@@ -2203,7 +2207,11 @@ fn interrupt_flag() -> std::sync::Arc<std::sync::atomic::AtomicBool> {
         if f.swap(true, Ordering::SeqCst) {
             std::process::exit(EXIT_INTERRUPTED as i32);
         }
-        eprintln!("\ninterrupt: finishing the block and writing the result (Ctrl-C again to quit at once)");
+        if LINGERING.load(Ordering::SeqCst) {
+            eprintln!("\ninterrupt: the live page stops (the result is written)");
+        } else {
+            eprintln!("\ninterrupt: finishing the block and writing the result (Ctrl-C again to quit at once)");
+        }
     });
     if let Err(e) = installed {
         eprintln!("warning: Ctrl-C cannot be caught ({e}): an interrupted run will not write its result");
