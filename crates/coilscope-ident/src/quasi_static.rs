@@ -145,6 +145,8 @@ pub struct WorkingPoint {
     pub bl_sd: f64,
     pub le_sd: f64,
     pub kms_sd: f64,
+    /// The point's small-signal fit's relative current error.
+    pub residual: f64,
 }
 
 /// The measurement: the points, and the series fitted to them.
@@ -180,6 +182,14 @@ pub const MAX_RE_RISE: f64 = 0.2;
 /// fit reads that as about 0.1 % on the values at the point, beyond its own sds (SB17 and
 /// PTT4 with the fits' sds alone: the truth at 2.5-4.6 sd of the bands).
 pub const POINT_SD_FLOOR: f64 = 1e-3;
+
+/// A working point's small-signal fit has failed when its current error is above
+/// `POINT_RESIDUAL_LIMIT` times the rest point's and above [`POINT_RESIDUAL_FLOOR`]: off rest
+/// the small signal sees the curves change across its own excursion (18WU at 8.6 mm: 8 times
+/// the rest point's error), a failed fit is hundreds of times off (25 % against 0.07 %).
+pub const POINT_RESIDUAL_LIMIT: f64 = 30.0;
+/// See [`POINT_RESIDUAL_LIMIT`] (2 % of the current).
+pub const POINT_RESIDUAL_FLOOR: f64 = 0.02;
 
 /// Least-squares power series of `order` through `(x, y)` (fewer points: lower order).
 pub fn fit_series(x: &[f64], y: &[f64], order: usize) -> Poly {
@@ -289,7 +299,24 @@ pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<Played, String>
         // The fit's own sds, with a floor of POINT_SD_FLOOR for what a linear fit of a small
         // signal on a nonlinear driver leaves (see the constant).
         let (bl_sd, le_sd) = ((0.5 * fit.sigma_rel[5]).max(POINT_SD_FLOOR) * p.bl.c[0], fit.sigma_rel[1].max(POINT_SD_FLOOR) * p.le.c[0]);
-        let wp = WorkingPoint { u_dc, i_dc: im, force: push.force, push, x_dc: xm, re_dc, bl_eff: p.bl.c[0], k_eff: p.kms.c[0], le: p.le.c[0], bl: f64::NAN, kms_static: f64::NAN, k_tangent: f64::NAN, bl_sd, le_sd, kms_sd: f64::NAN };
+        let wp = WorkingPoint {
+            u_dc,
+            i_dc: im,
+            force: push.force,
+            push,
+            x_dc: xm,
+            re_dc,
+            bl_eff: p.bl.c[0],
+            k_eff: p.kms.c[0],
+            le: p.le.c[0],
+            bl: f64::NAN,
+            kms_static: f64::NAN,
+            k_tangent: f64::NAN,
+            bl_sd,
+            le_sd,
+            kms_sd: f64::NAN,
+            residual: fit.residual_rel,
+        };
         Ok((wp, p))
     };
     // At rest: the small-signal set, and the linear map from volts to displacement.
@@ -317,6 +344,38 @@ pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<Played, String>
             pts.push(wp);
         }
     }
+    // A point whose small-signal fit failed (stuck far from the data, or a value that is not
+    // a number) is left out of the series, by name: 18WU by mass, at 2.3 N the fit stopped
+    // after one iteration at 25 % current error, Bl 1.74 T m (true 6.0), and the series took
+    // it in without a word.
+    let r0 = pts[0].residual;
+    let mut warnings = vec![];
+    // Over every point, those left out below too (the heat is what made them fail).
+    let hot = pts.iter().map(|p| p.re_dc / p0.re - 1.0).fold(0.0, f64::max);
+    if hot > MAX_RE_RISE {
+        warnings.push(format!(
+            "the DC heated the coil: its resistance rose by {:.0} % (about {:.0} K) at the outermost points; the current, the reach and the curves there are not trustworthy (shorten --hold, fewer points, or measure with a displacement offset that needs no current: an added mass or pressure)",
+            100.0 * hot,
+            hot / coilscope_core::params::ALPHA_COPPER
+        ));
+    }
+
+    pts.retain(|p| {
+        let ok = p.bl_eff.is_finite() && p.k_eff.is_finite() && p.le.is_finite() && p.x_dc.is_finite() && p.residual <= (POINT_RESIDUAL_LIMIT * r0).max(POINT_RESIDUAL_FLOOR);
+        if !ok {
+            warnings.push(format!(
+                "the working point at {:.3} V, {:.3} N (x {:.3} mm) is left out: its small-signal fit failed (current error {:.2} % against {:.3} % at rest, from a fit stuck far from the data or a coil heating during the record; Bl {:.4} T m, Le {:.4} mH); the series are fitted to the other points",
+                p.u_dc,
+                p.force,
+                p.x_dc * 1e3,
+                100.0 * p.residual,
+                100.0 * r0,
+                p.bl_eff,
+                p.le * 1e3
+            ));
+        }
+        ok
+    });
     pts.sort_by(|a, b| a.x_dc.total_cmp(&b.x_dc));
     // Two passes: series from the points, then the DC terms taken off with their derivatives.
     let xs: Vec<f64> = pts.iter().map(|p| p.x_dc).collect();
@@ -354,7 +413,8 @@ pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<Played, String>
     }
     let ks: Vec<f64> = pts.iter().filter(|p| p.kms_static.is_finite()).map(|p| p.kms_sd).collect();
     let (kms, kms_band) = fit_series_band(&kx, &ky, &ks, opts.order, &span);
-    let k_dynamic_rest = pts.iter().find(|p| p.u_dc == 0.0).map_or(f64::NAN, |p| p.k_tangent);
+    // The point at rest: no DC and no push (with a mass or a pressure every point has no DC).
+    let k_dynamic_rest = pts.iter().find(|p| p.u_dc == 0.0 && p.force == 0.0).map_or(f64::NAN, |p| p.k_tangent);
     // The rest position after the largest positive offset: release it, wait a second. (A
     // held force is constant over a play: its release is not simulated.)
     let rest_drift = if opts.offset == Offset::Current {
@@ -367,21 +427,12 @@ pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<Played, String>
         f64::NAN
     };
     let [lo, hi] = [xs[0], xs[xs.len() - 1]];
-    let mut warnings = vec![];
     if kx.len() < opts.order + 3 {
         warnings.push(format!(
             "{} static points for a series of order {}: the stiffness between the points is interpolated with fewer than 2 points to spare, nothing checks it (with 5 points PTT4's Kms came out 3 % off near rest); give --points {} or more, or a lower --order",
             kx.len(),
             opts.order,
             opts.order + 4 + (opts.order % 2)
-        ));
-    }
-    let hot = pts.iter().map(|p| p.re_dc / p0.re - 1.0).fold(0.0, f64::max);
-    if hot > MAX_RE_RISE {
-        warnings.push(format!(
-            "the DC heated the coil: its resistance rose by {:.0} % (about {:.0} K) at the outermost points; the current, the reach and the curves there are not trustworthy (shorten --hold, fewer points, or measure with a displacement offset that needs no current: an added mass or pressure)",
-            100.0 * hot,
-            hot / coilscope_core::params::ALPHA_COPPER
         ));
     }
     let params = Parameters { re: p0.re, bl, kms, le, x_range: Some([lo, hi]), source: Some(format!("coilscope quasistatic (point by point, offset by {})", opts.offset.name())), ..p0 };
