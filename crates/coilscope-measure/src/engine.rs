@@ -371,7 +371,7 @@ pub struct Live {
 
 /// Bins of a block's [`Trace`].
 pub const TRACE_BINS: usize = 20;
-/// Points of a live band ([`Live::bands`]).
+/// Points of a band ([`Live::bands`], and the result's).
 pub const LIVE_BAND_POINTS: usize = 41;
 
 /// A block's signals for a live view: the minimum and maximum over each of [`TRACE_BINS`]
@@ -386,6 +386,12 @@ pub struct Trace {
     /// The live model's displacement (m) and velocity (m/s).
     pub x: Vec<[f64; 2]>,
     pub v: Vec<[f64; 2]>,
+}
+
+/// Bl, Kms and Le of `p` with the online estimator's sds on `xs`: the result's bands, and
+/// the live page's as they converge.
+fn curve_bands(p: &Parameters, on: &Online, xs: &[f64]) -> [(&'static str, Band); 3] {
+    [("Bl", &p.bl), ("Kms", &p.kms), ("Le", &p.le)].map(|(which, f)| (which, Band { x: xs.to_vec(), value: xs.iter().map(|&x| f.eval(x)).collect(), sd: xs.iter().map(|&x| on.curve_sd(which, x)).collect() }))
 }
 
 /// `[min, max]` of each of `bins` equal parts of `s` (fewer when `s` is shorter).
@@ -1133,9 +1139,7 @@ impl<'a> Engine<'a> {
                         self.kms_ratio = (0..=20).map(|k| 1.3 * reach * k as f64 / 20.0).map(|x| est.kms.eval(x).max(est.kms.eval(-x)) / k0).fold(0.0, f64::max);
                         self.checked_reach = reach;
                         let xs: Vec<f64> = (0..LIVE_BAND_POINTS).map(|k| reach * (2.0 * k as f64 / (LIVE_BAND_POINTS - 1) as f64 - 1.0)).collect();
-                        live.bands = [("Bl", &est.bl), ("Kms", &est.kms), ("Le", &est.le)]
-                            .map(|(which, f)| (which, coilscope_core::result::Band { x: xs.clone(), value: xs.iter().map(|&x| f.eval(x)).collect(), sd: xs.iter().map(|&x| on.curve_sd(which, x)).collect() }))
-                            .into();
+                        live.bands = curve_bands(&est, on, &xs).into();
                         live.estimate = Some(est.clone());
                         if let Some(m) = self.meter.as_mut() {
                             m.set_params(&est);
@@ -1416,11 +1420,9 @@ impl Measurement {
     pub fn result(&self) -> ResultFile {
         let mut unc = Uncertainty::new("standard deviations from the online estimator's covariance (information from every window; sensor noise and the residual's level; Mms taken as exact). Bands: value and sd on a grid over fit.x_range");
         let [lo, hi] = self.x_range;
-        let xs: Vec<f64> = (0..41).map(|k| lo + (hi - lo) * k as f64 / 40.0).collect();
-        for (which, f) in [("Bl", &self.params.bl), ("Kms", &self.params.kms), ("Le", &self.params.le)] {
-            let value: Vec<f64> = xs.iter().map(|&x| f.eval(x)).collect();
-            let sd: Vec<f64> = xs.iter().map(|&x| self.online.curve_sd(which, x)).collect();
-            unc.set_band(which, Band { x: xs.clone(), value, sd });
+        let xs: Vec<f64> = (0..LIVE_BAND_POINTS).map(|k| lo + (hi - lo) * k as f64 / (LIVE_BAND_POINTS - 1) as f64).collect();
+        for (which, band) in curve_bands(&self.params, &self.online, &xs) {
+            unc.set_band(which, band);
         }
         // Re is the cold value: its sd is the small-signal fit's. Of the rest, the effects the
         // final model keeps.
