@@ -253,7 +253,7 @@ pub fn with_systematic(cov: DMatrix<f64>, k: usize, sys: f64) -> DMatrix<f64> {
 /// error `e` of it moves the estimate by `-e g` (the least-squares answer to the residual
 /// change `e c`). `j` and `c` whitened alike.
 pub fn with_nuisance(cov: DMatrix<f64>, j: &DMatrix<f64>, c: &DVector<f64>, sd: f64) -> DMatrix<f64> {
-    let a = j.tr_mul(j);
+    let a = crate::lm::gram(j);
     let b = j.tr_mul(c);
     let g = match a.clone().cholesky() {
         Some(ch) => ch.solve(&b),
