@@ -1839,7 +1839,24 @@ struct CardArgs {
     sense_wiring: Option<String>,
 }
 
+/// `device` read through the card's calibration `c`, corrected block by block, and the
+/// calibration used: it knows the card (delay, corners, gain), not this run's offsets or hum
+/// (found in the lead-in).
+fn corrected(device: Box<dyn coilscope_measure::device::Device>, c: coilscope_core::chain::Chain, wiring: SenseWiring) -> Result<(Box<dyn coilscope_measure::device::Device>, coilscope_core::chain::Chain), String> {
+    let cal = coilscope_core::chain::Chain { dc_u: 0.0, dc_i: 0.0, hum: None, ..c };
+    Ok((Box::new(coilscope_measure::card::Corrected::new(device, &cal, wiring)?), cal))
+}
+
 impl CardArgs {
+    /// The card's chain file (as given) and the wiring, when there is something to correct:
+    /// a `--chain`, or a wiring other than `terminals` (measure --card and quasistatic --card
+    /// alike).
+    fn correction(&self) -> Result<Option<(coilscope_core::chain::Chain, SenseWiring)>, String> {
+        let chain = self.chain.as_deref().map(load_chain).transpose()?;
+        let wiring = self.wiring(chain.as_ref())?;
+        Ok((chain.is_some() || wiring != SenseWiring::Terminals).then(|| (chain.unwrap_or_default(), wiring)))
+    }
+
     /// The sense wiring: `--sense-wiring`, else the chain file's, else `terminals`.
     fn wiring(&self, chain: Option<&coilscope_core::chain::Chain>) -> Result<SenseWiring, String> {
         match (&self.sense_wiring, chain) {
@@ -1993,21 +2010,17 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     };
     // The card's chain and wiring: corrected block by block (a virtual driver with a chain is
     // recorded through a simulated card first).
-    let card_chain = a.card.chain.as_deref().map(load_chain).transpose()?;
-    let wiring = a.card.wiring(card_chain.as_ref())?;
     let mut reported_chain = None;
-    if card_chain.is_some() || wiring != SenseWiring::Terminals {
+    if let Some((c, wiring)) = a.card.correction()? {
         if a.replay.is_some() {
             return Err(Failure::from("--chain and --sense-wiring apply to --card and --virtual, not to a --replay (fit a record with `coilscope identify --chain FILE`)".to_string()));
         }
-        let c = card_chain.clone().unwrap_or_default();
         if a.virtual_driver.is_some() {
             let full_scale = (a.card.u_volts_fs, a.card.i_volts_fs / a.card.sense_ohm);
             device = Box::new(coilscope_measure::card::SimulatedCard::new(device, &coilscope_core::chain::Chain { source: Some("simulated".into()), ..c.clone() }, wiring, full_scale)?);
         }
-        // The calibration knows the card, not this run's offsets or hum.
-        let cal = coilscope_core::chain::Chain { dc_u: 0.0, dc_i: 0.0, hum: None, ..c };
-        device = Box::new(coilscope_measure::card::Corrected::new(device, &cal, wiring)?);
+        let cal;
+        (device, cal) = corrected(device, c, wiring)?;
         reported_chain = Some(coilscope_core::chain::Chain { source: Some("calibrated".into()), ..cal });
         mark_wiring(&mut reported_chain, wiring);
     }
@@ -2302,15 +2315,12 @@ fn cmd_quasistatic(a: QuasiArgs) -> Result<(), Failure> {
             _ => return Err("quasistatic --card: a sound card's output is AC-coupled and cannot hold a DC current through the coil; hold the points by --offset mass (masses on the cone) or --offset pressure (a sealed box)".to_string().into()),
         };
         let mut device = open_card(&a.card, a.rate)?;
-        if let Some(path) = a.card.chain.as_deref() {
-            let c = load_chain(path)?;
-            let wiring = a.card.wiring(Some(&c))?;
-            let cal = coilscope_core::chain::Chain { dc_u: 0.0, dc_i: 0.0, hum: None, ..c };
-            device = Box::new(coilscope_measure::card::Corrected::new(device, &cal, wiring)?);
+        if let Some((c, wiring)) = a.card.correction()? {
+            device = corrected(device, c, wiring)?.0;
         }
         let describe = device.describe();
         let opts = QuasiStaticOptions { mms, points, reach, range: [-xmax, xmax], hold_s: hold, record_s: 2.0, ac_volts: a.ac_volts, order, fs, offset };
-        let mut operator = coilscope_measure::quasi_static_card::PromptOperator::new(std::io::stdin().lock(), std::io::stderr(), a.sd);
+        let mut operator = coilscope_measure::quasi_static_card::PromptOperator::new(std::io::stdin().lock(), std::io::stderr());
         eprintln!("quasistatic on {describe}: {points} working points to {:.0} % of +-{:.2} mm, offset by {}; a gauge on the cone reads the static displacement (q stops)", reach * 100.0, xmax * 1e3, opts.offset_name());
         let q = quasi_static(coilscope_measure::quasi_static_card::card_play(device.as_mut(), &mut operator, offset, 4800), &ac, &opts)?;
         (q, opts, None, "the driver on the card".to_string(), describe, offset)

@@ -68,13 +68,11 @@ pub fn card_play<'a>(device: &'a mut dyn Device, operator: &'a mut dyn Operator,
 pub struct PromptOperator<R, W> {
     input: R,
     output: W,
-    /// The diaphragm's area (m^2) for pressure offsets.
-    pub sd: Option<f64>,
 }
 
 impl<R: BufRead, W: Write> PromptOperator<R, W> {
-    pub fn new(input: R, output: W, sd: Option<f64>) -> Self {
-        PromptOperator { input, output, sd }
+    pub fn new(input: R, output: W) -> Self {
+        PromptOperator { input, output }
     }
 
     /// Ask, and read one answer (`None`: an empty line); `q` stops the measurement.
@@ -153,7 +151,7 @@ mod tests {
     use super::*;
 
     fn op(script: &str) -> PromptOperator<std::io::Cursor<Vec<u8>>, Vec<u8>> {
-        PromptOperator::new(std::io::Cursor::new(script.as_bytes().to_vec()), Vec::new(), Some(0.0133))
+        PromptOperator::new(std::io::Cursor::new(script.as_bytes().to_vec()), Vec::new())
     }
 
     #[test]
