@@ -20,7 +20,12 @@ pub fn band_z(fit: &LargeFit, truth: &Parameters, which: &[&str]) -> f64 {
         let b = fit.band(name, 41);
         let zs: Vec<f64> = (0..b.x.len()).map(|k| (b.value[k] - f.eval(b.x[k])) / b.sd[k]).collect();
         if std::env::var("COILSCOPE_BAND_TRACE").is_ok() {
-            println!("{name}: z {:?}", zs.iter().step_by(4).map(|v| format!("{v:.2}")).collect::<Vec<_>>());
+            println!(
+                "{name}: z {:?} x {:?} sd {:?}",
+                zs.iter().map(|v| format!("{v:.2}")).collect::<Vec<_>>(),
+                b.x.iter().step_by(8).map(|v| format!("{:.2}", v * 1e3)).collect::<Vec<_>>(),
+                b.sd.iter().map(|v| format!("{:.2e}", v)).collect::<Vec<_>>()
+            );
         }
         z = z.max(zs.iter().fold(0.0, |m, v| m.max(v.abs())));
     }
