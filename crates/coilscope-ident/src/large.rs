@@ -36,10 +36,14 @@ use num_dual::{DualNum, DualSVec64};
 use std::ops::Range;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-/// Parameters per dual-number pass of the Jacobian. Measured on the 8 s benchmark record
-/// (one core, release, by timing `jacobian_chunk::<W>`): seconds per Jacobian column 0.06
-/// (width 2), 0.04 (4), 0.08 (8), 0.13 (16): wider duals stop fitting the registers.
-pub const CHUNK: usize = 4;
+/// Parameters per dual-number pass of the Jacobian. Measured 2026-11-26 with the
+/// `jacobian_order4` bench (23 columns, 8 s, both cores, medians of 5, repeated): 826 ms
+/// (width 4), 618 (6), 565 (8), 680 (10), 753 (12), 874 (16). At width 8 each pass's value
+/// part and the dual numbers' `Option` test are shared by twice the columns of width 4, and
+/// it still fits the registers; `identify_8s` went 5.93 -> 4.75 s (SB17), 5.96 -> 4.78
+/// (PTT4), 9.03 -> 6.95 (18WU), the effects search 14.85 -> 11.26, with every result
+/// bit-identical. (Until then 4, from a one-core timing per column of an older model.)
+pub const CHUNK: usize = 8;
 /// Largest `|lambda| h` of the fast electrical mode in the Jacobian runs.
 const JACOBIAN_STIFF_LIMIT: f64 = 1.5;
 /// Highest power-series order.
@@ -1450,9 +1454,41 @@ fn settled(s: &LmState) -> bool {
     s.last_decrease < SEARCH_SETTLED_DECREASE && (s.gain_ratio - 1.0).abs() < SEARCH_SETTLED_GAIN && s.step_lambda <= SEARCH_SETTLED_LAMBDA
 }
 
+/// Relative cost decrease the Gauss-Newton step from `theta` would bring on the linearised
+/// model of the last Jacobian `j` (computed one accepted step earlier): `1/2 g^T (J^T J)^-1 g
+/// / cost` with `g = J^T r(theta)`. NaN when `J^T J` is singular.
+fn remaining_decrease(prob: &OutputError, j: &DMatrix<f64>, theta: &[f64], cost: f64) -> f64 {
+    let r = prob.residual(theta);
+    let g = j.tr_mul(&r);
+    match crate::lm::gram(j).cholesky() {
+        Some(ch) => 0.5 * g.dot(&ch.solve(&g)) / cost.max(1e-300),
+        None => f64::NAN,
+    }
+}
+
+/// Whether the final fit is done one iteration early: the last step was (nearly) the
+/// undamped Gauss-Newton step ([`SEARCH_SETTLED_LAMBDA`]) and the linearised model predicted
+/// its decrease to within [`FINAL_SETTLED_GAIN`], so that model holds over a step, and on it
+/// the next Gauss-Newton step (the last Jacobian with the new residual,
+/// [`remaining_decrease`]) would lower the cost by less than `tol`: what the iteration that
+/// confirmed it would have found, at the price of a whole Jacobian. Measured (SB17 8 s): the
+/// final fit's second step lowered the cost by 1.6e-6 after a first of 9.6e-2 at a gain
+/// ratio of 1.000; the Jacobian that confirmed it was 0.9 s of 5.2.
+fn final_settled(prob: &OutputError, s: &LmState, tol: f64) -> bool {
+    if !(s.step_lambda <= SEARCH_SETTLED_LAMBDA && (s.gain_ratio - 1.0).abs() < FINAL_SETTLED_GAIN) {
+        return false;
+    }
+    let j = prob.last_jacobian.lock().expect("jacobian cache").clone();
+    j.is_some_and(|j| remaining_decrease(prob, &j, &s.theta, s.cost) < tol)
+}
+
+/// Largest `|1 - gain ratio|` of a last step the final fit trusts its linearised model after
+/// ([`final_settled`]).
+pub const FINAL_SETTLED_GAIN: f64 = 0.01;
+
 /// Run LM on `prob` from `theta` until an accepted step lowers the cost by less than `tol`
 /// (relative; Gauss-Newton's next step would gain far less) or `max_it` iterations. Returns the last state.
-/// A search stage also stops once [`settled`].
+/// A search stage also stops once [`settled`], the final fit once [`final_settled`].
 fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: usize, observe: &mut dyn FnMut(&Progress)) -> LmState {
     let norm_i = prob.i[prob.fit.clone()].iter().map(|v| v * v).sum::<f64>().sqrt();
     let report = |s: &LmState, observe: &mut dyn FnMut(&Progress)| {
@@ -1468,7 +1504,11 @@ fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: u
         if stalled {
             break;
         }
-        if s.last_decrease < tol || s.converged || (matches!(stage, Stage::Estimate { .. }) && settled(&s)) {
+        let early = match stage {
+            Stage::Estimate { .. } => settled(&s),
+            Stage::Final { .. } => final_settled(prob, &s, tol),
+        };
+        if s.last_decrease < tol || s.converged || early {
             s.converged = true;
             break;
         }
@@ -1912,7 +1952,9 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     let x_range = x_model.iter().fold([0.0f64, 0.0f64], |[a, b], v| [a.min(*v), b.max(*v)]);
     let mut params = lay.parameters(&s.theta);
     params.x_range = Some(x_range);
-    let stop_reason = if s.converged {
+    let stop_reason = if s.converged && s.last_decrease >= 1e-4 {
+        format!("converged: the linearised model held over the last step (gain ratio {:.4}) and predicts a further cost decrease below 1e-4, after {} iterations", s.gain_ratio, s.iteration)
+    } else if s.converged {
         format!("converged: cost decrease below 1e-4 after {} iterations", s.iteration)
     } else if s.iteration >= opts.max_iterations {
         format!("stopped at the iteration limit ({}), last relative cost decrease {:.2e}", opts.max_iterations, s.last_decrease)
