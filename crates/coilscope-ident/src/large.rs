@@ -1461,15 +1461,8 @@ fn settled(s: &LmState) -> bool {
 /// singular. (Undamped, `A` is singular in a search stage: the Re(t) knots past its
 /// estimation part have no rows.)
 fn chord_step(prob: &OutputError, j: &DMatrix<f64>, theta: &[f64], lambda: f64) -> Option<(Vec<f64>, f64)> {
-    let r = prob.residual(theta);
-    let g = j.tr_mul(&r);
-    let a = crate::lm::gram(j);
-    let mut damped = a.clone();
-    for k in 0..damped.nrows() {
-        damped[(k, k)] += lambda * a[(k, k)].max(1e-30);
-    }
-    let d = damped.cholesky()?.solve(&(-&g));
-    let predicted = -(g.dot(&d) + 0.5 * d.dot(&(&a * &d)));
+    let g = j.tr_mul(&prob.residual(theta));
+    let (d, predicted) = crate::lm::damped_step(&crate::lm::gram(j), &g, lambda)?;
     Some((theta.iter().zip(d.iter()).map(|(t, d)| t + d).collect(), predicted))
 }
 
@@ -1884,7 +1877,6 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
                     if one.lr3 {
                         let (l2, r2) = current.l2r2.as_ref().map_or((0.0, 0.0), |(l, r)| (l.eval(0.0), r.eval(0.0)));
                         let vanishing = Parameters { l3r3: Some((LR3_VANISHING * 0.5 * l2, LR3_VANISHING * 3.0 * r2)), ..current.clone() };
-
                         let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rate, x_limit, threads).with_chain(setup);
                         let miss = |p: &Parameters| prob.residual(&join(lay.theta_from(p, re_track.as_deref()), &cth)).norm_squared();
                         if l2 > 0.0 && miss(&vanishing) < miss(&from) {

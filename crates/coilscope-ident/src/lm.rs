@@ -64,6 +64,20 @@ impl LmState {
     }
 }
 
+/// The damped Gauss-Newton step `d` of `(A + lambda diag A) d = -g` (`A = J^T J`, `g = J^T r`;
+/// a zero diagonal entry is damped as 1e-30) and the decrease of `1/2 |r|^2` the linearised
+/// model predicts for it, `-(g^T d + 1/2 d^T A d)`. `None` when the damped system is not
+/// positive definite.
+pub fn damped_step(a: &DMatrix<f64>, g: &DVector<f64>, lambda: f64) -> Option<(DVector<f64>, f64)> {
+    let mut damped = a.clone();
+    for k in 0..damped.nrows() {
+        damped[(k, k)] += lambda * a[(k, k)].max(1e-30);
+    }
+    let delta = damped.cholesky()?.solve(&(-g));
+    let predicted = -(g.dot(&delta) + 0.5 * delta.dot(&(a * &delta)));
+    Some((delta, predicted))
+}
+
 /// One LM iteration (tries damping until a step lowers the cost, at most 20 times).
 pub fn lm_step<P: Problem>(p: &P, s: &LmState) -> LmState {
     let (r, j) = p.residual_jacobian(&s.theta);
@@ -71,19 +85,12 @@ pub fn lm_step<P: Problem>(p: &P, s: &LmState) -> LmState {
     let g = j.tr_mul(&r);
     let mut lambda = s.lambda;
     for _ in 0..20 {
-        let mut damped = a.clone();
-        for k in 0..damped.nrows() {
-            damped[(k, k)] += lambda * a[(k, k)].max(1e-30);
-        }
-        if let Some(ch) = damped.cholesky() {
-            let delta = ch.solve(&(-&g));
+        if let Some((delta, predicted)) = damped_step(&a, &g, lambda) {
             let theta: Vec<f64> = s.theta.iter().zip(delta.iter()).map(|(t, d)| t + d).collect();
             let cost = 0.5 * p.residual(&theta).norm_squared();
             if cost.is_finite() && cost < s.cost {
                 let dec = (s.cost - cost) / s.cost.max(1e-300);
                 let step = delta.amax();
-                // The linearised model's decrease: -(g^T d + 1/2 d^T A d).
-                let predicted = -(g.dot(&delta) + 0.5 * delta.dot(&(&a * &delta)));
                 return LmState { theta, cost, lambda: (lambda / 3.0).max(1e-12), iteration: s.iteration + 1, last_decrease: dec, gain_ratio: (s.cost - cost) / predicted, step_lambda: lambda, converged: dec < 1e-12 || step < 1e-10 };
             }
         }
