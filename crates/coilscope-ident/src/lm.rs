@@ -10,6 +10,15 @@ pub trait Problem {
     fn residual(&self, theta: &[f64]) -> DVector<f64> {
         self.residual_jacobian(theta).0
     }
+    /// The residual at theta, when `wanted(residual)` says that the Jacobian at theta will
+    /// be asked for next. An implementation may compute that Jacobian alongside the
+    /// residual, on the cores the residual leaves idle, and keep it for the
+    /// [`Problem::residual_jacobian`] call that follows (and drop it as soon as the residual
+    /// says it is not wanted). The default: the residual alone.
+    fn residual_ahead(&self, theta: &[f64], wanted: &(dyn Fn(&DVector<f64>) -> bool + Sync)) -> DVector<f64> {
+        let _ = wanted;
+        self.residual(theta)
+    }
 }
 
 /// `J^T J`, the same to the last bit as `j.tr_mul(&j)` (each entry is nalgebra's dot of two
@@ -80,6 +89,14 @@ pub fn damped_step(a: &DMatrix<f64>, g: &DVector<f64>, lambda: f64) -> Option<(D
 
 /// One LM iteration (tries damping until a step lowers the cost, at most 20 times).
 pub fn lm_step<P: Problem>(p: &P, s: &LmState) -> LmState {
+    lm_step_ahead(p, s, &|_| true)
+}
+
+/// [`lm_step`] that tells the problem, while it evaluates a trial, whether the Jacobian at
+/// the trial will be asked for next ([`Problem::residual_ahead`]): when the trial is
+/// accepted as the state `next` and `goes_on(&next)` (the caller will iterate from it). The
+/// states are the same as [`lm_step`]'s.
+pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState) -> bool + Sync)) -> LmState {
     let (r, j) = p.residual_jacobian(&s.theta);
     let a = gram(&j);
     let g = j.tr_mul(&r);
@@ -87,11 +104,17 @@ pub fn lm_step<P: Problem>(p: &P, s: &LmState) -> LmState {
     for _ in 0..20 {
         if let Some((delta, predicted)) = damped_step(&a, &g, lambda) {
             let theta: Vec<f64> = s.theta.iter().zip(delta.iter()).map(|(t, d)| t + d).collect();
-            let cost = 0.5 * p.residual(&theta).norm_squared();
-            if cost.is_finite() && cost < s.cost {
+            let accepted = |cost: f64| -> Option<LmState> {
+                if !(cost.is_finite() && cost < s.cost) {
+                    return None;
+                }
                 let dec = (s.cost - cost) / s.cost.max(1e-300);
                 let step = delta.amax();
-                return LmState { theta, cost, lambda: (lambda / 3.0).max(1e-12), iteration: s.iteration + 1, last_decrease: dec, gain_ratio: (s.cost - cost) / predicted, step_lambda: lambda, converged: dec < 1e-12 || step < 1e-10 };
+                Some(LmState { theta: theta.clone(), cost, lambda: (lambda / 3.0).max(1e-12), iteration: s.iteration + 1, last_decrease: dec, gain_ratio: (s.cost - cost) / predicted, step_lambda: lambda, converged: dec < 1e-12 || step < 1e-10 })
+            };
+            let r = p.residual_ahead(&theta, &|r| accepted(0.5 * r.norm_squared()).is_some_and(|next| goes_on(&next)));
+            if let Some(next) = accepted(0.5 * r.norm_squared()) {
+                return next;
             }
         }
         lambda *= 4.0;
