@@ -879,8 +879,15 @@ pub struct OutputError<'a> {
     pub heat: Vec<Vec<f64>>,
     interp: Interpolator,
     interp_jac: Interpolator,
-    /// The last Jacobian computed (LM's last iteration): reused for the covariance.
+    /// The last Jacobian computed (LM's last iteration): reused for the covariance and the
+    /// final fit's chord step. Kept only when [`OutputError::keeping_last`] says so
+    /// (a copy of up to 50 MB per iteration that the search stages never read).
     last_jacobian: std::sync::Mutex<Option<DMatrix<f64>>>,
+    /// The last residual run's theta, displacement and current over `0 .. fit.end`, for
+    /// [`OutputError::trace`] at the same theta (the final fit's result is traced where its
+    /// last residual was run: one run of the whole record fewer). Kept as the Jacobian is.
+    last_trace: std::sync::Mutex<Option<(Vec<f64>, Vec<f64>, Vec<f64>)>>,
+    keep_last: bool,
     /// The last residual and its theta: LM evaluates a trial, accepts it, then asks for the
     /// residual and Jacobian at the same theta.
     last_residual: std::sync::Mutex<Option<(Vec<f64>, DVector<f64>)>>,
@@ -911,10 +918,19 @@ impl<'a> OutputError<'a> {
             interp: Interpolator::new(n),
             interp_jac: Interpolator::new(n_jac),
             last_jacobian: Default::default(),
+            last_trace: Default::default(),
+            keep_last: false,
             last_residual: Default::default(),
             ahead: Default::default(),
             chain: None,
         }
+    }
+
+    /// The problem that keeps its last Jacobian and its last residual run's trace (the final
+    /// fit's: [`settle_early`], the covariance, the fitted model's trace).
+    pub fn keeping_last(mut self) -> Self {
+        self.keep_last = true;
+        self
     }
 
     /// The problem with the chain's unknowns after the layout's.
@@ -964,6 +980,11 @@ impl<'a> OutputError<'a> {
 
     /// Simulated trace of the model `theta` over `u[..len]`: (x, i) per sample.
     pub fn trace(&self, th: &[f64], len: usize) -> Result<(Vec<f64>, Vec<f64>), usize> {
+        if let Some((t, x, i)) = self.last_trace.lock().expect("trace cache").as_ref() {
+            if t.as_slice() == th && x.len() >= len {
+                return Ok((x[..len].to_vec(), i[..len].to_vec()));
+            }
+        }
         let mut x = Vec::with_capacity(len);
         let mut i = Vec::with_capacity(len);
         let (u, _) = self.signals(th);
@@ -993,12 +1014,21 @@ impl<'a> OutputError<'a> {
     fn residual_with(&self, th: &[f64], u: &[f64], i: &[f64]) -> Option<DVector<f64>> {
         let start = self.fit.start;
         let mut r = DVector::zeros(self.fit.len());
+        let cap = if self.keep_last { self.fit.end } else { 0 };
+        let (mut xs, mut is) = (Vec::with_capacity(cap), Vec::with_capacity(cap));
         run_layout(&self.layout, th, &self.heat, u, self.fs, &self.interp, self.fit.end, self.x_limit, None, |m, s| {
             if m >= start {
                 r[m - start] = s[idx::I] - i[m];
             }
+            if cap > 0 {
+                xs.push(s[idx::X]);
+                is.push(s[idx::I]);
+            }
         })
         .ok()?;
+        if cap > 0 {
+            *self.last_trace.lock().expect("trace cache") = Some((th.to_vec(), xs, is));
+        }
         Some(r)
     }
 
@@ -1074,29 +1104,28 @@ impl<'a> OutputError<'a> {
 
     /// Jacobian columns `c0 .. c0 + N` (fewer at the end) of the current w.r.t. theta: one
     /// run of the model on `N`-wide dual numbers.
-    fn jacobian_chunk<const N: usize>(&self, th: &[f64], c0: usize, u: &[f64], stop: Option<&AtomicBool>) -> Vec<Vec<f64>> {
+    fn jacobian_chunk<const N: usize>(&self, th: &[f64], c0: usize, u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
         let (thd, cnt) = seed_duals::<N>(th, c0);
-        let start = self.fit.start;
-        let mut cols = vec![vec![0.0; self.fit.len()]; cnt];
+        let (start, rows) = (self.fit.start, self.fit.len());
         // A run that fails here ran away at a theta whose f64 run did not: leave zeros.
         let _ = run_layout(&self.layout, &thd, &self.heat, u, self.fs, &self.interp_jac, self.fit.end, f64::INFINITY, stop, |m, s| {
             if m >= start {
                 if let Some(e) = s[idx::I].eps.0.as_ref() {
-                    for (k, col) in cols.iter_mut().enumerate() {
-                        col[m - start] = e[k];
+                    for k in 0..cnt {
+                        block[k * rows + m - start] = e[k];
                     }
                 }
             }
         });
-        cols
     }
 
     /// All Jacobian columns, passes spread over `threads` workers.
     pub fn jacobian(&self, th: &[f64]) -> DMatrix<f64> {
         let nl = self.n_layout();
         let (u, _) = self.signals(th);
-        let jl = jacobian_by_chunks(self.fit.len(), nl, self.threads, |c0| self.jacobian_chunk::<CHUNK>(&th[..nl], c0, &u, None));
-        self.with_chain_columns(th, jl)
+        let stop = AtomicBool::new(false);
+        let jl = jacobian_passes(self.fit.len(), nl, self.threads, None, &stop, |c0, block| self.jacobian_chunk::<CHUNK>(&th[..nl], c0, &u, None, block));
+        self.with_chain_columns(th, jl.expect("nothing stops these passes"))
     }
 
     /// The layout's Jacobian columns `jl` with the chain's after them, all whitened (as the
@@ -1116,42 +1145,52 @@ impl<'a> OutputError<'a> {
     }
 }
 
-/// A `rows x n` Jacobian from its passes: `chunk(c0)` gives the columns `c0 .. c0 + CHUNK`
-/// (fewer at the end). The passes are independent; `threads` workers take them in turn.
-pub(crate) fn jacobian_by_chunks(rows: usize, n: usize, threads: usize, chunk: impl Fn(usize) -> Vec<Vec<f64>> + Sync) -> DMatrix<f64> {
-    let chunks: Vec<usize> = (0..n).step_by(CHUNK).collect();
-    let next = AtomicUsize::new(0);
-    let mut done: Vec<(usize, Vec<Vec<f64>>)> = Vec::new();
-    std::thread::scope(|scope| {
-        let workers: Vec<_> = (0..threads.clamp(1, chunks.len().max(1)))
-            .map(|_| {
-                scope.spawn(|| {
-                    let mut out = Vec::new();
-                    loop {
-                        let k = next.fetch_add(1, Ordering::Relaxed);
-                        let Some(&c0) = chunks.get(k) else { break };
-                        out.push((c0, chunk(c0)));
-                    }
-                    out
-                })
-            })
-            .collect();
-        for w in workers {
-            done.extend(w.join().expect("Jacobian worker panicked"));
-        }
-    });
-    assemble(rows, n, done)
-}
-
-/// The `rows x n` matrix of the passes' columns `(c0, columns c0 ..)`.
-fn assemble(rows: usize, n: usize, done: Vec<(usize, Vec<Vec<f64>>)>) -> DMatrix<f64> {
+/// A `rows x n` Jacobian from its passes: `pass(c0, block)` writes the columns `c0 .. c0 +
+/// CHUNK` (fewer at the end) into `block`, their part of the matrix's column-major storage
+/// (`block[k * rows + row]` is column `c0 + k`). The passes are independent; `threads`
+/// workers take them in turn, each writing where the matrix keeps it (no copy).
+///
+/// `first`, when given, runs before the passes as a task of its own (the residual run of
+/// [`Problem::residual_ahead`]): the passes take the workers it leaves idle. When it
+/// returns false, `stop` is set, the passes stop (a pass polls `stop`) and `None` is
+/// returned.
+pub(crate) fn jacobian_passes(rows: usize, n: usize, threads: usize, first: Option<&(dyn Fn() -> bool + Sync)>, stop: &AtomicBool, pass: impl Fn(usize, &mut [f64]) + Sync) -> Option<DMatrix<f64>> {
     let mut j = DMatrix::zeros(rows, n);
-    for (c0, cols) in done {
-        for (k, col) in cols.into_iter().enumerate() {
-            j.column_mut(c0 + k).copy_from_slice(&col);
+    {
+        let blocks: Vec<std::sync::Mutex<&mut [f64]>> = j.as_mut_slice().chunks_mut(CHUNK * rows.max(1)).map(std::sync::Mutex::new).collect();
+        let lead = usize::from(first.is_some());
+        let tasks = lead + blocks.len();
+        let next = AtomicUsize::new(0);
+        let work = || loop {
+            let k = next.fetch_add(1, Ordering::Relaxed);
+            if k >= tasks || stop.load(Ordering::Relaxed) {
+                break;
+            }
+            match first {
+                Some(f) if k == 0 => {
+                    if !f() {
+                        stop.store(true, Ordering::Relaxed);
+                    }
+                }
+                _ => {
+                    let b = k - lead;
+                    pass(b * CHUNK, &mut blocks[b].lock().expect("Jacobian block"));
+                }
+            }
+        };
+        let workers = threads.clamp(1, tasks.max(1));
+        if workers == 1 {
+            work();
+        } else {
+            std::thread::scope(|scope| {
+                let hs: Vec<_> = (0..workers).map(|_| scope.spawn(work)).collect();
+                for h in hs {
+                    h.join().expect("Jacobian worker panicked");
+                }
+            });
         }
     }
-    j
+    (!stop.load(Ordering::Relaxed)).then_some(j)
 }
 
 impl Problem for OutputError<'_> {
@@ -1162,7 +1201,9 @@ impl Problem for OutputError<'_> {
             Some((th, j)) if th.as_slice() == theta => j,
             _ => self.jacobian(theta),
         };
-        *self.last_jacobian.lock().expect("jacobian cache") = Some(j.clone());
+        if self.keep_last {
+            *self.last_jacobian.lock().expect("jacobian cache") = Some(j.clone());
+        }
         (r, j)
     }
     fn residual(&self, theta: &[f64]) -> DVector<f64> {
@@ -1192,46 +1233,19 @@ impl Problem for OutputError<'_> {
         }
         let nl = self.n_layout();
         let (u, i) = self.signals(theta);
-        let chunks: Vec<usize> = (0..nl).step_by(CHUNK).collect();
-        let next = AtomicUsize::new(0);
         let stop = AtomicBool::new(false);
-        let mut r = None;
-        let mut done = Vec::new();
-        std::thread::scope(|scope| {
-            let workers: Vec<_> = (0..self.threads.min(chunks.len() + 1))
-                .map(|_| {
-                    scope.spawn(|| {
-                        let (mut res, mut out) = (None, Vec::new());
-                        loop {
-                            let k = next.fetch_add(1, Ordering::Relaxed);
-                            if k == 0 {
-                                let r = self.residual_whitened(theta, &u, &i).unwrap_or_else(|| DVector::from_element(self.fit.len(), f64::INFINITY));
-                                if !wanted(&r) {
-                                    stop.store(true, Ordering::Relaxed);
-                                }
-                                res = Some(r);
-                                continue;
-                            }
-                            let Some(&c0) = chunks.get(k - 1) else { break };
-                            if stop.load(Ordering::Relaxed) {
-                                break;
-                            }
-                            out.push((c0, self.jacobian_chunk::<CHUNK>(&theta[..nl], c0, &u, Some(&stop))));
-                        }
-                        (res, out)
-                    })
-                })
-                .collect();
-            for w in workers {
-                let (res, out) = w.join().expect("residual or Jacobian worker panicked");
-                r = r.take().or(res);
-                done.extend(out);
-            }
-        });
-        let r = r.expect("the first task is the residual");
+        let r = std::sync::Mutex::new(None);
+        let first = || {
+            let res = self.residual_whitened(theta, &u, &i).unwrap_or_else(|| DVector::from_element(self.fit.len(), f64::INFINITY));
+            let go = wanted(&res);
+            *r.lock().expect("residual") = Some(res);
+            go
+        };
+        let jl = jacobian_passes(self.fit.len(), nl, self.threads, Some(&first), &stop, |c0, block| self.jacobian_chunk::<CHUNK>(&theta[..nl], c0, &u, Some(&stop), block));
+        let r = r.into_inner().expect("residual").expect("the first task is the residual");
         *self.last_residual.lock().expect("residual cache") = Some((theta.to_vec(), r.clone()));
-        if !stop.load(Ordering::Relaxed) {
-            let j = self.with_chain_columns(theta, assemble(self.fit.len(), nl, done));
+        if let Some(jl) = jl {
+            let j = self.with_chain_columns(theta, jl);
             *self.ahead.lock().expect("jacobian ahead") = Some((theta.to_vec(), j));
         }
         r
@@ -2078,7 +2092,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     // Final fit on the whole record.
     let lay = layout_for(order).with_effects(effects);
     let th = join(lay.theta_from(&current, re_track.as_deref()), &cth);
-    let prob = OutputError::new(lay.clone(), u, i, fs, settle..n, rate, x_limit, threads).with_chain(setup);
+    let prob = OutputError::new(lay.clone(), u, i, fs, settle..n, rate, x_limit, threads).with_chain(setup).keeping_last();
     let s = solve(&prob, th, &Stage::Final { order }, 1e-4, opts.max_iterations, &mut observe);
     let r = prob.residual(&s.theta);
     let residual_rel = rel(&r, &i[settle..n]);
@@ -2095,7 +2109,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             let mut th = s.theta[..nl].to_vec();
             th.resize(lay_h.slots().n, 0.0);
             let th = join(th, &s.theta[nl..]);
-            let prob_h = OutputError::new(lay_h.clone(), u, i, fs, settle..n, rate, x_limit, threads).with_chain(setup);
+            let prob_h = OutputError::new(lay_h.clone(), u, i, fs, settle..n, rate, x_limit, threads).with_chain(setup).keeping_last();
             let s_h = solve(&prob_h, th, &Stage::Final { order }, 1e-4, opts.max_iterations, &mut observe);
             let r_h = prob_h.residual(&s_h.theta);
             let rel_h = rel(&r_h, &i[settle..n]);
@@ -2326,7 +2340,7 @@ mod tests {
         for k in s.bl.clone().chain(s.kms.clone()).chain(s.le.clone()) {
             th[k] *= 1.03;
         }
-        let prob = OutputError::new(lay, &u, &i, fs, 2400..u.len(), p.stiffness_rate(), 0.05, 2);
+        let prob = OutputError::new(lay, &u, &i, fs, 2400..u.len(), p.stiffness_rate(), 0.05, 2).keeping_last();
         let s0 = LmState::new(&prob, th);
         let s1 = lm_step(&prob, &s0);
         assert!(s1.last_decrease > 0.1, "the first step: {}", s1.last_decrease);

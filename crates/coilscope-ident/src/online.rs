@@ -20,7 +20,7 @@
 //! The parameters are those of [`crate::large::Layout`] (Legendre series in `x / x_ref`) with
 //! one `Re`. Nothing here allocates per sample; the history kept is a few seconds.
 
-use crate::large::{jacobian_by_chunks, seed_duals, Layout, Scales, CHUNK};
+use crate::large::{jacobian_passes, seed_duals, Layout, Scales, CHUNK};
 use crate::linear::Effects;
 use coilscope_core::integrate::{rk4_sample, substeps_for, Interpolator, HALF_TAPS};
 use coilscope_core::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
@@ -508,7 +508,7 @@ impl Online {
     }
 
     /// Jacobian columns `c0 .. c0 + CHUNK` of the model current over `a..b` from `y0`.
-    fn jacobian_chunk(&self, y0: &ExtState<f64>, a: usize, b: usize, skip: usize, c0: usize, re_slope: f64) -> Vec<Vec<f64>> {
+    fn jacobian_chunk(&self, y0: &ExtState<f64>, a: usize, b: usize, skip: usize, c0: usize, re_slope: f64, block: &mut [f64]) {
         let (thd, cnt) = seed_duals::<CHUNK>(&self.theta, c0);
         let mut model = OnlineModel::of(&self.layout, &thd);
         let re_end = model.base().re;
@@ -517,12 +517,11 @@ impl Online {
         let mut pf = vec![0.0; 2 * n + 1];
         let mut pd = vec![DualSVec64::<CHUNK>::from_re(0.0); 2 * n + 1];
         let mut y: ExtState<DualSVec64<CHUNK>> = std::array::from_fn(|k| DualSVec64::from_re(y0[k]));
-        let mut cols = vec![Vec::with_capacity(b - a - skip); cnt];
+        let rows = b - a - skip;
         for m in a..b {
             if m >= a + skip {
-                match y[idx::I].eps.0.as_ref() {
-                    Some(e) => cols.iter_mut().enumerate().for_each(|(c, col)| col.push(e[c])),
-                    None => cols.iter_mut().for_each(|col| col.push(0.0)),
+                if let Some(e) = y[idx::I].eps.0.as_ref() {
+                    (0..cnt).for_each(|c| block[c * rows + m - a - skip] = e[c]);
                 }
             }
             self.interp_jac.fill(&self.u, m - self.base, &mut pf);
@@ -532,7 +531,6 @@ impl Online {
             model.base().re = re_end + re_slope * (m as f64 - self.pos as f64) * dt;
             y = model.step(&y, dt, &pd);
         }
-        cols
     }
 
     /// Bl, Kms and Le positive over 1.6 times the reach so far (a ramp of 3 dB/s grows it by 1.41 per second) (at most `1.5 x_ref`): an
@@ -594,7 +592,8 @@ impl Online {
         let sigma2 = (e0 / rows as f64).max(1e-300);
         // Jacobian of the model current (the residual is r = i - i_model).
         let np = self.theta.len();
-        let jac = jacobian_by_chunks(rows, np, self.threads, |c0| self.jacobian_chunk(&y0, a, b, skip, c0, slope));
+        let stop = std::sync::atomic::AtomicBool::new(false);
+        let jac = jacobian_passes(rows, np, self.threads, None, &stop, |c0, block| self.jacobian_chunk(&y0, a, b, skip, c0, slope, block)).expect("nothing stops these passes");
         let jtj = jac.tr_mul(&jac) / sigma2;
         let jtr = jac.tr_mul(&r) / sigma2;
         let p_inv = self.cov.clone().try_inverse()?;
