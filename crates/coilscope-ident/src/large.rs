@@ -1687,6 +1687,13 @@ fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: u
     s
 }
 
+/// The linear fit with the small-signal `effects` that starts a candidate of the effects
+/// search ([`LinearOptions::LARGE_SIGNAL_START`] otherwise); `None` when it fails.
+fn linear_start_fit(u: &[f64], i: &[f64], fs: f64, origin: &str, effects: Effects) -> Option<LinearFit> {
+    let lin_opts = LinearOptions { effects: EffectsChoice::Fixed(effects), ..LinearOptions::LARGE_SIGNAL_START };
+    fit_linear_record(u, i, fs, origin, &lin_opts, |_| {}).ok()
+}
+
 /// Identify the large-signal parameters from voltage `u` (V) and current `i` (A) sampled at
 /// `fs`. `origin` names the recording in messages.
 pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &IdentifyOptions, mut observe: impl FnMut(&Progress)) -> Result<LargeFit, IdentifyError> {
@@ -1986,24 +1993,28 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
                 let singles = [Effects { creep: true, ..Effects::NONE }, Effects { lr3: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }];
                 let cands: Vec<(Effects, Effects)> = singles.iter().filter(|&&one| at.union(one) != at).map(|&one| (one, at.union(one))).collect();
                 let mut best: Option<(Effects, f64, Parameters, Vec<f64>, Vec<f64>)> = None;
-                for (one, e) in cands {
+                // The eddy-current branches and creep act at small signal too: their start
+                // values come from the linear fit with the same effects on the first
+                // seconds (from L2/R2 of the LR-2 fit, which absorbed the second branch,
+                // LR-3 fell into a worse minimum). Le(i) and Rms(v) start from none. The
+                // candidates' linear fits are independent: they run side by side (each
+                // uses the cores only in part: SB17's creep and LR-3 fits took 0.63 and
+                // 0.46 s in turn).
+                let m = u.len().min((4.0 * fs) as usize);
+                let lins: Vec<Option<LinearFit>> = std::thread::scope(|scope| {
+                    let hs: Vec<_> = cands.iter().map(|&(one, e)| scope.spawn(move || (one.creep || one.lr3).then(|| linear_start_fit(&u[..m], &i[..m], fs, origin, e.small_signal()))?)).collect();
+                    hs.into_iter().map(|h| h.join().expect("a linear fit does not panic")).collect()
+                });
+                for ((one, e), lin) in cands.into_iter().zip(lins) {
                     let lay = layout_for(order).with_effects(e);
-                    // The eddy-current branches and creep act at small signal too: their start
-                    // values come from the linear fit with the same effects on the first
-                    // seconds (from L2/R2 of the LR-2 fit, which absorbed the second branch,
-                    // LR-3 fell into a worse minimum). Le(i) and Rms(v) start from none.
                     let mut from = current.clone();
-                    if one.creep || one.lr3 {
-                        let m = u.len().min((4.0 * fs) as usize);
-                        let lin_opts = LinearOptions { effects: EffectsChoice::Fixed(e.small_signal()), ..LinearOptions::LARGE_SIGNAL_START };
-                        if let Ok(lin) = fit_linear_record(&u[..m], &i[..m], fs, origin, &lin_opts, |_| {}) {
-                            if e.lr3 {
-                                from.l2r2 = Some((Poly::constant(lin.p[2]), Poly::constant(lin.p[3])));
-                                from.l3r3 = lin.lr3.map(|(v, _)| (v[0], v[1]));
-                            }
-                            if e.creep && current.creep.is_none() {
-                                from.creep = lin.creep.filter(|c| c.0 > 0.0).map(|(lambda, _)| coilscope_core::params::Creep { lambda, f_ref: None });
-                            }
+                    if let Some(lin) = lin {
+                        if e.lr3 {
+                            from.l2r2 = Some((Poly::constant(lin.p[2]), Poly::constant(lin.p[3])));
+                            from.l3r3 = lin.lr3.map(|(v, _)| (v[0], v[1]));
+                        }
+                        if e.creep && current.creep.is_none() {
+                            from.creep = lin.creep.filter(|c| c.0 > 0.0).map(|(lambda, _)| coilscope_core::params::Creep { lambda, f_ref: None });
                         }
                     }
                     // A second start for LR-3: the present estimate with a vanishing branch
@@ -2017,8 +2028,16 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
                         let vanishing = Parameters { l3r3: Some((LR3_VANISHING * 0.5 * l2, LR3_VANISHING * 3.0 * r2)), ..current.clone() };
                         let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rate, x_limit, threads).with_chain(setup);
                         let miss = |p: &Parameters| prob.residual(&join(lay.theta_from(p, re_track.as_deref()), &cth)).norm_squared();
-                        if l2 > 0.0 && miss(&vanishing) < miss(&from) {
-                            from = vanishing;
+                        // The two runs side by side (each takes one core).
+                        if l2 > 0.0 {
+                            let (a, b) = std::thread::scope(|scope| {
+                                let h = scope.spawn(|| miss(&vanishing));
+                                let b = miss(&from);
+                                (h.join().expect("a model run does not panic"), b)
+                            });
+                            if a < b {
+                                from = vanishing;
+                            }
                         }
                     }
                     let (s, _, th_val, val) = estimate_validate(&lay, &from, re_track.as_deref(), &cth, &mut observe);
