@@ -24,7 +24,7 @@
 //! iteration to an observer (progress bars, logs) as a [`Progress`].
 
 use crate::linear::{check_channels, fit_linear_record, scale_by_mms, Effects, EffectsChoice, LinearFit, LinearOptions};
-use crate::lm::{lm_step_ahead, LmState, Problem};
+use crate::lm::{lm_step_ahead, AtLastTrial, LmState, Problem};
 use coilscope_core::integrate::{rk4_sample, substeps_for, Dynamics, Interpolator};
 use coilscope_core::model::{idx, ExtModel, Model, NEXT, NLR3, NSTATE};
 use coilscope_core::params::Parameters;
@@ -1124,7 +1124,7 @@ impl<'a> OutputError<'a> {
         let nl = self.n_layout();
         let (u, _) = self.signals(th);
         let stop = AtomicBool::new(false);
-        let jl = jacobian_passes(self.fit.len(), nl, self.threads, None, &stop, |c0, block| self.jacobian_chunk::<CHUNK>(&th[..nl], c0, &u, None, block));
+        let jl = jacobian_passes(self.fit.len(), nl, self.threads, &[], &stop, |c0, block| self.jacobian_chunk::<CHUNK>(&th[..nl], c0, &u, None, block));
         self.with_chain_columns(th, jl.expect("nothing stops these passes"))
     }
 
@@ -1150,33 +1150,29 @@ impl<'a> OutputError<'a> {
 /// (`block[k * rows + row]` is column `c0 + k`). The passes are independent; `threads`
 /// workers take them in turn, each writing where the matrix keeps it (no copy).
 ///
-/// `first`, when given, runs before the passes as a task of its own (the residual run of
-/// [`Problem::residual_ahead`]): the passes take the workers it leaves idle. When it
-/// returns false, `stop` is set, the passes stop (a pass polls `stop`) and `None` is
-/// returned.
-pub(crate) fn jacobian_passes(rows: usize, n: usize, threads: usize, first: Option<&(dyn Fn() -> bool + Sync)>, stop: &AtomicBool, pass: impl Fn(usize, &mut [f64]) + Sync) -> Option<DMatrix<f64>> {
+/// `lead` runs before the passes, each a task of its own (the residual run of
+/// [`Problem::residual_ahead`] and the work alongside it): the passes take the workers they
+/// leave idle. When one returns false, `stop` is set, the passes stop (a pass polls
+/// `stop`) and `None` is returned; the lead tasks always run.
+pub(crate) fn jacobian_passes(rows: usize, n: usize, threads: usize, lead: &[&(dyn Fn() -> bool + Sync)], stop: &AtomicBool, pass: impl Fn(usize, &mut [f64]) + Sync) -> Option<DMatrix<f64>> {
     let mut j = DMatrix::zeros(rows, n);
     {
         let blocks: Vec<std::sync::Mutex<&mut [f64]>> = j.as_mut_slice().chunks_mut(CHUNK * rows.max(1)).map(std::sync::Mutex::new).collect();
-        let lead = usize::from(first.is_some());
-        let tasks = lead + blocks.len();
+        let tasks = lead.len() + blocks.len();
         let next = AtomicUsize::new(0);
         let work = || loop {
             let k = next.fetch_add(1, Ordering::Relaxed);
+            if let Some(f) = lead.get(k) {
+                if !f() {
+                    stop.store(true, Ordering::Relaxed);
+                }
+                continue;
+            }
             if k >= tasks || stop.load(Ordering::Relaxed) {
                 break;
             }
-            match first {
-                Some(f) if k == 0 => {
-                    if !f() {
-                        stop.store(true, Ordering::Relaxed);
-                    }
-                }
-                _ => {
-                    let b = k - lead;
-                    pass(b * CHUNK, &mut blocks[b].lock().expect("Jacobian block"));
-                }
-            }
+            let b = k - lead.len();
+            pass(b * CHUNK, &mut blocks[b].lock().expect("Jacobian block"));
         };
         let workers = threads.clamp(1, tasks.max(1));
         if workers == 1 {
@@ -1226,9 +1222,12 @@ impl Problem for OutputError<'_> {
     /// Jacobian is not wanted (a rejected trial, a stage that ends), the passes stop (within
     /// [`STOP_POLL`] samples) and nothing is kept. The Jacobian is the one
     /// [`OutputError::jacobian`] computes (the same passes).
-    fn residual_ahead(&self, theta: &[f64], wanted: &(dyn Fn(&DVector<f64>) -> bool + Sync)) -> DVector<f64> {
+    fn residual_ahead(&self, theta: &[f64], wanted: &(dyn Fn(&DVector<f64>) -> bool + Sync), alongside: Option<&(dyn Fn() + Sync)>) -> DVector<f64> {
         let cached = self.last_residual.lock().expect("residual cache").as_ref().is_some_and(|(th, _)| th.as_slice() == theta);
         if self.threads < 2 || cached || !self.layout.physical(theta) {
+            if let Some(f) = alongside {
+                f();
+            }
             return self.residual(theta);
         }
         let nl = self.n_layout();
@@ -1241,7 +1240,14 @@ impl Problem for OutputError<'_> {
             *r.lock().expect("residual") = Some(res);
             go
         };
-        let jl = jacobian_passes(self.fit.len(), nl, self.threads, Some(&first), &stop, |c0, block| self.jacobian_chunk::<CHUNK>(&theta[..nl], c0, &u, Some(&stop), block));
+        let side = || {
+            if let Some(f) = alongside {
+                f();
+            }
+            true
+        };
+        let lead: Vec<&(dyn Fn() -> bool + Sync)> = if alongside.is_some() { vec![&first, &side] } else { vec![&first] };
+        let jl = jacobian_passes(self.fit.len(), nl, self.threads, &lead, &stop, |c0, block| self.jacobian_chunk::<CHUNK>(&theta[..nl], c0, &u, Some(&stop), block));
         let r = r.into_inner().expect("residual").expect("the first task is the residual");
         *self.last_residual.lock().expect("residual cache") = Some((theta.to_vec(), r.clone()));
         if let Some(jl) = jl {
@@ -1642,13 +1648,13 @@ pub const ORDER0_FINISH_BELOW_GAIN: f64 = 0.25;
 /// Run LM on `prob` from `theta` until an accepted step lowers the cost by less than `tol`
 /// (relative; Gauss-Newton's next step would gain far less) or `max_it` iterations. Returns the last state.
 /// A search stage also stops once [`settled`], the final fit when [`settle_early`] says so.
-fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: usize, observe: &mut dyn FnMut(&Progress)) -> LmState {
+fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: usize, at_last: Option<&AtLastTrial>, observe: &mut dyn FnMut(&Progress)) -> LmState {
     let norm_i = prob.i[prob.fit.clone()].iter().map(|v| v * v).sum::<f64>().sqrt();
     let report = |s: &LmState, observe: &mut dyn FnMut(&Progress)| {
         observe(&Progress { stage: stage.clone(), state: s, residual_rel: (2.0 * s.cost).sqrt() / norm_i });
     };
     // The start's residual with its Jacobian alongside (the first iteration needs both).
-    prob.residual_ahead(&theta, &|_| max_it > 0);
+    prob.residual_ahead(&theta, &|_| max_it > 0, None);
     let mut s = LmState::new(prob, theta);
     report(&s, observe);
     // Whether the loop below goes on from an accepted state: its Jacobian is then computed
@@ -1665,7 +1671,7 @@ fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: u
         !ends
     };
     while s.iteration < max_it {
-        let next = lm_step_ahead(prob, &s, &goes_on);
+        let next = lm_step_ahead(prob, &s, &goes_on, at_last);
         let stalled = next.last_decrease == 0.0;
         s = next;
         report(&s, observe);
@@ -1875,7 +1881,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         let lay = layout_for(0);
         let th = join(lay.theta_from(&current, None), &cth);
         let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rate, x_limit, threads).with_chain(setup);
-        let s = solve(&prob, th, &Stage::Estimate { order: 0 }, 1e-3, ORDER0_FIRST_ITERATIONS, &mut observe);
+        let s = solve(&prob, th, &Stage::Estimate { order: 0 }, 1e-3, ORDER0_FIRST_ITERATIONS, None, &mut observe);
         cth = s.theta[lay.slots().n..].to_vec();
         linear_rel = Some((2.0 * s.cost).sqrt() / norm_est);
         current = Parameters { mms: opts.mms, ..lay.parameters(&s.theta) };
@@ -1888,27 +1894,43 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     let estimate_validate = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], observe: &mut dyn FnMut(&Progress)| {
         let th = join(lay.theta_from(from, track), cth);
         let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rate, x_limit, threads).with_chain(setup);
-        let s = solve(&prob, th, &Stage::Estimate { order: lay.order }, 1e-3, 12, observe);
-        let est = (2.0 * s.cost).sqrt() / i[settle..split].iter().map(|v| v * v).sum::<f64>().sqrt();
         // The held-out part: Re(t) knots beyond the estimation part were not identified;
         // continue the track linearly from its last identified interval.
-        let mut th_val = s.theta.clone();
         let t_split = split as f64 / fs;
         let sl = lay.slots();
-        let re_at = |th: &[f64], t: f64| {
-            let k = ((t / knot_dt).floor() as usize).min(n_re - 2);
-            let w = t / knot_dt - k as f64;
-            th[sl.re.start + k] * (1.0 - w) + th[sl.re.start + k + 1] * w
-        };
-        let (ra, rb) = (re_at(&s.theta, t_split - knot_dt), re_at(&s.theta, t_split));
-        for k in 0..n_re {
-            let tk = k as f64 * knot_dt;
-            if tk > t_split - knot_dt {
-                th_val[sl.re.start + k] = rb + (rb - ra) * (tk - t_split) / knot_dt;
+        let held_out = |theta: &[f64]| {
+            let mut th_val = theta.to_vec();
+            let re_at = |t: f64| {
+                let k = ((t / knot_dt).floor() as usize).min(n_re - 2);
+                let w = t / knot_dt - k as f64;
+                theta[sl.re.start + k] * (1.0 - w) + theta[sl.re.start + k + 1] * w
+            };
+            let (ra, rb) = (re_at(t_split - knot_dt), re_at(t_split));
+            for k in 0..n_re {
+                let tk = k as f64 * knot_dt;
+                if tk > t_split - knot_dt {
+                    th_val[sl.re.start + k] = rb + (rb - ra) * (tk - t_split) / knot_dt;
+                }
             }
-        }
+            th_val
+        };
         let full = OutputError::new(lay.clone(), u, i, fs, split..search_end, rate, x_limit, threads).with_chain(setup);
-        let val = full.residual_vec(&th_val).map(|r| rel(&r, &i[split..search_end])).unwrap_or(f64::INFINITY);
+        let validate = |th_val: &[f64]| full.residual_vec(th_val).map(|r| rel(&r, &i[split..search_end])).unwrap_or(f64::INFINITY);
+        // The validation run of a trial likely to end the stage runs beside the trial's own
+        // residual run (on the core that run leaves idle): (trial theta, validation error).
+        let early = std::sync::Mutex::new(None::<(Vec<f64>, f64)>);
+        let work = |theta: &[f64]| {
+            let val = validate(&held_out(theta));
+            *early.lock().expect("validation") = Some((theta.to_vec(), val));
+        };
+        let at_last = AtLastTrial { likely: &|predicted, lambda| predicted < SEARCH_SETTLED_DECREASE && lambda <= SEARCH_SETTLED_LAMBDA, work: &work };
+        let s = solve(&prob, th, &Stage::Estimate { order: lay.order }, 1e-3, 12, Some(&at_last), observe);
+        let est = (2.0 * s.cost).sqrt() / i[settle..split].iter().map(|v| v * v).sum::<f64>().sqrt();
+        let th_val = held_out(&s.theta);
+        let val = match early.into_inner().expect("validation") {
+            Some((t, v)) if t == s.theta => v,
+            _ => validate(&th_val),
+        };
         (s, est, th_val, val)
     };
     for &order in &orders {
@@ -1924,7 +1946,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             // near (its error can only fall, and the gain with it).
             if let (Some(lin), Some((prob0, s0))) = (linear_rel, order0.take()) {
                 if !s0.converged && s0.iteration >= ORDER0_FIRST_ITERATIONS && 1.0 - est / lin < ORDER0_FINISH_BELOW_GAIN {
-                    let s = solve(&prob0, s0.theta, &Stage::Estimate { order: 0 }, 1e-3, 10, &mut observe);
+                    let s = solve(&prob0, s0.theta, &Stage::Estimate { order: 0 }, 1e-3, 10, None, &mut observe);
                     linear_rel = Some(lin.min((2.0 * s.cost).sqrt() / norm_est));
                 }
             }
@@ -2112,7 +2134,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     let lay = layout_for(order).with_effects(effects);
     let th = join(lay.theta_from(&current, re_track.as_deref()), &cth);
     let prob = OutputError::new(lay.clone(), u, i, fs, settle..n, rate, x_limit, threads).with_chain(setup).keeping_last();
-    let s = solve(&prob, th, &Stage::Final { order }, 1e-4, opts.max_iterations, &mut observe);
+    let s = solve(&prob, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, &mut observe);
     let r = prob.residual(&s.theta);
     let residual_rel = rel(&r, &i[settle..n]);
     // Heating faster than the knots can follow (see HEAT_TAUS): the knots bend by more than
@@ -2129,7 +2151,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             th.resize(lay_h.slots().n, 0.0);
             let th = join(th, &s.theta[nl..]);
             let prob_h = OutputError::new(lay_h.clone(), u, i, fs, settle..n, rate, x_limit, threads).with_chain(setup).keeping_last();
-            let s_h = solve(&prob_h, th, &Stage::Final { order }, 1e-4, opts.max_iterations, &mut observe);
+            let s_h = solve(&prob_h, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, &mut observe);
             let r_h = prob_h.residual(&s_h.theta);
             let rel_h = rel(&r_h, &i[settle..n]);
             if rel_h < (1.0 - HEAT_MIN_GAIN) * residual_rel {
@@ -2392,13 +2414,21 @@ mod tests {
             let fresh = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.stiffness_rate(), 0.05, threads);
             let (r_ref, j_ref) = (fresh.residual(&th), fresh.jacobian(&th));
             let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.stiffness_rate(), 0.05, threads);
-            let r = prob.residual_ahead(&th, &|_| true);
+            let runs = AtomicUsize::new(0);
+            let r = prob.residual_ahead(
+                &th,
+                &|_| true,
+                Some(&|| {
+                    runs.fetch_add(1, Ordering::Relaxed);
+                }),
+            );
+            assert_eq!(runs.load(Ordering::Relaxed), 1, "{threads} workers: the work alongside runs once");
             assert_eq!(r, r_ref, "{threads} workers");
             assert_eq!(prob.ahead.lock().unwrap().is_some(), threads > 1, "{threads} workers: kept");
             let (r2, j) = prob.residual_jacobian(&th);
             assert_eq!((r2, j), (r_ref.clone(), j_ref.clone()), "{threads} workers");
             let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.stiffness_rate(), 0.05, threads);
-            let r = prob.residual_ahead(&th, &|_| false);
+            let r = prob.residual_ahead(&th, &|_| false, None);
             assert_eq!(r, r_ref, "{threads} workers, not wanted");
             assert!(prob.ahead.lock().unwrap().is_none(), "{threads} workers: an unwanted Jacobian was kept");
         }

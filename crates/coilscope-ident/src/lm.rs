@@ -15,8 +15,14 @@ pub trait Problem {
     /// residual, on the cores the residual leaves idle, and keep it for the
     /// [`Problem::residual_jacobian`] call that follows (and drop it as soon as the residual
     /// says it is not wanted). The default: the residual alone.
-    fn residual_ahead(&self, theta: &[f64], wanted: &(dyn Fn(&DVector<f64>) -> bool + Sync)) -> DVector<f64> {
+    ///
+    /// `alongside`, when given, is work of the caller's to do at theta (it may run beside the
+    /// residual run, on another core); it is done before this returns.
+    fn residual_ahead(&self, theta: &[f64], wanted: &(dyn Fn(&DVector<f64>) -> bool + Sync), alongside: Option<&(dyn Fn() + Sync)>) -> DVector<f64> {
         let _ = wanted;
+        if let Some(f) = alongside {
+            f();
+        }
         self.residual(theta)
     }
 }
@@ -89,14 +95,25 @@ pub fn damped_step(a: &DMatrix<f64>, g: &DVector<f64>, lambda: f64) -> Option<(D
 
 /// One LM iteration (tries damping until a step lowers the cost, at most 20 times).
 pub fn lm_step<P: Problem>(p: &P, s: &LmState) -> LmState {
-    lm_step_ahead(p, s, &|_| true)
+    lm_step_ahead(p, s, &|_| true, None)
+}
+
+/// Work a caller does at a trial that is likely to be the last step (run beside the
+/// trial's residual: [`Problem::residual_ahead`]'s `alongside`).
+pub struct AtLastTrial<'a> {
+    /// Whether a trial whose linearised model predicts the relative decrease `predicted`
+    /// with damping `lambda` is likely to end the iterations.
+    pub likely: &'a dyn Fn(f64, f64) -> bool,
+    /// The work, given the trial's theta.
+    pub work: &'a (dyn Fn(&[f64]) + Sync),
 }
 
 /// [`lm_step`] that tells the problem, while it evaluates a trial, whether the Jacobian at
 /// the trial will be asked for next ([`Problem::residual_ahead`]): when the trial is
-/// accepted as the state `next` and `goes_on(&next)` (the caller will iterate from it). The
-/// states are the same as [`lm_step`]'s.
-pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState) -> bool + Sync)) -> LmState {
+/// accepted as the state `next` and `goes_on(&next)` (the caller will iterate from it); and
+/// that does `at_last`'s work beside a trial it finds likely to be the last. The states are
+/// the same as [`lm_step`]'s.
+pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState) -> bool + Sync), at_last: Option<&AtLastTrial>) -> LmState {
     let (r, j) = p.residual_jacobian(&s.theta);
     let a = gram(&j);
     let g = j.tr_mul(&r);
@@ -112,7 +129,10 @@ pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState)
                 let step = delta.amax();
                 Some(LmState { theta: theta.clone(), cost, lambda: (lambda / 3.0).max(1e-12), iteration: s.iteration + 1, last_decrease: dec, gain_ratio: (s.cost - cost) / predicted, step_lambda: lambda, converged: dec < 1e-12 || step < 1e-10 })
             };
-            let r = p.residual_ahead(&theta, &|r| accepted(0.5 * r.norm_squared()).is_some_and(|next| goes_on(&next)));
+            let work = at_last.filter(|a| (a.likely)(predicted / s.cost.max(1e-300), lambda)).map(|a| a.work);
+            let job = || work.expect("given")(&theta);
+            let alongside: Option<&(dyn Fn() + Sync)> = if work.is_some() { Some(&job) } else { None };
+            let r = p.residual_ahead(&theta, &|r| accepted(0.5 * r.norm_squared()).is_some_and(|next| goes_on(&next)), alongside);
             if let Some(next) = accepted(0.5 * r.norm_squared()) {
                 return next;
             }

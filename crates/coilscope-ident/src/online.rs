@@ -593,7 +593,7 @@ impl Online {
         // Jacobian of the model current (the residual is r = i - i_model).
         let np = self.theta.len();
         let stop = std::sync::atomic::AtomicBool::new(false);
-        let jac = jacobian_passes(rows, np, self.threads, None, &stop, |c0, block| self.jacobian_chunk(&y0, a, b, skip, c0, slope, block)).expect("nothing stops these passes");
+        let jac = jacobian_passes(rows, np, self.threads, &[], &stop, |c0, block| self.jacobian_chunk(&y0, a, b, skip, c0, slope, block)).expect("nothing stops these passes");
         let jtj = jac.tr_mul(&jac) / sigma2;
         let jtr = jac.tr_mul(&r) / sigma2;
         let p_inv = self.cov.clone().try_inverse()?;
