@@ -175,18 +175,56 @@ pub fn delay(x: &[f64], samples: f64) -> Vec<f64> {
     if samples == 0.0 || x.is_empty() {
         return x.to_vec();
     }
-    let pad = 256 + samples.abs().ceil() as usize;
-    let n = (x.len() + 2 * pad).next_power_of_two().max(2);
-    let mut buf = vec![0.0; n];
-    buf[pad..pad + x.len()].copy_from_slice(x);
-    let mut spec = crate::fft::rfft(&buf);
-    for (k, c) in spec.iter_mut().enumerate() {
-        *c *= Complex64::from_polar(1.0 / n as f64, -2.0 * PI * k as f64 * samples / n as f64);
+    let s = DelaySpectrum::new(x, delay_pad(samples));
+    s.delayed(&s.phases(samples))
+}
+
+/// The zero padding (samples each side) [`delay`] uses for a delay of `samples`.
+pub fn delay_pad(samples: f64) -> usize {
+    256 + samples.abs().ceil() as usize
+}
+
+/// A signal's spectrum as [`delay`] computes it (zero-padded by `pad` each side to a power of
+/// two), kept to delay the same signal by other amounts that use the same padding: each then
+/// costs one inverse FFT, and signals of one length share the phase factors
+/// ([`DelaySpectrum::phases`]). [`delay`] is this, in one go: the results are the same to the
+/// last bit.
+#[derive(Clone, Debug)]
+pub struct DelaySpectrum {
+    len: usize,
+    /// Zero padding on each side (samples).
+    pub pad: usize,
+    /// Transform length.
+    pub n: usize,
+    spec: Vec<Complex64>,
+}
+
+impl DelaySpectrum {
+    pub fn new(x: &[f64], pad: usize) -> Self {
+        let n = (x.len() + 2 * pad).next_power_of_two().max(2);
+        let mut buf = vec![0.0; n];
+        buf[pad..pad + x.len()].copy_from_slice(x);
+        DelaySpectrum { len: x.len(), pad, n, spec: crate::fft::rfft(&buf) }
     }
-    // The Nyquist bin of a real signal cannot carry a fractional shift (its phase would make it
-    // complex): `irfft` keeps its real part only (it is empty for a band-limited record).
-    let y = crate::fft::irfft(&spec, n);
-    y[pad..pad + x.len()].to_vec()
+
+    /// The factor of each bin for a delay of `samples` (and the inverse transform's `1 / n`).
+    pub fn phases(&self, samples: f64) -> Vec<Complex64> {
+        let n = self.n as f64;
+        (0..self.spec.len()).map(|k| Complex64::from_polar(1.0 / n, -2.0 * PI * k as f64 * samples / n)).collect()
+    }
+
+    /// The signal delayed as `phases` says.
+    pub fn delayed(&self, phases: &[Complex64]) -> Vec<f64> {
+        let mut spec = self.spec.clone();
+        for (c, p) in spec.iter_mut().zip(phases) {
+            *c *= p;
+        }
+        // The Nyquist bin of a real signal cannot carry a fractional shift (its phase would
+        // make it complex): `irfft` keeps its real part only (it is empty for a band-limited
+        // record).
+        let y = crate::fft::irfft(&spec, self.n);
+        y[self.pad..self.pad + self.len].to_vec()
+    }
 }
 
 impl Chain {
@@ -362,6 +400,18 @@ mod tests {
     use super::*;
     use rand::SeedableRng;
     use rand_distr::{Distribution, StandardNormal};
+
+    /// One spectrum delayed by several amounts of the same padding is [`delay`] of each, to the
+    /// last bit (what the fit's Jacobian relies on to compute the basis once).
+    #[test]
+    fn a_kept_spectrum_delays_as_delay_does() {
+        let x = noise(17, 5000);
+        let s = DelaySpectrum::new(&x, delay_pad(0.7));
+        for tau in [0.7, -0.3, 0.05, -0.999] {
+            assert_eq!(delay_pad(tau), s.pad);
+            assert_eq!(s.delayed(&s.phases(tau)), delay(&x, tau), "tau {tau}");
+        }
+    }
 
     fn noise(seed: u64, n: usize) -> Vec<f64> {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);

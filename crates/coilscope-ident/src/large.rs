@@ -720,6 +720,10 @@ pub struct ChainSetup {
     pub terms: crate::linear::ChainTerms,
     /// `(what, signal)`: `dc`, `ramp`, `cos 50`, `sin 50`, ...
     pub basis: Vec<(String, Vec<f64>)>,
+    /// The basis signals' spectra as [`coilscope_core::chain::delay`] takes them (for its
+    /// padding), computed once: the Jacobian's basis columns are the basis delayed by each
+    /// iteration's `tau`, one inverse FFT each.
+    basis_spectra: std::sync::Arc<std::sync::Mutex<Option<std::sync::Arc<Vec<coilscope_core::chain::DelaySpectrum>>>>>,
     /// Corner (Hz) of the whitening high-pass put on the residual and the Jacobian (0: none):
     /// the current channel's coupling at the start estimate. Behind an inverted coupling the
     /// sensor noise is no longer white: below the corner it grows as `fc / f`, a random walk
@@ -753,7 +757,7 @@ impl ChainSetup {
             basis.push((format!("sin {f}"), (0..n).map(|m| a * (w * m as f64).sin()).collect()));
         }
         let u_unit = 1e-5 * coilscope_core::simulate::rms(u_rec).max(1e-12);
-        ChainSetup { u_rec: u_rec.to_vec(), i_rec: i_rec.to_vec(), terms, basis, whiten_hz: 0.0, dc_u_free: false, u_unit }
+        ChainSetup { u_rec: u_rec.to_vec(), i_rec: i_rec.to_vec(), terms, basis, basis_spectra: Default::default(), whiten_hz: 0.0, dc_u_free: false, u_unit }
     }
     /// `v` (a residual or a Jacobian column over the fitted samples) through the whitening
     /// high-pass ([`ChainSetup::whiten_hz`]).
@@ -840,6 +844,17 @@ impl ChainSetup {
         }
         coilscope_core::chain::delay(&t, -tau)
     }
+    /// The basis signals' spectra for a delay of `samples` ([`ChainSetup::basis_spectra`]),
+    /// computed on `threads` workers when first asked for or when the padding changes.
+    fn basis_delayer(&self, samples: f64, threads: usize) -> std::sync::Arc<Vec<coilscope_core::chain::DelaySpectrum>> {
+        let pad = coilscope_core::chain::delay_pad(samples);
+        let mut kept = self.basis_spectra.lock().expect("basis spectra");
+        if kept.as_ref().is_none_or(|v| v.first().is_some_and(|s| s.pad != pad)) {
+            *kept = Some(std::sync::Arc::new(parallel_map(self.basis.len(), threads, |k| coilscope_core::chain::DelaySpectrum::new(&self.basis[k].1, pad))));
+        }
+        kept.clone().expect("just computed")
+    }
+
     /// The chain's theta at the linear fit's estimate, the offset and ramp by least squares
     /// on the current behind the chain (the driver's current has neither), hum at 0.
     pub fn theta0(&self, est: &[f64; 3]) -> Vec<f64> {
@@ -1053,7 +1068,6 @@ impl<'a> OutputError<'a> {
     fn chain_columns(&self, th: &[f64], c: &ChainSetup) -> Vec<Vec<f64>> {
         let nl = self.n_layout();
         let fit = self.fit.clone();
-        let mut cols = vec![];
         let on = c.terms.on();
         // The current to match does not depend on hp_u.
         let target = c.target(&th[nl..]);
@@ -1074,32 +1088,37 @@ impl<'a> OutputError<'a> {
                 _ => vec![0.0; fit.len()],
             }
         };
+        // The columns, in theta's order: (unknown, step, changes the drive) for the terms
+        // that are on and a free dc_u, then the basis.
+        let mut terms = vec![];
         let mut k = nl;
         for (n, on) in on.into_iter().enumerate() {
-            if !on {
-                continue;
+            if on {
+                terms.push((k, if n == 0 { 1e-3 } else { 1e-3 * th[k].abs().max(0.1) }, n == 1));
+                k += 1;
             }
-            let h = if n == 0 { 1e-3 } else { 1e-3 * th[k].abs().max(0.1) };
-            let col: Vec<f64> = if n == 1 {
-                drive_column(k, h)
-            } else {
-                let (a, b, d) = pair(k, h);
-                let (ta, tb) = (c.target(&a[nl..]), c.target(&b[nl..]));
-                fit.clone().map(|m| -(ta[m] - tb[m]) / d).collect()
-            };
-            cols.push(col);
-            k += 1;
         }
         if c.dc_u_free {
             // dc_u: one unit of step.
-            cols.push(drive_column(k, 1.0));
+            terms.push((k, 1.0, true));
         }
         // The basis, delayed as the target takes it off (see ChainSetup::target).
         let tau = c.values(&th[nl..])[0];
-        for (_, b) in &c.basis {
-            cols.push(coilscope_core::chain::delay(b, -tau)[fit.clone()].to_vec());
-        }
-        cols
+        let spectra = (tau != 0.0).then(|| c.basis_delayer(-tau, self.threads));
+        let phases = spectra.as_ref().and_then(|s| s.first()).map(|s| s.phases(-tau));
+        // Independent columns (model runs, FFT delays): spread over the workers.
+        parallel_map(terms.len() + c.basis.len(), self.threads, |j| match terms.get(j) {
+            Some(&(k, h, true)) => drive_column(k, h),
+            Some(&(k, h, false)) => {
+                let (a, b, d) = pair(k, h);
+                let (ta, tb) = (c.target(&a[nl..]), c.target(&b[nl..]));
+                fit.clone().map(|m| -(ta[m] - tb[m]) / d).collect()
+            }
+            None => match (&spectra, &phases) {
+                (Some(sp), Some(ph)) => sp[j - terms.len()].delayed(ph)[fit.clone()].to_vec(),
+                _ => c.basis[j - terms.len()].1[fit.clone()].to_vec(),
+            },
+        })
     }
 
     /// Jacobian columns `c0 .. c0 + N` (fewer at the end) of the current w.r.t. theta: one
@@ -1143,6 +1162,31 @@ impl<'a> OutputError<'a> {
         }
         j
     }
+}
+
+/// `f(0) .. f(n - 1)` in order, computed by `threads` workers taking the indices in turn.
+pub(crate) fn parallel_map<T: Send>(n: usize, threads: usize, f: impl Fn(usize) -> T + Sync) -> Vec<T> {
+    let next = AtomicUsize::new(0);
+    let work = || {
+        let mut out = vec![];
+        loop {
+            let k = next.fetch_add(1, Ordering::Relaxed);
+            if k >= n {
+                break out;
+            }
+            out.push((k, f(k)));
+        }
+    };
+    let mut done: Vec<(usize, T)> = if threads.min(n) <= 1 {
+        work()
+    } else {
+        std::thread::scope(|scope| {
+            let hs: Vec<_> = (0..threads.min(n)).map(|_| scope.spawn(work)).collect();
+            hs.into_iter().flat_map(|h| h.join().expect("a worker panicked")).collect()
+        })
+    };
+    done.sort_by_key(|(k, _)| *k);
+    done.into_iter().map(|(_, v)| v).collect()
 }
 
 /// A `rows x n` Jacobian from its passes: `pass(c0, block)` writes the columns `c0 .. c0 +
@@ -1718,18 +1762,32 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         return Err(Input(format!("moving mass {} kg is not valid (0 .. 2 kg; give kg, not g)", opts.mms)));
     }
     let seconds = u.len() as f64 / fs;
-    // Start values.
-    let (start, mut linear) = match &opts.init {
-        Some(p) => (p.clone(), None),
-        None => {
-            // The start needs no more than a few seconds (the fit is O(n) per iteration). The
-            // small-signal effects are chosen as in `linear`: on a large coil with an LR-3
-            // branch the LR-2 fit alone landed on fs = 1.4 kHz and Re 3x too high, and the
-            // start model then hardly moved (issue 15). The order search below starts from
-            // the LR-2 part of that fit; the effects are chosen again on held-out data.
-            let m = u.len().min((4.0 * fs) as usize);
+    // The linear fits of the first seconds: the start's and, with the chain, the chain's
+    // (below). They are independent, and run side by side.
+    let m_start = u.len().min((4.0 * fs) as usize);
+    let (start_fit, chain_fit) = std::thread::scope(|scope| {
+        let chain_fit = opts.chain.then(|| {
+            scope.spawn(|| {
+                let lin_opts = LinearOptions { chain: true, ..LinearOptions::LARGE_SIGNAL_START };
+                fit_linear_record(&u[..m_start], &i[..m_start], fs, origin, &lin_opts, |_| {})
+            })
+        });
+        // The start needs no more than a few seconds (the fit is O(n) per iteration). The
+        // small-signal effects are chosen as in `linear`: on a large coil with an LR-3
+        // branch the LR-2 fit alone landed on fs = 1.4 kHz and Re 3x too high, and the
+        // start model then hardly moved (issue 15). The order search below starts from
+        // the LR-2 part of that fit; the effects are chosen again on held-out data.
+        let start_fit = opts.init.is_none().then(|| {
             let lin_opts = LinearOptions { effects: EffectsChoice::Auto, ..LinearOptions::LARGE_SIGNAL_START };
-            let lin = fit_linear_record(&u[..m], &i[..m], fs, origin, &lin_opts, |_| {}).map_err(Input)?;
+            fit_linear_record(&u[..m_start], &i[..m_start], fs, origin, &lin_opts, |_| {})
+        });
+        (start_fit, chain_fit.map(|h| h.join().expect("a linear fit does not panic")))
+    });
+    // Start values.
+    let (start, mut linear) = match (&opts.init, start_fit) {
+        (Some(p), _) => (p.clone(), None),
+        (None, fit) => {
+            let lin = fit.expect("fitted when no start is given").map_err(Input)?;
             (split_vanished_le(scale_by_mms(&lin, opts.mms).map_err(Input)?), Some(lin))
         }
     };
@@ -1739,10 +1797,8 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     // record its sds are wide (distortion is most of its residual: SB17 with a 0.3-sample delay
     // gave 0.34 +- 0.09), too wide to decide. Offsets and hum are always in.
     let mut chain_start = None;
-    let (setup, mut cth) = if opts.chain {
-        let m = u.len().min((4.0 * fs) as usize);
-        let lin_opts = LinearOptions { chain: true, ..LinearOptions::LARGE_SIGNAL_START };
-        let lin_chain = fit_linear_record(&u[..m], &i[..m], fs, origin, &lin_opts, |_| {}).map_err(Input)?;
+    let (setup, mut cth) = if let Some(fit) = chain_fit {
+        let lin_chain = fit.map_err(Input)?;
         let est = lin_chain.chain.clone();
         if opts.init.is_none() {
             chain_start = scale_by_mms(&lin_chain, opts.mms).ok().map(|p| (split_vanished_le(p), lin_chain.clone()));
@@ -1798,14 +1854,17 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         Ok((x0, rel(&DVector::from_vec(e), &t)))
     };
     let mut start = Parameters { mms: opts.mms, thermal: None, ..start };
-    let mut started = run_start(&start);
     // With the chain, the start from the linear fit without it can miss the driver (SB17 with
     // the voltage channel 0.28 sample late, 4.5 / 1.4 Hz coupling and 1 % offsets: the fit
     // without the chain missed 100 % of the current); the one with the chain can lose the
     // LR-2 branch (SB17 with AC coupling: R2 -> 1e-132 ohm). The one that misses less wins.
-    if let Some((alt, lin)) = chain_start {
-        let alt = Parameters { mms: opts.mms, thermal: None, ..alt };
-        let other = run_start(&alt);
+    // The two runs (one core each) side by side.
+    let alt = chain_start.map(|(alt, lin)| (Parameters { mms: opts.mms, thermal: None, ..alt }, lin));
+    let (mut started, other) = std::thread::scope(|scope| {
+        let other = alt.as_ref().map(|(a, _)| scope.spawn(|| run_start(a)));
+        (run_start(&start), other.map(|h| h.join().expect("a model run does not panic")))
+    });
+    if let (Some((alt, lin)), Some(other)) = (alt, other) {
         let miss = |r: &Result<(Vec<f64>, f64), usize>| r.as_ref().map_or(f64::INFINITY, |(_, m)| *m);
         if miss(&other) < miss(&started) {
             (start, started, linear) = (alt, other, Some(lin));
