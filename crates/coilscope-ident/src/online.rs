@@ -578,22 +578,32 @@ impl Online {
         let b = (want + w).min(end);
         let skip = self.settle.min((b - a) / 2);
         let slope = self.re_slope();
-        let (r, _) = self.run_window(&self.theta, y0, a, b, skip, slope)?;
-        let floor_ratio = crate::checks::noise_floor(r.as_slice(), self.fs).ratio;
+        // The window's residual run (one core) and the Jacobian's passes side by side: the
+        // passes take the core the run leaves idle, and stop when the run says there is no
+        // update (the model diverged, or misses more than `max_before`).
         let q: f64 = self.i[a + skip - self.base..b - self.base].iter().map(|v| v * v).sum();
-        let e0 = r.norm_squared();
-        let before = (e0 / q.max(1e-300)).sqrt();
-        if before > self.opts.max_before {
-            self.last_update = end;
-            self.peak_since = (0.0, end);
-            return Some(Update { t: self.t(), before, after: before, step: 0.0, floor_ratio });
-        }
-        let rows = r.len();
-        let sigma2 = (e0 / rows as f64).max(1e-300);
+        let run = std::sync::Mutex::new(None);
+        let first = || {
+            let out = self.run_window(&self.theta, y0, a, b, skip, slope);
+            let go = out.as_ref().is_some_and(|(r, _)| !((r.norm_squared() / q.max(1e-300)).sqrt() > self.opts.max_before));
+            *run.lock().expect("window run") = Some(out);
+            go
+        };
+        let rows = b - a - skip;
         // Jacobian of the model current (the residual is r = i - i_model).
         let np = self.theta.len();
         let stop = std::sync::atomic::AtomicBool::new(false);
-        let jac = jacobian_passes(rows, np, self.threads, &[], &stop, |c0, block| self.jacobian_chunk(&y0, a, b, skip, c0, slope, block)).expect("nothing stops these passes");
+        let jac = jacobian_passes(rows, np, self.threads, &[&first], &stop, |c0, block| self.jacobian_chunk(&y0, a, b, skip, c0, slope, block));
+        let (r, _) = run.into_inner().expect("window run").expect("the first task is the run")?;
+        let floor_ratio = crate::checks::noise_floor(r.as_slice(), self.fs).ratio;
+        let e0 = r.norm_squared();
+        let before = (e0 / q.max(1e-300)).sqrt();
+        let Some(jac) = jac.filter(|_| !(before > self.opts.max_before)) else {
+            self.last_update = end;
+            self.peak_since = (0.0, end);
+            return Some(Update { t: self.t(), before, after: before, step: 0.0, floor_ratio });
+        };
+        let sigma2 = (e0 / rows as f64).max(1e-300);
         let jtj = jac.tr_mul(&jac) / sigma2;
         let jtr = jac.tr_mul(&r) / sigma2;
         let p_inv = self.cov.clone().try_inverse()?;
