@@ -26,8 +26,17 @@ fn record(name: &str) -> Rec {
     record_seed(name, 1)
 }
 
+/// An embedded driver, or one of `testdata/drivers` (the microspeaker: Le 30 uH, Re 7.5 ohm,
+/// 0.1 g, its electrical time constant 3.4 us with the LR-2 branch).
+fn driver(name: &str) -> Parameters {
+    embedded_driver(name).unwrap_or_else(|| {
+        let path = format!("{}/../../testdata/drivers/{name}.json", env!("CARGO_MANIFEST_DIR"));
+        Parameters::from_json_str(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
+    })
+}
+
 fn record_seed(name: &str, seed: u64) -> Rec {
-    let p = embedded_driver(name).unwrap();
+    let p = driver(name);
     let [lo, hi] = p.x_range.unwrap();
     let target = 0.85 * hi.min(-lo);
     let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs: FS, seconds: 8.0, rms: 1.0, fade: 0.05, seed }).unwrap();
@@ -42,11 +51,21 @@ fn rec(name: &str) -> &'static Rec {
     static SB17: OnceLock<Rec> = OnceLock::new();
     static W18: OnceLock<Rec> = OnceLock::new();
     static PTT: OnceLock<Rec> = OnceLock::new();
+    static MICRO: OnceLock<Rec> = OnceLock::new();
     match name {
         "sb17cac35-4" => SB17.get_or_init(|| record(name)),
         "18wu-4741t-00" => W18.get_or_init(|| record(name)),
+        "microspeaker-0g1" => MICRO.get_or_init(|| record(name)),
         _ => PTT.get_or_init(|| record(name)),
     }
+}
+
+/// The microspeaker of `testdata/drivers` (Le 30 uH, L2 15 uH, R2 2 ohm: 21 RK4 sub-steps
+/// per sample at 48 kHz, 7 in the Jacobian), LR-2, one sample (it takes minutes: the stiff
+/// electrical branch, the open lever of issue 17).
+#[divan::bench(args = ["microspeaker-0g1"], sample_count = 1, sample_size = 1)]
+fn identify_8s_microspeaker(name: &str) {
+    identify_8s(name);
 }
 
 /// The whole `identify` (linear start, order selection, final fit, covariance), the LR-2

@@ -7,7 +7,8 @@
 //! cargo run --release -p coilscope-ident --example stages -- [DRIVER] [auto] [chain]
 //! ```
 //!
-//! `DRIVER`: an embedded driver (default `sb17cac35-4`); `auto`: choose the effects (creep,
+//! `DRIVER`: an embedded driver (default `sb17cac35-4`) or one of `testdata/drivers`
+//! (`microspeaker-0g1`, ...); `auto`: choose the effects (creep,
 //! LR-3, Le(i), Rms(v)) on held-out data as `identify` does by default, instead of LR-2;
 //! `chain`: record through a sound card (current 0.3 sample late, AC coupling at 2 Hz on the
 //! voltage and 4 Hz on the current, offsets of 0.5 % of each channel's peak, 50 Hz hum at
@@ -15,9 +16,9 @@
 //! The profile by function is `perf record -g` on the `identify` benchmark.
 
 use coilscope_core::chain::{Chain, Hum};
-use coilscope_core::embedded_driver;
 use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
 use coilscope_core::simulate::{gain_for_peak, SimOptions};
+use coilscope_core::{embedded_driver, Parameters};
 use coilscope_ident::large::{identify, IdentifyOptions};
 use coilscope_ident::linear::{Effects, EffectsChoice};
 use std::time::Instant;
@@ -28,8 +29,11 @@ fn main() {
     let auto = args.iter().any(|a| a == "auto");
     let chain = args.iter().any(|a| a == "chain");
     let fs = 48000.0;
-    let Some(p) = embedded_driver(&name) else {
-        eprintln!("{name}: not an embedded driver (see `coilscope drivers`)");
+    // An embedded driver, or one of testdata/drivers (microspeaker-0g1, microspeaker-2g7,
+    // large-coil).
+    let path = format!("{}/../../testdata/drivers/{name}.json", env!("CARGO_MANIFEST_DIR"));
+    let Some(p) = embedded_driver(&name).or_else(|| Parameters::from_json_str(&std::fs::read_to_string(&path).ok()?, &path).ok()) else {
+        eprintln!("{name}: not an embedded driver (see `coilscope drivers`) nor one of testdata/drivers");
         std::process::exit(2);
     };
     let [lo, hi] = p.x_range.expect("embedded drivers have an x_range");
@@ -54,7 +58,7 @@ fn main() {
         last = t;
     });
     match fit {
-        Ok(f) => println!("total {:.3} s: order {}, model {}", t0.elapsed().as_secs_f64(), f.order, f.layout.effects.model_name()),
+        Ok(f) => println!("total {:.3} s: order {}, model {}, sub-steps per sample {:?} (residual, Jacobian)", t0.elapsed().as_secs_f64(), f.order, f.layout.effects.model_name(), f.substeps),
         Err(e) => println!("total {:.3} s: {e}", t0.elapsed().as_secs_f64()),
     }
 }
