@@ -60,8 +60,8 @@ fn rec(name: &str) -> &'static Rec {
     }
 }
 
-/// The microspeaker of `testdata/drivers` (Le 30 uH, L2 15 uH, R2 2 ohm: 21 RK4 sub-steps
-/// per sample at 48 kHz, 7 in the Jacobian), LR-2, one sample (it takes minutes: the stiff
+/// The microspeaker of `testdata/drivers` (Le 30 uH, L2 15 uH, R2 2 ohm: 22 RK4 sub-steps
+/// per sample at 48 kHz, 8 in the Jacobian), LR-2, one sample (it takes minutes: the stiff
 /// electrical branch, the open lever of issue 17).
 #[divan::bench(args = ["microspeaker-0g1"], sample_count = 1, sample_size = 1)]
 fn identify_8s_microspeaker(name: &str) {
