@@ -1202,33 +1202,18 @@ pub(crate) fn jacobian_passes(rows: usize, n: usize, threads: usize, lead: &[&(d
     let mut j = DMatrix::zeros(rows, n);
     {
         let blocks: Vec<std::sync::Mutex<&mut [f64]>> = j.as_mut_slice().chunks_mut(CHUNK * rows.max(1)).map(std::sync::Mutex::new).collect();
-        let tasks = lead.len() + blocks.len();
-        let next = AtomicUsize::new(0);
-        let work = || loop {
-            let k = next.fetch_add(1, Ordering::Relaxed);
-            if let Some(f) = lead.get(k) {
+        parallel_map(lead.len() + blocks.len(), threads, |k| match lead.get(k) {
+            Some(f) => {
                 if !f() {
                     stop.store(true, Ordering::Relaxed);
                 }
-                continue;
             }
-            if k >= tasks || stop.load(Ordering::Relaxed) {
-                break;
+            None if stop.load(Ordering::Relaxed) => {}
+            None => {
+                let b = k - lead.len();
+                pass(b * CHUNK, &mut blocks[b].lock().expect("Jacobian block"));
             }
-            let b = k - lead.len();
-            pass(b * CHUNK, &mut blocks[b].lock().expect("Jacobian block"));
-        };
-        let workers = threads.clamp(1, tasks.max(1));
-        if workers == 1 {
-            work();
-        } else {
-            std::thread::scope(|scope| {
-                let hs: Vec<_> = (0..workers).map(|_| scope.spawn(work)).collect();
-                for h in hs {
-                    h.join().expect("Jacobian worker panicked");
-                }
-            });
-        }
+        });
     }
     (!stop.load(Ordering::Relaxed)).then_some(j)
 }
@@ -2081,10 +2066,9 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
                 // candidates' linear fits are independent: they run side by side (each
                 // uses the cores only in part: SB17's creep and LR-3 fits took 0.63 and
                 // 0.46 s in turn).
-                let m = u.len().min((4.0 * fs) as usize);
-                let lins: Vec<Option<LinearFit>> = std::thread::scope(|scope| {
-                    let hs: Vec<_> = cands.iter().map(|&(one, e)| scope.spawn(move || (one.creep || one.lr3).then(|| linear_start_fit(&u[..m], &i[..m], fs, origin, e.small_signal()))?)).collect();
-                    hs.into_iter().map(|h| h.join().expect("a linear fit does not panic")).collect()
+                let lins: Vec<Option<LinearFit>> = parallel_map(cands.len(), cands.len(), |k| {
+                    let (one, e) = cands[k];
+                    (one.creep || one.lr3).then(|| linear_start_fit(&u[..m_start], &i[..m_start], fs, origin, e.small_signal()))?
                 });
                 for ((one, e), lin) in cands.into_iter().zip(lins) {
                     let lay = layout_for(order).with_effects(e);

@@ -129,10 +129,8 @@ pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState)
                 let step = delta.amax();
                 Some(LmState { theta: theta.clone(), cost, lambda: (lambda / 3.0).max(1e-12), iteration: s.iteration + 1, last_decrease: dec, gain_ratio: (s.cost - cost) / predicted, step_lambda: lambda, converged: dec < 1e-12 || step < 1e-10 })
             };
-            let work = at_last.filter(|a| (a.likely)(predicted / s.cost.max(1e-300), lambda)).map(|a| a.work);
-            let job = || work.expect("given")(&theta);
-            let alongside: Option<&(dyn Fn() + Sync)> = if work.is_some() { Some(&job) } else { None };
-            let r = p.residual_ahead(&theta, &|r| accepted(0.5 * r.norm_squared()).is_some_and(|next| goes_on(&next)), alongside);
+            let job = at_last.filter(|a| (a.likely)(predicted / s.cost.max(1e-300), lambda)).map(|a| || (a.work)(&theta));
+            let r = p.residual_ahead(&theta, &|r| accepted(0.5 * r.norm_squared()).is_some_and(|next| goes_on(&next)), job.as_ref().map(|f| f as &(dyn Fn() + Sync)));
             if let Some(next) = accepted(0.5 * r.norm_squared()) {
                 return next;
             }

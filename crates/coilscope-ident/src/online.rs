@@ -598,7 +598,8 @@ impl Online {
         let floor_ratio = crate::checks::noise_floor(r.as_slice(), self.fs).ratio;
         let e0 = r.norm_squared();
         let before = (e0 / q.max(1e-300)).sqrt();
-        let Some(jac) = jac.filter(|_| !(before > self.opts.max_before)) else {
+        // No Jacobian: the run said `before` is above `max_before`.
+        let Some(jac) = jac else {
             self.last_update = end;
             self.peak_since = (0.0, end);
             return Some(Update { t: self.t(), before, after: before, step: 0.0, floor_ratio });
