@@ -19,7 +19,7 @@
 use crate::AnalysisError;
 use coilscope_core::excitation::named_rng;
 use coilscope_core::fft::{irfft, rfft};
-use coilscope_core::integrate::{rk4_sample, substeps_for};
+use coilscope_core::integrate::Stepper;
 use coilscope_core::model::{idx, NSTATE};
 use coilscope_core::{Model, Parameters, Poly};
 use rand::Rng;
@@ -220,7 +220,8 @@ fn run_steady(q: &Parameters, exc: &Periodic, opts: &SteadyOptions) -> Result<Re
     if n > 4_000_000 {
         return Err(AnalysisError::Input(format!("a period of {t} s at {fs:.0} Hz is too long ({n} samples); use shorter periods or lower tones")));
     }
-    let ns = substeps_for(q.stiffness_rate(), fs);
+    let stepper = Stepper::for_rates(q.rates(), fs);
+    let ns = stepper.n();
     let fine = 2 * ns * n;
     let mut spec = vec![C::new(0.0, 0.0); fine / 2 + 1];
     for tone in &exc.tones {
@@ -255,7 +256,7 @@ fn run_steady(q: &Parameters, exc: &Periodic, opts: &SteadyOptions) -> Result<Re
             xs[m] = x;
             is[m] = s[idx::I];
             acc[m] = model.deriv(&s, up[0])[idx::V];
-            s = rk4_sample(&model, &s, dt, up);
+            s = stepper.sample(&model, &s, dt, up);
         }
         windows += 1;
         let (fx, fi) = (rfft(&xs), rfft(&is));

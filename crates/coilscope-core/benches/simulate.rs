@@ -45,3 +45,13 @@ fn creep_and_lr3(bencher: Bencher, name: &str) {
     let u = voltage(3.0);
     bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &SimOptions::default()).unwrap());
 }
+
+/// The full model with classical RK4 and its sub-steps (the scheme before the exponential
+/// one), against `full_model`.
+#[divan::bench(args = embedded_driver_names())]
+fn full_model_rk4(bencher: Bencher, name: &str) {
+    let p = embedded_driver(name).unwrap();
+    let u = voltage(3.0);
+    let opts = SimOptions { scheme: Some(coilscope_core::integrate::Scheme::Rk4), ..Default::default() };
+    bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &opts).unwrap());
+}

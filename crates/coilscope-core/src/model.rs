@@ -210,6 +210,26 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
         [v, dv, di, di2, dtv, dtm]
     }
 
+    /// The linear network of the currents at displacement `x` and coil temperature rise `tv`
+    /// (1/s): `d(i, i2)/dt = A (i, i2) + ...` with `A = [[-(Re(T) + R2) / Le, R2 / Le],
+    /// [R2 / L2, -R2 / L2]]`. The stiff part of the model, which
+    /// [`crate::integrate::etd4_step`] integrates exactly; the motional terms (`Le' v`,
+    /// `L2' v`), flux modulation and an LR-3 branch are left out (they are slow in a woofer;
+    /// [`crate::integrate::Rates::explicit`] sets the steps for LR-3).
+    #[inline]
+    pub fn electrical_matrix(&self, x: D, tv: D) -> [[D; 2]; 2] {
+        let inv_le = self.le.eval(x).recip();
+        let re = self.re_at(tv);
+        match &self.l2r2 {
+            Some((l2, r2)) => {
+                let r2 = r2.eval(x);
+                let g2 = r2 * l2.eval(x).recip();
+                [[-(re + r2) * inv_le, r2 * inv_le], [g2, -g2]]
+            }
+            None => [[-re * inv_le, D::zero()], [D::zero(), D::zero()]],
+        }
+    }
+
     /// The current derivative, the reluctance force and the loss with `Le_i` or `Rms_v`:
     /// `(u_rest - Le' v g i) / (Le h)`, `Le' G(i)`, `Rms(|v|)`, where `u_rest` is the terminal
     /// voltage less `Re i`, `Bl v` and the LR-2 branch. Kept out of line: inlined, it made the

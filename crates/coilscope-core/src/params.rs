@@ -529,6 +529,21 @@ impl Parameters {
         le_min / (self.re + r2_max + r3)
     }
 
+    /// The electrical rates that set the integration steps
+    /// ([`crate::integrate::exp_steps_for`]): the LR-2 network's (Re and R2 over the
+    /// smallest Le in the range, plus R2 / L2) and the LR-3 branch's (`R3 / Le + R3 / L3`).
+    pub fn rates(&self) -> crate::integrate::Rates {
+        let (lo, hi) = self.x_range.map(|r| (r[0], r[1])).unwrap_or((0.0, 0.0));
+        let le_min = self.le.min_max_on(lo, hi).0;
+        let mut stiff = self.re / le_min;
+        if let Some((l2, r2)) = &self.l2r2 {
+            let r2_max = r2.min_max_on(lo, hi).1;
+            stiff += r2_max / le_min + r2_max / l2.min_max_on(lo, hi).0;
+        }
+        let explicit = self.l3r3.map_or(0.0, |(l3, r3)| r3 / le_min + r3 / l3);
+        crate::integrate::Rates { stiff, explicit }
+    }
+
     /// Largest magnitude of the system's fast eigenvalues, an upper bound (1/s): the
     /// Le-branch rate plus the L2-branch rate, at the valid range's worst point.
     pub fn stiffness_rate(&self) -> f64 {

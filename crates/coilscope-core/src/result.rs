@@ -103,9 +103,14 @@ pub struct Fit {
     pub converged: Option<bool>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stop_reason: Option<String>,
-    /// RK4 sub-steps per sample (estimation, final).
+    /// Integration steps per sample (the residual runs, the Jacobian's runs); `schemes`
+    /// says of which method.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub substeps: Option<[usize; 2]>,
+    /// The integration scheme of the residual runs and of the Jacobian's: `"rk4"` (classical
+    /// RK4 sub-steps) or `"exponential"` (the electrical network integrated exactly).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub schemes: Option<[String; 2]>,
     /// Start of the record left out of the residual while the model settles (s).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub settle_s: Option<f64>,

@@ -5,7 +5,7 @@
 //! leaves the parameters' `x_range` (plus a margin) or becomes non-finite stops with a
 //! [`SimError`] that names the time and the state.
 
-use crate::integrate::{rk4_sample, substeps_for, Interpolator};
+use crate::integrate::{exp_steps_for, substeps_for, Electrical, Scheme, Stepper};
 use crate::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
 
 /// The model a simulation integrates, one sample at a time: [`Model`] (six states, the fast
@@ -33,6 +33,13 @@ impl<S: crate::integrate::Dynamics<f64, N>, const N: usize> crate::integrate::Dy
         let mut d = self.sys.deriv(y, u);
         d[idx::V] += self.accel;
         d
+    }
+}
+
+impl<S: Electrical<f64, N>, const N: usize> Electrical<f64, N> for Pushed<'_, S> {
+    #[inline]
+    fn electrical(&self, y: &[f64; N]) -> [[f64; 2]; 2] {
+        self.sys.electrical(y)
     }
 }
 
@@ -68,16 +75,16 @@ impl Plant {
         (!(h >= MIN_INCREMENTAL_LE)).then(|| format!("Le_i drives the incremental inductance to {:.0} % of Le(x) at i = {i:.3} A (below {:.0} %: the flux series is extrapolated past its valid current)", 100.0 * h, 100.0 * MIN_INCREMENTAL_LE))
     }
 
-    /// Advance `state` by one sample period `dt`, the input at the points of
-    /// [`crate::integrate::Interpolator::fill`].
-    pub fn step(&mut self, state: &mut State<f64>, dt: f64, u_points: &[f64]) {
+    /// Advance `state` by one sample period `dt` with `stepper`, the input at the points of
+    /// [`Stepper::fill`].
+    pub fn step(&mut self, stepper: &Stepper, state: &mut State<f64>, dt: f64, u_points: &[f64]) {
         let accel = self.accel;
         match &mut self.ext {
-            None if accel == 0.0 => *state = rk4_sample(&self.model, state, dt, u_points),
-            None => *state = rk4_sample(&Pushed { sys: &self.model, accel }, state, dt, u_points),
+            None if accel == 0.0 => *state = stepper.sample(&self.model, state, dt, u_points),
+            None => *state = stepper.sample(&Pushed { sys: &self.model, accel }, state, dt, u_points),
             Some((model, s)) => {
                 s[..NSTATE].copy_from_slice(state);
-                *s = if accel == 0.0 { rk4_sample(model, s, dt, u_points) } else { rk4_sample(&Pushed { sys: &*model, accel }, s, dt, u_points) };
+                *s = if accel == 0.0 { stepper.sample(model, s, dt, u_points) } else { stepper.sample(&Pushed { sys: &*model, accel }, s, dt, u_points) };
                 state.copy_from_slice(&s[..NSTATE]);
             }
         }
@@ -97,8 +104,13 @@ pub const RANGE_MARGIN: f64 = 0.10;
 /// Simulation options.
 #[derive(Clone, Debug)]
 pub struct SimOptions {
-    /// Sub-steps per sample; `None` chooses them from the driver's stiffness.
+    /// Steps per sample; `None` chooses them from the driver's electrical rates
+    /// ([`crate::integrate::exp_steps_for`], or [`substeps_for`] for RK4).
     pub substeps: Option<usize>,
+    /// The integration scheme; `None`: the cheaper at its accuracy
+    /// ([`Stepper::for_rates`]), or classical RK4 when `substeps` is given (a tiny-step
+    /// reference).
+    pub scheme: Option<Scheme>,
     /// Initial state (rest by default).
     pub initial: State<f64>,
     /// Allowed extrapolation past `x_range` (fraction of the half-width).
@@ -111,7 +123,7 @@ pub struct SimOptions {
 
 impl Default for SimOptions {
     fn default() -> Self {
-        SimOptions { substeps: None, initial: [0.0; NSTATE], range_margin: RANGE_MARGIN, force: 0.0 }
+        SimOptions { substeps: None, scheme: None, initial: [0.0; NSTATE], range_margin: RANGE_MARGIN, force: 0.0 }
     }
 }
 
@@ -218,7 +230,7 @@ pub struct Simulator {
     plant: Plant,
     pub params: Parameters,
     pub fs: f64,
-    interp: Interpolator,
+    stepper: Stepper,
     /// Hard bounds on x (x_range plus margin), if the set has a range.
     bounds: Option<[f64; 2]>,
     range: Option<[f64; 2]>,
@@ -231,14 +243,20 @@ impl Simulator {
         if !(fs.is_finite() && (1000.0..=1.0e6).contains(&fs)) {
             return Err(SimError::Input(format!("sample rate {fs} Hz is not valid (1 kHz .. 1 MHz)")));
         }
-        let n = opts.substeps.unwrap_or_else(|| substeps_for(params.stiffness_rate(), fs)).max(1);
+        let stepper = match (opts.scheme, opts.substeps) {
+            (None, None) => Stepper::for_rates(params.rates(), fs),
+            (None, Some(n)) | (Some(Scheme::Rk4), Some(n)) => Stepper::new(Scheme::Rk4, n),
+            (Some(Scheme::Rk4), None) => Stepper::new(Scheme::Rk4, substeps_for(params.rates().total(), fs)),
+            (Some(Scheme::Exponential), n) => Stepper::new(Scheme::Exponential, n.unwrap_or_else(|| exp_steps_for(params.rates(), fs))),
+        };
+        let n = stepper.n();
         let bounds = params.x_range.map(|[lo, hi]| [lo * (1.0 + opts.range_margin), hi * (1.0 + opts.range_margin)]);
-        Ok(Simulator { plant: Plant::with_force(params, opts.force), params: params.clone(), fs, interp: Interpolator::new(n), bounds, range: params.x_range, state: opts.initial, scratch: vec![0.0; 2 * n + 1] })
+        Ok(Simulator { plant: Plant::with_force(params, opts.force), params: params.clone(), fs, stepper, bounds, range: params.x_range, state: opts.initial, scratch: vec![0.0; 2 * n + 1] })
     }
 
     /// Sub-steps per sample.
     pub fn substeps(&self) -> usize {
-        self.interp.n
+        self.stepper.n()
     }
 
     fn check(&self, s: &State<f64>, m: usize) -> Result<(), SimError> {
@@ -280,8 +298,8 @@ impl Simulator {
         for m in 0..u.len() {
             self.check(&self.state, m)?;
             observe(m, &self.state);
-            self.interp.fill(u, m, &mut self.scratch);
-            self.plant.step(&mut self.state, dt, &self.scratch);
+            self.stepper.fill(u, m, &mut self.scratch);
+            self.plant.step(&self.stepper, &mut self.state, dt, &self.scratch);
         }
         Ok(())
     }

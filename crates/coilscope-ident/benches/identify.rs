@@ -116,7 +116,7 @@ fn problem(r: &'static Rec) -> (OutputError<'static>, Vec<f64>) {
     let lay = Layout::new(4, 5, 2.0, 0.005, sc, true, p.mms);
     let th = lay.theta_from(p, None);
     let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    (OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.stiffness_rate(), 0.05, threads), th)
+    (OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.rates(), 0.05, threads), th)
 }
 
 /// One Jacobian (23 columns, 8 s) of the order-4 problem, all cores.
@@ -154,7 +154,7 @@ fn residual_order4_effects(b: divan::Bencher, which: &str) {
     let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
     let lay = Layout::new(4, 5, 2.0, 0.005, sc, true, p.mms).with_effects(effects);
     let th = lay.theta_from(&p, None);
-    let prob = OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.stiffness_rate(), 0.05, 1);
+    let prob = OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.rates(), 0.05, 1);
     bench_residual(b, &prob, &th);
 }
 

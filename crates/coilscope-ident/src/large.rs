@@ -25,7 +25,7 @@
 
 use crate::linear::{check_channels, fit_linear_record, scale_by_mms, Effects, EffectsChoice, LinearFit, LinearOptions};
 use crate::lm::{lm_step_ahead, AtLastTrial, LmState, Problem};
-use coilscope_core::integrate::{rk4_sample, substeps_for, Dynamics, Interpolator};
+use coilscope_core::integrate::{Electrical, Rates, Scheme, Stepper};
 use coilscope_core::model::{idx, ExtModel, Model, NEXT, NLR3, NSTATE};
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
@@ -46,8 +46,6 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 pub const CHUNK: usize = 8;
 /// Samples between two looks of a model run at its stop flag ([`run_model`]).
 const STOP_POLL: usize = 4096;
-/// Largest `|lambda| h` of the fast electrical mode in the Jacobian runs.
-const JACOBIAN_STIFF_LIMIT: f64 = 1.5;
 /// Highest power-series order.
 pub const MAX_ORDER: usize = 8;
 /// Lowest power-series order.
@@ -595,7 +593,7 @@ fn re_at<D: DualNum<Primitive = f64> + Copy>(knots: &[D], knot_dt: f64, t: f64, 
 }
 
 /// What [`run_model`] integrates: a model whose `Re` follows the knots.
-trait KnotModel<D, const N: usize>: Dynamics<D, N> {
+trait KnotModel<D, const N: usize>: Electrical<D, N> {
     fn set_re(&mut self, re: D);
 }
 
@@ -630,13 +628,13 @@ fn run_model<D: DualNum<Primitive = f64> + Copy, const N: usize>(
     heat: (&[D], &[Vec<f64>]),
     u: &[f64],
     fs: f64,
-    interp: &Interpolator,
+    stepper: &Stepper,
     len: usize,
     x_limit: f64,
     stop: Option<&AtomicBool>,
     mut observe: impl FnMut(usize, &[D]),
 ) -> Result<(), usize> {
-    let n = interp.n;
+    let n = stepper.n();
     let dt = 1.0 / fs;
     let mut y: [D; N] = [D::zero(); N];
     let mut pf = vec![0.0; 2 * n + 1];
@@ -651,11 +649,11 @@ fn run_model<D: DualNum<Primitive = f64> + Copy, const N: usize>(
         }
         observe(m, &y);
         model.set_re(re_at(knots, knot_dt, m as f64 * dt, m, heat));
-        interp.fill(u, m, &mut pf);
+        stepper.fill(u, m, &mut pf);
         for (d, &f) in pd.iter_mut().zip(pf.iter()) {
             *d = D::from(f);
         }
-        y = rk4_sample(model, &y, dt, &pd);
+        y = stepper.sample(model, &y, dt, &pd);
     }
     Ok(())
 }
@@ -663,17 +661,17 @@ fn run_model<D: DualNum<Primitive = f64> + Copy, const N: usize>(
 /// [`run_model`] with the layout's model for theta: [`Model`], or [`ExtModel`] when the
 /// layout fits effects with states of their own.
 #[allow(clippy::too_many_arguments)]
-fn run_layout<D: DualNum<Primitive = f64> + Copy>(layout: &Layout, th: &[D], heat: &[Vec<f64>], u: &[f64], fs: f64, interp: &Interpolator, len: usize, x_limit: f64, stop: Option<&AtomicBool>, observe: impl FnMut(usize, &[D])) -> Result<(), usize> {
+fn run_layout<D: DualNum<Primitive = f64> + Copy>(layout: &Layout, th: &[D], heat: &[Vec<f64>], u: &[f64], fs: f64, stepper: &Stepper, len: usize, x_limit: f64, stop: Option<&AtomicBool>, observe: impl FnMut(usize, &[D])) -> Result<(), usize> {
     if !layout.effects.needs_ext_states() {
         let (mut model, knots) = layout.model(th);
-        run_model(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, interp, len, x_limit, stop, observe)
+        run_model(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, stepper, len, x_limit, stop, observe)
     } else if !layout.effects.creep {
         // LR-3 without creep: the seven states of `ExtModel::deriv_n`.
         let (mut model, knots) = layout.ext_model(th);
-        run_model::<D, NLR3>(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, interp, len, x_limit, stop, observe)
+        run_model::<D, NLR3>(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, stepper, len, x_limit, stop, observe)
     } else {
         let (mut model, knots) = layout.ext_model(th);
-        run_model::<D, NEXT>(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, interp, len, x_limit, stop, observe)
+        run_model::<D, NEXT>(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, stepper, len, x_limit, stop, observe)
     }
 }
 
@@ -892,8 +890,10 @@ pub struct OutputError<'a> {
     pub threads: usize,
     /// The heating terms' shapes over the whole record ([`heat_shapes`] of `i`).
     pub heat: Vec<Vec<f64>>,
-    interp: Interpolator,
-    interp_jac: Interpolator,
+    /// The residual runs' steps and the Jacobian's ([`Stepper::for_rates`],
+    /// [`Stepper::for_jacobian`]).
+    stepper: Stepper,
+    stepper_jac: Stepper,
     /// The last Jacobian computed (LM's last iteration): reused for the covariance and the
     /// final fit's chord step. Kept only when [`OutputError::keeping_last`] says so
     /// (a copy of up to 50 MB per iteration that the search stages never read).
@@ -916,10 +916,9 @@ pub struct OutputError<'a> {
 }
 
 impl<'a> OutputError<'a> {
-    /// `rate`: the fastest electrical eigenvalue (1/s) of the start model.
-    pub fn new(layout: Layout, u: &'a [f64], i: &'a [f64], fs: f64, fit: Range<usize>, rate: f64, x_limit: f64, threads: usize) -> Self {
-        let n = substeps_for(rate, fs);
-        let n_jac = ((rate / fs / JACOBIAN_STIFF_LIMIT).ceil() as usize).clamp(1, n);
+    /// `rates`: the start model's electrical rates ([`Parameters::rates`]), which choose the
+    /// integration steps.
+    pub fn new(layout: Layout, u: &'a [f64], i: &'a [f64], fs: f64, fit: Range<usize>, rates: Rates, x_limit: f64, threads: usize) -> Self {
         let heat = heat_shapes(i, fs, &layout.heat_taus);
         OutputError {
             layout,
@@ -930,8 +929,8 @@ impl<'a> OutputError<'a> {
             x_limit,
             threads: threads.max(1),
             heat,
-            interp: Interpolator::new(n),
-            interp_jac: Interpolator::new(n_jac),
+            stepper: Stepper::for_rates(rates, fs),
+            stepper_jac: Stepper::for_jacobian(rates, fs),
             last_jacobian: Default::default(),
             last_trace: Default::default(),
             keep_last: false,
@@ -988,9 +987,14 @@ impl<'a> OutputError<'a> {
             .collect()
     }
 
-    /// Sub-steps per sample of the residual and of the Jacobian runs.
+    /// Steps per sample of the residual and of the Jacobian runs.
     pub fn substeps(&self) -> (usize, usize) {
-        (self.interp.n, self.interp_jac.n)
+        (self.stepper.n(), self.stepper_jac.n())
+    }
+
+    /// The schemes of the residual and of the Jacobian runs.
+    pub fn schemes(&self) -> (Scheme, Scheme) {
+        (self.stepper.scheme, self.stepper_jac.scheme)
     }
 
     /// Simulated trace of the model `theta` over `u[..len]`: (x, i) per sample.
@@ -1003,7 +1007,7 @@ impl<'a> OutputError<'a> {
         let mut x = Vec::with_capacity(len);
         let mut i = Vec::with_capacity(len);
         let (u, _) = self.signals(th);
-        run_layout(&self.layout, th, &self.heat, &u, self.fs, &self.interp, len, self.x_limit, None, |_, s| {
+        run_layout(&self.layout, th, &self.heat, &u, self.fs, &self.stepper, len, self.x_limit, None, |_, s| {
             x.push(s[idx::X]);
             i.push(s[idx::I]);
         })?;
@@ -1031,7 +1035,7 @@ impl<'a> OutputError<'a> {
         let mut r = DVector::zeros(self.fit.len());
         let cap = if self.keep_last { self.fit.end } else { 0 };
         let (mut xs, mut is) = (Vec::with_capacity(cap), Vec::with_capacity(cap));
-        run_layout(&self.layout, th, &self.heat, u, self.fs, &self.interp, self.fit.end, self.x_limit, None, |m, s| {
+        run_layout(&self.layout, th, &self.heat, u, self.fs, &self.stepper, self.fit.end, self.x_limit, None, |m, s| {
             if m >= start {
                 r[m - start] = s[idx::I] - i[m];
             }
@@ -1127,7 +1131,7 @@ impl<'a> OutputError<'a> {
         let (thd, cnt) = seed_duals::<N>(th, c0);
         let (start, rows) = (self.fit.start, self.fit.len());
         // A run that fails here ran away at a theta whose f64 run did not: leave zeros.
-        let _ = run_layout(&self.layout, &thd, &self.heat, u, self.fs, &self.interp_jac, self.fit.end, f64::INFINITY, stop, |m, s| {
+        let _ = run_layout(&self.layout, &thd, &self.heat, u, self.fs, &self.stepper_jac, self.fit.end, f64::INFINITY, stop, |m, s| {
             if m >= start {
                 if let Some(e) = s[idx::I].eps.0.as_ref() {
                     for k in 0..cnt {
@@ -1458,6 +1462,8 @@ pub struct LargeFit {
     pub re_track: Vec<(f64, f64)>,
     /// Sub-steps of the residual and of the Jacobian runs.
     pub substeps: (usize, usize),
+    /// Their schemes.
+    pub schemes: (Scheme, Scheme),
     /// Samples skipped at the start while the unknown initial state settles.
     pub settle: usize,
     /// Sample rate (Hz).
@@ -1819,7 +1825,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         // Reach of the start model: the basis scale, and the runaway limit.
         let probe = Layout::new(MIN_ORDER, n_re, knot_dt, 1e-3, Scales::of(st), st.l2r2.is_some(), opts.mms);
         let th0 = join(probe.theta_from(st, None), &cth);
-        let pr = OutputError::new(probe, u, i, fs, 0..u.len(), st.stiffness_rate(), f64::INFINITY, threads).with_chain(setup);
+        let pr = OutputError::new(probe, u, i, fs, 0..u.len(), st.rates(), f64::INFINITY, threads).with_chain(setup);
         let (x0, i_start) = pr.trace(&th0, u.len())?;
         let settled_part = settle_of(st).min(u.len())..u.len();
         // With the chain estimated, its start (the corners from a linear fit, 40 % off on a
@@ -1855,7 +1861,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             (start, started, linear) = (alt, other, Some(lin));
         }
     }
-    let rate = start.stiffness_rate();
+    let rates = start.rates();
     let settle = settle_of(&start);
     // A record is refused for what it lacks, not for its length (a 0.5 s record at 96 kHz
     // reaching +-2 mm gives Bl and Kms within 0.1 %): after the start model has settled it
@@ -1875,13 +1881,14 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     let (x0, start_miss) = started.map_err(|m| {
         let l2r2 = start.l2r2.as_ref().map_or(String::new(), |(l2, r2)| format!(", L2 {:.3e} H, R2 {:.3e} ohm", l2.c[0], r2.c[0]));
         Input(format!(
-            "{origin}: the start model diverged at sample {m} (small-signal start: Re {:.3e} ohm, Le {:.3e} H{l2r2}, Bl {:.3e} T m, Kms {:.3e} N/m, Rms {:.3e} kg/s, {} RK4 sub-steps per sample)",
+            "{origin}: the start model diverged at sample {m} (small-signal start: Re {:.3e} ohm, Le {:.3e} H{l2r2}, Bl {:.3e} T m, Kms {:.3e} N/m, Rms {:.3e} kg/s, {} {} steps per sample)",
             start.re,
             start.le.c[0],
             start.bl.c[0],
             start.kms.c[0],
             start.rms,
-            substeps_for(rate, fs)
+            Stepper::for_rates(rates, fs).n(),
+            Stepper::for_rates(rates, fs).scheme.name()
         ))
     })?;
     // A start that misses most of the current is no start: the large-signal fit cannot
@@ -1924,7 +1931,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         // whether the excitation is too small.
         let lay = layout_for(0);
         let th = join(lay.theta_from(&current, None), &cth);
-        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rate, x_limit, threads).with_chain(setup);
+        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup);
         let s = solve(&prob, th, &Stage::Estimate { order: 0 }, 1e-3, ORDER0_FIRST_ITERATIONS, None, &mut observe);
         cth = s.theta[lay.slots().n..].to_vec();
         linear_rel = Some((2.0 * s.cost).sqrt() / norm_est);
@@ -1937,7 +1944,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     // error).
     let estimate_validate = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], observe: &mut dyn FnMut(&Progress)| {
         let th = join(lay.theta_from(from, track), cth);
-        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rate, x_limit, threads).with_chain(setup);
+        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup);
         // The held-out part: Re(t) knots beyond the estimation part were not identified;
         // continue the track linearly from its last identified interval.
         let t_split = split as f64 / fs;
@@ -1958,7 +1965,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             }
             th_val
         };
-        let full = OutputError::new(lay.clone(), u, i, fs, split..search_end, rate, x_limit, threads).with_chain(setup);
+        let full = OutputError::new(lay.clone(), u, i, fs, split..search_end, rates, x_limit, threads).with_chain(setup);
         let validate = |th_val: &[f64]| full.residual_vec(th_val).map(|r| rel(&r, &i[split..search_end])).unwrap_or(f64::INFINITY);
         // The validation run of a trial likely to end the stage runs beside the trial's own
         // residual run (on the core that run leaves idle): (trial theta, validation error).
@@ -2091,7 +2098,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
                     if one.lr3 {
                         let (l2, r2) = current.l2r2.as_ref().map_or((0.0, 0.0), |(l, r)| (l.eval(0.0), r.eval(0.0)));
                         let vanishing = Parameters { l3r3: Some((LR3_VANISHING * 0.5 * l2, LR3_VANISHING * 3.0 * r2)), ..current.clone() };
-                        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rate, x_limit, threads).with_chain(setup);
+                        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup);
                         let miss = |p: &Parameters| prob.residual(&join(lay.theta_from(p, re_track.as_deref()), &cth)).norm_squared();
                         // The two runs side by side (each takes one core).
                         if l2 > 0.0 {
@@ -2176,7 +2183,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     // Final fit on the whole record.
     let lay = layout_for(order).with_effects(effects);
     let th = join(lay.theta_from(&current, re_track.as_deref()), &cth);
-    let prob = OutputError::new(lay.clone(), u, i, fs, settle..n, rate, x_limit, threads).with_chain(setup).keeping_last();
+    let prob = OutputError::new(lay.clone(), u, i, fs, settle..n, rates, x_limit, threads).with_chain(setup).keeping_last();
     let s = solve(&prob, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, &mut observe);
     let r = prob.residual(&s.theta);
     let residual_rel = rel(&r, &i[settle..n]);
@@ -2193,7 +2200,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             let mut th = s.theta[..nl].to_vec();
             th.resize(lay_h.slots().n, 0.0);
             let th = join(th, &s.theta[nl..]);
-            let prob_h = OutputError::new(lay_h.clone(), u, i, fs, settle..n, rate, x_limit, threads).with_chain(setup).keeping_last();
+            let prob_h = OutputError::new(lay_h.clone(), u, i, fs, settle..n, rates, x_limit, threads).with_chain(setup).keeping_last();
             let s_h = solve(&prob_h, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, &mut observe);
             let r_h = prob_h.residual(&s_h.theta);
             let rel_h = rel(&r_h, &i[settle..n]);
@@ -2267,6 +2274,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         stop_reason: stop_reason.clone(),
         re_track,
         substeps: prob.substeps(),
+        schemes: prob.schemes(),
         settle,
         fs,
         linear,
@@ -2370,6 +2378,7 @@ impl LargeFit {
             converged: Some(self.converged),
             stop_reason: Some(self.stop_reason.clone()),
             substeps: Some([self.substeps.0, self.substeps.1]),
+            schemes: Some([self.schemes.0.name().to_string(), self.schemes.1.name().to_string()]),
             settle_s: Some(self.settle as f64 / self.fs),
             mms_source: Some(mms_source.into()),
             ..Default::default()
@@ -2424,7 +2433,7 @@ mod tests {
         for k in s.bl.clone().chain(s.kms.clone()).chain(s.le.clone()) {
             th[k] *= 1.03;
         }
-        let prob = OutputError::new(lay, &u, &i, fs, 2400..u.len(), p.stiffness_rate(), 0.05, 2).keeping_last();
+        let prob = OutputError::new(lay, &u, &i, fs, 2400..u.len(), p.rates(), 0.05, 2).keeping_last();
         let s0 = LmState::new(&prob, th);
         let s1 = lm_step(&prob, &s0);
         assert!(s1.last_decrease > 0.1, "the first step: {}", s1.last_decrease);
@@ -2454,9 +2463,9 @@ mod tests {
         let mut th = lay.theta_from(&p, None);
         th[lay.slots().bl.start] *= 1.03;
         for threads in [2, 1] {
-            let fresh = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.stiffness_rate(), 0.05, threads);
+            let fresh = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, threads);
             let (r_ref, j_ref) = (fresh.residual(&th), fresh.jacobian(&th));
-            let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.stiffness_rate(), 0.05, threads);
+            let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, threads);
             let runs = AtomicUsize::new(0);
             let r = prob.residual_ahead(
                 &th,
@@ -2470,7 +2479,7 @@ mod tests {
             assert_eq!(prob.ahead.lock().unwrap().is_some(), threads > 1, "{threads} workers: kept");
             let (r2, j) = prob.residual_jacobian(&th);
             assert_eq!((r2, j), (r_ref.clone(), j_ref.clone()), "{threads} workers");
-            let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.stiffness_rate(), 0.05, threads);
+            let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, threads);
             let r = prob.residual_ahead(&th, &|_| false, None);
             assert_eq!(r, r_ref, "{threads} workers, not wanted");
             assert!(prob.ahead.lock().unwrap().is_none(), "{threads} workers: an unwanted Jacobian was kept");

@@ -22,7 +22,7 @@
 
 use crate::large::{jacobian_passes, seed_duals, Layout, Scales, CHUNK};
 use crate::linear::Effects;
-use coilscope_core::integrate::{rk4_sample, substeps_for, Interpolator, HALF_TAPS};
+use coilscope_core::integrate::{Stepper, HALF_TAPS};
 use coilscope_core::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
 use coilscope_core::params::Parameters;
 use nalgebra::{DMatrix, DVector};
@@ -62,23 +62,21 @@ impl<D: DualNum<Primitive = f64> + Copy> OnlineModel<D> {
         }
     }
 
-    /// One sample period `dt`, the input at the interpolator's points.
-    fn step(&self, y: &ExtState<D>, dt: f64, pd: &[D]) -> ExtState<D> {
+    /// One sample period `dt` with `stepper`, the input at its points.
+    fn step(&self, stepper: &Stepper, y: &ExtState<D>, dt: f64, pd: &[D]) -> ExtState<D> {
         match self {
             OnlineModel::Plain(m) => {
                 let s: State<D> = std::array::from_fn(|k| y[k]);
-                let n = rk4_sample(m, &s, dt, pd);
+                let n = stepper.sample(m, &s, dt, pd);
                 let mut out = *y;
                 out[..NSTATE].copy_from_slice(&n);
                 out
             }
-            OnlineModel::Ext(m) => rk4_sample(m, y, dt, pd),
+            OnlineModel::Ext(m) => stepper.sample(m, y, dt, pd),
         }
     }
 }
 
-/// Largest `|lambda| h` of the fast electrical mode in the Jacobian runs (as in `large`).
-const JACOBIAN_STIFF_LIMIT: f64 = 1.5;
 /// Seconds of tracked Re the drift within a window is taken from.
 const RE_TREND_S: f64 = 1.0;
 /// Largest relative change of Re per tracking step that is taken for heating.
@@ -217,8 +215,9 @@ pub struct Online {
     pub cov: DMatrix<f64>,
     pub fs: f64,
     opts: OnlineOptions,
-    interp: Interpolator,
-    interp_jac: Interpolator,
+    /// The window runs' steps and the Jacobian's (as `large`'s).
+    stepper: Stepper,
+    stepper_jac: Stepper,
     /// History: absolute sample index of `u[0]`.
     base: usize,
     u: Vec<f64>,
@@ -272,9 +271,7 @@ impl Online {
         let layout = Layout::new(opts.order, 1, 1.0, opts.x_ref, scales, start.l2r2.is_some(), start.mms).with_effects(effects);
         let theta = layout.theta_from(start, None);
         let cov = DMatrix::from_diagonal(&DVector::from_vec(prior_variances(&layout.slots(), &opts)));
-        let rate = start.stiffness_rate();
-        let n = substeps_for(rate, fs);
-        let n_jac = ((rate / fs / JACOBIAN_STIFF_LIMIT).ceil() as usize).clamp(1, n);
+        let rates = start.rates();
         // Sensitivities started at zero settle with the damped mechanical mode.
         let damping = start.rms + start.bl.eval(0.0).powi(2) / start.re;
         let settle = ((5.0 * 2.0 * start.mms / damping).clamp(0.005, 0.1) * fs) as usize;
@@ -283,8 +280,8 @@ impl Online {
             theta,
             cov,
             fs,
-            interp: Interpolator::new(n),
-            interp_jac: Interpolator::new(n_jac),
+            stepper: Stepper::for_rates(rates, fs),
+            stepper_jac: Stepper::for_jacobian(rates, fs),
             base: 0,
             u: Vec::new(),
             i: Vec::new(),
@@ -357,7 +354,7 @@ impl Online {
         let dt = 1.0 / self.fs;
         // The live model runs with the Jacobian's sub-step count (`|lambda| h <= 1.5`): it
         // shows the state and tracks Re; the updates judge the fit with the accurate count.
-        let n = self.interp_jac.n;
+        let n = self.stepper_jac.n();
         let mut pf = vec![0.0; 2 * n + 1];
         let mut pd = vec![Dual64::from(0.0); 2 * n + 1];
         let re_block = ((self.opts.re_seconds * self.fs) as usize).max(1);
@@ -402,11 +399,11 @@ impl Online {
             self.re_den += ir * ir;
             self.re_err2 += r * r;
             self.re_count += 1;
-            self.interp_jac.fill(&self.u, k, &mut pf);
+            self.stepper_jac.fill(&self.u, k, &mut pf);
             for (d, &f) in pd.iter_mut().zip(pf.iter()) {
                 *d = Dual64::from(f);
             }
-            self.live = self.model.step(&self.live, dt, &pd);
+            self.live = self.model.step(&self.stepper_jac, &self.live, dt, &pd);
             self.pos += 1;
             if self.pos.is_multiple_of(SNAP_EVERY) {
                 self.snaps.push((self.pos, self.live_ext()));
@@ -489,7 +486,7 @@ impl Online {
         // Re drifts along the tracked trend; theta's Re is the value now (the live model's position).
         let re_end = model.base().re;
         let dt = 1.0 / self.fs;
-        let mut pf = vec![0.0; 2 * self.interp.n + 1];
+        let mut pf = vec![0.0; 2 * self.stepper.n() + 1];
         let mut y = y0;
         let mut r = DVector::zeros(b - a - skip);
         for m in a..b {
@@ -500,9 +497,9 @@ impl Online {
             if m >= a + skip {
                 r[m - a - skip] = self.i[k] - y[idx::I];
             }
-            self.interp.fill(&self.u, k, &mut pf);
+            self.stepper.fill(&self.u, k, &mut pf);
             model.base().re = re_end + re_slope * (m as f64 - self.pos as f64) * dt;
-            y = model.step(&y, dt, &pf);
+            y = model.step(&self.stepper, &y, dt, &pf);
         }
         Some((r, y))
     }
@@ -513,7 +510,7 @@ impl Online {
         let mut model = OnlineModel::of(&self.layout, &thd);
         let re_end = model.base().re;
         let dt = 1.0 / self.fs;
-        let n = self.interp_jac.n;
+        let n = self.stepper_jac.n();
         let mut pf = vec![0.0; 2 * n + 1];
         let mut pd = vec![DualSVec64::<CHUNK>::from_re(0.0); 2 * n + 1];
         let mut y: ExtState<DualSVec64<CHUNK>> = std::array::from_fn(|k| DualSVec64::from_re(y0[k]));
@@ -524,12 +521,12 @@ impl Online {
                     (0..cnt).for_each(|c| block[c * rows + m - a - skip] = e[c]);
                 }
             }
-            self.interp_jac.fill(&self.u, m - self.base, &mut pf);
+            self.stepper_jac.fill(&self.u, m - self.base, &mut pf);
             for (d, &f) in pd.iter_mut().zip(pf.iter()) {
                 *d = DualSVec64::from_re(f);
             }
             model.base().re = re_end + re_slope * (m as f64 - self.pos as f64) * dt;
-            y = model.step(&y, dt, &pd);
+            y = model.step(&self.stepper_jac, &y, dt, &pd);
         }
     }
 
@@ -760,8 +757,8 @@ impl Online {
 /// includes the stage's own heating (+0.01 % more); this does neither.
 pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64)> {
     use nalgebra::{Matrix2, Vector2};
-    let n = substeps_for(p.stiffness_rate(), fs);
-    let interp = Interpolator::new(n);
+    let stepper = Stepper::for_rates(p.rates(), fs);
+    let n = stepper.n();
     let mut model: OnlineModel<DualSVec64<2>> = OnlineModel::lift_from(p);
     let (mut re, mut slope) = (p.re, 0.0);
     let dt = 1.0 / fs;
@@ -785,12 +782,12 @@ pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64
             jtr += g * r;
             e2 += r * r;
             count += 1;
-            interp.fill(u, k, &mut pf);
+            stepper.fill(u, k, &mut pf);
             for (d, &f) in pd.iter_mut().zip(pf.iter()) {
                 *d = DualSVec64::from_re(f);
             }
             model.base().re = re0 + s0 * (k as f64 * dt);
-            y = model.step(&y, dt, &pd);
+            y = model.step(&stepper, &y, dt, &pd);
         }
         let cov = jtj.try_inverse()?;
         if count < 3 {

@@ -11,7 +11,7 @@
 //! the drive.
 
 use coilscope_core::excitation::named_rng;
-use coilscope_core::integrate::{substeps_for, Interpolator, HALF_TAPS};
+use coilscope_core::integrate::{Stepper, HALF_TAPS};
 use coilscope_core::model::{idx, State, NSTATE};
 use coilscope_core::params::Parameters;
 use coilscope_core::simulate::Plant;
@@ -86,7 +86,7 @@ pub struct VirtualDevice {
     params: Parameters,
     plant: Plant,
     fs: f64,
-    interp: Interpolator,
+    stepper: Stepper,
     state: State<f64>,
     /// Drive history with look-ahead: `hist[0]` is absolute sample `base`.
     hist: Vec<f64>,
@@ -110,12 +110,11 @@ impl VirtualDevice {
         if !(noise.0 >= 0.0 && noise.1 >= 0.0) {
             return Err(format!("sensor noise ({} V, {} A) is not valid (>= 0)", noise.0, noise.1));
         }
-        let n = substeps_for(params.stiffness_rate(), fs);
         Ok(VirtualDevice {
             params: params.clone(),
             plant: Plant::new(params),
             fs,
-            interp: Interpolator::new(n),
+            stepper: Stepper::for_rates(params.rates(), fs),
             state: [0.0; NSTATE],
             hist: Vec::new(),
             base: 0,
@@ -157,7 +156,7 @@ impl Device for VirtualDevice {
         }
         self.hist.extend_from_slice(drive);
         let dt = 1.0 / self.fs;
-        let mut pf = vec![0.0; 2 * self.interp.n + 1];
+        let mut pf = vec![0.0; 2 * self.stepper.n() + 1];
         let mut out = Block { u: Vec::with_capacity(drive.len()), i: Vec::with_capacity(drive.len()) };
         // The interpolator looks HALF_TAPS samples ahead: the device lags by that much.
         while out.u.len() < drive.len() {
@@ -189,8 +188,8 @@ impl Device for VirtualDevice {
                 self.truth.dtv = s[idx::TV];
                 self.truth.dtv_max = self.truth.dtv_max.max(s[idx::TV]);
                 let u = self.hist[m];
-                self.interp.fill(&self.hist, m, &mut pf);
-                self.plant.step(&mut self.state, dt, &pf);
+                self.stepper.fill(&self.hist, m, &mut pf);
+                self.plant.step(&self.stepper, &mut self.state, dt, &pf);
                 (u, s[idx::I])
             };
             let eu: f64 = self.rng_u.sample(StandardNormal);
