@@ -55,3 +55,18 @@ fn full_model_rk4(bencher: Bencher, name: &str) {
     let opts = SimOptions { scheme: Some(coilscope_core::integrate::Scheme::Rk4), ..Default::default() };
     bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &opts).unwrap());
 }
+
+/// Issue 17: the stiff microspeaker of `testdata/drivers` (Le 30 uH), in the scheme it takes
+/// (exponential, 4 steps per sample) and in RK4 (21 sub-steps).
+#[divan::bench(args = ["exponential", "rk4"])]
+fn microspeaker(bencher: Bencher, scheme: &str) {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers/microspeaker-0g1.json");
+    let p = coilscope_core::Parameters::from_json_str(&std::fs::read_to_string(path).unwrap(), "microspeaker").unwrap();
+    let u = voltage(0.5);
+    let scheme = match scheme {
+        "rk4" => coilscope_core::integrate::Scheme::Rk4,
+        _ => coilscope_core::integrate::Scheme::Exponential,
+    };
+    let opts = SimOptions { scheme: Some(scheme), ..Default::default() };
+    bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &opts).unwrap());
+}
