@@ -441,6 +441,22 @@ impl Stepper {
         }
     }
 
+    /// The residual and Jacobian steppers of a model whose LR-3 branch is fitted
+    /// (`lr3`): that branch stays outside the exponential method's network, and in a stiff
+    /// driver it is as fast as the network (a fit's LR-3 start has `R3 / L3 = 6 R2 / L2`), so
+    /// such a model keeps classical RK4 with the sub-steps of [`substeps_for`] (the scheme
+    /// before issue 17; the woofers' choice anyway). Otherwise [`Stepper::for_rates`] and
+    /// [`Stepper::for_jacobian`].
+    pub fn for_fit(rates: Rates, fs: f64, lr3: bool) -> (Self, Self) {
+        if lr3 {
+            let n = substeps_for(rates.total(), fs);
+            let n_jac = ((rates.total() / fs / JACOBIAN_STIFF_LIMIT).ceil() as usize).clamp(1, n);
+            (Stepper::new(Scheme::Rk4, n), Stepper::new(Scheme::Rk4, n_jac))
+        } else {
+            (Stepper::for_rates(rates, fs), Stepper::for_jacobian(rates, fs))
+        }
+    }
+
     /// Steps per sample.
     pub fn n(&self) -> usize {
         self.interp.n
@@ -719,6 +735,27 @@ mod tests {
         let fd = (run(Dual64::from(a + step)).re - run(Dual64::from(a - step)).re) / (2.0 * step);
         assert!((exact - fd).abs() < 1e-6 * fd.abs(), "{exact} vs {fd}");
         assert!(exact.abs() > 0.0);
+    }
+
+    #[test]
+    fn steppers_take_the_cheaper_scheme_and_keep_rk4_for_a_fitted_lr3_branch() {
+        let fs = 48000.0;
+        // A woofer (SB17: |lambda| / fs = 0.83): RK4 with 4 sub-steps, 1 in the Jacobian.
+        let woofer = Rates::stiff(0.83 * fs);
+        let (r, j) = Stepper::for_fit(woofer, fs, false);
+        assert_eq!((r.scheme, r.n(), j.scheme, j.n()), (Scheme::Rk4, 4, Scheme::Rk4, 1));
+        assert_eq!(Stepper::for_fit(woofer, fs, true).0.n(), 4);
+        // The microspeaker (|lambda| / fs = 10.4): 4 exponential steps, 1 in the Jacobian...
+        let micro = Rates::stiff(10.4 * fs);
+        let (r, j) = Stepper::for_fit(micro, fs, false);
+        assert_eq!((r.scheme, r.n(), j.scheme, j.n()), (Scheme::Exponential, 4, Scheme::Exponential, 1));
+        // ... but with a fitted LR-3 branch (outside the network) RK4's 21 and 7 sub-steps.
+        let (r, j) = Stepper::for_fit(micro, fs, true);
+        assert_eq!((r.scheme, r.n(), j.scheme, j.n()), (Scheme::Rk4, 21, Scheme::Rk4, 7));
+        // A set whose LR-3 branch is known: its rate counts in the exponential steps.
+        let with_lr3 = Rates { stiff: 10.4 * fs, explicit: 0.2 * fs };
+        assert_eq!(exp_steps_for(with_lr3, fs), 4);
+        assert_eq!(exp_steps_for(Rates { stiff: 10.4 * fs, explicit: 3.0 * fs }, fs), 6);
     }
 
     #[test]

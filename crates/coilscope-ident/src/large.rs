@@ -920,6 +920,7 @@ impl<'a> OutputError<'a> {
     /// integration steps.
     pub fn new(layout: Layout, u: &'a [f64], i: &'a [f64], fs: f64, fit: Range<usize>, rates: Rates, x_limit: f64, threads: usize) -> Self {
         let heat = heat_shapes(i, fs, &layout.heat_taus);
+        let (stepper, stepper_jac) = Stepper::for_fit(rates, fs, layout.effects.lr3);
         OutputError {
             layout,
             u,
@@ -929,8 +930,8 @@ impl<'a> OutputError<'a> {
             x_limit,
             threads: threads.max(1),
             heat,
-            stepper: Stepper::for_rates(rates, fs),
-            stepper_jac: Stepper::for_jacobian(rates, fs),
+            stepper,
+            stepper_jac,
             last_jacobian: Default::default(),
             last_trace: Default::default(),
             keep_last: false,

@@ -271,7 +271,7 @@ impl Online {
         let layout = Layout::new(opts.order, 1, 1.0, opts.x_ref, scales, start.l2r2.is_some(), start.mms).with_effects(effects);
         let theta = layout.theta_from(start, None);
         let cov = DMatrix::from_diagonal(&DVector::from_vec(prior_variances(&layout.slots(), &opts)));
-        let rates = start.rates();
+        let (stepper, stepper_jac) = Stepper::for_fit(start.rates(), fs, layout.effects.lr3);
         // Sensitivities started at zero settle with the damped mechanical mode.
         let damping = start.rms + start.bl.eval(0.0).powi(2) / start.re;
         let settle = ((5.0 * 2.0 * start.mms / damping).clamp(0.005, 0.1) * fs) as usize;
@@ -280,8 +280,8 @@ impl Online {
             theta,
             cov,
             fs,
-            stepper: Stepper::for_rates(rates, fs),
-            stepper_jac: Stepper::for_jacobian(rates, fs),
+            stepper,
+            stepper_jac,
             base: 0,
             u: Vec::new(),
             i: Vec::new(),
