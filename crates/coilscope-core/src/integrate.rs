@@ -449,12 +449,20 @@ impl Stepper {
     /// [`Stepper::for_jacobian`].
     pub fn for_fit(rates: Rates, fs: f64, lr3: bool) -> (Self, Self) {
         if lr3 {
-            let n = substeps_for(rates.total(), fs);
-            let n_jac = ((rates.total() / fs / JACOBIAN_STIFF_LIMIT).ceil() as usize).clamp(1, n);
-            (Stepper::new(Scheme::Rk4, n), Stepper::new(Scheme::Rk4, n_jac))
+            Stepper::rk4_for(rates, fs)
         } else {
             (Stepper::for_rates(rates, fs), Stepper::for_jacobian(rates, fs))
         }
+    }
+
+    /// Classical RK4 for the model runs and for the Jacobian's, with the sub-steps the
+    /// fastest mode needs (`|lambda| h <= STIFF_LIMIT`, at least `MIN_SUBSTEPS`; and
+    /// `|lambda| h <= JACOBIAN_STIFF_LIMIT`): the scheme before issue 17, which the
+    /// measurement path (the virtual device, the online estimator) keeps for now.
+    pub fn rk4_for(rates: Rates, fs: f64) -> (Self, Self) {
+        let n = substeps_for(rates.total(), fs);
+        let n_jac = ((rates.total() / fs / JACOBIAN_STIFF_LIMIT).ceil() as usize).clamp(1, n);
+        (Stepper::new(Scheme::Rk4, n), Stepper::new(Scheme::Rk4, n_jac))
     }
 
     /// Steps per sample.

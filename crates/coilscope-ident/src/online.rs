@@ -271,7 +271,11 @@ impl Online {
         let layout = Layout::new(opts.order, 1, 1.0, opts.x_ref, scales, start.l2r2.is_some(), start.mms).with_effects(effects);
         let theta = layout.theta_from(start, None);
         let cov = DMatrix::from_diagonal(&DVector::from_vec(prior_variances(&layout.slots(), &opts)));
-        let (stepper, stepper_jac) = Stepper::for_fit(start.rates(), fs, layout.effects.lr3);
+        // RK4 as before issue 17 (`Stepper::rk4_for`): with the exponential scheme the
+        // fast-heating microspeaker's bands held the truth within 2 sd on 87 % of the points
+        // of one seed-sweep slice (3 runs; over all 12 seeds 90 % or more), against 90 %
+        // required: the measurement path keeps RK4 until that is understood.
+        let (stepper, stepper_jac) = Stepper::rk4_for(start.rates(), fs);
         // Sensitivities started at zero settle with the damped mechanical mode.
         let damping = start.rms + start.bl.eval(0.0).powi(2) / start.re;
         let settle = ((5.0 * 2.0 * start.mms / damping).clamp(0.005, 0.1) * fs) as usize;
@@ -757,7 +761,8 @@ impl Online {
 /// includes the stage's own heating (+0.01 % more); this does neither.
 pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64)> {
     use nalgebra::{Matrix2, Vector2};
-    let stepper = Stepper::for_rates(p.rates(), fs);
+    // RK4 as the online estimator (see `Online::new`).
+    let stepper = Stepper::rk4_for(p.rates(), fs).0;
     let n = stepper.n();
     let mut model: OnlineModel<DualSVec64<2>> = OnlineModel::lift_from(p);
     let (mut re, mut slope) = (p.re, 0.0);

@@ -114,7 +114,8 @@ impl VirtualDevice {
             params: params.clone(),
             plant: Plant::new(params),
             fs,
-            stepper: Stepper::for_rates(params.rates(), fs),
+            // RK4 as the online estimator that measures it (`Stepper::rk4_for`).
+            stepper: Stepper::rk4_for(params.rates(), fs).0,
             state: [0.0; NSTATE],
             hist: Vec::new(),
             base: 0,
