@@ -546,16 +546,9 @@ impl Parameters {
 
     /// Largest magnitude of the system's fast eigenvalues, an upper bound (1/s): the
     /// Le-branch rate plus the L2-branch rate, at the valid range's worst point.
+    /// (The sum of [`Parameters::rates`]: one computation of the rates.)
     pub fn stiffness_rate(&self) -> f64 {
-        let (lo, hi) = self.x_range.map(|r| (r[0], r[1])).unwrap_or((0.0, 0.0));
-        let mut rate = 1.0 / self.min_electrical_time_constant();
-        if let Some((l2, r2)) = &self.l2r2 {
-            rate += r2.min_max_on(lo, hi).1 / l2.min_max_on(lo, hi).0;
-        }
-        if let Some((l3, r3)) = self.l3r3 {
-            rate += r3 / l3;
-        }
-        rate
+        self.rates().total()
     }
 }
 
