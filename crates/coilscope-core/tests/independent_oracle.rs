@@ -129,7 +129,8 @@ fn drive_for(p: &Parameters, n: usize) -> Drive {
 }
 
 fn check(name: &str, p: &Parameters, seconds: f64) {
-    check_with(name, p, seconds, &SimOptions::default(), (1e-6, 1e-7))
+    // README: current 7.8e-7 to 3.0e-6 (2 RK4 sub-steps); the test fails at 4x.
+    check_with(name, p, seconds, &SimOptions::default(), (1.2e-5, 1e-7))
 }
 
 /// [`check`] with the simulator's options and the largest errors of current and displacement.

@@ -48,9 +48,10 @@ fn simulator_matches_tiny_step_reference_at_full_excursion() {
         let ei = rel_rms(&fast.i, &tiny.i);
         let ex = rel_rms(&fast.x, &tiny.x);
         eprintln!("{name}: {} sub-steps, current {ei:.2e}, displacement {ex:.2e}", fast.substeps);
-        // README: current 0.8-1.9e-6, displacement < 3e-8; the test fails at about 5x.
-        assert!(ei < 1e-5, "{name}: current differs by {ei:.3e} (relative RMS)");
-        assert!(ex < 1e-7, "{name}: displacement differs by {ex:.3e} (relative RMS)");
+        // README: current 0.7-2.6e-5, displacement < 1.5e-7 (2 sub-steps); the test fails
+        // at about 4x, at issue 17's bar for the current (1e-4).
+        assert!(ei < 1e-4, "{name}: current differs by {ei:.3e} (relative RMS)");
+        assert!(ex < 6e-7, "{name}: displacement differs by {ex:.3e} (relative RMS)");
     }
 }
 
@@ -77,10 +78,9 @@ impl Electrical<f64, 10> for WithEnergy<'_> {
 /// ([`Stepper::for_rates`]) with the energies as states of their own, so that a wrong
 /// current between the samples shows; stopped mid-signal, while energy is still stored in
 /// the moving system.
-fn energy_account(p: &Parameters, seconds: f64) -> (Stepper, [f64; 6]) {
+fn energy_account(p: &Parameters, seconds: f64, stepper: Stepper) -> (Stepper, [f64; 6]) {
     let u = full_excursion_voltage(p, seconds, 0.9);
     let m = Model::new(p);
-    let stepper = Stepper::for_rates(p.rates(), FS);
     let mut pts = vec![0.0; 2 * stepper.n() + 1];
     let sys = WithEnergy(&m);
     let mut y = [0.0; 10];
@@ -102,7 +102,7 @@ fn energy_account(p: &Parameters, seconds: f64) -> (Stepper, [f64; 6]) {
 fn energy_balances_in_the_exponential_scheme_on_a_microspeaker() {
     let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers");
     let p = Parameters::from_json_str(&std::fs::read_to_string(format!("{dir}/microspeaker-0g1.json")).unwrap(), "microspeaker").unwrap();
-    let (stepper, [e_in, e_re, e_r2, e_rms, stored, imbalance]) = energy_account(&p, 0.3);
+    let (stepper, [e_in, e_re, e_r2, e_rms, stored, imbalance]) = energy_account(&p, 0.3, Stepper::for_rates(p.rates(), FS));
     assert_eq!(stepper.scheme, Scheme::Exponential);
     eprintln!("microspeaker, {} exponential steps: E_in {e_in:.4e} J, Re {e_re:.4e}, R2 {e_r2:.4e}, Rms {e_rms:.4e}, stored {stored:.3e}, imbalance {imbalance:.2e}", stepper.n());
     // Measured 9e-7 of the input energy; the test fails at 5x.
@@ -112,11 +112,18 @@ fn energy_balances_in_the_exponential_scheme_on_a_microspeaker() {
 #[test]
 fn energy_in_equals_losses_plus_stored_energy() {
     for name in embedded_driver_names() {
-        let (stepper, [e_in, e_re, e_r2, e_rms, stored, imbalance]) = energy_account(&embedded_driver(name).unwrap(), 0.5);
+        let p = embedded_driver(name).unwrap();
+        let (stepper, [e_in, e_re, e_r2, e_rms, stored, imbalance]) = energy_account(&p, 0.5, Stepper::for_rates(p.rates(), FS));
         assert_eq!(stepper.scheme, Scheme::Rk4);
-        eprintln!("{name}: E_in {e_in:.4} J, Re {e_re:.4}, R2 {e_r2:.4}, Rms {e_rms:.4}, stored {stored:.3e}, imbalance {imbalance:.2e}");
-        // README: < 5e-6 of the input energy; the test fails at 4x.
-        assert!(imbalance.abs() < 2e-5 * e_in, "{name}: imbalance {imbalance:.3e} J of {e_in:.3e} J");
+        eprintln!("{name}: {} sub-steps: E_in {e_in:.4} J, Re {e_re:.4}, R2 {e_r2:.4}, Rms {e_rms:.4}, stored {stored:.3e}, imbalance {:.2e} of the input", stepper.n(), imbalance / e_in);
+        // README: < 3e-5 of the input energy at the sub-steps a simulation takes (2); the
+        // test fails at about 3x.
+        assert!(imbalance.abs() < 1e-4 * e_in, "{name}: imbalance {imbalance:.3e} J of {e_in:.3e} J");
+        // The balance closes with the steps (an error in the model's equations would not):
+        // README < 2e-6 at 8 sub-steps.
+        let (_, [e_in, .., imbalance]) = energy_account(&p, 0.5, Stepper::new(Scheme::Rk4, 8));
+        eprintln!("{name}: 8 sub-steps: imbalance {:.2e} of the input", imbalance / e_in);
+        assert!(imbalance.abs() < 8e-6 * e_in, "{name}: imbalance {imbalance:.3e} J of {e_in:.3e} J at 8 sub-steps");
     }
 }
 
@@ -147,7 +154,11 @@ fn small_signal_current_follows_the_analytic_impedance() {
             let z_sim = simulated_impedance(&p, f);
             let z = impedance(&p, f);
             let err = (z_sim - z).norm() / z.norm();
-            assert!(err < 2e-4, "{name} at {f} Hz: |Z| {:.4} vs {:.4}, error {err:.2e}", z_sim.norm(), z.norm());
+            eprintln!("{name} {f} Hz: error {err:.2e}");
+            // README: < 6.1e-6 up to 1 kHz, < 1.6e-4 at 8 kHz (RK4's phase error at 2 sub-steps,
+            // 1/16 per doubling); the test fails at about 4x.
+            let tol = if f > 2000.0 { 6e-4 } else { 2.5e-5 };
+            assert!(err < tol, "{name} at {f} Hz: |Z| {:.4} vs {:.4}, error {err:.2e}", z_sim.norm(), z.norm());
         }
     }
 }
@@ -255,23 +266,28 @@ fn energy_balances_with_every_effect() {
         let p = with_effects(name);
         let u = full_excursion_voltage(&p, 0.5, 0.9);
         let m = ExtModel::new(&p);
-        let n = coilscope_core::Simulator::new(&p, FS, &SimOptions::default()).unwrap().substeps();
-        let it = Interpolator::new(n);
-        let mut pts = vec![0.0; 2 * n + 1];
-        let sys = ExtWithEnergy(&m);
-        let mut y = [0.0; NEXT + 6];
-        let stop = u.len() * 3 / 5;
-        for k in 0..stop {
-            it.fill(&u, k, &mut pts);
-            y = rk4_sample(&sys, &y, 1.0 / FS, &pts);
+        let n_sim = coilscope_core::Simulator::new(&p, FS, &SimOptions::default()).unwrap().substeps();
+        // At the sub-steps a simulation takes (README: < 3e-5 of the input energy; the test
+        // fails at about 3x), and at 8, where the balance must close further (an error in the
+        // model's equations would not shrink with the steps).
+        for (n, tol) in [(n_sim, 1e-4), (8, 8e-6)] {
+            let it = Interpolator::new(n);
+            let mut pts = vec![0.0; 2 * n + 1];
+            let sys = ExtWithEnergy(&m);
+            let mut y = [0.0; NEXT + 6];
+            let stop = u.len() * 3 / 5;
+            for k in 0..stop {
+                it.fill(&u, k, &mut pts);
+                y = rk4_sample(&sys, &y, 1.0 / FS, &pts);
+            }
+            let s: [f64; NEXT] = std::array::from_fn(|k| y[k]);
+            let stored = m.stored_energy(&s);
+            let e: [f64; 6] = std::array::from_fn(|k| y[NEXT + k]);
+            let imbalance = e[0] - e[1..].iter().sum::<f64>() - stored;
+            eprintln!("{name}, {n} sub-steps: E_in {:.4} J, R3 {:.4}, creep {:.4}, stored {stored:.3e}, imbalance {:.2e} of the input", e[0], e[4], e[5], imbalance / e[0]);
+            assert!(e[4] > 0.0 && e[5] > 0.0 && stored > 0.0);
+            assert!(imbalance.abs() < tol * e[0], "{name}, {n} sub-steps: imbalance {imbalance:.3e} J of {:.3e} J", e[0]);
         }
-        let s: [f64; NEXT] = std::array::from_fn(|k| y[k]);
-        let stored = m.stored_energy(&s);
-        let e: [f64; 6] = std::array::from_fn(|k| y[NEXT + k]);
-        let imbalance = e[0] - e[1..].iter().sum::<f64>() - stored;
-        eprintln!("{name}: E_in {:.4} J, R3 {:.4}, creep {:.4}, stored {stored:.3e}, imbalance {imbalance:.2e}", e[0], e[4], e[5]);
-        assert!(e[4] > 0.0 && e[5] > 0.0 && stored > 0.0);
-        assert!(imbalance.abs() < 2e-5 * e[0], "{name}: imbalance {imbalance:.3e} J of {:.3e} J", e[0]);
     }
 }
 
@@ -289,7 +305,8 @@ fn small_signal_current_with_every_effect_follows_the_analytic_impedance() {
             // The effects change |Z| by far more than the tolerance near the resonance.
             let z0 = impedance(&embedded_driver(name).unwrap(), f);
             eprintln!("{name} {f} Hz: error {err:.2e} (the effects move Z by {:.2e})", (z - z0).norm() / z.norm());
-            assert!(err < 2e-4, "{name} at {f} Hz: |Z| {:.4} vs {:.4}, error {err:.2e}", z_sim.norm(), z.norm());
+            let tol = if f > 2000.0 { 6e-4 } else { 2.5e-5 };
+            assert!(err < tol, "{name} at {f} Hz: |Z| {:.4} vs {:.4}, error {err:.2e}", z_sim.norm(), z.norm());
         }
     }
 }
@@ -305,9 +322,10 @@ fn simulator_with_every_effect_matches_tiny_step_reference() {
         let (ei, ex) = (rel_rms(&fast.i, &tiny.i), rel_rms(&fast.x, &tiny.x));
         eprintln!("{name}: {} sub-steps, current {ei:.2e}, displacement {ex:.2e}", fast.substeps);
         // The asymmetric flux factor rectifies: the displacement's error has a DC part
-        // (measured 2.1-3.9e-7 of the RMS excursion, 0.5 nm on SB17; 1/16 per doubling of the
-        // sub-steps, RK4's order); the current's stays that of the plain model.
-        assert!(ei < 1e-5 && ex < 1.5e-6, "{name}: current {ei:.3e}, displacement {ex:.3e}");
+        // (measured 0.3-1.6e-6 of the RMS excursion at 2-3 sub-steps; 1/16 per doubling of
+        // the sub-steps, RK4's order); the current's stays that of the plain model (README:
+        // < 2.6e-5). Both fail at about 4x.
+        assert!(ei < 1e-4 && ex < 6e-6, "{name}: current {ei:.3e}, displacement {ex:.3e}");
     }
 }
 

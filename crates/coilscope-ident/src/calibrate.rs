@@ -112,6 +112,38 @@ impl Problem for ResistorProblem {
     }
 }
 
+/// The fit with equal corners (the model is then independent of their common value: both
+/// 0), from the free fit `th`: its sum of squared residuals, and the sd of a corner
+/// difference (Hz) there, `sigma / |J_d|` with `J_d` the residuals' derivative by the
+/// difference (finite, 1e-3 Hz), less what gain and delay absorb, and `sigma` the free fit's
+/// residual scale.
+fn tied_corners(prob: &ResistorProblem, th: &[f64]) -> (f64, f64) {
+    struct Tied<'a>(&'a ResistorProblem);
+    impl Problem for Tied<'_> {
+        fn residual_jacobian(&self, th: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
+            let (r, j) = self.0.residual_jacobian(&[th[0], th[1], 0.0, 0.0]);
+            (r, j.columns(0, 2).into_owned())
+        }
+    }
+    let tied = Tied(prob);
+    let mut s = LmState::new(&tied, vec![th[0], th[1]]);
+    while !s.converged && s.iteration < 100 {
+        s = lm_step(&tied, &s);
+    }
+    let (r0, j) = tied.residual_jacobian(&s.theta);
+    let step: f64 = 1e-3;
+    let (r1, _) = prob.residual_jacobian(&[s.theta[0], s.theta[1], step.sqrt(), 0.0]);
+    let jd = (r1 - &r0) / step;
+    // Project out the gain and delay columns.
+    let jd_perp = match (j.transpose() * &j).cholesky() {
+        Some(c) => &jd - &j * c.solve(&(j.transpose() * &jd)),
+        None => jd,
+    };
+    let (rf, _) = prob.residual_jacobian(th);
+    let sigma = (rf.norm_squared() / (rf.len().saturating_sub(4).max(1)) as f64).sqrt();
+    (r0.norm_squared(), sigma / jd_perp.norm().max(1e-300))
+}
+
 /// Calibrate the chain from a record of voltage `u` and current `i` (channel units: V and A,
 /// or anything proportional for a loopback) at `fs` through a resistor of `resistor` ohm
 /// (1 for a loopback). `origin` names the record in errors.
@@ -196,10 +228,14 @@ pub fn calibrate(u: &[f64], i: &[f64], fs: f64, resistor: f64, origin: &str) -> 
     let (hp_u, hp_i) = (th[2] * th[2], th[3] * th[3]);
     let gain = resistor * (-th[0]).exp();
     // A resistor shows only H_u / H_i: a zero at hp_i over a pole at hp_u. Equal corners
-    // cancel, and then any common value fits: the two are resolved only when their
-    // difference stands out of its sd.
-    let diff_sd = 2.0 * crate::lm::sd_from_variance(th[2] * th[2] * cov[(2, 2)] + th[3] * th[3] * cov[(3, 3)] - 2.0 * th[2] * th[3] * cov[(2, 3)]);
-    let resolved = (hp_u - hp_i).abs() > 3.0 * diff_sd;
+    // cancel, and then any common value fits: the two are resolved only when the fit with
+    // them equal (both 0: no coupling) misses the data by more than a 3 sd difference would
+    // explain. A likelihood-ratio test, not the difference's sd from the covariance: along
+    // the common corner (not identifiable) that covariance is singular, and its round-off
+    // once reported a difference of 2e-6 Hz as resolved (sd 0; issue 17's damping change).
+    let (tied, diff_sd) = tied_corners(&prob, &th);
+    let sigma2 = r.norm_squared() / (2 * m).saturating_sub(4).max(1) as f64;
+    let resolved = tied - r.norm_squared() > 9.0 * sigma2;
     let mut chain = Chain { source: Some("calibrated".into()), delay_i: th[1] / fs, gain_i: Some(gain), ..Default::default() };
     chain.sd.insert("delay_i".into(), sd(1) / fs);
     chain.sd.insert("gain_i".into(), gain * sd(0));

@@ -1862,6 +1862,20 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             (start, started, linear) = (alt, other, Some(lin));
         }
     }
+    // A start outside physics (a resistance or inductance at zero: the impedance fit of a
+    // record cut mid-signal, 1 s of SB17, ended on Re = 0) cannot run; say what it was.
+    let l2r2_ok = start.l2r2.as_ref().is_none_or(|(l2, r2)| l2.c[0] > 0.0 && r2.c[0] > 0.0);
+    if !(start.re > 0.0 && start.le.c[0] > 0.0 && start.bl.c[0] != 0.0 && start.kms.c[0] > 0.0 && l2r2_ok) {
+        return Err(Input(format!(
+            "{origin}: the small-signal start ({}) is not physical (Re {:.3e} ohm, Le {:.3e} H, Bl {:.3e} T m, Kms {:.3e} N/m{}) over this {seconds:.2} s record: the record is too short or too irregular for it; record longer (2 s or more is typical)",
+            if opts.init.is_some() { "the one given" } else { "the impedance fit of the record" },
+            start.re,
+            start.le.c[0],
+            start.bl.c[0],
+            start.kms.c[0],
+            start.l2r2.as_ref().map_or(String::new(), |(l2, r2)| format!(", L2 {:.3e} H, R2 {:.3e} ohm", l2.c[0], r2.c[0]))
+        )));
+    }
     let rates = start.rates();
     let settle = settle_of(&start);
     // A record is refused for what it lacks, not for its length (a 0.5 s record at 96 kHz
