@@ -232,7 +232,8 @@ pub fn calibrate(u: &[f64], i: &[f64], fs: f64, resistor: f64, origin: &str) -> 
     // them equal (both 0: no coupling) misses the data by more than a 3 sd difference would
     // explain. A likelihood-ratio test, not the difference's sd from the covariance: along
     // the common corner (not identifiable) that covariance is singular, and its round-off
-    // once reported a difference of 2e-6 Hz as resolved (sd 0; issue 17's damping change).
+    // once reported a difference of 2e-6 Hz as resolved (sd 0, with a faster-falling LM damping
+    // tried in session 26).
     let (tied, diff_sd) = tied_corners(&prob, &th);
     let sigma2 = r.norm_squared() / (2 * m).saturating_sub(4).max(1) as f64;
     let resolved = tied - r.norm_squared() > 9.0 * sigma2;

@@ -1862,8 +1862,10 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             (start, started, linear) = (alt, other, Some(lin));
         }
     }
-    // A start outside physics (a resistance or inductance at zero: the impedance fit of a
-    // record cut mid-signal, 1 s of SB17, ended on Re = 0) cannot run; say what it was.
+    // A start outside physics (a resistance or inductance at zero: with a faster-falling LM
+    // damping tried in session 26, the impedance fit of 1 s cut mid-signal from SB17 ended on
+    // Re = 0, and the start model's NaN read "diverged at sample 1") cannot run; say what it
+    // was.
     let l2r2_ok = start.l2r2.as_ref().is_none_or(|(l2, r2)| l2.c[0] > 0.0 && r2.c[0] > 0.0);
     if !(start.re > 0.0 && start.le.c[0] > 0.0 && start.bl.c[0] != 0.0 && start.kms.c[0] > 0.0 && l2r2_ok) {
         return Err(Input(format!(

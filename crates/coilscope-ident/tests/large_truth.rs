@@ -254,6 +254,11 @@ fn bad_options_are_named() {
     assert!(e.contains("order 12") && e.contains("2 ..= 8"), "{e}");
     let e = identify(&rec.u[..48000], &rec.i[..48000], rec.fs, "a.wav", &IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() }, |_| {}).unwrap_err().to_string();
     assert!(e.contains("a.wav") && e.contains("too short"), "{e}");
+    // A start outside physics is named, not run into NaN ("diverged at sample 1").
+    let mut bad = p.clone();
+    bad.re = 0.0;
+    let e = identify(&rec.u, &rec.i, rec.fs, "a.wav", &IdentifyOptions { mms: p.mms, effects: LR2, init: Some(bad), ..Default::default() }, |_| {}).unwrap_err().to_string();
+    assert!(e.contains("a.wav") && e.contains("not physical") && e.contains("Re 0.000e0 ohm") && e.contains("the one given"), "{e}");
 }
 
 #[test]
