@@ -117,7 +117,7 @@ impl Problem for ResistorProblem {
 /// difference (Hz) there, `sigma / |J_d|` with `J_d` the residuals' derivative by the
 /// difference (finite, 1e-3 Hz), less what gain and delay absorb, and `sigma` the free fit's
 /// residual scale.
-fn tied_corners(prob: &ResistorProblem, th: &[f64]) -> (f64, f64) {
+fn tied_corners(prob: &ResistorProblem, th: &[f64], sigma: f64) -> (f64, f64) {
     struct Tied<'a>(&'a ResistorProblem);
     impl Problem for Tied<'_> {
         fn residual_jacobian(&self, th: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
@@ -139,8 +139,6 @@ fn tied_corners(prob: &ResistorProblem, th: &[f64]) -> (f64, f64) {
         Some(c) => &jd - &j * c.solve(&(j.transpose() * &jd)),
         None => jd,
     };
-    let (rf, _) = prob.residual_jacobian(th);
-    let sigma = (rf.norm_squared() / (rf.len().saturating_sub(4).max(1)) as f64).sqrt();
     (r0.norm_squared(), sigma / jd_perp.norm().max(1e-300))
 }
 
@@ -234,8 +232,8 @@ pub fn calibrate(u: &[f64], i: &[f64], fs: f64, resistor: f64, origin: &str) -> 
     // the common corner (not identifiable) that covariance is singular, and its round-off
     // once reported a difference of 2e-6 Hz as resolved (sd 0, with a faster-falling LM damping
     // tried in session 26).
-    let (tied, diff_sd) = tied_corners(&prob, &th);
     let sigma2 = r.norm_squared() / (2 * m).saturating_sub(4).max(1) as f64;
+    let (tied, diff_sd) = tied_corners(&prob, &th, sigma2.sqrt());
     let resolved = tied - r.norm_squared() > 9.0 * sigma2;
     let mut chain = Chain { source: Some("calibrated".into()), delay_i: th[1] / fs, gain_i: Some(gain), ..Default::default() };
     chain.sd.insert("delay_i".into(), sd(1) / fs);

@@ -1866,16 +1866,17 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     // damping tried in session 26, the impedance fit of 1 s cut mid-signal from SB17 ended on
     // Re = 0, and the start model's NaN read "diverged at sample 1") cannot run; say what it
     // was.
+    // The start's values, for the messages below.
+    let start_values = |p: &Parameters| {
+        let l2r2 = p.l2r2.as_ref().map_or(String::new(), |(l2, r2)| format!(", L2 {:.3e} H, R2 {:.3e} ohm", l2.c[0], r2.c[0]));
+        format!("Re {:.3e} ohm, Le {:.3e} H{l2r2}, Bl {:.3e} T m, Kms {:.3e} N/m, Rms {:.3e} kg/s", p.re, p.le.c[0], p.bl.c[0], p.kms.c[0], p.rms)
+    };
+    let start_origin = if opts.init.is_some() { "the one given" } else { "the impedance fit of the record" };
     let l2r2_ok = start.l2r2.as_ref().is_none_or(|(l2, r2)| l2.c[0] > 0.0 && r2.c[0] > 0.0);
     if !(start.re > 0.0 && start.le.c[0] > 0.0 && start.bl.c[0] != 0.0 && start.kms.c[0] > 0.0 && l2r2_ok) {
         return Err(Input(format!(
-            "{origin}: the small-signal start ({}) is not physical (Re {:.3e} ohm, Le {:.3e} H, Bl {:.3e} T m, Kms {:.3e} N/m{}) over this {seconds:.2} s record: the record is too short or too irregular for it; record longer (2 s or more is typical)",
-            if opts.init.is_some() { "the one given" } else { "the impedance fit of the record" },
-            start.re,
-            start.le.c[0],
-            start.bl.c[0],
-            start.kms.c[0],
-            start.l2r2.as_ref().map_or(String::new(), |(l2, r2)| format!(", L2 {:.3e} H, R2 {:.3e} ohm", l2.c[0], r2.c[0]))
+            "{origin}: the small-signal start ({start_origin}) is not physical ({}) over this {seconds:.2} s record: the record is too short or too irregular for it; record longer (2 s or more is typical)",
+            start_values(&start)
         )));
     }
     let rates = start.rates();
@@ -1896,17 +1897,8 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     let scales = Scales::of(&start);
     let has_l2r2 = start.l2r2.is_some();
     let (x0, start_miss) = started.map_err(|m| {
-        let l2r2 = start.l2r2.as_ref().map_or(String::new(), |(l2, r2)| format!(", L2 {:.3e} H, R2 {:.3e} ohm", l2.c[0], r2.c[0]));
-        Input(format!(
-            "{origin}: the start model diverged at sample {m} (small-signal start: Re {:.3e} ohm, Le {:.3e} H{l2r2}, Bl {:.3e} T m, Kms {:.3e} N/m, Rms {:.3e} kg/s, {} {} steps per sample)",
-            start.re,
-            start.le.c[0],
-            start.bl.c[0],
-            start.kms.c[0],
-            start.rms,
-            Stepper::for_rates(rates, fs).n(),
-            Stepper::for_rates(rates, fs).scheme.name()
-        ))
+        let stepper = Stepper::for_rates(rates, fs);
+        Input(format!("{origin}: the start model diverged at sample {m} (small-signal start: {}, {} {} steps per sample)", start_values(&start), stepper.n(), stepper.scheme.name()))
     })?;
     // A start that misses most of the current is no start: the large-signal fit cannot
     // recover from it, and what it ends on says nothing about the record (the first second of
@@ -1915,7 +1907,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     if !(start_miss <= START_MISS) {
         return Err(Input(format!(
             "{origin}: the small-signal start ({}) misses {:.0} % of the current over this {seconds:.2} s record: the record is too short or too irregular for it; record longer (2 s or more is typical)",
-            if opts.init.is_some() { "the one given" } else { "the impedance fit of the record" },
+            start_origin,
             100.0 * start_miss
         )));
     }
