@@ -40,11 +40,13 @@ pub fn taus() -> &'static [f64] {
 /// `b(w)`: the bank's dynamic stiffness per `lambda Kms(0)` at angular frequency `w` (rad/s).
 pub fn bank(w: f64) -> Complex64 {
     let per = 1.0 / PER_DECADE as f64;
+    // j u / (1 + j u) = (u^2 + j u) / (1 + u^2), u = w tau: one real division per element.
     taus()
         .iter()
         .map(|&tau| {
-            let s = Complex64::new(0.0, w * tau);
-            per * s / (1.0 + s)
+            let u = w * tau;
+            let d = per / (1.0 + u * u);
+            Complex64::new(u * u * d, u * d)
         })
         .sum()
 }

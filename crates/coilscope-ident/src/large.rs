@@ -1643,21 +1643,38 @@ fn chord_step(prob: &OutputError, j: &DMatrix<f64>, theta: &[f64], lambda: f64) 
 /// 1.6e-6: 0.7 sd). The search stages keep their full iterations: with chord steps there,
 /// the order search's truncation term (the difference of two search fits) moved and 18WU's
 /// `-real-all` bands went from 2.89 to 3.03 sd.
-fn settle_early(prob: &OutputError, s: &LmState, tol: f64, gain_tol: f64) -> Option<LmState> {
+fn settle_early(prob: &OutputError, s: &LmState, tol: f64, gain_tol: f64) -> Settle {
     if !may_settle(s, gain_tol) {
-        return None;
+        return Settle::No;
     }
-    let j = prob.last_jacobian.lock().expect("jacobian cache").clone()?;
-    let (theta, predicted) = chord_step(prob, &j, &s.theta, s.lambda)?;
-    if !(predicted / s.cost.max(1e-300) < tol) {
-        return None;
+    let Some(j) = prob.last_jacobian.lock().expect("jacobian cache").clone() else { return Settle::No };
+    let Some((theta, predicted)) = chord_step(prob, &j, &s.theta, s.lambda) else { return Settle::No };
+    let predicted_rel = predicted / s.cost.max(1e-300);
+    if !(predicted_rel < tol) {
+        return Settle::Near(predicted_rel);
     }
     let cost = 0.5 * prob.residual(&theta).norm_squared();
     if !(cost.is_finite() && cost < s.cost) {
-        return None;
+        return Settle::No;
     }
     let next = LmState { theta, cost, iteration: s.iteration + 1, last_decrease: (s.cost - cost) / s.cost, gain_ratio: (s.cost - cost) / predicted, step_lambda: s.lambda, converged: true, ..s.clone() };
-    (next.last_decrease < tol).then_some(next)
+    if next.last_decrease < tol {
+        Settle::Done(next)
+    } else {
+        Settle::No
+    }
+}
+
+/// What [`settle_early`] found.
+enum Settle {
+    /// The chord step was taken and the fit ends with it.
+    Done(LmState),
+    /// The chord step predicts this relative decrease, above the tolerance: the fit goes on
+    /// (the state is that close to its end).
+    Near(f64),
+    /// No chord step (the last step was not a trusted Gauss-Newton one), or one that did not
+    /// end the fit.
+    No,
 }
 
 /// Whether [`settle_early`] tries a chord step after `s`.
@@ -1684,7 +1701,11 @@ pub const ORDER0_FINISH_BELOW_GAIN: f64 = 0.25;
 /// Run LM on `prob` from `theta` until an accepted step lowers the cost by less than `tol`
 /// (relative; Gauss-Newton's next step would gain far less) or `max_it` iterations. Returns the last state.
 /// A search stage also stops once [`settled`], the final fit when [`settle_early`] says so.
-fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: usize, at_last: Option<&AtLastTrial>, observe: &mut dyn FnMut(&Progress)) -> LmState {
+///
+/// `early` (final fit): a test of a state within [`EARLY_TEST_BELOW`] of the end; when it
+/// says yes the fit returns that state unconverged (the caller may resume it).
+#[allow(clippy::too_many_arguments)]
+fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: usize, at_last: Option<&AtLastTrial>, early: Option<&dyn Fn(&LmState) -> bool>, observe: &mut dyn FnMut(&Progress)) -> LmState {
     let norm_i = prob.i[prob.fit.clone()].iter().map(|v| v * v).sum::<f64>().sqrt();
     let report = |s: &LmState, observe: &mut dyn FnMut(&Progress)| {
         observe(&Progress { stage: stage.clone(), state: s, residual_rel: (2.0 * s.cost).sqrt() / norm_i });
@@ -1707,7 +1728,10 @@ fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: u
         !ends
     };
     while s.iteration < max_it {
-        let next = lm_step_ahead(prob, &s, &goes_on, at_last);
+        let mut next = lm_step_ahead(prob, &s, &goes_on, at_last);
+        if matches!(stage, Stage::Final { .. }) && (next.gain_ratio - 1.0).abs() < FINAL_FAST_GAIN {
+            next.lambda = (next.step_lambda / FINAL_FAST_DIVISOR).max(1e-12);
+        }
         let stalled = next.last_decrease == 0.0;
         s = next;
         report(&s, observe);
@@ -1719,15 +1743,38 @@ fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: u
             break;
         }
         if matches!(stage, Stage::Final { .. }) {
-            if let Some(next) = settle_early(prob, &s, tol, FINAL_SETTLED_GAIN) {
-                s = next;
-                report(&s, observe);
-                break;
+            match settle_early(prob, &s, tol, FINAL_SETTLED_GAIN) {
+                Settle::Done(next) => {
+                    s = next;
+                    report(&s, observe);
+                    break;
+                }
+                Settle::Near(predicted) if predicted < EARLY_TEST_BELOW && early.is_some_and(|f| f(&s)) => break,
+                _ => {}
             }
         }
     }
     s
 }
+
+/// A final fit hands its state to the caller's `early` test ([`solve`]) once the next step
+/// predicts a decrease below this share of the cost: within 1 % of its end, the fit's
+/// residual and Re(t) track are what the converged fit's would be for the heating test (the
+/// microspeaker: 2e-4 left after the first step; converging it took a 3.9 s Jacobian, then
+/// the heating terms replaced that fit).
+pub const EARLY_TEST_BELOW: f64 = 1e-2;
+
+/// The final fit's damping after an accepted step whose decrease the linearised model
+/// predicted within [`FINAL_FAST_GAIN`] is the step's divided by this (3 otherwise, as
+/// [`crate::lm::lm_step`] does): the model holds, so LM should approach the Gauss-Newton
+/// step quickly. With heating terms the microspeaker's final fit moved its error by 30-50 %
+/// per iteration at gain ratio 1.000 with the damping falling by 3: 9 iterations of a 3.9 s
+/// Jacobian, 6 with this. The search stages keep 3 (where they stop moves the order
+/// search's truncation term: with 10 there, 18WU's `-real-all` bands went from 2.70 to
+/// 3.05 sd).
+pub const FINAL_FAST_DIVISOR: f64 = 10.0;
+/// `|1 - gain ratio|` below which [`FINAL_FAST_DIVISOR`] applies.
+pub const FINAL_FAST_GAIN: f64 = 0.05;
 
 /// The linear fit with the small-signal `effects` that starts a candidate of the effects
 /// search ([`LinearOptions::LARGE_SIGNAL_START`] otherwise); `None` when it fails.
@@ -1941,7 +1988,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         let lay = layout_for(0);
         let th = join(lay.theta_from(&current, None), &cth);
         let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup);
-        let s = solve(&prob, th, &Stage::Estimate { order: 0 }, 1e-3, ORDER0_FIRST_ITERATIONS, None, &mut observe);
+        let s = solve(&prob, th, &Stage::Estimate { order: 0 }, 1e-3, ORDER0_FIRST_ITERATIONS, None, None, &mut observe);
         cth = s.theta[lay.slots().n..].to_vec();
         linear_rel = Some((2.0 * s.cost).sqrt() / norm_est);
         current = Parameters { mms: opts.mms, ..lay.parameters(&s.theta) };
@@ -1984,7 +2031,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             *early.lock().expect("validation") = Some((theta.to_vec(), val));
         };
         let at_last = AtLastTrial { likely: &|predicted, lambda| predicted < SEARCH_SETTLED_DECREASE && lambda <= SEARCH_SETTLED_LAMBDA, work: &work };
-        let s = solve(&prob, th, &Stage::Estimate { order: lay.order }, 1e-3, 12, Some(&at_last), observe);
+        let s = solve(&prob, th, &Stage::Estimate { order: lay.order }, 1e-3, 12, Some(&at_last), None, observe);
         let est = (2.0 * s.cost).sqrt() / i[settle..split].iter().map(|v| v * v).sum::<f64>().sqrt();
         let th_val = held_out(&s.theta);
         let val = match early.into_inner().expect("validation") {
@@ -2006,7 +2053,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             // near (its error can only fall, and the gain with it).
             if let (Some(lin), Some((prob0, s0))) = (linear_rel, order0.take()) {
                 if !s0.converged && s0.iteration >= ORDER0_FIRST_ITERATIONS && 1.0 - est / lin < ORDER0_FINISH_BELOW_GAIN {
-                    let s = solve(&prob0, s0.theta, &Stage::Estimate { order: 0 }, 1e-3, 10, None, &mut observe);
+                    let s = solve(&prob0, s0.theta, &Stage::Estimate { order: 0 }, 1e-3, 10, None, None, &mut observe);
                     linear_rel = Some(lin.min((2.0 * s.cost).sqrt() / norm_est));
                 }
             }
@@ -2193,34 +2240,54 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
     let lay = layout_for(order).with_effects(effects);
     let th = join(lay.theta_from(&current, re_track.as_deref()), &cth);
     let prob = OutputError::new(lay.clone(), u, i, fs, settle..n, rates, x_limit, threads).with_chain(setup).keeping_last();
-    let s = solve(&prob, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, &mut observe);
-    let r = prob.residual(&s.theta);
-    let residual_rel = rel(&r, &i[settle..n]);
     // Heating faster than the knots can follow (see HEAT_TAUS): the knots bend by more than
     // KNOT_BEND between neighbours and the residual is above its floor. Then the heating
-    // terms join Re(t), kept when they lower the residual by HEAT_MIN_GAIN.
-    let excess = crate::checks::noise_floor(r.as_slice(), fs).ratio;
-    let (lay, prob, s, r, residual_rel, excess) = {
-        let track = lay.re_track(&s.theta);
+    // terms join Re(t), kept when they lower the residual by HEAT_MIN_GAIN. The test is made
+    // as soon as the fit is within EARLY_TEST_BELOW of its end: when the heating terms are
+    // kept, the rest of this fit was work for nothing (the microspeaker: a 3.9 s Jacobian);
+    // when not, it is resumed.
+    let wants_heat = |r: &DVector<f64>, th: &[f64]| {
+        let track = lay.re_track(th);
         let bend = track.windows(3).map(|w| (w[0] - 2.0 * w[1] + w[2]).abs() / 8.0).fold(0.0, f64::max) / track[0].abs().max(1e-9);
-        if bend > KNOT_BEND && excess > HEAT_TRY_RATIO {
+        let excess = crate::checks::noise_floor(r.as_slice(), fs).ratio;
+        (bend > KNOT_BEND && excess > HEAT_TRY_RATIO, excess)
+    };
+    let stopped_early = std::cell::Cell::new(false);
+    let early = |s: &LmState| {
+        let yes = wants_heat(&prob.residual(&s.theta), &s.theta).0;
+        stopped_early.set(yes);
+        yes
+    };
+    let s = solve(&prob, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, Some(&early), &mut observe);
+    let r = prob.residual(&s.theta);
+    let residual_rel = rel(&r, &i[settle..n]);
+    let (try_heat, excess) = wants_heat(&r, &s.theta);
+    let (lay, prob, s, r, residual_rel, excess) = {
+        let heated = try_heat.then(|| {
             let lay_h = lay.clone().with_heat(&HEAT_TAUS);
             let nl = lay.slots().n;
             let mut th = s.theta[..nl].to_vec();
             th.resize(lay_h.slots().n, 0.0);
             let th = join(th, &s.theta[nl..]);
             let prob_h = OutputError::new(lay_h.clone(), u, i, fs, settle..n, rates, x_limit, threads).with_chain(setup).keeping_last();
-            let s_h = solve(&prob_h, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, &mut observe);
+            let s_h = solve(&prob_h, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, None, &mut observe);
             let r_h = prob_h.residual(&s_h.theta);
             let rel_h = rel(&r_h, &i[settle..n]);
-            if rel_h < (1.0 - HEAT_MIN_GAIN) * residual_rel {
+            (rel_h < (1.0 - HEAT_MIN_GAIN) * residual_rel).then(|| {
                 let excess_h = crate::checks::noise_floor(r_h.as_slice(), fs).ratio;
                 (lay_h, prob_h, s_h, r_h, rel_h, excess_h)
-            } else {
+            })
+        });
+        match heated.flatten() {
+            Some(h) => h,
+            None if stopped_early.get() => {
+                let s = solve(&prob, s.theta, &Stage::Final { order }, 1e-4, opts.max_iterations, None, None, &mut observe);
+                let r = prob.residual(&s.theta);
+                let residual_rel = rel(&r, &i[settle..n]);
+                let excess = crate::checks::noise_floor(r.as_slice(), fs).ratio;
                 (lay, prob, s, r, residual_rel, excess)
             }
-        } else {
-            (lay, prob, s, r, residual_rel, excess)
+            None => (lay, prob, s, r, residual_rel, excess),
         }
     };
     let (x_model, i_model) = prob.trace(&s.theta, n).map_err(|m| Input(format!("{origin}: the fitted model diverged at sample {m}")))?;

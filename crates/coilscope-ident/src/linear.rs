@@ -311,18 +311,27 @@ impl Ext {
     }
 }
 
+/// [`impedance_ext`]'s value: the impedance, its derivatives with respect to ln(p_k) of the
+/// seven LR-2 quantities, and of the extras.
+type Impedance = (Complex64, [Complex64; 7], [Complex64; 3]);
+
 /// Impedance with the extra effects; derivatives with respect to ln(p_k) of the seven LR-2
 /// quantities, and of the extras: `[d/d lambda, d/d ln L3, d/d ln R3]` (zero when absent).
 ///
 /// The motional admittance is `1/Res + jw Cmes + kappa / (jw Lces)` with the creep's
 /// stiffness factor `kappa = 1 + lambda (b(w) - Re b(w_s))`, `w_s = 1 / sqrt(Lces Cmes)`
 /// ([`coilscope_core::creep`]); `kappa` moves with Lces and Cmes through `w_s`.
-fn impedance_ext(p: &[f64; 7], e: &Ext, f: f64) -> (Complex64, [Complex64; 7], [Complex64; 3]) {
+#[inline]
+fn impedance_ext(p: &[f64; 7], e: &Ext, f: f64) -> Impedance {
     let [re, le, l2, r2, res, cmes, lces] = *p;
     let jw = Complex64::new(0.0, 2.0 * PI * f);
     let zl2 = jw * l2;
     let d2 = zl2 + r2;
-    let z2 = zl2 * r2 / d2;
+    // Reciprocals once, then products: a complex division costs two real ones (the linear
+    // fit evaluates this at every bin of every iteration).
+    let inv_d2 = d2.inv();
+    let inv_d22 = inv_d2 * inv_d2;
+    let z2 = zl2 * r2 * inv_d2;
     let zero = Complex64::new(0.0, 0.0);
     let (kappa, dkappa_half, bank_rel) = match e.creep {
         Some(c) => {
@@ -332,21 +341,23 @@ fn impedance_ext(p: &[f64; 7], e: &Ext, f: f64) -> (Complex64, [Complex64; 7], [
         }
         None => (Complex64::new(1.0, 0.0), 0.0, zero),
     };
-    let y = 1.0 / res + jw * cmes + kappa / (jw * lces);
-    let zm = 1.0 / y;
+    let inv_jwl = (jw * lces).inv();
+    let y = 1.0 / res + jw * cmes + kappa * inv_jwl;
+    let zm = y.inv();
     let mut z = re + jw * le + z2 + zm;
     let zm2 = zm * zm;
-    let g = [Complex64::new(re, 0.0), jw * le, jw * r2 * r2 / (d2 * d2) * l2, zl2 * zl2 / (d2 * d2) * r2, zm2 / res, -zm2 * (jw * cmes + dkappa_half / (jw * lces)), zm2 * (kappa - dkappa_half) / (jw * lces)];
+    let g = [Complex64::new(re, 0.0), jw * le, jw * r2 * r2 * inv_d22 * l2, zl2 * zl2 * inv_d22 * r2, zm2 * (1.0 / res), -zm2 * (jw * cmes + dkappa_half * inv_jwl), zm2 * (kappa - dkappa_half) * inv_jwl];
     let mut gx = [zero; 3];
     if e.creep.is_some() {
-        gx[0] = -zm2 * bank_rel / (jw * lces);
+        gx[0] = -zm2 * bank_rel * inv_jwl;
     }
     if let Some((l3, r3)) = e.lr3 {
         let zl3 = jw * l3;
-        let d3 = zl3 + r3;
-        z += zl3 * r3 / d3;
-        gx[1] = jw * r3 * r3 / (d3 * d3) * l3;
-        gx[2] = zl3 * zl3 / (d3 * d3) * r3;
+        let inv_d3 = (zl3 + r3).inv();
+        let inv_d32 = inv_d3 * inv_d3;
+        z += zl3 * r3 * inv_d3;
+        gx[1] = jw * r3 * r3 * inv_d32 * l3;
+        gx[2] = zl3 * zl3 * inv_d32 * r3;
     }
     (z, g, gx)
 }
@@ -803,8 +814,8 @@ impl CurrentError {
         let ext = self.ext(theta);
         let (mut e, mut t) = (0.0, 0.0);
         for k in 0..self.f.len() {
-            let z = impedance_ext(&p, &ext, self.f[k]).0;
-            let tr = transient_term(&p, &ext, self.transient(theta), self.omega0, self.f[k]).0;
+            let imp = impedance_ext(&p, &ext, self.f[k]);
+            let (z, tr) = (imp.0, transient_term(&p, &imp, self.transient(theta), self.omega0, self.f[k]).0);
             e += ((self.i[k] - self.u[k] / z) / self.w[k] - tr).norm_sqr();
             t += (self.i[k] / self.w[k]).norm_sqr();
         }
@@ -819,30 +830,33 @@ impl CurrentError {
 /// (m over the seven model parameters), the same for the extras (as [`impedance_ext`]), and
 /// the basis `(s / omega0)^j / P` (= `dT / dc_j`).
 #[allow(clippy::type_complexity)]
-fn transient_term(p: &[f64; 7], e: &Ext, c: &[f64], omega0: f64, f: f64) -> (Complex64, [Complex64; 7], [Complex64; 3], [Complex64; N_TRANSIENT]) {
+#[inline]
+fn transient_term(p: &[f64; 7], imp: &Impedance, c: &[f64], omega0: f64, f: f64) -> (Complex64, [Complex64; 7], [Complex64; 3], [Complex64; N_TRANSIENT]) {
     let [_, _, l2, r2, res, cmes, lces] = *p;
     let s = Complex64::new(0.0, 2.0 * PI * f);
-    let (z, g, gx) = impedance_ext(p, e, f);
+    let (z, g, gx) = *imp;
     let a = s * l2 + r2;
     let lcr = s * s * lces * cmes * res;
     let b = res + s * lces + lcr;
-    let pp = z * a * b / (r2 * res);
-    let mut dlnp: [Complex64; 7] = std::array::from_fn(|m| g[m] / z);
-    dlnp[2] += s * l2 / a;
-    dlnp[3] += r2 / a - 1.0;
-    dlnp[4] += (res + lcr) / b - 1.0;
-    dlnp[5] += lcr / b;
-    dlnp[6] += (s * lces + lcr) / b;
+    // Reciprocals once (see `impedance_ext`).
+    let (inv_z, inv_a, inv_b) = (z.inv(), a.inv(), b.inv());
+    let inv_pp = inv_z * inv_a * inv_b * (r2 * res);
+    let mut dlnp: [Complex64; 7] = std::array::from_fn(|m| g[m] * inv_z);
+    dlnp[2] += s * l2 * inv_a;
+    dlnp[3] += r2 * inv_a - 1.0;
+    dlnp[4] += (res + lcr) * inv_b - 1.0;
+    dlnp[5] += lcr * inv_b;
+    dlnp[6] += (s * lces + lcr) * inv_b;
     let x = s / omega0;
     let mut basis = [Complex64::new(0.0, 0.0); N_TRANSIENT];
     let mut pow = Complex64::new(1.0, 0.0);
     let mut t = Complex64::new(0.0, 0.0);
     for (j, bj) in basis.iter_mut().enumerate() {
-        *bj = pow / pp;
+        *bj = pow * inv_pp;
         t += c.get(j).copied().unwrap_or(0.0) * *bj;
         pow *= x;
     }
-    (t, dlnp, gx.map(|d| d / z), basis)
+    (t, dlnp, gx.map(|d| d * inv_z), basis)
 }
 
 impl Problem for CurrentError {
@@ -858,8 +872,10 @@ impl Problem for CurrentError {
         let mut r = DVector::zeros(2 * m);
         let mut j = DMatrix::zeros(2 * m, np);
         for k in 0..m {
-            let (z, mut g, mut gx) = impedance_ext(&p, &ext, self.f[k]);
-            let (tr, mut dlnp, mut dlnpx, basis) = transient_term(&p, &ext, self.transient(theta), self.omega0, self.f[k]);
+            // The impedance once per bin: the transient term takes it too.
+            let imp = impedance_ext(&p, &ext, self.f[k]);
+            let (tr, mut dlnp, mut dlnpx, basis) = transient_term(&p, &imp, self.transient(theta), self.omega0, self.f[k]);
+            let (z, mut g, mut gx) = imp;
             // From d/d ln p to d/dq: L2 = tau2 R2, so ln R2 moves L2 too (L3 likewise).
             g[3] += g[2];
             dlnp[3] += dlnp[2];
@@ -909,8 +925,9 @@ impl Problem for CurrentError {
         DVector::from_iterator(
             2 * self.f.len(),
             (0..self.f.len()).flat_map(|k| {
-                let tr = transient_term(&p, &ext, self.transient(theta), self.omega0, self.f[k]).0;
-                let e = (self.i[k] - self.u[k] * self.shift(theta, k) / impedance_ext(&p, &ext, self.f[k]).0) / self.norm - self.w[k] / self.norm * tr;
+                let imp = impedance_ext(&p, &ext, self.f[k]);
+                let tr = transient_term(&p, &imp, self.transient(theta), self.omega0, self.f[k]).0;
+                let e = (self.i[k] - self.u[k] * self.shift(theta, k) / imp.0) / self.norm - self.w[k] / self.norm * tr;
                 [e.re, e.im]
             }),
         )
@@ -1596,7 +1613,12 @@ pub fn model_current(fit: &LinearFit, u: &[f64], fs: f64) -> Vec<f64> {
     let mut spec = rfft(u);
     for (k, c) in spec.iter_mut().enumerate() {
         let f = k as f64 * fs / n as f64;
-        *c = if k == 0 { *c / fit.p[0] } else { *c / fit.impedance(f) + transient_term(&fit.p, &fit.ext(), &fit.transient.c, fit.transient.omega0, f).0 };
+        *c = if k == 0 {
+            *c / fit.p[0]
+        } else {
+            let imp = impedance_ext(&fit.p, &fit.ext(), f);
+            *c / imp.0 + transient_term(&fit.p, &imp, &fit.transient.c, fit.transient.omega0, f).0
+        };
     }
     let mut out = irfft(&spec, n);
     out.iter_mut().for_each(|v| *v /= n as f64);
