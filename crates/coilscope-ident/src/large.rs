@@ -1778,9 +1778,9 @@ pub const FINAL_FAST_GAIN: f64 = 0.05;
 
 /// The linear fit with the small-signal `effects` that starts a candidate of the effects
 /// search ([`LinearOptions::LARGE_SIGNAL_START`] otherwise); `None` when it fails.
-fn linear_start_fit(u: &[f64], i: &[f64], fs: f64, origin: &str, effects: Effects) -> Option<LinearFit> {
+fn linear_start_fit(u: &[f64], i: &[f64], fs: f64, origin: &str, effects: Effects, lr2: Option<&crate::linear::Lr2Fit>) -> Option<LinearFit> {
     let lin_opts = LinearOptions { effects: EffectsChoice::Fixed(effects), ..LinearOptions::LARGE_SIGNAL_START };
-    fit_linear_record(u, i, fs, origin, &lin_opts, |_| {}).ok()
+    crate::linear::fit_linear_record_from(u, i, fs, origin, &lin_opts, lr2, |_| {}).ok()
 }
 
 /// Identify the large-signal parameters from voltage `u` (V) and current `i` (A) sampled at
@@ -1830,6 +1830,9 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
             (split_vanished_le(scale_by_mms(&lin, opts.mms).map_err(Input)?), Some(lin))
         }
     };
+    // The start fit's LR-2 model, from which the effects search's linear fits (creep, LR-3) on
+    // the same seconds grow ([`crate::linear::fit_linear_record_from`]).
+    let start_lr2 = linear.as_ref().map(|l| l.lr2.clone());
     // The measurement chain. Its start values come from a linear fit of its own, whose driver
     // is a second candidate for the driver's start (chosen below by which misses less). All
     // three of delay and corners are estimated, whatever that fit kept: on a large-signal
@@ -2129,9 +2132,13 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
                 // candidates' linear fits are independent: they run side by side (each
                 // uses the cores only in part: SB17's creep and LR-3 fits took 0.63 and
                 // 0.46 s in turn).
+                // They start from the start fit's LR-2 model when they fit the samples it was
+                // fitted on (not behind an estimated chain, whose correction moves them).
+                let same = u[..m_start] == u_rec[..m_start] && i[..m_start] == i_rec[..m_start];
+                let lr2 = start_lr2.as_ref().filter(|_| same);
                 let lins: Vec<Option<LinearFit>> = parallel_map(cands.len(), cands.len(), |k| {
                     let (one, e) = cands[k];
-                    (one.creep || one.lr3).then(|| linear_start_fit(&u[..m_start], &i[..m_start], fs, origin, e.small_signal()))?
+                    (one.creep || one.lr3).then(|| linear_start_fit(&u[..m_start], &i[..m_start], fs, origin, e.small_signal(), lr2))?
                 });
                 for ((one, e), lin) in cands.into_iter().zip(lins) {
                     let lay = layout_for(order).with_effects(e);

@@ -395,6 +395,20 @@ pub struct LinearFit {
     pub tried: Vec<(String, f64)>,
     /// The measurement chain, when estimated ([`LinearOptions::chain`]).
     pub chain: Option<ChainEstimate>,
+    /// The LR-2 model's fit on the same bins, from which every model with effects grows:
+    /// [`fit_linear_record_from`] starts there instead of fitting it again (the effects
+    /// search of `identify` fits creep and LR-3 on the record its start was fitted on).
+    pub lr2: Lr2Fit,
+}
+
+/// The LR-2 model's fit inside [`fit_linear_record`] (see [`LinearFit::lr2`]): its LM state,
+/// its residual on the scout bins and whether it was fitted on every bin. Valid only for a
+/// record with the same samples, rate and [`LinearOptions`] other than `effects`.
+#[derive(Clone, Debug)]
+pub struct Lr2Fit {
+    state: LmState,
+    scout_rel: f64,
+    polished: bool,
 }
 
 /// The chain quantities a linear fit estimated: `[delay_i samples, hp_u Hz, hp_i Hz]`, their
@@ -1050,6 +1064,14 @@ fn refuse_large_signal_effects(opts: &LinearOptions, origin: &str) -> Result<(),
 /// [`fit_linear`] with [`LinearOptions`]: what to assume of the record's [`Ends`], and
 /// which effects to fit.
 pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+    fit_linear_record_from(u, i, fs, origin, opts, None, observe)
+}
+
+/// [`fit_linear_record`] that takes the LR-2 model's fit from `lr2` ([`LinearFit::lr2`] of a
+/// fit of the same record with the same options but for `effects`) instead of fitting it
+/// again: the same result, bit for bit (`lr2_fit_reused_is_the_fit`), the observer seeing the
+/// LM states of the models with effects only.
+pub fn fit_linear_record_from(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, lr2: Option<&Lr2Fit>, observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
     refuse_large_signal_effects(opts, origin)?;
     check_channels(u, i, fs, opts.chain, origin)?;
     let h1 = h1_impedance(u, i, fs, segment_length(u.len(), fs));
@@ -1137,7 +1159,7 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
     if opts.chain {
         prob.chain = Some(ChainTerms { fs, delay: true, hp_u: true, hp_i: true });
     }
-    fit_bins(prob, h1, band, p0, opts, Some(fs), origin, observe)
+    fit_bins(prob, h1, band, p0, opts, Some(fs), lr2, origin, observe)
 }
 
 /// The linear fit of a measured impedance curve `z` (ohm) at frequencies `f` (Hz, increasing),
@@ -1192,14 +1214,15 @@ pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, o
         chain: None,
     };
     prob.norm = prob_norm(&prob);
-    fit_bins(prob, h1, band, p0, opts, None, origin, observe)
+    fit_bins(prob, h1, band, p0, opts, None, None, origin, observe)
 }
 
 /// The fit proper, on the bins of `prob` (their `u`, `i` and weights set, `norm` too), from
 /// the start `p0` found on `h1` in `band`; `fs` is the record's rate (none for an impedance
 /// curve: no chain, no skew check).
 #[allow(clippy::too_many_arguments)]
-fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64; 7], opts: &LinearOptions, fs: Option<f64>, origin: &str, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+#[allow(clippy::too_many_arguments)]
+fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64; 7], opts: &LinearOptions, fs: Option<f64>, lr2: Option<&Lr2Fit>, origin: &str, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
     let map = prob.map.clone();
     let n_chain = prob.chain.map_or(0, |c| c.count());
     // LM to convergence, or to a plateau: the cost lowered by less than PLATEAU_REL over
@@ -1298,7 +1321,16 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         polished.push(done);
         (pr, s, r)
     }
-    let mut fitted = vec![with_residual(&mut scout_r, &mut polished, solve(Effects::NONE, &base_starts, f64::INFINITY, &mut observe))];
+    let base = match lr2 {
+        Some(b) => {
+            let mut pr = CurrentError { f: prob.f.clone(), u: prob.u.clone(), i: prob.i.clone(), w: prob.w.clone(), map: prob.map.clone(), effects: Effects::NONE, chain: prob.chain, ..prob };
+            pr.norm = prob.norm;
+            (pr, b.state.clone(), b.scout_rel, b.polished)
+        }
+        None => solve(Effects::NONE, &base_starts, f64::INFINITY, &mut observe),
+    };
+    let lr2 = Lr2Fit { state: base.1.clone(), scout_rel: base.2, polished: base.3 };
+    let mut fitted = vec![with_residual(&mut scout_r, &mut polished, base)];
     // Starts of a model with more effects, from a fitted one: creep from lambda = 0.05 (the
     // middle of what Klippel's LPM reports), LR-3 from a corner 4x above and 4x below LR-2's
     // with R3 = 2.5 R2 and R2 (the branches are named by their corners afterwards).
@@ -1472,7 +1504,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         _ => None,
     };
     let transient = Transient { c: prob.transient(&s.theta).to_vec(), omega0: prob.omega0 };
-    Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay, transient, effects: prob.effects, creep, lr3, tried, chain })
+    Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay, transient, effects: prob.effects, creep, lr3, tried, chain, lr2 })
 }
 
 /// Bins per cluster of the linear fit's robust covariance (see [`covariance_of`]).

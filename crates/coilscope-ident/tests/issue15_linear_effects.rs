@@ -21,7 +21,7 @@ use coilscope_core::fft::{irfft, rfft};
 use coilscope_core::params::Creep;
 use coilscope_core::small_signal::{displacement_per_current, impedance};
 use coilscope_core::{embedded_driver, Parameters};
-use coilscope_ident::linear::{fit_linear, fit_linear_record, scale_by_mms, Effects, EffectsChoice, LinearOptions};
+use coilscope_ident::linear::{fit_linear, fit_linear_record, fit_linear_record_from, scale_by_mms, Effects, EffectsChoice, LinearOptions};
 use rand::Rng;
 
 fn driver(name: &str) -> Parameters {
@@ -175,6 +175,28 @@ fn creep_and_lr3_over_drivers_and_seeds() {
 }
 
 /// Forcing creep on a record without it gives lambda near zero, inside its band.
+/// Issue 17: a fit with fixed effects that takes the LR-2 model from an earlier fit of the
+/// same record (`identify`'s effects search, from its start fit) is the fit that makes it
+/// again, bit for bit: creep and LR-3, alone and together, on a record with both.
+#[test]
+fn lr2_fit_reused_is_the_fit() {
+    let truth = with(&driver("sb17cac35-4"), Some(0.05), true);
+    let (u, i) = record(&truth, 3);
+    let start = fit_linear_record(&u, &i, 48000.0, "sb17", &LinearOptions { effects: EffectsChoice::Auto, ..LinearOptions::LARGE_SIGNAL_START }, |_| {}).unwrap();
+    for e in [Effects { creep: true, ..Effects::NONE }, Effects { lr3: true, ..Effects::NONE }, Effects { creep: true, lr3: true, ..Effects::NONE }] {
+        let opts = LinearOptions { effects: EffectsChoice::Fixed(e), ..LinearOptions::LARGE_SIGNAL_START };
+        let (mut fresh_states, mut reused_states) = (0, 0);
+        let fresh = fit_linear_record(&u, &i, 48000.0, "sb17", &opts, |_| fresh_states += 1).unwrap();
+        let reused = fit_linear_record_from(&u, &i, 48000.0, "sb17", &opts, Some(&start.lr2), |_| reused_states += 1).unwrap();
+        let m = e.model_name();
+        assert_eq!((fresh.p, fresh.sigma_rel, fresh.residual_rel), (reused.p, reused.sigma_rel, reused.residual_rel), "{m}");
+        assert_eq!((fresh.creep, fresh.lr3, fresh.effects), (reused.creep, reused.lr3, reused.effects), "{m}");
+        assert_eq!(fresh.tried, reused.tried, "{m}");
+        // The LR-2 model's LM states are not run again.
+        assert!(reused_states < fresh_states, "{m}: {reused_states} LM states with the LR-2 fit given, {fresh_states} without");
+    }
+}
+
 #[test]
 fn forced_creep_on_a_record_without_it_finds_none() {
     let p = driver("ptt4.0w04-01a");
