@@ -1221,7 +1221,6 @@ pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, o
 /// the start `p0` found on `h1` in `band`; `fs` is the record's rate (none for an impedance
 /// curve: no chain, no skew check).
 #[allow(clippy::too_many_arguments)]
-#[allow(clippy::too_many_arguments)]
 fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64; 7], opts: &LinearOptions, fs: Option<f64>, lr2: Option<&Lr2Fit>, origin: &str, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
     let map = prob.map.clone();
     let n_chain = prob.chain.map_or(0, |c| c.count());
