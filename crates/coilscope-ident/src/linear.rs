@@ -1219,7 +1219,8 @@ pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, o
 
 /// The fit proper, on the bins of `prob` (their `u`, `i` and weights set, `norm` too), from
 /// the start `p0` found on `h1` in `band`; `fs` is the record's rate (none for an impedance
-/// curve: no chain, no skew check).
+/// curve: no chain, no skew check); `lr2`: the LR-2 model's fit on these bins, taken instead
+/// of fitting it ([`fit_linear_record_from`]).
 #[allow(clippy::too_many_arguments)]
 fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64; 7], opts: &LinearOptions, fs: Option<f64>, lr2: Option<&Lr2Fit>, origin: &str, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
     let map = prob.map.clone();
