@@ -1728,7 +1728,7 @@ fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: u
         !ends
     };
     while s.iteration < max_it {
-        let mut next = lm_step_ahead(prob, &s, &goes_on, at_last);
+        let mut next = lm_step_ahead(prob, &s, &goes_on, at_last, tol);
         if matches!(stage, Stage::Final { .. }) && (next.gain_ratio - 1.0).abs() < FINAL_FAST_GAIN {
             next.lambda = (next.step_lambda / FINAL_FAST_DIVISOR).max(1e-12);
         }

@@ -95,7 +95,7 @@ pub fn damped_step(a: &DMatrix<f64>, g: &DVector<f64>, lambda: f64) -> Option<(D
 
 /// One LM iteration (tries damping until a step lowers the cost, at most 20 times).
 pub fn lm_step<P: Problem>(p: &P, s: &LmState) -> LmState {
-    lm_step_ahead(p, s, &|_| true, None)
+    lm_step_ahead(p, s, &|_| true, None, 0.0)
 }
 
 /// Work a caller does at a trial that is likely to be the last step (run beside the
@@ -112,8 +112,14 @@ pub struct AtLastTrial<'a> {
 /// the trial will be asked for next ([`Problem::residual_ahead`]): when the trial is
 /// accepted as the state `next` and `goes_on(&next)` (the caller will iterate from it); and
 /// that does `at_last`'s work beside a trial it finds likely to be the last. The states are
-/// the same as [`lm_step`]'s.
-pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState) -> bool + Sync), at_last: Option<&AtLastTrial>) -> LmState {
+/// the same as [`lm_step`]'s, but for `settle_below`: a rejected trial whose linearised model
+/// promised a decrease below `settle_below` of the cost ends the iterations there (the
+/// state returned as converged, with decrease 0), where [`lm_step`] raises the damping up
+/// to 20 times. More damping only promises less, and a step that small would have ended
+/// the caller's iterations anyway (its tolerance); such a trial fails when the Jacobian is
+/// less exact than the residual near the optimum (`identify`'s, from fewer sub-steps: one
+/// final fit ran 20 trials of a 0.4 s residual, each rejected).
+pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState) -> bool + Sync), at_last: Option<&AtLastTrial>, settle_below: f64) -> LmState {
     let (r, j) = p.residual_jacobian(&s.theta);
     let a = gram(&j);
     let g = j.tr_mul(&r);
@@ -133,6 +139,9 @@ pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState)
             let r = p.residual_ahead(&theta, &|r| accepted(0.5 * r.norm_squared()).is_some_and(|next| goes_on(&next)), job.as_ref().map(|f| f as &(dyn Fn() + Sync)));
             if let Some(next) = accepted(0.5 * r.norm_squared()) {
                 return next;
+            }
+            if predicted < settle_below * s.cost {
+                return LmState { lambda, iteration: s.iteration + 1, converged: true, last_decrease: 0.0, ..s.clone() };
             }
         }
         lambda *= 4.0;
@@ -277,6 +286,39 @@ mod tests {
             });
             (r, j)
         }
+    }
+
+    /// `r = (theta - 1, theta + 1)`: at its optimum theta = 0 the cost is 1 and no step lowers
+    /// it. `lm_step` tries 20 dampings; with `settle_below` the first rejected trial, whose
+    /// model promised nothing, ends it, at the same state.
+    struct Inconsistent {
+        residuals: std::cell::Cell<usize>,
+    }
+    impl Problem for Inconsistent {
+        fn residual_jacobian(&self, th: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
+            self.residuals.set(self.residuals.get() + 1);
+            (DVector::from_vec(vec![th[0] - 1.0, th[0] + 1.0]), DMatrix::from_element(2, 1, 1.0))
+        }
+    }
+
+    #[test]
+    fn a_rejected_trial_promising_less_than_the_tolerance_ends_the_iterations() {
+        for (settle_below, trials) in [(0.0, 20), (1e-4, 1)] {
+            let p = Inconsistent { residuals: std::cell::Cell::new(0) };
+            let s = LmState::new(&p, vec![0.0]);
+            p.residuals.set(0);
+            let next = lm_step_ahead(&p, &s, &|_| true, None, settle_below);
+            // One residual with the Jacobian, then one per trial.
+            assert_eq!(p.residuals.get(), 1 + trials, "settle_below {settle_below}");
+            assert!(next.converged && next.last_decrease == 0.0 && next.theta == s.theta && next.cost == s.cost);
+        }
+        // A trial that is accepted is unaffected.
+        let t: Vec<f64> = (0..50).map(|k| k as f64 * 0.05).collect();
+        let y = t.iter().map(|t| 2.5 * (-1.3 * t).exp()).collect();
+        let p = Exp { t, y };
+        let s = LmState::new(&p, vec![1.0, 0.5]);
+        let (a, b) = (lm_step(&p, &s), lm_step_ahead(&p, &s, &|_| true, None, 1e-4));
+        assert_eq!((a.theta, a.cost), (b.theta, b.cost));
     }
 
     #[test]
