@@ -50,15 +50,29 @@ fn main() {
     add_sensor_noise(&mut i, 70.0, 1, "sensor-noise/current");
     let effects = if auto { EffectsChoice::Auto } else { EffectsChoice::Fixed(Effects::NONE) };
     let t0 = Instant::now();
-    let mut last = 0.0;
+    let (mut last, mut last_cpu) = (0.0, cpu_seconds());
     let fit = identify(&u, &i, fs, &name, &IdentifyOptions { mms: p.mms, effects, chain, ..Default::default() }, |pr| {
-        let t = t0.elapsed().as_secs_f64();
+        let (t, cpu) = (t0.elapsed().as_secs_f64(), cpu_seconds());
         let s = pr.state;
-        println!("{t:7.3} s (+{:.3}) {:?} it {} error {:.3e} unknowns {} decrease {:.2e} gain ratio {:.3} damping {:.1e}", t - last, pr.stage, s.iteration, pr.residual_rel, s.theta.len(), s.last_decrease, s.gain_ratio, s.step_lambda);
-        last = t;
+        // The cores' use since the last line: CPU time over wall time (200 % = both busy).
+        let used = cpu.zip(last_cpu).map_or(String::new(), |(c, l)| format!(" cpu {:3.0} %", 100.0 * (c - l) / (t - last).max(1e-9)));
+        println!("{t:7.3} s (+{:.3}{used}) {:?} it {} error {:.3e} unknowns {} decrease {:.2e} gain ratio {:.3} damping {:.1e}", t - last, pr.stage, s.iteration, pr.residual_rel, s.theta.len(), s.last_decrease, s.gain_ratio, s.step_lambda);
+        (last, last_cpu) = (t, cpu);
     });
     match fit {
         Ok(f) => println!("total {:.3} s: order {}, model {}, sub-steps per sample {:?} (residual, Jacobian)", t0.elapsed().as_secs_f64(), f.order, f.layout.effects.model_name(), f.substeps),
         Err(e) => println!("total {:.3} s: {e}", t0.elapsed().as_secs_f64()),
     }
+}
+
+/// The process's CPU time so far (user + system, s), from `/proc/self/stat` (Linux; `None`
+/// elsewhere). Its resolution is the clock tick (10 ms).
+fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command name (which is in parentheses): utime and stime are the
+    // 14th and 15th fields of the line, the 12th and 13th after ") ".
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
 }

@@ -44,6 +44,33 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 /// (PTT4), 9.03 -> 6.95 (18WU), the effects search 14.85 -> 11.26, with every result
 /// bit-identical. (Until then 4, from a one-core timing per column of an older model.)
 pub const CHUNK: usize = 8;
+/// The wider pass [`pass_widths`] may take instead: 10 columns. Session 27's
+/// `jacobian_order4` (23 columns, medians of 5): width 8 521 ms (passes of 8, 8, 7: two in
+/// turn on one core), 10 588 ms (10, 10, 3), 12 675 ms (12, 11, side by side): a 10-wide pass
+/// costs 1.13 of an 8-wide one ([`WIDE_PASS_COST`]), a 12-wide one 2.6.
+pub const CHUNK_WIDE: usize = 10;
+/// The cost of a [`CHUNK_WIDE`] pass in units of a [`CHUNK`] pass (measured, above).
+pub const WIDE_PASS_COST: f64 = 1.13;
+
+/// The columns of each dual-number pass of an `n`-column Jacobian on `threads` workers:
+/// passes of [`CHUNK`] (the last one shorter), or near-equal passes of at most
+/// [`CHUNK_WIDE`] when fewer of them end sooner (the passes in turn on each worker, a wide
+/// one costing [`WIDE_PASS_COST`]). On two cores: 17-20 columns in two passes instead of
+/// three (one each instead of two in turn on one core), 33-40 in four instead of five.
+/// Every column is the same arithmetic whatever its pass's width: the Jacobian is the same
+/// to the last bit (`a_jacobian_in_wide_passes_is_the_jacobian`). Not for the exponential
+/// scheme (`wide` false), whose wide passes were slower than that: the microspeaker's
+/// 17-column Jacobian beside its residual run 3.5 -> 4.0 s.
+pub fn pass_widths(n: usize, threads: usize, wide_ok: bool) -> Vec<usize> {
+    let threads = threads.max(1);
+    let (narrow, wide) = (n.div_ceil(CHUNK), n.div_ceil(CHUNK_WIDE));
+    let wall = |passes: usize, cost: f64| passes.div_ceil(threads) as f64 * cost;
+    if wide_ok && wide < narrow && wall(wide, WIDE_PASS_COST) < wall(narrow, 1.0) {
+        (0..wide).map(|k| n / wide + usize::from(k < n % wide)).collect()
+    } else {
+        (0..narrow).map(|k| CHUNK.min(n - k * CHUNK)).collect()
+    }
+}
 /// Samples between two looks of a model run at its stop flag ([`run_model`]).
 const STOP_POLL: usize = 4096;
 /// Highest power-series order.
@@ -560,7 +587,12 @@ impl Layout {
 /// at the end): one pass of the model then gives those Jacobian columns. Returns the duals and
 /// the number of seeded columns.
 pub fn seed_duals<const N: usize>(th: &[f64], c0: usize) -> (Vec<DualSVec64<N>>, usize) {
-    let cnt = N.min(th.len() - c0);
+    seed_duals_n::<N>(th, c0, N)
+}
+
+/// [`seed_duals`] with at most `cnt` (and at most `N`) columns seeded.
+pub fn seed_duals_n<const N: usize>(th: &[f64], c0: usize, cnt: usize) -> (Vec<DualSVec64<N>>, usize) {
+    let cnt = cnt.min(N).min(th.len() - c0);
     let thd = th
         .iter()
         .enumerate()
@@ -1126,10 +1158,20 @@ impl<'a> OutputError<'a> {
         })
     }
 
-    /// Jacobian columns `c0 .. c0 + N` (fewer at the end) of the current w.r.t. theta: one
-    /// run of the model on `N`-wide dual numbers.
-    fn jacobian_chunk<const N: usize>(&self, th: &[f64], c0: usize, u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
-        let (thd, cnt) = seed_duals::<N>(th, c0);
+    /// Jacobian columns `c0 .. c0 + cnt` of the current w.r.t. theta: one run of the model on
+    /// dual numbers, `N` lanes wide when `cnt <= N` (else [`CHUNK_WIDE`]).
+    fn jacobian_pass(&self, th: &[f64], c0: usize, cnt: usize, u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
+        if cnt <= CHUNK {
+            self.jacobian_chunk::<CHUNK>(th, c0, cnt, u, stop, block)
+        } else {
+            self.jacobian_chunk::<CHUNK_WIDE>(th, c0, cnt, u, stop, block)
+        }
+    }
+
+    /// Jacobian columns `c0 .. c0 + cnt` (`cnt <= N`) of the current w.r.t. theta: one run of
+    /// the model on `N`-wide dual numbers.
+    fn jacobian_chunk<const N: usize>(&self, th: &[f64], c0: usize, cnt: usize, u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
+        let (thd, cnt) = seed_duals_n::<N>(th, c0, cnt);
         let (start, rows) = (self.fit.start, self.fit.len());
         // A run that fails here ran away at a theta whose f64 run did not: leave zeros.
         let _ = run_layout(&self.layout, &thd, &self.heat, u, self.fs, &self.stepper_jac, self.fit.end, f64::INFINITY, stop, |m, s| {
@@ -1145,10 +1187,21 @@ impl<'a> OutputError<'a> {
 
     /// All Jacobian columns, passes spread over `threads` workers.
     pub fn jacobian(&self, th: &[f64]) -> DMatrix<f64> {
+        self.jacobian_in(th, &self.pass_widths())
+    }
+
+    /// The widths of the Jacobian's passes ([`pass_widths`]; wide ones with RK4 only).
+    fn pass_widths(&self) -> Vec<usize> {
+        pass_widths(self.n_layout(), self.threads, self.stepper_jac.scheme == Scheme::Rk4)
+    }
+
+    /// [`OutputError::jacobian`] in passes of the given widths (summing to the layout's
+    /// unknowns).
+    fn jacobian_in(&self, th: &[f64], widths: &[usize]) -> DMatrix<f64> {
         let nl = self.n_layout();
         let (u, _) = self.signals(th);
         let stop = AtomicBool::new(false);
-        let jl = jacobian_passes(self.fit.len(), nl, self.threads, &[], &stop, |c0, block| self.jacobian_chunk::<CHUNK>(&th[..nl], c0, &u, None, block));
+        let jl = jacobian_passes(self.fit.len(), widths, self.threads, &[], &stop, |c0, w, block| self.jacobian_pass(&th[..nl], c0, w, &u, None, block));
         self.with_chain_columns(th, jl.expect("nothing stops these passes"))
     }
 
@@ -1194,19 +1247,27 @@ pub(crate) fn parallel_map<T: Send>(n: usize, threads: usize, f: impl Fn(usize) 
     done.into_iter().map(|(_, v)| v).collect()
 }
 
-/// A `rows x n` Jacobian from its passes: `pass(c0, block)` writes the columns `c0 .. c0 +
-/// CHUNK` (fewer at the end) into `block`, their part of the matrix's column-major storage
-/// (`block[k * rows + row]` is column `c0 + k`). The passes are independent; `threads`
-/// workers take them in turn, each writing where the matrix keeps it (no copy).
+/// A Jacobian of `rows` rows from its passes: `pass(c0, w, block)` writes the `w = widths[p]`
+/// columns `c0 .. c0 + w` of pass `p` into `block`, their part of the matrix's column-major
+/// storage (`block[k * rows + row]` is column `c0 + k`). The passes are independent;
+/// `threads` workers take them in turn, each writing where the matrix keeps it (no copy).
 ///
 /// `lead` runs before the passes, each a task of its own (the residual run of
 /// [`Problem::residual_ahead`] and the work alongside it): the passes take the workers they
 /// leave idle. When one returns false, `stop` is set, the passes stop (a pass polls
 /// `stop`) and `None` is returned; the lead tasks always run.
-pub(crate) fn jacobian_passes(rows: usize, n: usize, threads: usize, lead: &[&(dyn Fn() -> bool + Sync)], stop: &AtomicBool, pass: impl Fn(usize, &mut [f64]) + Sync) -> Option<DMatrix<f64>> {
+pub(crate) fn jacobian_passes(rows: usize, widths: &[usize], threads: usize, lead: &[&(dyn Fn() -> bool + Sync)], stop: &AtomicBool, pass: impl Fn(usize, usize, &mut [f64]) + Sync) -> Option<DMatrix<f64>> {
+    let n: usize = widths.iter().sum();
     let mut j = DMatrix::zeros(rows, n);
     {
-        let blocks: Vec<std::sync::Mutex<&mut [f64]>> = j.as_mut_slice().chunks_mut(CHUNK * rows.max(1)).map(std::sync::Mutex::new).collect();
+        let mut rest = j.as_mut_slice();
+        let mut blocks = Vec::with_capacity(widths.len());
+        for &w in widths {
+            let (b, r) = rest.split_at_mut(w * rows);
+            blocks.push(std::sync::Mutex::new(b));
+            rest = r;
+        }
+        let starts: Vec<usize> = widths.iter().scan(0, |c, &w| Some(std::mem::replace(c, *c + w))).collect();
         parallel_map(lead.len() + blocks.len(), threads, |k| match lead.get(k) {
             Some(f) => {
                 if !f() {
@@ -1216,7 +1277,7 @@ pub(crate) fn jacobian_passes(rows: usize, n: usize, threads: usize, lead: &[&(d
             None if stop.load(Ordering::Relaxed) => {}
             None => {
                 let b = k - lead.len();
-                pass(b * CHUNK, &mut blocks[b].lock().expect("Jacobian block"));
+                pass(starts[b], widths[b], &mut blocks[b].lock().expect("Jacobian block"));
             }
         });
     }
@@ -1281,7 +1342,7 @@ impl Problem for OutputError<'_> {
             true
         };
         let lead: Vec<&(dyn Fn() -> bool + Sync)> = if alongside.is_some() { vec![&first, &side] } else { vec![&first] };
-        let jl = jacobian_passes(self.fit.len(), nl, self.threads, &lead, &stop, |c0, block| self.jacobian_chunk::<CHUNK>(&theta[..nl], c0, &u, Some(&stop), block));
+        let jl = jacobian_passes(self.fit.len(), &self.pass_widths(), self.threads, &lead, &stop, |c0, w, block| self.jacobian_pass(&theta[..nl], c0, w, &u, Some(&stop), block));
         let r = r.into_inner().expect("residual").expect("the first task is the residual");
         *self.last_residual.lock().expect("residual cache") = Some((theta.to_vec(), r.clone()));
         if let Some(jl) = jl {
@@ -2566,6 +2627,40 @@ mod tests {
             let r = prob.residual_ahead(&th, &|_| false, None);
             assert_eq!(r, r_ref, "{threads} workers, not wanted");
             assert!(prob.ahead.lock().unwrap().is_none(), "{threads} workers: an unwanted Jacobian was kept");
+        }
+    }
+
+    /// Issue 17: the passes' widths do not change the Jacobian (each column is the same
+    /// arithmetic in an 8- or a 10-lane dual number), and two cores take 17-20 and 33-40
+    /// columns in wide passes.
+    #[test]
+    fn a_jacobian_in_wide_passes_is_the_jacobian() {
+        assert_eq!(pass_widths(17, 2, true), vec![9, 8]);
+        assert_eq!(pass_widths(17, 2, false), vec![8, 8, 1]);
+        assert_eq!(pass_widths(20, 2, true), vec![10, 10]);
+        assert_eq!(pass_widths(23, 2, true), vec![8, 8, 7]);
+        assert_eq!(pass_widths(29, 2, true), vec![8, 8, 8, 5]);
+        assert_eq!(pass_widths(35, 2, true), vec![9, 9, 9, 8]);
+        assert_eq!(pass_widths(11, 2, true), vec![8, 3]);
+        for n in 1..60 {
+            for (threads, wide) in [(1, true), (2, true), (3, true), (2, false)] {
+                let w = pass_widths(n, threads, wide);
+                assert!(w.iter().sum::<usize>() == n && w.iter().all(|&k| (1..=CHUNK_WIDE).contains(&k)), "{n} columns, {threads} workers: {w:?}");
+            }
+        }
+        let p = embedded_driver("sb17cac35-4").unwrap();
+        let fs = 48000.0;
+        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 0.4, rms: 1.0, fade: 0.05, seed: 5 }).unwrap();
+        let (_, tr) = gain_for_peak(&p, fs, &unit, 0.004, &SimOptions::default()).unwrap();
+        let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
+        let lay = Layout::new(2, 5, 0.1, 0.004, sc, true, p.mms);
+        let mut th = lay.theta_from(&p, None);
+        th[lay.slots().kms.start] *= 0.97;
+        assert_eq!(lay.slots().n, 17, "the order-2 layout with five knots");
+        let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2);
+        let narrow = prob.jacobian_in(&th, &[8, 8, 1]);
+        for widths in [vec![9, 8], vec![10, 7], vec![3, 10, 4]] {
+            assert_eq!(prob.jacobian_in(&th, &widths), narrow, "{widths:?}");
         }
     }
 }

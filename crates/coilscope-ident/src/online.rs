@@ -594,7 +594,8 @@ impl Online {
         // Jacobian of the model current (the residual is r = i - i_model).
         let np = self.theta.len();
         let stop = std::sync::atomic::AtomicBool::new(false);
-        let jac = jacobian_passes(rows, np, self.threads, &[&first], &stop, |c0, block| self.jacobian_chunk(&y0, a, b, skip, c0, slope, block));
+        let widths: Vec<usize> = (0..np.div_ceil(CHUNK)).map(|k| CHUNK.min(np - k * CHUNK)).collect();
+        let jac = jacobian_passes(rows, &widths, self.threads, &[&first], &stop, |c0, _, block| self.jacobian_chunk(&y0, a, b, skip, c0, slope, block));
         let (r, _) = run.into_inner().expect("window run").expect("the first task is the run")?;
         let floor_ratio = crate::checks::noise_floor(r.as_slice(), self.fs).ratio;
         let e0 = r.norm_squared();
