@@ -2598,12 +2598,8 @@ mod tests {
     /// workers (the residual and the passes side by side) and one (serial).
     #[test]
     fn a_jacobian_computed_ahead_is_the_jacobian() {
-        let p = embedded_driver("sb17cac35-4").unwrap();
+        let (p, tr, lay) = sb17_case(0.6, 4, 4, 2, 1.0);
         let fs = 48000.0;
-        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 0.6, rms: 1.0, fade: 0.05, seed: 4 }).unwrap();
-        let (_, tr) = gain_for_peak(&p, fs, &unit, 0.004, &SimOptions::default()).unwrap();
-        let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
-        let lay = Layout::new(4, 2, 1.0, 0.004, sc, true, p.mms);
         let mut th = lay.theta_from(&p, None);
         th[lay.slots().bl.start] *= 1.03;
         for threads in [2, 1] {
@@ -2630,6 +2626,17 @@ mod tests {
         }
     }
 
+    /// SB17 driven by `seconds` of pink noise (seed `seed`, 48 kHz) to a 4 mm peak, and a
+    /// layout of power-series order `order` with `n_re` Re(t) knots `knot_dt` s apart.
+    fn sb17_case(seconds: f64, seed: u64, order: usize, n_re: usize, knot_dt: f64) -> (Parameters, coilscope_core::simulate::Trace, Layout) {
+        let p = embedded_driver("sb17cac35-4").unwrap();
+        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs: 48000.0, seconds, rms: 1.0, fade: 0.05, seed }).unwrap();
+        let (_, tr) = gain_for_peak(&p, 48000.0, &unit, 0.004, &SimOptions::default()).unwrap();
+        let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
+        let lay = Layout::new(order, n_re, knot_dt, 0.004, sc, true, p.mms);
+        (p, tr, lay)
+    }
+
     /// Issue 17: the passes' widths do not change the Jacobian (each column is the same
     /// arithmetic in an 8- or a 10-lane dual number), and two cores take 17-20 and 33-40
     /// columns in wide passes.
@@ -2648,12 +2655,8 @@ mod tests {
                 assert!(w.iter().sum::<usize>() == n && w.iter().all(|&k| (1..=CHUNK_WIDE).contains(&k)), "{n} columns, {threads} workers: {w:?}");
             }
         }
-        let p = embedded_driver("sb17cac35-4").unwrap();
+        let (p, tr, lay) = sb17_case(0.4, 5, 2, 5, 0.1);
         let fs = 48000.0;
-        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 0.4, rms: 1.0, fade: 0.05, seed: 5 }).unwrap();
-        let (_, tr) = gain_for_peak(&p, fs, &unit, 0.004, &SimOptions::default()).unwrap();
-        let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
-        let lay = Layout::new(2, 5, 0.1, 0.004, sc, true, p.mms);
         let mut th = lay.theta_from(&p, None);
         th[lay.slots().kms.start] *= 0.97;
         assert_eq!(lay.slots().n, 17, "the order-2 layout with five knots");
