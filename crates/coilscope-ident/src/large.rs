@@ -59,7 +59,7 @@ pub const WIDE_PASS_COST: f64 = 1.13;
 /// three (one each instead of two in turn on one core), 33-40 in four instead of five.
 /// Every column is the same arithmetic whatever its pass's width: the Jacobian is the same
 /// to the last bit (`a_jacobian_in_wide_passes_is_the_jacobian`). Not for the exponential
-/// scheme (`wide` false), whose wide passes were slower than that: the microspeaker's
+/// scheme (`wide_ok` false), whose wide passes were slower than that: the microspeaker's
 /// 17-column Jacobian beside its residual run 3.5 -> 4.0 s.
 pub fn pass_widths(n: usize, threads: usize, wide_ok: bool) -> Vec<usize> {
     let threads = threads.max(1);
@@ -2320,16 +2320,19 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         let excess = crate::checks::noise_floor(r.as_slice(), fs).ratio;
         (bend > KNOT_BEND && excess > HEAT_TRY_RATIO, excess)
     };
-    let stopped_early = std::cell::Cell::new(false);
+    // The test of the state the fit stopped at, when it said yes.
+    let stopped_early = std::cell::Cell::new(None);
     let early = |s: &LmState| {
-        let yes = wants_heat(&prob.residual(&s.theta), &s.theta).0;
-        stopped_early.set(yes);
-        yes
+        let test = wants_heat(&prob.residual(&s.theta), &s.theta);
+        if test.0 {
+            stopped_early.set(Some(test));
+        }
+        test.0
     };
     let s = solve(&prob, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, Some(&early), &mut observe);
     let r = prob.residual(&s.theta);
     let residual_rel = rel(&r, &i[settle..n]);
-    let (try_heat, excess) = wants_heat(&r, &s.theta);
+    let (try_heat, excess) = stopped_early.get().unwrap_or_else(|| wants_heat(&r, &s.theta));
     let (lay, prob, s, r, residual_rel, excess) = {
         let heated = try_heat.then(|| {
             let lay_h = lay.clone().with_heat(&HEAT_TAUS);
@@ -2348,7 +2351,7 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
         });
         match heated.flatten() {
             Some(h) => h,
-            None if stopped_early.get() => {
+            None if stopped_early.get().is_some() => {
                 let s = solve(&prob, s.theta, &Stage::Final { order }, 1e-4, opts.max_iterations, None, None, &mut observe);
                 let r = prob.residual(&s.theta);
                 let residual_rel = rel(&r, &i[settle..n]);

@@ -1253,9 +1253,14 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     // A candidate whose scout residual is not below `gate` is not polished (it cannot win:
     // the effect does not lower the residual by EFFECT_MIN_GAIN on the scout bins). Returns
     // the problem, the state, the scout's residual and whether it was polished.
-    let solve = |effects: Effects, starts: &[Vec<f64>], gate: f64, observe: &mut dyn FnMut(&LmState)| -> (CurrentError, LmState, f64, bool) {
+    // The problem of a model with `effects` on these bins.
+    let with_effects = |effects: Effects| {
         let mut pr = CurrentError { f: prob.f.clone(), u: prob.u.clone(), i: prob.i.clone(), w: prob.w.clone(), map: prob.map.clone(), effects, chain: prob.chain, ..prob };
         pr.norm = prob.norm;
+        pr
+    };
+    let solve = |effects: Effects, starts: &[Vec<f64>], gate: f64, observe: &mut dyn FnMut(&LmState)| -> (CurrentError, LmState, f64, bool) {
+        let pr = with_effects(effects);
         let scout = (pr.f.len() > 2 * SCOUT_BINS).then(|| thin(&pr, SCOUT_BINS));
         let scout_iterations = if gate.is_finite() && scout.is_some() { CANDIDATE_SCOUT_ITERATIONS } else { MAX_ITERATIONS };
         // The starts are independent: they run on all cores, each keeping its LM states,
@@ -1322,11 +1327,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         (pr, s, r)
     }
     let base = match lr2 {
-        Some(b) => {
-            let mut pr = CurrentError { f: prob.f.clone(), u: prob.u.clone(), i: prob.i.clone(), w: prob.w.clone(), map: prob.map.clone(), effects: Effects::NONE, chain: prob.chain, ..prob };
-            pr.norm = prob.norm;
-            (pr, b.state.clone(), b.scout_rel, b.polished)
-        }
+        Some(b) => (with_effects(Effects::NONE), b.state.clone(), b.scout_rel, b.polished),
         None => solve(Effects::NONE, &base_starts, f64::INFINITY, &mut observe),
     };
     let lr2 = Lr2Fit { state: base.1.clone(), scout_rel: base.2, polished: base.3 };

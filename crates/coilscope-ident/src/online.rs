@@ -20,7 +20,7 @@
 //! The parameters are those of [`crate::large::Layout`] (Legendre series in `x / x_ref`) with
 //! one `Re`. Nothing here allocates per sample; the history kept is a few seconds.
 
-use crate::large::{jacobian_passes, seed_duals, Layout, Scales, CHUNK};
+use crate::large::{jacobian_passes, pass_widths, seed_duals, Layout, Scales, CHUNK};
 use crate::linear::Effects;
 use coilscope_core::integrate::{Stepper, HALF_TAPS};
 use coilscope_core::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
@@ -594,8 +594,7 @@ impl Online {
         // Jacobian of the model current (the residual is r = i - i_model).
         let np = self.theta.len();
         let stop = std::sync::atomic::AtomicBool::new(false);
-        let widths: Vec<usize> = (0..np.div_ceil(CHUNK)).map(|k| CHUNK.min(np - k * CHUNK)).collect();
-        let jac = jacobian_passes(rows, &widths, self.threads, &[&first], &stop, |c0, _, block| self.jacobian_chunk(&y0, a, b, skip, c0, slope, block));
+        let jac = jacobian_passes(rows, &pass_widths(np, self.threads, false), self.threads, &[&first], &stop, |c0, _, block| self.jacobian_chunk(&y0, a, b, skip, c0, slope, block));
         let (r, _) = run.into_inner().expect("window run").expect("the first task is the run")?;
         let floor_ratio = crate::checks::noise_floor(r.as_slice(), self.fs).ratio;
         let e0 = r.norm_squared();

@@ -174,7 +174,6 @@ fn creep_and_lr3_over_drivers_and_seeds() {
     sweep(&["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00", "large-coil"], 2..4);
 }
 
-/// Forcing creep on a record without it gives lambda near zero, inside its band.
 /// Issue 17: a fit with fixed effects that takes the LR-2 model from an earlier fit of the
 /// same record (`identify`'s effects search, from its start fit) is the fit that makes it
 /// again, bit for bit: creep and LR-3, alone and together, on a record with both.
@@ -197,6 +196,7 @@ fn lr2_fit_reused_is_the_fit() {
     }
 }
 
+/// Forcing creep on a record without it gives lambda near zero, inside its band.
 #[test]
 fn forced_creep_on_a_record_without_it_finds_none() {
     let p = driver("ptt4.0w04-01a");
