@@ -22,7 +22,7 @@
 
 use crate::large::{jacobian_passes, pass_widths, seed_duals, Layout, Scales, CHUNK};
 use crate::linear::Effects;
-use coilscope_core::integrate::{Stepper, HALF_TAPS};
+use coilscope_core::integrate::{FlushTiny, Stepper, HALF_TAPS};
 use coilscope_core::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
 use coilscope_core::params::Parameters;
 use nalgebra::{DMatrix, DVector};
@@ -531,6 +531,7 @@ impl Online {
             }
             model.base().re = re_end + re_slope * (m as f64 - self.pos as f64) * dt;
             y = model.step(&self.stepper_jac, &y, dt, &pd);
+            y.iter_mut().for_each(FlushTiny::flush_tiny);
         }
     }
 
@@ -793,6 +794,7 @@ pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64
             }
             model.base().re = re0 + s0 * (k as f64 * dt);
             y = model.step(&stepper, &y, dt, &pd);
+            y.iter_mut().for_each(FlushTiny::flush_tiny);
         }
         let cov = jtj.try_inverse()?;
         if count < 3 {
