@@ -1804,7 +1804,7 @@ fn may_settle(s: &LmState, gain_tol: f64) -> bool {
 }
 
 /// Largest `|1 - gain ratio|` of a last step the final fit trusts its linearised model after
-/// ([`settle_early`]).
+/// ([`chords`]).
 pub const FINAL_SETTLED_GAIN: f64 = 0.01;
 
 /// Size of the vanishing LR-3 branch the effects search also starts from, relative to the
