@@ -361,8 +361,9 @@ fn an_external_force_is_held_by_the_suspension() {
 /// feeding it, and a run that does not flush keeps subnormal lanes for many samples (what
 /// made the microspeaker's knot passes three times slower); with the flush after every
 /// sample no lane is ever subnormal, and every state and lane differs from the unflushed
-/// run's by less than 1e6 [`TINY_LANE`] (the dynamics' gain on a flushed lane). The microspeaker of `testdata/drivers` without its thermal
-/// states, 1.5 s of IEC noise at 90 % of its range, the Jacobian's stepper.
+/// run's by less than 1e6 [`TINY_LANE`] (the dynamics' gain on a flushed lane). The
+/// microspeaker of `testdata/drivers` without its thermal states, 1.5 s of IEC noise at 90 %
+/// of its range, the Jacobian's stepper.
 #[test]
 fn flushed_lanes_only_lose_what_is_below_tiny() {
     use coilscope_core::integrate::{FlushTiny, TINY_LANE};

@@ -946,9 +946,10 @@ pub struct OutputError<'a> {
     stepper: Stepper,
     stepper_jac: Stepper,
     /// The last Jacobian computed (LM's last iteration): reused for the covariance and the
-    /// final fit's chord step. Kept only when [`OutputError::keeping_last`] says so
-    /// (a copy of up to 50 MB per iteration that the search stages never read).
-    last_jacobian: std::sync::Mutex<Option<DMatrix<f64>>>,
+    /// final fit's chord iterations, which share it (no copy of the matrix). Kept only when
+    /// [`OutputError::keeping_last`] says so (a copy of up to 50 MB per iteration that the
+    /// search stages never read).
+    last_jacobian: std::sync::Mutex<Option<std::sync::Arc<DMatrix<f64>>>>,
     /// The last residual run's theta, displacement and current over `0 .. fit.end`, for
     /// [`OutputError::trace`] at the same theta (the final fit's result is traced where its
     /// last residual was run: one run of the whole record fewer). Kept as the Jacobian is.
@@ -1320,7 +1321,7 @@ impl Problem for OutputError<'_> {
             _ => self.jacobian(theta),
         };
         if self.keep_last {
-            *self.last_jacobian.lock().expect("jacobian cache") = Some(j.clone());
+            *self.last_jacobian.lock().expect("jacobian cache") = Some(std::sync::Arc::new(j.clone()));
         }
         (r, j)
     }
@@ -1704,9 +1705,9 @@ fn settled(s: &LmState) -> bool {
 }
 
 /// LM's next step from `theta` on the linearised model of the last Jacobian `j` (computed one
-/// accepted step earlier or more; damping `lambda`, as [`crate::lm::lm_step`] damps): the step `d`
-/// with `(A + lambda diag A) d = -g`, `A = J^T J` (given: `a`), `g = J^T r(theta)`, and its predicted
-/// cost decrease `-(g^T d + 1/2 d^T A d)` (absolute). `None` when the damped system is
+/// accepted step earlier or more; damping `lambda`, as [`crate::lm::lm_step`] damps): the
+/// step `d` with `(A + lambda diag A) d = -g`, `A = J^T J` (given: `a`), `g = J^T r(theta)`,
+/// and its predicted cost decrease `-(g^T d + 1/2 d^T A d)` (absolute). `None` when the damped system is
 /// singular. (Undamped, `A` is singular in a search stage: the Re(t) knots past its
 /// estimation part have no rows.)
 fn chord_step(prob: &OutputError, j: &DMatrix<f64>, a: &DMatrix<f64>, theta: &[f64], lambda: f64) -> Option<(Vec<f64>, f64)> {
@@ -2617,11 +2618,6 @@ mod tests {
     use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
     use coilscope_core::simulate::{gain_for_peak, SimOptions};
 
-    /// The chord step of [`chords`] predicts what the full iteration it replaces gets:
-    /// SB17, 1.5 s of pink noise to 85 % of its range at 70 dB, order 4 from the truth with
-    /// Bl, Kms and Le 3 % off. After one LM iteration (Jacobian at theta 0, step to theta 1),
-    /// the chord step from theta 1 on that Jacobian predicts the decrease of the next full
-    /// iteration (Jacobian at theta 1) to 2 % and gets it, and both land on the same cost.
     /// The chord tests' case: SB17, 1.5 s of pink noise to 85 % of its range at 70 dB, the
     /// order-4 layout with two Re knots, theta from the truth with Bl, Kms and Le 3 % off.
     fn chord_case() -> (Parameters, Vec<f64>, Vec<f64>, Layout, Vec<f64>) {
@@ -2642,6 +2638,12 @@ mod tests {
         (p, u, i, lay, th)
     }
 
+    /// The chord step of [`chords`] predicts what the full iteration it replaces gets:
+    /// SB17, 1.5 s of pink noise to 85 % of its range at 70 dB, order 4 from the truth with
+    /// Bl, Kms and Le 3 % off ([`chord_case`]). After one LM iteration (Jacobian at theta 0,
+    /// step to theta 1), the chord step from theta 1 on that Jacobian predicts the decrease of
+    /// the next full iteration (Jacobian at theta 1) to 2 % and gets it, and both land on the
+    /// same cost.
     #[test]
     fn a_chord_step_predicts_the_next_iteration() {
         let (p, u, i, lay, th) = chord_case();
@@ -2688,7 +2690,7 @@ mod tests {
         // step's): then the last Jacobian is the one at the end.
         assert!(s.iteration > chord_j, "{} iterations on {chord_j} Jacobians", s.iteration);
         let last = prob.last_jacobian.lock().unwrap().clone().unwrap();
-        assert_eq!(last, prob.jacobian(&s.theta), "the covariance's Jacobian is at the end");
+        assert_eq!(*last, prob.jacobian(&s.theta), "the covariance's Jacobian is at the end");
     }
 
     /// The Jacobian computed alongside a trial's residual ([`Problem::residual_ahead`]) is the
