@@ -126,6 +126,19 @@ fn jacobian_order4(b: divan::Bencher) {
     b.bench_local(|| prob.jacobian(&th));
 }
 
+/// `J^T J` of the order-4 problem's Jacobian (23 columns, 8 s): `lm::gram` (blocked rows,
+/// both cores) against nalgebra's `tr_mul` (one column pair at a time, one core); the two
+/// are the same matrix to the last bit.
+#[divan::bench(args = ["gram", "tr_mul"], sample_count = 5, sample_size = 1)]
+fn gram_order4(b: divan::Bencher, which: &str) {
+    let (prob, th) = problem(rec("sb17cac35-4"));
+    let j = prob.jacobian(&th);
+    match which {
+        "gram" => b.bench_local(|| coilscope_ident::lm::gram(&j)),
+        _ => b.bench_local(|| j.tr_mul(&j)),
+    }
+}
+
 /// One residual (8 s) of the order-4 problem, one core: a full run of the model each time
 /// ([`bench_residual`]; until 2026-11 this bench measured the residual cache, 71 us).
 #[divan::bench(sample_count = 6, sample_size = 1)]

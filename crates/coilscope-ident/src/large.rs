@@ -1238,8 +1238,9 @@ impl<'a> OutputError<'a> {
     fn with_chain_columns(&self, th: &[f64], jl: DMatrix<f64>) -> DMatrix<f64> {
         let nl = self.n_layout();
         let Some(c) = self.chain else { return jl };
-        let mut j = DMatrix::zeros(self.fit.len(), th.len());
+        let mut j = DMatrix::from_vec(self.fit.len(), th.len(), jacobian_storage(self.fit.len() * th.len()));
         j.columns_mut(0, nl).copy_from(&jl);
+        recycle_jacobian(jl);
         for (k, col) in self.chain_columns(th, c).into_iter().enumerate() {
             j.column_mut(nl + k).copy_from_slice(&col);
         }
@@ -1286,9 +1287,9 @@ pub(crate) fn parallel_map<T: Send>(n: usize, threads: usize, f: impl Fn(usize) 
 /// `stop`) and `None` is returned; the lead tasks always run.
 pub(crate) fn jacobian_passes(rows: usize, widths: &[usize], threads: usize, lead: &[&(dyn Fn() -> bool + Sync)], stop: &AtomicBool, pass: impl Fn(usize, usize, &mut [f64]) + Sync) -> Option<DMatrix<f64>> {
     let n: usize = widths.iter().sum();
-    let mut j = DMatrix::zeros(rows, n);
+    let mut storage = jacobian_storage(rows * n);
     {
-        let mut rest = j.as_mut_slice();
+        let mut rest = storage.as_mut_slice();
         let mut blocks = Vec::with_capacity(widths.len());
         for &w in widths {
             let (b, r) = rest.split_at_mut(w * rows);
@@ -1305,11 +1306,62 @@ pub(crate) fn jacobian_passes(rows: usize, widths: &[usize], threads: usize, lea
             None if stop.load(Ordering::Relaxed) => {}
             None => {
                 let b = k - lead.len();
-                pass(starts[b], widths[b], &mut blocks[b].lock().expect("Jacobian block"));
+                let mut block = blocks[b].lock().expect("Jacobian block");
+                // Recycled storage holds an earlier matrix: the pass starts from zeros (a
+                // pass leaves the entries of a run that failed at zero), on its own core.
+                block.fill(0.0);
+                pass(starts[b], widths[b], &mut block);
             }
         });
     }
-    (!stop.load(Ordering::Relaxed)).then_some(j)
+    if stop.load(Ordering::Relaxed) {
+        recycle_storage(storage);
+        return None;
+    }
+    Some(DMatrix::from_vec(rows, n, storage))
+}
+
+/// Storage of Jacobians no longer read, for the next ones ([`jacobian_storage`]).
+static SPARE_JACOBIANS: std::sync::Mutex<Vec<Vec<f64>>> = std::sync::Mutex::new(Vec::new());
+/// Most spare Jacobians kept.
+const SPARE_KEPT: usize = 2;
+
+/// Storage for a Jacobian of `len` entries: a recycled one ([`recycle_jacobian`]) when
+/// there is one, its entries stale (the caller writes every entry), else a new one.
+///
+/// Why: a Jacobian of the whole record is 50-90 MB (29 columns of 240 000-384 000 rows), and
+/// the allocator takes a block that large fresh from the system each time and gives it back
+/// when it is freed, so that every new matrix's first writes were page faults, each a page
+/// zeroed by the kernel: 7 % of 18WU's `identify` (perf), most of it on the thread that then
+/// waits for the passes.
+pub(crate) fn jacobian_storage(len: usize) -> Vec<f64> {
+    let mut spare = SPARE_JACOBIANS.lock().unwrap_or_else(|e| e.into_inner());
+    // The smallest spare that holds `len`, else the largest (grown).
+    let fits = (0..spare.len()).filter(|&k| spare[k].capacity() >= len).min_by_key(|&k| spare[k].capacity());
+    let pick = fits.or_else(|| (0..spare.len()).max_by_key(|&k| spare[k].capacity()));
+    let mut v = pick.map(|k| spare.swap_remove(k)).unwrap_or_default();
+    drop(spare);
+    v.resize(len, 0.0);
+    v
+}
+
+/// Hands a Jacobian that is no longer read back for the next one ([`jacobian_storage`]).
+pub(crate) fn recycle_jacobian(j: DMatrix<f64>) {
+    recycle_storage(j.data.into());
+}
+
+fn recycle_storage(v: Vec<f64>) {
+    let mut spare = SPARE_JACOBIANS.lock().unwrap_or_else(|e| e.into_inner());
+    spare.push(v);
+    if spare.len() > SPARE_KEPT {
+        let smallest = (0..spare.len()).min_by_key(|&k| spare[k].capacity()).expect("not empty");
+        spare.swap_remove(smallest);
+    }
+}
+
+/// Frees the spare Jacobians ([`identify`] does at its end).
+pub fn release_spare_jacobians() {
+    SPARE_JACOBIANS.lock().unwrap_or_else(|e| e.into_inner()).clear();
 }
 
 impl Problem for OutputError<'_> {
@@ -1321,9 +1373,18 @@ impl Problem for OutputError<'_> {
             _ => self.jacobian(theta),
         };
         if self.keep_last {
-            *self.last_jacobian.lock().expect("jacobian cache") = Some(std::sync::Arc::new(j.clone()));
+            let mut copy = jacobian_storage(j.len());
+            copy.copy_from_slice(j.as_slice());
+            let kept = DMatrix::from_vec(j.nrows(), j.ncols(), copy);
+            let old = self.last_jacobian.lock().expect("jacobian cache").replace(std::sync::Arc::new(kept));
+            if let Some(Ok(old)) = old.map(std::sync::Arc::try_unwrap) {
+                recycle_jacobian(old);
+            }
         }
         (r, j)
+    }
+    fn recycle(&self, j: DMatrix<f64>) {
+        recycle_jacobian(j);
     }
     fn residual(&self, theta: &[f64]) -> DVector<f64> {
         if let Some((th, r)) = self.last_residual.lock().expect("residual cache").as_ref() {
@@ -1905,7 +1966,15 @@ fn linear_start_fit(u: &[f64], i: &[f64], fs: f64, origin: &str, effects: Effect
 
 /// Identify the large-signal parameters from voltage `u` (V) and current `i` (A) sampled at
 /// `fs`. `origin` names the recording in messages.
-pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &IdentifyOptions, mut observe: impl FnMut(&Progress)) -> Result<LargeFit, IdentifyError> {
+pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &IdentifyOptions, observe: impl FnMut(&Progress)) -> Result<LargeFit, IdentifyError> {
+    let fit = identify_record(u_rec, i_rec, fs, origin, opts, observe);
+    // The fit's spare Jacobians (up to 2 x 90 MB) are not kept past it.
+    release_spare_jacobians();
+    fit
+}
+
+/// [`identify`]'s work.
+fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &IdentifyOptions, mut observe: impl FnMut(&Progress)) -> Result<LargeFit, IdentifyError> {
     use IdentifyError::*;
     let (u, i) = (u_rec, i_rec);
     if u.len() != i.len() {
@@ -2767,5 +2836,27 @@ mod tests {
         for widths in [vec![9, 8], vec![10, 7], vec![3, 10, 4]] {
             assert_eq!(prob.jacobian_in(&th, &widths), narrow, "{widths:?}");
         }
+    }
+
+    /// A Jacobian computed in recycled storage ([`jacobian_storage`]) is the one computed in
+    /// new storage, whatever the storage held (NaN and infinities here, of other lengths):
+    /// every entry is written.
+    #[test]
+    fn a_jacobian_in_recycled_storage_is_the_jacobian() {
+        let (p, tr, lay) = sb17_case(0.4, 6, 2, 5, 0.1);
+        let fs = 48000.0;
+        let th = lay.theta_from(&p, None);
+        let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2);
+        let fresh = prob.jacobian(&th);
+        let len = fresh.len();
+        for garbage in [vec![f64::NAN; len], vec![f64::NAN; len / 3], vec![f64::INFINITY; 2 * len]] {
+            recycle_storage(garbage);
+            recycle_storage(vec![-1.0; len + 7]);
+            let j = prob.jacobian(&th);
+            assert!(j.iter().all(|v| v.is_finite()));
+            assert_eq!(j, fresh);
+            recycle_jacobian(j);
+        }
+        release_spare_jacobians();
     }
 }

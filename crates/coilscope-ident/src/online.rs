@@ -607,7 +607,7 @@ impl Online {
             return Some(Update { t: self.t(), before, after: before, step: 0.0, floor_ratio });
         };
         let sigma2 = (e0 / rows as f64).max(1e-300);
-        let jtj = jac.tr_mul(&jac) / sigma2;
+        let jtj = crate::lm::gram(&jac) / sigma2;
         let jtr = jac.tr_mul(&r) / sigma2;
         let p_inv = self.cov.clone().try_inverse()?;
         let info = &p_inv + &jtj;
