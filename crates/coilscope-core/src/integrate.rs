@@ -173,6 +173,26 @@ where
     y
 }
 
+/// Advance one sample period `dt` in `u_points.len() / 2` steps of the explicit midpoint
+/// rule (second order, two evaluations of the model per step: `y + h f(y + h/2 f(y, u0),
+/// um)`), `u_points` as for [`rk4_sample`]. Stable for real `|lambda| h < 2`.
+#[inline]
+pub fn midpoint_sample<D, S, const N: usize>(sys: &S, y: &[D; N], dt: f64, u_points: &[D]) -> [D; N]
+where
+    D: DualNum<Primitive = f64> + Copy,
+    S: Dynamics<D, N>,
+{
+    let n = (u_points.len() - 1) / 2;
+    let h = dt / n as f64;
+    let mut y = *y;
+    for s in 0..n {
+        let k1 = sys.deriv(&y, u_points[2 * s]);
+        let k2 = sys.deriv(&axpy(&y, 0.5 * h, &k1), u_points[2 * s + 1]);
+        y = axpy(&y, h, &k2);
+    }
+    y
+}
+
 /// A system whose stiff part is the linear electrical network of the currents `i` and `i2`
 /// (states [`crate::model::idx::I`] and [`crate::model::idx::I2`]): what
 /// [`etd4_sample`] integrates exactly.
@@ -404,6 +424,11 @@ pub const EXP_STIFF_LIMIT: f64 = 3.0;
 /// Largest `|lambda| h` of the fastest mode in a Jacobian's RK4 runs.
 pub const JACOBIAN_STIFF_LIMIT: f64 = 1.5;
 
+/// Largest `|lambda| h` of the fastest mode (one step per sample) at which a search stage's
+/// Jacobian takes the explicit midpoint rule ([`Stepper::for_search_jacobian`]): inside the
+/// rule's stability limit (2) with room, and above the bundled woofers' 0.51-0.83.
+pub const SEARCH_MIDPOINT_LIMIT: f64 = 1.0;
+
 /// What one exponential step costs in RK4 sub-steps (the `simulate` bench: 2 exponential
 /// steps per sample ran 2.9-3.1 M samples/s, 4 RK4 sub-steps 2.5-2.9 M: 1.8).
 pub const EXP_STEP_COST: f64 = 2.0;
@@ -442,6 +467,9 @@ pub enum Scheme {
     Rk4,
     /// The exponential method ([`etd4_sample`]): the electrical network exactly.
     Exponential,
+    /// The explicit midpoint rule ([`midpoint_sample`]): the Jacobians of the search stages
+    /// ([`Stepper::for_search_jacobian`]), never a model run whose result is kept.
+    Midpoint,
 }
 
 impl Scheme {
@@ -450,6 +478,7 @@ impl Scheme {
         match self {
             Scheme::Rk4 => "rk4",
             Scheme::Exponential => "exponential",
+            Scheme::Midpoint => "midpoint",
         }
     }
 }
@@ -519,6 +548,31 @@ impl Stepper {
         (Stepper::new(Scheme::Rk4, n), Stepper::new(Scheme::Rk4, n_jac))
     }
 
+    /// The steps of a search stage's Jacobian runs ([`Stepper::for_fit`]'s otherwise): one
+    /// step per sample of the explicit midpoint rule when the fastest mode allows it
+    /// (`|lambda| h <= SEARCH_MIDPOINT_LIMIT`: woofers), two evaluations of the model per
+    /// sample instead of RK4's four.
+    ///
+    /// Why: the search only ranks models and hands its estimate to the final fit, whose
+    /// Jacobians stay RK4's (a Jacobian sets the fixed point of the final fit's chord
+    /// iterations, and its last one the covariance). The midpoint rule's Jacobian is off a
+    /// reference's by up to 15 % in Le(x)'s columns (which the stiff electrical mode
+    /// carries: `|lambda| h` = 0.83 on SB17) and 1 % in the mechanical ones, against RK4's
+    /// 1 % (`a_search_jacobian_is_near_the_final_fits`): enough for LM's steps, whose gain
+    /// ratio the stages' stopping rule checks. On 18WU every search stage ended at the same
+    /// error to four digits (order 2 in four iterations instead of three), and `identify`
+    /// went 3.41 -> 2.89 s (the stages example), SB17 2.19 -> 1.90 s, PTT4 2.42 -> 2.04 s. Stiff drivers
+    /// keep their exponential steps: the exponential method of order 2 (two evaluations, one
+    /// matrix function) was 6-30 % off per column on the microspeaker of `testdata`, the
+    /// order-4 one 0.2-8 %.
+    pub fn for_search_jacobian(rates: Rates, fs: f64, lr3: bool) -> Self {
+        if rates.total() / fs <= SEARCH_MIDPOINT_LIMIT {
+            Stepper::new(Scheme::Midpoint, 1)
+        } else {
+            Stepper::for_fit(rates, fs, lr3).1
+        }
+    }
+
     /// Steps per sample.
     pub fn n(&self) -> usize {
         self.interp.n
@@ -540,6 +594,7 @@ impl Stepper {
         match self.scheme {
             Scheme::Rk4 => rk4_sample(sys, y, dt, u_points),
             Scheme::Exponential => etd4_sample(sys, y, dt, u_points),
+            Scheme::Midpoint => midpoint_sample(sys, y, dt, u_points),
         }
     }
 }
@@ -814,6 +869,13 @@ mod tests {
         let micro = Rates::stiff(10.4 * fs);
         let (r, j) = Stepper::for_fit(micro, fs, false);
         assert_eq!((r.scheme, r.n(), j.scheme, j.n()), (Scheme::Exponential, 4, Scheme::Exponential, 1));
+        // A search stage's Jacobian: the midpoint rule for woofers (with a fitted LR-3 branch
+        // too), the final fit's steps for the stiff ones.
+        for (rates, lr3, scheme) in [(woofer, false, Scheme::Midpoint), (woofer, true, Scheme::Midpoint), (Rates::stiff(1.2 * fs), false, Scheme::Rk4), (micro, false, Scheme::Exponential), (micro, true, Scheme::Rk4)] {
+            let s = Stepper::for_search_jacobian(rates, fs, lr3);
+            assert_eq!(s.scheme, scheme, "{rates:?} {lr3}");
+            assert_eq!(s.n(), if scheme == Scheme::Midpoint { 1 } else { Stepper::for_fit(rates, fs, lr3).1.n() });
+        }
         // ... but with a fitted LR-3 branch (outside the network) RK4's 21 and 7 sub-steps.
         let (r, j) = Stepper::for_fit(micro, fs, true);
         assert_eq!((r.scheme, r.n(), j.scheme, j.n()), (Scheme::Rk4, 21, Scheme::Rk4, 7));
@@ -821,6 +883,30 @@ mod tests {
         let with_lr3 = Rates { stiff: 10.4 * fs, explicit: 0.2 * fs };
         assert_eq!(exp_steps_for(with_lr3, fs), 4);
         assert_eq!(exp_steps_for(Rates { stiff: 10.4 * fs, explicit: 3.0 * fs }, fs), 6);
+    }
+
+    #[test]
+    fn the_midpoint_rule_is_second_order_and_stable_below_2() {
+        // y' = -y + u: halving h divides the error by ~4.
+        let sys = Decay { lambda: 1.0 };
+        let err = |n: usize| {
+            let h = 1.0 / n as f64;
+            let mut y = [1.0];
+            for _ in 0..n {
+                y = midpoint_sample(&sys, &y, h, &[0.0; 3]);
+            }
+            (y[0] - (-1.0f64).exp()).abs()
+        };
+        let (e1, e2) = (err(20), err(40));
+        assert!((e1 / e2 - 4.0).abs() < 0.3, "ratio {}", e1 / e2);
+        // The stiff mode at |lambda| h = 1.9 decays, at 2.1 grows.
+        for (z, decays) in [(1.9, true), (2.1, false)] {
+            let mut y = [1.0];
+            for _ in 0..200 {
+                y = midpoint_sample(&Decay { lambda: z }, &y, 1.0, &[0.0; 3]);
+            }
+            assert_eq!(y[0].abs() < 1.0, decays, "|lambda| h = {z}: {}", y[0]);
+        }
     }
 
     #[test]
