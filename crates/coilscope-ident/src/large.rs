@@ -1353,6 +1353,8 @@ pub(crate) fn jacobian_storage(len: usize) -> Vec<f64> {
     let pick = fits.or_else(|| (0..spare.len()).max_by_key(|&k| spare[k].capacity()));
     let mut v = pick.map(|k| spare.swap_remove(k)).unwrap_or_default();
     drop(spare);
+    // Grown to `len` exactly (not doubled).
+    v.reserve_exact(len.saturating_sub(v.len()));
     v.resize(len, 0.0);
     v
 }
