@@ -164,13 +164,7 @@ where
     D: DualNum<Primitive = f64> + Copy,
     S: Dynamics<D, N>,
 {
-    let n = (u_points.len() - 1) / 2;
-    let h = dt / n as f64;
-    let mut y = *y;
-    for s in 0..n {
-        y = rk4_step(sys, &y, h, u_points[2 * s], u_points[2 * s + 1], u_points[2 * s + 2]);
-    }
-    y
+    steps_over_sample(y, dt, u_points, |y, h, u0, um, u1| rk4_step(sys, y, h, u0, um, u1))
 }
 
 /// Advance one sample period `dt` in `u_points.len() / 2` steps of the explicit midpoint
@@ -182,13 +176,21 @@ where
     D: DualNum<Primitive = f64> + Copy,
     S: Dynamics<D, N>,
 {
+    steps_over_sample(y, dt, u_points, |y, h, u0, um, _| {
+        let k1 = sys.deriv(y, u0);
+        axpy(y, h, &sys.deriv(&axpy(y, 0.5 * h, &k1), um))
+    })
+}
+
+/// `u_points.len() / 2` equal steps `step(y, h, u0, um, u1)` over one sample period `dt`, the
+/// input at each step's start, midpoint and end from `u_points`.
+#[inline(always)]
+fn steps_over_sample<D: Copy, const N: usize>(y: &[D; N], dt: f64, u_points: &[D], step: impl Fn(&[D; N], f64, D, D, D) -> [D; N]) -> [D; N] {
     let n = (u_points.len() - 1) / 2;
     let h = dt / n as f64;
     let mut y = *y;
     for s in 0..n {
-        let k1 = sys.deriv(&y, u_points[2 * s]);
-        let k2 = sys.deriv(&axpy(&y, 0.5 * h, &k1), u_points[2 * s + 1]);
-        y = axpy(&y, h, &k2);
+        y = step(&y, h, u_points[2 * s], u_points[2 * s + 1], u_points[2 * s + 2]);
     }
     y
 }
