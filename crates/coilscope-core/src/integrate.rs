@@ -563,10 +563,10 @@ impl Stepper {
     /// 1 % (`a_search_jacobian_is_near_the_final_fits`): enough for LM's steps, whose gain
     /// ratio the stages' stopping rule checks. On 18WU every search stage ended at the same
     /// error to four digits (order 2 in four iterations instead of three), and `identify`
-    /// went 3.41 -> 2.89 s (the stages example), SB17 2.19 -> 1.90 s, PTT4 2.42 -> 2.04 s. Stiff drivers
-    /// keep their exponential steps: the exponential method of order 2 (two evaluations, one
-    /// matrix function) was 6-30 % off per column on the microspeaker of `testdata`, the
-    /// order-4 one 0.2-8 %.
+    /// went 3.41 -> 2.89 s (the stages example), SB17 2.19 -> 1.90 s, PTT4 2.42 -> 2.04 s.
+    /// Stiff drivers keep their exponential steps: the exponential method of order 2 (two
+    /// evaluations, one matrix function) was 6-30 % off per column on the microspeaker of
+    /// `testdata`, the order-4 one 0.2-8 %.
     pub fn for_search_jacobian(rates: Rates, fs: f64, lr3: bool) -> Self {
         if rates.total() / fs <= SEARCH_MIDPOINT_LIMIT {
             Stepper::new(Scheme::Midpoint, 1)

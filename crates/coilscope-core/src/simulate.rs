@@ -248,8 +248,7 @@ impl Simulator {
             (None, Some(n)) | (Some(Scheme::Rk4), Some(n)) => Stepper::new(Scheme::Rk4, n),
             (Some(Scheme::Rk4), None) => Stepper::new(Scheme::Rk4, substeps_for(params.rates().total(), fs)),
             (Some(Scheme::Exponential), n) => Stepper::new(Scheme::Exponential, n.unwrap_or_else(|| exp_steps_for(params.rates(), fs))),
-            // Second order: twice RK4's sub-steps (a comparison; no result path simulates with it).
-            (Some(Scheme::Midpoint), n) => Stepper::new(Scheme::Midpoint, n.unwrap_or_else(|| 2 * substeps_for(params.rates().total(), fs))),
+            (Some(Scheme::Midpoint), _) => return Err(SimError::Input("the midpoint rule is the search's Jacobian scheme, not a simulation's: take rk4 or exponential".into())),
         };
         let n = stepper.n();
         let bounds = params.x_range.map(|[lo, hi]| [lo * (1.0 + opts.range_margin), hi * (1.0 + opts.range_margin)]);

@@ -410,3 +410,13 @@ fn flushed_lanes_only_lose_what_is_below_tiny() {
     // decayed (measured 2.0e-276): nothing a Jacobian can hold (its lanes here reach 1e-3).
     assert!(worst < 1e6 * TINY_LANE, "{worst:.3e}");
 }
+
+/// The midpoint rule is the search's Jacobian scheme (second order, off by up to 15 % on a
+/// woofer's Le columns): a simulation asked for it is refused with the schemes it may take.
+#[test]
+fn a_simulation_refuses_the_midpoint_rule() {
+    let p = embedded_driver("sb17cac35-4").unwrap();
+    let err = simulate(&p, FS, &[0.0; 100], &SimOptions { scheme: Some(Scheme::Midpoint), ..Default::default() }).unwrap_err();
+    let msg = err.to_string();
+    assert!(msg.contains("midpoint") && msg.contains("rk4") && msg.contains("exponential"), "{msg}");
+}

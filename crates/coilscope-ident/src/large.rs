@@ -1351,7 +1351,12 @@ pub(crate) fn jacobian_storage(len: usize) -> Vec<f64> {
     // The smallest spare that holds `len`, else the largest (grown).
     let fits = (0..spare.len()).filter(|&k| spare[k].capacity() >= len).min_by_key(|&k| spare[k].capacity());
     let pick = fits.or_else(|| (0..spare.len()).max_by_key(|&k| spare[k].capacity()));
-    let mut v = pick.map(|k| spare.swap_remove(k)).unwrap_or_default();
+    let Some(k) = pick else {
+        // New storage from the allocator's zeroed pages: nothing is written here (the passes
+        // write their blocks on their own cores).
+        return vec![0.0; len];
+    };
+    let mut v = spare.swap_remove(k);
     drop(spare);
     // Grown to `len` exactly (not doubled).
     v.reserve_exact(len.saturating_sub(v.len()));
