@@ -120,6 +120,11 @@ impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, { crate::model::NSTATE }>
     fn electrical(&self, y: &[D; crate::model::NSTATE]) -> [[D; 2]; 2] {
         self.electrical_matrix(y[crate::model::idx::X], y[crate::model::idx::TV])
     }
+
+    #[inline]
+    fn input(&self, y: &[D; crate::model::NSTATE]) -> D {
+        self.input_gain(y[crate::model::idx::X], y[crate::model::idx::I])
+    }
 }
 
 impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, { crate::model::NLR3 }> for crate::model::ExtModel<D> {
@@ -127,12 +132,22 @@ impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, { crate::model::NLR3 }> f
     fn electrical(&self, y: &[D; crate::model::NLR3]) -> [[D; 2]; 2] {
         self.base.electrical_matrix(y[crate::model::idx::X], y[crate::model::idx::TV])
     }
+
+    #[inline]
+    fn input(&self, y: &[D; crate::model::NLR3]) -> D {
+        self.base.input_gain(y[crate::model::idx::X], y[crate::model::idx::I])
+    }
 }
 
 impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, { crate::model::NEXT }> for crate::model::ExtModel<D> {
     #[inline]
     fn electrical(&self, y: &[D; crate::model::NEXT]) -> [[D; 2]; 2] {
         self.base.electrical_matrix(y[crate::model::idx::X], y[crate::model::idx::TV])
+    }
+
+    #[inline]
+    fn input(&self, y: &[D; crate::model::NEXT]) -> D {
+        self.base.input_gain(y[crate::model::idx::X], y[crate::model::idx::I])
     }
 }
 
@@ -203,6 +218,11 @@ pub trait Electrical<D, const N: usize>: Dynamics<D, N> {
     /// equations' dependence on the currents through the resistances, without the motional
     /// and nonlinear terms (those stay in the non-stiff remainder).
     fn electrical(&self, y: &[D; N]) -> [[D; 2]; 2];
+
+    /// How the input `u` enters the current `i`'s rate at state `y`: `d(di/dt)/du` (1/H),
+    /// `1 / (Le(x) h(i))` in the model. Only [`etd2_step`] uses it (the drive's exact
+    /// integral over its stage and its step).
+    fn input(&self, y: &[D; N]) -> D;
 }
 
 /// `phi_0 .. phi_3` of a scalar: `phi_0 = e^z`, `phi_{k+1}(z) = (phi_k(z) - 1/k!) / z`.
@@ -260,10 +280,32 @@ fn matrix_functions<D: DualNum<Primitive = f64> + Copy, const K: usize>(m: &[[D;
     })
 }
 
-/// `h (alpha I + beta M)` as a matrix.
-#[inline(always)]
-fn pair_matrix<D: DualNum<Primitive = f64> + Copy>(f: (D, D), m: &[[D; 2]; 2], h: f64) -> [[D; 2]; 2] {
-    [[(f.0 + f.1 * m[0][0]) * h, f.1 * m[0][1] * h], [f.1 * m[1][0] * h, (f.0 + f.1 * m[1][1]) * h]]
+/// `p I + q A`: a function of the network matrix `A` (1/s) that is a polynomial of degree
+/// one in it (every analytic function of a 2 x 2 matrix is one, [`matrix_functions`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Pair<D> {
+    p: D,
+    q: D,
+}
+
+impl<D: DualNum<Primitive = f64> + Copy> Pair<D> {
+    /// `(p I + q A) n`, given `an = A n`.
+    #[inline(always)]
+    fn apply(&self, n: [D; 2], an: [D; 2]) -> [D; 2] {
+        [self.p * n[0] + self.q * an[0], self.p * n[1] + self.q * an[1]]
+    }
+
+    /// The pair of `c (alpha I + beta (s A))`: a function `(alpha, beta)` of the scaled
+    /// matrix `s A` ([`matrix_functions`]), times `c`.
+    #[inline(always)]
+    fn of(f: (D, D), s: f64, c: f64) -> Self {
+        Pair { p: f.0 * c, q: f.1 * (s * c) }
+    }
+
+    #[inline(always)]
+    fn plus(self, o: Self) -> Self {
+        Pair { p: self.p + o.p, q: self.q + o.q }
+    }
 }
 
 /// A 2 x 2 matrix times a vector.
@@ -274,29 +316,35 @@ fn mat_vec<D: DualNum<Primitive = f64> + Copy>(m: &[[D; 2]; 2], v: [D; 2]) -> [D
 
 /// The coefficients of [`etd4_step`] for one network matrix `A` and step `h`: matrix
 /// functions of `A h / 2` (the stages at `c = 1/2`) and `A h` (the stage at `c = 1` and the
-/// result), as 2 x 2 matrices on the currents (the `a_ij` and `b_i` times `h`), and their
-/// values at `A = 0` on the other states. Computed once per sample (`A` frozen at the
-/// sample's start) and shared by its steps. In the model's scalar type: a Jacobian's dual
-/// numbers carry `A`'s dependence on the unknowns through the exponentials (holding `A` at
-/// its value, a valid splitting too, made the microspeaker's final fit crawl: 12 iterations
-/// at gain ratios 0.36 instead of 9 at 0.99, for 15 % less per Jacobian).
+/// result), each held as the two scalars of `p I + q A` ([`Pair`]: the `a_ij` and `b_i`
+/// times `h`, which the step applies to a vector `n` as `p n + q (A n)`, `A n` once per
+/// vector), and their values at `A = 0` on the other states. Computed once per sample (`A`
+/// frozen at the sample's start) and shared by its steps. In the model's scalar type: a
+/// Jacobian's dual numbers carry `A`'s dependence on the unknowns through the exponentials
+/// (holding `A` at its value, a valid splitting too, made the microspeaker's final fit
+/// crawl: 12 iterations at gain ratios 0.36 instead of 9 at 0.99, for 15 % less per
+/// Jacobian).
+///
+/// Held as 2 x 2 matrices until issue 17's session 30, the coefficients took a quarter of a
+/// stiff driver's Jacobian (8-lane dual numbers: 14 matrices of four, each built from its
+/// pair); as pairs the same values to rounding (`pairs_are_the_matrix_coefficients`).
 #[derive(Clone, Copy, Debug)]
 pub struct EtdCoefficients<D> {
     h: f64,
     a: [[D; 2]; 2],
-    e5: [[D; 2]; 2],
-    e1: [[D; 2]; 2],
-    a21: [[D; 2]; 2],
-    a31: [[D; 2]; 2],
-    a32: [[D; 2]; 2],
-    a41: [[D; 2]; 2],
-    a42: [[D; 2]; 2],
-    a51: [[D; 2]; 2],
-    a52: [[D; 2]; 2],
-    a54: [[D; 2]; 2],
-    b1: [[D; 2]; 2],
-    b4: [[D; 2]; 2],
-    b5: [[D; 2]; 2],
+    e5: Pair<D>,
+    e1: Pair<D>,
+    a21: Pair<D>,
+    a31: Pair<D>,
+    a32: Pair<D>,
+    a41: Pair<D>,
+    a42: Pair<D>,
+    a51: Pair<D>,
+    a52: Pair<D>,
+    a54: Pair<D>,
+    b1: Pair<D>,
+    b4: Pair<D>,
+    b5: Pair<D>,
 }
 
 impl<D: DualNum<Primitive = f64> + Copy> EtdCoefficients<D> {
@@ -309,7 +357,6 @@ impl<D: DualNum<Primitive = f64> + Copy> EtdCoefficients<D> {
         let [e5, p15, p25, p35] = matrix_functions(&half, phis);
         let [e1, p11, p21, p31] = matrix_functions(&full, phis);
         let lin = |f: &[(D, D)], w: &[f64]| -> (D, D) { f.iter().zip(w).fold((D::zero(), D::zero()), |acc, (g, &c)| (acc.0 + g.0 * c, acc.1 + g.1 * c)) };
-        let add = |x: [[D; 2]; 2], y: [[D; 2]; 2]| -> [[D; 2]; 2] { std::array::from_fn(|r| std::array::from_fn(|c| x[r][c] + y[r][c])) };
         // a52 = a53 = phi2(M/2)/2 - phi3(M/2)/2 + phi2(M)/4 - phi3(M): a pair on each matrix.
         let a52h = lin(&[p25, p35], &[0.5, -0.5]);
         let a52f = lin(&[p21, p31], &[0.25, -1.0]);
@@ -318,21 +365,22 @@ impl<D: DualNum<Primitive = f64> + Copy> EtdCoefficients<D> {
         let a54f = lin(&[a52f], &[-1.0]);
         let a51h = lin(&[p15, a52h, a54h], &[0.5, -2.0, -1.0]);
         let a51f = lin(&[a52f, a54f], &[-2.0, -1.0]);
-        let on_half = |f: (D, D)| pair_matrix(f, &half, h);
-        let on_full = |f: (D, D)| pair_matrix(f, &full, h);
+        // `h f(M/2)` and `h f(M)` as pairs on A (M = A h).
+        let on_half = |f: (D, D)| Pair::of(f, 0.5 * h, h);
+        let on_full = |f: (D, D)| Pair::of(f, h, h);
         EtdCoefficients {
             h,
             a: *a,
-            e5: pair_matrix(e5, &half, 1.0),
-            e1: pair_matrix(e1, &full, 1.0),
+            e5: Pair::of(e5, 0.5 * h, 1.0),
+            e1: Pair::of(e1, h, 1.0),
             a21: on_half(lin(&[p15], &[0.5])),
             a31: on_half(lin(&[p15, p25], &[0.5, -1.0])),
             a32: on_half(p25),
             a41: on_full(lin(&[p11, p21], &[1.0, -2.0])),
             a42: on_full(p21),
-            a51: add(on_half(a51h), on_full(a51f)),
-            a52: add(on_half(a52h), on_full(a52f)),
-            a54: add(on_half(a54h), on_full(a54f)),
+            a51: on_half(a51h).plus(on_full(a51f)),
+            a52: on_half(a52h).plus(on_full(a52f)),
+            a54: on_half(a54h).plus(on_full(a54f)),
             b1: on_full(lin(&[p11, p21, p31], &[1.0, -3.0, 4.0])),
             b4: on_full(lin(&[p21, p31], &[-1.0, 4.0])),
             b5: on_full(lin(&[p21, p31], &[4.0, -8.0])),
@@ -357,45 +405,158 @@ where
 {
     use crate::model::idx::{I, I2};
     let (a, h) = (&k.a, k.h);
-    // The non-stiff remainder N = f - A (i, i2) on the electrical states.
-    let rest = |s: &[D; N], u: D| -> [D; N] {
-        let mut d = sys.deriv(s, u);
-        let (i, i2) = (s[I], s[I2]);
-        d[I] -= a[0][0] * i + a[0][1] * i2;
-        d[I2] -= a[1][0] * i + a[1][1] * i2;
-        d
-    };
-    // A stage: `ey` (e^{cM} y on the currents) + sum_j (h a_j) N_j, and on the other states
-    // y + h sum_j a_j(0) N_j (`at0`, zero terms left out).
-    let stage = |ey: [D; 2], terms: &[(&[[D; 2]; 2], f64, &[D; N])]| -> [D; N] {
-        let mut s: [D; N] = *y;
-        for j in (0..N).filter(|&j| j != I && j != I2) {
-            for (_, at0, nj) in terms.iter().filter(|t| t.1 != 0.0) {
-                s[j] += nj[j] * (at0 * h);
-            }
-        }
-        let mut el = ey;
-        for (coef, _, nj) in terms {
-            let t = mat_vec(coef, [nj[I], nj[I2]]);
-            el[0] += t[0];
-            el[1] += t[1];
-        }
-        s[I] = el[0];
-        s[I2] = el[1];
-        s
-    };
     let y_el = [y[I], y[I2]];
-    let (ey5, ey1) = (mat_vec(&k.e5, y_el), mat_vec(&k.e1, y_el));
-    let n1 = rest(y, u0);
-    let s2 = stage(ey5, &[(&k.a21, 0.5, &n1)]);
-    let n2 = rest(&s2, um);
-    let s3 = stage(ey5, &[(&k.a31, 0.0, &n1), (&k.a32, 0.5, &n2)]);
-    let n3 = rest(&s3, um);
-    let s4 = stage(ey1, &[(&k.a41, 0.0, &n1), (&k.a42, 0.5, &n2), (&k.a42, 0.5, &n3)]);
-    let n4 = rest(&s4, u1);
-    let s5 = stage(ey5, &[(&k.a51, 0.25, &n1), (&k.a52, 0.125, &n2), (&k.a52, 0.125, &n3), (&k.a54, 0.0, &n4)]);
-    let n5 = rest(&s5, um);
-    stage(ey1, &[(&k.b1, 1.0 / 6.0, &n1), (&k.b4, 1.0 / 6.0, &n4), (&k.b5, 2.0 / 3.0, &n5)])
+    let ay = mat_vec(a, y_el);
+    let (ey5, ey1) = (k.e5.apply(y_el, ay), k.e1.apply(y_el, ay));
+    let n1 = etd_rest(sys, a, y, u0);
+    let s2 = etd_stage(y, h, ey5, &[(&k.a21, 0.5, &n1)]);
+    let n2 = etd_rest(sys, a, &s2, um);
+    let s3 = etd_stage(y, h, ey5, &[(&k.a31, 0.0, &n1), (&k.a32, 0.5, &n2)]);
+    let n3 = etd_rest(sys, a, &s3, um);
+    // Stages 2 and 3 share their coefficients in stages 4 and 5 (a42 = a43, a52 = a53).
+    let n23 = Rest { n: std::array::from_fn(|j| n2.n[j] + n3.n[j]), an: [n2.an[0] + n3.an[0], n2.an[1] + n3.an[1]] };
+    let s4 = etd_stage(y, h, ey1, &[(&k.a41, 0.0, &n1), (&k.a42, 0.5, &n23)]);
+    let n4 = etd_rest(sys, a, &s4, u1);
+    let s5 = etd_stage(y, h, ey5, &[(&k.a51, 0.25, &n1), (&k.a52, 0.125, &n23), (&k.a54, 0.0, &n4)]);
+    let n5 = etd_rest(sys, a, &s5, um);
+    etd_stage(y, h, ey1, &[(&k.b1, 1.0 / 6.0, &n1), (&k.b4, 1.0 / 6.0, &n4), (&k.b5, 2.0 / 3.0, &n5)])
+}
+
+/// The coefficients of [`etd2_step`] (as [`EtdCoefficients`]'s, pairs on `A`): `e^{M/2}`,
+/// `e^M`, the stage's `h phi_1(M/2) / 2` and its drive's `h phi_2(M/2) / 2`, the result's `h
+/// (phi_1(M) - 2 phi_2(M))`, `2 h phi_2(M)` and its drive's `h (4 phi_3(M) - phi_2(M))`, `M
+/// = A h`.
+#[derive(Clone, Copy, Debug)]
+pub struct Etd2Coefficients<D> {
+    h: f64,
+    a: [[D; 2]; 2],
+    e5: Pair<D>,
+    e1: Pair<D>,
+    a21: Pair<D>,
+    c2: Pair<D>,
+    b1: Pair<D>,
+    b2: Pair<D>,
+    d: Pair<D>,
+}
+
+impl<D: DualNum<Primitive = f64> + Copy> Etd2Coefficients<D> {
+    #[inline]
+    pub fn new(a: &[[D; 2]; 2], h: f64) -> Self {
+        let full: [[D; 2]; 2] = std::array::from_fn(|r| std::array::from_fn(|c| a[r][c] * h));
+        let half: [[D; 2]; 2] = std::array::from_fn(|r| std::array::from_fn(|c| a[r][c] * (0.5 * h)));
+        let [e5, p15, p25, _] = matrix_functions(&half, phis);
+        let [e1, p11, p21, p31] = matrix_functions(&full, phis);
+        let lin = |f: (D, D), g: (D, D), a: f64, b: f64| (f.0 * a + g.0 * b, f.1 * a + g.1 * b);
+        Etd2Coefficients {
+            h,
+            a: *a,
+            e5: Pair::of(e5, 0.5 * h, 1.0),
+            e1: Pair::of(e1, h, 1.0),
+            a21: Pair::of(p15, 0.5 * h, 0.5 * h),
+            c2: Pair::of(p25, 0.5 * h, 0.5 * h),
+            b1: Pair::of(lin(p11, p21, 1.0, -2.0), h, h),
+            b2: Pair::of(lin(p21, p21, 1.0, 1.0), h, h),
+            d: Pair::of(lin(p31, p21, 4.0, -1.0), h, h),
+        }
+    }
+}
+
+/// One step of the exponential midpoint method (Hochbruck and Ostermann's two-stage method
+/// with `c_2 = 1/2`, Acta Numerica 2010, Section 5.2): the stage `e^{M/2} y + h/2 phi_1(M/2)
+/// N(y, u0)`, the result `e^M y + h (phi_1(M) - 2 phi_2(M)) N(y, u0) + 2 h phi_2(M)
+/// N(stage, um)`; on the states outside the network it is the explicit midpoint rule
+/// ([`midpoint_sample`]). Two evaluations of the model instead of [`etd4_step`]'s five: a
+/// stiff driver's search Jacobians ([`Stepper::for_search_jacobian`]), never a model run
+/// whose result is kept.
+///
+/// The drive enters the current's rate as `b u` ([`Electrical::input`], `b` frozen at the
+/// step's start), and a stiff current follows it within a fraction of the step: the stage
+/// and the result add the exact integrals of the drive's change over them (linear through
+/// `u0, um` on the stage, quadratic through `u0, um, u1` on the step), beyond what the two
+/// evaluations hold (`u0` and `um`). Without them the stage's current lags the drive, and
+/// the microspeaker's mechanical columns missed a reference's by 5 %.
+#[inline]
+pub fn etd2_step<D, S, const N: usize>(sys: &S, y: &[D; N], k: &Etd2Coefficients<D>, b: D, u0: D, um: D, u1: D) -> [D; N]
+where
+    D: DualNum<Primitive = f64> + Copy,
+    S: Dynamics<D, N>,
+{
+    use crate::model::idx::{I, I2};
+    let (a, h) = (&k.a, k.h);
+    let y_el = [y[I], y[I2]];
+    let ay = mat_vec(a, y_el);
+    let (ey5, ey1) = (k.e5.apply(y_el, ay), k.e1.apply(y_el, ay));
+    let drive = |du: D| -> [D; 2] {
+        let v = [b * du, D::zero()];
+        k.d.apply(v, [a[0][0] * v[0], a[1][0] * v[0]])
+    };
+    let n1 = etd_rest(sys, a, y, u0);
+    let stage_drive = {
+        let v = [b * (um - u0), D::zero()];
+        k.c2.apply(v, [a[0][0] * v[0], a[1][0] * v[0]])
+    };
+    let s2 = etd_stage(y, h, [ey5[0] + stage_drive[0], ey5[1] + stage_drive[1]], &[(&k.a21, 0.5, &n1)]);
+    let n2 = etd_rest(sys, a, &s2, um);
+    let dr = drive(u1 - um * 2.0 + u0);
+    etd_stage(y, h, [ey1[0] + dr[0], ey1[1] + dr[1]], &[(&k.b1, 0.0, &n1), (&k.b2, 1.0, &n2)])
+}
+
+/// [`etd2_step`]s over one sample, the network and the input gain frozen at the sample's
+/// start.
+#[inline]
+pub fn etd2_sample<D, S, const N: usize>(sys: &S, y: &[D; N], dt: f64, u_points: &[D]) -> [D; N]
+where
+    D: DualNum<Primitive = f64> + Copy,
+    S: Electrical<D, N>,
+{
+    let n = (u_points.len() - 1) / 2;
+    let k = Etd2Coefficients::new(&sys.electrical(y), dt / n as f64);
+    let b = sys.input(y);
+    steps_over_sample(y, dt, u_points, |y, _, u0, um, u1| etd2_step(sys, y, &k, b, u0, um, u1))
+}
+
+/// The non-stiff remainder `N = f - A (i, i2)` of [`etd4_step`] at a stage, with `A N`'s
+/// electrical part (what the coefficients' pairs apply to).
+struct Rest<D, const N: usize> {
+    n: [D; N],
+    an: [D; 2],
+}
+
+#[inline(always)]
+fn etd_rest<D, S, const N: usize>(sys: &S, a: &[[D; 2]; 2], s: &[D; N], u: D) -> Rest<D, N>
+where
+    D: DualNum<Primitive = f64> + Copy,
+    S: Dynamics<D, N>,
+{
+    use crate::model::idx::{I, I2};
+    let mut d = sys.deriv(s, u);
+    let (i, i2) = (s[I], s[I2]);
+    d[I] -= a[0][0] * i + a[0][1] * i2;
+    d[I2] -= a[1][0] * i + a[1][1] * i2;
+    let an = mat_vec(a, [d[I], d[I2]]);
+    Rest { n: d, an }
+}
+
+/// A stage of [`etd4_step`]: `ey` (e^{cM} y on the currents) + sum_j (h a_j) N_j, and on the
+/// other states y + h sum_j a_j(0) N_j (`at0`, zero terms left out).
+#[inline(always)]
+fn etd_stage<D: DualNum<Primitive = f64> + Copy, const N: usize>(y: &[D; N], h: f64, ey: [D; 2], terms: &[(&Pair<D>, f64, &Rest<D, N>)]) -> [D; N] {
+    use crate::model::idx::{I, I2};
+    let mut s: [D; N] = *y;
+    for j in (0..N).filter(|&j| j != I && j != I2) {
+        for (_, at0, r) in terms.iter().filter(|t| t.1 != 0.0) {
+            s[j] += r.n[j] * (at0 * h);
+        }
+    }
+    let mut el = ey;
+    for (coef, _, r) in terms {
+        let t = coef.apply([r.n[I], r.n[I2]], r.an);
+        el[0] += t[0];
+        el[1] += t[1];
+    }
+    s[I] = el[0];
+    s[I2] = el[1];
+    s
 }
 
 /// [`rk4_sample`] with [`etd4_step`]s, the network frozen at the sample's start.
@@ -472,6 +633,9 @@ pub enum Scheme {
     /// The explicit midpoint rule ([`midpoint_sample`]): the Jacobians of the search stages
     /// ([`Stepper::for_search_jacobian`]), never a model run whose result is kept.
     Midpoint,
+    /// The exponential midpoint method ([`etd2_sample`]): a stiff driver's search Jacobians,
+    /// never a model run whose result is kept.
+    ExpMidpoint,
 }
 
 impl Scheme {
@@ -481,6 +645,7 @@ impl Scheme {
             Scheme::Rk4 => "rk4",
             Scheme::Exponential => "exponential",
             Scheme::Midpoint => "midpoint",
+            Scheme::ExpMidpoint => "exponential-midpoint",
         }
     }
 }
@@ -569,9 +734,12 @@ impl Stepper {
     /// `testdata`, the order-4 one 0.2-8 %.
     pub fn for_search_jacobian(rates: Rates, fs: f64, lr3: bool) -> Self {
         if rates.total() / fs <= SEARCH_MIDPOINT_LIMIT {
-            Stepper::new(Scheme::Midpoint, 1)
-        } else {
-            Stepper::for_fit(rates, fs, lr3).1
+            return Stepper::new(Scheme::Midpoint, 1);
+        }
+        let fit = Stepper::for_fit(rates, fs, lr3).1;
+        match fit.scheme {
+            Scheme::Exponential => Stepper::new(Scheme::ExpMidpoint, fit.n()),
+            _ => fit,
         }
     }
 
@@ -597,6 +765,7 @@ impl Stepper {
             Scheme::Rk4 => rk4_sample(sys, y, dt, u_points),
             Scheme::Exponential => etd4_sample(sys, y, dt, u_points),
             Scheme::Midpoint => midpoint_sample(sys, y, dt, u_points),
+            Scheme::ExpMidpoint => etd2_sample(sys, y, dt, u_points),
         }
     }
 }
@@ -727,6 +896,9 @@ mod tests {
         fn electrical(&self, _: &[D; 4]) -> [[D; 2]; 2] {
             std::array::from_fn(|r| std::array::from_fn(|c| D::from(self.a[r][c])))
         }
+        fn input(&self, _: &[D; 4]) -> D {
+            D::one()
+        }
     }
 
     fn reference(sys: &Network, y0: [f64; 4], t: f64, u: &dyn Fn(f64) -> f64) -> [f64; 4] {
@@ -761,6 +933,67 @@ mod tests {
         assert!((r[2] - exact[2]).abs() > 1.0, "{}", r[2]);
     }
 
+    /// `phi_k(M)` of a 2 x 2 matrix by its Taylor series `sum_j M^j / (j + k)!` (200 terms):
+    /// slow, and obviously the definition.
+    fn slow_phi(m: [[f64; 2]; 2], k: usize) -> [[f64; 2]; 2] {
+        let mul = |x: [[f64; 2]; 2], y: [[f64; 2]; 2]| -> [[f64; 2]; 2] { std::array::from_fn(|r| std::array::from_fn(|c| x[r][0] * y[0][c] + x[r][1] * y[1][c])) };
+        let mut sum = [[0.0; 2]; 2];
+        let mut power = [[1.0, 0.0], [0.0, 1.0]];
+        let mut fact: f64 = (1..=k).map(|v| v as f64).product();
+        for j in 0..200 {
+            for r in 0..2 {
+                for c in 0..2 {
+                    sum[r][c] += power[r][c] / fact;
+                }
+            }
+            power = mul(power, m);
+            fact *= (j + k + 1) as f64;
+        }
+        sum
+    }
+
+    /// Issue 17, session 30: the coefficients held as pairs `p I + q A` are Hochbruck and
+    /// Ostermann's matrices (Eq. 5.19) computed from the slow series of each `phi_j(c h A)`,
+    /// for a microspeaker's network (`|lambda| h` = 10, the closed forms) and a woofer's
+    /// (0.3, the series).
+    #[test]
+    fn pairs_are_the_matrix_coefficients() {
+        let h = 1.0 / 48000.0;
+        for (a, tol) in [(STIFF, 1e-8), ([[-1.2e4, 2.0e3], [3.0e3, -3.0e3]], 1e-12)] {
+            let k = EtdCoefficients::new(&a, h);
+            let scaled = |c: f64| -> [[f64; 2]; 2] { std::array::from_fn(|r| std::array::from_fn(|j| a[r][j] * c * h)) };
+            let ph = |j: usize, c: f64| slow_phi(scaled(c), j);
+            let comb = |terms: &[([[f64; 2]; 2], f64)], scale: f64| -> [[f64; 2]; 2] { std::array::from_fn(|r| std::array::from_fn(|c| scale * terms.iter().map(|(m, w)| m[r][c] * w).sum::<f64>())) };
+            let a52 = comb(&[(ph(2, 0.5), 0.5), (ph(3, 1.0), -1.0), (ph(2, 1.0), 0.25), (ph(3, 0.5), -0.5)], 1.0);
+            let a54 = comb(&[(ph(2, 0.5), 0.25), (a52, -1.0)], 1.0);
+            let a51 = comb(&[(ph(1, 0.5), 0.5), (a52, -2.0), (a54, -1.0)], 1.0);
+            let cases: [(&str, &Pair<f64>, [[f64; 2]; 2]); 13] = [
+                ("e5", &k.e5, ph(0, 0.5)),
+                ("e1", &k.e1, ph(0, 1.0)),
+                ("a21", &k.a21, comb(&[(ph(1, 0.5), 0.5)], h)),
+                ("a31", &k.a31, comb(&[(ph(1, 0.5), 0.5), (ph(2, 0.5), -1.0)], h)),
+                ("a32", &k.a32, comb(&[(ph(2, 0.5), 1.0)], h)),
+                ("a41", &k.a41, comb(&[(ph(1, 1.0), 1.0), (ph(2, 1.0), -2.0)], h)),
+                ("a42", &k.a42, comb(&[(ph(2, 1.0), 1.0)], h)),
+                ("a51", &k.a51, comb(&[(a51, 1.0)], h)),
+                ("a52", &k.a52, comb(&[(a52, 1.0)], h)),
+                ("a54", &k.a54, comb(&[(a54, 1.0)], h)),
+                ("b1", &k.b1, comb(&[(ph(1, 1.0), 1.0), (ph(2, 1.0), -3.0), (ph(3, 1.0), 4.0)], h)),
+                ("b4", &k.b4, comb(&[(ph(2, 1.0), -1.0), (ph(3, 1.0), 4.0)], h)),
+                ("b5", &k.b5, comb(&[(ph(2, 1.0), 4.0), (ph(3, 1.0), -8.0)], h)),
+            ];
+            for (name, pair, want) in cases {
+                let scale = want.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
+                for r in 0..2 {
+                    for c in 0..2 {
+                        let got = if r == c { pair.p } else { 0.0 } + pair.q * a[r][c];
+                        assert!((got - want[r][c]).abs() <= tol * scale, "{name}[{r}][{c}]: {got:e} vs {:e} (|A h| {:.1})", want[r][c], a[0][0].abs() * h);
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn the_exponential_method_is_fourth_order_on_the_coupled_system() {
         // A smooth drive and the nonlinear mechanics: halving h divides the error by ~16
@@ -785,6 +1018,42 @@ mod tests {
         assert!(e2 < 1e-5, "{e2:.3e}");
         let (r1, r2) = (e1 / e2, e2 / e3);
         assert!(r1 > 11.0 && r2 > 13.0, "error ratios {r1:.1}, {r2:.1} ({e1:.2e}, {e2:.2e}, {e3:.2e})");
+    }
+
+    /// The exponential midpoint rule ([`etd2_step`], the stiff drivers' search Jacobians)
+    /// integrates the network exactly under a drive quadratic in time (its drive terms), at
+    /// `|lambda| h` = 10; on the coupled nonlinear system it is second order.
+    #[test]
+    fn the_exponential_midpoint_rule_is_exact_on_the_network_and_second_order() {
+        let sys = Network { a: STIFF, g: 0.0, k3: 0.0 };
+        let y0 = [0.0, 0.0, 0.3, -0.1];
+        let h = 1.0 / 48000.0;
+        let u = |t: f64| 2.0e5 + 3.0e9 * t - 4.0e13 * t * t;
+        let exact = reference(&sys, y0, h, &u);
+        let k = Etd2Coefficients::new(&sys.electrical(&y0), h);
+        let y = etd2_step(&sys, &y0, &k, 1.0, u(0.0), u(0.5 * h), u(h));
+        for j in 2..4 {
+            assert!((y[j] - exact[j]).abs() < 1e-11 * exact[j].abs().max(1.0), "state {j}: {} vs {}", y[j], exact[j]);
+        }
+        let sys = Network { a: STIFF, g: 3.0e3, k3: 2.0e9 };
+        let u = |t: f64| 4.0e4 * (2.0 * std::f64::consts::PI * 700.0 * t).sin() + 1.0e4 * (2.0 * std::f64::consts::PI * 2300.0 * t).cos();
+        let t_end = 2.0e-3;
+        let y0 = [1e-4, 0.0, 0.0, 0.0];
+        let exact = reference(&sys, y0, t_end, &u);
+        let err = |n: usize| {
+            let h = t_end / n as f64;
+            let mut y = y0;
+            for s in 0..n {
+                let t0 = s as f64 * h;
+                let k = Etd2Coefficients::new(&sys.electrical(&y), h);
+                y = etd2_step(&sys, &y, &k, 1.0, u(t0), u(t0 + 0.5 * h), u(t0 + h));
+            }
+            ((y[0] - exact[0]) / exact[0]).abs().max(((y[2] - exact[2]) / exact[2]).abs())
+        };
+        let (e1, e2, e3) = (err(192), err(384), err(768));
+        assert!(e1 < 1e-3, "{e1:.3e}");
+        let (r1, r2) = (e1 / e2, e2 / e3);
+        assert!(r1 > 3.0 && r2 > 3.5, "error ratios {r1:.1}, {r2:.1} ({e1:.2e}, {e2:.2e}, {e3:.2e})");
     }
 
     #[test]
@@ -837,6 +1106,9 @@ mod tests {
                 fn electrical(&self, _: &[Dual64; 4]) -> [[Dual64; 2]; 2] {
                     [[self.0, Dual64::from(STIFF[0][1])], [Dual64::from(STIFF[1][0]), Dual64::from(STIFF[1][1])]]
                 }
+                fn input(&self, _: &[Dual64; 4]) -> Dual64 {
+                    Dual64::from(1.0)
+                }
             }
             let sys = P(d);
             let mut y = [Dual64::from(1e-4), Dual64::from(0.0), Dual64::from(0.1), Dual64::from(0.0)];
@@ -872,8 +1144,9 @@ mod tests {
         let (r, j) = Stepper::for_fit(micro, fs, false);
         assert_eq!((r.scheme, r.n(), j.scheme, j.n()), (Scheme::Exponential, 4, Scheme::Exponential, 1));
         // A search stage's Jacobian: the midpoint rule for woofers (with a fitted LR-3 branch
-        // too), the final fit's steps for the stiff ones.
-        for (rates, lr3, scheme) in [(woofer, false, Scheme::Midpoint), (woofer, true, Scheme::Midpoint), (Rates::stiff(1.2 * fs), false, Scheme::Rk4), (micro, false, Scheme::Exponential), (micro, true, Scheme::Rk4)] {
+        // too), the exponential midpoint rule for the stiff ones (the final fit's RK4 with a
+        // fitted LR-3 branch, or between the two limits).
+        for (rates, lr3, scheme) in [(woofer, false, Scheme::Midpoint), (woofer, true, Scheme::Midpoint), (Rates::stiff(1.2 * fs), false, Scheme::Rk4), (micro, false, Scheme::ExpMidpoint), (micro, true, Scheme::Rk4)] {
             let s = Stepper::for_search_jacobian(rates, fs, lr3);
             assert_eq!(s.scheme, scheme, "{rates:?} {lr3}");
             assert_eq!(s.n(), if scheme == Scheme::Midpoint { 1 } else { Stepper::for_fit(rates, fs, lr3).1.n() });

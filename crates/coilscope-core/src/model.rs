@@ -230,6 +230,17 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
         }
     }
 
+    /// How the terminal voltage enters the current's rate at displacement `x` and current
+    /// `i`: `d(di/dt)/du = 1 / (Le(x) h(i))` (1/H; `h = 1` without `Le_i`).
+    #[inline]
+    pub fn input_gain(&self, x: D, i: D) -> D {
+        let le = self.le.eval(x);
+        match &self.le_i {
+            None => le.recip(),
+            Some(_) => (le * self.le_i_incremental(i)).recip(),
+        }
+    }
+
     /// The current derivative, the reluctance force and the loss with `Le_i` or `Rms_v`:
     /// `(u_rest - Le' v g i) / (Le h)`, `Le' G(i)`, `Rms(|v|)`, where `u_rest` is the terminal
     /// voltage less `Re i`, `Bl v` and the LR-2 branch. Kept out of line: inlined, it made the

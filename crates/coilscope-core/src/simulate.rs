@@ -41,6 +41,11 @@ impl<S: Electrical<f64, N>, const N: usize> Electrical<f64, N> for Pushed<'_, S>
     fn electrical(&self, y: &[f64; N]) -> [[f64; 2]; 2] {
         self.sys.electrical(y)
     }
+
+    #[inline]
+    fn input(&self, y: &[f64; N]) -> f64 {
+        self.sys.input(y)
+    }
 }
 
 impl Plant {
@@ -248,7 +253,7 @@ impl Simulator {
             (None, Some(n)) | (Some(Scheme::Rk4), Some(n)) => Stepper::new(Scheme::Rk4, n),
             (Some(Scheme::Rk4), None) => Stepper::new(Scheme::Rk4, substeps_for(params.rates().total(), fs)),
             (Some(Scheme::Exponential), n) => Stepper::new(Scheme::Exponential, n.unwrap_or_else(|| exp_steps_for(params.rates(), fs))),
-            (Some(Scheme::Midpoint), _) => return Err(SimError::Input("the midpoint rule is the search's Jacobian scheme, not a simulation's: take rk4 or exponential".into())),
+            (Some(s @ (Scheme::Midpoint | Scheme::ExpMidpoint)), _) => return Err(SimError::Input(format!("the {} rule is the search's Jacobian scheme, not a simulation's: take rk4 or exponential", s.name()))),
         };
         let n = stepper.n();
         let bounds = params.x_range.map(|[lo, hi]| [lo * (1.0 + opts.range_margin), hi * (1.0 + opts.range_margin)]);

@@ -126,6 +126,22 @@ fn jacobian_order4(b: divan::Bencher) {
     b.bench_local(|| prob.jacobian(&th));
 }
 
+/// One Jacobian (17 columns, 8 s) of the microspeaker's order-2 problem, all cores: the
+/// exponential scheme's dual-number runs (one step per sample), what its `identify` spends
+/// most of its time in.
+#[divan::bench(sample_count = 3, sample_size = 1)]
+fn jacobian_microspeaker(b: divan::Bencher) {
+    let r = rec("microspeaker-0g1");
+    let p = &r.p;
+    let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
+    let sc = Scales { re: p.re, le: p.le.eval(0.0), l2, r2, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
+    let lay = Layout::new(2, 5, 2.0, 0.005, sc, true, p.mms);
+    let th = lay.theta_from(p, None);
+    let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let prob = OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.rates(), 0.05, threads);
+    b.bench_local(|| prob.jacobian(&th));
+}
+
 /// `J^T J` of the order-4 problem's Jacobian (23 columns, 8 s): `lm::gram` (blocked rows,
 /// both cores) against nalgebra's `tr_mul` (one column pair at a time, one core); the two
 /// are the same matrix to the last bit.

@@ -49,11 +49,11 @@ pub const CHUNK: usize = 8;
 /// turn on one core), 10 588 ms (10, 10, 3), 12 675 ms (12, 11, side by side): a 10-wide pass
 /// costs 1.13 of an 8-wide one ([`WIDE_PASS_COST`]), a 12-wide one 2.6.
 pub const CHUNK_WIDE: usize = 10;
-/// The narrower pass a remainder of at most 4 columns takes (17 columns: 8, 8 and 1; 11: 8
-/// and 3; 20 on the exponential scheme: 8, 8 and 4): a 4-lane dual number instead of an
-/// 8-lane one with lanes left empty. Session 28 (the stages example, the microspeaker, whose
-/// 17- and 20-column Jacobians take that third pass on the core the residual run leaves):
-/// 11.05 -> 10.4 s. Every column is the same arithmetic at any width (the Jacobian is
+/// The narrower pass a remainder of at most 4 columns takes (11 columns: 8 and 3; one core's
+/// 17: 8, 8 and 1): a 4-lane dual number instead of an 8-lane one with lanes left empty.
+/// Session 28 (the stages example, the microspeaker, whose 17- and 20-column Jacobians then
+/// took 8, 8 and 1 or 4, the third pass on the core the residual run leaves): 11.05 -> 10.4
+/// s. Every column is the same arithmetic at any width (the Jacobian is
 /// bit-identical: `a_jacobian_in_wide_passes_is_the_jacobian`).
 pub const CHUNK_SHORT: usize = 4;
 /// The cost of a [`CHUNK_WIDE`] pass in units of a [`CHUNK`] pass (measured, above).
@@ -65,9 +65,15 @@ pub const WIDE_PASS_COST: f64 = 1.13;
 /// one costing [`WIDE_PASS_COST`]). On two cores: 17-20 columns in two passes instead of
 /// three (one each instead of two in turn on one core), 33-40 in four instead of five.
 /// Every column is the same arithmetic whatever its pass's width: the Jacobian is the same
-/// to the last bit (`a_jacobian_in_wide_passes_is_the_jacobian`). Not for the exponential
-/// scheme (`wide_ok` false), whose wide passes were slower than that: the microspeaker's
-/// 17-column Jacobian beside its residual run 3.5 -> 4.0 s.
+/// to the last bit (`a_jacobian_in_wide_passes_is_the_jacobian`). `wide_ok` false: passes of
+/// [`CHUNK`] only (the online estimator's, whose passes are 8-wide).
+///
+/// The exponential scheme takes wide passes too since session 30 (its coefficients as
+/// pairs, [`coilscope_core::integrate::EtdCoefficients`]): the microspeaker's 17-column
+/// Jacobian (`jacobian_microspeaker`) 1.14 -> 0.96 s, its search iterations of order 2 in
+/// `identify` 0.80 -> 0.66 s. (Session 27 had measured the opposite, 3.5 -> 4.0 s beside a
+/// residual run, when subnormal lanes made some passes three to five times slower than
+/// others: [`coilscope_core::integrate::FlushTiny`].)
 pub fn pass_widths(n: usize, threads: usize, wide_ok: bool) -> Vec<usize> {
     let threads = threads.max(1);
     let (narrow, wide) = (n.div_ceil(CHUNK), n.div_ceil(CHUNK_WIDE));
@@ -1229,9 +1235,9 @@ impl<'a> OutputError<'a> {
         self.jacobian_in(th, &self.pass_widths())
     }
 
-    /// The widths of the Jacobian's passes ([`pass_widths`]; wide ones with RK4 only).
+    /// The widths of the Jacobian's passes ([`pass_widths`]).
     fn pass_widths(&self) -> Vec<usize> {
-        pass_widths(self.n_layout(), self.threads, self.stepper_jac.scheme == Scheme::Rk4)
+        pass_widths(self.n_layout(), self.threads, true)
     }
 
     /// [`OutputError::jacobian`] in passes of the given widths (summing to the layout's
@@ -2832,7 +2838,12 @@ mod tests {
     /// reference (RK4, eight): the final fit's columns within 1.1 % of the reference
     /// (measured 0.02-1.08 %), the search's within 16 % (Le(x)'s columns, which the stiff
     /// electrical mode carries: 15 %), 3.5 % (Re(t), L2, R2: 0.3-3.4 %) and 1.2 % (Bl, Kms,
-    /// Rms: 0.3-1.04 %). A stiff driver's search Jacobian is the final fit's.
+    /// Rms: 0.3-1.04 %). The microspeaker's (the exponential midpoint rule, session 30)
+    /// against the final fit's (the exponential method, one step) and a reference (eight):
+    /// the final fit's within 2.5 % (0.04-2.3 %), the search's within 4.5 % (Le(x): 1.7-3.8
+    /// %), 1 % (Re(t): 0.55-0.76 %), 2.5 % (L2, R2: 0.9-2.0 %) and 5.5 % (Bl, Kms, Rms: 3.9-4.6
+    /// %, the midpoint's quadrature of a current that follows the drive to 8 kHz; without
+    /// the drive's integrals of [`coilscope_core::integrate::etd2_step`] Le(x) was 30 % off).
     #[test]
     fn a_search_jacobian_is_near_the_final_fits() {
         let fs = 48000.0;
@@ -2863,10 +2874,28 @@ mod tests {
         let (_, tr) = gain_for_peak(&p, fs, &tr.u[..4800], 0.0004, &SimOptions::default()).unwrap();
         let lay = Layout::new(2, 3, 0.05, 0.0004, Scales::of(&p), true, p.mms);
         let th = lay.theta_from(&p, None);
+        let sl = lay.slots();
         let fin = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 480..tr.u.len(), p.rates(), 0.05, 2);
-        let search = OutputError::new(lay, &tr.u, &tr.i, fs, 480..tr.u.len(), p.rates(), 0.05, 2).searching();
-        assert_eq!(search.stepper_jac.scheme, Scheme::Exponential);
-        assert_eq!(fin.jacobian(&th), search.jacobian(&th));
+        let search = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 480..tr.u.len(), p.rates(), 0.05, 2).searching();
+        let mut reference = OutputError::new(lay, &tr.u, &tr.i, fs, 480..tr.u.len(), p.rates(), 0.05, 2);
+        reference.stepper_jac = Stepper::new(Scheme::Exponential, 8);
+        assert_eq!((fin.stepper_jac.scheme, search.stepper_jac.scheme), (Scheme::Exponential, Scheme::ExpMidpoint));
+        let (jf, js, jr) = (fin.jacobian(&th), search.jacobian(&th), reference.jacobian(&th));
+        let off = |j: &DMatrix<f64>, c: usize| (j.column(c) - jr.column(c)).norm() / jr.column(c).norm();
+        for c in 0..jr.ncols() {
+            let mechanical = sl.bl.contains(&c) || sl.kms.contains(&c) || c == sl.rms;
+            let bound = if sl.le.contains(&c) {
+                0.045
+            } else if mechanical {
+                0.055
+            } else if sl.re.contains(&c) {
+                0.01
+            } else {
+                0.025
+            };
+            assert!(off(&jf, c) < 0.025, "microspeaker column {c}: exponential {:.2e}", off(&jf, c));
+            assert!(off(&js, c) < bound, "microspeaker column {c}: exponential midpoint {:.2e} (bound {bound})", off(&js, c));
+        }
     }
 
     /// Issue 17: the passes' widths do not change the Jacobian (each column is the same
