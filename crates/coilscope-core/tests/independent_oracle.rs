@@ -16,7 +16,9 @@
 //!
 //! Measured: current 4e-9 to 1.8e-7 (relative RMS), displacement 3e-10 to 1.6e-8 of the peak
 //! with RK4 (the README's figures); the test fails at 1e-6 and 1e-7. The microspeaker with
-//! the exponential scheme (issue 17): 1.1e-7 and 6.1e-7; fails at 1e-6 and 3e-6.
+//! the exponential scheme (issue 17; 3 steps per sample with the drive integrated exactly
+//! since session 30, 1.1e-7 and 6.1e-7 at 4 steps before): 6.2e-8 and 5.7e-7; fails at 1e-6
+//! and 3e-6.
 
 use coilscope_core::integrate::{Scheme, Stepper};
 use coilscope_core::simulate::{simulate, SimOptions};
@@ -168,8 +170,8 @@ fn simulator_matches_the_oracle_on_a_stiff_microspeaker_and_a_large_coil() {
         if name == "large-coil" {
             check(name, &p, 0.15);
         } else {
-            // Issue 17: the microspeaker takes the exponential scheme (4 steps per sample;
-            // measured: current 1.1e-7, displacement 6.1e-7 of the peak), and RK4 with its
+            // Issue 17: the microspeaker takes the exponential scheme (3 steps per sample;
+            // measured: current 6.2e-8, displacement 5.7e-7 of the peak), and RK4 with its
             // 21 sub-steps stays checked too (1.9e-8, 1.6e-8).
             assert_eq!(Stepper::for_rates(p.rates(), FS).scheme, Scheme::Exponential);
             check_with(name, &p, 0.15, &SimOptions::default(), (1e-6, 3e-6));

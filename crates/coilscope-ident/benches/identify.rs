@@ -61,8 +61,8 @@ fn rec(name: &str) -> &'static Rec {
 }
 
 /// The microspeaker of `testdata/drivers` (Le 30 uH, L2 15 uH, R2 2 ohm: 21 RK4 sub-steps
-/// per sample at 48 kHz, or 4 exponential steps, the scheme it takes since issue 17; 1 in
-/// the Jacobian), LR-2, one sample (it takes most of a minute).
+/// per sample at 48 kHz, or 3 exponential steps (4 until session 30), the scheme it takes since issue 17; 1 in
+/// the Jacobian), LR-2, one sample.
 #[divan::bench(args = ["microspeaker-0g1"], sample_count = 1, sample_size = 1)]
 fn identify_8s_microspeaker(name: &str) {
     identify_8s(name);
