@@ -225,72 +225,51 @@ pub trait Electrical<D, const N: usize>: Dynamics<D, N> {
     fn input(&self, y: &[D; N]) -> D;
 }
 
-/// `phi_0 .. phi_3` of a scalar: `phi_0 = e^z`, `phi_{k+1}(z) = (phi_k(z) - 1/k!) / z`.
-#[inline]
-fn phis<D: DualNum<Primitive = f64> + Copy>(z: D) -> [D; 4] {
-    if z.re().abs() < 0.5 {
-        // phi_3 by its series sum_j z^j / (j + 3)! (13 terms: within 1e-16 for |z| < 0.5),
-        // the others by the recurrence upwards, which has no cancellation.
-        const C: [f64; 13] = {
-            let mut c = [0.0; 13];
-            let mut f = 6.0;
-            let mut j = 0;
-            while j < 13 {
-                c[j] = 1.0 / f;
-                f *= (j + 4) as f64;
-                j += 1;
-            }
-            c
-        };
-        let p3 = C.iter().rev().fold(D::zero(), |acc, &cj| acc * z + cj);
-        let p2 = z * p3 + 0.5;
-        let p1 = z * p2 + 1.0;
-        [z * p1 + 1.0, p1, p2, p3]
-    } else {
-        let e = z.exp();
-        let r = z.recip();
-        let p1 = (e - 1.0) * r;
-        let p2 = (p1 - 1.0) * r;
-        let p3 = (p2 - 0.5) * r;
-        [e, p1, p2, p3]
+/// `1 / k!` for `k = 0 ..= 5`.
+const INV_FACT: [f64; 6] = [1.0, 1.0, 0.5, 1.0 / 6.0, 1.0 / 24.0, 1.0 / 120.0];
+
+/// `1 / (j + m)!` for `j = 0 .. 13`: the series of `phi_m`.
+const fn series_coefficients(m: usize) -> [f64; 13] {
+    let mut f = 1.0;
+    let mut k = 2;
+    while k <= m {
+        f *= k as f64;
+        k += 1;
     }
+    let mut c = [0.0; 13];
+    let mut j = 0;
+    while j < 13 {
+        c[j] = 1.0 / f;
+        f *= (j + m + 1) as f64;
+        j += 1;
+    }
+    c
 }
 
-/// `phi_0 .. phi_5` of a scalar ([`phis`] two further): the drive's integrals ([`Drive`]).
+/// `phi_0 .. phi_{K-1}` of a scalar (`K` <= 6): `phi_0 = e^z`, `phi_{k+1}(z) = (phi_k(z) -
+/// 1/k!) / z`. Four for the method's coefficients, six with the drive's integrals
+/// ([`EtdCoefficients::with_drive`]).
 #[inline]
-fn phis6<D: DualNum<Primitive = f64> + Copy>(z: D) -> [D; 6] {
+fn phis<D: DualNum<Primitive = f64> + Copy, const K: usize>(z: D) -> [D; K] {
+    let mut p = [D::zero(); K];
     if z.re().abs() < 0.5 {
-        // phi_5 by its series sum_j z^j / (j + 5)! (13 terms: within 1e-16 for |z| < 0.5),
-        // the others by the recurrence upwards, which has no cancellation.
-        const C: [f64; 13] = {
-            let mut c = [0.0; 13];
-            let mut f = 120.0;
-            let mut j = 0;
-            while j < 13 {
-                c[j] = 1.0 / f;
-                f *= (j + 6) as f64;
-                j += 1;
-            }
-            c
-        };
-        let p5 = C.iter().rev().fold(D::zero(), |acc, &cj| acc * z + cj);
-        let p4 = z * p5 + 1.0 / 24.0;
-        let p3 = z * p4 + 1.0 / 6.0;
-        let p2 = z * p3 + 0.5;
-        let p1 = z * p2 + 1.0;
-        [z * p1 + 1.0, p1, p2, p3, p4, p5]
+        // phi_{K-1} by its series sum_j z^j / (j + K - 1)! (13 terms: within 1e-16 for
+        // |z| < 0.5), the others by the recurrence downwards, which has no cancellation.
+        let c: [f64; 13] = const { series_coefficients(K - 1) };
+        p[K - 1] = c.iter().rev().fold(D::zero(), |acc, &cj| acc * z + cj);
+        for k in (0..K - 1).rev() {
+            p[k] = z * p[k + 1] + INV_FACT[k];
+        }
     } else {
-        // The recurrence loses about log10((k + 1) / |z|) digits per level near |z| = 0.5:
-        // phi_5 keeps 1e-12 of itself there, and the closer ones more.
-        let e = z.exp();
+        // The recurrence upwards loses about log10((k + 1) / |z|) digits per level near
+        // |z| = 0.5: phi_5 keeps 1e-12 of itself there, the lower ones more.
+        p[0] = z.exp();
         let r = z.recip();
-        let p1 = (e - 1.0) * r;
-        let p2 = (p1 - 1.0) * r;
-        let p3 = (p2 - 0.5) * r;
-        let p4 = (p3 - 1.0 / 6.0) * r;
-        let p5 = (p4 - 1.0 / 24.0) * r;
-        [e, p1, p2, p3, p4, p5]
+        for k in 1..K {
+            p[k] = (p[k - 1] - INV_FACT[k - 1]) * r;
+        }
     }
+    p
 }
 
 /// Scalar functions `g_k` of a 2 x 2 matrix `M`, as `(alpha_k, beta_k)` with
@@ -394,8 +373,8 @@ impl<D: DualNum<Primitive = f64> + Copy> EtdCoefficients<D> {
     pub fn new(a: &[[D; 2]; 2], h: f64) -> Self {
         let full: [[D; 2]; 2] = std::array::from_fn(|r| std::array::from_fn(|c| a[r][c] * h));
         let half: [[D; 2]; 2] = std::array::from_fn(|r| std::array::from_fn(|c| a[r][c] * (0.5 * h)));
-        let [e5, p15, p25, p35] = matrix_functions(&half, phis);
-        let [e1, p11, p21, p31] = matrix_functions(&full, phis);
+        let [e5, p15, p25, p35] = matrix_functions(&half, phis::<D, 4>);
+        let [e1, p11, p21, p31] = matrix_functions(&full, phis::<D, 4>);
         Self::from_functions(a, h, [e5, p15, p25, p35], [e1, p11, p21, p31], None)
     }
 
@@ -405,8 +384,8 @@ impl<D: DualNum<Primitive = f64> + Copy> EtdCoefficients<D> {
     pub fn with_drive(a: &[[D; 2]; 2], h: f64) -> Self {
         let full: [[D; 2]; 2] = std::array::from_fn(|r| std::array::from_fn(|c| a[r][c] * h));
         let half: [[D; 2]; 2] = std::array::from_fn(|r| std::array::from_fn(|c| a[r][c] * (0.5 * h)));
-        let [e5, p15, p25, p35, p45, p55] = matrix_functions(&half, phis6);
-        let [e1, p11, p21, p31, p41, p51] = matrix_functions(&full, phis6);
+        let [e5, p15, p25, p35, p45, p55] = matrix_functions(&half, phis::<D, 6>);
+        let [e1, p11, p21, p31, p41, p51] = matrix_functions(&full, phis::<D, 6>);
         const FACT: [f64; 5] = [1.0, 1.0, 2.0, 6.0, 24.0];
         const HALF_POW: [f64; 5] = [0.5, 0.25, 0.125, 0.0625, 0.03125];
         let drive_half = std::array::from_fn(|k| Pair::of([p15, p25, p35, p45, p55][k], 0.5 * h, h * HALF_POW[k] * FACT[k]));
@@ -589,8 +568,8 @@ impl<D: DualNum<Primitive = f64> + Copy> Etd2Coefficients<D> {
     pub fn new(a: &[[D; 2]; 2], h: f64) -> Self {
         let full: [[D; 2]; 2] = std::array::from_fn(|r| std::array::from_fn(|c| a[r][c] * h));
         let half: [[D; 2]; 2] = std::array::from_fn(|r| std::array::from_fn(|c| a[r][c] * (0.5 * h)));
-        let [e5, p15, p25, ..] = matrix_functions(&half, phis);
-        let [e1, p11, p21, p31, ..] = matrix_functions(&full, phis);
+        let [e5, p15, p25, ..] = matrix_functions(&half, phis::<D, 4>);
+        let [e1, p11, p21, p31, ..] = matrix_functions(&full, phis::<D, 4>);
         let lin = |f: (D, D), g: (D, D), a: f64, b: f64| (f.0 * a + g.0 * b, f.1 * a + g.1 * b);
         Etd2Coefficients {
             h,
@@ -1251,7 +1230,7 @@ mod tests {
         // The series (|z| < 0.5) and the closed forms meet without a jump, and match
         // phi_k(z) = sum_j z^j / (j + k)! computed slowly.
         for z in [-0.5f64 - 1e-12, -0.5 + 1e-12, 0.4999999, 0.5000001, -0.2, 1e-9, -3.0, -40.0] {
-            let (p, p4) = (phis6(z), phis(z));
+            let (p, p4): ([f64; 6], [f64; 4]) = (phis(z), phis(z));
             for k in 0..4 {
                 assert!((p4[k] - p[k]).abs() <= 1e-15 * p[k].abs(), "phi_{k}({z}): {} vs {}", p4[k], p[k]);
             }
