@@ -454,11 +454,9 @@ where
     D: DualNum<Primitive = f64> + Copy,
     S: Dynamics<D, N>,
 {
-    use crate::model::idx::{I, I2};
+    use crate::model::idx::I;
     let (a, h) = (&k.a, k.h);
-    let y_el = [y[I], y[I2]];
-    let ay = mat_vec(a, y_el);
-    let (mut ey5, mut ey1) = (k.e5.apply(y_el, ay), k.e1.apply(y_el, ay));
+    let (mut ey5, mut ey1) = exponentials_on_currents(y, a, &k.e5, &k.e1);
     // With `drive`: the drive's exact integral to c h added to e^{cM} y on the currents, and
     // the drive (at its start's gain) taken out of N.
     let drive = drive.zip(k.drive.as_ref());
@@ -625,11 +623,8 @@ where
     D: DualNum<Primitive = f64> + Copy,
     S: Dynamics<D, N>,
 {
-    use crate::model::idx::{I, I2};
     let (a, h) = (&k.a, k.h);
-    let y_el = [y[I], y[I2]];
-    let ay = mat_vec(a, y_el);
-    let (ey5, ey1) = (k.e5.apply(y_el, ay), k.e1.apply(y_el, ay));
+    let (ey5, ey1) = exponentials_on_currents(y, a, &k.e5, &k.e1);
     let n1 = etd_rest(sys, a, y, u0);
     let stage_drive = k.c2.apply_to_current(b * (um - u0), a);
     let s2 = etd_stage(y, h, [ey5[0] + stage_drive[0], ey5[1] + stage_drive[1]], &[(&k.a21, 0.5, &n1)]);
@@ -650,6 +645,16 @@ where
     let k = Etd2Coefficients::new(&sys.electrical(y), dt / n as f64);
     let b = sys.input(y);
     steps_over_sample(y, dt, u_points, |y, _, u0, um, u1| etd2_step(sys, y, &k, b, u0, um, u1))
+}
+
+/// `e^{M/2} y` and `e^M y` on the currents (`e5`, `e1` as pairs on `a`): where every stage
+/// of an exponential step starts.
+#[inline(always)]
+fn exponentials_on_currents<D: DualNum<Primitive = f64> + Copy, const N: usize>(y: &[D; N], a: &[[D; 2]; 2], e5: &Pair<D>, e1: &Pair<D>) -> ([D; 2], [D; 2]) {
+    use crate::model::idx::{I, I2};
+    let y_el = [y[I], y[I2]];
+    let ay = mat_vec(a, y_el);
+    (e5.apply(y_el, ay), e1.apply(y_el, ay))
 }
 
 /// The non-stiff remainder `N = f - A (i, i2)` of [`etd4_step`] at a stage, with `A N`'s
