@@ -2848,53 +2848,52 @@ mod tests {
     fn a_search_jacobian_is_near_the_final_fits() {
         let fs = 48000.0;
         let (p, tr, lay) = sb17_case(0.4, 7, 4, 3, 0.2);
-        let th = lay.theta_from(&p, None);
-        let sl = lay.slots();
-        let fin = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2);
-        let search = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).searching();
-        let mut reference = OutputError::new(lay, &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2);
-        reference.stepper_jac = Stepper::new(Scheme::Rk4, 8);
-        assert_eq!((fin.stepper_jac.scheme, search.stepper_jac.scheme), (Scheme::Rk4, Scheme::Midpoint));
-        let (jf, js, jr) = (fin.jacobian(&th), search.jacobian(&th), reference.jacobian(&th));
-        let off = |j: &DMatrix<f64>, c: usize| (j.column(c) - jr.column(c)).norm() / jr.column(c).norm();
-        for c in 0..jr.ncols() {
-            let mechanical = sl.bl.contains(&c) || sl.kms.contains(&c) || c == sl.rms;
-            let bound = if sl.le.contains(&c) {
-                0.16
-            } else if mechanical {
-                0.012
-            } else {
-                0.035
-            };
-            assert!(off(&jf, c) < 0.011, "column {c}: RK4 {:.2e}", off(&jf, c));
-            assert!(off(&js, c) < bound, "column {c}: midpoint {:.2e} (bound {bound})", off(&js, c));
-        }
+        let woofer = ColumnBounds { fin: 0.011, le: 0.16, re: 0.035, mechanical: 0.012, other: 0.035 };
+        check_search_jacobian("SB17", lay, &tr.u, &tr.i, 2400, &p, (Scheme::Rk4, Scheme::Midpoint), Stepper::new(Scheme::Rk4, 8), woofer);
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers/microspeaker-0g1.json");
         let p = Parameters::from_json_str(&std::fs::read_to_string(path).unwrap(), "microspeaker").unwrap();
         let (_, tr) = gain_for_peak(&p, fs, &tr.u[..4800], 0.0004, &SimOptions::default()).unwrap();
         let lay = Layout::new(2, 3, 0.05, 0.0004, Scales::of(&p), true, p.mms);
-        let th = lay.theta_from(&p, None);
+        let micro = ColumnBounds { fin: 0.025, le: 0.045, re: 0.01, mechanical: 0.055, other: 0.025 };
+        check_search_jacobian("microspeaker", lay, &tr.u, &tr.i, 480, &p, (Scheme::Exponential, Scheme::ExpMidpoint), Stepper::new(Scheme::Exponential, 8), micro);
+    }
+
+    /// Relative column errors allowed against the reference: the final fit's, and the
+    /// search's by kind of column (Le(x), Re(t), Bl/Kms/Rms, the rest: L2, R2).
+    struct ColumnBounds {
+        fin: f64,
+        le: f64,
+        re: f64,
+        mechanical: f64,
+        other: f64,
+    }
+
+    /// The final fit's and a search stage's Jacobians of `lay` (at `p`, on the record from
+    /// `skip` on) take `schemes`, and their columns stay within `b` of `reference`'s.
+    #[allow(clippy::too_many_arguments)]
+    fn check_search_jacobian(name: &str, lay: Layout, u: &[f64], i: &[f64], skip: usize, p: &Parameters, schemes: (Scheme, Scheme), reference: Stepper, b: ColumnBounds) {
+        let fs = 48000.0;
+        let th = lay.theta_from(p, None);
         let sl = lay.slots();
-        let fin = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 480..tr.u.len(), p.rates(), 0.05, 2);
-        let search = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 480..tr.u.len(), p.rates(), 0.05, 2).searching();
-        let mut reference = OutputError::new(lay, &tr.u, &tr.i, fs, 480..tr.u.len(), p.rates(), 0.05, 2);
-        reference.stepper_jac = Stepper::new(Scheme::Exponential, 8);
-        assert_eq!((fin.stepper_jac.scheme, search.stepper_jac.scheme), (Scheme::Exponential, Scheme::ExpMidpoint));
-        let (jf, js, jr) = (fin.jacobian(&th), search.jacobian(&th), reference.jacobian(&th));
+        let fin = OutputError::new(lay.clone(), u, i, fs, skip..u.len(), p.rates(), 0.05, 2);
+        let search = OutputError::new(lay.clone(), u, i, fs, skip..u.len(), p.rates(), 0.05, 2).searching();
+        let mut refp = OutputError::new(lay, u, i, fs, skip..u.len(), p.rates(), 0.05, 2);
+        refp.stepper_jac = reference;
+        assert_eq!((fin.stepper_jac.scheme, search.stepper_jac.scheme), schemes, "{name}");
+        let (jf, js, jr) = (fin.jacobian(&th), search.jacobian(&th), refp.jacobian(&th));
         let off = |j: &DMatrix<f64>, c: usize| (j.column(c) - jr.column(c)).norm() / jr.column(c).norm();
         for c in 0..jr.ncols() {
-            let mechanical = sl.bl.contains(&c) || sl.kms.contains(&c) || c == sl.rms;
             let bound = if sl.le.contains(&c) {
-                0.045
-            } else if mechanical {
-                0.055
+                b.le
+            } else if sl.bl.contains(&c) || sl.kms.contains(&c) || c == sl.rms {
+                b.mechanical
             } else if sl.re.contains(&c) {
-                0.01
+                b.re
             } else {
-                0.025
+                b.other
             };
-            assert!(off(&jf, c) < 0.025, "microspeaker column {c}: exponential {:.2e}", off(&jf, c));
-            assert!(off(&js, c) < bound, "microspeaker column {c}: exponential midpoint {:.2e} (bound {bound})", off(&js, c));
+            assert!(off(&jf, c) < b.fin, "{name} column {c}: final fit's {:.2e} (bound {})", off(&jf, c), b.fin);
+            assert!(off(&js, c) < bound, "{name} column {c}: search's {:.2e} (bound {bound})", off(&js, c));
         }
     }
 
