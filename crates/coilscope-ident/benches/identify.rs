@@ -131,8 +131,8 @@ fn jacobian_order4(b: divan::Bencher) {
 /// One Jacobian (17 columns, 8 s) of the microspeaker's order-2 problem, all cores: the
 /// exponential scheme's dual-number runs (one step per sample), what its `identify` spends
 /// most of its time in.
-#[divan::bench(sample_count = 3, sample_size = 1)]
-fn jacobian_microspeaker(b: divan::Bencher) {
+#[divan::bench(args = ["plain", "spare heat"], sample_count = 3, sample_size = 1)]
+fn jacobian_microspeaker(b: divan::Bencher, which: &str) {
     let r = rec("microspeaker-0g1");
     let p = &r.p;
     let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
@@ -141,6 +141,7 @@ fn jacobian_microspeaker(b: divan::Bencher) {
     let th = lay.theta_from(p, None);
     let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     let prob = OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.rates(), 0.05, threads);
+    let prob = if which == "plain" { prob } else { prob.with_spare_heat() };
     b.bench_local(|| prob.jacobian(&th));
 }
 
