@@ -1931,9 +1931,12 @@ fn chord_step(prob: &OutputError, j: &DMatrix<f64>, a: &DMatrix<f64>, theta: &[f
 /// the covariance's (one accepted step behind, as a full iteration's is); after more, the
 /// state has moved by more than the tolerance since it, and the Jacobian at the end is
 /// computed for the covariance (alongside the last step's residual run when that step
-/// promised less than twice the tolerance). A step that does not lower the cost, or whose
-/// decrease the model missed by more than [`FINAL_FAST_GAIN`], hands the state back to full
-/// iterations (`Go`). The microspeaker's fit with heating terms moved its error by 60-70 %
+/// promised less than twice the tolerance). A step that promised less than the tolerance
+/// and did not lower the cost ends them too, at the state before it (converged: the state is
+/// at the optimum within the tolerance, as `lm_step_ahead`'s `settle_below` has it), with
+/// the covariance's Jacobian computed there. Another step that does not lower the cost, or
+/// whose decrease the model missed by more than [`FINAL_FAST_GAIN`], hands the state back to
+/// full iterations (`Go`). The microspeaker's fit with heating terms moved its error by 60-70 %
 /// per full iteration at gain ratio 1.000 while the damping fell from 1e-4 to 1e-7: four
 /// Jacobians of 3.7-4.4 s, where each chord step is a 0.4 s residual run.
 ///

@@ -99,8 +99,9 @@ fn identify_never_fails_on_a_large_semi_inductive_coil() {
 /// Microspeakers heat fast: a 2 s thermal time constant (Rtv 40 K/W, Ctv 0.05 J/K). The 0.1 g
 /// set driven to 85 % of its +-0.5 mm heats 65 K in 8 s, the 2.7 g set at 40 % of +-3 mm 47 K.
 /// The `Re(t)` knots 2 s apart could not follow (Re 1.6 % off, Le 0.6 %, the residual 15x
-/// its floor); `identify` now adds heating terms to `Re(t)` (`large::HEAT_TAUS`). Measured:
-/// Bl, Kms <= 0.01 %, Le <= 0.04 %, Re <= 0.015 %, the residual 1.02-1.08x its floor.
+/// its floor); `identify` now adds heating terms to `Re(t)` (`large::HEAT_TAUS`). Measured
+/// (2026-11-27): Bl, Kms <= 0.01 %, Le 0.012-0.082 %, Re <= 0.016 %, the residual 1.02-1.11x
+/// its floor.
 /// The test fails at Bl, Kms 0.1 %, Le 0.2 %, Re 0.1 %, or a residual above 2x its floor.
 ///
 /// Two cases that used to fail:
