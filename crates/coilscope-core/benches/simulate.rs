@@ -56,6 +56,17 @@ fn full_model_rk4(bencher: Bencher, name: &str) {
     bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &opts).unwrap());
 }
 
+/// Issue 17, session 31: the full model in the current's exponential method (one step per
+/// sample: the current's decay and the drive exactly, RK4's weights for the rest), against
+/// `full_model` (RK4 at two sub-steps).
+#[divan::bench(args = embedded_driver_names())]
+fn full_model_exp_current(bencher: Bencher, name: &str) {
+    let p = embedded_driver(name).unwrap();
+    let u = voltage(3.0);
+    let opts = SimOptions { scheme: Some(coilscope_core::integrate::Scheme::ExpCurrent), ..Default::default() };
+    bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &opts).unwrap());
+}
+
 /// Issue 17: the stiff microspeaker of `testdata/drivers` (Le 30 uH), in the scheme it takes
 /// (exponential, 3 steps per sample; 4 until session 30) and in RK4 (21 sub-steps).
 #[divan::bench(args = ["exponential", "rk4"])]

@@ -230,6 +230,20 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
         }
     }
 
+    /// The current's own rate `-(Re(T) + R2(x)) / Le(x)` (1/s, the `A[0][0]` of
+    /// [`Model::electrical_matrix`]) and [`Model::input_gain`], from one evaluation of
+    /// `Le(x)`: what [`crate::integrate::etdc_step`] takes exactly.
+    #[inline]
+    pub fn current_rate_and_gain(&self, x: D, i: D, tv: D) -> (D, D) {
+        let inv_le = self.le.eval(x).recip();
+        let r2 = self.l2r2.as_ref().map_or(D::zero(), |(_, r2)| r2.eval(x));
+        let gain = match &self.le_i {
+            None => inv_le,
+            Some(_) => inv_le * self.le_i_incremental(i).recip(),
+        };
+        (-(self.re_at(tv) + r2) * inv_le, gain)
+    }
+
     /// How the terminal voltage enters the current's rate at displacement `x` and current
     /// `i`: `d(di/dt)/du = 1 / (Le(x) h(i))` (1/H; `h = 1` without `Le_i`).
     #[inline]

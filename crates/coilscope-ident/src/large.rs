@@ -686,11 +686,11 @@ fn run_model<D: DualNum<Primitive = f64> + Copy + FlushTiny, const N: usize>(
     stop: Option<&AtomicBool>,
     mut observe: impl FnMut(usize, &[D]),
 ) -> Result<(), usize> {
-    let n = stepper.n();
+    let points = stepper.points();
     let dt = 1.0 / fs;
     let mut y: [D; N] = [D::zero(); N];
-    let mut pf = vec![0.0; 2 * n + 1];
-    let mut pd = vec![D::zero(); 2 * n + 1];
+    let mut pf = vec![0.0; points];
+    let mut pd = vec![D::zero(); points];
     for m in 0..len {
         let x = y[idx::X].re();
         if !(x.abs() <= x_limit) || !y[idx::I].re().is_finite() {

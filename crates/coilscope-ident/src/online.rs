@@ -358,9 +358,9 @@ impl Online {
         let dt = 1.0 / self.fs;
         // The live model runs with the Jacobian's sub-step count (`|lambda| h <= 1.5`): it
         // shows the state and tracks Re; the updates judge the fit with the accurate count.
-        let n = self.stepper_jac.n();
-        let mut pf = vec![0.0; 2 * n + 1];
-        let mut pd = vec![Dual64::from(0.0); 2 * n + 1];
+        let points = self.stepper_jac.points();
+        let mut pf = vec![0.0; points];
+        let mut pd = vec![Dual64::from(0.0); points];
         let re_block = ((self.opts.re_seconds * self.fs) as usize).max(1);
         while self.pos + HALF_TAPS < self.base + self.u.len() {
             let k = self.pos - self.base;
@@ -490,7 +490,7 @@ impl Online {
         // Re drifts along the tracked trend; theta's Re is the value now (the live model's position).
         let re_end = model.base().re;
         let dt = 1.0 / self.fs;
-        let mut pf = vec![0.0; 2 * self.stepper.n() + 1];
+        let mut pf = vec![0.0; self.stepper.points()];
         let mut y = y0;
         let mut r = DVector::zeros(b - a - skip);
         for m in a..b {
@@ -514,9 +514,9 @@ impl Online {
         let mut model = OnlineModel::of(&self.layout, &thd);
         let re_end = model.base().re;
         let dt = 1.0 / self.fs;
-        let n = self.stepper_jac.n();
-        let mut pf = vec![0.0; 2 * n + 1];
-        let mut pd = vec![DualSVec64::<CHUNK>::from_re(0.0); 2 * n + 1];
+        let points = self.stepper_jac.points();
+        let mut pf = vec![0.0; points];
+        let mut pd = vec![DualSVec64::<CHUNK>::from_re(0.0); points];
         let mut y: ExtState<DualSVec64<CHUNK>> = std::array::from_fn(|k| DualSVec64::from_re(y0[k]));
         let rows = b - a - skip;
         for m in a..b {
@@ -764,14 +764,14 @@ pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64
     use nalgebra::{Matrix2, Vector2};
     // RK4 as the online estimator (see `Online::new`).
     let stepper = Stepper::rk4_for(p.rates(), fs).0;
-    let n = stepper.n();
+    let points = stepper.points();
     let mut model: OnlineModel<DualSVec64<2>> = OnlineModel::lift_from(p);
     let (mut re, mut slope) = (p.re, 0.0);
     let dt = 1.0 / fs;
     let len = u.len().min(i.len());
     let mut sd = f64::NAN;
-    let mut pf = vec![0.0; 2 * n + 1];
-    let mut pd = vec![DualSVec64::<2>::from_re(0.0); 2 * n + 1];
+    let mut pf = vec![0.0; points];
+    let mut pd = vec![DualSVec64::<2>::from_re(0.0); points];
     for _ in 0..4 {
         let re0 = DualSVec64::<2>::from_re(re).derivative(0);
         let s0 = DualSVec64::<2>::from_re(slope).derivative(1);

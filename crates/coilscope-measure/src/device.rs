@@ -157,7 +157,7 @@ impl Device for VirtualDevice {
         }
         self.hist.extend_from_slice(drive);
         let dt = 1.0 / self.fs;
-        let mut pf = vec![0.0; 2 * self.stepper.n() + 1];
+        let mut pf = vec![0.0; self.stepper.points()];
         let mut out = Block { u: Vec::with_capacity(drive.len()), i: Vec::with_capacity(drive.len()) };
         // The interpolator looks HALF_TAPS samples ahead: the device lags by that much.
         while out.u.len() < drive.len() {
