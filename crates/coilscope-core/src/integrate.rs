@@ -961,6 +961,16 @@ impl Scheme {
             Scheme::ExpCurrent => "exponential-current",
         }
     }
+
+    /// How many intervals of the band-limited input each step takes (its points less one):
+    /// two (start, midpoint, end), four for [`Scheme::ExpCurrent`] (its drive's quartic).
+    fn intervals_per_step(self) -> usize {
+        if self == Scheme::ExpCurrent {
+            4
+        } else {
+            2
+        }
+    }
 }
 
 /// How a model advances one sample: the scheme, the steps per sample and the band-limited
@@ -974,9 +984,7 @@ pub struct Stepper {
 impl Stepper {
     /// `n` steps per sample of `scheme`.
     pub fn new(scheme: Scheme, n: usize) -> Self {
-        // The current's exponential method takes five points per step (its drive's quartic).
-        let per = if scheme == Scheme::ExpCurrent { 2 } else { 1 };
-        Stepper { scheme, interp: Interpolator::new(per * n.max(1)) }
+        Stepper { scheme, interp: Interpolator::new(scheme.intervals_per_step() / 2 * n.max(1)) }
     }
 
     /// The cheaper of the two schemes at the accuracy each is held to: classical RK4 with
@@ -1063,11 +1071,7 @@ impl Stepper {
 
     /// Steps per sample.
     pub fn n(&self) -> usize {
-        if self.scheme == Scheme::ExpCurrent {
-            self.interp.n / 2
-        } else {
-            self.interp.n
-        }
+        2 * self.interp.n / self.scheme.intervals_per_step()
     }
 
     /// How many input points [`Stepper::fill`] writes per sample: `2 n + 1`, or `4 n + 1` for

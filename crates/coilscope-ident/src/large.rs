@@ -1279,12 +1279,14 @@ impl<'a> OutputError<'a> {
 
     /// All Jacobian columns, passes spread over `threads` workers.
     pub fn jacobian(&self, th: &[f64]) -> DMatrix<f64> {
-        if self.spare.is_some() {
-            let (u, _) = self.signals(th);
-            let stop = AtomicBool::new(false);
-            return self.jacobian_with_spare(th, &u, &[], &stop).expect("nothing stops these passes").0;
-        }
-        self.jacobian_in(th, &self.pass_widths())
+        self.jacobian_and_spare(th).0
+    }
+
+    /// [`OutputError::jacobian`] and the spare heating columns computed with it
+    /// ([`OutputError::with_spare_heat`]).
+    fn jacobian_and_spare(&self, th: &[f64]) -> (DMatrix<f64>, Option<DMatrix<f64>>) {
+        let (u, _) = self.signals(th);
+        self.jacobian_with_spare(th, &u, &self.pass_widths(), &[], &AtomicBool::new(false)).expect("nothing stops these passes")
     }
 
     /// The widths of the Jacobian's passes ([`pass_widths`]), over the spare heating columns
@@ -1299,12 +1301,13 @@ impl<'a> OutputError<'a> {
         self.n_layout() + if self.spare.is_some() { HEAT_TAUS.len() } else { 0 }
     }
 
-    /// The Jacobian at `th` ([`jacobian_passes`] with the `lead` tasks before the passes,
-    /// `None` when one of them stops them) and, with spare heating columns, those columns
-    /// (whitened as the Jacobian is).
-    fn jacobian_with_spare(&self, th: &[f64], u: &[f64], lead: &[&(dyn Fn() -> bool + Sync)], stop: &AtomicBool) -> Option<(DMatrix<f64>, Option<DMatrix<f64>>)> {
+    /// The Jacobian at `th` in passes of `widths` (summing to [`OutputError::pass_columns`];
+    /// [`jacobian_passes`] with the `lead` tasks before the passes, `None` when one of them
+    /// stops them) and, with spare heating columns, those columns (whitened as the Jacobian
+    /// is).
+    fn jacobian_with_spare(&self, th: &[f64], u: &[f64], widths: &[usize], lead: &[&(dyn Fn() -> bool + Sync)], stop: &AtomicBool) -> Option<(DMatrix<f64>, Option<DMatrix<f64>>)> {
         let (nl, rows) = (self.n_layout(), self.fit.len());
-        let jl = jacobian_passes(rows, &self.pass_widths(), self.threads, lead, stop, |c0, w, block| self.jacobian_pass(&th[..nl], c0, w, u, Some(stop), block))?;
+        let jl = jacobian_passes(rows, widths, self.threads, lead, stop, |c0, w, block| self.jacobian_pass(&th[..nl], c0, w, u, Some(stop), block))?;
         self.jacobians.fetch_add(1, Ordering::Relaxed);
         let (jl, spare) = if self.spare.is_some() {
             // The spare columns are the passes' last: the layout's are the storage's start.
@@ -1322,15 +1325,12 @@ impl<'a> OutputError<'a> {
         Some((self.with_chain_columns(th, jl), spare))
     }
 
-    /// [`OutputError::jacobian`] in passes of the given widths (summing to the layout's
-    /// unknowns).
+    /// [`OutputError::jacobian`] in passes of the given widths (summing to
+    /// [`OutputError::pass_columns`]).
+    #[cfg(test)]
     fn jacobian_in(&self, th: &[f64], widths: &[usize]) -> DMatrix<f64> {
-        let nl = self.n_layout();
         let (u, _) = self.signals(th);
-        let stop = AtomicBool::new(false);
-        let jl = jacobian_passes(self.fit.len(), widths, self.threads, &[], &stop, |c0, w, block| self.jacobian_pass(&th[..nl], c0, w, &u, None, block));
-        self.jacobians.fetch_add(1, Ordering::Relaxed);
-        self.with_chain_columns(th, jl.expect("nothing stops these passes"))
+        self.jacobian_with_spare(th, &u, widths, &[], &AtomicBool::new(false)).expect("nothing stops these passes").0
     }
 
     /// The layout's Jacobian columns `jl` with the chain's after them, all whitened (as the
@@ -1506,10 +1506,7 @@ impl Problem for OutputError<'_> {
         let ahead = self.ahead.lock().expect("jacobian ahead").take();
         let (j, spare) = match ahead {
             Some((th, j, spare)) if th.as_slice() == theta => (j, spare),
-            _ => {
-                let (u, _) = self.signals(theta);
-                self.jacobian_with_spare(theta, &u, &[], &AtomicBool::new(false)).expect("nothing stops these passes")
-            }
+            _ => self.jacobian_and_spare(theta),
         };
         if self.keep_last {
             let mut copy = jacobian_storage(j.len());
@@ -1570,7 +1567,7 @@ impl Problem for OutputError<'_> {
             true
         };
         let lead: Vec<&(dyn Fn() -> bool + Sync)> = if alongside.is_some() { vec![&first, &side] } else { vec![&first] };
-        let j = self.jacobian_with_spare(theta, &u, &lead, &stop);
+        let j = self.jacobian_with_spare(theta, &u, &self.pass_widths(), &lead, &stop);
         let r = r.into_inner().expect("residual").expect("the first task is the residual");
         *self.last_residual.lock().expect("residual cache") = Some((theta.to_vec(), r.clone()));
         if let Some((j, spare)) = j {
