@@ -1142,7 +1142,9 @@ pub fn kernel(t: f64) -> f64 {
 }
 
 /// Dot product with independent partial sums (vectorisable: no chain of dependent adds).
-#[inline]
+/// Not inlined: inlined into [`Interpolator::fill`]'s loop, it was vectorised across the
+/// rows of weights with a shuffle per tap (26 ns a sample of three points; out of line, 20).
+#[inline(never)]
 fn dot(a: &[f64; 2 * HALF_TAPS], b: &[f64; 2 * HALF_TAPS]) -> f64 {
     let mut acc = [0.0; 8];
     for (ca, cb) in a.chunks_exact(8).zip(b.chunks_exact(8)) {
@@ -1191,9 +1193,18 @@ impl Interpolator {
         out[0] = at(m as isize);
         out[2 * self.n] = at(m as isize + 1);
         let start = m as isize + 1 - HALF_TAPS as isize;
-        let win: [f64; 2 * HALF_TAPS] = if start >= 0 && (start as usize + 2 * HALF_TAPS) <= u.len() { u[start as usize..start as usize + 2 * HALF_TAPS].try_into().expect("window length") } else { std::array::from_fn(|k| at(start + k as isize)) };
-        for (j, w) in self.weights.iter().enumerate() {
-            out[j + 1] = dot(w, &win);
+        // Inside the record the window is borrowed, not copied; at its ends it is built with
+        // zeros.
+        let edge: [f64; 2 * HALF_TAPS];
+        let win: &[f64; 2 * HALF_TAPS] = match usize::try_from(start).ok().and_then(|s| u.get(s..s + 2 * HALF_TAPS)) {
+            Some(w) => w.try_into().expect("window length"),
+            None => {
+                edge = std::array::from_fn(|k| at(start + k as isize));
+                &edge
+            }
+        };
+        for (o, w) in out[1..].iter_mut().zip(&self.weights) {
+            *o = dot(w, win);
         }
     }
 }

@@ -51,17 +51,26 @@ pub struct ThermalModel<D> {
     pub ctm: D,
     /// Convection cooling (s/m): `Rtv(v) = Rtv / (1 + rv |v|)`.
     pub rv: D,
+    /// `1 / [rtv, ctv, rtm, ctm]`, taken once here rather than at every evaluation of the
+    /// rates (a division is the slowest operation of the model's derivative).
+    inv: [D; 4],
 }
 
 impl<D: DualNum<Primitive = f64> + Copy> ThermalModel<D> {
+    /// The network of these constants (K/W, J/K, s/m; `alpha` 1/K).
+    pub fn new(alpha: D, rtv: D, ctv: D, rtm: D, ctm: D, rv: D) -> Self {
+        ThermalModel { alpha, rtv, ctv, rtm, ctm, rv, inv: [rtv.recip(), ctv.recip(), rtm.recip(), ctm.recip()] }
+    }
+
     /// The two-node network's rates (K/s) of the coil and magnet rises `tv`, `tm` under the
     /// powers `pv` into the coil and `pm` into the magnet (W), as formats.md writes them, at
     /// coil speed `speed` = |v| (m/s; the convection cooling's `Rtv(v) = Rtv / (1 + rv |v|)`).
     #[inline]
     pub fn rates(&self, tv: D, tm: D, pv: D, pm: D, speed: D) -> (D, D) {
-        // Constants' reciprocals: independent of the state, so they do not wait on it.
-        let flow = (tv - tm) * self.rtv.recip() * (self.rv * speed + 1.0);
-        ((pv - flow) * self.ctv.recip(), (pm + flow - tm * self.rtm.recip()) * self.ctm.recip())
+        // Times the constants' reciprocals: they do not wait on the state.
+        let [rtv, ctv, rtm, ctm] = self.inv;
+        let flow = (tv - tm) * rtv * (self.rv * speed + 1.0);
+        ((pv - flow) * ctv, (pm + flow - tm * rtm) * ctm)
     }
 }
 
@@ -80,6 +89,25 @@ pub struct Model<D> {
     /// (`g(0) = 1`); `None`: `g = 1`.
     pub le_i: Option<Poly<D>>,
     /// Velocity-dependent loss (`Rms_v`): `Rms(|v|)`, which replaces `rms` in the force.
+    pub rms_v: Option<Poly<D>>,
+    /// `1 / mms`, and `1 / L2` when the L2 series is a constant: taken once here rather than
+    /// at every evaluation of the derivative ([`Model::from_parts`]).
+    inv_mms: D,
+    inv_l2: Option<D>,
+}
+
+/// The constants and series of a [`Model`] (its public fields but the thermal network), for
+/// [`Model::from_parts`].
+#[derive(Clone, Debug)]
+pub struct Parts<D> {
+    pub re: D,
+    pub le: Poly<D>,
+    pub l2r2: Option<(Poly<D>, Poly<D>)>,
+    pub bl: Poly<D>,
+    pub kms: Poly<D>,
+    pub mms: D,
+    pub rms: D,
+    pub le_i: Option<Poly<D>>,
     pub rms_v: Option<Poly<D>>,
 }
 
@@ -110,7 +138,8 @@ impl Model<f64> {
 impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
     /// The model of a parameter set, with scalars of type `D` (zero derivative parts).
     pub fn lift_from(p: &Parameters) -> Self {
-        Model {
+        let thermal = p.thermal.as_ref().map(|t| ThermalModel::new(D::from(t.alpha), D::from(t.rtv), D::from(t.ctv), D::from(t.rtm), D::from(t.ctm), D::from(t.rv)));
+        let parts = Parts {
             re: D::from(p.re),
             le: p.le.lift(),
             l2r2: p.l2r2.as_ref().map(|(l2, r2)| (l2.lift(), r2.lift())),
@@ -118,10 +147,17 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
             kms: p.kms.lift(),
             mms: D::from(p.mms),
             rms: D::from(p.rms),
-            thermal: p.thermal.as_ref().map(|t| ThermalModel { alpha: D::from(t.alpha), rtv: D::from(t.rtv), ctv: D::from(t.ctv), rtm: D::from(t.rtm), ctm: D::from(t.ctm), rv: D::from(t.rv) }),
             le_i: p.le_i.as_ref().map(|g| g.lift()),
             rms_v: p.rms_v.as_ref().map(|r| r.lift()),
-        }
+        };
+        Model { thermal, ..Model::from_parts(parts) }
+    }
+
+    /// The model of these constants and series, without the thermal network (a fit carries
+    /// the heating in its `Re(t)` track instead).
+    pub fn from_parts(p: Parts<D>) -> Self {
+        let inv_l2 = p.l2r2.as_ref().filter(|(l2, _)| l2.c.len() == 1).map(|(l2, _)| l2.c[0].recip());
+        Model { re: p.re, le: p.le, l2r2: p.l2r2, bl: p.bl, kms: p.kms, mms: p.mms, rms: p.rms, thermal: None, le_i: p.le_i, rms_v: p.rms_v, inv_mms: p.mms.recip(), inv_l2 }
     }
 
     /// Flux modulation at current `i`: `(g(i), h(i) = d(i g)/di, G(i) = int_0^i s g(s) ds)`;
@@ -184,7 +220,7 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
                 let r2 = r2p.eval(x);
                 let u2 = r2 * (i - i2);
                 // d(L2 i2)/dt = u2  =>  L2 di2/dt = u2 - L2' v i2
-                let di2 = (u2 - dl2 * v * i2) * l2.recip();
+                let di2 = (u2 - dl2 * v * i2) * self.inv_l2.unwrap_or_else(|| l2.recip());
                 (u2, dl2 * i2 * i2 * 0.5, di2, u2 * (i - i2))
             }
             None => (D::zero(), D::zero(), D::zero(), D::zero()),
@@ -201,8 +237,7 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
             self.flux_modulated(u - re_t * i - bl * v - u_l2r2, le, dle, i, v)
         };
         let force = bl * i - rms * v - kms * x + f_le + f_l2;
-        // Constants' reciprocals: independent of the state, so they do not wait on it.
-        let dv = force * self.mms.recip();
+        let dv = force * self.inv_mms;
         let (dtv, dtm) = match &self.thermal {
             Some(t) => t.rates(tv, tm, re_t * i * i, r2_loss, v.abs()),
             None => (D::zero(), D::zero()),

@@ -26,7 +26,7 @@
 use crate::linear::{check_channels, fit_linear_record, scale_by_mms, Effects, EffectsChoice, LinearFit, LinearOptions};
 use crate::lm::{lm_step_ahead, AtLastTrial, LmState, Problem};
 use coilscope_core::integrate::{Electrical, FlushTiny, Rates, Scheme, Stepper};
-use coilscope_core::model::{idx, ExtModel, Model, NEXT, NLR3, NSTATE};
+use coilscope_core::model::{idx, ExtModel, Model, Parts, NEXT, NLR3, NSTATE};
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
 use coilscope_core::result::{Fit, ModelTrial, ResultFile, Sd, Thermal, Uncertainty};
@@ -445,7 +445,7 @@ impl Layout {
             (Some(a), Some(b)) => Some((Poly { c: vec![th[a] * sc.l2] }, Poly { c: vec![th[b] * sc.r2] })),
             _ => None,
         };
-        let model = Model {
+        let model = Model::from_parts(Parts {
             re: knots[0],
             le: self.series(&th[s.le.clone()], sc.le),
             l2r2,
@@ -453,10 +453,9 @@ impl Layout {
             kms: self.series(&th[s.kms.clone()], sc.kms),
             mms: D::from(self.mms),
             rms: th[s.rms] * sc.rms,
-            thermal: None,
             le_i: s.le_i.map(|k| Poly { c: vec![D::one(), th[k], th[k + 1]] }),
             rms_v: s.rms_v.map(|k| Poly { c: vec![th[s.rms] * sc.rms, D::zero(), th[k] * sc.rms] }),
-        };
+        });
         (model, knots)
     }
 

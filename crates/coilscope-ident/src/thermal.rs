@@ -106,7 +106,7 @@ impl Fit<'_> {
     /// mean speed, by the project's RK4.
     fn rise(&self, th: &[f64], rv: f64) -> Vec<f64> {
         let [rtv, ctv, rtm, ctm] = [th[0].exp(), th[1].exp(), th[2].exp(), th[3].exp()];
-        let mut net = Network { m: ThermalModel { alpha: 0.0, rtv, ctv, rtm, ctm, rv }, pv: 0.0, pm: 0.0, speed: 0.0 };
+        let mut net = Network { m: ThermalModel::new(0.0, rtv, ctv, rtm, ctm, rv), pv: 0.0, pm: 0.0, speed: 0.0 };
         // Sub-steps keep RK4 inside its accuracy for a fast coil (h / tau <= 0.2; the
         // fastest speed shortens the coil's time constant by 1 + rv |v|).
         let fastest = 1.0 + rv.max(0.0) * self.tr.speed.iter().fold(0.0f64, |a, v| a.max(*v));
