@@ -996,7 +996,7 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
         "u_rms": s.u_rms, "i_rms": s.i_rms, "dT_end": s.dt_end, "dT_max": s.dt_max,
         "dTm_end": s.dtm_end, "p_mean": s.p_mean,
         "driver": params.name.clone().unwrap_or_else(|| a.driver.clone()),
-        "fs": fs, "samples": u.len(), "substeps": trace.substeps, "snr_db": a.snr_db, "laser": a.laser,
+        "fs": fs, "samples": u.len(), "substeps": trace.substeps, "scheme": trace.scheme.name(), "snr_db": a.snr_db, "laser": a.laser,
         "signal": what,
         "chain": chain,
     });
@@ -1004,7 +1004,7 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
     write_json(&info_file, &info).map_err(|e| e.to_string())?;
 
     let name = params.name.as_deref().unwrap_or(&a.driver);
-    println!("coilscope simulate: {name}, {:.2} s at {} Hz ({} RK4 sub-steps per sample)", u.len() as f64 / fs, fs, trace.substeps);
+    println!("coilscope simulate: {name}, {:.2} s at {} Hz ({} scheme, {} step{} per sample)", u.len() as f64 / fs, fs, trace.scheme.name(), trace.substeps, if trace.substeps == 1 { "" } else { "s" });
     let range = params.x_range.map(|[lo, hi]| format!(" ({:.0} % / {:.0} % of x_range)", 100.0 * s.x_min / lo, 100.0 * s.x_max / hi)).unwrap_or_default();
     println!("  peak excursion   {:+.3} mm .. {:+.3} mm{range}", s.x_min * 1e3, s.x_max * 1e3);
     println!("  voltage, current {:.3} V RMS, {:.3} A RMS", s.u_rms, s.i_rms);

@@ -933,9 +933,10 @@ impl Rates {
 }
 
 /// The integration scheme of a [`Stepper`].
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Scheme {
     /// Classical RK4 ([`rk4_sample`]).
+    #[default]
     Rk4,
     /// The exponential method ([`etd4_sample`]): the electrical network exactly.
     Exponential,

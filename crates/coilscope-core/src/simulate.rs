@@ -169,8 +169,10 @@ pub struct Trace {
     pub i2: Vec<f64>,
     pub tv: Vec<f64>,
     pub tm: Vec<f64>,
-    /// Sub-steps per sample that were used.
+    /// Steps per sample that were used, of [`Trace::scheme`].
     pub substeps: usize,
+    /// The integration scheme that was used.
+    pub scheme: Scheme,
     /// Largest excursion past `x_range` (m, 0 if none): extrapolated, within the margin.
     pub range_excess: f64,
 }
@@ -331,7 +333,7 @@ pub fn simulate(params: &Parameters, fs: f64, u: &[f64], opts: &SimOptions) -> R
     }
     let mut sim = Simulator::new(params, fs, opts)?;
     let n = u.len();
-    let mut tr = Trace { fs, u: u.to_vec(), x: Vec::with_capacity(n), v: Vec::with_capacity(n), i: Vec::with_capacity(n), i2: Vec::with_capacity(n), tv: Vec::with_capacity(n), tm: Vec::with_capacity(n), substeps: sim.substeps(), range_excess: 0.0 };
+    let mut tr = Trace { fs, u: u.to_vec(), x: Vec::with_capacity(n), v: Vec::with_capacity(n), i: Vec::with_capacity(n), i2: Vec::with_capacity(n), tv: Vec::with_capacity(n), tm: Vec::with_capacity(n), substeps: sim.substeps(), scheme: sim.stepper.scheme, range_excess: 0.0 };
     let range = params.x_range;
     let mut excess: f64 = 0.0;
     sim.run(u, |_, s| {
