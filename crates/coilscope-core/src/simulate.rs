@@ -333,7 +333,19 @@ pub fn simulate(params: &Parameters, fs: f64, u: &[f64], opts: &SimOptions) -> R
     }
     let mut sim = Simulator::new(params, fs, opts)?;
     let n = u.len();
-    let mut tr = Trace { fs, u: u.to_vec(), x: Vec::with_capacity(n), v: Vec::with_capacity(n), i: Vec::with_capacity(n), i2: Vec::with_capacity(n), tv: Vec::with_capacity(n), tm: Vec::with_capacity(n), substeps: sim.substeps(), scheme: sim.stepper.scheme, range_excess: 0.0 };
+    let mut tr = Trace {
+        fs,
+        u: u.to_vec(),
+        x: Vec::with_capacity(n),
+        v: Vec::with_capacity(n),
+        i: Vec::with_capacity(n),
+        i2: Vec::with_capacity(n),
+        tv: Vec::with_capacity(n),
+        tm: Vec::with_capacity(n),
+        substeps: sim.substeps(),
+        scheme: sim.stepper.scheme,
+        range_excess: 0.0,
+    };
     let range = params.x_range;
     let mut excess: f64 = 0.0;
     sim.run(u, |_, s| {
