@@ -75,6 +75,10 @@ impl<D: DualNum<Primitive = f64> + Copy> ThermalModel<D> {
 }
 
 /// The model's constants and power series, in scalar type `D`.
+///
+/// Built by [`Model::lift_from`] or [`Model::from_parts`], which also take the reciprocals of
+/// `mms` and of a constant L2 once: change `mms` or `l2r2` by building a new model, not by
+/// writing the field (`re`, the series and the effects may be written).
 #[derive(Clone, Debug)]
 pub struct Model<D> {
     pub re: D,
