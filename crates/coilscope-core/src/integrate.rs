@@ -846,10 +846,9 @@ where
     // first window), u = sum_k gs_k s^k. Its integrals against the current's decay:
     // int_0^h e^{c (h - s)} u = h sum_k gs_k 2^k k! phi_{k+1}(z), and over the first half
     // h/2 sum_k gs_k k! phi_{k+1}(z / 2).
-    let q = &QUARTIC[0];
+    let g = Drive::quartic(b, w, 0).g;
     let (mut d1, mut dh) = (D::zero(), D::zero());
-    for k in 0..5 {
-        let gs = (0..5).fold(D::zero(), |acc, j| acc + w[j] * q[k][j]);
+    for (k, &gs) in g.iter().enumerate() {
         let fact = 1.0 / INV_FACT[k];
         d1 += gs * full[k + 1] * (fact * (1u32 << k) as f64);
         dh += gs * half[k + 1] * fact;

@@ -177,6 +177,16 @@ pub fn track_bend(track: &[f64]) -> f64 {
     track.windows(3).map(|w| (w[0] - 2.0 * w[1] + w[2]).abs() / 8.0).fold(0.0, f64::max) / track.first().map_or(1e-9, |r| r.abs().max(1e-9))
 }
 
+/// `theta` of a layout with `n` entries (the chain's unknowns after them) as the theta of the
+/// same layout with heating terms (`n_heated` entries): the heating terms at zero between
+/// the layout's entries and the chain's (the same model runs: `Re + 0 h` is `Re`).
+fn heat_at_zero(theta: &[f64], n: usize, n_heated: usize) -> Vec<f64> {
+    let mut th = theta[..n].to_vec();
+    th.resize(n_heated, 0.0);
+    th.extend_from_slice(&theta[n..]);
+    th
+}
+
 /// Least relative drop of the final residual for `identify` to keep the heating terms.
 pub const HEAT_MIN_GAIN: f64 = 0.05;
 
@@ -1365,9 +1375,7 @@ impl<'a> OutputError<'a> {
         if nh != (nf..nl) || self.layout.heat_taus != HEAT_TAUS || at.len() != j_from.ncols() || spare.nrows() != j_from.nrows() || j_from.nrows() != self.fit.len() {
             return None;
         }
-        let mut theta = at[..nf].to_vec();
-        theta.resize(nl, 0.0);
-        theta.extend_from_slice(&at[nf..]);
+        let theta = heat_at_zero(at, nf, nl);
         let rows = self.fit.len();
         let mut j = DMatrix::from_vec(rows, theta.len(), jacobian_storage(rows * theta.len()));
         j.columns_mut(0, nf).copy_from(&j_from.columns(0, nf));
@@ -2620,12 +2628,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             let prob_h = OutputError::new(lay_h.clone(), u, i, fs, settle..n, rates, x_limit, threads).with_chain(setup).keeping_last();
             // Where the fit's last Jacobian was computed, on it and its spare heating
             // columns (OutputError::extending); else where the fit stopped.
-            let th = prob_h.extending(&prob).unwrap_or_else(|| {
-                let nl = lay.slots().n;
-                let mut th = s.theta[..nl].to_vec();
-                th.resize(lay_h.slots().n, 0.0);
-                join(th, &s.theta[nl..])
-            });
+            let th = prob_h.extending(&prob).unwrap_or_else(|| heat_at_zero(&s.theta, lay.slots().n, lay_h.slots().n));
             let s_h = solve(&prob_h, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, None, &mut observe);
             let r_h = prob_h.residual(&s_h.theta);
             let rel_h = rel(&r_h, &i[settle..n]);
