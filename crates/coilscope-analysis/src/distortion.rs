@@ -221,8 +221,9 @@ fn run_steady(q: &Parameters, exc: &Periodic, opts: &SteadyOptions) -> Result<Re
         return Err(AnalysisError::Input(format!("a period of {t} s at {fs:.0} Hz is too long ({n} samples); use shorter periods or lower tones")));
     }
     let stepper = Stepper::for_rates(q.rates(), fs);
-    let ns = stepper.n();
-    let fine = 2 * ns * n;
+    // The input at the stepper's points ([`Stepper::points`]): `per` intervals per sample.
+    let per = stepper.points() - 1;
+    let fine = per * n;
     let mut spec = vec![C::new(0.0, 0.0); fine / 2 + 1];
     for tone in &exc.tones {
         if tone.bin >= n / 2 {
@@ -243,7 +244,7 @@ fn run_steady(q: &Parameters, exc: &Periodic, opts: &SteadyOptions) -> Result<Re
     let mut change = f64::INFINITY;
     loop {
         for m in 0..n {
-            let up = &u[2 * ns * m..=2 * ns * (m + 1)];
+            let up = &u[per * m..=per * (m + 1)];
             let x = s[idx::X];
             if s.iter().any(|v| !v.is_finite()) {
                 return Err(AnalysisError::Range("the integration diverged (the state is no longer finite)".into()));

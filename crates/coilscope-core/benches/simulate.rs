@@ -67,6 +67,16 @@ fn full_model_exp_current(bencher: Bencher, name: &str) {
     bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &opts).unwrap());
 }
 
+/// Issue 17, session 33: the full model in the exponential method at one step per sample
+/// (each step's drive the quartic through its own five points), against `full_model`.
+#[divan::bench(args = embedded_driver_names())]
+fn full_model_exponential_1(bencher: Bencher, name: &str) {
+    let p = embedded_driver(name).unwrap();
+    let u = voltage(3.0);
+    let opts = SimOptions { scheme: Some(coilscope_core::integrate::Scheme::Exponential), substeps: Some(1), ..Default::default() };
+    bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &opts).unwrap());
+}
+
 /// Issue 17: the stiff microspeaker of `testdata/drivers` (Le 30 uH), in the scheme it takes
 /// (exponential, 3 steps per sample; 4 until session 30) and in RK4 (21 sub-steps).
 #[divan::bench(args = ["exponential", "rk4"])]

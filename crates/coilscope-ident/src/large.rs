@@ -2292,7 +2292,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     let scales = Scales::of(&start);
     let has_l2r2 = start.l2r2.is_some();
     let (x0, start_miss) = started.map_err(|m| {
-        let stepper = Stepper::for_rates(rates, fs);
+        let stepper = Stepper::for_fit(rates, fs, false).0;
         Input(format!("{origin}: the start model diverged at sample {m} (small-signal start: {}, {} {} steps per sample)", start_values(&start), stepper.n(), stepper.scheme.name()))
     })?;
     // A start that misses most of the current is no start: the large-signal fit cannot
