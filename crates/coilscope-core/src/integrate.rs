@@ -586,7 +586,7 @@ impl<D: DualNum<Primitive = f64> + Copy> Drive<D> {
         let mut d = Drive::quartic(b, w);
         let mut scale = 1.0;
         for g in d.g.iter_mut() {
-            *g = *g * scale;
+            *g *= scale;
             scale *= 2.0;
         }
         d
