@@ -77,6 +77,17 @@ impl<const N: usize> FlushTiny for DualSVec64<N> {
     }
 }
 
+impl<const N: usize> FlushTiny for crate::jet::Jet<N> {
+    #[inline]
+    fn flush_tiny(&mut self) {
+        for v in self.eps.iter_mut() {
+            if v.abs() < TINY_LANE {
+                *v = 0.0;
+            }
+        }
+    }
+}
+
 /// Taps on each side of the interpolation point.
 pub const HALF_TAPS: usize = 16;
 /// Kaiser window shape.

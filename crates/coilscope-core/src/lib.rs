@@ -32,6 +32,7 @@ pub mod excitation;
 pub mod fft;
 pub mod integrate;
 pub mod inverse;
+pub mod jet;
 pub mod limits;
 pub mod model;
 pub mod normal_form;

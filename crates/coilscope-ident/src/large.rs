@@ -26,13 +26,14 @@
 use crate::linear::{check_channels, fit_linear_record, scale_by_mms, Effects, EffectsChoice, LinearFit, LinearOptions};
 use crate::lm::{lm_step_ahead, AtLastTrial, LmState, Problem};
 use coilscope_core::integrate::{Electrical, FlushTiny, Rates, Scheme, Stepper};
+use coilscope_core::jet::Jet;
 use coilscope_core::model::{idx, ExtModel, Model, Parts, NEXT, NLR3, NSTATE};
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
 use coilscope_core::result::{Fit, ModelTrial, ResultFile, Sd, Thermal, Uncertainty};
 use coilscope_core::schema;
 use nalgebra::{DMatrix, DVector};
-use num_dual::{DualNum, DualSVec64};
+use num_dual::DualNum;
 use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
@@ -615,18 +616,18 @@ impl Layout {
 /// `theta` as `N`-wide dual numbers whose derivative parts seed entries `c0 .. c0 + N` (fewer
 /// at the end): one pass of the model then gives those Jacobian columns. Returns the duals and
 /// the number of seeded columns.
-pub fn seed_duals<const N: usize>(th: &[f64], c0: usize) -> (Vec<DualSVec64<N>>, usize) {
+pub fn seed_duals<const N: usize>(th: &[f64], c0: usize) -> (Vec<Jet<N>>, usize) {
     seed_duals_n::<N>(th, c0, N)
 }
 
 /// [`seed_duals`] with at most `cnt` (and at most `N`) columns seeded.
-pub fn seed_duals_n<const N: usize>(th: &[f64], c0: usize, cnt: usize) -> (Vec<DualSVec64<N>>, usize) {
+pub fn seed_duals_n<const N: usize>(th: &[f64], c0: usize, cnt: usize) -> (Vec<Jet<N>>, usize) {
     let cnt = cnt.min(N).min(th.len() - c0);
     let thd = th
         .iter()
         .enumerate()
         .map(|(j, &t)| {
-            let d = DualSVec64::<N>::from_re(t);
+            let d = Jet::<N>::constant(t);
             if j >= c0 && j < c0 + cnt {
                 d.derivative(j - c0)
             } else {
@@ -1277,10 +1278,9 @@ impl<'a> OutputError<'a> {
         // A run that fails here ran away at a theta whose f64 run did not: leave zeros.
         let _ = run_layout(layout, &thd, heat, u, self.fs, &self.stepper_jac, self.fit.end, f64::INFINITY, stop, |m, s| {
             if m >= start {
-                if let Some(e) = s[idx::I].eps.0.as_ref() {
-                    for k in 0..cnt {
-                        block[k * rows + m - start] = e[k];
-                    }
+                let e = &s[idx::I].eps;
+                for k in 0..cnt {
+                    block[k * rows + m - start] = e[k];
                 }
             }
         });
@@ -3008,6 +3008,46 @@ mod tests {
         let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).keeping_last();
         prob.residual_jacobian(&th);
         assert!(OutputError::new(lay_h, &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).extending(&prob).is_none());
+    }
+
+    /// Issue 17, session 33: the Jacobian's passes run on [`Jet`]s (plain lanes, no
+    /// `Option`); they give num-dual's `DualSVec64` Jacobian to the last bit (equal as
+    /// numbers: a zero may differ in sign), on a woofer (RK4, SB17 order 4 with Re(t) knots,
+    /// L2/R2 and heating) and the stiff microspeaker (the exponential method), with theta off
+    /// the truth; one worker and two.
+    #[test]
+    fn the_jacobian_on_jets_is_num_duals_to_the_last_bit() {
+        use num_dual::DualSVec64;
+        let fs = 48000.0;
+        let (p, tr, lay) = sb17_case(0.3, 5, 4, 3, 0.1);
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers/microspeaker-0g1.json");
+        let pm = Parameters::from_json_str(&std::fs::read_to_string(path).unwrap(), "microspeaker").unwrap();
+        let (_, trm) = gain_for_peak(&pm, fs, &tr.u[..9600], 0.0004, &SimOptions::default()).unwrap();
+        let laym = Layout::new(2, 3, 0.05, 0.0004, Scales::of(&pm), true, pm.mms);
+        for (name, p, lay, u, i) in [("SB17", &p, lay, &tr.u, &tr.i), ("microspeaker", &pm, laym, &trm.u, &trm.i)] {
+            let mut th = lay.theta_from(p, None);
+            for (k, t) in th.iter_mut().enumerate() {
+                *t *= 1.0 + 0.01 * ((k % 5) as f64 - 2.0);
+            }
+            for threads in [1, 2] {
+                let prob = OutputError::new(lay.clone(), u, i, fs, 480..u.len(), p.rates(), 0.05, threads);
+                let j = prob.jacobian(&th);
+                // num-dual's, eight columns a pass, through the same run.
+                for c0 in (0..th.len()).step_by(8) {
+                    let thd: Vec<DualSVec64<8>> = th.iter().enumerate().map(|(k, &t)| if (c0..c0 + 8).contains(&k) { DualSVec64::from_re(t).derivative(k - c0) } else { DualSVec64::from_re(t) }).collect();
+                    run_layout(&prob.layout, &thd, &prob.heat, u, fs, &prob.stepper_jac, u.len(), f64::INFINITY, None, |m, s| {
+                        if m >= 480 {
+                            let e = s[idx::I].eps.0.as_ref().map_or([0.0; 8], |e| std::array::from_fn(|k| e[k]));
+                            for k in 0..8.min(th.len() - c0) {
+                                assert!(j[(m - 480, c0 + k)] == e[k], "{name}, {threads} workers: row {m}, column {}: {} vs {}", c0 + k, j[(m - 480, c0 + k)], e[k]);
+                            }
+                        }
+                    })
+                    .unwrap();
+                }
+                assert!(j.iter().any(|v| *v != 0.0));
+            }
+        }
     }
 
     /// SB17 driven by `seconds` of pink noise (seed `seed`, 48 kHz) to a 4 mm peak, and a

@@ -23,10 +23,11 @@
 use crate::large::{jacobian_passes, pass_widths, seed_duals, Layout, Scales, CHUNK};
 use crate::linear::Effects;
 use coilscope_core::integrate::{FlushTiny, Stepper, HALF_TAPS};
+use coilscope_core::jet::Jet;
 use coilscope_core::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
 use coilscope_core::params::Parameters;
 use nalgebra::{DMatrix, DVector};
-use num_dual::{Dual64, DualNum, DualSVec64};
+use num_dual::{Dual64, DualNum};
 
 /// The model the estimator runs: [`Model`] (six states, the fast path; Le(i) and Rms(v) are
 /// in it), or [`ExtModel`] when the layout has creep or LR-3. States are always the extended vector (the plain model uses its
@@ -515,18 +516,17 @@ impl Online {
         let dt = 1.0 / self.fs;
         let points = self.stepper_jac.points();
         let mut pf = vec![0.0; points];
-        let mut pd = vec![DualSVec64::<CHUNK>::from_re(0.0); points];
-        let mut y: ExtState<DualSVec64<CHUNK>> = std::array::from_fn(|k| DualSVec64::from_re(y0[k]));
+        let mut pd = vec![Jet::<CHUNK>::constant(0.0); points];
+        let mut y: ExtState<Jet<CHUNK>> = std::array::from_fn(|k| Jet::constant(y0[k]));
         let rows = b - a - skip;
         for m in a..b {
             if m >= a + skip {
-                if let Some(e) = y[idx::I].eps.0.as_ref() {
-                    (0..cnt).for_each(|c| block[c * rows + m - a - skip] = e[c]);
-                }
+                let e = &y[idx::I].eps;
+                (0..cnt).for_each(|c| block[c * rows + m - a - skip] = e[c]);
             }
             self.stepper_jac.fill(&self.u, m - self.base, &mut pf);
             for (d, &f) in pd.iter_mut().zip(pf.iter()) {
-                *d = DualSVec64::from_re(f);
+                *d = Jet::constant(f);
             }
             model.base().re = re_end + re_slope * (m as f64 - self.pos as f64) * dt;
             model.step(&self.stepper_jac, &mut y, dt, &pd);
@@ -764,24 +764,24 @@ pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64
     // RK4 as the online estimator (see `Online::new`).
     let stepper = Stepper::rk4_for(p.rates(), fs).0;
     let points = stepper.points();
-    let mut model: OnlineModel<DualSVec64<2>> = OnlineModel::lift_from(p);
+    let mut model: OnlineModel<Jet<2>> = OnlineModel::lift_from(p);
     let (mut re, mut slope) = (p.re, 0.0);
     let dt = 1.0 / fs;
     let len = u.len().min(i.len());
     let mut sd = f64::NAN;
     let mut pf = vec![0.0; points];
-    let mut pd = vec![DualSVec64::<2>::from_re(0.0); points];
+    let mut pd = vec![Jet::<2>::constant(0.0); points];
     for _ in 0..4 {
-        let re0 = DualSVec64::<2>::from_re(re).derivative(0);
-        let s0 = DualSVec64::<2>::from_re(slope).derivative(1);
-        let mut y: ExtState<DualSVec64<2>> = std::array::from_fn(|_| DualSVec64::from_re(0.0));
+        let re0 = Jet::<2>::constant(re).derivative(0);
+        let s0 = Jet::<2>::constant(slope).derivative(1);
+        let mut y: ExtState<Jet<2>> = std::array::from_fn(|_| Jet::constant(0.0));
         let (mut jtj, mut jtr, mut e2, mut count) = (Matrix2::zeros(), Vector2::zeros(), 0.0, 0usize);
         for k in 0..len.saturating_sub(HALF_TAPS) {
             let ik = y[idx::I].re;
             if !(ik.is_finite() && y[idx::X].re.is_finite()) {
                 return None;
             }
-            let g = y[idx::I].eps.0.as_ref().map_or(Vector2::zeros(), |e| Vector2::new(e[0], e[1]));
+            let g = Vector2::new(y[idx::I].eps[0], y[idx::I].eps[1]);
             let r = i[k] - ik;
             jtj += g * g.transpose();
             jtr += g * r;
@@ -789,7 +789,7 @@ pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64
             count += 1;
             stepper.fill(u, k, &mut pf);
             for (d, &f) in pd.iter_mut().zip(pf.iter()) {
-                *d = DualSVec64::from_re(f);
+                *d = Jet::constant(f);
             }
             model.base().re = re0 + s0 * (k as f64 * dt);
             model.step(&stepper, &mut y, dt, &pd);
