@@ -628,7 +628,7 @@ mod tests {
 
     #[test]
     fn a_jet_matches_finite_differences() {
-        let f = |a: f64, c: f64| expression(f64::from(a), 1.3, c, 0.7);
+        let f = |a: f64, c: f64| expression(a, 1.3, c, 0.7);
         let (a, c) = (0.9, 0.4);
         let j = expression(Jet::<2>::constant(a).derivative(0), Jet::constant(1.3), Jet::<2>::constant(c).derivative(1), 0.7);
         let h = 1e-6;
