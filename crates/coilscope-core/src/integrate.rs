@@ -1031,7 +1031,7 @@ impl Stepper {
     /// [`substeps_for`] sub-steps, unless [`exp_steps_for`] exponential steps cost less
     /// (one costs [`EXP_STEP_COST`] sub-steps). Woofers keep RK4 (2 sub-steps against 2
     /// exponential steps that cost twice as much), stiff microspeakers take the exponential one
-    /// (4 steps instead of 21 sub-steps).
+    /// (3 steps instead of 21 sub-steps; a fit's model runs 2, [`Stepper::for_fit`]).
     pub fn for_rates(rates: Rates, fs: f64) -> Self {
         Stepper::cheaper(rates, fs, exp_steps_for(rates, fs))
     }
@@ -1062,8 +1062,9 @@ impl Stepper {
     /// (`lr3`): that branch stays outside the exponential method's network, and in a stiff
     /// driver it is as fast as the network (a fit's LR-3 start has `R3 / L3 = 6 R2 / L2`), so
     /// such a model keeps classical RK4 with the sub-steps of [`substeps_for`] (the scheme
-    /// before issue 17; the woofers' choice anyway). Otherwise [`Stepper::for_rates`] and
-    /// [`Stepper::for_jacobian`].
+    /// before issue 17; the woofers' choice anyway). Otherwise [`Stepper::for_rates`]'s
+    /// choice with [`fit_exp_steps_for`]'s exponential steps (fewer than a simulation's,
+    /// [`FIT_EXP_STIFF_LIMIT`]) and [`Stepper::for_jacobian`].
     pub fn for_fit(rates: Rates, fs: f64, lr3: bool) -> (Self, Self) {
         if lr3 {
             Stepper::rk4_for(rates, fs)
