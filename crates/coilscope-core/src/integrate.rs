@@ -1151,7 +1151,13 @@ impl Stepper {
 /// Exponential steps per sample: the stiff network within [`EXP_STIFF_LIMIT`], the explicit
 /// rest within [`STIFF_LIMIT`]; at least one.
 pub fn exp_steps_for(rates: Rates, fs: f64) -> usize {
-    let n = (rates.stiff / fs / EXP_STIFF_LIMIT).ceil().max((rates.explicit / fs / STIFF_LIMIT).ceil());
+    exp_steps_within(rates, fs, EXP_STIFF_LIMIT)
+}
+
+/// Exponential steps per sample that keep the stiff network within `stiff_limit` and the
+/// explicit rest within [`STIFF_LIMIT`]; at least [`EXP_MIN_STEPS`].
+fn exp_steps_within(rates: Rates, fs: f64, stiff_limit: f64) -> usize {
+    let n = (rates.stiff / fs / stiff_limit).ceil().max((rates.explicit / fs / STIFF_LIMIT).ceil());
     (n as usize).clamp(EXP_MIN_STEPS, 4096)
 }
 
@@ -1159,8 +1165,7 @@ pub fn exp_steps_for(rates: Rates, fs: f64) -> usize {
 /// network within [`FIT_EXP_STIFF_LIMIT`], the explicit rest within [`STIFF_LIMIT`]; at
 /// least [`EXP_MIN_STEPS`].
 pub fn fit_exp_steps_for(rates: Rates, fs: f64) -> usize {
-    let n = (rates.stiff / fs / FIT_EXP_STIFF_LIMIT).ceil().max((rates.explicit / fs / STIFF_LIMIT).ceil());
-    (n as usize).clamp(EXP_MIN_STEPS, 4096)
+    exp_steps_within(rates, fs, FIT_EXP_STIFF_LIMIT)
 }
 
 /// Sub-steps per sample for a system whose fastest eigenvalue has magnitude `rate` (1/s).

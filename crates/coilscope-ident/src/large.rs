@@ -618,8 +618,12 @@ impl Layout {
 /// estimator's passes, [`crate::online`]; `identify`'s take [`Jet`]s, [`seed_duals_n`]).
 /// Returns the duals and the number of seeded columns.
 pub fn seed_duals<const N: usize>(th: &[f64], c0: usize) -> (Vec<DualSVec64<N>>, usize) {
-    let cnt = N.min(th.len() - c0);
-    let thd = th.iter().enumerate().map(|(j, &t)| if j >= c0 && j < c0 + cnt { DualSVec64::from_re(t).derivative(j - c0) } else { DualSVec64::from_re(t) }).collect();
+    seeded(th, c0, N.min(th.len() - c0), DualSVec64::from_re, |t, k| DualSVec64::from_re(t).derivative(k))
+}
+
+/// `theta` with entries `c0 .. c0 + cnt` seeded (`seed(t, k)`: lane `k`), the rest constants.
+fn seeded<D>(th: &[f64], c0: usize, cnt: usize, constant: impl Fn(f64) -> D, seed: impl Fn(f64, usize) -> D) -> (Vec<D>, usize) {
+    let thd = th.iter().enumerate().map(|(j, &t)| if (c0..c0 + cnt).contains(&j) { seed(t, j - c0) } else { constant(t) }).collect();
     (thd, cnt)
 }
 
@@ -627,20 +631,7 @@ pub fn seed_duals<const N: usize>(th: &[f64], c0: usize) -> (Vec<DualSVec64<N>>,
 /// `identify`'s passes (the microspeaker's Jacobian took 0.96-1.04 s on num-dual's dual
 /// numbers, 0.70 s on jets; SB17's order-4 one 505 and 475-481 ms).
 pub fn seed_duals_n<const N: usize>(th: &[f64], c0: usize, cnt: usize) -> (Vec<Jet<N>>, usize) {
-    let cnt = cnt.min(N).min(th.len() - c0);
-    let thd = th
-        .iter()
-        .enumerate()
-        .map(|(j, &t)| {
-            let d = Jet::<N>::constant(t);
-            if j >= c0 && j < c0 + cnt {
-                d.derivative(j - c0)
-            } else {
-                d
-            }
-        })
-        .collect();
-    (thd, cnt)
+    seeded(th, c0, cnt.min(N).min(th.len() - c0), Jet::constant, |t, k| Jet::constant(t).derivative(k))
 }
 
 /// `Re` at sample `m` (time `t`, s): the knots, linear between them (held after the last),
@@ -3031,7 +3022,6 @@ mod tests {
     /// the truth; one worker and two.
     #[test]
     fn the_jacobian_on_jets_is_num_duals_to_the_last_bit() {
-        use num_dual::DualSVec64;
         let fs = 48000.0;
         let (p, tr, lay) = sb17_case(0.3, 5, 4, 3, 0.1);
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers/microspeaker-0g1.json");
@@ -3048,7 +3038,7 @@ mod tests {
                 let j = prob.jacobian(&th);
                 // num-dual's, eight columns a pass, through the same run.
                 for c0 in (0..th.len()).step_by(8) {
-                    let thd: Vec<DualSVec64<8>> = th.iter().enumerate().map(|(k, &t)| if (c0..c0 + 8).contains(&k) { DualSVec64::from_re(t).derivative(k - c0) } else { DualSVec64::from_re(t) }).collect();
+                    let (thd, _) = seed_duals::<8>(&th, c0);
                     run_layout(&prob.layout, &thd, &prob.heat, u, fs, &prob.stepper_jac, u.len(), f64::INFINITY, None, |m, s| {
                         if m >= 480 {
                             let e = s[idx::I].eps.0.as_ref().map_or([0.0; 8], |e| std::array::from_fn(|k| e[k]));
