@@ -233,9 +233,14 @@ pub struct Slots {
     pub rms: usize,
     /// Creep's lambda (LOG creep factor, reference the resonance).
     pub lambda: Option<usize>,
-    /// LR-3's L3 and R3 (scaled as L2 and R2).
+    /// LR-3's L3 (scaled as L2) and its time constant `tau3 = L3 / R3` (scaled as L2 / R2):
+    /// the branch's impedance `j w L3 / (1 + j w tau3)` is linear in L3 at a given corner,
+    /// so that a fit grows or removes the branch in one step. With L3 and R3 as unknowns a
+    /// branch started small had to move its corner by a relative amount of order one at a
+    /// size near zero, where the linearised model holds only over a step of its own size:
+    /// on PTT4 without LR-3 the trial crawled 10 iterations back (1.9 s; 2 now).
     pub l3: Option<usize>,
-    pub r3: Option<usize>,
+    pub tau3: Option<usize>,
     /// Flux modulation: `g1` (1/A) and `g2` (1/A^2) of `g(i) = 1 + g1 i + g2 i^2`, at this
     /// index and the next.
     pub le_i: Option<usize>,
@@ -389,7 +394,7 @@ impl Layout {
             n += 1;
             n - 1
         });
-        let (l3, r3) = if self.effects.lr3 {
+        let (l3, tau3) = if self.effects.lr3 {
             n += 2;
             (Some(n - 2), Some(n - 1))
         } else {
@@ -405,7 +410,7 @@ impl Layout {
         });
         let heat = n..n + self.heat_taus.len();
         n = heat.end;
-        Slots { re, le, l2, r2, bl, kms, rms, lambda, l3, r3, le_i, rms_v, heat, n }
+        Slots { re, le, l2, r2, bl, kms, rms, lambda, l3, tau3, le_i, rms_v, heat, n }
     }
 
     /// Power series in x (m) of `scale * sum_j th_j P_j(x / x_ref)`.
@@ -475,8 +480,8 @@ impl Layout {
         let (base, knots) = self.model(th);
         let s = self.slots();
         let sc = &self.scales;
-        let lr3 = match (s.l3, s.r3) {
-            (Some(a), Some(b)) => Some((th[a] * sc.l2, th[b] * sc.r2)),
+        let lr3 = match (s.l3, s.tau3) {
+            (Some(a), Some(b)) => Some((th[a] * sc.l2, th[a] / th[b] * sc.r2)),
             _ => None,
         };
         let lambda = s.lambda.map(|k| th[k] * LAMBDA_SCALE);
@@ -499,7 +504,7 @@ impl Layout {
             rms: m.rms,
             sd: None,
             creep: sl.lambda.map(|k| coilscope_core::params::Creep { lambda: th[k] * LAMBDA_SCALE, f_ref: None }),
-            l3r3: sl.l3.zip(sl.r3).map(|(a, b)| (th[a] * self.scales.l2, th[b] * self.scales.r2)),
+            l3r3: sl.l3.zip(sl.tau3).map(|(a, b)| (th[a] * self.scales.l2, th[a] / th[b] * self.scales.r2)),
             le_i: m.le_i,
             rms_v: m.rms_v,
             thermal: None,
@@ -545,11 +550,11 @@ impl Layout {
         if let Some(k) = s.lambda {
             th[k] = p.creep.as_ref().map_or(0.05, |c| c.lambda) / LAMBDA_SCALE;
         }
-        if let (Some(a), Some(b)) = (s.l3, s.r3) {
+        if let (Some(a), Some(b)) = (s.l3, s.tau3) {
             let (l2, r2) = p.l2r2.as_ref().map_or((sc.l2, sc.r2), |(l, r)| (l.eval(0.0), r.eval(0.0)));
             let (l3, r3) = p.l3r3.unwrap_or((0.5 * l2, 3.0 * r2));
             th[a] = l3 / sc.l2;
-            th[b] = r3 / sc.r2;
+            th[b] = (l3 / sc.l2) / (r3 / sc.r2);
         }
         // The large-signal effects start from none (g = 1, Rms constant), or from the set's.
         if let Some(k) = s.le_i {
@@ -564,12 +569,14 @@ impl Layout {
     }
 
     /// The standard deviation of the schema key `key` ([`coilscope_core::schema`]) when the
-    /// layout fits it, from the sd of each theta entry: `Re` (at the first knot), `L2`, `R2`,
-    /// `Rms`, `creep.lambda`, `L3`, `R3`, and `Le_i` and `Rms_v` one per coefficient (0 where
-    /// it is fixed). The curves Bl, Kms and Le have bands instead; Mms is given.
-    pub fn sd_of(&self, key: &str, sd_theta: &dyn Fn(usize) -> f64) -> Option<Sd> {
+    /// layout fits it, from theta `th` and its covariance `cov(j, k)`: `Re` (at the first
+    /// knot), `L2`, `R2`, `Rms`, `creep.lambda`, `L3`, `R3` (first-order propagation through
+    /// `R3 = L3 / tau3`), and `Le_i` and `Rms_v` one per coefficient (0 where it is fixed). The
+    /// curves Bl, Kms and Le have bands instead; Mms is given.
+    pub fn sd_of(&self, key: &str, th: &[f64], cov: &dyn Fn(usize, usize) -> f64) -> Option<Sd> {
         let sl = self.slots();
         let sc = &self.scales;
+        let sd_theta = |k: usize| crate::lm::sd_from_variance(cov(k, k));
         let v = |k: Option<usize>, scale: f64| k.map(|k| Sd::Value(sd_theta(k) * scale));
         match key {
             "Re" => v(Some(sl.re.start), sc.re),
@@ -578,18 +585,23 @@ impl Layout {
             "Rms" => v(Some(sl.rms), sc.rms),
             "creep.lambda" => v(sl.lambda, LAMBDA_SCALE),
             "L3" => v(sl.l3, sc.l2),
-            "R3" => v(sl.r3, sc.r2),
+            "R3" => sl.l3.zip(sl.tau3).map(|(a, b)| {
+                // R3 = sc.r2 th_a / th_b: gradient (1 / th_b, -th_a / th_b^2) sc.r2.
+                let g = [1.0 / th[b], -th[a] / (th[b] * th[b])];
+                let var = g[0] * g[0] * cov(a, a) + 2.0 * g[0] * g[1] * cov(a, b) + g[1] * g[1] * cov(b, b);
+                Sd::Value(crate::lm::sd_from_variance(var) * sc.r2)
+            }),
             "Le_i" => sl.le_i.map(|k| Sd::Coefficients(vec![0.0, sd_theta(k), sd_theta(k + 1)])),
             "Rms_v" => sl.rms_v.map(|k| Sd::Coefficients(vec![sd_theta(sl.rms) * sc.rms, 0.0, sd_theta(k) * sc.rms])),
             _ => None,
         }
     }
 
-    /// Every standard deviation the layout has, in the schema's order, into `unc`; `keep`
-    /// chooses the entries.
-    pub fn uncertainties(&self, sd_theta: &dyn Fn(usize) -> f64, keep: &dyn Fn(&schema::Entry) -> bool, unc: &mut Uncertainty) {
+    /// Every standard deviation the layout has, in the schema's order, into `unc` (from theta
+    /// `th` and its covariance, as [`Layout::sd_of`]); `keep` chooses the entries.
+    pub fn uncertainties(&self, th: &[f64], cov: &dyn Fn(usize, usize) -> f64, keep: &dyn Fn(&schema::Entry) -> bool, unc: &mut Uncertainty) {
         for e in schema::ENTRIES.iter().filter(|e| keep(e)) {
-            if let Some(sd) = self.sd_of(e.key, sd_theta) {
+            if let Some(sd) = self.sd_of(e.key, th, cov) {
                 unc.sd.insert(e.key.to_string(), sd);
             }
         }
@@ -604,7 +616,7 @@ impl Layout {
         let sl = self.slots();
         let positive = |k: Option<usize>| k.is_none_or(|k| th[k] > 0.0);
         let bounded = |k: Option<usize>| k.is_none_or(|k| th[k] < BRANCH_MAX);
-        th[sl.re.clone()].iter().all(|&r| r > 0.0) && th[sl.rms] > 0.0 && [sl.l2, sl.r2, sl.l3, sl.r3].into_iter().all(positive) && [sl.l2, sl.l3].into_iter().all(bounded)
+        th[sl.re.clone()].iter().all(|&r| r > 0.0) && th[sl.rms] > 0.0 && [sl.l2, sl.r2, sl.l3, sl.tau3].into_iter().all(positive) && [sl.l2, sl.l3].into_iter().all(bounded)
     }
 
     /// `Re` at each knot (ohm).
@@ -2748,9 +2760,9 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
 pub use coilscope_core::result::Band;
 
 impl LargeFit {
-    /// Standard deviation of theta entry `k`.
-    fn sd_theta(&self, k: usize) -> f64 {
-        self.cov.as_ref().map(|c| crate::lm::sd_from_variance(c[(k, k)])).unwrap_or(f64::NAN)
+    /// Covariance of theta entries `j` and `k` (NaN without a covariance).
+    fn cov_theta(&self, j: usize, k: usize) -> f64 {
+        self.cov.as_ref().map_or(f64::NAN, |c| c[(j, k)])
     }
 
     /// Standard deviations (SI) of the fitted constants, in the schema's order: Re (at the
@@ -2758,7 +2770,7 @@ impl LargeFit {
     pub fn sd(&self) -> Vec<(&'static str, f64)> {
         schema::ENTRIES
             .iter()
-            .filter_map(|e| match self.layout.sd_of(e.key, &|k| self.sd_theta(k)) {
+            .filter_map(|e| match self.layout.sd_of(e.key, &self.theta, &|j, k| self.cov_theta(j, k)) {
                 Some(Sd::Value(v)) => Some((e.key, v)),
                 _ => None,
             })
@@ -2814,7 +2826,7 @@ impl LargeFit {
                 None => String::new(),
             }
         ));
-        self.layout.uncertainties(&|k| self.sd_theta(k), &|_| true, &mut unc);
+        self.layout.uncertainties(&self.theta, &|j, k| self.cov_theta(j, k), &|_| true, &mut unc);
         for which in ["Bl", "Kms", "Le"] {
             unc.set_band(which, self.band(which, 41));
         }

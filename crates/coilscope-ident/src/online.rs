@@ -139,7 +139,7 @@ fn prior_variances(s: &crate::large::Slots, opts: &OnlineOptions) -> Vec<f64> {
     for k in [s.re.start, s.le.start, s.bl.start, s.kms.start, s.rms] {
         prior[k] = opts.prior_linear.powi(2);
     }
-    for k in [s.l2, s.r2, s.l3, s.r3].into_iter().flatten() {
+    for k in [s.l2, s.r2, s.l3, s.tau3].into_iter().flatten() {
         prior[k] = (2.0 * opts.prior_linear).powi(2);
     }
     if let Some(k) = s.lambda {

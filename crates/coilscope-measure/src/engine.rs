@@ -1436,7 +1436,7 @@ impl Measurement {
             }
         }
         let kept = self.effects.keys();
-        self.online.layout.uncertainties(&|k| self.online.sd_theta(k), &|e| kept.contains(&e.key), &mut unc);
+        self.online.layout.uncertainties(&self.online.theta, &|j, k| self.online.cov[(j, k)], &|e| kept.contains(&e.key), &mut unc);
         let warnings = self.warnings();
         let fit = Fit {
             method: Some("online recursive output error (parallel model, exact Jacobians on sliding windows, Kalman update of the parameters)".into()),
