@@ -81,8 +81,8 @@ fn identify_8s(name: &str) {
 }
 
 /// The same with the effects chosen on held-out data (the default): creep, LR-3 and both are
-/// tried at the chosen order.
-#[divan::bench(args = ["sb17cac35-4"], sample_count = 2, sample_size = 1)]
+/// tried at the chosen order. Issue 17's target: 5 s for each bundled driver.
+#[divan::bench(args = ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"], sample_count = 2, sample_size = 1)]
 fn identify_8s_effects_auto(name: &str) {
     let r = rec(name);
     let f = identify(&r.u, &r.i, FS, "bench", &IdentifyOptions { mms: r.p.mms, ..Default::default() }, |_| {}).unwrap();
