@@ -128,6 +128,31 @@ fn jacobian_order4(b: divan::Bencher) {
     b.bench_local(|| prob.jacobian(&th));
 }
 
+/// [`jacobian_order4`]'s Jacobian in passes of the given widths (as
+/// [`jacobian_microspeaker_widths`]), all cores.
+#[divan::bench(args = ["8,8,7", "10,10,3", "12,11", "8,8,4,3", "4,4,4,4,4,3", "12,8,3"], sample_count = 5, sample_size = 1)]
+fn jacobian_order4_widths(b: divan::Bencher, w: &str) {
+    let (prob, th) = problem(rec("sb17cac35-4"));
+    let widths: Vec<usize> = w.split(',').map(|v| v.parse().unwrap()).collect();
+    b.bench_local(|| prob.jacobian_in(&th, &widths));
+}
+
+/// [`jacobian_microspeaker`]'s Jacobian in passes of the given widths (each pass one run on
+/// dual numbers as wide as its columns need: 4, 8, 10 or 12 lanes), two workers: what
+/// `large::PASS_COSTS` was measured with.
+#[divan::bench(args = ["9,8", "12,5", "10,4,3", "8,8,1", "4,4,4,4,1", "8,4,4,1"], sample_count = 3, sample_size = 1)]
+fn jacobian_microspeaker_widths(b: divan::Bencher, w: &str) {
+    let r = rec("microspeaker-0g1");
+    let p = &r.p;
+    let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
+    let sc = Scales { re: p.re, le: p.le.eval(0.0), l2, r2, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
+    let lay = Layout::new(2, 5, 2.0, 0.005, sc, true, p.mms);
+    let th = lay.theta_from(p, None);
+    let prob = OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.rates(), 0.05, 2);
+    let widths: Vec<usize> = w.split(',').map(|v| v.parse().unwrap()).collect();
+    b.bench_local(|| prob.jacobian_in(&th, &widths));
+}
+
 /// One Jacobian (17 columns, 8 s) of the microspeaker's order-2 problem, all cores: the
 /// exponential scheme's dual-number runs (one step per sample), what its `identify` spends
 /// most of its time in.

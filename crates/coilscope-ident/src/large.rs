@@ -45,45 +45,92 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 /// (PTT4), 9.03 -> 6.95 (18WU), the effects search 14.85 -> 11.26, with every result
 /// bit-identical. (Until then 4, from a one-core timing per column of an older model.)
 pub const CHUNK: usize = 8;
-/// The wider pass [`pass_widths`] may take instead: 10 columns. Session 27's
-/// `jacobian_order4` (23 columns, medians of 5): width 8 521 ms (passes of 8, 8, 7: two in
-/// turn on one core), 10 588 ms (10, 10, 3), 12 675 ms (12, 11, side by side): a 10-wide pass
-/// costs 1.13 of an 8-wide one ([`WIDE_PASS_COST`]), a 12-wide one 2.6.
-pub const CHUNK_WIDE: usize = 10;
-/// The narrower pass a remainder of at most 4 columns takes (11 columns: 8 and 3; one core's
-/// 17: 8, 8 and 1): a 4-lane dual number instead of an 8-lane one with lanes left empty.
-/// Session 28 (the stages example, the microspeaker, whose 17- and 20-column Jacobians then
-/// took 8, 8 and 1 or 4, the third pass on the core the residual run leaves): 11.05 -> 10.4
-/// s. Every column is the same arithmetic at any width (the Jacobian is
-/// bit-identical: `a_jacobian_in_wide_passes_is_the_jacobian`).
-pub const CHUNK_SHORT: usize = 4;
-/// The cost of a [`CHUNK_WIDE`] pass in units of a [`CHUNK`] pass (measured, above).
-pub const WIDE_PASS_COST: f64 = 1.13;
-
-/// The columns of each dual-number pass of an `n`-column Jacobian on `threads` workers:
-/// passes of [`CHUNK`] (the last one shorter), or near-equal passes of at most
-/// [`CHUNK_WIDE`] when fewer of them end sooner (the passes in turn on each worker, a wide
-/// one costing [`WIDE_PASS_COST`]). On two cores: 17-20 columns in two passes instead of
-/// three (one each instead of two in turn on one core), 33-40 in four instead of five.
-/// Every column is the same arithmetic whatever its pass's width: the Jacobian is the same
-/// to the last bit (`a_jacobian_in_wide_passes_is_the_jacobian`). `wide_ok` false: passes of
-/// [`CHUNK`] only (the online estimator's, whose passes are 8-wide).
+/// The widths of `identify`'s Jacobian passes and the cost of one pass of each, in units of
+/// an 8-lane pass ([`CHUNK`]). Measured in session 34 on [`crate::jet::Jet`]s (the benches
+/// `jacobian_order4_widths` and `jacobian_microspeaker_widths`, medians of 5 and of 3, two
+/// cores): a woofer's RK4 pass (SB17, 23 columns) 4 lanes 0.57, 10 lanes 1.22, 12 lanes
+/// 1.53 (16 lanes 2.24, in passes of 16 and 7); the microspeaker's exponential pass (17
+/// columns) 0.55, 1.31 and 1.70.
+/// Up to 12 lanes a pass costs about the same per lane (0.125-0.14 of an 8-lane pass), so
+/// that what counts is how evenly the passes share the cores: SB17's 23 columns took 475 ms
+/// in passes of 8, 8 and 7 (two in turn on one core), 363-367 ms in passes of 12 and 11
+/// (one each). Sixteen lanes no longer fit the registers. Every column is the same
+/// arithmetic at any width (the Jacobian is bit-identical:
+/// `a_jacobian_in_wide_passes_is_the_jacobian`).
 ///
-/// The exponential scheme takes wide passes too since session 30 (its coefficients as
-/// pairs, [`coilscope_core::integrate::EtdCoefficients`]): the microspeaker's 17-column
-/// Jacobian (`jacobian_microspeaker`) 1.14 -> 0.96 s, its search iterations of order 2 in
-/// `identify` 0.80 -> 0.66 s. (Session 27 had measured the opposite, 3.5 -> 4.0 s beside a
-/// residual run, when subnormal lanes made some passes three to five times slower than
-/// others: [`coilscope_core::integrate::FlushTiny`].)
+/// (On num-dual's dual numbers, until session 33, a 10-lane pass had cost 1.13 of an 8-lane
+/// one and a 12-lane one 2.6: 8 lanes, with 10 where it saved a pass, had been the choice.)
+pub const PASS_COSTS: [(usize, f64); 4] = [(4, 0.56), (8, 1.0), (10, 1.27), (12, 1.6)];
+/// The narrowest pass ([`PASS_COSTS`]'s first).
+pub const CHUNK_SHORT: usize = 4;
+/// The widest pass ([`PASS_COSTS`]'s last).
+pub const CHUNK_WIDE: usize = 12;
+
+/// The columns of each dual-number pass of an `n`-column Jacobian on `threads` workers.
+///
+/// `wide_ok`: the passes whose set of widths ([`PASS_COSTS`]) ends soonest when the workers
+/// take them in turn, widest first (each pass costing its width's cost), and of those the
+/// one that costs least in all; the columns fill them in order, the last ones holding fewer
+/// (a pass takes the narrowest width that holds its columns). On two cores: 17 columns in
+/// passes of 10 and 7, 23 in 8, 8, 4 and 3, 26 in 10, 8, 4 and 4, 35 in 10, 10, 8 and 7 (one
+/// core: 24 in three of 8, the fewest lanes).
+/// `wide_ok` false: passes of [`CHUNK`] only (the online estimator's, whose passes are
+/// 8-wide).
 pub fn pass_widths(n: usize, threads: usize, wide_ok: bool) -> Vec<usize> {
     let threads = threads.max(1);
-    let (narrow, wide) = (n.div_ceil(CHUNK), n.div_ceil(CHUNK_WIDE));
-    let wall = |passes: usize, cost: f64| passes.div_ceil(threads) as f64 * cost;
-    if wide_ok && wide < narrow && wall(wide, WIDE_PASS_COST) < wall(narrow, 1.0) {
-        (0..wide).map(|k| n / wide + usize::from(k < n % wide)).collect()
-    } else {
-        (0..narrow).map(|k| CHUNK.min(n - k * CHUNK)).collect()
+    if n == 0 {
+        return vec![];
     }
+    if !wide_ok {
+        return (0..n.div_ceil(CHUNK)).map(|k| CHUNK.min(n - k * CHUNK)).collect();
+    }
+    // When the workers take the passes in turn, widest first (the order they are queued).
+    let wall = |costs: &[f64]| {
+        let mut load = vec![0.0f64; threads];
+        for &c in costs {
+            let k = (0..threads).min_by(|&a, &b| load[a].total_cmp(&load[b])).expect("a worker");
+            load[k] += c;
+        }
+        load.into_iter().fold(0.0, f64::max)
+    };
+    // Every count of each width whose capacity holds n with no pass to spare.
+    let caps: Vec<usize> = PASS_COSTS.iter().map(|&(w, _)| n.div_ceil(w)).collect();
+    let mut best: Option<(f64, f64, Vec<usize>)> = None;
+    let mut counts = vec![0usize; PASS_COSTS.len()];
+    loop {
+        let cap: usize = counts.iter().zip(&PASS_COSTS).map(|(c, (w, _))| c * w).sum();
+        let narrowest = counts.iter().zip(&PASS_COSTS).find(|(c, _)| **c > 0).map(|(_, (w, _))| *w);
+        if narrowest.is_some_and(|wmin| cap >= n && cap - wmin < n) {
+            let mut passes: Vec<(usize, f64)> = vec![];
+            for (c, &(w, cost)) in counts.iter().zip(&PASS_COSTS).rev() {
+                passes.extend(std::iter::repeat_n((w, cost), *c));
+            }
+            let costs: Vec<f64> = passes.iter().map(|p| p.1).collect();
+            let (t, total) = (wall(&costs), costs.iter().sum::<f64>());
+            if best.as_ref().is_none_or(|b| t < b.0 - 1e-9 || (t < b.0 + 1e-9 && total < b.1 - 1e-9)) {
+                best = Some((t, total, passes.iter().map(|p| p.0).collect()));
+            }
+        }
+        // The next count vector (odometer over 0 ..= caps).
+        let mut k = 0;
+        while k < counts.len() && counts[k] == caps[k] {
+            counts[k] = 0;
+            k += 1;
+        }
+        if k == counts.len() {
+            break;
+        }
+        counts[k] += 1;
+    }
+    let mut widths = best.expect("n columns fit some passes").2;
+    // The columns fill the passes in order; the last ones hold fewer.
+    let mut excess = widths.iter().sum::<usize>() - n;
+    for w in widths.iter_mut().rev() {
+        let cut = excess.min(*w - 1);
+        *w -= cut;
+        excess -= cut;
+    }
+    widths
 }
 /// Samples between two looks of a model run at its stop flag ([`run_model`]).
 const STOP_POLL: usize = 4096;
@@ -1261,13 +1308,15 @@ impl<'a> OutputError<'a> {
     }
 
     /// Jacobian columns `c0 .. c0 + cnt` of the current w.r.t. theta: one run of the model on
-    /// dual numbers, [`CHUNK_SHORT`], [`CHUNK`] or [`CHUNK_WIDE`] lanes wide (the narrowest
+    /// dual numbers, 4, 8, 10 or 12 lanes wide ([`PASS_COSTS`]; the narrowest
     /// that holds `cnt`).
     fn jacobian_pass(&self, th: &[f64], c0: usize, cnt: usize, u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
         if cnt <= CHUNK_SHORT {
             self.jacobian_chunk::<CHUNK_SHORT>(th, c0, cnt, u, stop, block)
         } else if cnt <= CHUNK {
             self.jacobian_chunk::<CHUNK>(th, c0, cnt, u, stop, block)
+        } else if cnt <= 10 {
+            self.jacobian_chunk::<10>(th, c0, cnt, u, stop, block)
         } else {
             self.jacobian_chunk::<CHUNK_WIDE>(th, c0, cnt, u, stop, block)
         }
@@ -1344,9 +1393,8 @@ impl<'a> OutputError<'a> {
     }
 
     /// [`OutputError::jacobian`] in passes of the given widths (summing to
-    /// [`OutputError::pass_columns`]).
-    #[cfg(test)]
-    fn jacobian_in(&self, th: &[f64], widths: &[usize]) -> DMatrix<f64> {
+    /// [`OutputError::pass_columns`]): the tests' and the benches' (`PASS_COSTS`).
+    pub fn jacobian_in(&self, th: &[f64], widths: &[usize]) -> DMatrix<f64> {
         let (u, _) = self.signals(th);
         self.jacobian_with_spare(th, &u, widths, &[], &AtomicBool::new(false)).expect("nothing stops these passes").0
     }
@@ -3144,17 +3192,20 @@ mod tests {
     }
 
     /// Issue 17: the passes' widths do not change the Jacobian (each column is the same
-    /// arithmetic in a 4-, an 8- or a 10-lane dual number), and two cores take 17-20 and 33-40
-    /// columns in wide passes.
+    /// arithmetic in a 4-, an 8-, a 10- or a 12-lane dual number), and two cores share the
+    /// lanes about evenly.
     #[test]
     fn a_jacobian_in_wide_passes_is_the_jacobian() {
-        assert_eq!(pass_widths(17, 2, true), vec![9, 8]);
+        // Two cores: each takes about half of the lanes (PASS_COSTS).
+        assert_eq!(pass_widths(11, 2, true), vec![8, 3]);
+        assert_eq!(pass_widths(17, 2, true), vec![10, 7]);
         assert_eq!(pass_widths(17, 2, false), vec![8, 8, 1]);
         assert_eq!(pass_widths(20, 2, true), vec![10, 10]);
-        assert_eq!(pass_widths(23, 2, true), vec![8, 8, 7]);
-        assert_eq!(pass_widths(29, 2, true), vec![8, 8, 8, 5]);
-        assert_eq!(pass_widths(35, 2, true), vec![9, 9, 9, 8]);
-        assert_eq!(pass_widths(11, 2, true), vec![8, 3]);
+        assert_eq!(pass_widths(23, 2, true), vec![8, 8, 4, 3]);
+        assert_eq!(pass_widths(26, 2, true), vec![10, 8, 4, 4]);
+        assert_eq!(pass_widths(29, 2, true), vec![10, 8, 8, 3]);
+        assert_eq!(pass_widths(35, 2, true), vec![10, 10, 8, 7]);
+        assert_eq!(pass_widths(24, 1, true), vec![8, 8, 8]);
         for n in 1..60 {
             for (threads, wide) in [(1, true), (2, true), (3, true), (2, false)] {
                 let w = pass_widths(n, threads, wide);
@@ -3168,7 +3219,7 @@ mod tests {
         assert_eq!(lay.slots().n, 17, "the order-2 layout with five knots");
         let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2);
         let narrow = prob.jacobian_in(&th, &[8, 8, 1]);
-        for widths in [vec![9, 8], vec![10, 7], vec![3, 10, 4]] {
+        for widths in [vec![9, 8], vec![10, 7], vec![3, 10, 4], vec![12, 5], vec![11, 6]] {
             assert_eq!(prob.jacobian_in(&th, &widths), narrow, "{widths:?}");
         }
     }
