@@ -137,18 +137,24 @@ fn jacobian_order4_widths(b: divan::Bencher, w: &str) {
     b.bench_local(|| prob.jacobian_in(&th, &widths));
 }
 
-/// [`jacobian_microspeaker`]'s Jacobian in passes of the given widths (each pass one run on
-/// dual numbers as wide as its columns need: 4, 8, 10 or 12 lanes), two workers: what
-/// `large::PASS_COSTS` was measured with.
-#[divan::bench(args = ["9,8", "12,5", "10,4,3", "8,8,1", "4,4,4,4,1", "8,4,4,1"], sample_count = 3, sample_size = 1)]
-fn jacobian_microspeaker_widths(b: divan::Bencher, w: &str) {
+/// The microspeaker's order-2 problem over its whole 8 s record (17 columns) on `threads`
+/// workers, and theta at the truth.
+fn micro_problem(threads: usize) -> (OutputError<'static>, Vec<f64>) {
     let r = rec("microspeaker-0g1");
     let p = &r.p;
     let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
     let sc = Scales { re: p.re, le: p.le.eval(0.0), l2, r2, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
     let lay = Layout::new(2, 5, 2.0, 0.005, sc, true, p.mms);
     let th = lay.theta_from(p, None);
-    let prob = OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.rates(), 0.05, 2);
+    (OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.rates(), 0.05, threads), th)
+}
+
+/// [`jacobian_microspeaker`]'s Jacobian in passes of the given widths (each pass one run on
+/// dual numbers as wide as its columns need: 4, 8, 10 or 12 lanes), two workers: what
+/// `large::PASS_COSTS` was measured with.
+#[divan::bench(args = ["9,8", "12,5", "10,4,3", "8,8,1", "4,4,4,4,1", "8,4,4,1"], sample_count = 3, sample_size = 1)]
+fn jacobian_microspeaker_widths(b: divan::Bencher, w: &str) {
+    let (prob, th) = micro_problem(2);
     let widths: Vec<usize> = w.split(',').map(|v| v.parse().unwrap()).collect();
     b.bench_local(|| prob.jacobian_in(&th, &widths));
 }
@@ -158,14 +164,7 @@ fn jacobian_microspeaker_widths(b: divan::Bencher, w: &str) {
 /// most of its time in.
 #[divan::bench(args = ["plain", "spare heat"], sample_count = 3, sample_size = 1)]
 fn jacobian_microspeaker(b: divan::Bencher, which: &str) {
-    let r = rec("microspeaker-0g1");
-    let p = &r.p;
-    let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
-    let sc = Scales { re: p.re, le: p.le.eval(0.0), l2, r2, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
-    let lay = Layout::new(2, 5, 2.0, 0.005, sc, true, p.mms);
-    let th = lay.theta_from(p, None);
-    let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let prob = OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.rates(), 0.05, threads);
+    let (prob, th) = micro_problem(std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
     let prob = if which == "plain" { prob } else { prob.with_spare_heat() };
     b.bench_local(|| prob.jacobian(&th));
 }

@@ -3246,16 +3246,23 @@ mod tests {
         release_spare_jacobians();
     }
 
+    /// The LR-3 tests' case: PTT4 with L3 = 2.1e-4 H and R3 = 3.7 ohm, the order-4 layout
+    /// with LR-3, and theta of that set: (scales, layout, theta).
+    fn lr3_case() -> (Scales, Layout, Vec<f64>) {
+        let p = Parameters { l3r3: Some((2.1e-4, 3.7)), ..embedded_driver("ptt4.0w04-01a").unwrap() };
+        let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
+        let lay = Layout::new(4, 2, 1.0, 0.004, sc.clone(), true, p.mms).with_effects(Effects { lr3: true, ..Effects::NONE });
+        let th = lay.theta_from(&p, None);
+        (sc, lay, th)
+    }
+
     /// The LR-3 slots (L3 and tau3 = L3 / R3): a parameter set's branch comes back from
     /// theta unchanged, and the branch's impedance `j w L3 R3 / (R3 + j w L3)` is linear in
     /// theta's L3 entry at a given tau3 (what lets a fit grow or remove the branch in one
     /// step), checked at 20 Hz .. 20 kHz on a branch scaled by 0.02, 1 and 3.
     #[test]
     fn lr3_slots_round_trip_and_the_branch_is_linear_in_l3() {
-        let p = Parameters { l3r3: Some((2.1e-4, 3.7)), ..embedded_driver("ptt4.0w04-01a").unwrap() };
-        let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
-        let lay = Layout::new(4, 2, 1.0, 0.004, sc.clone(), true, p.mms).with_effects(Effects { lr3: true, ..Effects::NONE });
-        let th = lay.theta_from(&p, None);
+        let (sc, lay, th) = lr3_case();
         let (l3, r3) = lay.parameters(&th).l3r3.unwrap();
         assert!((l3 / 2.1e-4 - 1.0).abs() < 1e-14 && (r3 / 3.7 - 1.0).abs() < 1e-14, "L3 {l3}, R3 {r3}");
         let (a, b) = (lay.slots().l3.unwrap(), lay.slots().tau3.unwrap());
@@ -3281,10 +3288,7 @@ mod tests {
     #[test]
     fn r3_sd_is_the_spread_of_r3_over_draws_of_l3_and_tau3() {
         use rand_distr::{Distribution, StandardNormal};
-        let p = Parameters { l3r3: Some((2.1e-4, 3.7)), ..embedded_driver("ptt4.0w04-01a").unwrap() };
-        let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
-        let lay = Layout::new(4, 2, 1.0, 0.004, sc.clone(), true, p.mms).with_effects(Effects { lr3: true, ..Effects::NONE });
-        let th = lay.theta_from(&p, None);
+        let (sc, lay, th) = lr3_case();
         let (a, b) = (lay.slots().l3.unwrap(), lay.slots().tau3.unwrap());
         let (sa, sb) = (0.02 * th[a], 0.03 * th[b]);
         for rho in [-0.8, 0.0, 0.8] {
