@@ -60,10 +60,12 @@ pub const CHUNK: usize = 8;
 ///
 /// (On num-dual's dual numbers, until session 33, a 10-lane pass had cost 1.13 of an 8-lane
 /// one and a 12-lane one 2.6: 8 lanes, with 10 where it saved a pass, had been the choice.)
-pub const PASS_COSTS: [(usize, f64); 4] = [(4, 0.56), (8, 1.0), (10, 1.27), (12, 1.6)];
-/// The narrowest pass ([`PASS_COSTS`]'s first).
+pub const PASS_COSTS: [(usize, f64); 4] = [(CHUNK_SHORT, 0.56), (CHUNK, 1.0), (CHUNK_TEN, 1.27), (CHUNK_WIDE, 1.6)];
+/// The narrowest pass.
 pub const CHUNK_SHORT: usize = 4;
-/// The widest pass ([`PASS_COSTS`]'s last).
+/// The pass between [`CHUNK`] and [`CHUNK_WIDE`].
+pub const CHUNK_TEN: usize = 10;
+/// The widest pass.
 pub const CHUNK_WIDE: usize = 12;
 
 /// The columns of each dual-number pass of an `n`-column Jacobian on `threads` workers.
@@ -1308,15 +1310,14 @@ impl<'a> OutputError<'a> {
     }
 
     /// Jacobian columns `c0 .. c0 + cnt` of the current w.r.t. theta: one run of the model on
-    /// dual numbers, 4, 8, 10 or 12 lanes wide ([`PASS_COSTS`]; the narrowest
-    /// that holds `cnt`).
+    /// dual numbers of one of [`PASS_COSTS`]'s widths (the narrowest that holds `cnt`).
     fn jacobian_pass(&self, th: &[f64], c0: usize, cnt: usize, u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
         if cnt <= CHUNK_SHORT {
             self.jacobian_chunk::<CHUNK_SHORT>(th, c0, cnt, u, stop, block)
         } else if cnt <= CHUNK {
             self.jacobian_chunk::<CHUNK>(th, c0, cnt, u, stop, block)
-        } else if cnt <= 10 {
-            self.jacobian_chunk::<10>(th, c0, cnt, u, stop, block)
+        } else if cnt <= CHUNK_TEN {
+            self.jacobian_chunk::<CHUNK_TEN>(th, c0, cnt, u, stop, block)
         } else {
             self.jacobian_chunk::<CHUNK_WIDE>(th, c0, cnt, u, stop, block)
         }
