@@ -1009,6 +1009,60 @@ impl ChainSetup {
     }
 }
 
+/// A search stage's last Jacobian ([`OutputError::keeping_search`]), computed one accepted
+/// step before the stage's end.
+pub(crate) struct KeptJacobian {
+    j: DMatrix<f64>,
+}
+
+impl KeptJacobian {
+    /// Hands the matrix's storage back for the next Jacobian.
+    fn recycle(self) {
+        recycle_jacobian(self.j);
+    }
+}
+
+/// For each unknown of `to` followed by `n_chain` chain unknowns, its index in the theta of
+/// `from` (followed by the same chain unknowns), `None` where `from` has no such unknown: the
+/// map of [`OutputError::seed_first`] from a stage whose model `to`'s holds (a lower order,
+/// fewer effects). A Legendre coefficient is the same unknown at every order (`P_k` does not
+/// depend on the order). `None` when the two do not share knots, basis and scales, or
+/// `from` has an unknown `to` lacks.
+fn column_map(from: &Layout, to: &Layout, n_chain: usize) -> Option<Vec<Option<usize>>> {
+    let (a, b) = (from.slots(), to.slots());
+    let same = a.re.len() == b.re.len()
+        && from.x_ref == to.x_ref
+        && from.knot_dt == to.knot_dt
+        && from.has_l2r2 == to.has_l2r2
+        && from.order <= to.order
+        && to.effects.union(from.effects) == to.effects
+        && from.heat_taus.is_empty()
+        && to.heat_taus.is_empty()
+        && format!("{:?}", from.scales) == format!("{:?}", to.scales);
+    if !same {
+        return None;
+    }
+    let mut map = vec![None; b.n + n_chain];
+    let mut range = |x: &Range<usize>, y: &Range<usize>| {
+        for (k, c) in y.clone().enumerate().take(x.len()) {
+            map[c] = Some(x.start + k);
+        }
+    };
+    range(&a.re, &b.re);
+    range(&a.le, &b.le);
+    range(&a.bl, &b.bl);
+    range(&a.kms, &b.kms);
+    let one = |k: Option<usize>| k.map_or(0..0, |k| k..k + 1);
+    let two = |k: Option<usize>| k.map_or(0..0, |k| k..k + 2);
+    for (x, y) in [(one(a.l2), one(b.l2)), (one(a.r2), one(b.r2)), (one(Some(a.rms)), one(Some(b.rms))), (one(a.lambda), one(b.lambda)), (one(a.l3), one(b.l3)), (one(a.tau3), one(b.tau3)), (two(a.le_i), two(b.le_i)), (one(a.rms_v), one(b.rms_v))] {
+        range(&x, &y);
+    }
+    for k in 0..n_chain {
+        map[b.n + k] = Some(a.n + k);
+    }
+    Some(map)
+}
+
 /// Where a kept Jacobian was computed ([`OutputError::keeping_last`]).
 struct JacobianAt {
     theta: Vec<f64>,
@@ -1039,8 +1093,9 @@ pub struct OutputError<'a> {
     rates: Rates,
     /// The last Jacobian computed (LM's last iteration): reused for the covariance and the
     /// final fit's chord iterations, which share it (no copy of the matrix). Kept only when
-    /// [`OutputError::keeping_last`] says so (a copy of up to 50 MB per iteration that the
-    /// search stages never read).
+    /// [`OutputError::keeping_last`] says so (a copy of up to 50 MB per iteration), or, moved
+    /// instead of copied, [`OutputError::keeping_search`] (a search stage's, for the next
+    /// stage's first iteration).
     last_jacobian: std::sync::Mutex<Option<std::sync::Arc<DMatrix<f64>>>>,
     /// Where [`OutputError::last_jacobian`] was computed: theta, the residual there and the
     /// spare heating columns computed with it ([`OutputError::with_spare_heat`]).
@@ -1054,6 +1109,9 @@ pub struct OutputError<'a> {
     /// last residual was run: one run of the whole record fewer). Kept as the Jacobian is.
     last_trace: std::sync::Mutex<Option<(Vec<f64>, Vec<f64>, Vec<f64>)>>,
     keep_last: bool,
+    /// Keep the last Jacobian as [`Problem::recycle`] hands it back, without a copy
+    /// ([`OutputError::keeping_search`]).
+    keep_search: bool,
     /// The last residual and its theta: LM evaluates a trial, accepts it, then asks for the
     /// residual and Jacobian at the same theta.
     last_residual: std::sync::Mutex<Option<(Vec<f64>, DVector<f64>)>>,
@@ -1092,6 +1150,7 @@ impl<'a> OutputError<'a> {
             spare: None,
             last_trace: Default::default(),
             keep_last: false,
+            keep_search: false,
             last_residual: Default::default(),
             ahead: Default::default(),
             chain: None,
@@ -1104,6 +1163,77 @@ impl<'a> OutputError<'a> {
     pub fn keeping_last(mut self) -> Self {
         self.keep_last = true;
         self
+    }
+
+    /// The problem of a search stage that keeps its last Jacobian (moved, not copied, when LM
+    /// hands it back) for the next stage to start on ([`OutputError::take_kept`],
+    /// [`OutputError::seed_first`]).
+    pub(crate) fn keeping_search(mut self) -> Self {
+        self.keep_search = !self.keep_last;
+        self
+    }
+
+    /// The last Jacobian a [`OutputError::keeping_search`] problem computed, and its theta.
+    pub(crate) fn take_kept(&self) -> Option<KeptJacobian> {
+        let j = self.last_jacobian.lock().expect("jacobian cache").take()?;
+        let at = self.last_jacobian_at.lock().expect("jacobian cache").take()?;
+        let j = std::sync::Arc::try_unwrap(j).ok()?;
+        (at.theta.len() == j.ncols()).then_some(KeptJacobian { j })
+    }
+
+    /// Seeds the first Jacobian of a fit that starts at `theta` from `kept`, the last one of a
+    /// search stage whose model this one's holds (a lower order, an effect fewer: the same
+    /// samples, knots, chain and whitening). Column `c` is `kept`'s column `map[c]` (computed
+    /// where that stage's last Jacobian was, one accepted step before its end), or, where
+    /// `map[c]` is `None`, computed here at `theta` in one pass beside the residual run at
+    /// `theta` (both then cached for the fit's first iteration). A search stage started with
+    /// a whole Jacobian of its own; the unknowns they share hardly moved since the last one
+    /// (the stage ended on a step the linearised model predicted within 2 %), and LM accepts
+    /// only steps that lower the exact cost. Returns false, seeding nothing, when the shapes
+    /// do not fit or more than [`CHUNK_WIDE`] columns are new.
+    pub(crate) fn seed_first(&self, theta: &[f64], kept: &KeptJacobian, map: &[Option<usize>]) -> bool {
+        let (rows, nl) = (self.fit.len(), self.n_layout());
+        let fresh: Vec<usize> = (0..map.len()).filter(|&c| map[c].is_none()).collect();
+        let fits = map.len() == theta.len()
+            && kept.j.nrows() == rows
+            && map.iter().flatten().all(|&b| b < kept.j.ncols())
+            && fresh.iter().all(|&c| c < nl)
+            && !fresh.is_empty()
+            && fresh.len() <= CHUNK_WIDE
+            && self.spare.is_none()
+            && self.layout.physical(theta);
+        if !fits {
+            return false;
+        }
+        let (u, _) = self.signals(theta);
+        let mut block = vec![0.0; rows * fresh.len()];
+        let pass = |block: &mut [f64]| self.jacobian_columns(&theta[..nl], &fresh, &u, block);
+        if self.threads >= 2 {
+            std::thread::scope(|scope| {
+                let h = scope.spawn(|| self.residual(theta));
+                pass(&mut block);
+                h.join().expect("a model run does not panic");
+            });
+        } else {
+            self.residual(theta);
+            pass(&mut block);
+        }
+        let mut j = DMatrix::from_vec(rows, theta.len(), jacobian_storage(rows * theta.len()));
+        let mut fresh_cols = block.chunks_exact_mut(rows.max(1));
+        for (c, from) in map.iter().enumerate() {
+            match from {
+                Some(b) => j.column_mut(c).copy_from(&kept.j.column(*b)),
+                None => {
+                    let col = fresh_cols.next().expect("one block per fresh column");
+                    if let Some(ch) = self.chain {
+                        ch.whiten(col);
+                    }
+                    j.column_mut(c).copy_from_slice(col);
+                }
+            }
+        }
+        *self.ahead.lock().expect("jacobian ahead") = Some((theta.to_vec(), j, None));
+        true
     }
 
     /// The problem whose Jacobians also compute the columns of the heating terms
@@ -1326,7 +1456,6 @@ impl<'a> OutputError<'a> {
     /// Jacobian columns `c0 .. c0 + cnt` (`cnt <= N`) of the current w.r.t. theta: one run of
     /// the model on `N`-wide dual numbers.
     fn jacobian_chunk<const N: usize>(&self, th: &[f64], c0: usize, cnt: usize, u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
-        let (start, rows) = (self.fit.start, self.fit.len());
         // With spare heating columns: the heated layout, its heating terms at zero (the same
         // run: Re + 0 h is Re) after the layout's entries.
         let (layout, heat, th) = match &self.spare {
@@ -1334,8 +1463,32 @@ impl<'a> OutputError<'a> {
             None => (&self.layout, &self.heat, std::borrow::Cow::Borrowed(th)),
         };
         let (thd, cnt) = seed_duals_n::<N>(&th, c0, cnt);
+        self.jacobian_run(layout, heat, &thd, cnt, u, stop, block);
+    }
+
+    /// The Jacobian columns `cols` (at most [`CHUNK_WIDE`], of the layout's unknowns) at
+    /// `th`, in one pass: column `cols[k]` at `block[k * rows ..]`.
+    fn jacobian_columns(&self, th: &[f64], cols: &[usize], u: &[f64], block: &mut [f64]) {
+        fn lanes<const N: usize>(p: &OutputError, th: &[f64], cols: &[usize], u: &[f64], block: &mut [f64]) {
+            let thd: Vec<Jet<N>> = th.iter().enumerate().map(|(j, &t)| cols.iter().position(|&c| c == j).map_or(Jet::constant(t), |k| Jet::constant(t).derivative(k))).collect();
+            p.jacobian_run(&p.layout, &p.heat, &thd, cols.len(), u, None, block);
+        }
+        match cols.len() {
+            0 => {}
+            n if n <= CHUNK_SHORT => lanes::<CHUNK_SHORT>(self, th, cols, u, block),
+            n if n <= CHUNK => lanes::<CHUNK>(self, th, cols, u, block),
+            n if n <= CHUNK_TEN => lanes::<CHUNK_TEN>(self, th, cols, u, block),
+            _ => lanes::<CHUNK_WIDE>(self, th, cols, u, block),
+        }
+    }
+
+    /// One run of `layout` on the seeded `thd`: the first `cnt` lanes of the current's
+    /// derivative over the fitted samples, lane `k` at `block[k * rows ..]`.
+    #[allow(clippy::too_many_arguments)]
+    fn jacobian_run<const N: usize>(&self, layout: &Layout, heat: &[Vec<f64>], thd: &[Jet<N>], cnt: usize, u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
+        let (start, rows) = (self.fit.start, self.fit.len());
         // A run that fails here ran away at a theta whose f64 run did not: leave zeros.
-        let _ = run_layout(layout, &thd, heat, u, self.fs, &self.stepper_jac, self.fit.end, f64::INFINITY, stop, |m, s| {
+        let _ = run_layout(layout, thd, heat, u, self.fs, &self.stepper_jac, self.fit.end, f64::INFINITY, stop, |m, s| {
             if m >= start {
                 let e = &s[idx::I].eps;
                 for k in 0..cnt {
@@ -1582,11 +1735,21 @@ impl Problem for OutputError<'_> {
                 recycle_jacobian(old);
             }
             *self.last_jacobian_at.lock().expect("jacobian cache") = Some(JacobianAt { theta: theta.to_vec(), residual: r.clone(), spare });
+        } else if self.keep_search {
+            // The matrix itself is kept when it comes back (`recycle`).
+            *self.last_jacobian_at.lock().expect("jacobian cache") = Some(JacobianAt { theta: theta.to_vec(), residual: DVector::zeros(0), spare: None });
         }
         (r, j)
     }
     fn recycle(&self, j: DMatrix<f64>) {
-        recycle_jacobian(j);
+        if self.keep_search {
+            let old = self.last_jacobian.lock().expect("jacobian cache").replace(std::sync::Arc::new(j));
+            if let Some(Ok(old)) = old.map(std::sync::Arc::try_unwrap) {
+                recycle_jacobian(old);
+            }
+        } else {
+            recycle_jacobian(j);
+        }
     }
     fn residual(&self, theta: &[f64]) -> DVector<f64> {
         if let Some((th, r)) = self.last_residual.lock().expect("residual cache").as_ref() {
@@ -2189,6 +2352,21 @@ pub const FINAL_FAST_DIVISOR: f64 = 10.0;
 /// `|1 - gain ratio|` below which [`FINAL_FAST_DIVISOR`] applies.
 pub const FINAL_FAST_GAIN: f64 = 0.05;
 
+/// The last Jacobian of a search stage that converged, for the next stage to start on
+/// ([`OutputError::seed_first`]). A stage stopped by its iteration cap may still be moving:
+/// 18WU's order-0 stage, capped at [`ORDER0_FIRST_ITERATIONS`] while it crawled (gain ratios
+/// 0.74-1.49), seeded an order-2 stage that then took 5 iterations instead of 4 (gain ratios
+/// 0.66-0.94).
+fn kept_if_converged(prob: &OutputError, s: &LmState) -> Option<std::sync::Arc<KeptJacobian>> {
+    let kept = prob.take_kept()?;
+    if s.converged {
+        Some(std::sync::Arc::new(kept))
+    } else {
+        kept.recycle();
+        None
+    }
+}
+
 /// The linear fit with the small-signal `effects` that starts a candidate of the effects
 /// search ([`LinearOptions::LARGE_SIGNAL_START`] otherwise); `None` when it fails.
 fn linear_start_fit(u: &[f64], i: &[f64], fs: f64, origin: &str, effects: Effects, lr2: Option<&crate::linear::Lr2Fit>) -> Option<LinearFit> {
@@ -2395,7 +2573,15 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     let mut trials = Vec::new();
     let mut current = start.clone();
     let mut re_track: Option<Vec<f64>> = None;
-    let mut best_by_order: Vec<(usize, Vec<f64>, f64)> = Vec::new();
+    // Per order tried: (order, theta for the whole record, validation error, the estimation
+    // part's Re(t) track, the stage's last Jacobian).
+    type Kept = Option<std::sync::Arc<KeptJacobian>>;
+    let mut best_by_order: Vec<(usize, Vec<f64>, f64, Vec<f64>, Kept)> = Vec::new();
+    // Where the next search stage starts: the last stage's Re(t) track on the estimation part
+    // (`re_track` continues it over the held-out part, for the final fit), and its layout and
+    // last Jacobian, which seed the next stage's first ([`OutputError::seed_first`]).
+    let mut search_track: Option<Vec<f64>> = None;
+    let mut prev_kept: Option<(Layout, std::sync::Arc<KeptJacobian>)> = None;
     // A given order skips the search.
     let orders: Vec<usize> = if opts.order.is_some() { vec![] } else { vec![2, 4, 6, 8] };
     let mut linear_rel = None;
@@ -2411,20 +2597,28 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         // whether the excitation is too small.
         let lay = layout_for(0);
         let th = join(lay.theta_from(&current, None), &cth);
-        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching();
+        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching().keeping_search();
         let s = solve(&prob, th, &Stage::Estimate { order: 0 }, 1e-3, ORDER0_FIRST_ITERATIONS, None, None, &mut observe);
         cth = s.theta[lay.slots().n..].to_vec();
         linear_rel = Some((2.0 * s.cost).sqrt() / norm_est);
         current = Parameters { mms: opts.mms, ..lay.parameters(&s.theta) };
         re_track = Some(lay.re_track(&s.theta));
+        search_track = re_track.clone();
+        prev_kept = kept_if_converged(&prob, &s).map(|k| (lay.clone(), k));
         order0 = Some((prob, s));
     }
     // Fit a layout on the estimation part (from `from` and an Re(t) track), then score it on
     // the held-out part: (LM state, estimation error, theta for the whole record, validation
-    // error).
-    let estimate_validate = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], observe: &mut dyn FnMut(&Progress)| {
+    // error, the stage's last Jacobian). `seed`: a stage whose model this one's holds, and its
+    // last Jacobian, on which the first iteration starts (with this layout's new columns).
+    let estimate_validate = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], seed: Option<(&Layout, &KeptJacobian)>, observe: &mut dyn FnMut(&Progress)| {
         let th = join(lay.theta_from(from, track), cth);
-        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching();
+        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching().keeping_search();
+        if let Some((base, kept)) = seed {
+            if let Some(map) = column_map(base, lay, cth.len()) {
+                prob.seed_first(&th, kept, &map);
+            }
+        }
         // The held-out part: Re(t) knots beyond the estimation part were not identified;
         // continue the track linearly from its last identified interval.
         let t_split = split as f64 / fs;
@@ -2462,16 +2656,26 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             Some((t, v)) if t == s.theta => v,
             _ => validate(&th_val),
         };
-        (s, est, th_val, val)
+        let kept = kept_if_converged(&prob, &s);
+        (s, est, th_val, val, kept)
     };
     for &order in &orders {
         let lay = layout_for(order);
-        let (s, est, th_val, val) = estimate_validate(&lay, &current, re_track.as_deref(), &cth, &mut observe);
+        let seed = prev_kept.as_ref().map(|(l, k)| (l, &**k));
+        let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, seed, &mut observe);
         cth = th_val[lay.slots().n..].to_vec();
         trials.push(OrderTrial { order, estimation_rel: est, validation_rel: val, iterations: s.iteration });
         current = Parameters { mms: opts.mms, ..lay.parameters(&s.theta) };
         re_track = Some(lay.re_track(&th_val));
-        best_by_order.push((order, th_val.clone(), val));
+        search_track = Some(lay.re_track(&s.theta));
+        prev_kept = kept.clone().map(|k| (lay.clone(), k));
+        best_by_order.push((order, th_val.clone(), val, lay.re_track(&s.theta), kept));
+        // The orders the choice below can no longer take (more than 2 % above the best so
+        // far) need no Jacobian for the effects search.
+        let best = best_by_order.iter().map(|b| b.2).fold(f64::INFINITY, f64::min);
+        for b in best_by_order.iter_mut().filter(|b| b.2 > 1.02 * best) {
+            b.4 = None;
+        }
         if order == MIN_ORDER {
             // An order-0 stage stopped by its iteration cap is finished when the decision is
             // near (its error can only fall, and the gain with it).
@@ -2519,12 +2723,20 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         let next = best_by_order.get(k + 1)?;
         Some(Truncation::of(&layout_for(order), &best_by_order[k].1, &layout_for(next.0), &next.1))
     });
-    if let Some((_, th, val)) = at_order.map(|k| &best_by_order[k]) {
+    // The chosen order's last Jacobian, for the effects search's first trials.
+    let mut at_kept: Option<(Layout, std::sync::Arc<KeptJacobian>)> = None;
+    if let Some((_, th, val, est_track, kept)) = at_order.map(|k| &best_by_order[k]) {
         let lay = layout_for(order);
         current = Parameters { mms: opts.mms, ..lay.parameters(th) };
         re_track = Some(lay.re_track(th));
+        search_track = Some(est_track.clone());
         cth = th[lay.slots().n..].to_vec();
         val_at_order = Some(*val);
+        at_kept = kept.clone().map(|k| (lay, k));
+    }
+    drop(prev_kept);
+    for b in best_by_order.iter_mut() {
+        b.4 = None;
     }
 
     // The effects of real drivers (creep, LR-3, Le(i), Rms(v)): the data decide, as for the
@@ -2533,19 +2745,32 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     // out positive). Every effect not yet in is tried in every round: a dominant one masks the
     // others (with all four in the record, only LR-3 lowered the error by 5 % on its own).
     let mut effect_trials: Vec<(String, f64)> = Vec::new();
+    // The chosen effects' search stage: its theta for the whole record and validation error
+    // (the order search below starts from them).
+    let mut effects_fit: Option<(Vec<f64>, f64)> = None;
     let effects = match opts.effects {
         EffectsChoice::Fixed(e) => e,
         EffectsChoice::Auto => {
             let base_val = match val_at_order {
                 Some(v) => v,
-                None => estimate_validate(&layout_for(order), &current, re_track.as_deref(), &cth, &mut observe).3,
+                None => {
+                    let lay = layout_for(order);
+                    let (s, _, _, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, None, &mut observe);
+                    search_track = Some(lay.re_track(&s.theta));
+                    at_kept = kept.map(|k| (lay, k));
+                    val
+                }
             };
             effect_trials.push((Effects::NONE.model_name(), base_val));
             let (mut at, mut at_val) = (Effects::NONE, base_val);
             loop {
                 let singles = [Effects { creep: true, ..Effects::NONE }, Effects { lr3: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }];
                 let cands: Vec<(Effects, Effects)> = singles.iter().filter(|&&one| at.union(one) != at).map(|&one| (one, at.union(one))).collect();
-                let mut best: Option<(Effects, f64, Parameters, Vec<f64>, Vec<f64>)> = None;
+                // (effects, validation error, parameters, Re(t) track for the whole record and
+                // on the estimation part, chain theta, theta for the whole record, layout and
+                // last Jacobian).
+                #[allow(clippy::type_complexity)]
+                let mut best: Option<(Effects, f64, Parameters, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Option<(Layout, std::sync::Arc<KeptJacobian>)>)> = None;
                 // The eddy-current branches and creep act at small signal too: their start
                 // values come from the linear fit with the same effects on the first
                 // seconds (from L2/R2 of the LR-2 fit, which absorbed the second branch,
@@ -2587,9 +2812,12 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                     } else {
                         None
                     };
+                    // A trial from the present estimate (Le(i) and Rms(v) at zero, a vanishing
+                    // branch or creep) starts on the chosen stage's last Jacobian.
+                    let mut nested = !(one.creep || one.lr3);
                     if let Some(vanishing) = vanishing {
                         let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching();
-                        let miss = |p: &Parameters| prob.residual(&join(lay.theta_from(p, re_track.as_deref()), &cth)).norm_squared();
+                        let miss = |p: &Parameters| prob.residual(&join(lay.theta_from(p, search_track.as_deref()), &cth)).norm_squared();
                         // The two runs side by side (each takes one core).
                         let (a, b) = std::thread::scope(|scope| {
                             let h = scope.spawn(|| miss(&vanishing));
@@ -2598,21 +2826,27 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                         });
                         if a < b {
                             from = vanishing;
+                            nested = true;
                         }
                     }
-                    let (s, _, th_val, val) = estimate_validate(&lay, &from, re_track.as_deref(), &cth, &mut observe);
+                    let seed = at_kept.as_ref().filter(|_| nested).map(|(l, k)| (l, &**k));
+                    let (s, _, th_val, val, kept) = estimate_validate(&lay, &from, search_track.as_deref(), &cth, seed, &mut observe);
                     effect_trials.push((e.model_name(), val));
                     let lambda_ok = lay.slots().lambda.is_none_or(|k| s.theta[k] > 0.0);
                     if lambda_ok && val < (1.0 - EFFECT_MIN_GAIN_HELD_OUT) * at_val && best.as_ref().is_none_or(|b| val < b.1) {
-                        best = Some((e, val, Parameters { mms: opts.mms, ..lay.parameters(&th_val) }, lay.re_track(&th_val), th_val[lay.slots().n..].to_vec()));
+                        let p = Parameters { mms: opts.mms, ..lay.parameters(&th_val) };
+                        best = Some((e, val, p, lay.re_track(&th_val), lay.re_track(&s.theta), th_val[lay.slots().n..].to_vec(), th_val, kept.map(|k| (lay, k))));
                     }
                 }
                 match best {
-                    Some((e, val, p, track, c)) => {
+                    Some((e, val, p, track, est_track, c, th_val, kept)) => {
                         (at, at_val) = (e, val);
                         cth = c;
                         current = p;
                         re_track = Some(track);
+                        search_track = Some(est_track);
+                        at_kept = kept;
+                        effects_fit = Some((th_val, val));
                     }
                     None => break at,
                 }
@@ -2624,13 +2858,26 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     // error by 2 %.
     let mut order = order;
     if opts.order.is_none() && effects != Effects::NONE {
-        let (_, _, mut cur_th, mut cur) = estimate_validate(&layout_for(order).with_effects(effects), &current, re_track.as_deref(), &cth, &mut observe);
+        // The effects search's last kept stage is this layout's fit (given effects: fitted
+        // here, from the order's stage without them).
+        let (mut cur_th, mut cur) = match effects_fit {
+            Some(fit) => fit,
+            None => {
+                let lay = layout_for(order).with_effects(effects);
+                let seed = at_kept.as_ref().map(|(l, k)| (l, &**k));
+                let (s, _, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, seed, &mut observe);
+                search_track = Some(lay.re_track(&s.theta));
+                at_kept = kept.map(|k| (lay, k));
+                (th_val, val)
+            }
+        };
         // The pair without the effects no longer applies: the search below makes its own (none
         // at the highest order, as above).
         truncation = None;
         while order + 2 <= MAX_ORDER {
             let lay = layout_for(order + 2).with_effects(effects);
-            let (_, est, th_val, val) = estimate_validate(&lay, &current, re_track.as_deref(), &cth, &mut observe);
+            let seed = at_kept.as_ref().map(|(l, k)| (l, &**k));
+            let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, seed, &mut observe);
             trials.push(OrderTrial { order: order + 2, estimation_rel: est, validation_rel: val, iterations: 0 });
             if !(val < 0.98 * cur) {
                 truncation = Some(Truncation::of(&layout_for(order).with_effects(effects), &cur_th, &lay, &th_val));
@@ -2640,9 +2887,12 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             cur_th = th_val.clone();
             current = Parameters { mms: opts.mms, ..lay.parameters(&th_val) };
             re_track = Some(lay.re_track(&th_val));
+            search_track = Some(lay.re_track(&s.theta));
+            at_kept = kept.map(|k| (lay.clone(), k));
             cth = th_val[lay.slots().n..].to_vec();
         }
     }
+    drop(at_kept);
 
     // The final fit's chain. Behind an AC coupling the voltage channel's offset is free (see
     // ChainSetup), starting at the held value. The whitening follows the search's current
@@ -3222,6 +3472,53 @@ mod tests {
         let narrow = prob.jacobian_in(&th, &[8, 8, 1]);
         for widths in [vec![9, 8], vec![10, 7], vec![3, 10, 4], vec![12, 5], vec![11, 6]] {
             assert_eq!(prob.jacobian_in(&th, &widths), narrow, "{widths:?}");
+        }
+    }
+
+    /// Issue 17: a search stage that starts on the last Jacobian of a stage whose model its
+    /// own holds ([`OutputError::seed_first`]) starts on its own Jacobian: at the same point
+    /// (the new unknowns at zero) every column, the kept ones and the new ones computed
+    /// beside the residual, is the one a whole Jacobian has, for a higher order, for Le(i)
+    /// and Rms(v), and for both at once. A map between layouts that are not nested is
+    /// refused.
+    #[test]
+    fn a_seeded_first_jacobian_is_the_nested_stage_s_jacobian() {
+        let fs = 48000.0;
+        let (p, tr, lay) = sb17_case(0.4, 5, 2, 5, 0.1);
+        let mut th = lay.theta_from(&p, None);
+        th[lay.slots().kms.start] *= 0.97;
+        th[lay.slots().bl.start + 1] += 0.01;
+        let base = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).searching().keeping_search();
+        let (_, j) = base.residual_jacobian(&th);
+        base.recycle(j);
+        let kept = base.take_kept().expect("a search stage keeps its last Jacobian");
+        let from = lay.parameters(&th);
+        let track = lay.re_track(&th);
+        let higher = Layout::new(4, lay.n_re, lay.knot_dt, lay.x_ref, lay.scales.clone(), lay.has_l2r2, lay.mms);
+        let le_i = Effects { le_i: true, ..Effects::NONE };
+        let both = Effects { le_i: true, rms_v: true, ..Effects::NONE };
+        for (name, to) in [("order 4", higher.clone()), ("Le(i)", lay.clone().with_effects(le_i)), ("order 4, Le(i) and Rms(v)", higher.with_effects(both))] {
+            let map = column_map(&lay, &to, 0).expect("nested");
+            let fresh = map.iter().filter(|m| m.is_none()).count();
+            assert_eq!(fresh, to.slots().n - lay.slots().n, "{name}: the new unknowns are the fresh columns");
+            let theta = to.theta_from(&from, Some(&track));
+            let prob = OutputError::new(to.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).searching();
+            assert!(prob.seed_first(&theta, &kept, &map), "{name}: seeded");
+            let (r, seeded) = prob.residual_jacobian(&theta);
+            let whole = prob.jacobian(&theta);
+            assert_eq!(r, prob.residual_vec(&theta).unwrap(), "{name}: the residual at the start");
+            for c in 0..theta.len() {
+                let (a, b) = (seeded.column(c), whole.column(c));
+                let err = (a - b).norm() / b.norm().max(1e-300);
+                assert!(b.norm() > 0.0 && err < 1e-9, "{name}: column {c} (kept from {:?}) off by {err:.2e}", map[c]);
+            }
+        }
+        // Not nested: a lower order, other knots.
+        assert!(column_map(&higher_of(&lay), &lay, 0).is_none());
+        let other_knots = Layout::new(2, lay.n_re + 1, lay.knot_dt, lay.x_ref, lay.scales.clone(), lay.has_l2r2, lay.mms);
+        assert!(column_map(&lay, &other_knots, 0).is_none());
+        fn higher_of(l: &Layout) -> Layout {
+            Layout::new(l.order + 2, l.n_re, l.knot_dt, l.x_ref, l.scales.clone(), l.has_l2r2, l.mms)
         }
     }
 

@@ -130,17 +130,23 @@ impl Default for OnlineOptions {
     }
 }
 
-/// Prior variances of theta (normalised units) for a layout's slots: the small-signal values
-/// `prior_linear`, the LR-2/LR-3 branches twice that, the series' shapes `prior_nonlinear`;
-/// the effects: lambda +- 0.05 (theta is lambda / 0.1), g1 +- 0.2 / A and g2 +- 0.2 / A^2
-/// (Le 20 % down at 1 A), c2 +- 1 Rms per (m/s)^2.
-fn prior_variances(s: &crate::large::Slots, opts: &OnlineOptions) -> Vec<f64> {
+/// Prior variances of theta (normalised units) for a layout's slots at the start `theta`:
+/// the small-signal values `prior_linear`, the LR-2/LR-3 branches twice that (relative to
+/// their start values: L2 and R2 start at 1 in their units, L3 and tau3 at what the start
+/// has), the series' shapes `prior_nonlinear`; the effects: lambda +- 0.05 (theta is
+/// lambda / 0.1), g1 +- 0.2 / A and g2 +- 0.2 / A^2 (Le 20 % down at 1 A), c2 +- 1 Rms per
+/// (m/s)^2.
+///
+/// Until session 35 the branches' sds were `2 prior_linear` absolute: 10 % of L2 and R2, but
+/// for LR-3, fitted as L3 and tau3 = L3 / R3 since session 34 (tau3 ~ 0.17-0.24 in units of
+/// L2 / R2), 40-60 % of tau3, where R3 (~3 in units of R2) had had about 3 %.
+fn prior_variances(s: &crate::large::Slots, theta: &[f64], opts: &OnlineOptions) -> Vec<f64> {
     let mut prior = vec![opts.prior_nonlinear.powi(2); s.n];
     for k in [s.re.start, s.le.start, s.bl.start, s.kms.start, s.rms] {
         prior[k] = opts.prior_linear.powi(2);
     }
     for k in [s.l2, s.r2, s.l3, s.tau3].into_iter().flatten() {
-        prior[k] = (2.0 * opts.prior_linear).powi(2);
+        prior[k] = (2.0 * opts.prior_linear * theta[k].abs()).powi(2);
     }
     if let Some(k) = s.lambda {
         prior[k] = 0.5f64.powi(2);
@@ -270,7 +276,7 @@ impl Online {
         let effects = Effects { creep: start.creep.is_some() || o.creep, lr3: start.l3r3.is_some() || o.lr3, le_i: start.le_i.is_some() || o.le_i, rms_v: start.rms_v.is_some() || o.rms_v };
         let layout = Layout::new(opts.order, 1, 1.0, opts.x_ref, scales, start.l2r2.is_some(), start.mms).with_effects(effects);
         let theta = layout.theta_from(start, None);
-        let cov = DMatrix::from_diagonal(&DVector::from_vec(prior_variances(&layout.slots(), &opts)));
+        let cov = DMatrix::from_diagonal(&DVector::from_vec(prior_variances(&layout.slots(), &theta, &opts)));
         // RK4 as before issue 17 (`Stepper::rk4_for`): with the exponential scheme the
         // fast-heating microspeaker's bands held the truth within 2 sd on 87 % of the points
         // of one seed-sweep slice (3 runs; over all 12 seeds 90 % or more), against 90 %
@@ -817,4 +823,27 @@ pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64
         }
     }
     Some((re, sd))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Session 35: the LR-2 and LR-3 branches' priors are `2 prior_linear` of their start
+    /// values, whatever the unit the slot has (tau3's was 40-60 % of it, R3's had been 3 %).
+    #[test]
+    fn branch_priors_are_relative_to_the_start() {
+        let mut p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
+        let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
+        for (l3, r3) in [(0.6 * l2, 2.5 * r2), (0.05 * l2, 8.0 * r2), (3.0 * l2, 0.5 * r2)] {
+            p.l3r3 = Some((l3, r3));
+            let o = Online::new(&p, 48000.0, OnlineOptions::default()).unwrap();
+            let s = o.layout.slots();
+            for (name, k) in [("L2", s.l2), ("R2", s.r2), ("L3", s.l3), ("tau3", s.tau3)] {
+                let k = k.expect("the start has both branches");
+                let rel = o.cov[(k, k)].sqrt() / o.theta[k];
+                assert!((rel - 0.1).abs() < 1e-12, "{name} (L3 {l3:.2e} H, R3 {r3:.2e} ohm): prior sd {rel:.3} of its start, not 0.1");
+            }
+        }
+    }
 }
