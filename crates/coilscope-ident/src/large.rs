@@ -160,7 +160,7 @@ pub fn legendre(n: usize) -> Vec<Vec<f64>> {
 }
 
 /// Scales of the normalised parameters (the start values' magnitudes).
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Scales {
     pub re: f64,
     pub le: f64,
@@ -1038,7 +1038,7 @@ fn column_map(from: &Layout, to: &Layout, n_chain: usize) -> Option<Vec<Option<u
         && to.effects.union(from.effects) == to.effects
         && from.heat_taus.is_empty()
         && to.heat_taus.is_empty()
-        && format!("{:?}", from.scales) == format!("{:?}", to.scales);
+        && from.scales == to.scales;
     if !same {
         return None;
     }
@@ -3517,6 +3517,14 @@ mod tests {
         assert!(column_map(&higher_of(&lay), &lay, 0).is_none());
         let other_knots = Layout::new(2, lay.n_re + 1, lay.knot_dt, lay.x_ref, lay.scales.clone(), lay.has_l2r2, lay.mms);
         assert!(column_map(&lay, &other_knots, 0).is_none());
+        // Other scales; an effect the target lacks.
+        let other_scales = Layout::new(2, lay.n_re, lay.knot_dt, lay.x_ref, Scales { kms: 2.0 * lay.scales.kms, ..lay.scales.clone() }, lay.has_l2r2, lay.mms);
+        assert!(column_map(&lay, &other_scales, 0).is_none());
+        assert!(column_map(&lay.clone().with_effects(le_i), &lay.clone().with_effects(Effects { rms_v: true, ..Effects::NONE }), 0).is_none());
+        // The chain's unknowns follow the layout's in both.
+        let map = column_map(&lay, &lay.clone().with_effects(le_i), 3).unwrap();
+        let n = lay.slots().n;
+        assert_eq!(&map[map.len() - 3..], &[Some(n), Some(n + 1), Some(n + 2)]);
         fn higher_of(l: &Layout) -> Layout {
             Layout::new(l.order + 2, l.n_re, l.knot_dt, l.x_ref, l.scales.clone(), l.has_l2r2, l.mms)
         }
