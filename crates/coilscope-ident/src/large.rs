@@ -677,7 +677,8 @@ impl Layout {
 
 /// `theta` as num-dual's `N`-wide dual numbers whose derivative parts seed entries `c0 .. c0 +
 /// N` (fewer at the end): one pass of the model then gives those Jacobian columns (the online
-/// estimator's passes, [`crate::online`]; `identify`'s take [`Jet`]s, [`seed_duals_n`]).
+/// estimator's passes, [`crate::online`]; `identify`'s take [`Jet`]s,
+/// `OutputError::jacobian_columns`).
 /// Returns the duals and the number of seeded columns.
 pub fn seed_duals<const N: usize>(th: &[f64], c0: usize) -> (Vec<DualSVec64<N>>, usize) {
     seeded(th, c0, N.min(th.len() - c0), DualSVec64::from_re, |t, k| DualSVec64::from_re(t).derivative(k))
@@ -687,13 +688,6 @@ pub fn seed_duals<const N: usize>(th: &[f64], c0: usize) -> (Vec<DualSVec64<N>>,
 fn seeded<D>(th: &[f64], c0: usize, cnt: usize, constant: impl Fn(f64) -> D, seed: impl Fn(f64, usize) -> D) -> (Vec<D>, usize) {
     let thd = th.iter().enumerate().map(|(j, &t)| if (c0..c0 + cnt).contains(&j) { seed(t, j - c0) } else { constant(t) }).collect();
     (thd, cnt)
-}
-
-/// [`seed_duals`] on [`Jet`]s with at most `cnt` (and at most `N`) columns seeded:
-/// `identify`'s passes (the microspeaker's Jacobian took 0.96-1.04 s on num-dual's dual
-/// numbers, 0.70 s on jets; SB17's order-4 one 505 and 475-481 ms).
-pub fn seed_duals_n<const N: usize>(th: &[f64], c0: usize, cnt: usize) -> (Vec<Jet<N>>, usize) {
-    seeded(th, c0, cnt.min(N).min(th.len() - c0), Jet::constant, |t, k| Jet::constant(t).derivative(k))
 }
 
 /// `Re` at sample `m` (time `t`, s): the knots, linear between them (held after the last),
@@ -1173,12 +1167,18 @@ impl<'a> OutputError<'a> {
         self
     }
 
-    /// The last Jacobian a [`OutputError::keeping_search`] problem computed, and its theta.
+    /// The last Jacobian a [`OutputError::keeping_search`] problem computed.
     pub(crate) fn take_kept(&self) -> Option<KeptJacobian> {
         let j = self.last_jacobian.lock().expect("jacobian cache").take()?;
-        let at = self.last_jacobian_at.lock().expect("jacobian cache").take()?;
-        let j = std::sync::Arc::try_unwrap(j).ok()?;
-        (at.theta.len() == j.ncols()).then_some(KeptJacobian { j })
+        std::sync::Arc::try_unwrap(j).ok().map(|j| KeptJacobian { j })
+    }
+
+    /// `j` as [`OutputError::last_jacobian`], the one it replaces handed back for its storage.
+    fn keep_jacobian(&self, j: DMatrix<f64>) {
+        let old = self.last_jacobian.lock().expect("jacobian cache").replace(std::sync::Arc::new(j));
+        if let Some(Ok(old)) = old.map(std::sync::Arc::try_unwrap) {
+            recycle_jacobian(old);
+        }
     }
 
     /// Seeds the first Jacobian of a fit that starts at `theta` from `kept`, the last one of a
@@ -1202,7 +1202,7 @@ impl<'a> OutputError<'a> {
         }
         let (u, _) = self.signals(theta);
         let mut block = vec![0.0; rows * fresh.len()];
-        let pass = |block: &mut [f64]| self.jacobian_columns(&theta[..nl], &fresh, &u, block);
+        let pass = |block: &mut [f64]| self.jacobian_columns(&theta[..nl], &fresh, &u, None, block);
         if self.threads >= 2 && !fresh.is_empty() {
             std::thread::scope(|scope| {
                 let h = scope.spawn(|| self.residual(theta));
@@ -1437,43 +1437,33 @@ impl<'a> OutputError<'a> {
     /// Jacobian columns `c0 .. c0 + cnt` of the current w.r.t. theta: one run of the model on
     /// dual numbers of one of [`PASS_COSTS`]'s widths (the narrowest that holds `cnt`).
     fn jacobian_pass(&self, th: &[f64], c0: usize, cnt: usize, u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
-        if cnt <= CHUNK_SHORT {
-            self.jacobian_chunk::<CHUNK_SHORT>(th, c0, cnt, u, stop, block)
-        } else if cnt <= CHUNK {
-            self.jacobian_chunk::<CHUNK>(th, c0, cnt, u, stop, block)
-        } else if cnt <= CHUNK_TEN {
-            self.jacobian_chunk::<CHUNK_TEN>(th, c0, cnt, u, stop, block)
-        } else {
-            self.jacobian_chunk::<CHUNK_WIDE>(th, c0, cnt, u, stop, block)
-        }
+        let cols: Vec<usize> = (c0..c0 + cnt).collect();
+        self.jacobian_columns(th, &cols, u, stop, block)
     }
 
-    /// Jacobian columns `c0 .. c0 + cnt` (`cnt <= N`) of the current w.r.t. theta: one run of
-    /// the model on `N`-wide dual numbers.
-    fn jacobian_chunk<const N: usize>(&self, th: &[f64], c0: usize, cnt: usize, u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
-        // With spare heating columns: the heated layout, its heating terms at zero (the same
-        // run: Re + 0 h is Re) after the layout's entries.
-        let (layout, heat, th) = match &self.spare {
-            Some((l, h)) => (l, h, std::borrow::Cow::Owned([th, &[0.0; HEAT_TAUS.len()]].concat())),
-            None => (&self.layout, &self.heat, std::borrow::Cow::Borrowed(th)),
-        };
-        let (thd, cnt) = seed_duals_n::<N>(&th, c0, cnt);
-        self.jacobian_run(layout, heat, &thd, cnt, u, stop, block);
-    }
-
-    /// The Jacobian columns `cols` (at most [`CHUNK_WIDE`], of the layout's unknowns) at
-    /// `th`, in one pass: column `cols[k]` at `block[k * rows ..]`.
-    fn jacobian_columns(&self, th: &[f64], cols: &[usize], u: &[f64], block: &mut [f64]) {
-        fn lanes<const N: usize>(p: &OutputError, th: &[f64], cols: &[usize], u: &[f64], block: &mut [f64]) {
+    /// The Jacobian columns `cols` (at most [`CHUNK_WIDE`]) at `th`, in one run of the model
+    /// on dual numbers of one of [`PASS_COSTS`]'s widths (the narrowest that holds them):
+    /// column `cols[k]` at `block[k * rows ..]`. With spare heating columns
+    /// ([`OutputError::with_spare_heat`]) `cols` may name them, after the layout's. On
+    /// [`Jet`]s, not num-dual's dual numbers: the microspeaker's Jacobian took 0.96-1.04 s on
+    /// those, 0.70 s on jets; SB17's order-4 one 505 and 475-481 ms.
+    fn jacobian_columns(&self, th: &[f64], cols: &[usize], u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
+        fn lanes<const N: usize>(p: &OutputError, th: &[f64], cols: &[usize], u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
+            // With spare heating columns: the heated layout, its heating terms at zero (the
+            // same run: Re + 0 h is Re) after the layout's entries.
+            let (layout, heat, th) = match &p.spare {
+                Some((l, h)) => (l, h, std::borrow::Cow::Owned([th, &[0.0; HEAT_TAUS.len()]].concat())),
+                None => (&p.layout, &p.heat, std::borrow::Cow::Borrowed(th)),
+            };
             let thd: Vec<Jet<N>> = th.iter().enumerate().map(|(j, &t)| cols.iter().position(|&c| c == j).map_or(Jet::constant(t), |k| Jet::constant(t).derivative(k))).collect();
-            p.jacobian_run(&p.layout, &p.heat, &thd, cols.len(), u, None, block);
+            p.jacobian_run(layout, heat, &thd, cols.len(), u, stop, block);
         }
         match cols.len() {
             0 => {}
-            n if n <= CHUNK_SHORT => lanes::<CHUNK_SHORT>(self, th, cols, u, block),
-            n if n <= CHUNK => lanes::<CHUNK>(self, th, cols, u, block),
-            n if n <= CHUNK_TEN => lanes::<CHUNK_TEN>(self, th, cols, u, block),
-            _ => lanes::<CHUNK_WIDE>(self, th, cols, u, block),
+            n if n <= CHUNK_SHORT => lanes::<CHUNK_SHORT>(self, th, cols, u, stop, block),
+            n if n <= CHUNK => lanes::<CHUNK>(self, th, cols, u, stop, block),
+            n if n <= CHUNK_TEN => lanes::<CHUNK_TEN>(self, th, cols, u, stop, block),
+            _ => lanes::<CHUNK_WIDE>(self, th, cols, u, stop, block),
         }
     }
 
@@ -1724,24 +1714,16 @@ impl Problem for OutputError<'_> {
         if self.keep_last {
             let mut copy = jacobian_storage(j.len());
             copy.copy_from_slice(j.as_slice());
-            let kept = DMatrix::from_vec(j.nrows(), j.ncols(), copy);
-            let old = self.last_jacobian.lock().expect("jacobian cache").replace(std::sync::Arc::new(kept));
-            if let Some(Ok(old)) = old.map(std::sync::Arc::try_unwrap) {
-                recycle_jacobian(old);
-            }
+            self.keep_jacobian(DMatrix::from_vec(j.nrows(), j.ncols(), copy));
             *self.last_jacobian_at.lock().expect("jacobian cache") = Some(JacobianAt { theta: theta.to_vec(), residual: r.clone(), spare });
-        } else if self.keep_search {
-            // The matrix itself is kept when it comes back (`recycle`).
-            *self.last_jacobian_at.lock().expect("jacobian cache") = Some(JacobianAt { theta: theta.to_vec(), residual: DVector::zeros(0), spare: None });
         }
         (r, j)
     }
     fn recycle(&self, j: DMatrix<f64>) {
+        // A search stage keeps the matrix itself (`keeping_search`): LM hands back the one it
+        // just asked for.
         if self.keep_search {
-            let old = self.last_jacobian.lock().expect("jacobian cache").replace(std::sync::Arc::new(j));
-            if let Some(Ok(old)) = old.map(std::sync::Arc::try_unwrap) {
-                recycle_jacobian(old);
-            }
+            self.keep_jacobian(j);
         } else {
             recycle_jacobian(j);
         }
@@ -2606,7 +2588,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     // the held-out part: (LM state, estimation error, theta for the whole record, validation
     // error, the stage's last Jacobian). `seed`: a stage whose model this one's holds, and its
     // last Jacobian, on which the first iteration starts (with this layout's new columns).
-    let estimate_validate = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], seed: Option<(&Layout, &KeptJacobian)>, observe: &mut dyn FnMut(&Progress)| {
+    let estimate_validate = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], seed: Option<&(Layout, std::sync::Arc<KeptJacobian>)>, observe: &mut dyn FnMut(&Progress)| {
         let th = join(lay.theta_from(from, track), cth);
         let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching().keeping_search();
         if let Some((base, kept)) = seed {
@@ -2656,8 +2638,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     };
     for &order in &orders {
         let lay = layout_for(order);
-        let seed = prev_kept.as_ref().map(|(l, k)| (l, &**k));
-        let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, seed, &mut observe);
+        let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, prev_kept.as_ref(), &mut observe);
         cth = th_val[lay.slots().n..].to_vec();
         trials.push(OrderTrial { order, estimation_rel: est, validation_rel: val, iterations: s.iteration });
         current = Parameters { mms: opts.mms, ..lay.parameters(&s.theta) };
@@ -2740,8 +2721,6 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     // out positive). Every effect not yet in is tried in every round: a dominant one masks the
     // others (with all four in the record, only LR-3 lowered the error by 5 % on its own).
     let mut effect_trials: Vec<(String, f64)> = Vec::new();
-    // The chosen effects' search stage: its theta for the whole record and validation error
-    // (the order search below starts from them).
     let effects = match opts.effects {
         EffectsChoice::Fixed(e) => e,
         EffectsChoice::Auto => {
@@ -2822,8 +2801,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                             nested = true;
                         }
                     }
-                    let seed = at_kept.as_ref().filter(|_| nested).map(|(l, k)| (l, &**k));
-                    let (s, _, th_val, val, kept) = estimate_validate(&lay, &from, search_track.as_deref(), &cth, seed, &mut observe);
+                    let (s, _, th_val, val, kept) = estimate_validate(&lay, &from, search_track.as_deref(), &cth, at_kept.as_ref().filter(|_| nested), &mut observe);
                     effect_trials.push((e.model_name(), val));
                     let lambda_ok = lay.slots().lambda.is_none_or(|k| s.theta[k] > 0.0);
                     if lambda_ok && val < (1.0 - EFFECT_MIN_GAIN_HELD_OUT) * at_val && best.as_ref().is_none_or(|b| val < b.1) {
@@ -2857,8 +2835,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         // order 6. Given effects: fitted here, from the order's stage without them.
         let (mut cur_th, mut cur) = {
             let lay = layout_for(order).with_effects(effects);
-            let seed = at_kept.as_ref().map(|(l, k)| (l, &**k));
-            let (s, _, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, seed, &mut observe);
+            let (s, _, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), &mut observe);
             search_track = Some(lay.re_track(&s.theta));
             at_kept = kept.map(|k| (lay, k));
             (th_val, val)
@@ -2868,8 +2845,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         truncation = None;
         while order + 2 <= MAX_ORDER {
             let lay = layout_for(order + 2).with_effects(effects);
-            let seed = at_kept.as_ref().map(|(l, k)| (l, &**k));
-            let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, seed, &mut observe);
+            let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), &mut observe);
             trials.push(OrderTrial { order: order + 2, estimation_rel: est, validation_rel: val, iterations: 0 });
             if !(val < 0.98 * cur) {
                 truncation = Some(Truncation::of(&layout_for(order).with_effects(effects), &cur_th, &lay, &th_val));
