@@ -8,7 +8,8 @@
 //! ```
 //!
 //! `DRIVER`: an embedded driver (default `sb17cac35-4`) or one of `testdata/drivers`
-//! (`microspeaker-0g1`, ...); `auto`: choose the effects (creep,
+//! (`microspeaker-0g1`, ...), or a recording (`.wav`, e.g. one of `../shared/recordings`;
+//! `--mms` is taken from the embedded driver whose name begins the file's name); `auto`: choose the effects (creep,
 //! LR-3, Le(i), Rms(v)) on held-out data as `identify` does by default, instead of LR-2;
 //! `chain`: record through a sound card (current 0.3 sample late, AC coupling at 2 Hz on the
 //! voltage and 4 Hz on the current, offsets of 0.5 % of each channel's peak, 50 Hz hum at
@@ -28,6 +29,9 @@ fn main() {
     let args: Vec<String> = std::env::args().skip(2).collect();
     let auto = args.iter().any(|a| a == "auto");
     let chain = args.iter().any(|a| a == "chain");
+    if name.ends_with(".wav") {
+        return recording(&name, chain);
+    }
     let fs = 48000.0;
     // An embedded driver, or one of testdata/drivers (microspeaker-0g1, microspeaker-2g7,
     // large-coil).
@@ -49,9 +53,23 @@ fn main() {
     add_sensor_noise(&mut u, 70.0, 1, "sensor-noise/voltage");
     add_sensor_noise(&mut i, 70.0, 1, "sensor-noise/current");
     let effects = if auto { EffectsChoice::Auto } else { EffectsChoice::Fixed(Effects::NONE) };
+    run(&u, &i, fs, &name, &IdentifyOptions { mms: p.mms, effects, chain, ..Default::default() });
+}
+
+/// `identify` of the recording at `path` (the effects chosen; `chain`: `--chain auto`), with
+/// the mass of the embedded driver whose name begins the file's name.
+fn recording(path: &str, chain: bool) {
+    let rec = coilscope_io::read_recording(std::path::Path::new(path), None).unwrap_or_else(|e| panic!("{e}"));
+    let file = std::path::Path::new(path).file_name().map(|f| f.to_string_lossy().to_string()).unwrap_or_default();
+    let mms = coilscope_core::embedded_driver_names().into_iter().find(|d| file.starts_with(d)).and_then(embedded_driver).map(|p| p.mms).unwrap_or_else(|| panic!("{file}: no embedded driver names it"));
+    run(&rec.u, &rec.i, rec.fs as f64, &file, &IdentifyOptions { mms, chain, ..Default::default() });
+}
+
+/// `identify` with an observer that prints every iteration.
+fn run(u: &[f64], i: &[f64], fs: f64, name: &str, opts: &IdentifyOptions) {
     let t0 = Instant::now();
     let (mut last, mut last_cpu) = (0.0, cpu_seconds());
-    let fit = identify(&u, &i, fs, &name, &IdentifyOptions { mms: p.mms, effects, chain, ..Default::default() }, |pr| {
+    let fit = identify(u, i, fs, name, opts, |pr| {
         let (t, cpu) = (t0.elapsed().as_secs_f64(), cpu_seconds());
         let s = pr.state;
         // The cores' use since the last line: CPU time over wall time (200 % = both busy).

@@ -206,6 +206,9 @@ pub struct Layout {
     /// Time constants (s) of the heating terms of `Re(t)` (empty: the knots alone; see
     /// [`HEAT_TAUS`]).
     pub heat_taus: Vec<f64>,
+    /// LR-3's coordinates: L3 and `tau3 = L3 / R3` (true) or L3 and R3 (false, the default);
+    /// see [`Slots::r3`].
+    pub lr3_tau: bool,
     legendre: Vec<Vec<f64>>,
 }
 
@@ -282,15 +285,24 @@ pub struct Slots {
     pub rms: usize,
     /// Creep's lambda (LOG creep factor, reference the resonance).
     pub lambda: Option<usize>,
-    /// LR-3's L3 (scaled as L2) and its time constant `tau3 = L3 / R3` (scaled as L2 / R2).
-    /// The branch's impedance `j w L3 / (1 + j w tau3)` is linear in L3 at a given corner,
-    /// so a fit shrinks a branch the record does not hold in one or two steps. With L3 and R3
-    /// as unknowns, a small branch had to move its corner by a relative amount of order one
-    /// at a size near zero, where the linearised model holds only over a step of the
-    /// branch's own size. On PTT4 without LR-3, the trial from [`LR3_VANISHING`] crawled 10
-    /// iterations back (1.9 s); it takes 3 now.
+    /// LR-3's L3 (scaled as L2), and R3 (scaled as R2) or, in the coordinates of
+    /// [`Layout::lr3_tau`], its time constant `tau3 = L3 / R3` (scaled as L2 / R2).
+    ///
+    /// In tau3 coordinates the branch's impedance `j w L3 / (1 + j w tau3)` is linear in L3
+    /// at a given corner, so a fit shrinks a branch the record does not hold in one or two
+    /// steps: the effects search's trial from a vanishing branch ([`LR3_VANISHING`]) uses
+    /// them. With L3 and R3, a small branch had to move its corner by a relative amount of
+    /// order one at a size near zero, where the linearised model holds only over a step of
+    /// the branch's own size: on PTT4 without LR-3 that trial crawled 10 iterations back
+    /// (1.9 s); it takes 3 in tau3.
+    ///
+    /// Every other fit uses L3 and R3: where the record holds the branch, tau3 bends the
+    /// valley. Sessions 34-35 fitted every stage in tau3, and on 18WU `-real-all` the
+    /// stage with every effect crawled at damping 1e-3 (each step at a third of it
+    /// rejected): 1.86e-3 of the current after 10 iterations where L3 and R3 reach 6.6e-4
+    /// in 5; order 8 was then taken on a crawl and the bands missed the truth by 4.75 sd.
     pub l3: Option<usize>,
-    pub tau3: Option<usize>,
+    pub r3: Option<usize>,
     /// Flux modulation: `g1` (1/A) and `g2` (1/A^2) of `g(i) = 1 + g1 i + g2 i^2`, at this
     /// index and the next.
     pub le_i: Option<usize>,
@@ -412,7 +424,7 @@ const LAMBDA_SCALE: f64 = 0.1;
 
 impl Layout {
     pub fn new(order: usize, n_re: usize, knot_dt: f64, x_ref: f64, scales: Scales, has_l2r2: bool, mms: f64) -> Self {
-        Layout { order, n_re, knot_dt, x_ref, scales, has_l2r2, mms, effects: Effects::NONE, heat_taus: Vec::new(), legendre: legendre(order) }
+        Layout { order, n_re, knot_dt, x_ref, scales, has_l2r2, mms, effects: Effects::NONE, heat_taus: Vec::new(), lr3_tau: false, legendre: legendre(order) }
     }
 
     /// The same layout with heating terms of these time constants in `Re(t)`.
@@ -431,6 +443,18 @@ impl Layout {
         Layout { effects, ..self }
     }
 
+    /// The layout with LR-3 in the coordinates L3 and `tau3 = L3 / R3` ([`Slots::r3`]).
+    pub fn with_lr3_tau(self) -> Self {
+        Layout { lr3_tau: true, ..self }
+    }
+
+    /// L3 (H) and R3 (ohm) from the LR-3 slots' values `a` (L3) and `b` (R3, or tau3 when
+    /// [`Layout::lr3_tau`]).
+    fn lr3_of<D: DualNum<Primitive = f64> + Copy>(&self, a: D, b: D) -> (D, D) {
+        let r3 = if self.lr3_tau { a / b } else { b };
+        (a * self.scales.l2, r3 * self.scales.r2)
+    }
+
     pub fn slots(&self) -> Slots {
         let o = self.order + 1;
         let re = 0..self.n_re;
@@ -444,7 +468,7 @@ impl Layout {
             n += 1;
             n - 1
         });
-        let (l3, tau3) = if self.effects.lr3 {
+        let (l3, r3) = if self.effects.lr3 {
             n += 2;
             (Some(n - 2), Some(n - 1))
         } else {
@@ -460,7 +484,7 @@ impl Layout {
         });
         let heat = n..n + self.heat_taus.len();
         n = heat.end;
-        Slots { re, le, l2, r2, bl, kms, rms, lambda, l3, tau3, le_i, rms_v, heat, n }
+        Slots { re, le, l2, r2, bl, kms, rms, lambda, l3, r3, le_i, rms_v, heat, n }
     }
 
     /// Power series in x (m) of `scale * sum_j th_j P_j(x / x_ref)`.
@@ -529,11 +553,7 @@ impl Layout {
     pub fn ext_model<D: DualNum<Primitive = f64> + Copy>(&self, th: &[D]) -> (ExtModel<D>, Vec<D>) {
         let (base, knots) = self.model(th);
         let s = self.slots();
-        let sc = &self.scales;
-        let lr3 = match (s.l3, s.tau3) {
-            (Some(a), Some(b)) => Some((th[a] * sc.l2, th[a] / th[b] * sc.r2)),
-            _ => None,
-        };
+        let lr3 = s.l3.zip(s.r3).map(|(a, b)| self.lr3_of(th[a], th[b]));
         let lambda = s.lambda.map(|k| th[k] * LAMBDA_SCALE);
         (ExtModel::from_parts(base, lr3, lambda, None), knots)
     }
@@ -554,7 +574,7 @@ impl Layout {
             rms: m.rms,
             sd: None,
             creep: sl.lambda.map(|k| coilscope_core::params::Creep { lambda: th[k] * LAMBDA_SCALE, f_ref: None }),
-            l3r3: sl.l3.zip(sl.tau3).map(|(a, b)| (th[a] * self.scales.l2, th[a] / th[b] * self.scales.r2)),
+            l3r3: sl.l3.zip(sl.r3).map(|(a, b)| self.lr3_of(th[a], th[b])),
             le_i: m.le_i,
             rms_v: m.rms_v,
             thermal: None,
@@ -600,11 +620,11 @@ impl Layout {
         if let Some(k) = s.lambda {
             th[k] = p.creep.as_ref().map_or(0.05, |c| c.lambda) / LAMBDA_SCALE;
         }
-        if let (Some(a), Some(b)) = (s.l3, s.tau3) {
+        if let (Some(a), Some(b)) = (s.l3, s.r3) {
             let (l2, r2) = p.l2r2.as_ref().map_or((sc.l2, sc.r2), |(l, r)| (l.eval(0.0), r.eval(0.0)));
             let (l3, r3) = p.l3r3.unwrap_or((0.5 * l2, 3.0 * r2));
             th[a] = l3 / sc.l2;
-            th[b] = (l3 / sc.l2) / (r3 / sc.r2);
+            th[b] = if self.lr3_tau { (l3 / sc.l2) / (r3 / sc.r2) } else { r3 / sc.r2 };
         }
         // The large-signal effects start from none (g = 1, Rms constant), or from the set's.
         if let Some(k) = s.le_i {
@@ -635,7 +655,8 @@ impl Layout {
             "Rms" => v(Some(sl.rms), sc.rms),
             "creep.lambda" => v(sl.lambda, LAMBDA_SCALE),
             "L3" => v(sl.l3, sc.l2),
-            "R3" => sl.l3.zip(sl.tau3).map(|(a, b)| {
+            "R3" if !self.lr3_tau => v(sl.r3, sc.r2),
+            "R3" => sl.l3.zip(sl.r3).map(|(a, b)| {
                 // R3 = sc.r2 th_a / th_b: gradient (1 / th_b, -th_a / th_b^2) sc.r2.
                 let g = [1.0 / th[b], -th[a] / (th[b] * th[b])];
                 let var = g[0] * g[0] * cov(a, a) + 2.0 * g[0] * g[1] * cov(a, b) + g[1] * g[1] * cov(b, b);
@@ -666,7 +687,7 @@ impl Layout {
         let sl = self.slots();
         let positive = |k: Option<usize>| k.is_none_or(|k| th[k] > 0.0);
         let bounded = |k: Option<usize>| k.is_none_or(|k| th[k] < BRANCH_MAX);
-        th[sl.re.clone()].iter().all(|&r| r > 0.0) && th[sl.rms] > 0.0 && [sl.l2, sl.r2, sl.l3, sl.tau3].into_iter().all(positive) && [sl.l2, sl.l3].into_iter().all(bounded)
+        th[sl.re.clone()].iter().all(|&r| r > 0.0) && th[sl.rms] > 0.0 && [sl.l2, sl.r2, sl.l3, sl.r3].into_iter().all(positive) && [sl.l2, sl.l3].into_iter().all(bounded)
     }
 
     /// `Re` at each knot (ohm).
@@ -1048,8 +1069,14 @@ fn column_map(from: &Layout, to: &Layout, n_chain: usize) -> Option<Vec<Option<u
     range(&a.kms, &b.kms);
     let one = |k: Option<usize>| k.map_or(0..0, |k| k..k + 1);
     let two = |k: Option<usize>| k.map_or(0..0, |k| k..k + 2);
-    for (x, y) in [(one(a.l2), one(b.l2)), (one(a.r2), one(b.r2)), (one(Some(a.rms)), one(Some(b.rms))), (one(a.lambda), one(b.lambda)), (one(a.l3), one(b.l3)), (one(a.tau3), one(b.tau3)), (two(a.le_i), two(b.le_i)), (one(a.rms_v), one(b.rms_v))] {
+    for (x, y) in [(one(a.l2), one(b.l2)), (one(a.r2), one(b.r2)), (one(Some(a.rms)), one(Some(b.rms))), (one(a.lambda), one(b.lambda)),  (two(a.le_i), two(b.le_i)), (one(a.rms_v), one(b.rms_v))] {
         range(&x, &y);
+    }
+    // LR-3's columns in other coordinates ([`Layout::lr3_tau`]) are new columns: L3's at a
+    // fixed tau3 is not L3's at a fixed R3.
+    if from.lr3_tau == to.lr3_tau {
+        range(&one(a.l3), &one(b.l3));
+        range(&one(a.r3), &one(b.r3));
     }
     for k in 0..n_chain {
         map[b.n + k] = Some(a.n + k);
@@ -2759,7 +2786,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                     (one.creep || one.lr3).then(|| linear_start_fit(&u[..m_start], &i[..m_start], fs, origin, e.small_signal(), lr2))?
                 });
                 for ((one, e), lin) in cands.into_iter().zip(lins) {
-                    let lay = layout_for(order).with_effects(e);
+                    let mut lay = layout_for(order).with_effects(e);
                     let mut from = current.clone();
                     if let Some(lin) = lin {
                         if e.lr3 {
@@ -2799,6 +2826,11 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                         if a < b {
                             from = vanishing;
                             nested = true;
+                            // A vanishing branch grows or shrinks in L3 at its corner
+                            // (Slots::r3); the fits after this trial go on in L3 and R3.
+                            if one.lr3 {
+                                lay = lay.with_lr3_tau();
+                            }
                         }
                     }
                     let (s, _, th_val, val, kept) = estimate_validate(&lay, &from, search_track.as_deref(), &cth, at_kept.as_ref().filter(|_| nested), &mut observe);
@@ -2836,7 +2868,13 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         let (mut cur_th, mut cur) = {
             let lay = layout_for(order).with_effects(effects);
             let (s, _, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), &mut observe);
+            // The order search below starts from this fit (until session 36 from the
+            // trial's parameters with this fit's Re(t) track: where the fit moved on far,
+            // 18WU `-real-all`'s order-6 stage started 70x above it).
+            current = Parameters { mms: opts.mms, ..lay.parameters(&th_val) };
+            re_track = Some(lay.re_track(&th_val));
             search_track = Some(lay.re_track(&s.theta));
+            cth = th_val[lay.slots().n..].to_vec();
             at_kept = kept.map(|k| (lay, k));
             (th_val, val)
         };
@@ -3453,23 +3491,35 @@ mod tests {
     fn a_seeded_first_jacobian_is_the_nested_stage_s_jacobian() {
         let fs = 48000.0;
         let (p, tr, lay) = sb17_case(0.4, 5, 2, 5, 0.1);
-        let mut th = lay.theta_from(&p, None);
-        th[lay.slots().kms.start] *= 0.97;
-        th[lay.slots().bl.start + 1] += 0.01;
-        let base = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).searching().keeping_search();
-        let (_, j) = base.residual_jacobian(&th);
-        base.recycle(j);
-        let kept = base.take_kept().expect("a search stage keeps its last Jacobian");
-        let from = lay.parameters(&th);
-        let track = lay.re_track(&th);
+        // A search stage's last Jacobian at theta of `from` (a point off the truth).
+        let kept_at = |from: &Layout| {
+            let mut th = from.theta_from(&p, None);
+            th[from.slots().kms.start] *= 0.97;
+            th[from.slots().bl.start + 1] += 0.01;
+            let base = OutputError::new(from.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).searching().keeping_search();
+            let (_, j) = base.residual_jacobian(&th);
+            base.recycle(j);
+            (th, base.take_kept().expect("a search stage keeps its last Jacobian"))
+        };
         let higher = Layout::new(4, lay.n_re, lay.knot_dt, lay.x_ref, lay.scales.clone(), lay.has_l2r2, lay.mms);
         let le_i = Effects { le_i: true, ..Effects::NONE };
         let both = Effects { le_i: true, rms_v: true, ..Effects::NONE };
-        for (name, to) in [("order 4", higher.clone()), ("Le(i)", lay.clone().with_effects(le_i)), ("order 4, Le(i) and Rms(v)", higher.with_effects(both))] {
-            let map = column_map(&lay, &to, 0).expect("nested");
+        let lr3 = Effects { lr3: true, ..Effects::NONE };
+        // LR-3 in tau3 coordinates (a vanishing branch's trial) on to LR-3 in R3 with Le(i):
+        // L3's and R3's columns are new too.
+        let tau = lay.clone().with_effects(lr3).with_lr3_tau();
+        for (name, from, to, new) in [
+            ("order 4", &lay, higher.clone(), 6),
+            ("Le(i)", &lay, lay.clone().with_effects(le_i), 2),
+            ("order 4, Le(i) and Rms(v)", &lay, higher.with_effects(both), 9),
+            ("LR-3 from tau3 to R3, Le(i)", &tau, lay.clone().with_effects(lr3.union(le_i)), 4),
+        ] {
+            let (th, kept) = kept_at(from);
+            let (from_p, track) = (from.parameters(&th), from.re_track(&th));
+            let map = column_map(from, &to, 0).expect("nested");
             let fresh = map.iter().filter(|m| m.is_none()).count();
-            assert_eq!(fresh, to.slots().n - lay.slots().n, "{name}: the new unknowns are the fresh columns");
-            let theta = to.theta_from(&from, Some(&track));
+            assert_eq!(fresh, new, "{name}: the new unknowns are the fresh columns");
+            let theta = to.theta_from(&from_p, Some(&track));
             let prob = OutputError::new(to.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).searching();
             assert!(prob.seed_first(&theta, &kept, &map), "{name}: seeded");
             let (r, seeded) = prob.residual_jacobian(&theta);
@@ -3521,16 +3571,17 @@ mod tests {
     }
 
     /// The LR-3 tests' case: PTT4 with L3 = 2.1e-4 H and R3 = 3.7 ohm, the order-4 layout
-    /// with LR-3, and theta of that set: (scales, layout, theta).
+    /// with LR-3 in tau3 coordinates ([`Layout::lr3_tau`]), and theta of that set: (scales,
+    /// layout, theta).
     fn lr3_case() -> (Scales, Layout, Vec<f64>) {
         let p = Parameters { l3r3: Some((2.1e-4, 3.7)), ..embedded_driver("ptt4.0w04-01a").unwrap() };
         let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
-        let lay = Layout::new(4, 2, 1.0, 0.004, sc.clone(), true, p.mms).with_effects(Effects { lr3: true, ..Effects::NONE });
+        let lay = Layout::new(4, 2, 1.0, 0.004, sc.clone(), true, p.mms).with_effects(Effects { lr3: true, ..Effects::NONE }).with_lr3_tau();
         let th = lay.theta_from(&p, None);
         (sc, lay, th)
     }
 
-    /// The LR-3 slots (L3 and tau3 = L3 / R3): a parameter set's branch comes back from
+    /// The LR-3 slots in tau3 coordinates (L3 and tau3 = L3 / R3): a parameter set's branch comes back from
     /// theta unchanged, and the branch's impedance `j w L3 R3 / (R3 + j w L3)` is linear in
     /// theta's L3 entry at a given tau3 (what lets a fit grow or remove the branch in one
     /// step), checked at 20 Hz .. 20 kHz on a branch scaled by 0.02, 1 and 3.
@@ -3539,7 +3590,7 @@ mod tests {
         let (sc, lay, th) = lr3_case();
         let (l3, r3) = lay.parameters(&th).l3r3.unwrap();
         assert!((l3 / 2.1e-4 - 1.0).abs() < 1e-14 && (r3 / 3.7 - 1.0).abs() < 1e-14, "L3 {l3}, R3 {r3}");
-        let (a, b) = (lay.slots().l3.unwrap(), lay.slots().tau3.unwrap());
+        let (a, b) = (lay.slots().l3.unwrap(), lay.slots().r3.unwrap());
         assert!((th[b] * sc.l2 / sc.r2 - 2.1e-4 / 3.7).abs() < 1e-18, "tau3 slot {}", th[b]);
         let z = |th: &[f64], f: f64| {
             let (l3, r3) = lay.parameters(th).l3r3.unwrap();
@@ -3563,7 +3614,7 @@ mod tests {
     fn r3_sd_is_the_spread_of_r3_over_draws_of_l3_and_tau3() {
         use rand_distr::{Distribution, StandardNormal};
         let (sc, lay, th) = lr3_case();
-        let (a, b) = (lay.slots().l3.unwrap(), lay.slots().tau3.unwrap());
+        let (a, b) = (lay.slots().l3.unwrap(), lay.slots().r3.unwrap());
         let (sa, sb) = (0.02 * th[a], 0.03 * th[b]);
         for rho in [-0.8, 0.0, 0.8] {
             let cov = |j: usize, k: usize| match (j == a || j == b, k == a || k == b) {

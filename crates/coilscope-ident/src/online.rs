@@ -132,20 +132,21 @@ impl Default for OnlineOptions {
 
 /// Prior variances of theta (normalised units) for a layout's slots at the start `theta`:
 /// the small-signal values `prior_linear`, the LR-2/LR-3 branches twice that (relative to
-/// their start values: L2 and R2 start at 1 in their units, L3 and tau3 at what the start
+/// their start values: L2 and R2 start at 1 in their units, L3 and R3 at what the start
 /// has), the series' shapes `prior_nonlinear`; the effects: lambda +- 0.05 (theta is
 /// lambda / 0.1), g1 +- 0.2 / A and g2 +- 0.2 / A^2 (Le 20 % down at 1 A), c2 +- 1 Rms per
 /// (m/s)^2.
 ///
 /// Until session 35 the branches' sds were `2 prior_linear` absolute: 10 % of L2 and R2, but
 /// for LR-3, fitted as L3 and tau3 = L3 / R3 since session 34 (tau3 ~ 0.17-0.24 in units of
-/// L2 / R2), 40-60 % of tau3, where R3 (~3 in units of R2) had had about 3 %.
+/// L2 / R2), 40-60 % of tau3, where R3 (~3 in units of R2) had had about 3 %. The online
+/// estimator's layout has L3 and R3 again since session 36 ([`crate::large::Slots::r3`]).
 fn prior_variances(s: &crate::large::Slots, theta: &[f64], opts: &OnlineOptions) -> Vec<f64> {
     let mut prior = vec![opts.prior_nonlinear.powi(2); s.n];
     for k in [s.re.start, s.le.start, s.bl.start, s.kms.start, s.rms] {
         prior[k] = opts.prior_linear.powi(2);
     }
-    for k in [s.l2, s.r2, s.l3, s.tau3].into_iter().flatten() {
+    for k in [s.l2, s.r2, s.l3, s.r3].into_iter().flatten() {
         prior[k] = (2.0 * opts.prior_linear * theta[k].abs()).powi(2);
     }
     if let Some(k) = s.lambda {
@@ -830,7 +831,8 @@ mod tests {
     use super::*;
 
     /// Session 35: the LR-2 and LR-3 branches' priors are `2 prior_linear` of their start
-    /// values, whatever the unit the slot has (tau3's was 40-60 % of it, R3's had been 3 %).
+    /// values, whatever the unit the slot has (tau3's was 40-60 % of it, R3's had been 3 %;
+    /// R3 again since session 36).
     #[test]
     fn branch_priors_are_relative_to_the_start() {
         let mut p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
@@ -839,7 +841,7 @@ mod tests {
             p.l3r3 = Some((l3, r3));
             let o = Online::new(&p, 48000.0, OnlineOptions::default()).unwrap();
             let s = o.layout.slots();
-            for (name, k) in [("L2", s.l2), ("R2", s.r2), ("L3", s.l3), ("tau3", s.tau3)] {
+            for (name, k) in [("L2", s.l2), ("R2", s.r2), ("L3", s.l3), ("R3", s.r3)] {
                 let k = k.expect("the start has both branches");
                 let rel = o.cov[(k, k)].sqrt() / o.theta[k];
                 assert!((rel - 0.1).abs() < 1e-12, "{name} (L3 {l3:.2e} H, R3 {r3:.2e} ohm): prior sd {rel:.3} of its start, not 0.1");
