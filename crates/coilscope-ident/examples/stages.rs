@@ -74,7 +74,18 @@ fn run(u: &[f64], i: &[f64], fs: f64, name: &str, opts: &IdentifyOptions) {
         let s = pr.state;
         // The cores' use since the last line: CPU time over wall time (200 % = both busy).
         let used = cpu.zip(last_cpu).map_or(String::new(), |(c, l)| format!(" cpu {:3.0} %", 100.0 * (c - l) / (t - last).max(1e-9)));
-        println!("{t:7.3} s (+{:.3}{used}) {:?} it {} error {:.3e} unknowns {} decrease {:.2e} gain ratio {:.3} damping {:.1e}  gn_left {:.2e}", t - last, pr.stage, s.iteration, pr.residual_rel, s.theta.len(), s.last_decrease, s.gain_ratio, s.step_lambda, s.gn_left);
+        println!(
+            "{t:7.3} s (+{:.3}{used}) {:?} it {} error {:.3e} unknowns {} decrease {:.2e} gain ratio {:.3} damping {:.1e} gn_left {:.2e}",
+            t - last,
+            pr.stage,
+            s.iteration,
+            pr.residual_rel,
+            s.theta.len(),
+            s.last_decrease,
+            s.gain_ratio,
+            s.step_lambda,
+            s.gn_left
+        );
         (last, last_cpu) = (t, cpu);
     });
     match fit {

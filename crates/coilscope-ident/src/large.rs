@@ -1069,7 +1069,7 @@ fn column_map(from: &Layout, to: &Layout, n_chain: usize) -> Option<Vec<Option<u
     range(&a.kms, &b.kms);
     let one = |k: Option<usize>| k.map_or(0..0, |k| k..k + 1);
     let two = |k: Option<usize>| k.map_or(0..0, |k| k..k + 2);
-    for (x, y) in [(one(a.l2), one(b.l2)), (one(a.r2), one(b.r2)), (one(Some(a.rms)), one(Some(b.rms))), (one(a.lambda), one(b.lambda)),  (two(a.le_i), two(b.le_i)), (one(a.rms_v), one(b.rms_v))] {
+    for (x, y) in [(one(a.l2), one(b.l2)), (one(a.r2), one(b.r2)), (one(Some(a.rms)), one(Some(b.rms))), (one(a.lambda), one(b.lambda)), (two(a.le_i), two(b.le_i)), (one(a.rms_v), one(b.rms_v))] {
         range(&x, &y);
     }
     // LR-3's columns in other coordinates ([`Layout::lr3_tau`]) are new columns: L3's at a
@@ -2680,7 +2680,9 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         let kept = kept_if_converged(&prob, &s);
         (s, est, th_val, val, kept)
     };
-    let estimate_validate = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], seed: Option<&(Layout, std::sync::Arc<KeptJacobian>)>, observe: &mut dyn FnMut(&Progress)| estimate_validate_for(lay, from, track, cth, seed, SEARCH_MAX_ITERATIONS, observe);
+    let estimate_validate = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], seed: Option<&(Layout, std::sync::Arc<KeptJacobian>)>, observe: &mut dyn FnMut(&Progress)| {
+        estimate_validate_for(lay, from, track, cth, seed, SEARCH_MAX_ITERATIONS, observe)
+    };
     for &order in &orders {
         let lay = layout_for(order);
         let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, prev_kept.as_ref(), &mut observe);
@@ -2852,11 +2854,8 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                         }
                     }
                     let seed = at_kept.as_ref().filter(|_| nested);
-                    let (mut s, _, mut th_val, mut val, mut kept) = if lay.lr3_tau {
-                        estimate_validate_for(&lay, &from, search_track.as_deref(), &cth, seed, LR3_TAU_ITERATIONS, &mut observe)
-                    } else {
-                        estimate_validate(&lay, &from, search_track.as_deref(), &cth, seed, &mut observe)
-                    };
+                    let max_it = if lay.lr3_tau { LR3_TAU_ITERATIONS } else { SEARCH_MAX_ITERATIONS };
+                    let (mut s, _, mut th_val, mut val, mut kept) = estimate_validate_for(&lay, &from, search_track.as_deref(), &cth, seed, max_it, &mut observe);
                     // A branch the record holds: the trial goes on in L3 and R3 (Slots::r3).
                     if lay.lr3_tau && !s.converged {
                         let n = lay.slots().n;

@@ -201,7 +201,17 @@ pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState)
                 }
                 let dec = (s.cost - cost) / s.cost.max(1e-300);
                 let step = delta.amax();
-                Some(LmState { theta: theta.clone(), cost, lambda: (lambda / 3.0).max(1e-12), iteration: s.iteration + 1, last_decrease: dec, gain_ratio: (s.cost - cost) / predicted, step_lambda: lambda, gn_left: (gn - (s.cost - cost)).max(0.0) / cost.max(1e-300), converged: dec < 1e-12 || step < 1e-10 })
+                Some(LmState {
+                    theta: theta.clone(),
+                    cost,
+                    lambda: (lambda / 3.0).max(1e-12),
+                    iteration: s.iteration + 1,
+                    last_decrease: dec,
+                    gain_ratio: (s.cost - cost) / predicted,
+                    step_lambda: lambda,
+                    gn_left: (gn - (s.cost - cost)).max(0.0) / cost.max(1e-300),
+                    converged: dec < 1e-12 || step < 1e-10,
+                })
             };
             let job = at_last.filter(|a| (a.likely)(predicted / s.cost.max(1e-300), lambda)).map(|a| || (a.work)(&theta));
             let r = p.residual_ahead(&theta, &|r| accepted(0.5 * r.norm_squared()).is_some_and(|next| goes_on(&next)), job.as_ref().map(|f| f as &(dyn Fn() + Sync)));
