@@ -2890,42 +2890,38 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     // error by 2 %.
     let mut order = order;
     if opts.order.is_none() && effects != Effects::NONE {
-        // The chosen effects fitted on from where their trial stopped (on its last Jacobian):
-        // a trial is a search stage that may stop before it converges, and the order search
-        // below compares with this stage. Taking the trial's own validation error instead,
-        // 18WU `-real-all` compared order 8 with 1.77e-3 where the fit gets 1.61e-3, and kept
-        // order 6. Given effects: fitted here, from the order's stage without them.
-        let (mut cur_th, mut cur) = {
-            let lay = layout_for(order).with_effects(effects);
-            let (s, _, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), &mut observe);
-            // The order search below starts from this fit (until session 36 from the
-            // trial's parameters with this fit's Re(t) track: where the fit moved on far,
-            // 18WU `-real-all`'s order-6 stage started 70x above it).
+        // The chosen effects fitted on from where their trial stopped (on its last Jacobian),
+        // at the chosen order, then one order higher at a time. A trial is a search stage that
+        // may stop before it converges, and the orders above compare with this fit. Taking
+        // the trial's own validation error instead, 18WU `-real-all` compared order 8 with
+        // 1.77e-3 where the fit gets 1.61e-3, and kept order 6. Given effects: fitted here,
+        // from the order's stage without them. Each stage taken starts the next (until
+        // session 36 the higher orders started from the trial's parameters with this fit's
+        // Re(t) track: where the fit moved on far, 18WU `-real-all`'s order-6 stage started
+        // 70x above it).
+        // The pair without the effects no longer applies: the search below makes its own (none
+        // at the highest order, as above).
+        truncation = None;
+        let (mut cur_th, mut cur) = (Vec::new(), f64::INFINITY);
+        let mut next = order;
+        while next <= MAX_ORDER {
+            let lay = layout_for(next).with_effects(effects);
+            let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), &mut observe);
+            if next > order {
+                trials.push(OrderTrial { order: next, estimation_rel: est, validation_rel: val, iterations: 0 });
+                if !(val < 0.98 * cur) {
+                    truncation = Some(Truncation::of(&layout_for(order).with_effects(effects), &cur_th, &lay, &th_val));
+                    break;
+                }
+            }
+            (order, cur) = (next, val);
             current = Parameters { mms: opts.mms, ..lay.parameters(&th_val) };
             re_track = Some(lay.re_track(&th_val));
             search_track = Some(lay.re_track(&s.theta));
             cth = th_val[lay.slots().n..].to_vec();
             at_kept = kept.map(|k| (lay, k));
-            (th_val, val)
-        };
-        // The pair without the effects no longer applies: the search below makes its own (none
-        // at the highest order, as above).
-        truncation = None;
-        while order + 2 <= MAX_ORDER {
-            let lay = layout_for(order + 2).with_effects(effects);
-            let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), &mut observe);
-            trials.push(OrderTrial { order: order + 2, estimation_rel: est, validation_rel: val, iterations: 0 });
-            if !(val < 0.98 * cur) {
-                truncation = Some(Truncation::of(&layout_for(order).with_effects(effects), &cur_th, &lay, &th_val));
-                break;
-            }
-            (order, cur) = (order + 2, val);
-            cur_th = th_val.clone();
-            current = Parameters { mms: opts.mms, ..lay.parameters(&th_val) };
-            re_track = Some(lay.re_track(&th_val));
-            search_track = Some(lay.re_track(&s.theta));
-            at_kept = kept.map(|k| (lay.clone(), k));
-            cth = th_val[lay.slots().n..].to_vec();
+            cur_th = th_val;
+            next += 2;
         }
     }
     drop(at_kept);
@@ -3611,10 +3607,10 @@ mod tests {
         (sc, lay, th)
     }
 
-    /// The LR-3 slots in tau3 coordinates (L3 and tau3 = L3 / R3): a parameter set's branch comes back from
-    /// theta unchanged, and the branch's impedance `j w L3 R3 / (R3 + j w L3)` is linear in
-    /// theta's L3 entry at a given tau3 (what lets a fit grow or remove the branch in one
-    /// step), checked at 20 Hz .. 20 kHz on a branch scaled by 0.02, 1 and 3.
+    /// The LR-3 slots in tau3 coordinates (L3 and tau3 = L3 / R3): a parameter set's branch
+    /// comes back from theta unchanged, and the branch's impedance `j w L3 R3 / (R3 + j w
+    /// L3)` is linear in theta's L3 entry at a given tau3 (what lets a fit grow or remove the
+    /// branch in one step), checked at 20 Hz .. 20 kHz on a branch scaled by 0.02, 1 and 3.
     #[test]
     fn lr3_slots_round_trip_and_the_branch_is_linear_in_l3() {
         let (sc, lay, th) = lr3_case();
