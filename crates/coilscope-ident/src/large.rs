@@ -1358,11 +1358,30 @@ impl<'a> OutputError<'a> {
 
     /// [`OutputError::residual_with`], whitened when the chain says so.
     fn residual_whitened(&self, th: &[f64], u: &[f64], i: &[f64]) -> Option<DVector<f64>> {
-        let mut r = self.residual_with(th, u, i)?;
+        Some(self.whitened(self.residual_with(th, u, i)?))
+    }
+
+    /// A residual whitened when the chain says so ([`ChainSetup::whiten`]).
+    fn whitened(&self, mut r: DVector<f64>) -> DVector<f64> {
         if let Some(c) = self.chain {
             c.whiten(r.as_mut_slice());
         }
-        Some(r)
+        r
+    }
+
+    /// [`Problem::residual`]'s run, without the caches: the whitened residual of theta and,
+    /// with [`OutputError::keeping_last`], the run's trace. A runaway or unphysical theta
+    /// gets an infinite residual (and cost), so LM rejects it and raises the damping.
+    #[allow(clippy::type_complexity)]
+    fn residual_run(&self, th: &[f64]) -> (DVector<f64>, Option<(Vec<f64>, Vec<f64>)>) {
+        let run = self.layout.physical(th).then(|| {
+            let (u, i) = self.signals(th);
+            self.residual_traced(th, &u, &i)
+        });
+        match run.flatten() {
+            Some((r, trace)) => (self.whitened(r), trace),
+            None => (DVector::from_element(self.fit.len(), f64::INFINITY), None),
+        }
     }
 
     /// The residual of theta for a given drive `u` and current to match `i`.
@@ -1399,20 +1418,7 @@ impl<'a> OutputError<'a> {
     /// cost (the first on a tie), which the residual and trace caches then hold (two runs of
     /// [`Problem::residual`] at once would race for them).
     fn better_of_two(&self, th: [&[f64]; 2]) -> ([DVector<f64>; 2], usize) {
-        let runs = parallel_map(2, self.threads.min(2), |k| {
-            let out = if self.layout.physical(th[k]) {
-                let (u, i) = self.signals(th[k]);
-                self.residual_traced(th[k], &u, &i).map(|(mut r, trace)| {
-                    if let Some(c) = self.chain {
-                        c.whiten(r.as_mut_slice());
-                    }
-                    (r, trace)
-                })
-            } else {
-                None
-            };
-            out.unwrap_or_else(|| (DVector::from_element(self.fit.len(), f64::INFINITY), None))
-        });
+        let runs = parallel_map(2, self.threads.min(2), |k| self.residual_run(th[k]));
         let [(r0, t0), (r1, t1)]: [_; 2] = runs.try_into().unwrap_or_else(|_| unreachable!("two runs"));
         let k = usize::from(r1.norm_squared() < r0.norm_squared());
         let trace = if k == 0 { t0 } else { t1 };
@@ -1798,10 +1804,10 @@ impl Problem for OutputError<'_> {
                 return r.clone();
             }
         }
-        // A runaway or unphysical trial gets an infinite cost, so LM rejects it and raises the
-        // damping.
-        let r = if self.layout.physical(theta) { self.residual_vec(theta) } else { None };
-        let r = r.unwrap_or_else(|| DVector::from_element(self.fit.len(), f64::INFINITY));
+        let (r, trace) = self.residual_run(theta);
+        if let Some((xs, is)) = trace {
+            *self.last_trace.lock().expect("trace cache") = Some((theta.to_vec(), xs, is));
+        }
         *self.last_residual.lock().expect("residual cache") = Some((theta.to_vec(), r.clone()));
         r
     }
@@ -2256,12 +2262,13 @@ fn chords(prob: &OutputError, s: LmState, tol: f64, max_it: usize, early: Option
         let ends = |cost: f64| cost < s.cost && (s.cost - cost) / s.cost < tol;
         let last_try = taken > 0 && predicted_rel < 2.0 * tol;
         // A bolder step beside this one on the idle core, the better of the two taken.
-        let bold = (!last_try && prob.threads >= 2).then(|| damped_from(&a, &g, &s.theta, (s.lambda / CHORD_BOLD_DIVISOR).max(1e-12))).flatten();
+        let lambda_bold = (s.lambda / CHORD_BOLD_DIVISOR).max(1e-12);
+        let bold = (!last_try && prob.threads >= 2).then(|| damped_from(&a, &g, &s.theta, lambda_bold)).flatten();
         let (theta, predicted, lambda_taken, r) = match bold {
             Some((theta_b, predicted_b)) => {
                 let ([r0, r1], k) = prob.better_of_two([&theta, &theta_b]);
                 if k == 1 {
-                    (theta_b, predicted_b, (s.lambda / CHORD_BOLD_DIVISOR).max(1e-12), r1)
+                    (theta_b, predicted_b, lambda_bold, r1)
                 } else {
                     (theta, predicted, s.lambda, r0)
                 }
