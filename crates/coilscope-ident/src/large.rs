@@ -2878,6 +2878,11 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             };
             effect_trials.push((Effects::NONE.model_name(), base_val));
             let (mut at, mut at_val) = (Effects::NONE, base_val);
+            // The candidates' linear start fits by their small-signal effects: a fit depends
+            // on nothing else the rounds change, and each round after the first asks again
+            // for those of the effects not yet in (SB17 `-real-leirv`: creep's and LR-3's
+            // fits in each of its three rounds, 0.6 s a round).
+            let mut lin_fits: Vec<(Effects, Option<LinearFit>)> = Vec::new();
             loop {
                 let singles = [Effects { creep: true, ..Effects::NONE }, Effects { lr3: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }];
                 let cands: Vec<(Effects, Effects)> = singles.iter().filter(|&&one| at.union(one) != at).map(|&one| (one, at.union(one))).collect();
@@ -2896,10 +2901,11 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                 // fitted on (not behind an estimated chain, whose correction moves them).
                 let same = u[..m_start] == u_rec[..m_start] && i[..m_start] == i_rec[..m_start];
                 let lr2 = start_lr2.as_ref().filter(|_| same);
-                let lins: Vec<Option<LinearFit>> = parallel_map(cands.len(), cands.len(), |k| {
-                    let (one, e) = cands[k];
-                    (one.creep || one.lr3).then(|| linear_start_fit(&u[..m_start], &i[..m_start], fs, origin, e.small_signal(), lr2))?
-                });
+                let needs_fit = |&(one, _): &(Effects, Effects)| one.creep || one.lr3;
+                let missing: Vec<Effects> = cands.iter().filter(|c| needs_fit(c)).map(|&(_, e)| e.small_signal()).filter(|key| lin_fits.iter().all(|(k, _)| k != key)).collect();
+                let fitted = parallel_map(missing.len(), missing.len(), |k| linear_start_fit(&u[..m_start], &i[..m_start], fs, origin, missing[k], lr2));
+                lin_fits.extend(missing.into_iter().zip(fitted));
+                let lins: Vec<Option<LinearFit>> = cands.iter().map(|c| needs_fit(c).then(|| lin_fits.iter().find(|(k, _)| *k == c.1.small_signal()).and_then(|(_, f)| f.clone())).flatten()).collect();
                 for ((one, e), lin) in cands.into_iter().zip(lins) {
                     let mut lay = layout_for(order).with_effects(e);
                     let mut from = current.clone();
