@@ -33,7 +33,7 @@ fn main() {
         let tiny = simulate(&p, FS, &u, &SimOptions { substeps: Some(256), scheme: Some(Scheme::Rk4), ..Default::default() }).unwrap();
         let rk = simulate(&p, FS, &u, &SimOptions { scheme: Some(Scheme::Rk4), ..Default::default() }).unwrap();
         let r = p.rates();
-        println!("{name}: stiff/fs {:.3}, explicit/fs {:.3}", r.stiff / FS, r.explicit / FS);
+        println!("{name}: stiff/fs {:.3}, LR-3/fs {:.3}", r.stiff / FS, r.lr3 / FS);
         println!("{name}: RK4 {} sub-steps: current {:.2e}, displacement {:.2e}", rk.substeps, rel_rms(&rk.i, &tiny.i), rel_rms(&rk.x, &tiny.x));
         for n in 1..=3 {
             match simulate(&p, FS, &u, &SimOptions { substeps: Some(n), scheme: Some(Scheme::Rk4), ..Default::default() }) {

@@ -151,6 +151,11 @@ impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, { crate::model::NLR3 }> f
     }
 
     #[inline]
+    fn network3(&self, y: &[D; crate::model::NLR3]) -> Option<[[D; 3]; 3]> {
+        self.lr3.map(|(l3, r3)| self.base.electrical_matrix3(y[crate::model::idx::X], y[crate::model::idx::TV], l3, r3))
+    }
+
+    #[inline]
     fn input(&self, y: &[D; crate::model::NLR3]) -> D {
         self.base.input_gain(y[crate::model::idx::X], y[crate::model::idx::I])
     }
@@ -165,6 +170,11 @@ impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, { crate::model::NEXT }> f
     #[inline]
     fn electrical(&self, y: &[D; crate::model::NEXT]) -> [[D; 2]; 2] {
         self.base.electrical_matrix(y[crate::model::idx::X], y[crate::model::idx::TV])
+    }
+
+    #[inline]
+    fn network3(&self, y: &[D; crate::model::NEXT]) -> Option<[[D; 3]; 3]> {
+        self.lr3.map(|(l3, r3)| self.base.electrical_matrix3(y[crate::model::idx::X], y[crate::model::idx::TV], l3, r3))
     }
 
     #[inline]
@@ -250,6 +260,14 @@ pub trait Electrical<D, const N: usize>: Dynamics<D, N> {
     /// `1 / (Le(x) h(i))` in the model. The exponential schemes take the drive's integrals
     /// with it ([`etd4_sample`] with two steps or more per sample, [`etd2_step`]).
     fn input(&self, y: &[D; N]) -> D;
+
+    /// The 3 x 3 network of the currents `i`, `i2` and `i3` when the system has an LR-3
+    /// branch (`i3` at [`crate::model::ext_idx::I3`]), which the exponential schemes then
+    /// integrate exactly instead of [`Electrical::electrical`]'s 2 x 2; `None` without one.
+    #[inline]
+    fn network3(&self, _y: &[D; N]) -> Option<[[D; 3]; 3]> {
+        None
+    }
 
     /// The current's own rate `A[0][0]` of [`Electrical::electrical`] (1/s) and
     /// [`Electrical::input`] at state `y`, for [`etdc_step`]. The model computes both from
@@ -722,6 +740,9 @@ where
     D: DualNum<Primitive = f64> + Copy,
     S: Electrical<D, N>,
 {
+    if let Some(a) = sys.network3(y) {
+        return net::etd2_sample_on(sys, y, dt, u_points, &a);
+    }
     let n = (u_points.len() - 1) / 2;
     let k = Etd2Coefficients::new(&sys.electrical(y), dt / n as f64);
     let b = sys.input(y);
@@ -792,6 +813,9 @@ where
     D: DualNum<Primitive = f64> + Copy,
     S: Electrical<D, N>,
 {
+    if let Some(a) = sys.network3(y) {
+        return net::etd4_sample_on(sys, y, dt, u_points, &a);
+    }
     if u_points.len() == 3 {
         // One step on the sample's three points (a Jacobian's runs): the method's own
         // quadrature takes the drive in `N`, exact for the quadratic through them.
@@ -808,6 +832,530 @@ where
         y = etd4_step(sys, &y, &k, [w[0], w[2], w[4]], Some(&drive));
     }
     y
+}
+
+/// The exponential schemes on a 3 x 3 network: the currents `i`, `i2` and `i3` of a model
+/// with an LR-3 branch ([`Electrical::network3`]), which [`etd4_sample`] and [`etd2_sample`]
+/// hand to this module. The same methods as the 2 x 2 network's, written for a network of
+/// `M` currents: each function of the network matrix is a polynomial of degree `M - 1` in it
+/// ([`net::NetFn`], from its three real eigenvalues, [`net::Network`]). The 2 x 2 network
+/// keeps its own code (pairs `p I + q A`): on it this generic code took 13 % longer in the
+/// microspeaker's `identify` (5.3 -> 6.0 s, the same iterations), its small arrays of dual
+/// numbers moved through memory where the pairs stay in registers.
+mod net {
+    use super::*;
+
+    /// A network matrix `M` whose scalar functions `g_k` are taken as the coefficients of
+    /// `g_k(M) = sum_j c_j M^j` (the 3 x 3 one's: [`matrix_functions3`]).
+    pub trait Network<D, const M: usize> {
+        fn functions<const K: usize>(&self, g: impl Fn(D) -> [D; K]) -> [[D; M]; K];
+    }
+
+    impl<D: DualNum<Primitive = f64> + Copy> Network<D, 3> for [[D; 3]; 3] {
+        #[inline(always)]
+        fn functions<const K: usize>(&self, g: impl Fn(D) -> [D; K]) -> [[D; 3]; K] {
+            matrix_functions3(self, g)
+        }
+    }
+
+    /// The three real eigenvalues of a 3 x 3 RL network's matrix `M` (`-L^-1 R`, similar to a
+    /// symmetric matrix: its eigenvalues are real), largest first, at least `floor` apart, as
+    /// the roots of `det(mu I - M) = mu^3 + T mu^2 + S mu + P`: in `f64` by the trigonometric
+    /// solution polished by Newton's method, then one Newton step in `D`, which carries each
+    /// root's derivative (`-dP(mu) / P'(mu)`, the implicit function's). A root moved to keep
+    /// the floor takes the derivative of the mean of the three (`-dT / 3`).
+    #[inline]
+    pub(super) fn eigenvalues3<D: DualNum<Primitive = f64> + Copy>(m: &[[D; 3]; 3]) -> [D; 3] {
+        let t = -(m[0][0] + m[1][1] + m[2][2]);
+        let s = (m[0][0] * m[1][1] - m[0][1] * m[1][0]) + (m[0][0] * m[2][2] - m[0][2] * m[2][0]) + (m[1][1] * m[2][2] - m[1][2] * m[2][1]);
+        let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+        let p = -det;
+        let (tf, sf, pf) = (t.re(), s.re(), p.re());
+        let poly = |x: f64| ((x + tf) * x + sf) * x + pf;
+        let slope = |x: f64| (3.0 * x + 2.0 * tf) * x + sf;
+        // x = y - T/3: y^3 + a y + b = 0.
+        let a = sf - tf * tf / 3.0;
+        let b = 2.0 * tf * tf * tf / 27.0 - tf * sf / 3.0 + pf;
+        let mut mu = if a < 0.0 {
+            let r = 2.0 * (-a / 3.0).sqrt();
+            let arg = (3.0 * b / (a * r)).clamp(-1.0, 1.0);
+            let phi = arg.acos() / 3.0;
+            std::array::from_fn(|k| r * (phi - 2.0 * std::f64::consts::PI * k as f64 / 3.0).cos() - tf / 3.0)
+        } else {
+            [-tf / 3.0; 3]
+        };
+        for x in mu.iter_mut() {
+            for _ in 0..3 {
+                let d = slope(*x);
+                if d != 0.0 && d.is_finite() {
+                    let next = *x - poly(*x) / d;
+                    if next.is_finite() {
+                        *x = next;
+                    }
+                }
+            }
+        }
+        mu.sort_by(|x, y| y.total_cmp(x));
+        let floor = 1e-4 * (1.0 + mu.iter().fold(0.0f64, |acc, v| acc.max(v.abs())));
+        let mut moved = [false; 3];
+        for k in 1..3 {
+            if mu[k - 1] - mu[k] < floor {
+                mu[k] = mu[k - 1] - floor;
+                moved[k] = true;
+                moved[k - 1] = true;
+            }
+        }
+        std::array::from_fn(|k| {
+            let x = mu[k];
+            let d = slope(x);
+            let xd = D::from(x);
+            if moved[k] || !(d.abs() > 0.0) {
+                // The mean's derivative: -dT/3 (T's value part taken out).
+                xd - (t - tf) * (1.0 / 3.0)
+            } else {
+                let pd = ((xd + t) * xd + s) * xd + p;
+                xd - pd * (1.0 / d)
+            }
+        })
+    }
+
+    /// Scalar functions `g_k` of a 3 x 3 network matrix `M` as the coefficients `(c0, c1, c2)`
+    /// of `g_k(M) = c0 I + c1 M + c2 M^2`: the interpolating polynomial on its three real
+    /// eigenvalues ([`eigenvalues3`]) in Newton's form, from the largest (nearest zero) down:
+    /// `g[mu1] + g[mu1, mu2] (M - mu1) + g[mu1, mu2, mu3] (M - mu1) (M - mu2)`.
+    #[inline]
+    pub(super) fn matrix_functions3<D: DualNum<Primitive = f64> + Copy, const K: usize>(m: &[[D; 3]; 3], g: impl Fn(D) -> [D; K]) -> [[D; 3]; K] {
+        let [mu1, mu2, mu3] = eigenvalues3(m);
+        let (g1, g2, g3) = (g(mu1), g(mu2), g(mu3));
+        let (i12, i23, i13) = ((mu1 - mu2).recip(), (mu2 - mu3).recip(), (mu1 - mu3).recip());
+        std::array::from_fn(|k| {
+            let f12 = (g1[k] - g2[k]) * i12;
+            let f23 = (g2[k] - g3[k]) * i23;
+            let f123 = (f12 - f23) * i13;
+            [g1[k] - f12 * mu1 + f123 * mu1 * mu2, f12 - f123 * (mu1 + mu2), f123]
+        })
+    }
+
+    /// `[f(0), f(1), .., f(M - 1)]` for the network's small arrays, built in place
+    /// (`std::array::from_fn` on dual numbers was left out of line and moved its arrays
+    /// through memcpy).
+    #[inline(always)]
+    fn build<T: Copy, const M: usize>(mut f: impl FnMut(usize) -> T) -> [T; M] {
+        let mut out = [f(0); M];
+        for (j, o) in out.iter_mut().enumerate().skip(1) {
+            *o = f(j);
+        }
+        out
+    }
+
+    /// `sum_j c_j A^j` (`j < M`): a function of the `M x M` network matrix `A` (1/s), a
+    /// polynomial of degree `M - 1` in it (every analytic function of the matrix is one,
+    /// [`Network`]). `M` = 2 for the LR-2 network, 3 with an LR-3 branch.
+    #[derive(Clone, Copy, Debug)]
+    pub struct NetFn<D, const M: usize> {
+        c: [D; M],
+    }
+
+    impl<D: DualNum<Primitive = f64> + Copy, const M: usize> NetFn<D, M> {
+        /// `(sum_j c_j A^j) n`, given `kn = [n, A n, A^2 n, ..]` ([`krylov`]).
+        #[inline(always)]
+        fn apply(&self, kn: &[[D; M]; M]) -> [D; M] {
+            build(|r| {
+                let mut v = self.c[0] * kn[0][r];
+                for j in 1..M {
+                    v += self.c[j] * kn[j][r];
+                }
+                v
+            })
+        }
+
+        /// `c f(s A)`: a function `f` of the scaled matrix `s A` ([`Network`]), times `c`.
+        #[inline(always)]
+        fn of(f: [D; M], s: f64, c: f64) -> Self {
+            let mut sc = c;
+            NetFn {
+                c: build(|j| {
+                    let v = f[j] * sc;
+                    sc *= s;
+                    v
+                }),
+            }
+        }
+
+        #[inline(always)]
+        fn plus(self, o: Self) -> Self {
+            NetFn { c: build(|j| self.c[j] + o.c[j]) }
+        }
+    }
+
+    /// `s a`: the network matrix `a` (1/s) times a step (s).
+    #[inline(always)]
+    fn scaled<D: DualNum<Primitive = f64> + Copy, const M: usize>(a: &[[D; M]; M], s: f64) -> [[D; M]; M] {
+        build(|r| build(|c| a[r][c] * s))
+    }
+
+    /// An M x M matrix times a vector.
+    #[inline(always)]
+    fn mat_vec<D: DualNum<Primitive = f64> + Copy, const M: usize>(m: &[[D; M]; M], v: [D; M]) -> [D; M] {
+        build(|r| {
+            let mut s = v[0] * m[r][0];
+            for c in 1..M {
+                s += v[c] * m[r][c];
+            }
+            s
+        })
+    }
+
+    /// `[v, A v, A^2 v, ..]` (`M` vectors): what a [`NetFn`] applies to.
+    #[inline(always)]
+    fn krylov<D: DualNum<Primitive = f64> + Copy, const M: usize>(a: &[[D; M]; M], v: [D; M]) -> [[D; M]; M] {
+        let mut k = [v; M];
+        for j in 1..M {
+            k[j] = mat_vec(a, k[j - 1]);
+        }
+        k
+    }
+
+    /// The states of the network's currents: `i`, `i2` and, in a 3 x 3 network, `i3`.
+    /// A constant (`const { currents::<M>() }` at the call sites), so that the stages index
+    /// their states at fixed places.
+    const fn currents<const M: usize>() -> [usize; M] {
+        use crate::model::{ext_idx::I3, idx::I, idx::I2};
+        let all = [I, I2, I3];
+        let mut out = [0; M];
+        let mut k = 0;
+        while k < M {
+            out[k] = all[k];
+            k += 1;
+        }
+        out
+    }
+
+    #[derive(Clone, Copy, Debug)]
+    pub struct EtdCoefficients<D, const M: usize> {
+        h: f64,
+        a: [[D; M]; M],
+        /// `[e, A e, ..]` of the unit vector on the current `i` ([`krylov`]): where the drive enters.
+        ke: [[D; M]; M],
+        e5: NetFn<D, M>,
+        e1: NetFn<D, M>,
+        a21: NetFn<D, M>,
+        a31: NetFn<D, M>,
+        a32: NetFn<D, M>,
+        a41: NetFn<D, M>,
+        a42: NetFn<D, M>,
+        a51: NetFn<D, M>,
+        a52: NetFn<D, M>,
+        a54: NetFn<D, M>,
+        b1: NetFn<D, M>,
+        b4: NetFn<D, M>,
+        b5: NetFn<D, M>,
+        /// The drive's integrals over the half step and the step ([`EtdCoefficients::with_drive`]):
+        /// `h c^{k+1} k! phi_{k+1}(c M)` for `c = 1/2` and `1`, `k = 0 ..= 4` ([`etd4_step`]).
+        drive: Option<([NetFn<D, M>; 5], [NetFn<D, M>; 5])>,
+    }
+
+    /// `[e, A e, ..]` of the unit vector `e` on the current `i` (the first of the network's).
+    #[inline(always)]
+    fn krylov_of_current<D: DualNum<Primitive = f64> + Copy, const M: usize>(a: &[[D; M]; M]) -> [[D; M]; M] {
+        krylov(a, build(|k| if k == 0 { D::one() } else { D::zero() }))
+    }
+
+    impl<D: DualNum<Primitive = f64> + Copy, const M: usize> EtdCoefficients<D, M>
+    where
+        [[D; M]; M]: Network<D, M>,
+    {
+        /// The coefficients for the network `a` (1/s) and step `h` (s): Hochbruck and
+        /// Ostermann's (Acta Numerica 2010, Eq. 5.19), `phi_{j,i} = phi_j(c_i h A)`.
+        #[inline]
+        pub fn new(a: &[[D; M]; M], h: f64) -> Self {
+            let (full, half) = (scaled(a, h), scaled(a, 0.5 * h));
+            let [e5, p15, p25, p35] = half.functions(phis::<D, 4>);
+            let [e1, p11, p21, p31] = full.functions(phis::<D, 4>);
+            Self::from_functions(a, h, [e5, p15, p25, p35], [e1, p11, p21, p31], None)
+        }
+
+        /// [`EtdCoefficients::new`] with the drive's integrals, for steps that take the drive
+        /// exactly ([`Drive`]).
+        #[inline]
+        pub fn with_drive(a: &[[D; M]; M], h: f64) -> Self {
+            let (full, half) = (scaled(a, h), scaled(a, 0.5 * h));
+            let [e5, p15, p25, p35, p45, p55] = half.functions(phis::<D, 6>);
+            let [e1, p11, p21, p31, p41, p51] = full.functions(phis::<D, 6>);
+            const FACT: [f64; 5] = [1.0, 1.0, 2.0, 6.0, 24.0];
+            const HALF_POW: [f64; 5] = [0.5, 0.25, 0.125, 0.0625, 0.03125];
+            let drive_half = std::array::from_fn(|k| NetFn::of([p15, p25, p35, p45, p55][k], 0.5 * h, h * HALF_POW[k] * FACT[k]));
+            let drive_full = std::array::from_fn(|k| NetFn::of([p11, p21, p31, p41, p51][k], h, h * FACT[k]));
+            Self::from_functions(a, h, [e5, p15, p25, p35], [e1, p11, p21, p31], Some((drive_half, drive_full)))
+        }
+
+        #[inline(always)]
+        #[allow(clippy::type_complexity)]
+        fn from_functions(a: &[[D; M]; M], h: f64, [e5, p15, p25, p35]: [[D; M]; 4], [e1, p11, p21, p31]: [[D; M]; 4], drive: Option<([NetFn<D, M>; 5], [NetFn<D, M>; 5])>) -> Self {
+            let lin = |f: &[[D; M]], w: &[f64]| -> [D; M] {
+                build(|j| {
+                    let mut acc = D::zero();
+                    for (g, &c) in f.iter().zip(w) {
+                        acc += g[j] * c;
+                    }
+                    acc
+                })
+            };
+            // a52 = a53 = phi2(M/2)/2 - phi3(M/2)/2 + phi2(M)/4 - phi3(M): a function on each matrix.
+            let a52h = lin(&[p25, p35], &[0.5, -0.5]);
+            let a52f = lin(&[p21, p31], &[0.25, -1.0]);
+            // a54 = phi2(M/2)/4 - a52; a51 = phi1(M/2)/2 - 2 a52 - a54.
+            let a54h = lin(&[p25, a52h], &[0.25, -1.0]);
+            let a54f = lin(&[a52f], &[-1.0]);
+            let a51h = lin(&[p15, a52h, a54h], &[0.5, -2.0, -1.0]);
+            let a51f = lin(&[a52f, a54f], &[-2.0, -1.0]);
+            // `h f(M/2)` and `h f(M)` as functions of A (M = A h).
+            let on_half = |f: [D; M]| NetFn::of(f, 0.5 * h, h);
+            let on_full = |f: [D; M]| NetFn::of(f, h, h);
+            EtdCoefficients {
+                h,
+                a: *a,
+                ke: krylov_of_current(a),
+                e5: NetFn::of(e5, 0.5 * h, 1.0),
+                e1: NetFn::of(e1, h, 1.0),
+                a21: on_half(lin(&[p15], &[0.5])),
+                a31: on_half(lin(&[p15, p25], &[0.5, -1.0])),
+                a32: on_half(p25),
+                a41: on_full(lin(&[p11, p21], &[1.0, -2.0])),
+                a42: on_full(p21),
+                a51: on_half(a51h).plus(on_full(a51f)),
+                a52: on_half(a52h).plus(on_full(a52f)),
+                a54: on_half(a54h).plus(on_full(a54f)),
+                b1: on_full(lin(&[p11, p21, p31], &[1.0, -3.0, 4.0])),
+                b4: on_full(lin(&[p21, p31], &[-1.0, 4.0])),
+                b5: on_full(lin(&[p21, p31], &[4.0, -8.0])),
+                drive,
+            }
+        }
+    }
+
+    #[inline]
+    pub fn etd4_step<D, S, const N: usize, const M: usize>(sys: &S, y: &[D; N], k: &EtdCoefficients<D, M>, [u0, um, u1]: [D; 3], drive: Option<&Drive<D>>) -> [D; N]
+    where
+        D: DualNum<Primitive = f64> + Copy,
+        S: Dynamics<D, N>,
+    {
+        let (a, h) = (&k.a, k.h);
+        let (mut ey5, mut ey1) = exponentials_on_currents(y, a, &k.e5, &k.e1);
+        // With `drive`: the drive's exact integral to c h added to e^{cM} y on the currents, and
+        // the drive (at its start's gain) taken out of N.
+        let drive = drive.zip(k.drive.as_ref());
+        if let Some((d, (half, full))) = drive {
+            let add = |ey: &mut [D; M], terms: &[NetFn<D, M>; 5]| {
+                let mut c = [D::zero(); M];
+                for (t, g) in terms.iter().zip(&d.g) {
+                    for (cj, tj) in c.iter_mut().zip(&t.c) {
+                        *cj += *tj * *g;
+                    }
+                }
+                let v = NetFn { c }.apply(&k.ke);
+                for (e, vj) in ey.iter_mut().zip(v) {
+                    *e += vj * d.b;
+                }
+            };
+            add(&mut ey5, half);
+            add(&mut ey1, full);
+        }
+        let b = drive.map(|(d, _)| d.b);
+        let rest = |s: &[D; N], u: D| etd_rest_driven(sys, a, s, u, b, &k.ke);
+        let n1 = rest(y, u0);
+        let s2 = etd_stage(y, h, ey5, &[(&k.a21, 0.5, &n1)]);
+        let n2 = rest(&s2, um);
+        let s3 = etd_stage(y, h, ey5, &[(&k.a31, 0.0, &n1), (&k.a32, 0.5, &n2)]);
+        let n3 = rest(&s3, um);
+        // Stages 2 and 3 share their coefficients in stages 4 and 5 (a42 = a43, a52 = a53).
+        let n23 = Rest { n: std::array::from_fn(|j| n2.n[j] + n3.n[j]), kn: build(|q| build(|j| n2.kn[q][j] + n3.kn[q][j])) };
+        let s4 = etd_stage(y, h, ey1, &[(&k.a41, 0.0, &n1), (&k.a42, 0.5, &n23)]);
+        let n4 = rest(&s4, u1);
+        let s5 = etd_stage(y, h, ey5, &[(&k.a51, 0.25, &n1), (&k.a52, 0.125, &n23), (&k.a54, 0.0, &n4)]);
+        let n5 = rest(&s5, um);
+        etd_stage(y, h, ey1, &[(&k.b1, 1.0 / 6.0, &n1), (&k.b4, 1.0 / 6.0, &n4), (&k.b5, 2.0 / 3.0, &n5)])
+    }
+
+    #[derive(Clone, Copy, Debug)]
+    pub struct Etd2Coefficients<D, const M: usize> {
+        h: f64,
+        a: [[D; M]; M],
+        ke: [[D; M]; M],
+        e5: NetFn<D, M>,
+        e1: NetFn<D, M>,
+        a21: NetFn<D, M>,
+        c2: NetFn<D, M>,
+        b1: NetFn<D, M>,
+        b2: NetFn<D, M>,
+        d: NetFn<D, M>,
+    }
+
+    impl<D: DualNum<Primitive = f64> + Copy, const M: usize> Etd2Coefficients<D, M>
+    where
+        [[D; M]; M]: Network<D, M>,
+    {
+        #[inline]
+        pub fn new(a: &[[D; M]; M], h: f64) -> Self {
+            let (full, half) = (scaled(a, h), scaled(a, 0.5 * h));
+            let [e5, p15, p25, ..] = half.functions(phis::<D, 4>);
+            let [e1, p11, p21, p31, ..] = full.functions(phis::<D, 4>);
+            let lin = |f: [D; M], g: [D; M], a: f64, b: f64| -> [D; M] { build(|j| f[j] * a + g[j] * b) };
+            Etd2Coefficients {
+                h,
+                a: *a,
+                ke: krylov_of_current(a),
+                e5: NetFn::of(e5, 0.5 * h, 1.0),
+                e1: NetFn::of(e1, h, 1.0),
+                a21: NetFn::of(p15, 0.5 * h, 0.5 * h),
+                c2: NetFn::of(p25, 0.5 * h, 0.5 * h),
+                b1: NetFn::of(lin(p11, p21, 1.0, -2.0), h, h),
+                b2: NetFn::of(p21, h, 2.0 * h),
+                d: NetFn::of(lin(p31, p21, 4.0, -1.0), h, h),
+            }
+        }
+    }
+
+    /// `f(A) (v, 0, ..)`: a function of the network on a vector in the current `i` alone (the
+    /// drive's), `ke` the Krylov vectors of that current's unit vector ([`krylov_of_current`]).
+    #[inline(always)]
+    fn on_current<D: DualNum<Primitive = f64> + Copy, const M: usize>(ke: &[[D; M]; M], f: &NetFn<D, M>, v: D) -> [D; M] {
+        let kv: [[D; M]; M] = build(|q| build(|j| ke[q][j] * v));
+        f.apply(&kv)
+    }
+
+    #[inline]
+    pub fn etd2_step<D, S, const N: usize, const M: usize>(sys: &S, y: &[D; N], k: &Etd2Coefficients<D, M>, b: D, u0: D, um: D, u1: D) -> [D; N]
+    where
+        D: DualNum<Primitive = f64> + Copy,
+        S: Dynamics<D, N>,
+    {
+        let (a, h) = (&k.a, k.h);
+        let (ey5, ey1) = exponentials_on_currents(y, a, &k.e5, &k.e1);
+        let n1 = etd_rest(sys, a, y, u0);
+        let stage_drive = on_current(&k.ke, &k.c2, b * (um - u0));
+        let s2 = etd_stage(y, h, build(|j| ey5[j] + stage_drive[j]), &[(&k.a21, 0.5, &n1)]);
+        let n2 = etd_rest(sys, a, &s2, um);
+        let dr = on_current(&k.ke, &k.d, b * (u1 - um * 2.0 + u0));
+        etd_stage(y, h, build(|j| ey1[j] + dr[j]), &[(&k.b1, 0.0, &n1), (&k.b2, 1.0, &n2)])
+    }
+
+    #[inline(always)]
+    pub(super) fn etd2_sample_on<D, S, const N: usize, const M: usize>(sys: &S, y: &[D; N], dt: f64, u_points: &[D], a: &[[D; M]; M]) -> [D; N]
+    where
+        D: DualNum<Primitive = f64> + Copy,
+        S: Electrical<D, N>,
+        [[D; M]; M]: Network<D, M>,
+    {
+        let n = (u_points.len() - 1) / 2;
+        let k = Etd2Coefficients::new(a, dt / n as f64);
+        let b = sys.input(y);
+        steps_over_sample(y, dt, u_points, |y, _, u0, um, u1| etd2_step(sys, y, &k, b, u0, um, u1))
+    }
+
+    /// `e^{M/2} y` and `e^M y` on the currents (`e5`, `e1` as functions of `a`): where every
+    /// stage of an exponential step starts.
+    #[inline(always)]
+    fn exponentials_on_currents<D: DualNum<Primitive = f64> + Copy, const N: usize, const M: usize>(y: &[D; N], a: &[[D; M]; M], e5: &NetFn<D, M>, e1: &NetFn<D, M>) -> ([D; M], [D; M]) {
+        let idx = const { currents::<M>() };
+        let ky = krylov(a, build(|k| y[idx[k]]));
+        (e5.apply(&ky), e1.apply(&ky))
+    }
+
+    /// The non-stiff remainder `N = f - A (i, i2, ..)` of [`etd4_step`] at a stage, with the
+    /// Krylov vectors of its currents (`[N_el, A N_el, ..]`, what the coefficients apply to).
+    struct Rest<D, const N: usize, const M: usize> {
+        n: [D; N],
+        kn: [[D; M]; M],
+    }
+
+    #[inline(always)]
+    fn etd_rest<D, S, const N: usize, const M: usize>(sys: &S, a: &[[D; M]; M], s: &[D; N], u: D) -> Rest<D, N, M>
+    where
+        D: DualNum<Primitive = f64> + Copy,
+        S: Dynamics<D, N>,
+    {
+        let idx = const { currents::<M>() };
+        let mut d = sys.deriv(s, u);
+        let linear = mat_vec(a, build(|k| s[idx[k]]));
+        for k in 0..M {
+            d[idx[k]] -= linear[k];
+        }
+        let kn = krylov(a, build(|k| d[idx[k]]));
+        Rest { n: d, kn }
+    }
+
+    /// [`etd_rest`] less the drive `b u` (`b`: its gain, `None`: the drive stays in `N`) on the
+    /// current, `ke` the Krylov vectors of that current's unit vector.
+    #[inline(always)]
+    fn etd_rest_driven<D, S, const N: usize, const M: usize>(sys: &S, a: &[[D; M]; M], s: &[D; N], u: D, b: Option<D>, ke: &[[D; M]; M]) -> Rest<D, N, M>
+    where
+        D: DualNum<Primitive = f64> + Copy,
+        S: Dynamics<D, N>,
+    {
+        let mut r = etd_rest(sys, a, s, u);
+        if let Some(b) = b {
+            let d = b * u;
+            r.n[crate::model::idx::I] -= d;
+            r.kn[0][0] -= d;
+            for q in 1..M {
+                for j in 0..M {
+                    r.kn[q][j] -= ke[q][j] * d;
+                }
+            }
+        }
+        r
+    }
+
+    /// A stage of [`etd4_step`]: `ey` (e^{cM} y on the currents) + sum_j (h a_j) N_j, and on the
+    /// other states y + h sum_j a_j(0) N_j (`at0`, zero terms left out).
+    #[inline(always)]
+    fn etd_stage<D: DualNum<Primitive = f64> + Copy, const N: usize, const M: usize>(y: &[D; N], h: f64, ey: [D; M], terms: &[(&NetFn<D, M>, f64, &Rest<D, N, M>)]) -> [D; N] {
+        let idx = const { currents::<M>() };
+        let mut s: [D; N] = *y;
+        for j in (0..N).filter(|j| !idx.contains(j)) {
+            for (_, at0, r) in terms.iter().filter(|t| t.1 != 0.0) {
+                s[j] += r.n[j] * (at0 * h);
+            }
+        }
+        let mut el = ey;
+        for (coef, _, r) in terms {
+            let t = coef.apply(&r.kn);
+            for k in 0..M {
+                el[k] += t[k];
+            }
+        }
+        for k in 0..M {
+            s[idx[k]] = el[k];
+        }
+        s
+    }
+
+    /// [`etd4_sample`] on the network `a` (2 x 2, or 3 x 3 with an LR-3 branch).
+    #[inline(always)]
+    pub(super) fn etd4_sample_on<D, S, const N: usize, const M: usize>(sys: &S, y: &[D; N], dt: f64, u_points: &[D], a: &[[D; M]; M]) -> [D; N]
+    where
+        D: DualNum<Primitive = f64> + Copy,
+        S: Electrical<D, N>,
+        [[D; M]; M]: Network<D, M>,
+    {
+        if u_points.len() == 3 {
+            // One step on the sample's three points (a Jacobian's runs): the method's own
+            // quadrature takes the drive in `N`, exact for the quadratic through them.
+            let k = EtdCoefficients::new(a, dt);
+            return etd4_step(sys, y, &k, [u_points[0], u_points[1], u_points[2]], None);
+        }
+        let n = (u_points.len() - 1) / 4;
+        let k = EtdCoefficients::with_drive(a, dt / n as f64);
+        let b = sys.input(y);
+        let mut y = *y;
+        for s in 0..n {
+            let w = &u_points[4 * s..4 * s + 5];
+            let drive = Drive::of_step(b, w);
+            y = etd4_step(sys, &y, &k, [w[0], w[2], w[4]], Some(&drive));
+        }
+        y
+    }
 }
 
 /// Advance one sample period `dt` in `(u_points.len() - 1) / 4` steps of the current's
@@ -948,22 +1496,27 @@ pub const EXP_MIN_STEPS: usize = 2;
 /// How fast a parameter set's electrical modes are (1/s), for choosing steps.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Rates {
-    /// The LR-2 network's fastest eigenvalue, an upper bound: what [`Electrical`] holds.
+    /// The LR-2 network's fastest eigenvalue, an upper bound: what sets the exponential
+    /// method's steps ([`exp_steps_for`]).
     pub stiff: f64,
-    /// What stays outside [`Electrical`] and must be resolved by the steps themselves: the
-    /// LR-3 branch (`R3 / Le + R3 / L3`; 0 without it).
-    pub explicit: f64,
+    /// The LR-3 branch's (`R3 / Le + R3 / L3`; 0 without it): in the exponential method's
+    /// network ([`Electrical::network3`]), which integrates it exactly, so it sets no
+    /// exponential steps (issue 17's session 38: a microspeaker with a branch 1.5 times
+    /// as fast as its LR-2 network followed a tiny-step run as closely at 2, 3 and 4 steps
+    /// as without it; until then the branch stayed outside the network and such a set took
+    /// RK4); classical RK4 must resolve it ([`Rates::total`]).
+    pub lr3: f64,
 }
 
 impl Rates {
-    /// All of `rate` in the network (a set without LR-3).
+    /// A set without LR-3 whose network's fastest mode is `rate`.
     pub fn stiff(rate: f64) -> Self {
-        Rates { stiff: rate, explicit: 0.0 }
+        Rates { stiff: rate, lr3: 0.0 }
     }
 
     /// The fastest mode overall (what classical RK4 must resolve).
     pub fn total(&self) -> f64 {
-        self.stiff + self.explicit
+        self.stiff + self.lr3
     }
 }
 
@@ -1049,28 +1602,24 @@ impl Stepper {
     /// The steps of a Jacobian's runs (dual numbers), where stability and the sensitivities'
     /// direction matter, not the last digit: one RK4 sub-step when the fastest mode allows
     /// it (`|lambda| h <= 1.5`, woofers), else one exponential step (the stiff network
-    /// exactly; more only if the explicit LR-3 branch needs them).
+    /// exactly, an LR-3 branch in it).
     pub fn for_jacobian(rates: Rates, fs: f64) -> Self {
         if rates.total() / fs <= JACOBIAN_STIFF_LIMIT {
             Stepper::new(Scheme::Rk4, 1)
         } else {
-            Stepper::new(Scheme::Exponential, ((rates.explicit / fs / JACOBIAN_STIFF_LIMIT).ceil() as usize).max(1))
+            Stepper::new(Scheme::Exponential, 1)
         }
     }
 
-    /// The residual and Jacobian steppers of a model whose LR-3 branch is fitted
-    /// (`lr3`): that branch stays outside the exponential method's network, and in a stiff
-    /// driver it is as fast as the network (a fit's LR-3 start has `R3 / L3 = 6 R2 / L2`), so
-    /// such a model keeps classical RK4 with the sub-steps of [`substeps_for`] (the scheme
-    /// before issue 17; the woofers' choice anyway). Otherwise [`Stepper::for_rates`]'s
-    /// choice with [`fit_exp_steps_for`]'s exponential steps (fewer than a simulation's,
-    /// [`FIT_EXP_STIFF_LIMIT`]) and [`Stepper::for_jacobian`].
-    pub fn for_fit(rates: Rates, fs: f64, lr3: bool) -> (Self, Self) {
-        if lr3 {
-            Stepper::rk4_for(rates, fs)
-        } else {
-            (Stepper::cheaper(rates, fs, fit_exp_steps_for(rates, fs)), Stepper::for_jacobian(rates, fs))
-        }
+    /// The residual and Jacobian steppers of a fit: [`Stepper::for_rates`]'s choice with
+    /// [`fit_exp_steps_for`]'s exponential steps (fewer than a simulation's,
+    /// [`FIT_EXP_STIFF_LIMIT`]) and [`Stepper::for_jacobian`]. A fitted LR-3 branch is in
+    /// the exponential method's network ([`Electrical::network3`]); until issue 17's
+    /// session 38 it stayed outside, and a stiff driver's model with one took RK4 at 21
+    /// sub-steps (a fit's vanishing LR-3 start has `R3 / L3 = 6 R2 / L2`, as fast as the
+    /// network).
+    pub fn for_fit(rates: Rates, fs: f64) -> (Self, Self) {
+        (Stepper::cheaper(rates, fs, fit_exp_steps_for(rates, fs)), Stepper::for_jacobian(rates, fs))
     }
 
     /// Classical RK4 for the model runs and for the Jacobian's, with the sub-steps the
@@ -1101,13 +1650,13 @@ impl Stepper {
     /// ([`etd2_sample`], two evaluations instead of five) with the drive's exact integrals:
     /// the microspeaker's columns within 1.7-3.8 % of a reference for Le(x), 3.9-4.6 % for
     /// Bl, Kms, Rms, and its search's iterations unchanged (without those integrals Le(x)
-    /// was 30 % off and the search took two more iterations). A fitted LR-3 branch keeps
-    /// the final fit's RK4.
-    pub fn for_search_jacobian(rates: Rates, fs: f64, lr3: bool) -> Self {
+    /// was 30 % off and the search took two more iterations). A fitted LR-3 branch is in
+    /// the network of both.
+    pub fn for_search_jacobian(rates: Rates, fs: f64) -> Self {
         if rates.total() / fs <= SEARCH_MIDPOINT_LIMIT {
             return Stepper::new(Scheme::Midpoint, 1);
         }
-        let fit = Stepper::for_fit(rates, fs, lr3).1;
+        let fit = Stepper::for_fit(rates, fs).1;
         match fit.scheme {
             Scheme::Exponential => Stepper::new(Scheme::ExpMidpoint, fit.n()),
             _ => fit,
@@ -1148,22 +1697,21 @@ impl Stepper {
     }
 }
 
-/// Exponential steps per sample: the stiff network within [`EXP_STIFF_LIMIT`], the explicit
-/// rest within [`STIFF_LIMIT`]; at least one.
+/// Exponential steps per sample: the stiff network within [`EXP_STIFF_LIMIT`]; at least
+/// [`EXP_MIN_STEPS`].
 pub fn exp_steps_for(rates: Rates, fs: f64) -> usize {
     exp_steps_within(rates, fs, EXP_STIFF_LIMIT)
 }
 
-/// Exponential steps per sample that keep the stiff network within `stiff_limit` and the
-/// explicit rest within [`STIFF_LIMIT`]; at least [`EXP_MIN_STEPS`].
+/// Exponential steps per sample that keep the stiff network within `stiff_limit`; at least
+/// [`EXP_MIN_STEPS`].
 fn exp_steps_within(rates: Rates, fs: f64, stiff_limit: f64) -> usize {
-    let n = (rates.stiff / fs / stiff_limit).ceil().max((rates.explicit / fs / STIFF_LIMIT).ceil());
+    let n = (rates.stiff / fs / stiff_limit).ceil();
     (n as usize).clamp(EXP_MIN_STEPS, 4096)
 }
 
 /// Exponential steps per sample of a fit's model runs ([`Stepper::for_fit`]): the stiff
-/// network within [`FIT_EXP_STIFF_LIMIT`], the explicit rest within [`STIFF_LIMIT`]; at
-/// least [`EXP_MIN_STEPS`].
+/// network within [`FIT_EXP_STIFF_LIMIT`]; at least [`EXP_MIN_STEPS`].
 pub fn fit_exp_steps_for(rates: Rates, fs: f64) -> usize {
     exp_steps_within(rates, fs, FIT_EXP_STIFF_LIMIT)
 }
@@ -1501,6 +2049,187 @@ mod tests {
         assert!(r1 > 3.0 && r2 > 3.5, "error ratios {r1:.1}, {r2:.1} ({e1:.2e}, {e2:.2e}, {e3:.2e})");
     }
 
+    /// `[x, v, i, i2, -, -, i3]` (the currents where [`crate::model::ExtModel`] keeps them):
+    /// a stiff 3 x 3 RL network (`a`, 1/s; the LR-3 branch's current `i3`) driven by `u`,
+    /// and the spring-mass system the current pushes, as [`Network`].
+    struct Network3<D> {
+        a: [[D; 3]; 3],
+        g: f64,
+        k3: f64,
+    }
+    impl<D: DualNum<Primitive = f64> + Copy> Dynamics<D, 7> for Network3<D> {
+        fn deriv(&self, y: &[D; 7], u: D) -> [D; 7] {
+            let [x, v, i, i2, _, _, i3] = *y;
+            let a = &self.a;
+            let z = D::zero();
+            [v, i * self.g - x * 4.0e4 - x * x * x * self.k3 - v * 20.0, a[0][0] * i + a[0][1] * i2 + a[0][2] * i3 + u, a[1][0] * i + a[1][1] * i2 + a[1][2] * i3, z, z, a[2][0] * i + a[2][1] * i2 + a[2][2] * i3]
+        }
+    }
+    impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, 7> for Network3<D> {
+        fn electrical(&self, _: &[D; 7]) -> [[D; 2]; 2] {
+            unreachable!("the 3 x 3 network is taken")
+        }
+        fn network3(&self, _: &[D; 7]) -> Option<[[D; 3]; 3]> {
+            Some(self.a)
+        }
+        fn input(&self, _: &[D; 7]) -> D {
+            D::one()
+        }
+    }
+
+    /// `-L^-1 R` of a microspeaker with an LR-3 branch (Le 30 uH, L2 15 uH, L3 5 uH, Re 7.5,
+    /// R2 2, R3 `r3` ohm): eigenvalues about -7e5, -3.5e5 and -0.6e5 /s with `r3` = 3, so
+    /// `|lambda| h` up to 15 at 48 kHz.
+    fn lr3_network<D: DualNum<Primitive = f64> + Copy>(r3: D) -> [[D; 3]; 3] {
+        let (le, l2, l3, re, r2) = (30e-6, 15e-6, 5e-6, 7.5, 2.0);
+        let z = D::zero();
+        [[-(r3 + (re + r2)) / le, D::from(r2 / le), r3 / le], [D::from(r2 / l2), D::from(-r2 / l2), z], [r3 / l3, z, -r3 / l3]]
+    }
+
+    fn reference3<D: DualNum<Primitive = f64> + Copy>(sys: &Network3<D>, y0: [D; 7], t: f64, u: &dyn Fn(f64) -> f64) -> [D; 7] {
+        let n = 200_000;
+        let h = t / n as f64;
+        let mut y = y0;
+        for k in 0..n {
+            let t0 = k as f64 * h;
+            y = rk4_step(sys, &y, h, D::from(u(t0)), D::from(u(t0 + 0.5 * h)), D::from(u(t0 + h)));
+        }
+        y
+    }
+
+    /// Issue 17, session 38: the three eigenvalues of an LR-3 network's matrix are the roots
+    /// of its characteristic polynomial (to 1e-12 of the largest), in order, with the trace
+    /// and the determinant theirs, and their dual parts the roots' derivatives (central
+    /// differences); also with two branches of the same time constant and with a vanishing
+    /// one (R3 1e-6 ohm), where two roots nearly meet.
+    #[test]
+    fn the_lr3_networks_eigenvalues_are_its_characteristic_roots() {
+        for r3 in [3.0, 0.5, 1e-6] {
+            for (name, a) in [
+                ("microspeaker", lr3_network(Dual64::from(r3).derivative())),
+                ("equal corners", {
+                    let mut a = lr3_network(Dual64::from(r3).derivative());
+                    // L3 = L2 R3 / R2: the branches' time constants equal.
+                    let g = a[1][0];
+                    a[2][0] = g;
+                    a[2][2] = -g;
+                    a
+                }),
+            ] {
+                let mu = net::eigenvalues3(&a);
+                let af: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| a[r][c].re));
+                let big = mu.iter().fold(0.0f64, |m, v| m.max(v.re.abs()));
+                assert!(mu[0].re >= mu[1].re && mu[1].re >= mu[2].re, "{name} {r3}: order {mu:?}");
+                let tr = af[0][0] + af[1][1] + af[2][2];
+                assert!((mu.iter().map(|v| v.re).sum::<f64>() - tr).abs() < 1e-12 * big, "{name} {r3}: trace");
+                let det = af[0][0] * (af[1][1] * af[2][2] - af[1][2] * af[2][1]) - af[0][1] * (af[1][0] * af[2][2] - af[1][2] * af[2][0]) + af[0][2] * (af[1][0] * af[2][1] - af[1][1] * af[2][0]);
+                assert!((mu.iter().map(|v| v.re).product::<f64>() - det).abs() < 1e-9 * det.abs(), "{name} {r3}: det");
+                // The derivatives d mu / d R3 against central differences of the f64 roots.
+                let roots = |r: f64| {
+                    let mut m = lr3_network(r);
+                    if name == "equal corners" {
+                        let g = m[1][0];
+                        m[2][0] = g;
+                        m[2][2] = -g;
+                    }
+                    net::eigenvalues3(&m)
+                };
+                let d = 1e-6 * r3;
+                let (hi, lo) = (roots(r3 + d), roots(r3 - d));
+                for k in 0..3 {
+                    let fd = (hi[k] - lo[k]) / (2.0 * d);
+                    let scale = (big / r3).max(fd.abs());
+                    assert!((mu[k].eps - fd).abs() < 1e-4 * scale, "{name} {r3}: d mu{k}/dR3 {} vs {fd}", mu[k].eps);
+                }
+            }
+        }
+    }
+
+    /// Issue 17, session 38: with an LR-3 branch the exponential method integrates the 3 x 3
+    /// network of `i`, `i2` and `i3` exactly (a constant drive, no mechanics: `|lambda| h` =
+    /// 15, where one RK4 step diverges), and takes a quartic drive exactly at two steps or
+    /// more, as the 2 x 2 network's tests above; the exponential midpoint rule (a stiff
+    /// driver's search Jacobians) too, under a drive quadratic in time.
+    #[test]
+    fn an_exponential_step_integrates_a_stiff_lr3_network_exactly() {
+        let sys = Network3 { a: lr3_network(3.0), g: 0.0, k3: 0.0 };
+        let y0 = [0.0, 0.0, 0.3, -0.1, 0.0, 0.0, 0.2];
+        let dt = 1.0 / 48000.0;
+        let states = [2, 3, 6];
+        let check = |y: &[f64; 7], exact: &[f64; 7], tol: f64, what: &str| {
+            for j in states {
+                assert!((y[j] - exact[j]).abs() < tol * exact[j].abs().max(1.0), "{what}, state {j}: {} vs {}", y[j], exact[j]);
+            }
+        };
+        let exact = reference3(&sys, y0, dt, &|_| 2.0e5);
+        check(&etd4_sample(&sys, &y0, dt, &[2.0e5; 3]), &exact, 1e-12, "one step, constant drive");
+        let r = rk4_step(&sys, &y0, dt, 2.0e5, 2.0e5, 2.0e5);
+        assert!((r[2] - exact[2]).abs() > 1.0, "one RK4 step: {}", r[2]);
+        let u = |t: f64| {
+            let s = t / dt;
+            2.0e5 * (1.0 - 0.7 * s + 1.9 * s * s - 2.3 * s * s * s + 1.1 * s * s * s * s)
+        };
+        let exact = reference3(&sys, y0, dt, &u);
+        for n in [2usize, 3, 5] {
+            let pts: Vec<f64> = (0..=4 * n).map(|j| u(j as f64 * dt / (4 * n) as f64)).collect();
+            check(&etd4_sample(&sys, &y0, dt, &pts), &exact, 1e-10, &format!("{n} steps, quartic drive"));
+        }
+        let q = |t: f64| 2.0e5 + 3.0e9 * t - 4.0e13 * t * t;
+        let exact = reference3(&sys, y0, dt, &q);
+        check(&etd2_sample(&sys, &y0, dt, &[q(0.0), q(0.5 * dt), q(dt)]), &exact, 1e-11, "exponential midpoint, quadratic drive");
+    }
+
+    /// Issue 17, session 38: on the LR-3 network coupled to the nonlinear mechanics the
+    /// exponential method stays fourth order (`|lambda| h` from 7.5 down to 1.9), the
+    /// exponential midpoint rule second order; and dual numbers through a sample's steps
+    /// carry the sensitivity to R3 (against central differences), through the eigenvalues'
+    /// derivatives.
+    #[test]
+    fn the_exponential_method_is_fourth_order_with_an_lr3_branch_and_carries_its_sensitivity() {
+        let sys = Network3 { a: lr3_network(3.0), g: 3.0e3, k3: 2.0e9 };
+        let u = |t: f64| 4.0e4 * (2.0 * std::f64::consts::PI * 700.0 * t).sin() + 1.0e4 * (2.0 * std::f64::consts::PI * 2300.0 * t).cos();
+        let t_end = 2.0e-3;
+        let y0 = [1e-4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let exact = reference3(&sys, y0, t_end, &u);
+        let errors = |sample: &dyn Fn(&[f64; 7], f64, &[f64]) -> [f64; 7], pts: usize| {
+            [192usize, 384, 768, 1536].map(|n| {
+                let h = t_end / n as f64;
+                let mut y = y0;
+                for s in 0..n {
+                    let t0 = s as f64 * h;
+                    let p: Vec<f64> = (0..pts).map(|j| u(t0 + h * j as f64 / (pts - 1) as f64)).collect();
+                    y = sample(&y, h, &p);
+                }
+                ((y[0] - exact[0]) / exact[0]).abs().max(((y[2] - exact[2]) / exact[2]).abs()).max(((y[6] - exact[6]) / exact[6]).abs())
+            })
+        };
+        let [e1, e2, e3, e4] = errors(&|y, h, p| etd4_sample(&sys, y, h, p), 3);
+        // (Measured: 7.4e-5, 8.5e-6, 6.8e-7, 4.6e-8: ratios 8.6, 12.5, 14.9 as |lambda| h
+        // falls from 7.3 to 0.9, the 2 x 2 network's fastest mode being half as fast.)
+        assert!(e2 < 1e-5, "{e2:.3e}");
+        assert!(e1 / e2 > 7.0 && e2 / e3 > 11.0 && e3 / e4 > 13.0, "exponential: {e1:.2e}, {e2:.2e}, {e3:.2e}, {e4:.2e}");
+        let [m1, m2, m3, m4] = errors(&|y, h, p| etd2_sample(&sys, y, h, p), 3);
+        assert!(m1 < 1e-3 && m1 / m2 > 3.0 && m2 / m3 > 3.5 && m3 / m4 > 3.5, "exponential midpoint: {m1:.2e}, {m2:.2e}, {m3:.2e}, {m4:.2e}");
+        // d(state)/dR3 over ten samples of two steps.
+        let dt = 1.0 / 48000.0;
+        let run = |r3: Dual64| {
+            let sys = Network3 { a: lr3_network(r3), g: 3.0e3, k3: 2.0e9 };
+            let mut y: [Dual64; 7] = [Dual64::from(0.0); 7];
+            for m in 0..10 {
+                let pts: Vec<Dual64> = (0..=8).map(|j| Dual64::from(u((m as f64 + j as f64 / 8.0) * dt))).collect();
+                y = etd4_sample(&sys, &y, dt, &pts);
+            }
+            y
+        };
+        let exact = run(Dual64::from(3.0).derivative());
+        let d = 1e-5;
+        let (hi, lo) = (run(Dual64::from(3.0 + d)), run(Dual64::from(3.0 - d)));
+        for j in [0, 2, 3, 6] {
+            let fd = (hi[j].re - lo[j].re) / (2.0 * d);
+            assert!((exact[j].eps - fd).abs() < 1e-5 * fd.abs(), "state {j}: {} vs {fd}", exact[j].eps);
+        }
+    }
+
     #[test]
     fn the_scalar_phi_functions_agree_across_their_two_evaluations() {
         // The series (|z| < 0.5) and the closed forms meet without a jump, and match
@@ -1579,13 +2308,12 @@ mod tests {
     }
 
     #[test]
-    fn steppers_take_the_cheaper_scheme_and_keep_rk4_for_a_fitted_lr3_branch() {
+    fn steppers_take_the_cheaper_scheme_with_an_lr3_branch_in_the_network() {
         let fs = 48000.0;
         // A woofer (SB17: |lambda| / fs = 0.83): RK4 with 2 sub-steps, 1 in the Jacobian.
         let woofer = Rates::stiff(0.83 * fs);
-        let (r, j) = Stepper::for_fit(woofer, fs, false);
+        let (r, j) = Stepper::for_fit(woofer, fs);
         assert_eq!((r.scheme, r.n(), j.scheme, j.n()), (Scheme::Rk4, 2, Scheme::Rk4, 1));
-        assert_eq!(Stepper::for_fit(woofer, fs, true).0.n(), 2);
         // A slow coil (|lambda| / fs = 0.25) keeps 2; SB17 at 96 kHz too.
         assert_eq!(Stepper::for_rates(Rates::stiff(0.25 * fs), fs).n(), 2);
         assert_eq!(Stepper::for_rates(woofer, 2.0 * fs).n(), 2);
@@ -1595,27 +2323,29 @@ mod tests {
         let micro = Rates::stiff(10.4 * fs);
         let sim = Stepper::for_rates(micro, fs);
         assert_eq!((sim.scheme, sim.n(), sim.points()), (Scheme::Exponential, 3, 13));
-        let (r, j) = Stepper::for_fit(micro, fs, false);
+        let (r, j) = Stepper::for_fit(micro, fs);
         assert_eq!((r.scheme, r.n(), r.points(), j.scheme, j.n(), j.points()), (Scheme::Exponential, 2, 9, Scheme::Exponential, 1, 3));
         // (up to |lambda| / fs = 12 in a fit, then 3).
-        assert_eq!(Stepper::for_fit(Rates::stiff(12.0 * fs), fs, false).0.n(), 2);
-        assert_eq!(Stepper::for_fit(Rates::stiff(12.1 * fs), fs, false).0.n(), 3);
-        // A search stage's Jacobian: the midpoint rule for woofers (with a fitted LR-3 branch
-        // too), the exponential midpoint rule for the stiff ones (the final fit's RK4 with a
-        // fitted LR-3 branch, or between the two limits).
-        for (rates, lr3, scheme) in [(woofer, false, Scheme::Midpoint), (woofer, true, Scheme::Midpoint), (Rates::stiff(1.2 * fs), false, Scheme::Rk4), (micro, false, Scheme::ExpMidpoint), (micro, true, Scheme::Rk4)] {
-            let s = Stepper::for_search_jacobian(rates, fs, lr3);
-            assert_eq!(s.scheme, scheme, "{rates:?} {lr3}");
-            assert_eq!(s.n(), if scheme == Scheme::Midpoint { 1 } else { Stepper::for_fit(rates, fs, lr3).1.n() });
+        assert_eq!(Stepper::for_fit(Rates::stiff(12.0 * fs), fs).0.n(), 2);
+        assert_eq!(Stepper::for_fit(Rates::stiff(12.1 * fs), fs).0.n(), 3);
+        // A search stage's Jacobian: the midpoint rule for woofers, the exponential midpoint
+        // rule for the stiff ones (RK4 between the two limits).
+        for (rates, scheme) in [(woofer, Scheme::Midpoint), (Rates::stiff(1.2 * fs), Scheme::Rk4), (micro, Scheme::ExpMidpoint)] {
+            let s = Stepper::for_search_jacobian(rates, fs);
+            assert_eq!(s.scheme, scheme, "{rates:?}");
+            assert_eq!(s.n(), if scheme == Scheme::Midpoint { 1 } else { Stepper::for_fit(rates, fs).1.n() });
         }
-        // ... but with a fitted LR-3 branch (outside the network) RK4's 21 and 7 sub-steps.
-        let (r, j) = Stepper::for_fit(micro, fs, true);
-        assert_eq!((r.scheme, r.n(), j.scheme, j.n()), (Scheme::Rk4, 21, Scheme::Rk4, 7));
-        // A set whose LR-3 branch is known: its rate counts in the exponential steps (a slow
-        // one leaves the network's 3).
-        let with_lr3 = Rates { stiff: 10.4 * fs, explicit: 0.2 * fs };
-        assert_eq!(exp_steps_for(with_lr3, fs), 3);
-        assert_eq!(exp_steps_for(Rates { stiff: 10.4 * fs, explicit: 3.0 * fs }, fs), 6);
+        // A set with an LR-3 branch: in the exponential method's network, it sets no
+        // exponential steps (the microspeaker keeps its 3 and 2, 1 in the Jacobian), and
+        // counts in RK4's.
+        let with_lr3 = Rates { stiff: 10.4 * fs, lr3: 15.0 * fs };
+        let (r, j) = Stepper::for_fit(with_lr3, fs);
+        assert_eq!((exp_steps_for(with_lr3, fs), r.scheme, r.n(), j.scheme, j.n()), (3, Scheme::Exponential, 2, Scheme::Exponential, 1));
+        assert_eq!(substeps_for(with_lr3.total(), fs), 51);
+        // A woofer's keeps RK4 (2 sub-steps against 2 exponential steps) until the branch
+        // needs 5 RK4 sub-steps.
+        assert_eq!(Stepper::for_rates(Rates { stiff: 0.83 * fs, lr3: 0.5 * fs }, fs).scheme, Scheme::Rk4);
+        assert_eq!(Stepper::for_rates(Rates { stiff: 0.83 * fs, lr3: 1.5 * fs }, fs).scheme, Scheme::Exponential);
     }
 
     #[test]

@@ -269,6 +269,26 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
         }
     }
 
+    /// [`Model::electrical_matrix`] with an LR-3 branch `(L3, R3)` in series (H, ohm): the
+    /// network of `(i, i2, i3)`, `A = -L^-1 R` with `L = diag(Le, L2, L3)` and `R = [[Re(T) +
+    /// R2 + R3, -R2, -R3], [-R2, R2, 0], [-R3, 0, R3]]` (1/s). [`ExtModel`]'s, which
+    /// [`crate::integrate::etd4_step`] then integrates exactly.
+    #[inline]
+    pub fn electrical_matrix3(&self, x: D, tv: D, l3: D, r3: D) -> [[D; 3]; 3] {
+        let inv_le = self.le.eval(x).recip();
+        let re = self.re_at(tv);
+        let g3 = r3 * l3.recip();
+        let z = D::zero();
+        match &self.l2r2 {
+            Some((l2, r2)) => {
+                let r2 = r2.eval(x);
+                let g2 = r2 * l2.eval(x).recip();
+                [[-(re + r2 + r3) * inv_le, r2 * inv_le, r3 * inv_le], [g2, -g2, z], [g3, z, -g3]]
+            }
+            None => [[-(re + r3) * inv_le, z, r3 * inv_le], [z, z, z], [g3, z, -g3]],
+        }
+    }
+
     /// The current's own rate `-(Re(T) + R2(x)) / Le(x)` (1/s, the `A[0][0]` of
     /// [`Model::electrical_matrix`]) and [`Model::input_gain`], from one evaluation of
     /// `Le(x)`: what [`crate::integrate::etdc_step`] takes exactly.

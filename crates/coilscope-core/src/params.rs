@@ -540,8 +540,8 @@ impl Parameters {
             let r2_max = r2.min_max_on(lo, hi).1;
             stiff += r2_max / le_min + r2_max / l2.min_max_on(lo, hi).0;
         }
-        let explicit = self.l3r3.map_or(0.0, |(l3, r3)| r3 / le_min + r3 / l3);
-        crate::integrate::Rates { stiff, explicit }
+        let lr3 = self.l3r3.map_or(0.0, |(l3, r3)| r3 / le_min + r3 / l3);
+        crate::integrate::Rates { stiff, lr3 }
     }
 
     /// Largest magnitude of the system's fast eigenvalues, an upper bound (1/s): the

@@ -1153,7 +1153,7 @@ impl<'a> OutputError<'a> {
     /// integration steps.
     pub fn new(layout: Layout, u: &'a [f64], i: &'a [f64], fs: f64, fit: Range<usize>, rates: Rates, x_limit: f64, threads: usize) -> Self {
         let heat = heat_shapes(i, fs, &layout.heat_taus);
-        let (stepper, stepper_jac) = Stepper::for_fit(rates, fs, layout.effects.lr3);
+        let (stepper, stepper_jac) = Stepper::for_fit(rates, fs);
         OutputError {
             layout,
             u,
@@ -1279,7 +1279,7 @@ impl<'a> OutputError<'a> {
     /// evaluations of the model per sample instead of four). Its residual runs are the
     /// final fit's.
     pub fn searching(mut self) -> Self {
-        self.stepper_jac = Stepper::for_search_jacobian(self.rates, self.fs, self.layout.effects.lr3);
+        self.stepper_jac = Stepper::for_search_jacobian(self.rates, self.fs);
         self
     }
 
@@ -2662,7 +2662,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     let scales = Scales::of(&start);
     let has_l2r2 = start.l2r2.is_some();
     let (x0, start_miss) = started.map_err(|m| {
-        let stepper = Stepper::for_fit(rates, fs, false).0;
+        let stepper = Stepper::for_fit(rates, fs).0;
         Input(format!("{origin}: the start model diverged at sample {m} (small-signal start: {}, {} {} steps per sample)", start_values(&start), stepper.n(), stepper.scheme.name()))
     })?;
     // A start that misses most of the current is no start: the large-signal fit cannot
