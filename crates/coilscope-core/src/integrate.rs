@@ -14,7 +14,8 @@
 //!   48 kHz: `|lambda| h <= STIFF_LIMIT` with at least `MIN_SUBSTEPS` sub-steps.
 //! * [`etd4_sample`] (issue 17): an exponential Runge-Kutta method (Hochbruck and
 //!   Ostermann's, stiff order 4) that integrates the currents' linear RL network
-//!   ([`Electrical`]) exactly and the rest as a Runge-Kutta method does, so that the steps
+//!   ([`Electrical`]; with an LR-3 branch the 3 x 3 one, [`Electrical::network3`])
+//!   exactly and the rest as a Runge-Kutta method does, so that the steps
 //!   follow the drive and the mechanics instead of `Le / (Re + R2)`: a microspeaker needs 3
 //!   steps per sample instead of 21 RK4 sub-steps (2 in a fit's model runs,
 //!   [`Stepper::for_fit`]).

@@ -305,8 +305,13 @@ fn leaving_the_valid_range_stops_with_time_and_state() {
 /// modulation with Le 4 % down (and 1 % asymmetry) at the peak current of a full-excursion
 /// record, and Rms 40 % up at its peak velocity.
 fn with_effects(name: &str) -> Parameters {
-    let mut p = embedded_driver(name).unwrap();
-    let tr = simulate(&p, FS, &full_excursion_voltage(&p, 0.5, 0.9), &SimOptions::default()).unwrap();
+    with_effects_on(embedded_driver(name).unwrap(), 0.5)
+}
+
+/// [`with_effects`] on any set, its Le(i) and Rms(v) scaled by the peaks of a `seconds`
+/// full-excursion run.
+fn with_effects_on(mut p: Parameters, seconds: f64) -> Parameters {
+    let tr = simulate(&p, FS, &full_excursion_voltage(&p, seconds, 0.9), &SimOptions::default()).unwrap();
     let peak = |s: &[f64]| s.iter().fold(0.0f64, |a, v| a.max(v.abs()));
     let (i_pk, v_pk) = (peak(&tr.i), peak(&tr.v));
     let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
@@ -359,8 +364,9 @@ fn energy_balance_of(p: &Parameters, u: &[f64], stepper: &Stepper) -> (f64, f64)
     }
     let s: [f64; NEXT] = std::array::from_fn(|k| y[k]);
     let e: [f64; 6] = std::array::from_fn(|k| y[NEXT + k]);
-    assert!(e[4] > 0.0 && e[5] > 0.0, "the R3 and creep losses");
-    (e[0], e[0] - e[1..].iter().sum::<f64>() - m.stored_energy(&s))
+    let stored = m.stored_energy(&s);
+    assert!(e[4] > 0.0 && e[5] > 0.0 && stored > 0.0, "the R3 and creep losses, the stored energy");
+    (e[0], e[0] - e[1..].iter().sum::<f64>() - stored)
 }
 
 /// Issue 17, session 38: a stiff microspeaker with every effect of a real driver, its LR-3
@@ -374,16 +380,7 @@ fn energy_balance_of(p: &Parameters, u: &[f64], stepper: &Stepper) -> (f64, f64)
 #[test]
 fn a_microspeaker_with_every_effect_in_the_exponential_method() {
     let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers");
-    let mut p = Parameters::from_json_str(&std::fs::read_to_string(format!("{dir}/microspeaker-0g1.json")).unwrap(), "microspeaker").unwrap();
-    let u0 = full_excursion_voltage(&p, 0.3, 0.9);
-    let tr = simulate(&p, FS, &u0, &SimOptions::default()).unwrap();
-    let peak = |s: &[f64]| s.iter().fold(0.0f64, |a, v| a.max(v.abs()));
-    let (i_pk, v_pk) = (peak(&tr.i), peak(&tr.v));
-    let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
-    p.creep = Some(coilscope_core::params::Creep { lambda: 0.07, f_ref: None });
-    p.l3r3 = Some((0.6 * l2, 2.5 * r2));
-    p.le_i = Some(Poly { c: vec![1.0, 0.01 / i_pk, -0.04 / (i_pk * i_pk)] });
-    p.rms_v = Some(Poly { c: vec![p.rms, 0.0, 0.4 * p.rms / (v_pk * v_pk)] });
+    let p = with_effects_on(Parameters::from_json_str(&std::fs::read_to_string(format!("{dir}/microspeaker-0g1.json")).unwrap(), "microspeaker").unwrap(), 0.3);
     let u = full_excursion_voltage(&p, 0.3, 0.9);
     let sim = Stepper::for_rates(p.rates(), FS);
     let fit = Stepper::for_fit(p.rates(), FS).0;
@@ -411,7 +408,6 @@ fn energy_balances_with_every_effect() {
     for name in embedded_driver_names() {
         let p = with_effects(name);
         let u = full_excursion_voltage(&p, 0.5, 0.9);
-        let m = ExtModel::new(&p);
         let sim = coilscope_core::Simulator::new(&p, FS, &SimOptions::default()).unwrap().substeps();
         let production = Stepper::for_rates(p.rates(), FS);
         assert_eq!(production.n(), sim, "{name}: the simulation's stepper");
@@ -423,22 +419,10 @@ fn energy_balances_with_every_effect() {
         // itself, not RK4 at its step count: session 37's trial of that method as the
         // default read 6.3e-4 here, which was RK4 at one sub-step.
         for (stepper, tol) in [(production, 1e-4), (Stepper::new(Scheme::Rk4, 8), 8e-6), (Stepper::new(Scheme::ExpCurrent, 1), 7e-5)] {
-            let mut pts = vec![0.0; stepper.points()];
-            let sys = ExtWithEnergy(&m);
-            let mut y = [0.0; NEXT + 6];
-            let stop = u.len() * 3 / 5;
-            for k in 0..stop {
-                stepper.fill(&u, k, &mut pts);
-                y = stepper.sample(&sys, &y, 1.0 / FS, &pts);
-            }
-            let s: [f64; NEXT] = std::array::from_fn(|k| y[k]);
-            let stored = m.stored_energy(&s);
-            let e: [f64; 6] = std::array::from_fn(|k| y[NEXT + k]);
-            let imbalance = e[0] - e[1..].iter().sum::<f64>() - stored;
+            let (e_in, imbalance) = energy_balance_of(&p, &u, &stepper);
             let (scheme, n) = (stepper.scheme.name(), stepper.n());
-            eprintln!("{name}, {scheme} x {n}: E_in {:.4} J, R3 {:.4}, creep {:.4}, stored {stored:.3e}, imbalance {:.2e} of the input", e[0], e[4], e[5], imbalance / e[0]);
-            assert!(e[4] > 0.0 && e[5] > 0.0 && stored > 0.0);
-            assert!(imbalance.abs() < tol * e[0], "{name}, {scheme} x {n}: imbalance {imbalance:.3e} J of {:.3e} J", e[0]);
+            eprintln!("{name}, {scheme} x {n}: E_in {e_in:.4} J, imbalance {:.2e} of the input", imbalance / e_in);
+            assert!(imbalance.abs() < tol * e_in, "{name}, {scheme} x {n}: imbalance {imbalance:.3e} J of {e_in:.3e} J");
         }
     }
 }
