@@ -253,8 +253,8 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
     /// (1/s): `d(i, i2)/dt = A (i, i2) + ...` with `A = [[-(Re(T) + R2) / Le, R2 / Le],
     /// [R2 / L2, -R2 / L2]]`. The stiff part of the model, which
     /// [`crate::integrate::etd4_step`] integrates exactly; the motional terms (`Le' v`,
-    /// `L2' v`), flux modulation and an LR-3 branch are left out (they are slow in a woofer;
-    /// [`crate::integrate::Rates::explicit`] sets the steps for LR-3).
+    /// `L2' v`) and flux modulation are left out (they are slow), and an LR-3 branch is in
+    /// [`Model::electrical_matrix3`]'s network instead.
     #[inline]
     pub fn electrical_matrix(&self, x: D, tv: D) -> [[D; 2]; 2] {
         let inv_le = self.le.eval(x).recip();
