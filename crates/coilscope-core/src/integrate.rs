@@ -366,11 +366,11 @@ fn phis_and_halves<D: DualNum<Primitive = f64> + Copy>(z: D) -> ([D; 6], [D; 6])
 /// recurrence keeps 1e-9 of itself, and it weighs the drive's quartic term.
 const PHI_PAIR_SERIES: f64 = 0.2;
 
-/// Scalar functions `g_k` of a 2 x 2 matrix `M`, as `[alpha_k, beta_k]` with
+/// Scalar functions `g_k` of a 2 x 2 matrix `M`, as `(alpha_k, beta_k)` with
 /// `g_k(M) = alpha_k I + beta_k M` (the interpolating polynomial on its two eigenvalues).
 /// The eigenvalues are real: `M` is an RL network's `-L^-1 R`, similar to a symmetric matrix.
 #[inline]
-fn matrix_functions2<D: DualNum<Primitive = f64> + Copy, const K: usize>(m: &[[D; 2]; 2], g: impl Fn(D) -> [D; K]) -> [[D; 2]; K] {
+fn matrix_functions<D: DualNum<Primitive = f64> + Copy, const K: usize>(m: &[[D; 2]; 2], g: impl Fn(D) -> [D; K]) -> [(D, D); K] {
     let half_tr = (m[0][0] + m[1][1]) * 0.5;
     let diff = (m[0][0] - m[1][1]) * 0.5;
     let disc = diff * diff + m[0][1] * m[1][0];
@@ -386,12 +386,12 @@ fn matrix_functions2<D: DualNum<Primitive = f64> + Copy, const K: usize>(m: &[[D
     let inv_gap = (s * 2.0).recip();
     std::array::from_fn(|k| {
         let beta = (g1[k] - g2[k]) * inv_gap;
-        [g2[k] - beta * mu2, beta]
+        (g2[k] - beta * mu2, beta)
     })
 }
 
 /// `p I + q A`: a function of the network matrix `A` (1/s) that is a polynomial of degree
-/// one in it (every analytic function of a 2 x 2 matrix is one, [`matrix_functions2`]).
+/// one in it (every analytic function of a 2 x 2 matrix is one, [`matrix_functions`]).
 #[derive(Clone, Copy, Debug)]
 pub struct Pair<D> {
     p: D,
@@ -405,10 +405,11 @@ impl<D: DualNum<Primitive = f64> + Copy> Pair<D> {
         [self.p * n[0] + self.q * an[0], self.p * n[1] + self.q * an[1]]
     }
 
-    /// The pair of a function of the 2 x 2 network ([`net::NetFn`]'s `c0 I + c1 A`).
+    /// The pair of `c (alpha I + beta (s A))`: a function `(alpha, beta)` of the scaled
+    /// matrix `s A` ([`matrix_functions`]), times `c`.
     #[inline(always)]
-    fn from_net(f: net::NetFn<D, 2>) -> Self {
-        Pair { p: f.c[0], q: f.c[1] }
+    fn of(f: (D, D), s: f64, c: f64) -> Self {
+        Pair { p: f.0 * c, q: f.1 * (s * c) }
     }
 
     /// `(p I + q A) (v, 0)`: on a vector in the current `i` alone (the drive's).
@@ -416,6 +417,17 @@ impl<D: DualNum<Primitive = f64> + Copy> Pair<D> {
     fn apply_to_current(&self, v: D, a: &[[D; 2]; 2]) -> [D; 2] {
         self.apply([v, D::zero()], [a[0][0] * v, a[1][0] * v])
     }
+
+    #[inline(always)]
+    fn plus(self, o: Self) -> Self {
+        Pair { p: self.p + o.p, q: self.q + o.q }
+    }
+}
+
+/// `s a`: the network matrix `a` (1/s) times a step (s).
+#[inline(always)]
+fn scaled<D: DualNum<Primitive = f64> + Copy>(a: &[[D; 2]; 2], s: f64) -> [[D; 2]; 2] {
+    std::array::from_fn(|r| std::array::from_fn(|c| a[r][c] * s))
 }
 
 /// A 2 x 2 matrix times a vector.
@@ -462,40 +474,61 @@ pub struct EtdCoefficients<D> {
 
 impl<D: DualNum<Primitive = f64> + Copy> EtdCoefficients<D> {
     /// The coefficients for the network `a` (1/s) and step `h` (s): Hochbruck and
-    /// Ostermann's (Acta Numerica 2010, Eq. 5.19), `phi_{j,i} = phi_j(c_i h A)`, computed as
-    /// for any network ([`net::EtdCoefficients`]) and held as pairs.
+    /// Ostermann's (Acta Numerica 2010, Eq. 5.19), `phi_{j,i} = phi_j(c_i h A)`.
     #[inline]
     pub fn new(a: &[[D; 2]; 2], h: f64) -> Self {
-        Self::pairs(net::EtdCoefficients::new(a, h))
+        let (full, half) = (scaled(a, h), scaled(a, 0.5 * h));
+        let [e5, p15, p25, p35] = matrix_functions(&half, phis::<D, 4>);
+        let [e1, p11, p21, p31] = matrix_functions(&full, phis::<D, 4>);
+        Self::from_functions(a, h, [e5, p15, p25, p35], [e1, p11, p21, p31], None)
     }
 
     /// [`EtdCoefficients::new`] with the drive's integrals, for steps that take the drive
     /// exactly ([`Drive`]).
     #[inline]
     pub fn with_drive(a: &[[D; 2]; 2], h: f64) -> Self {
-        Self::pairs(net::EtdCoefficients::with_drive(a, h))
+        let (full, half) = (scaled(a, h), scaled(a, 0.5 * h));
+        let [e5, p15, p25, p35, p45, p55] = matrix_functions(&half, phis::<D, 6>);
+        let [e1, p11, p21, p31, p41, p51] = matrix_functions(&full, phis::<D, 6>);
+        const FACT: [f64; 5] = [1.0, 1.0, 2.0, 6.0, 24.0];
+        const HALF_POW: [f64; 5] = [0.5, 0.25, 0.125, 0.0625, 0.03125];
+        let drive_half = std::array::from_fn(|k| Pair::of([p15, p25, p35, p45, p55][k], 0.5 * h, h * HALF_POW[k] * FACT[k]));
+        let drive_full = std::array::from_fn(|k| Pair::of([p11, p21, p31, p41, p51][k], h, h * FACT[k]));
+        Self::from_functions(a, h, [e5, p15, p25, p35], [e1, p11, p21, p31], Some((drive_half, drive_full)))
     }
 
     #[inline(always)]
-    fn pairs(k: net::EtdCoefficients<D, 2>) -> Self {
-        let p = Pair::from_net;
+    #[allow(clippy::type_complexity)]
+    fn from_functions(a: &[[D; 2]; 2], h: f64, [e5, p15, p25, p35]: [(D, D); 4], [e1, p11, p21, p31]: [(D, D); 4], drive: Option<([Pair<D>; 5], [Pair<D>; 5])>) -> Self {
+        let lin = |f: &[(D, D)], w: &[f64]| -> (D, D) { f.iter().zip(w).fold((D::zero(), D::zero()), |acc, (g, &c)| (acc.0 + g.0 * c, acc.1 + g.1 * c)) };
+        // a52 = a53 = phi2(M/2)/2 - phi3(M/2)/2 + phi2(M)/4 - phi3(M): a pair on each matrix.
+        let a52h = lin(&[p25, p35], &[0.5, -0.5]);
+        let a52f = lin(&[p21, p31], &[0.25, -1.0]);
+        // a54 = phi2(M/2)/4 - a52; a51 = phi1(M/2)/2 - 2 a52 - a54.
+        let a54h = lin(&[p25, a52h], &[0.25, -1.0]);
+        let a54f = lin(&[a52f], &[-1.0]);
+        let a51h = lin(&[p15, a52h, a54h], &[0.5, -2.0, -1.0]);
+        let a51f = lin(&[a52f, a54f], &[-2.0, -1.0]);
+        // `h f(M/2)` and `h f(M)` as pairs on A (M = A h).
+        let on_half = |f: (D, D)| Pair::of(f, 0.5 * h, h);
+        let on_full = |f: (D, D)| Pair::of(f, h, h);
         EtdCoefficients {
-            h: k.h,
-            a: k.a,
-            e5: p(k.e5),
-            e1: p(k.e1),
-            a21: p(k.a21),
-            a31: p(k.a31),
-            a32: p(k.a32),
-            a41: p(k.a41),
-            a42: p(k.a42),
-            a51: p(k.a51),
-            a52: p(k.a52),
-            a54: p(k.a54),
-            b1: p(k.b1),
-            b4: p(k.b4),
-            b5: p(k.b5),
-            drive: k.drive.map(|(half, full)| (half.map(p), full.map(p))),
+            h,
+            a: *a,
+            e5: Pair::of(e5, 0.5 * h, 1.0),
+            e1: Pair::of(e1, h, 1.0),
+            a21: on_half(lin(&[p15], &[0.5])),
+            a31: on_half(lin(&[p15, p25], &[0.5, -1.0])),
+            a32: on_half(p25),
+            a41: on_full(lin(&[p11, p21], &[1.0, -2.0])),
+            a42: on_full(p21),
+            a51: on_half(a51h).plus(on_full(a51f)),
+            a52: on_half(a52h).plus(on_full(a52f)),
+            a54: on_half(a54h).plus(on_full(a54f)),
+            b1: on_full(lin(&[p11, p21, p31], &[1.0, -3.0, 4.0])),
+            b4: on_full(lin(&[p21, p31], &[-1.0, 4.0])),
+            b5: on_full(lin(&[p21, p31], &[4.0, -8.0])),
+            drive,
         }
     }
 }
@@ -649,12 +682,23 @@ pub struct Etd2Coefficients<D> {
 }
 
 impl<D: DualNum<Primitive = f64> + Copy> Etd2Coefficients<D> {
-    /// As for any network ([`net::Etd2Coefficients`]), held as pairs.
     #[inline]
     pub fn new(a: &[[D; 2]; 2], h: f64) -> Self {
-        let k = net::Etd2Coefficients::new(a, h);
-        let p = Pair::from_net;
-        Etd2Coefficients { h: k.h, a: k.a, e5: p(k.e5), e1: p(k.e1), a21: p(k.a21), c2: p(k.c2), b1: p(k.b1), b2: p(k.b2), d: p(k.d) }
+        let (full, half) = (scaled(a, h), scaled(a, 0.5 * h));
+        let [e5, p15, p25, ..] = matrix_functions(&half, phis::<D, 4>);
+        let [e1, p11, p21, p31, ..] = matrix_functions(&full, phis::<D, 4>);
+        let lin = |f: (D, D), g: (D, D), a: f64, b: f64| (f.0 * a + g.0 * b, f.1 * a + g.1 * b);
+        Etd2Coefficients {
+            h,
+            a: *a,
+            e5: Pair::of(e5, 0.5 * h, 1.0),
+            e1: Pair::of(e1, h, 1.0),
+            a21: Pair::of(p15, 0.5 * h, 0.5 * h),
+            c2: Pair::of(p25, 0.5 * h, 0.5 * h),
+            b1: Pair::of(lin(p11, p21, 1.0, -2.0), h, h),
+            b2: Pair::of(p21, h, 2.0 * h),
+            d: Pair::of(lin(p31, p21, 4.0, -1.0), h, h),
+        }
     }
 }
 
@@ -803,16 +847,9 @@ mod net {
     use super::*;
 
     /// A network matrix `M` whose scalar functions `g_k` are taken as the coefficients of
-    /// `g_k(M) = sum_j c_j M^j` ([`matrix_functions2`], [`matrix_functions3`]).
+    /// `g_k(M) = sum_j c_j M^j` (the 3 x 3 one's: [`matrix_functions3`]).
     pub trait Network<D, const M: usize> {
         fn functions<const K: usize>(&self, g: impl Fn(D) -> [D; K]) -> [[D; M]; K];
-    }
-
-    impl<D: DualNum<Primitive = f64> + Copy> Network<D, 2> for [[D; 2]; 2] {
-        #[inline(always)]
-        fn functions<const K: usize>(&self, g: impl Fn(D) -> [D; K]) -> [[D; 2]; K] {
-            matrix_functions2(self, g)
-        }
     }
 
     impl<D: DualNum<Primitive = f64> + Copy> Network<D, 3> for [[D; 3]; 3] {
@@ -917,7 +954,7 @@ mod net {
     /// [`Network`]). `M` = 2 for the LR-2 network, 3 with an LR-3 branch.
     #[derive(Clone, Copy, Debug)]
     pub struct NetFn<D, const M: usize> {
-        pub(super) c: [D; M],
+        c: [D; M],
     }
 
     impl<D: DualNum<Primitive = f64> + Copy, const M: usize> NetFn<D, M> {
@@ -997,26 +1034,26 @@ mod net {
 
     #[derive(Clone, Copy, Debug)]
     pub struct EtdCoefficients<D, const M: usize> {
-        pub(super) h: f64,
-        pub(super) a: [[D; M]; M],
+        h: f64,
+        a: [[D; M]; M],
         /// `[e, A e, ..]` of the unit vector on the current `i` ([`krylov`]): where the drive enters.
-        pub(super) ke: [[D; M]; M],
-        pub(super) e5: NetFn<D, M>,
-        pub(super) e1: NetFn<D, M>,
-        pub(super) a21: NetFn<D, M>,
-        pub(super) a31: NetFn<D, M>,
-        pub(super) a32: NetFn<D, M>,
-        pub(super) a41: NetFn<D, M>,
-        pub(super) a42: NetFn<D, M>,
-        pub(super) a51: NetFn<D, M>,
-        pub(super) a52: NetFn<D, M>,
-        pub(super) a54: NetFn<D, M>,
-        pub(super) b1: NetFn<D, M>,
-        pub(super) b4: NetFn<D, M>,
-        pub(super) b5: NetFn<D, M>,
+        ke: [[D; M]; M],
+        e5: NetFn<D, M>,
+        e1: NetFn<D, M>,
+        a21: NetFn<D, M>,
+        a31: NetFn<D, M>,
+        a32: NetFn<D, M>,
+        a41: NetFn<D, M>,
+        a42: NetFn<D, M>,
+        a51: NetFn<D, M>,
+        a52: NetFn<D, M>,
+        a54: NetFn<D, M>,
+        b1: NetFn<D, M>,
+        b4: NetFn<D, M>,
+        b5: NetFn<D, M>,
         /// The drive's integrals over the half step and the step ([`EtdCoefficients::with_drive`]):
         /// `h c^{k+1} k! phi_{k+1}(c M)` for `c = 1/2` and `1`, `k = 0 ..= 4` ([`etd4_step`]).
-        pub(super) drive: Option<([NetFn<D, M>; 5], [NetFn<D, M>; 5])>,
+        drive: Option<([NetFn<D, M>; 5], [NetFn<D, M>; 5])>,
     }
 
     /// `[e, A e, ..]` of the unit vector `e` on the current `i` (the first of the network's).
@@ -1143,16 +1180,16 @@ mod net {
 
     #[derive(Clone, Copy, Debug)]
     pub struct Etd2Coefficients<D, const M: usize> {
-        pub(super) h: f64,
-        pub(super) a: [[D; M]; M],
-        pub(super) ke: [[D; M]; M],
-        pub(super) e5: NetFn<D, M>,
-        pub(super) e1: NetFn<D, M>,
-        pub(super) a21: NetFn<D, M>,
-        pub(super) c2: NetFn<D, M>,
-        pub(super) b1: NetFn<D, M>,
-        pub(super) b2: NetFn<D, M>,
-        pub(super) d: NetFn<D, M>,
+        h: f64,
+        a: [[D; M]; M],
+        ke: [[D; M]; M],
+        e5: NetFn<D, M>,
+        e1: NetFn<D, M>,
+        a21: NetFn<D, M>,
+        c2: NetFn<D, M>,
+        b1: NetFn<D, M>,
+        b2: NetFn<D, M>,
+        d: NetFn<D, M>,
     }
 
     impl<D: DualNum<Primitive = f64> + Copy, const M: usize> Etd2Coefficients<D, M>
