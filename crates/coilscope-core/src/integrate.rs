@@ -847,7 +847,9 @@ mod net {
     use super::*;
 
     /// A network matrix `M` whose scalar functions `g_k` are taken as the coefficients of
-    /// `g_k(M) = sum_j c_j M^j` (the 3 x 3 one's: [`matrix_functions3`]).
+    /// `g_k(M) = sum_j c_j M^j`: the 3 x 3 one's ([`matrix_functions3`]), the only size this
+    /// module is taken at; the code stays generic over the size (the method does not depend
+    /// on it).
     pub trait Network<D, const M: usize> {
         fn functions<const K: usize>(&self, g: impl Fn(D) -> [D; K]) -> [[D; M]; K];
     }
@@ -863,8 +865,9 @@ mod net {
     /// symmetric matrix: its eigenvalues are real), largest first, at least `floor` apart, as
     /// the roots of `det(mu I - M) = mu^3 + T mu^2 + S mu + P`: in `f64` by the trigonometric
     /// solution polished by Newton's method, then one Newton step in `D`, which carries each
-    /// root's derivative (`-dP(mu) / P'(mu)`, the implicit function's). A root moved to keep
-    /// the floor takes the derivative of the mean of the three (`-dT / 3`).
+    /// root's derivative (`-dP(mu) / P'(mu)`, the implicit function's). Two roots closer than
+    /// the floor (the lower one moved to keep it) both take the derivative of the mean of the
+    /// three (`-dT / 3`), where their own would divide by `P'` near zero.
     #[inline]
     pub(super) fn eigenvalues3<D: DualNum<Primitive = f64> + Copy>(m: &[[D; 3]; 3]) -> [D; 3] {
         let t = -(m[0][0] + m[1][1] + m[2][2]);
@@ -951,7 +954,8 @@ mod net {
 
     /// `sum_j c_j A^j` (`j < M`): a function of the `M x M` network matrix `A` (1/s), a
     /// polynomial of degree `M - 1` in it (every analytic function of the matrix is one,
-    /// [`Network`]). `M` = 2 for the LR-2 network, 3 with an LR-3 branch.
+    /// [`Network`]). Taken with `M` = 3 (an LR-3 branch); the 2 x 2 network holds its
+    /// functions as [`Pair`]s.
     #[derive(Clone, Copy, Debug)]
     pub struct NetFn<D, const M: usize> {
         c: [D; M],
