@@ -1747,7 +1747,13 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
     for t in &fit.trials {
         println!("    order {}: estimation {:.3e}, validation {:.3e}", t.order, t.estimation_rel, t.validation_rel);
     }
-    println!("  model {} ({})", fit.layout.effects.model_name(), if fit.effect_trials.is_empty() { "given".to_string() } else { fit.effect_trials.iter().map(|(m, v)| format!("{m} validation {v:.3e}")).collect::<Vec<_>>().join(", ") });
+    let tried = fit.models_tried();
+    let words = |t: &coilscope_core::result::ModelTrial| match (t.validation_rel, t.screen_gain) {
+        (Some(v), _) => format!("{} validation {v:.3e}", t.model),
+        (None, Some(g)) => format!("{} screened out (could gain {:.2e})", t.model, g),
+        (None, None) => t.model.clone(),
+    };
+    println!("  model {} ({})", fit.layout.effects.model_name(), if tried.is_empty() { "given".to_string() } else { tried.iter().map(words).collect::<Vec<_>>().join(", ") });
     if let Some(c) = &fit.chain {
         println!("  chain: {}", chain_words(c, fit.fs));
     }

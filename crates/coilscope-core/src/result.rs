@@ -138,9 +138,14 @@ pub struct ModelTrial {
     /// `linear`: the fit's residual with this set.
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "some_nan_if_null")]
     pub residual_rel: Option<f64>,
-    /// `identify`: the error on the held-out part.
+    /// `identify`: the error on the held-out part (absent: not fitted, see `screen_gain`).
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "some_nan_if_null")]
     pub validation_rel: Option<f64>,
+    /// `identify`'s effects screen: the most one Gauss-Newton step with the added effect
+    /// would lower the estimation part's relative current error by, at the estimate before
+    /// it. Below 0.001 the model was not fitted.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "some_nan_if_null")]
+    pub screen_gain: Option<f64>,
 }
 
 /// One power-series order tried on held-out data.

@@ -89,7 +89,12 @@ fn run(u: &[f64], i: &[f64], fs: f64, name: &str, opts: &IdentifyOptions) {
         (last, last_cpu) = (t, cpu);
     });
     match fit {
-        Ok(f) => println!("total {:.3} s: order {}, model {}, sub-steps per sample {:?} (residual, Jacobian)", t0.elapsed().as_secs_f64(), f.order, f.layout.effects.model_name(), f.substeps),
+        Ok(f) => {
+            println!("total {:.3} s: order {}, model {}, sub-steps per sample {:?} (residual, Jacobian)", t0.elapsed().as_secs_f64(), f.order, f.layout.effects.model_name(), f.substeps);
+            for t in f.models_tried() {
+                println!("  {}: validation {:?}, screen gain {:?}", t.model, t.validation_rel, t.screen_gain);
+            }
+        }
         Err(e) => println!("total {:.3} s: {e}", t0.elapsed().as_secs_f64()),
     }
 }

@@ -10,12 +10,16 @@
 //! And `-real-leirv` (flux modulation and velocity-dependent loss): both chosen, their
 //! coefficients within 20 % and 3 sd.
 //!
+//! The effects screen (issue 17): an effect a record holds scores at least ten times the
+//! screen's bar in the round that takes it; on the plain records Le(i) and Rms(v) are screened
+//! out, not fitted.
+//!
 //! Release-profile (each identify with the effects' trials takes 20-40 s):
 //! `cargo test --release -p coilscope-ident --test issue15_real_drivers -- --ignored`.
 
 mod common;
 use coilscope_core::{embedded_driver, Parameters};
-use coilscope_ident::large::{identify, IdentifyOptions, LargeFit};
+use coilscope_ident::large::{identify, IdentifyOptions, LargeFit, EFFECT_SCREEN_GAIN};
 use coilscope_ident::linear::Effects;
 use common::Errors;
 use std::path::Path;
@@ -53,6 +57,19 @@ fn check(file: &str, fit: &LargeFit, i: &[f64], truth: &Parameters, want: Effect
     }
     if fit.layout.effects != want {
         bad.push(format!("{file}: chose {}, not {}", fit.layout.effects.model_name(), want.model_name()));
+    }
+    // The effects screen: an effect the record holds scores far above the screen's bar in
+    // the round that takes it (its best screen), so the screen never stands between it and
+    // its trial. In the rounds before, a dominant effect not yet in (LR-3) can mask it below
+    // the bar (creep 5.7e-4 on 18WU with every effect); it is screened again in every round,
+    // and the model chosen is asserted.
+    println!("{file}: screens {:?}", fit.effect_screens.iter().map(|s| format!("{} {:.2e}", s.model.model_name(), s.gain)).collect::<Vec<_>>());
+    for added in [Effects { creep: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }].into_iter().filter(|&e| want.union(e) == want) {
+        let best = fit.effect_screens.iter().filter(|s| s.added == added).map(|s| s.gain).fold(f64::NAN, f64::max);
+        println!("{file}: {} in the record, best screen {best:.2e}", added.model_name());
+        if best < 10.0 * EFFECT_SCREEN_GAIN {
+            bad.push(format!("{file}: {} is in the record and scored at best {best:.2e} in the screen", added.model_name()));
+        }
     }
     if !(e.bl <= 0.02 && e.kms <= 0.03 && e.re <= 0.005) {
         bad.push(format!("{file}: {e}"));
@@ -133,6 +150,13 @@ fn plain_large_records_keep_the_lr2_model() {
         let file = format!("{name}-large.wav");
         let (fit, i) = run(&file, &truth);
         bad.extend(check(&file, &fit, &i, &truth, Effects::NONE));
+        // Le(i) and Rms(v), which these records lack, are left out by the screen, not fitted
+        // (measured: 5e-6 to 1e-5 on SB17, against a bar of 1e-3).
+        for added in [Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }] {
+            if !fit.effect_screens.iter().any(|s| s.added == added && s.gain < EFFECT_SCREEN_GAIN) {
+                bad.push(format!("{file}: {} was not screened out", added.model_name()));
+            }
+        }
     }
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
