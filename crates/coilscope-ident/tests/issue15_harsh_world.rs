@@ -21,7 +21,7 @@
 
 mod common;
 use coilscope_core::chain::Chain;
-use coilscope_ident::large::{identify, IdentifyOptions, EFFECT_SCREEN_GAIN};
+use coilscope_ident::large::{identify, IdentifyOptions};
 use coilscope_ident::linear::Effects;
 use common::world::record;
 use common::Errors;
@@ -67,19 +67,7 @@ fn harsh_at(name: &str, seed: u64, effects: Effects, fs: f64) -> Vec<String> {
     if fit.layout.effects != want {
         bad.push(format!("{label}: chose {}", fit.layout.effects.model_name()));
     }
-    // The effects screen: an effect the record holds scores far above the screen's bar in
-    // the round that takes it (its best screen), so the screen never stands between it and
-    // its trial. In the rounds before, a dominant effect not yet in (LR-3) can mask it below
-    // the bar (creep 5.7e-4 on 18WU with every effect); it is screened again in every round,
-    // and the model chosen is asserted.
-    println!("{label}: screens {:?}", fit.effect_screens.iter().map(|s| format!("{} {:.2e}", s.model.model_name(), s.gain)).collect::<Vec<_>>());
-    for added in [Effects { creep: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }].into_iter().filter(|&e| want.union(e) == want) {
-        let best = fit.effect_screens.iter().filter(|s| s.added == added).map(|s| s.gain).fold(f64::NAN, f64::max);
-        println!("{label}: {} in the record, best screen {best:.2e}", added.model_name());
-        if best < 10.0 * EFFECT_SCREEN_GAIN {
-            bad.push(format!("{label}: {} is in the record and scored at best {best:.2e} in the screen", added.model_name()));
-        }
-    }
+    bad.extend(common::screen_problems(&label, &fit, want));
     if !(e.bl <= 0.02 && e.kms <= 0.03 && e.re <= 0.005 && e.le <= 0.05) {
         bad.push(format!("{label}: {e}"));
     }

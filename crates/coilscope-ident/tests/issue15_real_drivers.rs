@@ -58,19 +58,7 @@ fn check(file: &str, fit: &LargeFit, i: &[f64], truth: &Parameters, want: Effect
     if fit.layout.effects != want {
         bad.push(format!("{file}: chose {}, not {}", fit.layout.effects.model_name(), want.model_name()));
     }
-    // The effects screen: an effect the record holds scores far above the screen's bar in
-    // the round that takes it (its best screen), so the screen never stands between it and
-    // its trial. In the rounds before, a dominant effect not yet in (LR-3) can mask it below
-    // the bar (creep 5.7e-4 on 18WU with every effect); it is screened again in every round,
-    // and the model chosen is asserted.
-    println!("{file}: screens {:?}", fit.effect_screens.iter().map(|s| format!("{} {:.2e}", s.model.model_name(), s.gain)).collect::<Vec<_>>());
-    for added in [Effects { creep: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }].into_iter().filter(|&e| want.union(e) == want) {
-        let best = fit.effect_screens.iter().filter(|s| s.added == added).map(|s| s.gain).fold(f64::NAN, f64::max);
-        println!("{file}: {} in the record, best screen {best:.2e}", added.model_name());
-        if best < 10.0 * EFFECT_SCREEN_GAIN {
-            bad.push(format!("{file}: {} is in the record and scored at best {best:.2e} in the screen", added.model_name()));
-        }
-    }
+    bad.extend(common::screen_problems(file, fit, want));
     if !(e.bl <= 0.02 && e.kms <= 0.03 && e.re <= 0.005) {
         bad.push(format!("{file}: {e}"));
     }
