@@ -348,9 +348,13 @@ pub const LE_DELAY_SYSTEMATIC_REL: f64 = 3e-4;
 /// Le(i) on PTT4 with every other effect in lowered it by 3.2 % and was dropped at 5 %.
 pub const EFFECT_MIN_GAIN_HELD_OUT: f64 = 0.01;
 
-/// The effects search's screen ([`screen_effects`]): creep, Le(i) or Rms(v) is not fitted in
-/// a round where one Gauss-Newton step with it would lower the estimation part's current
-/// error by less than this (a tenth of [`EFFECT_MIN_GAIN_HELD_OUT`]). An effect a record
+/// The effects search's screen ([`screen_effects`]): an effect is not fitted in a round where
+/// one Gauss-Newton step with it would lower the estimation part's current error by less
+/// than this (a tenth of [`EFFECT_MIN_GAIN_HELD_OUT`]). LR-3 (from a vanishing branch at
+/// tau3 = tau2 / 6) scored 1.6-45 % on SB17 with a branch of half L2 at corners from tau2 /
+/// 60 to 2 tau2 (the lowest at tau2 / 60, a 5 kHz corner), 12-64 % in the harsh world and
+/// 22 % on the shared `-real-lr3` record in the round that took it; without a branch 2e-5 to 2e-3 (the bundled
+/// woofers' plain records 1.5-2e-3: there it is fitted, and dropped as before). An effect a record
 /// holds scored 2.8-90 % in the round that took it (29 cases: the harsh world's records and
 /// the shared `-real-*` ones; the lowest Rms(v) on the large coil and Le(i) on PTT4, both
 /// with every effect), one it lacks 5e-7 to 7.8e-3 on the shared records (a creep the record
@@ -2373,6 +2377,13 @@ pub const FINAL_SETTLED_GAIN: f64 = 0.01;
 ///   corner far off the fit grows L3 only as far as that corner allows.
 pub const LR3_VANISHING: f64 = 0.02;
 
+/// Size of the LR-3 branch the effects screen scores from ([`screen_effects`]), in units of
+/// the typical one (L3 = L2 / 2, R3 = 3 R2): small enough to leave the residual as it is
+/// (the trial's [`LR3_VANISHING`] branch moved the microspeaker's current error from
+/// 5.421e-3 to 5.427e-3, which a screen would count as a gain), while L3's column at its
+/// corner does not depend on the size and tau3's only scales with it.
+pub const LR3_SCREEN: f64 = 1e-6;
+
 /// Creep factor of the vanishing creep the effects search also starts from (a typical
 /// driver's is 0.03-0.1): on records without creep the linear fit's creep start missed
 /// 5-8e-3 of the current (PTT4, 18WU, SB17) against this one's 4-8e-4, and the creep trial
@@ -2534,21 +2545,32 @@ fn gauss_newton_decrease(gram: &DMatrix<f64>, grad: &DVector<f64>, cols: &[usize
     Some(0.5 * b.dot(&x))
 }
 
-/// What each screened candidate of an effects round (creep, Le(i), Rms(v): their unknowns
-/// act nearly linearly from zero, or from a vanishing creep) would gain at most, as the
-/// relative current error on the estimation part: `1 - sqrt(1 - d / c)` with `c = 0.5 |r|^2`
-/// at the present estimate and `d` the Gauss-Newton decrease with the candidate's columns
-/// less the decrease without them ([`gauss_newton_decrease`]). One pass makes it: the
-/// present estimate with every screened effect at zero (creep at [`CREEP_VANISHING`]), on
-/// the round's base Jacobian ([`OutputError::seed_first`]) with the screened effects'
-/// columns computed beside the residual run. `None` for a candidate the pass could not
-/// score (the base Jacobian's layout does not map, a singular Gram matrix).
+/// What each screened candidate of an effects round would gain at most, as the relative
+/// current error on the estimation part: `1 - sqrt(1 - d / c)` with `c = 0.5 |r|^2` at the
+/// present estimate and `d` the Gauss-Newton decrease with the candidate's columns less the
+/// decrease without them ([`gauss_newton_decrease`]). One pass makes it: the present
+/// estimate with every screened effect at zero or nearly (creep at [`CREEP_VANISHING`], an
+/// LR-3 branch at [`LR3_SCREEN`] of the typical one, in L3 and tau3), on the round's base
+/// Jacobian ([`OutputError::seed_first`]) with the screened effects' columns computed beside
+/// the residual run. Their unknowns act nearly linearly from there: Le(i)'s and Rms(v)'s
+/// coefficients, creep's lambda, and a branch's L3 at a given corner (its impedance
+/// `j w L3 / (1 + j w tau3)`), with tau3's column moving the corner to first order. `None`
+/// for a candidate the pass could not score (the base Jacobian's layout does not map, a
+/// singular Gram matrix, no LR-2 branch to size LR-3 by).
 #[allow(clippy::too_many_arguments)]
 fn screen_effects<'a>(base: &(Layout, std::sync::Arc<KeptJacobian>), screened: &[Effects], at: Effects, current: &Parameters, track: Option<&[f64]>, cth: &[f64], prob_for: &dyn Fn(Layout) -> OutputError<'a>) -> Vec<Option<f64>> {
     let none = vec![None; screened.len()];
     let all = screened.iter().fold(at, |a, &e| a.union(e));
-    let lay = base.0.clone().with_effects(all);
-    let from = if all.creep && current.creep.is_none() { Parameters { creep: Some(coilscope_core::params::Creep { lambda: CREEP_VANISHING, f_ref: None }), ..current.clone() } } else { current.clone() };
+    let mut lay = base.0.clone().with_effects(all);
+    let mut from = if all.creep && current.creep.is_none() { Parameters { creep: Some(coilscope_core::params::Creep { lambda: CREEP_VANISHING, f_ref: None }), ..current.clone() } } else { current.clone() };
+    if all.lr3 && !at.lr3 {
+        let (l2, r2) = current.l2r2.as_ref().map_or((0.0, 0.0), |(l, r)| (l.eval(0.0), r.eval(0.0)));
+        if !(l2 > 0.0 && r2 > 0.0) {
+            return none;
+        }
+        lay = lay.with_lr3_tau();
+        from.l3r3 = Some((LR3_SCREEN * 0.5 * l2, LR3_SCREEN * 3.0 * r2));
+    }
     let mut th = lay.theta_from(&from, track);
     th.extend_from_slice(cth);
     let Some(map) = column_map(&base.0, &lay, cth.len()) else { return none };
@@ -2572,6 +2594,10 @@ fn screen_effects<'a>(base: &(Layout, std::sync::Arc<KeptJacobian>), screened: &
         }
         if e.rms_v {
             c.extend(sl.rms_v);
+        }
+        if e.lr3 {
+            c.extend(sl.l3);
+            c.extend(sl.r3);
         }
         c
     };
@@ -2987,13 +3013,13 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             loop {
                 let singles = [Effects { creep: true, ..Effects::NONE }, Effects { lr3: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }];
                 let cands: Vec<(Effects, Effects)> = singles.iter().filter(|&&one| at.union(one) != at).map(|&one| (one, at.union(one))).collect();
-                // The screen: candidates whose unknowns act nearly linearly from zero (creep
-                // from a vanishing one, Le(i), Rms(v)) are scored on one pass at the present
-                // estimate, and not fitted when they could lower the estimation part's current
-                // error by less than EFFECT_SCREEN_GAIN ([`screen_effects`]). Each such trial
-                // was a stage of its own (the 0.1 g microspeaker, which holds none of them:
-                // 3.6 s of its 15 s).
-                let screened: Vec<Effects> = cands.iter().map(|c| c.0).filter(|one| one.creep || one.le_i || one.rms_v).collect();
+                // The screen: every candidate is scored on one pass at the present estimate
+                // (creep from a vanishing one, LR-3 from a vanishing branch in L3 and tau3,
+                // Le(i) and Rms(v) from zero), and not fitted (nor its linear start) when it
+                // could lower the estimation part's current error by less than
+                // EFFECT_SCREEN_GAIN ([`screen_effects`]). Each trial was a stage of its own
+                // (the 0.1 g microspeaker, which holds none of the effects: 5.7 s of its 12 s).
+                let screened: Vec<Effects> = cands.iter().map(|c| c.0).collect();
                 let gains = match at_kept.as_ref() {
                     Some(base) if !screened.is_empty() => {
                         let prob_for = |lay: Layout| OutputError::new(lay, u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching();

@@ -17,7 +17,7 @@ use coilscope_ident::linear::Effects;
 pub fn screen_problems(label: &str, fit: &LargeFit, want: Effects) -> Vec<String> {
     println!("{label}: screens {:?}", fit.effect_screens.iter().map(|s| format!("{} {:.2e}", s.model.model_name(), s.gain)).collect::<Vec<_>>());
     let mut bad = vec![];
-    for added in [Effects { creep: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }].into_iter().filter(|&e| want.union(e) == want) {
+    for added in [Effects { creep: true, ..Effects::NONE }, Effects { lr3: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }].into_iter().filter(|&e| want.union(e) == want) {
         let best = fit.effect_screens.iter().filter(|s| s.added == added).map(|s| s.gain).fold(f64::NAN, f64::max);
         println!("{label}: {} in the record, best screen {best:.2e}", added.model_name());
         if best < 10.0 * EFFECT_SCREEN_GAIN {
