@@ -2528,6 +2528,13 @@ pub struct EffectScreen {
     pub gain: f64,
 }
 
+impl EffectScreen {
+    /// The screen left the model out: its gain is below [`EFFECT_SCREEN_GAIN`].
+    pub fn screened_out(&self) -> bool {
+        self.gain < EFFECT_SCREEN_GAIN
+    }
+}
+
 /// The decrease of `0.5 |r|^2` a Gauss-Newton step in the unknowns `cols` predicts, from the
 /// Gram matrix `gram` (`J^T J`) and the gradient `grad` (`J^T r`) of all unknowns:
 /// `0.5 g^T G^-1 g` over those columns, scaled to a unit diagonal. `None` when the columns'
@@ -3027,12 +3034,9 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                     }
                     _ => vec![None; screened.len()],
                 };
-                for (one, g) in screened.iter().zip(&gains) {
-                    if let Some(g) = g {
-                        effect_screens.push(EffectScreen { model: at.union(*one), added: *one, gain: *g });
-                    }
-                }
-                let cands: Vec<(Effects, Effects)> = cands.into_iter().filter(|c| screened.iter().zip(&gains).all(|(one, g)| *one != c.0 || g.is_none_or(|g| g >= EFFECT_SCREEN_GAIN))).collect();
+                let round: Vec<EffectScreen> = screened.iter().zip(gains).filter_map(|(&one, g)| g.map(|gain| EffectScreen { model: at.union(one), added: one, gain })).collect();
+                let cands: Vec<(Effects, Effects)> = cands.into_iter().filter(|c| !round.iter().any(|s| s.added == c.0 && s.screened_out())).collect();
+                effect_screens.extend(round);
                 // (effects, validation error, parameters, Re(t) track for the whole record and
                 // on the estimation part, chain theta, layout and last Jacobian).
                 #[allow(clippy::type_complexity)]
@@ -3403,7 +3407,7 @@ impl LargeFit {
     pub fn models_tried(&self) -> Vec<ModelTrial> {
         let screen = |m: &str| self.effect_screens.iter().find(|s| s.model.model_name() == m).map(|s| s.gain);
         let fitted = self.effect_trials.iter().map(|(m, v)| ModelTrial { model: m.clone(), validation_rel: Some(*v), screen_gain: screen(m), ..Default::default() });
-        let skipped = self.effect_screens.iter().filter(|s| s.gain < EFFECT_SCREEN_GAIN).map(|s| ModelTrial { model: s.model.model_name(), screen_gain: Some(s.gain), ..Default::default() });
+        let skipped = self.effect_screens.iter().filter(|s| s.screened_out()).map(|s| ModelTrial { model: s.model.model_name(), screen_gain: Some(s.gain), ..Default::default() });
         fitted.chain(skipped).collect()
     }
 
