@@ -146,6 +146,11 @@ pub struct ModelTrial {
     /// it. Below 0.001 the model was not fitted.
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "some_nan_if_null")]
     pub screen_gain: Option<f64>,
+    /// `identify`'s effects search: the model that took the round this one was screened in,
+    /// before this one was fitted (its screen gain was more than 3 times this one's). This
+    /// model was not fitted in that round.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outscored_by: Option<String>,
 }
 
 /// One power-series order tried on held-out data.
