@@ -3356,6 +3356,23 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         (c, _) => c,
     };
     let x_range = x_model.iter().fold([0.0f64, 0.0f64], |[a, b], v| [a.min(*v), b.max(*v)]);
+    // The two branches in their canonical order (LR-2 the larger), with their covariance.
+    let mut s = s;
+    let cov = match branch_swap(&lay, &s.theta) {
+        Some(pairs) => {
+            for &(a, b) in &pairs {
+                s.theta.swap(a, b);
+            }
+            cov.map(|mut c| {
+                for &(a, b) in &pairs {
+                    c.swap_rows(a, b);
+                    c.swap_columns(a, b);
+                }
+                c
+            })
+        }
+        None => cov,
+    };
     let mut params = lay.parameters(&s.theta);
     params.x_range = Some(x_range);
     let stop_reason = if s.converged {
@@ -3403,6 +3420,20 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         return Err(NotConverged { message: format!("{origin}: the large-signal fit did not converge ({stop_reason}); the best estimate is kept"), best: Box::new(fit) });
     }
     Ok(fit)
+}
+
+/// The LR-2 and LR-3 branches are the same form in series, and the model is the same with
+/// the two exchanged: a fit may end with either one in either place. The result names them
+/// in one order, LR-2 the branch with the larger inductance (`L2 >= L3`), as the test worlds
+/// and the shared `-real-all` records have them (L3 = L2 / 2 and 0.6 L2). Returns the slot
+/// pairs `(L2, L3)` and `(R2, R3)` to exchange when `th` has them the other way (both slots
+/// of a pair in the same units: [`Layout::lr3_of`] outside tau3 coordinates). SB17 with a
+/// branch of L2 / 2 at twice tau2 came out as L2 0.2706 mH, R2 0.0726 ohm, L3 0.5397 mH, R3
+/// 0.2899 ohm: the truth's branches, exchanged.
+fn branch_swap(lay: &Layout, th: &[f64]) -> Option<[(usize, usize); 2]> {
+    let sl = lay.slots();
+    let (l2, r2, l3, r3) = (sl.l2?, sl.r2?, sl.l3?, sl.r3?);
+    (!lay.lr3_tau && th[l3] > th[l2]).then_some([(l2, l3), (r2, r3)])
 }
 
 /// A function of x with its standard deviation on a grid (a confidence band: +- 2 sd is
@@ -4025,6 +4056,42 @@ mod tests {
                 assert!((zs - z1 * scale).norm() < 1e-12 * (z1 * scale).norm(), "{f} Hz, scale {scale}: {zs} against {}", z1 * scale);
             }
         }
+    }
+
+    /// The model is the same with its two branches exchanged (PTT4 with a second branch of
+    /// twice L2 at a quarter of tau2, 0.5 s of pink noise: the currents agree to 1e-9 of
+    /// their rms), and [`branch_swap`] names the larger branch LR-2 (SB17 with a slow branch
+    /// came out of `identify` with the two exchanged).
+    #[test]
+    fn exchanged_branches_are_one_model_and_lr2_is_named_the_larger() {
+        let base = embedded_driver("ptt4.0w04-01a").unwrap();
+        let (l2, r2) = base.l2r2.as_ref().map(|(l, r)| (l.eval(0.0), r.eval(0.0))).unwrap();
+        let (l3, r3) = (2.0 * l2, 8.0 * r2);
+        let p = Parameters { l3r3: Some((l3, r3)), ..base.clone() };
+        let q = Parameters { l2r2: Some((Poly::constant(l3), Poly::constant(r3))), l3r3: Some((l2, r2)), ..base.clone() };
+        let fs = 48000.0;
+        let u = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 0.5, rms: 1.0, fade: 0.05, seed: 7 }).unwrap();
+        let (a, b) = (coilscope_core::simulate::simulate(&p, fs, &u, &SimOptions::default()).unwrap(), coilscope_core::simulate::simulate(&q, fs, &u, &SimOptions::default()).unwrap());
+        let rms = coilscope_core::simulate::rms(&a.i);
+        let worst = a.i.iter().zip(&b.i).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+        assert!(worst < 1e-9 * rms, "currents differ by {worst:e} A (rms {rms:e} A)");
+        let sc = Scales { re: base.re, le: base.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: base.bl.eval(0.0), kms: base.kms.eval(0.0), rms: base.rms };
+        let lay = Layout::new(4, 2, 1.0, 0.004, sc, true, base.mms).with_effects(Effects { lr3: true, ..Effects::NONE });
+        let mut th = lay.theta_from(&p, None);
+        let pairs = branch_swap(&lay, &th).expect("L3 > L2: exchanged");
+        for (a, b) in pairs {
+            th.swap(a, b);
+        }
+        let got = lay.parameters(&th);
+        let (gl2, gr2) = got.l2r2.as_ref().map(|(l, r)| (l.eval(0.0), r.eval(0.0))).unwrap();
+        let (gl3, gr3) = got.l3r3.unwrap();
+        for (name, g, w) in [("L2", gl2, l3), ("R2", gr2, r3), ("L3", gl3, l2), ("R3", gr3, r2)] {
+            assert!((g / w - 1.0).abs() < 1e-12, "{name} {g:e}, want {w:e}");
+        }
+        assert!(branch_swap(&lay, &th).is_none() && branch_swap(&lay, &lay.theta_from(&q, None)).is_none());
+        // In tau3 coordinates the slots do not share units: never exchanged there.
+        let tau = lay.clone().with_lr3_tau();
+        assert!(branch_swap(&tau, &tau.theta_from(&p, None)).is_none());
     }
 
     /// R3's sd (propagated through R3 = L3 / tau3 with the pair's covariance) is the sd of

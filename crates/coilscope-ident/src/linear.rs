@@ -362,6 +362,23 @@ fn impedance_ext(p: &[f64; 7], e: &Ext, f: f64) -> Impedance {
     (z, g, gx)
 }
 
+/// The two para-inductance branches in their canonical order, LR-2 the one with the larger
+/// inductance (as `identify` names them: the model is the same with the two exchanged, see
+/// `large::branch_swap`): exchanges `p`'s L2 and R2 with `lr3`'s L3 and R3, with their
+/// relative sds, when L3 is the larger. Returns whether it did.
+fn lr3_named_first(p: &mut [f64; 7], sigma_rel: &mut [f64; 7], lr3: &mut Option<([f64; 2], [f64; 2])>) -> bool {
+    match lr3 {
+        Some((v, sd)) if v[0] > p[2] => {
+            std::mem::swap(&mut p[2], &mut v[0]);
+            std::mem::swap(&mut p[3], &mut v[1]);
+            std::mem::swap(&mut sigma_rel[2], &mut sd[0]);
+            std::mem::swap(&mut sigma_rel[3], &mut sd[1]);
+            true
+        }
+        _ => false,
+    }
+}
+
 /// The electrical fit of a recording.
 #[derive(Clone, Debug)]
 pub struct LinearFit {
@@ -1505,6 +1522,16 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         _ => None,
     };
     let transient = Transient { c: prob.transient(&s.theta).to_vec(), omega0: prob.omega0 };
+    let (mut p, mut sigma_rel, mut lr3) = (p, sigma_rel, lr3);
+    if lr3_named_first(&mut p, &mut sigma_rel, &mut lr3) {
+        for b in at_bound.iter_mut() {
+            *b = match *b {
+                "L2/R2 corner" => "L3/R3 corner",
+                "L3/R3 corner" => "L2/R2 corner",
+                other => other,
+            };
+        }
+    }
     Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay, transient, effects: prob.effects, creep, lr3, tried, chain, lr2 })
 }
 
@@ -1905,6 +1932,20 @@ pub fn impedance_csv(h1: &ImpedanceEstimate, fit: &LinearFit) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The linear fit names the larger branch LR-2, as `identify` does, its sds moving with
+    /// it; one already in that order is left alone.
+    #[test]
+    fn the_larger_branch_is_named_lr2() {
+        let mut p = [3.4, 1.1e-4, 2.7e-4, 0.0725, 72.0, 3.8e-4, 6.3e-2];
+        let mut sd = [1e-4, 2e-3, 3e-3, 4e-3, 1e-3, 1e-3, 1e-3];
+        let mut lr3 = Some(([5.4e-4, 0.29], [5e-3, 6e-3]));
+        assert!(lr3_named_first(&mut p, &mut sd, &mut lr3));
+        assert_eq!((p[2], p[3], sd[2], sd[3]), (5.4e-4, 0.29, 5e-3, 6e-3));
+        assert_eq!(lr3, Some(([2.7e-4, 0.0725], [3e-3, 4e-3])));
+        assert!(!lr3_named_first(&mut p, &mut sd, &mut lr3));
+        assert!(!lr3_named_first(&mut p, &mut sd, &mut None));
+    }
 
     #[test]
     fn analytic_gradient_matches_finite_differences() {
