@@ -3092,12 +3092,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                     _ => true,
                 };
                 let lin_fit_for = |lin_fits: &mut Vec<(Effects, Option<LinearFit>)>, wanted: &[Effects]| {
-                    let missing: Vec<Effects> = wanted.iter().copied().filter(|key| lin_fits.iter().all(|(k, _)| k != key)).fold(Vec::new(), |mut v, k| {
-                        if !v.contains(&k) {
-                            v.push(k);
-                        }
-                        v
-                    });
+                    let missing: Vec<Effects> = wanted.iter().copied().filter(|key| lin_fits.iter().all(|(k, _)| k != key)).collect();
                     let fitted = parallel_map(missing.len(), missing.len(), |k| linear_start_fit(&u[..m_start], &i[..m_start], fs, origin, missing[k], lr2));
                     lin_fits.extend(missing.into_iter().zip(fitted));
                 };

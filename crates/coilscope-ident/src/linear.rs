@@ -1461,7 +1461,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
             prob = pr;
         }
     }
-    let p = map.params(&s.theta);
+    let mut p = map.params(&s.theta);
     let ext = prob.ext(&s.theta);
     // Relative sd of p_k is the sd of ln p_k: the covariance of theta mapped to q (and
     // ln L2 = q2 + q3).
@@ -1470,7 +1470,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     let dq = map.dq(&s.theta);
     let inside = |t: f64| (1e-3..=1.0 - 1e-3).contains(&logistic(t));
     let cov = covariance_of(&prob, &s.theta, &free_of(&prob, &s.theta));
-    let sigma_rel: [f64; 7] = match &cov {
+    let mut sigma_rel: [f64; 7] = match &cov {
         Some(c) => {
             let cq = |a: usize, b: usize| c[(a, b)] * dq[a] * dq[b];
             std::array::from_fn(|k| sd_from_variance(if k == 2 { cq(2, 2) + cq(3, 3) + 2.0 * cq(2, 3) } else { cq(k, k) }))
@@ -1478,7 +1478,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         None => [f64::NAN; 7],
     };
     let creep = prob.idx_lambda().map(|k| (s.theta[k], cov.as_ref().map_or(f64::NAN, |c| sd_from_variance(c[(k, k)]))));
-    let lr3 = prob.idx_lr3().map(|k| {
+    let mut lr3 = prob.idx_lr3().map(|k| {
         let (l3, r3) = ext.lr3.expect("LR-3 fitted");
         let d3 = prob.tau3(s.theta[k]).1;
         let sd = cov.as_ref().map_or([f64::NAN; 2], |c| {
@@ -1522,7 +1522,6 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         _ => None,
     };
     let transient = Transient { c: prob.transient(&s.theta).to_vec(), omega0: prob.omega0 };
-    let (mut p, mut sigma_rel, mut lr3) = (p, sigma_rel, lr3);
     if lr3_named_first(&mut p, &mut sigma_rel, &mut lr3) {
         for b in at_bound.iter_mut() {
             *b = match *b {

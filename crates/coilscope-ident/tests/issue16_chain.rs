@@ -58,17 +58,16 @@ fn identify_estimates_the_chain_and_every_effect_of_the_real_all_records() {
 /// at the highest order the bands carry no truncation term: they missed the truth by 4.75
 /// sd at x = +9.8 mm (Kms). Session 36 fits tau3 only in the trial from a vanishing branch
 /// (`Slots::r3`): order 6, the truth within 2.69 sd, as at session 33 (2.71).
-#[test]
-#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
-#[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue16_chain -- --ignored"]
 ///
 /// Session 40: the effects search fits each round's candidates best screen gain first, and
 /// once one passes, not those it outscores by `EFFECT_RIVAL_RATIO`: this record's search
 /// fitted 10 trials in its four rounds (every candidate above the screen's bar), now 6, with
 /// the same model taken in every round.
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+#[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue16_chain -- --ignored"]
 fn identify_estimates_the_chain_and_every_effect_of_18wu_real_all() {
-    let (bad, fit) = run_fit("18wu-4741t-00", "18wu-4741t-00-real-all.wav", Sds { bands: true, chain: true });
-    let mut bad = bad;
+    let (mut bad, fit) = run_fit("18wu-4741t-00", "18wu-4741t-00-real-all.wav", Sds { bands: true, chain: true });
     let tried = fit.models_tried();
     let fitted = tried.iter().filter(|t| t.validation_rel.is_some()).count() - 1;
     let outscored: Vec<String> = tried.iter().filter(|t| t.outscored_by.is_some()).map(|t| format!("{} (by {})", t.model, t.outscored_by.as_deref().unwrap_or_default())).collect();
