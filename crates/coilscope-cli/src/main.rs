@@ -1749,7 +1749,10 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
     }
     let tried = fit.models_tried();
     let words = |t: &coilscope_core::result::ModelTrial| match (t.validation_rel, t.screen_gain) {
-        (Some(v), _) => format!("{} validation {v:.3e}", t.model),
+        (Some(v), _) => match t.validation_rel_before {
+            Some(b) => format!("{} validation {v:.3e} (went on alone from {b:.3e}: the next trial's gain was within what its fit had left)", t.model),
+            None => format!("{} validation {v:.3e}", t.model),
+        },
         (None, Some(g)) if t.outscored_by.is_some() => format!("{} not fitted: {} took its round (could gain {:.2e})", t.model, t.outscored_by.as_deref().unwrap_or_default(), g),
         (None, Some(g)) => format!("{} screened out (could gain {:.2e})", t.model, g),
         (None, None) => t.model.clone(),

@@ -151,6 +151,12 @@ pub struct ModelTrial {
     /// model was not fitted in that round.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub outscored_by: Option<String>,
+    /// `identify`'s effects search: this model's fit went on alone before a trial that had
+    /// gone on from it was taken, because that trial's gain was within what this model's own
+    /// fit had left to gain; the held-out error before (`validation_rel`: after). The trial
+    /// is taken only when it beats this model's new error by the bar.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "some_nan_if_null")]
+    pub validation_rel_before: Option<f64>,
 }
 
 /// One power-series order tried on held-out data.

@@ -13,7 +13,9 @@
 //! LR-3, Le(i), Rms(v)) on held-out data as `identify` does by default, instead of LR-2;
 //! `chain`: record through a sound card (current 0.3 sample late, AC coupling at 2 Hz on the
 //! voltage and 4 Hz on the current, offsets of 0.5 % of each channel's peak, 50 Hz hum at
-//! -60 dB) and estimate the chain with the driver (`--chain auto`).
+//! -60 dB) and estimate the chain with the driver (`--chain auto`); `slow-lr3`: give the
+//! driver a second branch of half its L2 at twice its time constant (issue 17's
+//! `issue17_branch_order` record; implies `auto`).
 //! The profile by function is `perf record -g` on the `identify` benchmark.
 
 use coilscope_core::chain::{Chain, Hum};
@@ -27,7 +29,8 @@ use std::time::Instant;
 fn main() {
     let name = std::env::args().nth(1).unwrap_or_else(|| "sb17cac35-4".into());
     let args: Vec<String> = std::env::args().skip(2).collect();
-    let auto = args.iter().any(|a| a == "auto");
+    let slow_lr3 = args.iter().any(|a| a == "slow-lr3");
+    let auto = slow_lr3 || args.iter().any(|a| a == "auto");
     let chain = args.iter().any(|a| a == "chain");
     if name.ends_with(".wav") {
         return recording(&name, chain);
@@ -39,6 +42,10 @@ fn main() {
     let Some(p) = embedded_driver(&name).or_else(|| Parameters::from_json_str(&std::fs::read_to_string(&path).ok()?, &path).ok()) else {
         eprintln!("{name}: not an embedded driver (see `coilscope drivers`) nor one of testdata/drivers");
         std::process::exit(2);
+    };
+    let p = match (slow_lr3, p.l2r2.as_ref().map(|(l, r)| (l.eval(0.0), r.eval(0.0)))) {
+        (true, Some((l2, r2))) => Parameters { l3r3: Some((0.5 * l2, 0.5 * l2 / (2.0 * l2 / r2))), ..p },
+        _ => p,
     };
     let [lo, hi] = p.x_range.expect("embedded drivers have an x_range");
     let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.05, seed: 1 }).expect("valid signal");
@@ -92,7 +99,8 @@ fn run(u: &[f64], i: &[f64], fs: f64, name: &str, opts: &IdentifyOptions) {
         Ok(f) => {
             println!("total {:.3} s: order {}, model {}, sub-steps per sample {:?} (residual, Jacobian)", t0.elapsed().as_secs_f64(), f.order, f.layout.effects.model_name(), f.substeps);
             for t in f.models_tried() {
-                println!("  {}: validation {:?}, screen gain {:?}", t.model, t.validation_rel, t.screen_gain);
+                let before = t.validation_rel_before.map_or(String::new(), |b| format!(" (went on alone from {b:.4e})"));
+                println!("  {}: validation {:?}{before}, screen gain {:?}", t.model, t.validation_rel, t.screen_gain);
             }
         }
         Err(e) => println!("total {:.3} s: {e}", t0.elapsed().as_secs_f64()),
