@@ -4,7 +4,7 @@
 //! and damping.
 //!
 //! ```text
-//! cargo run --release -p coilscope-ident --example stages -- [DRIVER] [auto] [chain]
+//! cargo run --release -p coilscope-ident --example stages -- [DRIVER] [auto] [chain] [slow-lr3] [clean]
 //! ```
 //!
 //! `DRIVER`: an embedded driver (default `sb17cac35-4`) or one of `testdata/drivers`
@@ -15,7 +15,7 @@
 //! voltage and 4 Hz on the current, offsets of 0.5 % of each channel's peak, 50 Hz hum at
 //! -60 dB) and estimate the chain with the driver (`--chain auto`); `slow-lr3`: give the
 //! driver a second branch of half its L2 at twice its time constant (issue 17's
-//! `issue17_branch_order` record; implies `auto`).
+//! `issue17_branch_order` record; implies `auto`); `clean`: no sensor noise.
 //! The profile by function is `perf record -g` on the `identify` benchmark.
 
 use coilscope_core::chain::{Chain, Hum};
@@ -32,6 +32,7 @@ fn main() {
     let slow_lr3 = args.iter().any(|a| a == "slow-lr3");
     let auto = slow_lr3 || args.iter().any(|a| a == "auto");
     let chain = args.iter().any(|a| a == "chain");
+    let clean = args.iter().any(|a| a == "clean");
     if name.ends_with(".wav") {
         return recording(&name, chain);
     }
@@ -57,8 +58,10 @@ fn main() {
         let card = Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, dc_u: 5e-3 * pu, dc_i: 5e-3 * pi, hum: Some(Hum { f: 50.0, u: vec![[1e-3 * pu, 0.3]], i: vec![[1e-3 * pi, 1.1]] }), ..Default::default() };
         (u, i) = card.apply(&u, &i, fs);
     }
-    add_sensor_noise(&mut u, 70.0, 1, "sensor-noise/voltage");
-    add_sensor_noise(&mut i, 70.0, 1, "sensor-noise/current");
+    if !clean {
+        add_sensor_noise(&mut u, 70.0, 1, "sensor-noise/voltage");
+        add_sensor_noise(&mut i, 70.0, 1, "sensor-noise/current");
+    }
     let effects = if auto { EffectsChoice::Auto } else { EffectsChoice::Fixed(Effects::NONE) };
     run(&u, &i, fs, &name, &IdentifyOptions { mms: p.mms, effects, chain, ..Default::default() });
 }
