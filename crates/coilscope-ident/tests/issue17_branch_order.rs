@@ -11,13 +11,15 @@
 //! its own truth (measured 0.2-1.0 %); Bl(x) and Kms(x) within 0.02 % over the reached range
 //! (measured 0.002 %).
 //!
-//! Release profile (about a minute): `cargo test --release -p coilscope-ident --test
+//! Two records: 85 % of x_range (above) and 3 V RMS of the CLI's pink noise (session 41).
+//!
+//! Release profile (about a minute each): `cargo test --release -p coilscope-ident --test
 //! issue17_branch_order -- --ignored`.
 
 mod common;
 use coilscope_core::embedded_driver;
 use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
-use coilscope_core::simulate::{gain_for_peak, SimOptions};
+use coilscope_core::simulate::{gain_for_peak, simulate, SimOptions};
 use coilscope_ident::large::{identify, IdentifyOptions};
 use common::Errors;
 
@@ -71,4 +73,33 @@ fn a_slow_second_branch_is_named_lr3() {
         bad.push(format!("{e}"));
     }
     assert!(bad.is_empty(), "{}", bad.join("\n"));
+}
+
+/// Seen in session 41, through the CLI: the same driver driven at 3 V RMS (`coilscope
+/// simulate --excitation pink --volts 3 --seconds 8 --snr-db 70`, +-5.2 mm) came out as
+/// `LR-2+LR-3+Rms(v)`. Its LR-3 trial had not converged (its Gauss-Newton model promised
+/// 4.5 % more), and creep, Le(i) and Rms(v), each going on from it, lowered the held-out error
+/// by 5.4-6.4 %; Rms(v) was taken by 0.002 %. A base whose stage did not converge now goes on
+/// alone for as many iterations as the trial took before the trial is compared with it
+/// (`identify`'s effects search; here it gets as far as Le(i) from its zero start).
+#[test]
+#[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue17_branch_order -- --ignored"]
+fn a_slow_second_branch_at_3_v_takes_no_other_effect() {
+    let sb17 = embedded_driver("sb17cac35-4").unwrap();
+    let (l2, r2) = sb17.l2r2.as_ref().map(|(l, r)| (l.eval(0.0), r.eval(0.0))).unwrap();
+    let (l3, r3) = (0.5 * l2, 0.5 * l2 / (2.0 * l2 / r2));
+    let truth = coilscope_core::Parameters { l3r3: Some((l3, r3)), ..sb17 };
+    let fs = 48000.0;
+    let u = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: None }, &SignalSpec { fs, seconds: 8.0, rms: 3.0, fade: 0.05, seed: 1 }).unwrap();
+    let tr = simulate(&truth, fs, &u, &SimOptions::default()).unwrap();
+    let (mut u, mut i) = (tr.u, tr.i);
+    add_sensor_noise(&mut u, 70.0, 1, "sensor-noise/voltage");
+    add_sensor_noise(&mut i, 70.0, 1, "sensor-noise/current");
+    let fit = identify(&u, &i, fs, "sb17 slow LR-3 at 3 V", &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}).unwrap();
+    let e = Errors::of(&fit.params, &truth, fit.x_range);
+    let tried: Vec<String> = fit.models_tried().iter().map(|t| format!("{} {:?} (before {:?})", t.model, t.validation_rel, t.validation_rel_before)).collect();
+    println!("{}: {e}; tried {tried:?}", fit.layout.effects.model_name());
+    let chosen = fit.layout.effects;
+    assert!(chosen.lr3 && !chosen.creep && !chosen.le_i && !chosen.rms_v, "{} taken (the record has LR-2 and LR-3 only); tried {tried:?}", chosen.model_name());
+    assert!(e.bl <= 2e-4 && e.kms <= 2e-4, "{e}");
 }
