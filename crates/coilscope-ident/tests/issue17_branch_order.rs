@@ -23,22 +23,31 @@ use coilscope_core::simulate::{gain_for_peak, simulate, SimOptions};
 use coilscope_ident::large::{identify, IdentifyOptions};
 use common::Errors;
 
+/// SB17 with a second branch of half its L2 at twice its time constant: the truth, and its
+/// L2, R2, L3, R3.
+fn slow_branch_sb17() -> (coilscope_core::Parameters, [f64; 4]) {
+    let sb17 = embedded_driver("sb17cac35-4").unwrap();
+    let (l2, r2) = sb17.l2r2.as_ref().map(|(l, r)| (l.eval(0.0), r.eval(0.0))).unwrap();
+    let (l3, r3) = (0.5 * l2, 0.5 * l2 / (2.0 * l2 / r2));
+    (coilscope_core::Parameters { l3r3: Some((l3, r3)), ..sb17 }, [l2, r2, l3, r3])
+}
+
+/// `identify` (the effects chosen) of a trace with 70 dB of sensor noise on both channels.
+fn identify_noisy(mut u: Vec<f64>, mut i: Vec<f64>, fs: f64, truth: &coilscope_core::Parameters, origin: &str) -> coilscope_ident::large::LargeFit {
+    add_sensor_noise(&mut u, 70.0, 1, "sensor-noise/voltage");
+    add_sensor_noise(&mut i, 70.0, 1, "sensor-noise/current");
+    identify(&u, &i, fs, origin, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}).unwrap()
+}
+
 #[test]
 #[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue17_branch_order -- --ignored"]
 fn a_slow_second_branch_is_named_lr3() {
-    let sb17 = embedded_driver("sb17cac35-4").unwrap();
-    let (l2, r2) = sb17.l2r2.as_ref().map(|(l, r)| (l.eval(0.0), r.eval(0.0))).unwrap();
-    // Half of L2 at twice its time constant.
-    let (l3, r3) = (0.5 * l2, 0.5 * l2 / (2.0 * l2 / r2));
-    let truth = coilscope_core::Parameters { l3r3: Some((l3, r3)), ..sb17 };
+    let (truth, [l2, r2, l3, r3]) = slow_branch_sb17();
     let fs = 48000.0;
     let [lo, hi] = truth.x_range.unwrap();
     let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.05, seed: 1 }).unwrap();
     let (_, tr) = gain_for_peak(&truth, fs, &unit, 0.85 * hi.min(-lo), &SimOptions::default()).unwrap();
-    let (mut u, mut i) = (tr.u, tr.i);
-    add_sensor_noise(&mut u, 70.0, 1, "sensor-noise/voltage");
-    add_sensor_noise(&mut i, 70.0, 1, "sensor-noise/current");
-    let fit = identify(&u, &i, fs, "sb17 slow LR-3", &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}).unwrap();
+    let fit = identify_noisy(tr.u, tr.i, fs, &truth, "sb17 slow LR-3");
     let q = &fit.params;
     let (gl2, gr2) = q.l2r2.as_ref().map(|(l, r)| (l.eval(0.0), r.eval(0.0))).unwrap();
     let (gl3, gr3) = q.l3r3.unwrap_or((0.0, 0.0));
@@ -85,17 +94,11 @@ fn a_slow_second_branch_is_named_lr3() {
 #[test]
 #[ignore = "release-profile: cargo test --release -p coilscope-ident --test issue17_branch_order -- --ignored"]
 fn a_slow_second_branch_at_3_v_takes_no_other_effect() {
-    let sb17 = embedded_driver("sb17cac35-4").unwrap();
-    let (l2, r2) = sb17.l2r2.as_ref().map(|(l, r)| (l.eval(0.0), r.eval(0.0))).unwrap();
-    let (l3, r3) = (0.5 * l2, 0.5 * l2 / (2.0 * l2 / r2));
-    let truth = coilscope_core::Parameters { l3r3: Some((l3, r3)), ..sb17 };
+    let (truth, _) = slow_branch_sb17();
     let fs = 48000.0;
     let u = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: None }, &SignalSpec { fs, seconds: 8.0, rms: 3.0, fade: 0.05, seed: 1 }).unwrap();
     let tr = simulate(&truth, fs, &u, &SimOptions::default()).unwrap();
-    let (mut u, mut i) = (tr.u, tr.i);
-    add_sensor_noise(&mut u, 70.0, 1, "sensor-noise/voltage");
-    add_sensor_noise(&mut i, 70.0, 1, "sensor-noise/current");
-    let fit = identify(&u, &i, fs, "sb17 slow LR-3 at 3 V", &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}).unwrap();
+    let fit = identify_noisy(tr.u, tr.i, fs, &truth, "sb17 slow LR-3 at 3 V");
     let e = Errors::of(&fit.params, &truth, fit.x_range);
     let tried: Vec<String> = fit.models_tried().iter().map(|t| format!("{} {:?} (before {:?})", t.model, t.validation_rel, t.validation_rel_before)).collect();
     println!("{}: {e}; tried {tried:?}", fit.layout.effects.model_name());
