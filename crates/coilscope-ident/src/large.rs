@@ -2083,7 +2083,7 @@ pub struct LargeFit {
     /// (empty when the effects were given).
     pub effect_trials: Vec<(String, f64)>,
     /// The models of `effect_trials` whose fit went on alone before a trial from them could
-    /// be taken ([`held_out_gain_is_within_reach`]), with their held-out error before
+    /// be taken ([`base_goes_on_alone`]), with their held-out error before
     /// (`effect_trials` holds the error after).
     pub effect_went_on: Vec<(String, f64)>,
     /// The models the effects search screened ([`screen_effects`]); those below
