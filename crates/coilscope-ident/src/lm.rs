@@ -186,14 +186,30 @@ pub struct AtLastTrial<'a> {
 /// less exact than the residual near the optimum (`identify`'s, from fewer sub-steps: one
 /// final fit ran 20 trials of a 0.4 s residual, each rejected).
 pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState) -> bool + Sync), at_last: Option<&AtLastTrial>, settle_below: f64) -> LmState {
+    lm_step_accelerated(p, s, goes_on, at_last, settle_below, false)
+}
+
+/// [`lm_step_ahead`] that, when `accelerate`, adds geodesic acceleration to each trial
+/// step ([`geodesic_step`]: one more residual run per trial). The gain ratio stays the
+/// one of the velocity, the damped Gauss-Newton step `v`: the actual decrease over the
+/// decrease the linearised model predicts for `v` (above 1 when the acceleration gained
+/// more than the straight step was predicted to).
+pub fn lm_step_accelerated<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState) -> bool + Sync), at_last: Option<&AtLastTrial>, settle_below: f64, accelerate: bool) -> LmState {
     let (r, j) = p.residual_jacobian(&s.theta);
     let a = gram(&j);
     let g = j.tr_mul(&r);
-    p.recycle(j);
+    let j = if accelerate {
+        Some(j)
+    } else {
+        p.recycle(j);
+        None
+    };
     let gn = GN_LAMBDA.iter().find_map(|&l| damped_step(&a, &g, l)).map_or(f64::INFINITY, |(_, p)| p);
     let mut lambda = s.lambda;
+    let mut next = None;
     for _ in 0..20 {
-        if let Some((delta, predicted)) = damped_step(&a, &g, lambda) {
+        if let Some((v, predicted)) = damped_step(&a, &g, lambda) {
+            let delta = j.as_ref().and_then(|j| geodesic_step(p, j, &a, &r, &s.theta, &v, lambda)).unwrap_or(v);
             let theta: Vec<f64> = s.theta.iter().zip(delta.iter()).map(|(t, d)| t + d).collect();
             let accepted = |cost: f64| -> Option<LmState> {
                 if !(cost.is_finite() && cost < s.cost) {
@@ -215,16 +231,53 @@ pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState)
             };
             let job = at_last.filter(|a| (a.likely)(predicted / s.cost.max(1e-300), lambda)).map(|a| || (a.work)(&theta));
             let r = p.residual_ahead(&theta, &|r| accepted(0.5 * r.norm_squared()).is_some_and(|next| goes_on(&next)), job.as_ref().map(|f| f as &(dyn Fn() + Sync)));
-            if let Some(next) = accepted(0.5 * r.norm_squared()) {
-                return next;
+            if let Some(n) = accepted(0.5 * r.norm_squared()) {
+                next = Some(n);
+                break;
             }
             if predicted < settle_below * s.cost {
-                return LmState { lambda, iteration: s.iteration + 1, converged: true, last_decrease: 0.0, ..s.clone() };
+                next = Some(LmState { lambda, iteration: s.iteration + 1, converged: true, last_decrease: 0.0, ..s.clone() });
+                break;
             }
         }
         lambda *= 4.0;
     }
-    LmState { lambda, iteration: s.iteration + 1, converged: true, last_decrease: 0.0, ..s.clone() }
+    if let Some(j) = j {
+        p.recycle(j);
+    }
+    next.unwrap_or_else(|| LmState { lambda, iteration: s.iteration + 1, converged: true, last_decrease: 0.0, ..s.clone() })
+}
+
+/// Finite-difference step of [`geodesic_step`]'s second directional derivative, as a
+/// share of the velocity (Transtrum and Sethna's h = 0.1).
+pub const GEODESIC_PROBE: f64 = 0.1;
+
+/// Largest `|a| / |v|` (in the metric of `diag(J^T J)`) of an acceleration [`geodesic_step`]
+/// adds (Transtrum and Sethna's alpha = 0.75): beyond it the second-order expansion along
+/// `v` is not trusted, and the step is the velocity alone.
+pub const GEODESIC_MAX_RATIO: f64 = 0.75;
+
+/// Geodesic acceleration (Transtrum and Sethna 2012, "Improvements to the Levenberg-Marquardt
+/// algorithm for nonlinear least-squares minimization", arXiv:1201.5885): the step
+/// `v + a / 2` from the velocity `v` (the damped Gauss-Newton step of `(A + lambda diag A)
+/// v = -J^T r`), where `a` solves the same damped system for the residual's second
+/// directional derivative along `v`, `(A + lambda diag A) a = -J^T r_vv`, with
+/// `r_vv = 2 / h (r(theta + h v) - r(theta)) / h - J v)` ([`GEODESIC_PROBE`]). `a` bends the
+/// step along the valley's curve where LM's straight steps crawl: they are cut short where
+/// the valley turns away from the linearised model, while the acceleration follows it.
+/// `None` (the velocity alone) when the probe's residual is not finite or the acceleration
+/// is larger than [`GEODESIC_MAX_RATIO`] of the velocity.
+pub fn geodesic_step<P: Problem>(p: &P, j: &DMatrix<f64>, a: &DMatrix<f64>, r: &DVector<f64>, theta: &[f64], v: &DVector<f64>, lambda: f64) -> Option<DVector<f64>> {
+    let h = GEODESIC_PROBE;
+    let probe: Vec<f64> = theta.iter().zip(v.iter()).map(|(t, d)| t + h * d).collect();
+    let r_probe = p.residual(&probe);
+    if !r_probe.iter().all(|x| x.is_finite()) {
+        return None;
+    }
+    let r_vv = (r_probe - r - (j * v) * h) * (2.0 / (h * h));
+    let (acc, _) = damped_step(a, &j.tr_mul(&r_vv), lambda)?;
+    let norm = |x: &DVector<f64>| (0..x.len()).map(|k| a[(k, k)].max(1e-30) * x[k] * x[k]).sum::<f64>().sqrt();
+    (norm(&acc) <= GEODESIC_MAX_RATIO * norm(v)).then(|| v + acc * 0.5)
 }
 
 /// Standard deviation from a variance taken off a covariance: a round-off below zero is 0, but
@@ -442,5 +495,104 @@ mod tests {
             s = lm_step(&p, &s);
         }
         assert!((s.theta[0] - 2.5).abs() < 1e-8 && (s.theta[1] + 1.3).abs() < 1e-8, "{:?}", s.theta);
+    }
+
+    /// A residual quadratic in theta, `r_k = c_k + b_k . theta + 1/2 theta^T Q_k theta`:
+    /// the probe's finite difference gives its second directional derivative `v^T Q_k v`
+    /// exactly, so [`geodesic_step`] is `v + a / 2` with `a` from the analytic `r_vv`.
+    #[test]
+    fn the_geodesic_step_takes_the_residuals_second_derivative_along_the_step() {
+        struct Quadratic {
+            c: Vec<f64>,
+            b: Vec<[f64; 2]>,
+            q: Vec<[[f64; 2]; 2]>,
+        }
+        impl Problem for Quadratic {
+            fn residual_jacobian(&self, th: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
+                let m = self.c.len();
+                let qth = |k: usize, i: usize| self.q[k][i][0] * th[0] + self.q[k][i][1] * th[1];
+                let r = DVector::from_fn(m, |k, _| self.c[k] + self.b[k][0] * th[0] + self.b[k][1] * th[1] + 0.5 * (th[0] * qth(k, 0) + th[1] * qth(k, 1)));
+                let j = DMatrix::from_fn(m, 2, |k, i| self.b[k][i] + qth(k, i));
+                (r, j)
+            }
+        }
+        let mut rng = coilscope_core::excitation::named_rng(3, "lm-test/quadratic");
+        let mut z = || Distribution::<f64>::sample(&StandardNormal, &mut rng);
+        let m = 12;
+        let c = (0..m).map(|_| z()).collect();
+        let b = (0..m).map(|_| [z(), z()]).collect();
+        let q = (0..m)
+            .map(|_| {
+                let (d0, d1, o) = (0.1 * z(), 0.1 * z(), 0.1 * z());
+                [[d0, o], [o, d1]]
+            })
+            .collect();
+        let p = Quadratic { c, b, q };
+        let theta = [0.3, -0.2];
+        let (r, j) = p.residual_jacobian(&theta);
+        let a = gram(&j);
+        let lambda = 1e-2;
+        let (v, _) = damped_step(&a, &j.tr_mul(&r), lambda).unwrap();
+        let r_vv = DVector::from_fn(m, |k, _| (0..2).map(|i| (0..2).map(|l| v[i] * p.q[k][i][l] * v[l]).sum::<f64>()).sum::<f64>());
+        let (acc, _) = damped_step(&a, &j.tr_mul(&r_vv), lambda).unwrap();
+        let want = &v + &acc * 0.5;
+        let got = geodesic_step(&p, &j, &a, &r, &theta, &v, lambda).expect("a small acceleration is taken");
+        assert!(acc.norm() > 1e-3 * v.norm(), "the case has curvature: |a| {:.3e}, |v| {:.3e}", acc.norm(), v.norm());
+        assert!((&got - &want).norm() < 1e-9 * want.norm(), "{got} vs {want}");
+    }
+
+    /// Two decays in one signal, `y = a1 exp(-k1 t) + a2 exp(-k2 t)` with 1e-3 of noise
+    /// (the archetypal sloppy model, and the form of two eddy-current branches in series:
+    /// the valley trades one decay's share for the other's), from seven starts: LM with
+    /// geodesic acceleration (after each step the linearised model missed by 5 % or more, as
+    /// the final fit takes it) reaches the optimum that straight LM reaches, to 1e-6 in each
+    /// parameter (the two decays in either order) and 1e-12 in the cost. Measured: 91
+    /// iterations over the seven starts with the acceleration, 95 without (one start 14
+    /// against 11, two 17 and 19 against 19 and 24); the slow-branch record's final fit,
+    /// where the acceleration earns its keep, is `issue17_branch_order`'s.
+    #[test]
+    fn geodesic_acceleration_reaches_the_optimum_of_straight_steps() {
+        struct TwoDecays {
+            t: Vec<f64>,
+            y: Vec<f64>,
+        }
+        impl Problem for TwoDecays {
+            fn residual_jacobian(&self, th: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
+                let m = self.t.len();
+                let e = |k: usize, b: usize| (-th[2 * b + 1] * self.t[k]).exp();
+                let r = DVector::from_fn(m, |k, _| th[0] * e(k, 0) + th[2] * e(k, 1) - self.y[k]);
+                let j = DMatrix::from_fn(m, 4, |k, c| match c {
+                    0 => e(k, 0),
+                    1 => -th[0] * self.t[k] * e(k, 0),
+                    2 => e(k, 1),
+                    _ => -th[2] * self.t[k] * e(k, 1),
+                });
+                (r, j)
+            }
+        }
+        let t: Vec<f64> = (0..200).map(|k| k as f64 * 0.025).collect();
+        let mut rng = coilscope_core::excitation::named_rng(1, "lm-test/two-decays");
+        let y = t.iter().map(|t| (-t).exp() + 0.5 * (-1.8 * t).exp() + 1e-3 * Distribution::<f64>::sample(&StandardNormal, &mut rng)).collect();
+        let p = TwoDecays { t, y };
+        let run = |start: &[f64; 4], accelerate: bool| {
+            let mut s = LmState::new(&p, start.to_vec());
+            while !s.converged && s.last_decrease >= 1e-10 && s.iteration < 500 {
+                let go = accelerate && s.iteration > 0 && !((s.gain_ratio - 1.0).abs() < 0.05);
+                s = lm_step_accelerated(&p, &s, &|_| true, None, 0.0, go);
+            }
+            // The slower decay first.
+            let th = if s.theta[1] <= s.theta[3] { s.theta.clone() } else { vec![s.theta[2], s.theta[3], s.theta[0], s.theta[1]] };
+            (th, s.cost, s.iteration)
+        };
+        let (mut straight_its, mut accelerated_its) = (0, 0);
+        for start in [[1.2, 1.5, 0.4, 2.0], [0.5, 0.3, 0.5, 10.0], [1.4, 2.0, 0.1, 2.1], [0.1, 0.5, 0.1, 0.6], [1.0, 3.0, 0.5, 0.5], [1.3, 1.1, 0.2, 3.0], [0.8, 0.7, 0.7, 2.5]] {
+            let (th0, c0, n0) = run(&start, false);
+            let (th1, c1, n1) = run(&start, true);
+            println!("{start:?}: straight {n0} iterations, accelerated {n1}");
+            (straight_its, accelerated_its) = (straight_its + n0, accelerated_its + n1);
+            assert!((c1 / c0 - 1.0).abs() < 1e-12, "{start:?}: cost {c1:.12e} accelerated against {c0:.12e}");
+            assert!(th0.iter().zip(&th1).all(|(a, b)| (a - b).abs() < 1e-6), "{start:?}: {th1:?} accelerated against {th0:?}");
+        }
+        println!("straight {straight_its} iterations, accelerated {accelerated_its}");
     }
 }
