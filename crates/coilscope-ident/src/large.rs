@@ -2558,6 +2558,26 @@ pub const FINAL_FAST_DIVISOR: f64 = 10.0;
 /// `|1 - gain ratio|` below which [`FINAL_FAST_DIVISOR`] applies.
 pub const FINAL_FAST_GAIN: f64 = 0.05;
 
+/// What the effects search and the order raising after it take over from a search stage
+/// they adopt: the parameters (with the given mass) and Re(t) track scored on the held-out
+/// part, the stage's own track (the next stage's start), the chain's unknowns, and the
+/// stage's last Jacobian with its layout (the next stage's seed).
+struct Taken {
+    current: Parameters,
+    re_track: Option<Vec<f64>>,
+    search_track: Option<Vec<f64>>,
+    cth: Vec<f64>,
+    at_kept: Option<(Layout, std::sync::Arc<KeptJacobian>)>,
+}
+
+impl Taken {
+    /// The stage of layout `lay` that ended at `theta` (its estimation part), `th_val`
+    /// (that with the Re(t) track continued over the held-out part) and `kept`.
+    fn of(lay: Layout, mms: f64, theta: &[f64], th_val: &[f64], kept: Option<std::sync::Arc<KeptJacobian>>) -> Self {
+        Taken { current: Parameters { mms, ..lay.parameters(th_val) }, re_track: Some(lay.re_track(th_val)), search_track: Some(lay.re_track(theta)), cth: th_val[lay.slots().n..].to_vec(), at_kept: kept.map(|k| (lay, k)) }
+    }
+}
+
 /// The last Jacobian of a search stage that converged, for the next stage to start on
 /// ([`OutputError::seed_first`]). A stage stopped by its iteration cap may still be moving:
 /// 18WU's order-0 stage, capped at [`ORDER0_FIRST_ITERATIONS`] while it crawled (gain ratios
@@ -3252,11 +3272,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                                 effect_went_on.push((t.0.clone(), t.1));
                                 t.1 = val;
                             }
-                            current = Parameters { mms: opts.mms, ..lay.parameters(&th_val) };
-                            re_track = Some(lay.re_track(&th_val));
-                            search_track = Some(lay.re_track(&s.theta));
-                            cth = th_val[lay.slots().n..].to_vec();
-                            at_kept = kept.map(|k| (lay, k));
+                            Taken { current, re_track, search_track, cth, at_kept } = Taken::of(lay, opts.mms, &s.theta, &th_val, kept);
                             best = None;
                         }
                     }
@@ -3307,11 +3323,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                 }
             }
             (order, cur) = (next, val);
-            current = Parameters { mms: opts.mms, ..lay.parameters(&th_val) };
-            re_track = Some(lay.re_track(&th_val));
-            search_track = Some(lay.re_track(&s.theta));
-            cth = th_val[lay.slots().n..].to_vec();
-            at_kept = kept.map(|k| (lay, k));
+            Taken { current, re_track, search_track, cth, at_kept } = Taken::of(lay, opts.mms, &s.theta, &th_val, kept);
             cur_th = th_val;
             next += 2;
         }
