@@ -147,8 +147,9 @@ pub struct ModelTrial {
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "some_nan_if_null")]
     pub screen_gain: Option<f64>,
     /// `identify`'s effects search: the model that took the round this one was screened in,
-    /// before this one was fitted (its screen gain was more than 3 times this one's). This
-    /// model was not fitted in that round.
+    /// before this one was fitted (its screen gain was more than `EFFECT_RIVAL_RATIO` times
+    /// this one's: `coilscope_ident::large`'s constant, 3). This model was not fitted in that
+    /// round.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub outscored_by: Option<String>,
     /// `identify`'s effects search: this model's fit went on alone before a trial that had
