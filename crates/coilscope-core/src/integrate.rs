@@ -391,7 +391,7 @@ fn matrix_functions<D: DualNum<Primitive = f64> + Copy, const K: usize>(m: &[[D;
 }
 
 /// `p I + q A`: a function of the network matrix `A` (1/s) that is a polynomial of degree
-/// one in it (every analytic function of a 2 x 2 matrix is one, [`matrix_functions`]).
+/// one in it (every analytic function of a 2 x 2 matrix is one, `matrix_functions`).
 #[derive(Clone, Copy, Debug)]
 pub struct Pair<D> {
     p: D,

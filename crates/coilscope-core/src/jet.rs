@@ -12,7 +12,7 @@
 //! comes out the same to the last bit (a lane num-dual holds as `None` is a lane of zeros
 //! here: `x * 0 + y = y` and `0 - y = -y` exactly). The one difference is where a derivative
 //! factor is not finite (the square root or the reciprocal of zero): num-dual's constant
-//! stays a constant, and so does a `Jet` whose lanes are zero ([`Jet::chain`]).
+//! stays a constant, and so does a `Jet` whose lanes are zero (`Jet::chain`).
 //!
 //! It implements num-dual's [`DualNum`] (`Primitive = f64`), so the model, the integrators
 //! and everything generic over the scalar type take it unchanged.

@@ -18,7 +18,7 @@
 //! * [`model`]: the model's equations — the one place they are written.
 //! * [`normal_form`]: the seed paper's normal form `x''' = f(z) + g(z) u` (Eqs. 5-9).
 //! * [`integrate`]: band-limited input interpolation and RK4 sub-stepping.
-//! * [`simulate`]: the virtual transducer driven by a sampled voltage.
+//! * [`simulate`](mod@simulate): the virtual transducer driven by a sampled voltage.
 //! * [`small_signal`]: the linearised model at rest: impedance, Thiele/Small figures.
 //! * [`creep`]: LOG creep of the suspension as a bank of Maxwell elements.
 //! * [`limits`]: displacement limits XBl, XC, XL, Xsym, Ak over a reached range.

@@ -46,7 +46,7 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 /// bit-identical. (Until then 4, from a one-core timing per column of an older model.)
 pub const CHUNK: usize = 8;
 /// The widths of `identify`'s Jacobian passes and the cost of one pass of each, in units of
-/// an 8-lane pass ([`CHUNK`]). Measured in session 34 on [`crate::jet::Jet`]s (the benches
+/// an 8-lane pass ([`CHUNK`]). Measured in session 34 on [`Jet`]s (the benches
 /// `jacobian_order4_widths` and `jacobian_microspeaker_widths`, medians of 5 and of 3, two
 /// cores): a woofer's RK4 pass (SB17, 23 columns) 4 lanes 0.57, 10 lanes 1.22, 12 lanes
 /// 1.53 (16 lanes 2.24, in passes of 16 and 7); the microspeaker's exponential pass (17
@@ -383,7 +383,7 @@ fn base_goes_on_alone(val: f64, iterations: usize, at_val: f64, left: f64, conve
     }
 }
 
-/// The effects search's screen ([`screen_effects`]): an effect is not fitted in a round where
+/// The effects search's screen (`screen_effects`): an effect is not fitted in a round where
 /// one Gauss-Newton step with it would lower the estimation part's current error by less
 /// than this (a tenth of [`EFFECT_MIN_GAIN_HELD_OUT`]). LR-3 (from a vanishing branch at
 /// tau3 = tau2 / 6) scored 1.6-45 % on SB17 with a branch of half L2 at corners from tau2 /
@@ -400,7 +400,7 @@ fn base_goes_on_alone(val: f64, iterations: usize, at_val: f64, left: f64, conve
 pub const EFFECT_SCREEN_GAIN: f64 = 1e-3;
 
 /// The effects search fits a round's candidates in the order of their screen gains
-/// ([`screen_effects`]), the highest first; once one has passed the held-out bar
+/// (`screen_effects`), the highest first; once one has passed the held-out bar
 /// ([`EFFECT_MIN_GAIN_HELD_OUT`]), a candidate whose gain is below the passing one's divided
 /// by this is not fitted in that round (it is screened again in the next). Of those fitted
 /// the lowest held-out error is taken, as before.
@@ -911,7 +911,7 @@ fn run_layout<D: DualNum<Primitive = f64> + Copy + FlushTiny>(
 /// ([`ChainSetup::dc_u_free`]). There it becomes a constant plus a ramp
 /// (`hp_inverse(1)[n] = 1/g + 2 K n`): a drive that moves the coil's rest position through the
 /// record, which the nonlinearities see, so the data fix it. Held instead at the offset that
-/// leaves the voltage least along that shape ([`voltage_behind`]), it also took the driver's
+/// leaves the voltage least along that shape ([`voltage_behind`](coilscope_core::chain::voltage_behind)), it also took the driver's
 /// own low-frequency content: on SB17's `-real-chain` record (no offset on the voltage) it gave
 /// -9e-5 V, Kms(x) came out tilted by +-0.2 % and the truth lay 13 sd outside its band (through
 /// the harsh world's 1-5 Hz couplings: Kms 0.16-0.36 % off, the large coil 4.4 sd outside,
@@ -999,7 +999,7 @@ impl ChainSetup {
     }
     /// The drive: the voltage behind the channel (coupling `hp_u` of `th_c`), less the offset
     /// `dc_u` (V); and `dc_u`. A free `dc_u` is theta's; a held one is the one that leaves the
-    /// drive least along the offset's shape ([`voltage_behind`]: on a DC-coupled channel,
+    /// drive least along the offset's shape ([`voltage_behind`](coilscope_core::chain::voltage_behind): on a DC-coupled channel,
     /// without a mean).
     pub fn voltage(&self, th_c: &[f64]) -> (Vec<f64>, f64) {
         let fu = self.values(th_c)[1];
@@ -1247,7 +1247,7 @@ impl<'a> OutputError<'a> {
     }
 
     /// The problem that keeps its last Jacobian and its last residual run's trace (the final
-    /// fit's: [`chords`], the covariance, the fitted model's trace).
+    /// fit's: `chords`, the covariance, the fitted model's trace).
     pub fn keeping_last(mut self) -> Self {
         self.keep_last = true;
         self
@@ -1327,7 +1327,7 @@ impl<'a> OutputError<'a> {
 
     /// The problem whose Jacobians also compute the columns of the heating terms
     /// ([`HEAT_TAUS`], at zero), kept with the last Jacobian for a fit with them that starts
-    /// where this one's last Jacobian was computed ([`OutputError::extending`]) instead of
+    /// where this one's last Jacobian was computed (`OutputError::extending`) instead of
     /// computing its first Jacobian afresh. They cost lanes in each pass (the microspeaker's
     /// 17 columns in two passes of 10 instead of 9 and 8: 0.99 -> 1.23 s beside the residual
     /// run) and save a Jacobian (1.2 s of its 9). A layout that has heating terms: the
@@ -1669,7 +1669,7 @@ impl<'a> OutputError<'a> {
     }
 
     /// [`OutputError::jacobian`] in passes of the given widths (summing to
-    /// [`OutputError::pass_columns`]): the tests' and the benches' (`PASS_COSTS`).
+    /// `OutputError::pass_columns`): the tests' and the benches' (`PASS_COSTS`).
     pub fn jacobian_in(&self, th: &[f64], widths: &[usize]) -> DMatrix<f64> {
         let (u, _) = self.signals(th);
         self.jacobian_with_spare(th, &u, widths, &[], &AtomicBool::new(false)).expect("nothing stops these passes").0
@@ -1883,7 +1883,7 @@ impl Problem for OutputError<'_> {
     /// numbers) as one queue of tasks, the residual first, over `threads` workers: the
     /// passes fill the cores the residual leaves idle. As soon as the residual says the
     /// Jacobian is not wanted (a rejected trial, a stage that ends), the passes stop (within
-    /// [`STOP_POLL`] samples) and nothing is kept. The Jacobian is the one
+    /// `STOP_POLL` samples) and nothing is kept. The Jacobian is the one
     /// [`OutputError::jacobian`] computes (the same passes).
     fn residual_ahead(&self, theta: &[f64], wanted: &(dyn Fn(&DVector<f64>) -> bool + Sync), alongside: Option<&(dyn Fn() + Sync)>) -> DVector<f64> {
         let cached = self.last_residual.lock().expect("residual cache").as_ref().is_some_and(|(th, _)| th.as_slice() == theta);
@@ -2083,10 +2083,10 @@ pub struct LargeFit {
     /// (empty when the effects were given).
     pub effect_trials: Vec<(String, f64)>,
     /// The models of `effect_trials` whose fit went on alone before a trial from them could
-    /// be taken ([`base_goes_on_alone`]), with their held-out error before
+    /// be taken (`base_goes_on_alone`), with their held-out error before
     /// (`effect_trials` holds the error after).
     pub effect_went_on: Vec<(String, f64)>,
-    /// The models the effects search screened ([`screen_effects`]); those below
+    /// The models the effects search screened (`screen_effects`); those below
     /// [`EFFECT_SCREEN_GAIN`] or outscored by the round's winner ([`EFFECT_RIVAL_RATIO`])
     /// were not fitted (not in `effect_trials`).
     pub effect_screens: Vec<EffectScreen>,
@@ -2416,7 +2416,7 @@ fn may_settle(s: &LmState, gain_tol: f64) -> bool {
 }
 
 /// Largest `|1 - gain ratio|` of a last step the final fit trusts its linearised model after
-/// ([`chords`]).
+/// (`chords`).
 pub const FINAL_SETTLED_GAIN: f64 = 0.01;
 
 /// Size of the vanishing LR-3 branch the effects search also starts from, relative to the
@@ -2424,7 +2424,7 @@ pub const FINAL_SETTLED_GAIN: f64 = 0.01;
 ///
 /// Kept at 0.02. With L3 and R3 as the fit's unknowns (until session 34), a trial from here
 /// on a record without LR-3 crawled 10 iterations back (PTT4: 1.9 s of a 5.7 s `identify`);
-/// with L3 and tau3 (see [`Slots::tau3`]) it takes 3. Smaller starts fail both ways:
+/// with L3 and tau3 (see `Slots::r3`'s doc) it takes 3. Smaller starts fail both ways:
 /// - session 33, L3 and R3 at 1e-3: the chain sweep's PTT4 (AC-coupled card, every effect
 ///   in the record, seed 1706) never grew the branch (LR-2 + creep, Bl 3 % off);
 /// - session 34, L3 and tau3 at 1e-3: that case passed and the trials without LR-3 took 2
@@ -2433,7 +2433,7 @@ pub const FINAL_SETTLED_GAIN: f64 = 0.01;
 ///   corner far off the fit grows L3 only as far as that corner allows.
 pub const LR3_VANISHING: f64 = 0.02;
 
-/// Size of the LR-3 branch the effects screen scores from ([`screen_effects`]), in units of
+/// Size of the LR-3 branch the effects screen scores from (`screen_effects`), in units of
 /// the typical one (L3 = L2 / 2, R3 = 3 R2): small enough to leave the residual as it is
 /// (the trial's [`LR3_VANISHING`] branch moved the microspeaker's current error from
 /// 5.421e-3 to 5.427e-3, which a screen would count as a gain), while L3's column at its
@@ -2531,7 +2531,7 @@ fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: u
     s
 }
 
-/// The chord steps' bolder step ([`chords`]): with two cores, each chord step is taken
+/// The chord steps' bolder step (`chords`): with two cores, each chord step is taken
 /// beside one with the damping divided by this, one residual run per core, and the one with
 /// the lower cost is kept. The microspeaker's fit with heating terms (gain ratios 1.000,
 /// the damping falling by [`FINAL_FAST_DIVISOR`] per step) took four chord steps to the
@@ -2539,7 +2539,7 @@ fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: u
 /// core idle.
 pub const CHORD_BOLD_DIVISOR: f64 = 100.0;
 
-/// A final fit hands its state to the caller's `early` test ([`solve`]) once the next step
+/// A final fit hands its state to the caller's `early` test (`solve`) once the next step
 /// predicts a decrease below this share of the cost: within 1 % of its end, the fit's
 /// residual and Re(t) track are what the converged fit's would be for the heating test (the
 /// microspeaker: 2e-4 left after the first step; converging it took a 3.9 s Jacobian, then
@@ -2600,7 +2600,7 @@ fn linear_start_fit(u: &[f64], i: &[f64], fs: f64, origin: &str, effects: Effect
     crate::linear::fit_linear_record_from(u, i, fs, origin, &lin_opts, lr2, |_| {}).ok()
 }
 
-/// One candidate of the effects search's screen ([`screen_effects`]).
+/// One candidate of the effects search's screen (`screen_effects`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct EffectScreen {
     /// The model the candidate makes: the round's effects and `added`.

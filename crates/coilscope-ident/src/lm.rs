@@ -262,7 +262,7 @@ pub const GEODESIC_MAX_RATIO: f64 = 0.75;
 /// `v + a / 2` from the velocity `v` (the damped Gauss-Newton step of `(A + lambda diag A)
 /// v = -J^T r`), where `a` solves the same damped system for the residual's second
 /// directional derivative along `v`, `(A + lambda diag A) a = -J^T r_vv`, with
-/// `r_vv = 2 / h (r(theta + h v) - r(theta)) / h - J v)` ([`GEODESIC_PROBE`]). `a` bends the
+/// `r_vv = (2 / h) ((r(theta + h v) - r(theta)) / h - J v)` ([`GEODESIC_PROBE`]). `a` bends the
 /// step along the valley's curve where LM's straight steps crawl: they are cut short where
 /// the valley turns away from the linearised model, while the acceleration follows it.
 /// `None` (the velocity alone) when the probe's residual is not finite or the acceleration

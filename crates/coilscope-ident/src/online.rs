@@ -458,7 +458,7 @@ impl Online {
     }
 
     /// Rate of change of the tracked Re (ohm/s): least squares over the last
-    /// [`RE_TREND_S`] seconds, 0 with fewer than three tracking steps. Heating moves Re by up
+    /// `RE_TREND_S` seconds, 0 with fewer than three tracking steps. Heating moves Re by up
     /// to about 0.5 %/s at high level; within a window that is more than the current error
     /// of a good model, so the windows run with this drift rather than a constant Re.
     pub fn re_slope(&self) -> f64 {

@@ -554,7 +554,7 @@ pub struct ControlDecision {
 /// 1. **Ramp**: `ramp_db_per_s` (a third of it near the stiffness limit), or the fixed level
 ///    of a long-term test.
 /// 2. **Excursion**: above 98 % of the limit, cut at once to 90 %; otherwise aim the largest
-///    remembered peak at [`X_AIM`] of the limit. At a fixed level the high-pass rises instead.
+///    remembered peak at `X_AIM` of the limit. At a fixed level the high-pass rises instead.
 /// 3. **Trust region** (`Exploration`): never aim past 1.6 times the reach the last update
 ///    checked (1.25 times near the stiffness limit): beyond it the curves are extrapolated.
 /// 4. **Settling**: no rise while the last update moved the curves by more than
