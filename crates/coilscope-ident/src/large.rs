@@ -2558,8 +2558,8 @@ pub const FINAL_FAST_DIVISOR: f64 = 10.0;
 /// `|1 - gain ratio|` below which [`FINAL_FAST_DIVISOR`] applies.
 pub const FINAL_FAST_GAIN: f64 = 0.05;
 
-/// What the effects search and the order raising after it take over from a search stage
-/// they adopt: the parameters (with the given mass) and Re(t) track scored on the held-out
+/// What the effects search (its trial taken, or its base gone on alone) and the order
+/// raising after it take over from a search stage they adopt: the parameters (with the given mass) and Re(t) track scored on the held-out
 /// part, the stage's own track (the next stage's start), the chain's unknowns, and the
 /// stage's last Jacobian with its layout (the next stage's seed).
 struct Taken {
@@ -3141,10 +3141,9 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                 // The highest screen gain first (a candidate the screen could not score first
                 // of all: it is always fitted).
                 cands.sort_by(|a, b| gain_in(&round, b.0).unwrap_or(f64::INFINITY).total_cmp(&gain_in(&round, a.0).unwrap_or(f64::INFINITY)));
-                // (effects, validation error, parameters, Re(t) track for the whole record and
-                // on the estimation part, chain theta, layout and last Jacobian).
-                #[allow(clippy::type_complexity)]
-                let mut best: Option<(Effects, f64, Parameters, Vec<f64>, Vec<f64>, Vec<f64>, Option<(Layout, std::sync::Arc<KeptJacobian>)>, (f64, bool), usize)> = None;
+                // (effects, validation error, what taking it takes over, its stage's
+                // `gn_left` and whether it converged, its iterations).
+                let mut best: Option<(Effects, f64, Taken, (f64, bool), usize)> = None;
                 // The eddy-current branches and creep act at small signal too: their start
                 // values come from the linear fit with the same effects on the first
                 // seconds (from L2/R2 of the LR-2 fit, which absorbed the second branch,
@@ -3252,8 +3251,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                     effect_trials.push((e.model_name(), val));
                     let lambda_ok = lay.slots().lambda.is_none_or(|k| s.theta[k] > 0.0);
                     if lambda_ok && val < (1.0 - EFFECT_MIN_GAIN_HELD_OUT) * at_val && best.as_ref().is_none_or(|b| val < b.1) {
-                        let p = Parameters { mms: opts.mms, ..lay.parameters(&th_val) };
-                        best = Some((e, val, p, lay.re_track(&th_val), lay.re_track(&s.theta), th_val[lay.slots().n..].to_vec(), kept.map(|k| (lay, k)), (s.gn_left, s.converged), s.iteration));
+                        best = Some((e, val, Taken::of(lay, opts.mms, &s.theta, &th_val, kept), (s.gn_left, s.converged), s.iteration));
                     }
                 }
                 // A trial goes on from where the model taken so far stopped, so its held-out
@@ -3264,7 +3262,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                 // ([`held_out_gain_is_within_reach`]); if it does not, the base as it got
                 // there is taken and the search ends.
                 if let Some(b) = &best {
-                    if let Some(budget) = base_goes_on_alone(b.1, b.8, at_val, at_left, at_converged) {
+                    if let Some(budget) = base_goes_on_alone(b.1, b.4, at_val, at_left, at_converged) {
                         let lay = at_kept.as_ref().map_or_else(|| layout_for(order).with_effects(at), |(l, _)| l.clone());
                         let (s, _, th_val, val, kept) = estimate_validate_for(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), budget, &mut observe);
                         if !(b.1 < (1.0 - EFFECT_MIN_GAIN_HELD_OUT) * val) {
@@ -3279,14 +3277,10 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                 }
                 effect_screens.extend(round);
                 match best {
-                    Some((e, val, p, track, est_track, c, kept, left, _)) => {
+                    Some((e, val, taken, left, _)) => {
                         (at, at_val) = (e, val);
                         (at_left, at_converged) = left;
-                        cth = c;
-                        current = p;
-                        re_track = Some(track);
-                        search_track = Some(est_track);
-                        at_kept = kept;
+                        Taken { current, re_track, search_track, cth, at_kept } = taken;
                     }
                     None => break at,
                 }
