@@ -234,3 +234,27 @@ fn bench_residual(b: divan::Bencher, prob: &OutputError, th: &[f64]) {
         prob.residual(if flip { th } else { &other })
     });
 }
+
+/// The linear fits `identify` starts from, on the first 4 s of SB17's record: `start`, the
+/// small-signal effects chosen (the start model's fit), and `chain`, through a sound card
+/// (the current 0.3 sample late, AC coupling at 2 and 4 Hz, offsets, 50 Hz hum: the stages
+/// example's card) with the card estimated, the fit `--chain auto` runs beside it. One
+/// sample each: a fit is deterministic.
+#[divan::bench(args = ["start", "chain"], sample_count = 3, sample_size = 1)]
+fn linear_start(b: divan::Bencher, which: &str) {
+    use coilscope_core::chain::{Chain, Hum};
+    use coilscope_ident::linear::{fit_linear_record, EffectsChoice, LinearOptions};
+    let r = rec("sb17cac35-4");
+    let m = (4.0 * FS) as usize;
+    let chain = which == "chain";
+    let (u, i) = if chain {
+        let peak = |v: &[f64]| v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
+        let (pu, pi) = (peak(&r.u), peak(&r.i));
+        let card = Chain { delay_i: 0.3 / FS, hp_u: 2.0, hp_i: 4.0, dc_u: 5e-3 * pu, dc_i: 5e-3 * pi, hum: Some(Hum { f: 50.0, u: vec![[1e-3 * pu, 0.3]], i: vec![[1e-3 * pi, 1.1]] }), ..Default::default() };
+        card.apply(&r.u[..m], &r.i[..m], FS)
+    } else {
+        (r.u[..m].to_vec(), r.i[..m].to_vec())
+    };
+    let opts = if chain { LinearOptions { chain: true, ..LinearOptions::LARGE_SIGNAL_START } } else { LinearOptions { effects: EffectsChoice::Auto, ..LinearOptions::LARGE_SIGNAL_START } };
+    b.bench_local(|| fit_linear_record(&u, &i, FS, "bench", &opts, |_| {}).unwrap());
+}

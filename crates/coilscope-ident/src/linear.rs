@@ -658,26 +658,68 @@ impl ChainTerms {
         }
         v
     }
-    /// The factor on the predicted current at `f`, and its derivatives w.r.t. the chain's
-    /// entries of theta (those on, in order).
-    fn factor(&self, th: &[f64], f: f64) -> (Complex64, Vec<Complex64>) {
+    /// The chain's factor at the chain's entries `th` of theta, ready for
+    /// [`ChainFactor::at`] bin by bin: what depends on theta alone (the corners' filter
+    /// coefficients, a tangent each) is computed here once, not in every bin.
+    fn factor_at(&self, th: &[f64]) -> ChainFactor {
         let [tau, fu, fi] = self.values(th);
-        let c = |tau: f64, fu: f64, fi: f64| Complex64::from_polar(1.0, -2.0 * PI * f * tau / self.fs) * coilscope_core::chain::hp_response(fi, f, self.fs) / coilscope_core::chain::hp_response(fu, f, self.fs);
-        let c0 = c(tau, fu, fi);
-        let h = 1e-4;
+        let hp = |fc: f64| coilscope_core::chain::hp_coefficients(fc, self.fs);
+        let h = CHAIN_CORNER_STEP;
+        ChainFactor { terms: *self, tau, u: [hp(fu), hp(fu + h), hp(fu - h)], i: [hp(fi), hp(fi + h), hp(fi - h)] }
+    }
+}
+
+/// Step (Hz) of the central differences that give the chain factor's derivatives in the
+/// corners ([`ChainFactor::at`]).
+const CHAIN_CORNER_STEP: f64 = 1e-4;
+
+/// [`ChainTerms`] at one theta ([`ChainTerms::factor_at`]): the delay, and the AC-coupling
+/// filters' coefficients (`coilscope_core::chain::hp_coefficients`) at each corner and at
+/// the corner plus and minus [`CHAIN_CORNER_STEP`].
+struct ChainFactor {
+    terms: ChainTerms,
+    tau: f64,
+    /// `(g, a)` of the voltage channel's corner, and of it plus and minus the step.
+    u: [(f64, f64); 3],
+    /// The same for the current channel's corner.
+    i: [(f64, f64); 3],
+}
+
+impl ChainFactor {
+    /// The factor on the predicted current at `f` (Hz), `e^{-j 2 pi f tau / fs} H_i(f) /
+    /// H_u(f)` with `H` as [`coilscope_core::chain::hp_response`], and with `deriv` its
+    /// derivatives w.r.t. the chain's entries of theta (those on, in order; the corners' by
+    /// central differences). The same values to the last bit as `hp_response` per corner
+    /// (`the_chain_factor_is_hp_response_s`), with two sines and cosines per bin instead of
+    /// fifteen and ten tangents: those were 75 % of a linear fit with the chain (the
+    /// `--chain auto` start of `identify` on SB17's `-real-chain` record: 8.4 s).
+    fn at(&self, f: f64, deriv: bool) -> (Complex64, Vec<Complex64>) {
+        let fs = self.terms.fs;
+        let zi = Complex64::from_polar(1.0, -2.0 * PI * f / fs);
+        let hp = |(g, a): (f64, f64)| g * (1.0 - zi) / (1.0 - a * zi);
+        let delay = Complex64::from_polar(1.0, -2.0 * PI * f * self.tau / fs);
+        let c = |hu: Complex64, hi: Complex64| delay * hi / hu;
+        let (hu, hi) = (hp(self.u[0]), hp(self.i[0]));
+        let c0 = c(hu, hi);
         let mut d = vec![];
-        if self.delay {
-            d.push(c0 * Complex64::new(0.0, -2.0 * PI * f / self.fs));
+        if !deriv {
+            return (c0, d);
         }
-        if self.hp_u {
-            d.push((c(tau, fu + h, fi) - c(tau, fu - h, fi)) / (2.0 * h));
+        let h = CHAIN_CORNER_STEP;
+        if self.terms.delay {
+            d.push(c0 * Complex64::new(0.0, -2.0 * PI * f / fs));
         }
-        if self.hp_i {
-            d.push((c(tau, fu, fi + h) - c(tau, fu, fi - h)) / (2.0 * h));
+        if self.terms.hp_u {
+            d.push((c(hp(self.u[1]), hi) - c(hp(self.u[2]), hi)) / (2.0 * h));
+        }
+        if self.terms.hp_i {
+            d.push((c(hu, hp(self.i[1])) - c(hu, hp(self.i[2]))) / (2.0 * h));
         }
         (c0, d)
     }
+}
 
+impl ChainTerms {
     /// The sds of `[delay, hp_u, hp_i]` from a covariance whose chain entries start at `ci`;
     /// NaN for those off and without a covariance.
     pub fn sds(&self, cov: Option<&DMatrix<f64>>, ci: usize) -> [f64; 3] {
@@ -827,16 +869,30 @@ impl CurrentError {
         &theta[self.t0()..self.t0() + self.n_transient]
     }
 
+    /// [`transient_term`] of bin `k`, or nothing (zeros) without a transient term
+    /// ([`Ends::AssumedAtRest`], the large-signal start): there the term is zero and its
+    /// derivatives enter times it, so a fit's residuals and Jacobian are the same to the
+    /// last bit (the term took a fifth of a linear fit with the chain).
+    fn transient_at(&self, p: &[f64; 7], imp: &Impedance, theta: &[f64], k: usize) -> (Complex64, [Complex64; 7], [Complex64; 3], [Complex64; N_TRANSIENT]) {
+        if self.n_transient == 0 {
+            let z = Complex64::new(0.0, 0.0);
+            return (z, [z; 7], [z; 3], [z; N_TRANSIENT]);
+        }
+        transient_term(p, imp, self.transient(theta), self.omega0, self.f[k])
+    }
+
+    /// The chain's factor at theta ([`ChainTerms::factor_at`]), `None` for an ideal chain.
+    fn chain_factor(&self, theta: &[f64]) -> Option<ChainFactor> {
+        self.chain.map(|c| c.factor_at(&theta[self.chain_index()..]))
+    }
+
     /// The chain's factor on the predicted current of bin `k` (1 for an ideal chain), with its
-    /// derivatives.
-    fn shift_d(&self, theta: &[f64], k: usize) -> (Complex64, Vec<Complex64>) {
-        match &self.chain {
-            Some(c) => c.factor(&theta[self.chain_index()..], self.f[k]),
+    /// derivatives when `deriv`.
+    fn shift_d(&self, chain: Option<&ChainFactor>, k: usize, deriv: bool) -> (Complex64, Vec<Complex64>) {
+        match chain {
+            Some(c) => c.at(self.f[k], deriv),
             None => (Complex64::new(1.0, 0.0), vec![]),
         }
-    }
-    fn shift(&self, theta: &[f64], k: usize) -> Complex64 {
-        self.shift_d(theta, k).0
     }
 
     /// `|I - U/Z - T| / |I|` over the fitted bins, unweighted (the spec's `fit.residual_rel`).
@@ -900,19 +956,20 @@ impl Problem for CurrentError {
         let t0 = self.t0();
         let m = self.f.len();
         let np = theta.len();
+        let chain = self.chain_factor(theta);
         let mut r = DVector::zeros(2 * m);
         let mut j = DMatrix::zeros(2 * m, np);
         for k in 0..m {
             // The impedance once per bin: the transient term takes it too.
             let imp = impedance_ext(&p, &ext, self.f[k]);
-            let (tr, mut dlnp, mut dlnpx, basis) = transient_term(&p, &imp, self.transient(theta), self.omega0, self.f[k]);
+            let (tr, mut dlnp, mut dlnpx, basis) = self.transient_at(&p, &imp, theta, k);
             let (z, mut g, mut gx) = imp;
             // From d/d ln p to d/dq: L2 = tau2 R2, so ln R2 moves L2 too (L3 likewise).
             g[3] += g[2];
             dlnp[3] += dlnp[2];
             gx[2] += gx[1];
             dlnpx[2] += dlnpx[1];
-            let (shift, dshift) = self.shift_d(theta, k);
+            let (shift, dshift) = self.shift_d(chain.as_ref(), k, true);
             let wk = self.w[k] / self.norm;
             let e = (self.i[k] - self.u[k] * shift / z) / self.norm - wk * tr;
             r[2 * k] = e.re;
@@ -953,12 +1010,13 @@ impl Problem for CurrentError {
     fn residual(&self, theta: &[f64]) -> DVector<f64> {
         let p = self.map.params(theta);
         let ext = self.ext(theta);
+        let chain = self.chain_factor(theta);
         DVector::from_iterator(
             2 * self.f.len(),
             (0..self.f.len()).flat_map(|k| {
                 let imp = impedance_ext(&p, &ext, self.f[k]);
-                let tr = transient_term(&p, &imp, self.transient(theta), self.omega0, self.f[k]).0;
-                let e = (self.i[k] - self.u[k] * self.shift(theta, k) / imp.0) / self.norm - self.w[k] / self.norm * tr;
+                let tr = self.transient_at(&p, &imp, theta, k).0;
+                let e = (self.i[k] - self.u[k] * self.shift_d(chain.as_ref(), k, false).0 / imp.0) / self.norm - self.w[k] / self.norm * tr;
                 [e.re, e.im]
             }),
         )
@@ -1944,6 +2002,43 @@ mod tests {
         assert_eq!(lr3, Some(([2.7e-4, 0.0725], [3e-3, 4e-3])));
         assert!(!lr3_named_first(&mut p, &mut sd, &mut lr3));
         assert!(!lr3_named_first(&mut p, &mut sd, &mut None));
+    }
+
+    /// `ChainFactor::at` (the corners' filter coefficients once per theta) gives what the
+    /// chain factor was per bin, each corner through `hp_response`, to the last bit: its
+    /// value and its derivatives, every combination of terms on, over random delays, corners
+    /// and frequencies.
+    #[test]
+    fn the_chain_factor_is_hp_response_s() {
+        use coilscope_core::chain::hp_response;
+        use rand::Rng;
+        let mut rng = coilscope_core::excitation::named_rng(3, "linear-test/chain-factor");
+        for case in 0..64 {
+            let fs = [44100.0, 48000.0, 96000.0][case % 3];
+            let terms = ChainTerms { fs, delay: case & 4 == 0, hp_u: case & 8 == 0, hp_i: case & 16 == 0 };
+            let th: Vec<f64> = [rng.random_range(-0.6..0.6), rng.random_range(0.0..6.0), rng.random_range(0.0..6.0)].into_iter().zip(terms.on()).filter(|(_, on)| *on).map(|(v, _)| v).collect();
+            let [tau, fu, fi] = terms.values(&th);
+            let c = |tau: f64, fu: f64, fi: f64, f: f64| Complex64::from_polar(1.0, -2.0 * PI * f * tau / fs) * hp_response(fi, f, fs) / hp_response(fu, f, fs);
+            let prepared = terms.factor_at(&th);
+            for _ in 0..50 {
+                let f = rng.random_range(1.0..0.45 * fs);
+                let (c0, d) = prepared.at(f, true);
+                let h = CHAIN_CORNER_STEP;
+                let mut want = vec![];
+                if terms.delay {
+                    want.push(c(tau, fu, fi, f) * Complex64::new(0.0, -2.0 * PI * f / fs));
+                }
+                if terms.hp_u {
+                    want.push((c(tau, fu + h, fi, f) - c(tau, fu - h, fi, f)) / (2.0 * h));
+                }
+                if terms.hp_i {
+                    want.push((c(tau, fu, fi + h, f) - c(tau, fu, fi - h, f)) / (2.0 * h));
+                }
+                assert_eq!(c0, c(tau, fu, fi, f), "case {case} at {f} Hz");
+                assert_eq!(d, want, "case {case} at {f} Hz");
+                assert_eq!(prepared.at(f, false), (c0, vec![]));
+            }
+        }
     }
 
     #[test]
