@@ -164,8 +164,13 @@ pub fn hp_inverse(y: &[f64], fc: f64, fs: f64) -> Vec<f64> {
 
 /// Frequency response of [`hp`] at `f` (Hz).
 pub fn hp_response(fc: f64, f: f64, fs: f64) -> Complex64 {
-    let (g, a) = hp_coefficients(fc, fs);
-    let zi = Complex64::from_polar(1.0, -2.0 * PI * f / fs);
+    hp_response_at(hp_coefficients(fc, fs), Complex64::from_polar(1.0, -2.0 * PI * f / fs))
+}
+
+/// [`hp_response`] from the filter's coefficients `(g, a)` ([`hp_coefficients`]) and `zi =
+/// e^{-j 2 pi f / fs}`: for callers that evaluate one filter at many frequencies, or many
+/// filters at one frequency, and take each of the two once.
+pub fn hp_response_at((g, a): (f64, f64), zi: Complex64) -> Complex64 {
     g * (1.0 - zi) / (1.0 - a * zi)
 }
 

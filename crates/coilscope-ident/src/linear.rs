@@ -696,7 +696,7 @@ impl ChainFactor {
     fn at(&self, f: f64, deriv: bool) -> (Complex64, Vec<Complex64>) {
         let fs = self.terms.fs;
         let zi = Complex64::from_polar(1.0, -2.0 * PI * f / fs);
-        let hp = |(g, a): (f64, f64)| g * (1.0 - zi) / (1.0 - a * zi);
+        let hp = |ga: (f64, f64)| coilscope_core::chain::hp_response_at(ga, zi);
         let delay = Complex64::from_polar(1.0, -2.0 * PI * f * self.tau / fs);
         let c = |hu: Complex64, hi: Complex64| delay * hi / hu;
         let (hu, hi) = (hp(self.u[0]), hp(self.i[0]));
