@@ -2627,6 +2627,9 @@ fn cmd_report(spec: &str, out: &Path, db: Option<&Path>, volts: Option<f64>, com
     let opts = coilscope_report::ReportOptions { thresholds: th, dt_max: l.max_dt, volts, ..Default::default() };
     let rep = coilscope_report::build(&input, &opts)?;
     let written = coilscope_report::write(&rep, out, opts.png_size)?;
+    for w in &rep.warnings {
+        eprintln!("warning: the report could not draw {w}");
+    }
     println!("report: {} plots, distortion at {:.2} V RMS{}", rep.charts.len(), rep.volts, rep.volterra_divergence.map(|v| format!(", Volterra off by > 1 dB from {v:.2} V")).unwrap_or_default());
     println!("wrote {} and {} files in {}", out.display(), written.len() - 1, coilscope_report::files_dir(out).display());
     Ok(())

@@ -370,6 +370,19 @@ fn held_out_gain_is_within_reach(val: f64, at_val: f64, left: f64) -> bool {
     1.0 - val / at_val < EFFECT_MIN_GAIN_HELD_OUT + left_rel
 }
 
+/// The relative cost decrease below which the model taken so far, going on alone before a
+/// trial is compared with it (`base_goes_on_alone`), ends (a search stage's is 1e-3): it
+/// follows the valley it is in as the final fit does (`solve_following`). Seen (issue 17,
+/// session 43): SB17 with a slow second branch at 3 V, its linear start moved by a
+/// thousandth of an sd (a faster-converging damping rule, `lm::lambda_after_gain`): LR-3's
+/// trial stopped at 3.909e-4 of the current (`gn_left` 2.7 %), creep's trial went on from it
+/// to 3.883e-4, and LR-3 alone, going on as a search stage, stopped at its first step (a
+/// decrease below 1e-3: the slow branch's curved valley) at the same error, so creep, which
+/// the record lacks, was taken (held-out 3.963e-4 against 4.010e-4). Going on with geodesic
+/// acceleration to this tolerance LR-3 alone reached 3.817e-4 (held-out 3.858e-4) in 10
+/// iterations, and the search ended with `LR-2+LR-3`.
+pub const ALONE_TOL: f64 = 1e-5;
+
 /// How many iterations the model taken so far (held-out error `at_val`, its stage's
 /// `gn_left` `left`, `converged`) goes on alone for before a trial that went on from it
 /// (held-out error `val` after `iterations`) is compared with it; `None`: it need not. An
@@ -2474,6 +2487,16 @@ pub const ORDER0_FINISH_BELOW_GAIN: f64 = 0.25;
 /// says yes the fit returns that state unconverged (the caller may resume it).
 #[allow(clippy::too_many_arguments)]
 fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: usize, at_last: Option<&AtLastTrial>, early: Option<&dyn Fn(&LmState) -> bool>, observe: &mut dyn FnMut(&Progress)) -> LmState {
+    solve_following(prob, theta, stage, tol, max_it, at_last, early, false, observe)
+}
+
+/// [`solve`], and with `follow` a search stage that follows a curved valley as the final fit
+/// does: geodesic acceleration after a step the linearised model missed by
+/// [`FINAL_FAST_GAIN`] or more, and no end at a settled step ([`settled`]), only below `tol`
+/// or at `max_it`. For the model taken so far when it goes on alone before a trial is
+/// compared with it (the effects search in [`identify`]).
+#[allow(clippy::too_many_arguments)]
+fn solve_following(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: usize, at_last: Option<&AtLastTrial>, early: Option<&dyn Fn(&LmState) -> bool>, follow: bool, observe: &mut dyn FnMut(&Progress)) -> LmState {
     let norm_i = prob.i[prob.fit.clone()].iter().map(|v| v * v).sum::<f64>().sqrt();
     let report = |s: &LmState, observe: &mut dyn FnMut(&Progress)| {
         observe(&Progress { stage: stage.clone(), state: s, residual_rel: (2.0 * s.cost).sqrt() / norm_i });
@@ -2490,7 +2513,7 @@ fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: u
             || n.last_decrease < tol
             || n.converged
             || match stage {
-                Stage::Estimate { .. } => settled(n),
+                Stage::Estimate { .. } => !follow && settled(n),
                 Stage::Final { .. } => may_settle(n, FINAL_SETTLED_GAIN),
             };
         !ends
@@ -2503,7 +2526,7 @@ fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: u
         // with it (final fit 12.8 -> 7.5 s). The search stages keep their straight steps:
         // where they stop moves the order search's truncation term (see chords), and 18WU's
         // `-real-all` effect trials did not gain (51 against 53 iterations, same time).
-        let accelerate = matches!(stage, Stage::Final { .. }) && s.iteration > 0 && !((s.gain_ratio - 1.0).abs() < FINAL_FAST_GAIN);
+        let accelerate = (follow || matches!(stage, Stage::Final { .. })) && s.iteration > 0 && !((s.gain_ratio - 1.0).abs() < FINAL_FAST_GAIN);
         let mut next = lm_step_accelerated(prob, &s, &goes_on, at_last, tol, accelerate);
         if matches!(stage, Stage::Final { .. }) && (next.gain_ratio - 1.0).abs() < FINAL_FAST_GAIN {
             next.lambda = (next.step_lambda / FINAL_FAST_DIVISOR).max(1e-12);
@@ -2514,7 +2537,7 @@ fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: u
         if stalled {
             break;
         }
-        if s.last_decrease < tol || s.converged || (matches!(stage, Stage::Estimate { .. }) && settled(&s)) {
+        if s.last_decrease < tol || s.converged || (!follow && matches!(stage, Stage::Estimate { .. }) && settled(&s)) {
             s.converged = true;
             break;
         }
@@ -2953,7 +2976,8 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     // the held-out part: (LM state, estimation error, theta for the whole record, validation
     // error, the stage's last Jacobian). `seed`: a stage whose model this one's holds, and its
     // last Jacobian, on which the first iteration starts (with this layout's new columns).
-    let estimate_validate_for = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], seed: Option<&(Layout, std::sync::Arc<KeptJacobian>)>, max_it: usize, observe: &mut dyn FnMut(&Progress)| {
+    // `follow`: the stage follows a curved valley (`solve_following`), to ALONE_TOL.
+    let estimate_validate_for = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], seed: Option<&(Layout, std::sync::Arc<KeptJacobian>)>, max_it: usize, follow: bool, observe: &mut dyn FnMut(&Progress)| {
         let th = join(lay.theta_from(from, track), cth);
         let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching().keeping_search();
         if let Some((base, kept)) = seed {
@@ -2991,7 +3015,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             *early.lock().expect("validation") = Some((theta.to_vec(), val));
         };
         let at_last = AtLastTrial { likely: &|predicted, lambda| predicted < SEARCH_SETTLED_DECREASE && lambda <= SEARCH_SETTLED_LAMBDA, work: &work };
-        let s = solve(&prob, th, &Stage::Estimate { order: lay.order }, 1e-3, max_it, Some(&at_last), None, observe);
+        let s = solve_following(&prob, th, &Stage::Estimate { order: lay.order }, if follow { ALONE_TOL } else { 1e-3 }, max_it, Some(&at_last), None, follow, observe);
         let est = (2.0 * s.cost).sqrt() / i[settle..split].iter().map(|v| v * v).sum::<f64>().sqrt();
         let th_val = held_out(&s.theta);
         let val = match early.into_inner().expect("validation") {
@@ -3002,7 +3026,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         (s, est, th_val, val, kept)
     };
     let estimate_validate = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], seed: Option<&(Layout, std::sync::Arc<KeptJacobian>)>, observe: &mut dyn FnMut(&Progress)| {
-        estimate_validate_for(lay, from, track, cth, seed, SEARCH_MAX_ITERATIONS, observe)
+        estimate_validate_for(lay, from, track, cth, seed, SEARCH_MAX_ITERATIONS, false, observe)
     };
     for &order in &orders {
         let lay = layout_for(order);
@@ -3238,14 +3262,14 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                     }
                     let seed = at_kept.as_ref().filter(|_| nested);
                     let max_it = if lay.lr3_tau { LR3_TAU_ITERATIONS } else { SEARCH_MAX_ITERATIONS };
-                    let (mut s, _, mut th_val, mut val, mut kept) = estimate_validate_for(&lay, &from, search_track.as_deref(), &cth, seed, max_it, &mut observe);
+                    let (mut s, _, mut th_val, mut val, mut kept) = estimate_validate_for(&lay, &from, search_track.as_deref(), &cth, seed, max_it, false, &mut observe);
                     // A branch the record holds: the trial goes on in L3 and R3 (Slots::r3).
                     if lay.lr3_tau && !s.converged {
                         let n = lay.slots().n;
                         let (p, track) = (Parameters { mms: opts.mms, ..lay.parameters(&s.theta) }, lay.re_track(&s.theta));
                         lay.lr3_tau = false;
                         let done = s.iteration;
-                        (s, _, th_val, val, kept) = estimate_validate_for(&lay, &p, Some(&track), &s.theta[n..], None, SEARCH_MAX_ITERATIONS - done, &mut observe);
+                        (s, _, th_val, val, kept) = estimate_validate_for(&lay, &p, Some(&track), &s.theta[n..], None, SEARCH_MAX_ITERATIONS - done, false, &mut observe);
                         s.iteration += done;
                     }
                     effect_trials.push((e.model_name(), val));
@@ -3264,7 +3288,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                 if let Some(b) = &best {
                     if let Some(budget) = base_goes_on_alone(b.1, b.4, at_val, at_left, at_converged) {
                         let lay = at_kept.as_ref().map_or_else(|| layout_for(order).with_effects(at), |(l, _)| l.clone());
-                        let (s, _, th_val, val, kept) = estimate_validate_for(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), budget, &mut observe);
+                        let (s, _, th_val, val, kept) = estimate_validate_for(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), budget, true, &mut observe);
                         if !(b.1 < (1.0 - EFFECT_MIN_GAIN_HELD_OUT) * val) {
                             if let Some(t) = effect_trials.iter_mut().rev().find(|t| t.0 == at.model_name()) {
                                 effect_went_on.push((t.0.clone(), t.1));

@@ -16,7 +16,7 @@
 //! `Res = Bl^2/Rms`, `Cmes = Mms/Bl^2`, `Lces = Bl^2/Kms`; the voltage alone determines these
 //! three, and one more number (Mms, an added mass, or the displacement) gives Bl.
 
-use crate::lm::{lm_step, sandwich_covariance, sd_from_variance, LmState, Problem};
+use crate::lm::{lambda_after_gain, lm_step, sandwich_covariance, sd_from_variance, LmState, Problem};
 use coilscope_core::fft::{irfft, rfft};
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
@@ -1310,6 +1310,11 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         let mut costs = std::collections::VecDeque::from([s.cost]);
         while !s.converged && s.iteration < max_iter {
             s = lm_step(p, &s);
+            // The damping after an accepted step follows how well the model predicted it
+            // (`lambda_after_gain`).
+            if s.last_decrease > 0.0 && s.gain_ratio.is_finite() {
+                s.lambda = lambda_after_gain(s.step_lambda, s.gain_ratio);
+            }
             observe(&s);
             costs.push_back(s.cost);
             if costs.len() > PLATEAU_ITERATIONS {

@@ -103,6 +103,12 @@ impl Chart {
         pts.iter().filter(|(x, y)| x.is_finite() && y.is_finite() && (!self.log_x || *x > 0.0)).map(|&(x, y)| (self.tx(x), y.max(floor))).collect()
     }
 
+    /// Whether a series or band has a point with finite coordinates ([`Chart::svg`] fails
+    /// without one).
+    pub fn has_finite_data(&self) -> bool {
+        self.bounds().is_some()
+    }
+
     fn bounds(&self) -> Option<((f64, f64), (f64, f64))> {
         let all: Vec<(f64, f64)> = self.series.iter().flat_map(|s| self.clean(&s.points)).chain(self.bands.iter().flat_map(|b| self.clean(&b.lo).into_iter().chain(self.clean(&b.hi)))).collect();
         if all.is_empty() {

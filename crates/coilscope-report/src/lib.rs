@@ -76,6 +76,9 @@ pub struct Report {
     /// The distortion analysis level (V RMS) and where Volterra diverged (V), for the caller.
     pub volts: f64,
     pub volterra_divergence: Option<f64>,
+    /// What the report could not show, one sentence each (a chart without a finite value to
+    /// draw: its figure says so instead); the caller prints them as warnings.
+    pub warnings: Vec<String>,
 }
 
 pub const SVG_SIZE: (u32, u32) = (760, 440);
@@ -134,6 +137,7 @@ fn grid(range: [f64; 2], n: usize) -> Vec<f64> {
 struct Builder {
     html: String,
     charts: Vec<Chart>,
+    warnings: Vec<String>,
 }
 
 impl Builder {
@@ -143,7 +147,16 @@ impl Builder {
             let _ = write!(self.html, "<p class=\"note\">{}</p>", esc(intro));
         }
     }
+    /// The chart's figure; a chart without a finite value to draw (a degenerate result: a
+    /// curve that is NaN, a ratio 0/0) gets a figure that says so, and a warning, so that the
+    /// rest of the report is still written.
     fn chart(&mut self, c: Chart, caption: &str) -> Result<(), String> {
+        if !c.has_finite_data() {
+            let why = format!("chart {}: no finite value to draw (the result is degenerate there: see its warnings)", c.id);
+            let _ = write!(self.html, "<figure class=\"plot\" id=\"plot-{id}\" data-series=\"0\"><p class=\"note\">{t}: {w}</p><figcaption>{cap}</figcaption></figure>", id = esc(&c.id), t = esc(&c.title), w = esc(&why), cap = esc(caption));
+            self.warnings.push(why);
+            return Ok(());
+        }
         let svg = c.svg(SVG_SIZE)?;
         let svg = svg.trim_start_matches("<?xml version=\"1.0\" encoding=\"UTF-8\"?>").trim();
         let _ = write!(self.html, "<figure class=\"plot\" id=\"plot-{id}\" data-series=\"{n}\">{svg}<figcaption>{cap} <a href=\"#\" data-png=\"{id}.png\">PNG</a></figcaption></figure>", id = esc(&c.id), n = c.series.len(), cap = esc(caption));
@@ -237,7 +250,7 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     let result = input.result.as_ref();
     let diag = diagnose(p, range, opts.thresholds, opts.dt_max);
     let ts = thiele_small(p);
-    let mut b = Builder { html: String::new(), charts: vec![] };
+    let mut b = Builder { html: String::new(), charts: vec![], warnings: vec![] };
     let mut csv = Vec::new();
 
     // --- Parameters ---------------------------------------------------------------------
@@ -506,8 +519,12 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
             let _ = writeln!(c, "{:.5},{:.3},{:.3},{:.3},{:.3}", r.volts, db(r.full.hd(2)), db(r.full.hd(3)), db(r.volterra.0), db(r.volterra.1));
         }
         csv.push(("volterra.csv".to_string(), c));
-        // The Volterra identification (seed paper 3.2.2.1) against level, on this model.
-        let nonlinear = [&p.bl, &p.kms, &p.le].iter().any(|f| f.c.len() > 1);
+        // The Volterra identification (seed paper 3.2.2.1) against level, on this model. Its
+        // error is relative to the size of the nonlinearity: a model whose curves vary by
+        // less than a millionth over the range (a degenerate fit's 1e-14 coefficients) has
+        // none to identify, and 0/0 to draw.
+        let varies = |f: &coilscope_core::poly::Poly| grid(range, 40).iter().any(|&x| (f.eval(x) - f.eval(0.0)).abs() > 1e-6 * f.eval(0.0).abs());
+        let nonlinear = [&p.bl, &p.kms, &p.le].iter().any(|f| varies(f));
         if nonlinear {
             let model = Parameters { x_range: Some(range), ..p.clone() };
             let fracs = [0.025, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9];
@@ -659,7 +676,7 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     }
 
     let html = page(&input.title, p, &b.html);
-    Ok(Report { html, charts: b.charts, csv, volts, volterra_divergence: divergence })
+    Ok(Report { html, charts: b.charts, csv, volts, volterra_divergence: divergence, warnings: b.warnings })
 }
 
 fn sweep_point(p: &Parameters, f: f64, volts: f64, o: &SteadyOptions) -> Result<Analysis, String> {
@@ -797,5 +814,43 @@ mod legend_overlap {
             }
         }
         assert!(checked >= 12, "only {checked} charts with a legend were checked");
+    }
+}
+
+#[cfg(test)]
+mod degenerate {
+    use super::*;
+
+    /// Issue 17 (session 44): `measure --replay` of SB17's `-real-chain` record without its
+    /// calibration ended on curves that vary by 1e-16 of their value over the range; the
+    /// Volterra identification's error (over the size of the nonlinearity) was 0/0 and the
+    /// whole report failed on its chart. The report is written, without that chart.
+    #[test]
+    fn a_model_with_vanishing_nonlinearity_still_gets_its_report() {
+        let mut input = input_from("sb17cac35-4").unwrap();
+        for f in [&mut input.params.bl, &mut input.params.kms, &mut input.params.le] {
+            let c0 = f.c[0];
+            for (k, c) in f.c.iter_mut().enumerate().skip(1) {
+                *c = 1e-14 * c0 * 1e3f64.powi(k as i32);
+            }
+        }
+        let report = build(&input, &ReportOptions::default()).unwrap();
+        assert!(report.warnings.is_empty(), "{:?}", report.warnings);
+        assert!(!report.charts.iter().any(|c| c.id == "volterra-identification"), "no nonlinearity to identify");
+        assert!(report.charts.iter().all(|c| c.has_finite_data()));
+    }
+
+    /// A chart without a finite value gets a figure that says so and a warning; the report
+    /// goes on.
+    #[test]
+    fn a_chart_without_finite_data_is_a_note_and_a_warning() {
+        let mut b = Builder { html: String::new(), charts: vec![], warnings: vec![] };
+        b.chart(Chart::new("empty", "Empty", "x", "y").line("nan", vec![(0.0, f64::NAN), (1.0, f64::NAN)]), "caption").unwrap();
+        b.chart(Chart::new("fine", "Fine", "x", "y").line("one", vec![(0.0, 1.0), (1.0, 2.0)]), "caption").unwrap();
+        assert_eq!(b.warnings.len(), 1, "{:?}", b.warnings);
+        assert!(b.warnings[0].contains("chart empty") && b.warnings[0].contains("no finite value"));
+        assert!(b.html.contains("id=\"plot-empty\"") && b.html.contains("no finite value to draw"));
+        assert_eq!(b.charts.len(), 1, "only the drawable chart gets a PNG");
+        assert_eq!(b.charts[0].id, "fine");
     }
 }
