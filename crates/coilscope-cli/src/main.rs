@@ -2097,7 +2097,10 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         }
         if l.t - last_print >= 1.0 || l.update.is_some() && tty {
             last_print = l.t;
-            let state = format!("x {:+6.2} .. {:+6.2} mm  dT {:5.1} K  Re {:.4} ohm  err {:.1e}", l.x_min * 1e3, l.x_max * 1e3, l.dtv, l.re, l.residual);
+            // Before the small-signal fit there is no estimate yet: a dash, not NaN.
+            let re = if l.re.is_finite() { format!("{:.4}", l.re) } else { "  -   ".to_string() };
+            let err = if l.residual.is_finite() { format!("{:.1e}", l.residual) } else { "  -   ".to_string() };
+            let state = format!("x {:+6.2} .. {:+6.2} mm  dT {:5.1} K  Re {re} ohm  err {err}", l.x_min * 1e3, l.x_max * 1e3, l.dtv);
             // A replay's level was set when it was recorded: no drive level, no controller.
             let line = if controllable { format!("t {:6.1} s  {:<12} {:7.3} V  {state}  limited by {}", l.t, l.stage.name(), l.volts, l.limited_by) } else { format!("t {:6.1} s  {state}", l.t) };
             if tty {
@@ -2145,7 +2148,9 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     println!("{status}: {}", m.stop_reason.describe());
     println!("measured {:.1} s, peak x {:.2} mm, voice-coil rise up to {:.1} K, {} updates, window residual {:.2e}", m.seconds, m.x_peak_max * 1e3, m.dtv_max, m.updates, m.residual_rel);
     println!("start (the first {} s): Re {:.4} ohm, Bl {:.3} T m, Kms {:.1} N/m, Rms {:.3} kg/s", opts.small_seconds, m.small.re, m.small.bl.eval(0.0), m.small.kms.eval(0.0), m.small.rms);
-    println!("cold Re (the temperature reference: the small-signal stage refitted with the final model when converged, else its impedance fit): {:.4} ohm +- {:.1e}", m.re_cold, m.re_cold_sd);
+    // An sd the fit could not give (a degenerate small-signal fit) is said so, not printed as NaN.
+    let re_cold_sd = if m.re_cold_sd.is_finite() { format!("+- {:.1e}", m.re_cold_sd) } else { "(no sd: the small-signal fit gave none)".to_string() };
+    println!("cold Re (the temperature reference: the small-signal stage refitted with the final model when converged, else its impedance fit): {:.4} ohm {re_cold_sd}", m.re_cold);
     let [lo, hi] = m.x_range;
     println!("large signal (end), over {:.2} .. {:.2} mm:", lo * 1e3, hi * 1e3);
     // The functions of x of the parameter schema (constants among them on one line below).

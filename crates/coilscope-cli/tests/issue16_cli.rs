@@ -239,4 +239,6 @@ fn measure_replay_of_the_real_chain_record_without_its_calibration_is_loud_and_r
     assert!(text.contains("[residual-above-noise]"), "{text}");
     assert!(!text.contains("report was not written"), "{text}");
     assert!(out.join("report.html").exists(), "{text}");
+    // Session 44: its cold Re's sd was printed "+- NaN", its first live lines "Re NaN".
+    assert!(!text.contains("NaN") && text.contains("no sd"), "{text}");
 }

@@ -14,6 +14,10 @@ fn virtual_measurement_writes_result_and_database() {
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{text}\n{}", String::from_utf8_lossy(&o.stderr));
     assert!(text.contains("converged"), "{text}");
+    // Session 44: the live lines before the small-signal fit said "Re NaN ohm  err NaN".
+    let live = String::from_utf8_lossy(&o.stderr);
+    assert!(live.contains("small-signal") && live.contains("Re   -    ohm"), "{live}");
+    assert!(!text.contains("NaN") && !live.contains("NaN"), "{text}\n{live}");
     let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
     assert_eq!(j["format"], "coilscope.result/1");
     // The typed reader knows every key and writes the file back unchanged.
