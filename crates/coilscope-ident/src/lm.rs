@@ -512,9 +512,6 @@ mod tests {
         assert!((s.theta[0] - 2.5).abs() < 1e-8 && (s.theta[1] + 1.3).abs() < 1e-8, "{:?}", s.theta);
     }
 
-    /// A residual quadratic in theta, `r_k = c_k + b_k . theta + 1/2 theta^T Q_k theta`:
-    /// the probe's finite difference gives its second directional derivative `v^T Q_k v`
-    /// exactly, so [`geodesic_step`] is `v + a / 2` with `a` from the analytic `r_vv`.
     /// Nielsen's rule: a well-predicted step (gain 0.94 or more) divides the damping by 3, a
     /// half-predicted one keeps it, a poor one doubles it, and in between it moves smoothly.
     #[test]
@@ -535,6 +532,9 @@ mod tests {
         }
     }
 
+    /// A residual quadratic in theta, `r_k = c_k + b_k . theta + 1/2 theta^T Q_k theta`:
+    /// the probe's finite difference gives its second directional derivative `v^T Q_k v`
+    /// exactly, so [`geodesic_step`] is `v + a / 2` with `a` from the analytic `r_vv`.
     #[test]
     fn the_geodesic_step_takes_the_residuals_second_derivative_along_the_step() {
         struct Quadratic {
