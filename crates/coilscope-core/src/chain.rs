@@ -25,6 +25,7 @@ use realfft::num_complex::Complex64;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::f64::consts::PI;
+use std::sync::{Arc, Mutex};
 
 /// Mains hum on the recorded channels: peak amplitude and phase (rad, of a cosine at `t = 0`)
 /// of each harmonic `k f` (`k = 1, 2, ...`).
@@ -181,7 +182,7 @@ pub fn delay(x: &[f64], samples: f64) -> Vec<f64> {
         return x.to_vec();
     }
     let s = DelaySpectrum::new(x, delay_pad(samples));
-    s.delayed(&s.phases(samples))
+    s.delayed(&s.phases_shared(samples))
 }
 
 /// The zero padding (samples each side) [`delay`] uses for a delay of `samples`.
@@ -218,19 +219,48 @@ impl DelaySpectrum {
         (0..self.spec.len()).map(|k| Complex64::from_polar(1.0 / n, -2.0 * PI * k as f64 * samples / n)).collect()
     }
 
+    /// [`DelaySpectrum::phases`], shared: the factors of the last few delays asked for at
+    /// this transform length are kept (a fit asks for the same delay for its current to match
+    /// and for its basis columns; each set is `n / 2 + 1` sines and cosines).
+    pub fn phases_shared(&self, samples: f64) -> Arc<Vec<Complex64>> {
+        static KEPT: Mutex<Vec<(usize, u64, Arc<Vec<Complex64>>)>> = Mutex::new(Vec::new());
+        let key = (self.n, samples.to_bits());
+        if let Some(p) = KEPT.lock().unwrap_or_else(|e| e.into_inner()).iter().find(|k| (k.0, k.1) == key).map(|k| k.2.clone()) {
+            return p;
+        }
+        let p = Arc::new(self.phases(samples));
+        let mut kept = KEPT.lock().unwrap_or_else(|e| e.into_inner());
+        if kept.len() >= KEPT_PHASES {
+            kept.remove(0);
+        }
+        kept.push((key.0, key.1, p.clone()));
+        p
+    }
+
     /// The signal delayed as `phases` says.
     pub fn delayed(&self, phases: &[Complex64]) -> Vec<f64> {
-        let mut spec = self.spec.clone();
-        for (c, p) in spec.iter_mut().zip(phases) {
-            *c *= p;
-        }
+        self.delayed_range(phases, 0..self.len)
+    }
+
+    /// Samples `range` of [`DelaySpectrum::delayed`] (the same values to the last bit),
+    /// without copying the rest.
+    pub fn delayed_range(&self, phases: &[Complex64], range: std::ops::Range<usize>) -> Vec<f64> {
+        assert!(range.end <= self.len, "samples {range:?} of a signal of {}", self.len);
+        debug_assert_eq!(phases.len(), self.spec.len(), "phase factors of another transform length");
+        let spec: Vec<Complex64> = self.spec.iter().zip(phases).map(|(c, p)| c * p).collect();
         // The Nyquist bin of a real signal cannot carry a fractional shift (its phase would
         // make it complex): `irfft` keeps its real part only (it is empty for a band-limited
         // record).
-        let y = crate::fft::irfft(&spec, self.n);
-        y[self.pad..self.pad + self.len].to_vec()
+        let mut y = crate::fft::irfft_owned(spec, self.n);
+        let from = self.pad + range.start;
+        y.copy_within(from..from + range.len(), 0);
+        y.truncate(range.len());
+        y
     }
 }
+
+/// Sets of phase factors [`DelaySpectrum::phases_shared`] keeps.
+const KEPT_PHASES: usize = 4;
 
 impl Chain {
     /// What the record adds after the coupling, per channel: offset plus hum, `n` samples.
@@ -415,6 +445,27 @@ mod tests {
         for tau in [0.7, -0.3, 0.05, -0.999] {
             assert_eq!(delay_pad(tau), s.pad);
             assert_eq!(s.delayed(&s.phases(tau)), delay(&x, tau), "tau {tau}");
+        }
+    }
+
+    /// Issue 17, session 45: a part of a delayed signal ([`DelaySpectrum::delayed_range`]) is
+    /// that part of [`DelaySpectrum::delayed`], and the shared phase factors are
+    /// [`DelaySpectrum::phases`], to the last bit, also when more delays are asked for than
+    /// are kept (`KEPT_PHASES`).
+    #[test]
+    fn a_delayed_range_and_shared_phases_are_the_plain_ones() {
+        let x = noise(23, 3000);
+        let s = DelaySpectrum::new(&x, delay_pad(0.4));
+        for round in 0..2 {
+            for tau in [0.4, -0.25, 0.125, -0.9, 0.6, 0.01] {
+                let shared = s.phases_shared(tau);
+                assert_eq!(*shared, s.phases(tau), "round {round}, tau {tau}");
+                let whole = s.delayed(&shared);
+                assert_eq!(whole.len(), x.len());
+                for r in [0..3000, 0..1, 17..2900, 2999..3000, 5..5] {
+                    assert_eq!(s.delayed_range(&shared, r.clone()), whole[r.clone()].to_vec(), "tau {tau}, range {r:?}");
+                }
+            }
         }
     }
 

@@ -23,8 +23,13 @@ pub fn rfft(x: &[f64]) -> Vec<Complex64> {
 /// Real signal of `n` samples from its `n / 2 + 1` bins (the imaginary parts of DC and, for
 /// even n, Nyquist are ignored). Not normalised: divide by n to invert [`rfft`].
 pub fn irfft(spec: &[Complex64], n: usize) -> Vec<f64> {
+    irfft_owned(spec.to_vec(), n)
+}
+
+/// [`irfft`] of a spectrum the caller gives up: the transform works in it (realfft's inverse
+/// overwrites its input), so it is not copied first. The same values to the last bit.
+pub fn irfft_owned(mut s: Vec<Complex64>, n: usize) -> Vec<f64> {
     let c2r = PLANNER.with(|p| p.borrow_mut().plan_fft_inverse(n));
-    let mut s = spec.to_vec();
     s[0].im = 0.0;
     if n.is_multiple_of(2) {
         let last = s.len() - 1;

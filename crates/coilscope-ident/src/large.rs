@@ -966,7 +966,26 @@ pub struct ChainSetup {
     /// Unit of a free `dc_u` in theta (V): 1e-5 of the recorded voltage's RMS (one unit is
     /// also the step of its Jacobian column's central difference).
     pub u_unit: f64,
+    /// The last few [`ChainSetup::target`]s, by the chain's unknowns.
+    targets: TargetCache,
 }
+
+/// The last [`KEPT_TARGETS`] currents to match of a [`ChainSetup`], by the chain's unknowns:
+/// a fit asks for the one at its theta for the residual, again for the Jacobian's chain
+/// columns there and for the held-out part's run (an FFT pair of the record's padded length
+/// each, 0.26 M sines and cosines, the inverse coupling and the basis taken off). A clone
+/// starts empty (a setup changed by a clone keys its own).
+#[derive(Default)]
+struct TargetCache(std::sync::Mutex<Vec<(Vec<f64>, std::sync::Arc<Vec<f64>>)>>);
+
+impl Clone for TargetCache {
+    fn clone(&self) -> Self {
+        TargetCache::default()
+    }
+}
+
+/// Currents to match a [`ChainSetup`] keeps ([`TargetCache`]).
+const KEPT_TARGETS: usize = 4;
 
 impl ChainSetup {
     pub fn new(u_rec: &[f64], i_rec: &[f64], terms: crate::linear::ChainTerms) -> Self {
@@ -982,7 +1001,7 @@ impl ChainSetup {
             basis.push((format!("sin {f}"), (0..n).map(|m| a * (w * m as f64).sin()).collect()));
         }
         let u_unit = 1e-5 * coilscope_core::simulate::rms(u_rec).max(1e-12);
-        ChainSetup { u_rec: u_rec.to_vec(), i_rec: i_rec.to_vec(), terms, basis, basis_spectra: Default::default(), whiten_hz: 0.0, dc_u_free: false, u_unit }
+        ChainSetup { u_rec: u_rec.to_vec(), i_rec: i_rec.to_vec(), terms, basis, basis_spectra: Default::default(), whiten_hz: 0.0, dc_u_free: false, u_unit, targets: TargetCache::default() }
     }
     /// `v` (a residual or a Jacobian column over the fitted samples) through the whitening
     /// high-pass ([`ChainSetup::whiten_hz`]).
@@ -993,6 +1012,48 @@ impl ChainSetup {
                 *x = f.push(*x);
             }
         }
+    }
+    /// [`ChainSetup::whiten`] on each column of `data` (column-major, `rows` a column; a
+    /// Jacobian's storage), the same values to the last bit, on `threads` workers. The
+    /// filter's recursion is one chain of dependent operations per column: four columns go
+    /// through the loop together, so that their chains overlap (one at a time, the whitening
+    /// of SB17 `-real-all`'s Jacobians took 3 % of `identify`'s time on one core).
+    pub fn whiten_columns(&self, data: &mut [f64], rows: usize, threads: usize) {
+        if !(self.whiten_hz > 0.0) || rows == 0 {
+            return;
+        }
+        let (g, a) = coilscope_core::chain::hp_coefficients(self.whiten_hz, self.terms.fs);
+        // HighPass::push, four columns at a time.
+        let four = |cols: &mut [f64]| {
+            let (mut x1, mut y1) = ([0.0f64; 4], [0.0f64; 4]);
+            for m in 0..rows {
+                for c in 0..4 {
+                    let x = cols[c * rows + m];
+                    y1[c] = g * (x - x1[c]) + a * y1[c];
+                    x1[c] = x;
+                    cols[c * rows + m] = y1[c];
+                }
+            }
+        };
+        let work = |part: &mut [f64]| {
+            let mut quads = part.chunks_exact_mut(4 * rows);
+            for q in quads.by_ref() {
+                four(q);
+            }
+            for col in quads.into_remainder().chunks_exact_mut(rows) {
+                self.whiten(col);
+            }
+        };
+        let ncols = data.len() / rows;
+        if threads < 2 || ncols < 8 {
+            return work(data);
+        }
+        // Two halves of whole groups of four columns.
+        let (left, right) = data.split_at_mut((ncols / 8 * 4) * rows);
+        std::thread::scope(|scope| {
+            scope.spawn(|| work(left));
+            work(right);
+        });
     }
     /// Unknowns of the chain in theta.
     pub fn n(&self) -> usize {
@@ -1057,7 +1118,32 @@ impl ChainSetup {
     /// record's ends where the zero padding cuts it (taken off after the delay, that ringing
     /// stayed in the residual).
     pub fn target(&self, th_c: &[f64]) -> Vec<f64> {
-        let [tau, _, fi] = self.values(th_c);
+        {
+            // The most recently used last.
+            let mut kept = self.targets.0.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(at) = kept.iter().position(|(k, _)| k == th_c) {
+                let hit = kept.remove(at);
+                let t = hit.1.clone();
+                kept.push(hit);
+                drop(kept);
+                return t.as_ref().clone();
+            }
+        }
+        let tau = self.values(th_c)[0];
+        let t = self.targets_delayed(th_c, &[tau]).pop().expect("one delay, one target");
+        let mut kept = self.targets.0.lock().unwrap_or_else(|e| e.into_inner());
+        if kept.len() >= KEPT_TARGETS {
+            kept.remove(0);
+        }
+        kept.push((th_c.to_vec(), std::sync::Arc::new(t.clone())));
+        t
+    }
+    /// [`ChainSetup::target`] at `th_c` with the delay (samples) taken as each of `taus`
+    /// instead (the delay's Jacobian column): the current behind the coupling, less the
+    /// basis, once, then delayed by each (one spectrum per padding). The same values to the
+    /// last bit as `target` of `th_c` with each delay.
+    fn targets_delayed(&self, th_c: &[f64], taus: &[f64]) -> Vec<Vec<f64>> {
+        let fi = self.values(th_c)[2];
         let mut t = coilscope_core::chain::hp_inverse(&self.i_rec, fi, self.terms.fs);
         let c = &th_c[self.basis_index()..];
         for (ck, (_, b)) in c.iter().zip(&self.basis) {
@@ -1067,7 +1153,22 @@ impl ChainSetup {
                 }
             }
         }
-        coilscope_core::chain::delay(&t, -tau)
+        // chain::delay, its spectrum shared between delays of one padding.
+        let mut spectra: Vec<coilscope_core::chain::DelaySpectrum> = Vec::new();
+        taus.iter()
+            .map(|&tau| {
+                let samples = -tau;
+                if samples == 0.0 || t.is_empty() {
+                    return t.clone();
+                }
+                let pad = coilscope_core::chain::delay_pad(samples);
+                let k = spectra.iter().position(|s| s.pad == pad).unwrap_or_else(|| {
+                    spectra.push(coilscope_core::chain::DelaySpectrum::new(&t, pad));
+                    spectra.len() - 1
+                });
+                spectra[k].delayed(&spectra[k].phases_shared(samples))
+            })
+            .collect()
     }
     /// The basis signals' spectra for a delay of `samples` ([`ChainSetup::basis_spectra`]),
     /// computed on `threads` workers when first asked for or when the padding changes.
@@ -1555,9 +1656,13 @@ impl<'a> OutputError<'a> {
         // that are on and a free dc_u, then the basis.
         let mut terms = vec![];
         let mut k = nl;
+        let mut delay_at = None;
         for (n, on) in on.into_iter().enumerate() {
             if on {
                 terms.push((k, if n == 0 { 1e-3 } else { 1e-3 * th[k].abs().max(0.1) }, n == 1));
+                if n == 0 {
+                    delay_at = Some(k);
+                }
                 k += 1;
             }
         }
@@ -1568,17 +1673,24 @@ impl<'a> OutputError<'a> {
         // The basis, delayed as the target takes it off (see ChainSetup::target).
         let tau = c.values(&th[nl..])[0];
         let spectra = (tau != 0.0).then(|| c.basis_delayer(-tau, self.threads));
-        let phases = spectra.as_ref().and_then(|s| s.first()).map(|s| s.phases(-tau));
+        let phases = spectra.as_ref().and_then(|s| s.first()).map(|s| s.phases_shared(-tau));
         // Independent columns (model runs, FFT delays): spread over the workers.
         parallel_map(terms.len() + c.basis.len(), self.threads, |j| match terms.get(j) {
             Some(&(k, h, true)) => drive_column(k, h),
             Some(&(k, h, false)) => {
                 let (a, b, d) = pair(k, h);
-                let (ta, tb) = (c.target(&a[nl..]), c.target(&b[nl..]));
+                // The delay's two targets share the current behind the coupling, less the
+                // basis (the same values as two calls of `target`).
+                let (ta, tb) = if delay_at == Some(k) {
+                    let [ta, tb]: [Vec<f64>; 2] = c.targets_delayed(&th[nl..], &[c.values(&a[nl..])[0], c.values(&b[nl..])[0]]).try_into().unwrap_or_else(|_| unreachable!("two delays, two targets"));
+                    (ta, tb)
+                } else {
+                    (c.target(&a[nl..]), c.target(&b[nl..]))
+                };
                 fit.clone().map(|m| -(ta[m] - tb[m]) / d).collect()
             }
             None => match (&spectra, &phases) {
-                (Some(sp), Some(ph)) => sp[j - terms.len()].delayed(ph)[fit.clone()].to_vec(),
+                (Some(sp), Some(ph)) => sp[j - terms.len()].delayed_range(ph, fit.clone()),
                 _ => c.basis[j - terms.len()].1[fit.clone()].to_vec(),
             },
         })
@@ -1699,9 +1811,8 @@ impl<'a> OutputError<'a> {
         for (k, col) in self.chain_columns(th, c).into_iter().enumerate() {
             j.column_mut(nl + k).copy_from_slice(&col);
         }
-        for mut col in j.column_iter_mut() {
-            c.whiten(col.as_mut_slice());
-        }
+        let rows = j.nrows();
+        c.whiten_columns(j.as_mut_slice(), rows, self.threads);
         j
     }
 
@@ -3692,6 +3803,70 @@ mod tests {
             th[k] *= 1.03;
         }
         (p, u, i, lay, th)
+    }
+
+    /// Issue 17, session 45: the chain's computations made cheaper give the same values to
+    /// the last bit. Through a card (0.3-sample delay, AC coupling at 2 and 4 Hz, offsets,
+    /// hum): a kept target ([`TargetCache`]) is the one computed afresh, also after more
+    /// thetas than are kept; [`ChainSetup::targets_delayed`] is `target` at each delay; the
+    /// whitening of a Jacobian's columns four at a time on one or two workers
+    /// ([`ChainSetup::whiten_columns`]) is [`ChainSetup::whiten`] of each column, for 1 to 13
+    /// columns.
+    #[test]
+    fn the_chains_kept_and_shared_computations_are_the_plain_ones() {
+        use coilscope_core::chain::{Chain, Hum};
+        let (_, u_drv, i_drv, _, _) = chord_case();
+        let fs = 48000.0;
+        let peak = |v: &[f64]| v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
+        let card = Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, dc_u: 5e-3 * peak(&u_drv), dc_i: 5e-3 * peak(&i_drv), hum: Some(Hum { f: 50.0, u: vec![[1e-3 * peak(&u_drv), 0.3]], i: vec![[1e-3 * peak(&i_drv), 1.1]] }), ..Default::default() };
+        let (u_rec, i_rec) = card.apply(&u_drv, &i_drv, fs);
+        let mut setup = ChainSetup::new(&u_rec, &i_rec, crate::linear::ChainTerms { fs, delay: true, hp_u: true, hp_i: true });
+        setup.whiten_hz = 4.0;
+        let base = setup.theta0(&[0.3, 2.0, 4.0]);
+        // The plain target: the inverse coupling, the basis off, chain::delay.
+        let plain = |tc: &[f64]| {
+            let [tau, _, fi] = setup.values(tc);
+            let mut t = coilscope_core::chain::hp_inverse(&setup.i_rec, fi, fs);
+            for (ck, (_, b)) in tc[setup.basis_index()..].iter().zip(&setup.basis) {
+                if *ck != 0.0 {
+                    t.iter_mut().zip(b).for_each(|(v, bv)| *v -= ck * bv);
+                }
+            }
+            coilscope_core::chain::delay(&t, -tau)
+        };
+        let thetas: Vec<Vec<f64>> = (0..7)
+            .map(|k| {
+                let mut tc = base.clone();
+                tc[0] += 0.01 * k as f64;
+                tc[2] *= 1.0 + 0.001 * k as f64;
+                tc[setup.basis_index()] += 1e-3 * k as f64;
+                tc
+            })
+            .collect();
+        for round in 0..2 {
+            for tc in &thetas {
+                assert_eq!(setup.target(tc), plain(tc), "round {round}");
+            }
+        }
+        let tau = setup.values(&base)[0];
+        let taus = [tau + 1e-3, tau - 1e-3, tau + 1.5, 0.0];
+        for (t, &d) in setup.targets_delayed(&base, &taus).iter().zip(&taus) {
+            let mut tc = base.clone();
+            tc[0] += d - tau;
+            assert_eq!(setup.values(&tc)[0], d);
+            assert_eq!(t, &plain(&tc), "delay {d}");
+        }
+        let rows = 3001;
+        let data: Vec<f64> = (0..13 * rows).map(|k| ((k as f64) * 0.37).sin() + 1e-3 * k as f64).collect();
+        for cols in 1..=13 {
+            let mut want = data[..cols * rows].to_vec();
+            want.chunks_exact_mut(rows).for_each(|c| setup.whiten(c));
+            for threads in [1, 2] {
+                let mut got = data[..cols * rows].to_vec();
+                setup.whiten_columns(&mut got, rows, threads);
+                assert_eq!(got, want, "{cols} columns on {threads} workers");
+            }
+        }
     }
 
     /// [`gauss_newton_decrease`] is what least squares in those columns takes off the cost,
