@@ -21,11 +21,12 @@
 //! Conventions and keys are those of `shared/spec/formats.md` ("Extensions": a result's
 //! `chain`). Everything is SI; the delay is in seconds (the fits work in samples and convert).
 
+use crate::recent::Recent;
 use realfft::num_complex::Complex64;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::f64::consts::PI;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 /// Mains hum on the recorded channels: peak amplitude and phase (rad, of a cosine at `t = 0`)
 /// of each harmonic `k f` (`k = 1, 2, ...`).
@@ -178,11 +179,27 @@ pub fn hp_response_at((g, a): (f64, f64), zi: Complex64) -> Complex64 {
 /// `x` delayed by `samples` (fractional, may be negative: an advance), band-limited by FFT over
 /// the record zero-padded by at least 256 samples on the delayed side, so that nothing wraps.
 pub fn delay(x: &[f64], samples: f64) -> Vec<f64> {
-    if samples == 0.0 || x.is_empty() {
-        return x.to_vec();
-    }
-    let s = DelaySpectrum::new(x, delay_pad(samples));
-    s.delayed(&s.phases_shared(samples))
+    delays(x, &[samples]).pop().expect("one delay, one signal")
+}
+
+/// [`delay`] of `x` by each of `samples`, the same values to the last bit: one spectrum per
+/// padding (two delays that round up to the same number of samples share it).
+pub fn delays(x: &[f64], samples: &[f64]) -> Vec<Vec<f64>> {
+    let mut spectra: Vec<DelaySpectrum> = Vec::new();
+    samples
+        .iter()
+        .map(|&s| {
+            if s == 0.0 || x.is_empty() {
+                return x.to_vec();
+            }
+            let pad = delay_pad(s);
+            let k = spectra.iter().position(|sp| sp.pad == pad).unwrap_or_else(|| {
+                spectra.push(DelaySpectrum::new(x, pad));
+                spectra.len() - 1
+            });
+            spectra[k].delayed(&spectra[k].phases_shared(s))
+        })
+        .collect()
 }
 
 /// The zero padding (samples each side) [`delay`] uses for a delay of `samples`.
@@ -223,18 +240,8 @@ impl DelaySpectrum {
     /// this transform length are kept (a fit asks for the same delay for its current to match
     /// and for its basis columns; each set is `n / 2 + 1` sines and cosines).
     pub fn phases_shared(&self, samples: f64) -> Arc<Vec<Complex64>> {
-        static KEPT: Mutex<Vec<(usize, u64, Arc<Vec<Complex64>>)>> = Mutex::new(Vec::new());
-        let key = (self.n, samples.to_bits());
-        if let Some(p) = KEPT.lock().unwrap_or_else(|e| e.into_inner()).iter().find(|k| (k.0, k.1) == key).map(|k| k.2.clone()) {
-            return p;
-        }
-        let p = Arc::new(self.phases(samples));
-        let mut kept = KEPT.lock().unwrap_or_else(|e| e.into_inner());
-        if kept.len() >= KEPT_PHASES {
-            kept.remove(0);
-        }
-        kept.push((key.0, key.1, p.clone()));
-        p
+        static KEPT: Recent<(usize, u64), Vec<Complex64>> = Recent::new(KEPT_PHASES);
+        KEPT.get_or_compute((self.n, samples.to_bits()), || self.phases(samples))
     }
 
     /// The signal delayed as `phases` says.
@@ -449,11 +456,11 @@ mod tests {
     }
 
     /// Issue 17, session 45: a part of a delayed signal ([`DelaySpectrum::delayed_range`]) is
-    /// that part of [`DelaySpectrum::delayed`], and the shared phase factors are
+    /// that part of [`DelaySpectrum::delayed`], the shared phase factors are
     /// [`DelaySpectrum::phases`], to the last bit, also when more delays are asked for than
-    /// are kept (`KEPT_PHASES`).
+    /// are kept (`KEPT_PHASES`), and [`delays`] is [`delay`] of each amount.
     #[test]
-    fn a_delayed_range_and_shared_phases_are_the_plain_ones() {
+    fn a_delayed_range_shared_phases_and_delays_are_the_plain_ones() {
         let x = noise(23, 3000);
         let s = DelaySpectrum::new(&x, delay_pad(0.4));
         for round in 0..2 {
@@ -467,6 +474,13 @@ mod tests {
                 }
             }
         }
+        // Several delays of one signal, spectra shared where the paddings agree, are each
+        // delay's own (a zero delay: the signal itself).
+        let taus = [0.4, 0.6, -0.4, 1.7, 0.0, 0.4];
+        for (d, &tau) in delays(&x, &taus).iter().zip(&taus) {
+            assert_eq!(d, &delay(&x, tau), "tau {tau}");
+        }
+        assert_eq!(delay(&x, 0.0), x);
     }
 
     fn noise(seed: u64, n: usize) -> Vec<f64> {

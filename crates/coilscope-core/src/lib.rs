@@ -22,6 +22,7 @@
 //! * [`small_signal`]: the linearised model at rest: impedance, Thiele/Small figures.
 //! * [`creep`]: LOG creep of the suspension as a bank of Maxwell elements.
 //! * [`limits`]: displacement limits XBl, XC, XL, Xsym, Ak over a reached range.
+//! * [`recent`]: a few values kept by key (the chain's FFT-sized vectors in a fit).
 //! * [`result`]: the identification result file, typed.
 //! * [`excitation`]: seeded test signals (IEC 60268-1 noise, pink noise, sine, multitone,
 //!   sweep) and named RNGs.
@@ -38,6 +39,7 @@ pub mod model;
 pub mod normal_form;
 pub mod params;
 pub mod poly;
+pub mod recent;
 pub mod result;
 pub mod schema;
 pub mod simulate;

@@ -966,25 +966,15 @@ pub struct ChainSetup {
     /// Unit of a free `dc_u` in theta (V): 1e-5 of the recorded voltage's RMS (one unit is
     /// also the step of its Jacobian column's central difference).
     pub u_unit: f64,
-    /// The last few [`ChainSetup::target`]s, by the chain's unknowns.
-    targets: TargetCache,
+    /// The last [`KEPT_TARGETS`] currents to match ([`ChainSetup::target`]), by the bits of
+    /// the chain's unknowns: a fit asks for the one at its theta for the residual, again for
+    /// the Jacobian's chain columns there and for the held-out part's run (an FFT pair of
+    /// the record's padded length each, 0.26 M sines and cosines, the inverse coupling and
+    /// the basis taken off). A clone starts empty (a setup changed by a clone keys its own).
+    targets: coilscope_core::recent::Recent<Vec<u64>, Vec<f64>>,
 }
 
-/// The last [`KEPT_TARGETS`] currents to match of a [`ChainSetup`], by the chain's unknowns:
-/// a fit asks for the one at its theta for the residual, again for the Jacobian's chain
-/// columns there and for the held-out part's run (an FFT pair of the record's padded length
-/// each, 0.26 M sines and cosines, the inverse coupling and the basis taken off). A clone
-/// starts empty (a setup changed by a clone keys its own).
-#[derive(Default)]
-struct TargetCache(std::sync::Mutex<Vec<(Vec<f64>, std::sync::Arc<Vec<f64>>)>>);
-
-impl Clone for TargetCache {
-    fn clone(&self) -> Self {
-        TargetCache::default()
-    }
-}
-
-/// Currents to match a [`ChainSetup`] keeps ([`TargetCache`]).
+/// Currents to match a [`ChainSetup`] keeps.
 const KEPT_TARGETS: usize = 4;
 
 impl ChainSetup {
@@ -1001,7 +991,7 @@ impl ChainSetup {
             basis.push((format!("sin {f}"), (0..n).map(|m| a * (w * m as f64).sin()).collect()));
         }
         let u_unit = 1e-5 * coilscope_core::simulate::rms(u_rec).max(1e-12);
-        ChainSetup { u_rec: u_rec.to_vec(), i_rec: i_rec.to_vec(), terms, basis, basis_spectra: Default::default(), whiten_hz: 0.0, dc_u_free: false, u_unit, targets: TargetCache::default() }
+        ChainSetup { u_rec: u_rec.to_vec(), i_rec: i_rec.to_vec(), terms, basis, basis_spectra: Default::default(), whiten_hz: 0.0, dc_u_free: false, u_unit, targets: coilscope_core::recent::Recent::new(KEPT_TARGETS) }
     }
     /// `v` (a residual or a Jacobian column over the fitted samples) through the whitening
     /// high-pass ([`ChainSetup::whiten_hz`]).
@@ -1022,16 +1012,12 @@ impl ChainSetup {
         if !(self.whiten_hz > 0.0) || rows == 0 {
             return;
         }
-        let (g, a) = coilscope_core::chain::hp_coefficients(self.whiten_hz, self.terms.fs);
-        // HighPass::push, four columns at a time.
+        let filter = coilscope_core::chain::HighPass::new(self.whiten_hz, self.terms.fs);
         let four = |cols: &mut [f64]| {
-            let (mut x1, mut y1) = ([0.0f64; 4], [0.0f64; 4]);
+            let mut f = [filter; 4];
             for m in 0..rows {
-                for c in 0..4 {
-                    let x = cols[c * rows + m];
-                    y1[c] = g * (x - x1[c]) + a * y1[c];
-                    x1[c] = x;
-                    cols[c * rows + m] = y1[c];
+                for (c, f) in f.iter_mut().enumerate() {
+                    cols[c * rows + m] = f.push(cols[c * rows + m]);
                 }
             }
         };
@@ -1118,30 +1104,14 @@ impl ChainSetup {
     /// record's ends where the zero padding cuts it (taken off after the delay, that ringing
     /// stayed in the residual).
     pub fn target(&self, th_c: &[f64]) -> Vec<f64> {
-        {
-            // The most recently used last.
-            let mut kept = self.targets.0.lock().unwrap_or_else(|e| e.into_inner());
-            if let Some(at) = kept.iter().position(|(k, _)| k == th_c) {
-                let hit = kept.remove(at);
-                let t = hit.1.clone();
-                kept.push(hit);
-                drop(kept);
-                return t.as_ref().clone();
-            }
-        }
+        let key = th_c.iter().map(|v| v.to_bits()).collect();
         let tau = self.values(th_c)[0];
-        let t = self.targets_delayed(th_c, &[tau]).pop().expect("one delay, one target");
-        let mut kept = self.targets.0.lock().unwrap_or_else(|e| e.into_inner());
-        if kept.len() >= KEPT_TARGETS {
-            kept.remove(0);
-        }
-        kept.push((th_c.to_vec(), std::sync::Arc::new(t.clone())));
-        t
+        self.targets.get_or_compute(key, || self.targets_delayed(th_c, &[tau]).pop().expect("one delay, one target")).as_ref().clone()
     }
     /// [`ChainSetup::target`] at `th_c` with the delay (samples) taken as each of `taus`
     /// instead (the delay's Jacobian column): the current behind the coupling, less the
-    /// basis, once, then delayed by each (one spectrum per padding). The same values to the
-    /// last bit as `target` of `th_c` with each delay.
+    /// basis, once, then delayed by each ([`coilscope_core::chain::delays`]). The same values
+    /// to the last bit as `target` of `th_c` with each delay.
     fn targets_delayed(&self, th_c: &[f64], taus: &[f64]) -> Vec<Vec<f64>> {
         let fi = self.values(th_c)[2];
         let mut t = coilscope_core::chain::hp_inverse(&self.i_rec, fi, self.terms.fs);
@@ -1153,22 +1123,7 @@ impl ChainSetup {
                 }
             }
         }
-        // chain::delay, its spectrum shared between delays of one padding.
-        let mut spectra: Vec<coilscope_core::chain::DelaySpectrum> = Vec::new();
-        taus.iter()
-            .map(|&tau| {
-                let samples = -tau;
-                if samples == 0.0 || t.is_empty() {
-                    return t.clone();
-                }
-                let pad = coilscope_core::chain::delay_pad(samples);
-                let k = spectra.iter().position(|s| s.pad == pad).unwrap_or_else(|| {
-                    spectra.push(coilscope_core::chain::DelaySpectrum::new(&t, pad));
-                    spectra.len() - 1
-                });
-                spectra[k].delayed(&spectra[k].phases_shared(samples))
-            })
-            .collect()
+        coilscope_core::chain::delays(&t, &taus.iter().map(|&tau| -tau).collect::<Vec<f64>>())
     }
     /// The basis signals' spectra for a delay of `samples` ([`ChainSetup::basis_spectra`]),
     /// computed on `threads` workers when first asked for or when the padding changes.
@@ -3807,7 +3762,7 @@ mod tests {
 
     /// Issue 17, session 45: the chain's computations made cheaper give the same values to
     /// the last bit. Through a card (0.3-sample delay, AC coupling at 2 and 4 Hz, offsets,
-    /// hum): a kept target ([`TargetCache`]) is the one computed afresh, also after more
+    /// hum): a kept target (`ChainSetup::targets`) is the one computed afresh, also after more
     /// thetas than are kept; [`ChainSetup::targets_delayed`] is `target` at each delay; the
     /// whitening of a Jacobian's columns four at a time on one or two workers
     /// ([`ChainSetup::whiten_columns`]) is [`ChainSetup::whiten`] of each column, for 1 to 13
