@@ -2757,7 +2757,7 @@ fn gauss_newton_decrease(gram: &DMatrix<f64>, grad: &DVector<f64>, cols: &[usize
 /// Until issue 17's session 46 creep sat at the trials' [`CREEP_VANISHING`], whose start
 /// missed the current by 23-36 % more than the base (in cost) on the bundled woofers'
 /// records; the step with creep's column won that back and it counted as creep's gain
-/// (1.1-3.5 %, against 4e-10 to 2e-6 from zero), and LR-3's by the columns' overlap
+/// (1.0-3.5 %, against 4e-10 to 2e-6 from zero), and LR-3's by the columns' overlap
 /// (1.8-2.8e-3): two trials fitted and dropped on every record without the effects
 /// (`the_effects_screen_scores_from_the_base_model_itself`).
 #[allow(clippy::too_many_arguments)]
