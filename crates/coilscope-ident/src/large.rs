@@ -1616,13 +1616,11 @@ impl<'a> OutputError<'a> {
         // that are on and a free dc_u, then the basis.
         let mut terms = vec![];
         let mut k = nl;
-        let mut delay_at = None;
+        // The delay, when on, is the chain's first unknown.
+        let delay_at = on[0].then_some(nl);
         for (n, on) in on.into_iter().enumerate() {
             if on {
                 terms.push((k, if n == 0 { 1e-3 } else { 1e-3 * th[k].abs().max(0.1) }, n == 1));
-                if n == 0 {
-                    delay_at = Some(k);
-                }
                 k += 1;
             }
         }
@@ -3759,12 +3757,7 @@ mod tests {
     /// order-4 layout with two Re knots, theta from the truth with Bl, Kms and Le 3 % off.
     fn chord_case() -> (Parameters, Vec<f64>, Vec<f64>, Layout, Vec<f64>) {
         let p = embedded_driver("sb17cac35-4").unwrap();
-        let fs = 48000.0;
-        let [lo, hi] = p.x_range.unwrap();
-        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 1.5, rms: 1.0, fade: 0.05, seed: 3 }).unwrap();
-        let (_, tr) = gain_for_peak(&p, fs, &unit, 0.85 * hi.min(-lo), &SimOptions::default()).unwrap();
-        let (u, mut i) = (tr.u, tr.i);
-        add_sensor_noise(&mut i, 70.0, 3, "large-test/chord");
+        let (u, i) = chord_record(&p, "large-test/chord");
         let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
         let lay = Layout::new(4, 2, 1.0, 0.004, sc, true, p.mms);
         let mut th = lay.theta_from(&p, None);
@@ -3773,6 +3766,18 @@ mod tests {
             th[k] *= 1.03;
         }
         (p, u, i, lay, th)
+    }
+
+    /// The chord tests' record of driver `p` (its `x_range` sets the level): 1.5 s of pink
+    /// noise at 48 kHz to 85 % of the range, sensor noise at 70 dB from the named RNG `noise`.
+    fn chord_record(p: &Parameters, noise: &str) -> (Vec<f64>, Vec<f64>) {
+        let fs = 48000.0;
+        let [lo, hi] = p.x_range.unwrap();
+        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 1.5, rms: 1.0, fade: 0.05, seed: 3 }).unwrap();
+        let (_, tr) = gain_for_peak(p, fs, &unit, 0.85 * hi.min(-lo), &SimOptions::default()).unwrap();
+        let (u, mut i) = (tr.u, tr.i);
+        add_sensor_noise(&mut i, 70.0, 3, noise);
+        (u, i)
     }
 
     /// Issue 17, session 45: the chain's computations made cheaper give the same values to
@@ -3864,11 +3869,7 @@ mod tests {
             assert!(*g < EFFECT_SCREEN_GAIN, "{}: {g:.3e} on a record without it", e.model_name());
         }
         let pc = Parameters { creep: Some(coilscope_core::params::Creep { lambda: 0.07, f_ref: None }), ..p.clone() };
-        let [lo, hi] = p.x_range.unwrap();
-        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 1.5, rms: 1.0, fade: 0.05, seed: 3 }).unwrap();
-        let (_, tr) = gain_for_peak(&pc, fs, &unit, 0.85 * hi.min(-lo), &SimOptions::default()).unwrap();
-        let (uc, mut ic) = (tr.u, tr.i);
-        add_sensor_noise(&mut ic, 70.0, 3, "large-test/screen-creep");
+        let (uc, ic) = chord_record(&pc, "large-test/screen-creep");
         let with_creep = screen(&uc, &ic);
         println!("with creep: creep {:.3e}", with_creep[0]);
         assert!(with_creep[0] > 30.0 * EFFECT_SCREEN_GAIN, "creep {:.3e} on a record with lambda 0.07", with_creep[0]);
