@@ -15,7 +15,7 @@
 use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
 use coilscope_core::simulate::{gain_for_peak, SimOptions, Summary};
 use coilscope_core::{embedded_driver, Parameters};
-use coilscope_ident::large::{identify, IdentifyOptions};
+use coilscope_ident::large::{identify, IdentifyOptions, Progress, Stage};
 // The LR-2 model: what this sweep tests is that the fit never fails; the choice of effects
 // (and that plain records keep LR-2) is tested in issue15_real_drivers.rs.
 use coilscope_ident::linear::{Effects, EffectsChoice};
@@ -102,7 +102,10 @@ fn identify_never_fails_on_a_large_semi_inductive_coil() {
 /// its floor); `identify` now adds heating terms to `Re(t)` (`large::HEAT_TAUS`). Measured
 /// (2026-11-27): Bl, Kms <= 0.01 %, Le 0.012-0.082 %, Re <= 0.016 %, the residual 1.02-1.11x
 /// its floor.
-/// The test fails at Bl, Kms 0.1 %, Le 0.2 %, Re 0.1 %, or a residual above 2x its floor.
+/// The test fails at Bl, Kms 0.1 %, Le 0.2 %, Re 0.1 %, or a residual above 2x its floor,
+/// or when a fit that ends with heating terms took a step without them first (issue 17,
+/// session 47: the heating test is made on the first Jacobian's linearised step, which saves
+/// the microspeaker that step's residual run).
 ///
 /// Two cases that used to fail:
 /// * the 0.1 g set with seed 2 (68 K): the small-signal start put all the inductance into
@@ -126,8 +129,23 @@ fn fast_heating(cases: Vec<(&str, f64, u64, f64)>) {
         let p = driver(name);
         let (u, i, s) = record(&p, fs, 8.0, share, seed);
         let label = format!("{name} at {:.0} % seed {seed}, {:.0} kHz (heats {:.0} K)", 100.0 * share, fs / 1e3, s.dt_max);
-        match identify(&u, &i, fs, &label, &IdentifyOptions { mms: p.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() }, |_| {}) {
+        // (unknowns, iteration) of the final fit's states.
+        let mut finals: Vec<(usize, usize)> = Vec::new();
+        let observe = |pr: &Progress| {
+            if matches!(pr.stage, Stage::Final { .. }) {
+                finals.push((pr.state.theta.len(), pr.state.iteration));
+            }
+        };
+        match identify(&u, &i, fs, &label, &IdentifyOptions { mms: p.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() }, observe) {
             Ok(fit) => {
+                // Issue 17, session 47: the heating test is made on the first Jacobian's
+                // linearised step, and the fit with the heating terms starts from there
+                // (no step is taken without them).
+                let most = finals.iter().map(|f| f.0).max().unwrap_or(0);
+                let unheated_steps = finals.iter().filter(|f| f.0 < most && f.1 > 0).count();
+                if !fit.layout.heat_taus.is_empty() && unheated_steps > 0 {
+                    failures.push(format!("{label}: {unheated_steps} steps without the heating terms before they were tried"));
+                }
                 let e = Errors::of(&fit.params, &p, [s.x_min, s.x_max]);
                 let r: Vec<f64> = fit.i_model.iter().zip(&i).skip(fit.settle).map(|(a, b)| a - b).collect();
                 let floor = coilscope_ident::checks::noise_floor(&r, fs).ratio;
