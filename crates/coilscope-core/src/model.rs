@@ -100,6 +100,81 @@ pub struct Model<D> {
     inv_l2: Option<D>,
 }
 
+impl Model<f64> {
+    /// [`Model::deriv`] and its partial derivatives at state `s` (what a forward-sensitivity
+    /// Jacobian propagates): with respect to the state, and to the values the parameters
+    /// enter through there (`Bl(x)`, `Kms(x)`, `Le(x)`, `Le'(x)`, `Re`, `Rms`, `L2`, `R2`).
+    /// For the plain model only: no `Le_i`, `Rms_v` or thermal network, and L2 and R2
+    /// constants (a fit's model); `None` otherwise. Checked against dual numbers
+    /// (`the_derivative_partials_are_the_dual_numbers`).
+    #[inline]
+    pub fn deriv_partials(&self, s: &State<f64>, u: f64) -> Option<(State<f64>, DerivPartials)> {
+        if self.le_i.is_some() || self.rms_v.is_some() || self.thermal.is_some() {
+            return None;
+        }
+        let (r2, inv_l2) = match &self.l2r2 {
+            Some((l2, r2)) if l2.c.len() == 1 && r2.c.len() == 1 => (r2.c[0], 1.0 / l2.c[0]),
+            Some(_) => return None,
+            None => (0.0, 0.0),
+        };
+        let [x, v, i, i2, _, _] = *s;
+        let (le, dle, d2le) = self.le.eval_d2(x);
+        let (bl, dbl) = self.bl.eval_d(x);
+        let (kms, dkms) = self.kms.eval_d(x);
+        let (inv_le, inv_m) = (le.recip(), self.inv_mms);
+        // The rates as `Model::deriv` computes them, operation for operation (its series
+        // evaluated once here for both).
+        let u2 = r2 * (i - i2);
+        let di = (u - self.re * i - bl * v - u2 - dle * v * i) * inv_le;
+        let force = bl * i - self.rms * v - kms * x + dle * i * i * 0.5;
+        let d = [v, force * inv_m, di, if self.l2r2.is_some() { u2 * inv_l2 } else { 0.0 }, 0.0, 0.0];
+        let p = DerivPartials {
+            v_state: [(dbl * i - dkms * x - kms + 0.5 * d2le * i * i) * inv_m, -self.rms * inv_m, (bl + dle * i) * inv_m],
+            i_state: [(-dbl * v - d2le * v * i - di * dle) * inv_le, (-bl - dle * i) * inv_le, (-self.re - r2 - dle * v) * inv_le, r2 * inv_le],
+            i2_state: [r2 * inv_l2, -r2 * inv_l2],
+            bl: [i * inv_m, -v * inv_le],
+            kms: -x * inv_m,
+            le: -di * inv_le,
+            dle: [0.5 * i * i * inv_m, -v * i * inv_le],
+            re: -i * inv_le,
+            rms: -v * inv_m,
+            r2: [-(i - i2) * inv_le, (i - i2) * inv_l2],
+            l2: -d[idx::I2] * inv_l2,
+        };
+        Some((d, p))
+    }
+}
+
+/// The partial derivatives of the plain model's [`Model::deriv`] at one state
+/// ([`Model::deriv_partials`]), in SI units of the rates per unit of what they are taken by.
+/// The rows are the states' rates `dv/dt`, `di/dt`, `di2/dt` (`dx/dt = v`; the thermal
+/// states are off); entries not listed are zero.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct DerivPartials {
+    /// `d(dv/dt) / d(x, v, i)`.
+    pub v_state: [f64; 3],
+    /// `d(di/dt) / d(x, v, i, i2)`.
+    pub i_state: [f64; 4],
+    /// `d(di2/dt) / d(i, i2)`.
+    pub i2_state: [f64; 2],
+    /// `d(dv/dt, di/dt) / d Bl(x)`.
+    pub bl: [f64; 2],
+    /// `d(dv/dt) / d Kms(x)`.
+    pub kms: f64,
+    /// `d(di/dt) / d Le(x)`.
+    pub le: f64,
+    /// `d(dv/dt, di/dt) / d Le'(x)`.
+    pub dle: [f64; 2],
+    /// `d(di/dt) / d Re`.
+    pub re: f64,
+    /// `d(dv/dt) / d Rms`.
+    pub rms: f64,
+    /// `d(di/dt, di2/dt) / d R2`.
+    pub r2: [f64; 2],
+    /// `d(di2/dt) / d L2`.
+    pub l2: f64,
+}
+
 /// The constants and series of a [`Model`] (its public fields but the thermal network), for
 /// [`Model::from_parts`].
 #[derive(Clone, Debug)]
@@ -513,6 +588,55 @@ mod tests {
     use super::*;
     use crate::params::embedded_driver;
     use num_dual::Dual64;
+
+    /// [`Model::deriv_partials`] against dual numbers: lanes on the four states and on
+    /// shifts of each value the parameters enter through (`Bl(x)`, `Kms(x)`, `Le(x)` by
+    /// their constant terms, `Le'(x)` by a slope through `x`, and `Re`, `Rms`, `R2`, `L2`),
+    /// SB17's curves off rest, to 1e-12 of each rate's largest term.
+    #[test]
+    fn the_derivative_partials_are_the_dual_numbers() {
+        use crate::jet::Jet;
+        let p = embedded_driver("sb17cac35-4").unwrap();
+        let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
+        let (s, u): (State<f64>, f64) = ([2e-3, 0.3, 1.5, 0.4, 0.0, 0.0], 5.0);
+        let lane = |k: usize, v: f64| Jet::<12>::constant(v).derivative(k);
+        let shifted = |c: &[f64], k: usize| -> Poly<Jet<12>> { Poly { c: c.iter().enumerate().map(|(j, &v)| if j == 0 { lane(k, v) } else { Jet::constant(v) }).collect() } };
+        // Le'(x) by eps: Le + eps (z - x) leaves Le(x) and moves its slope.
+        let mut le = shifted(p.le.coefficients(), 6);
+        le.c[0] -= Jet::constant(0.0).derivative(7) * s[0];
+        le.c[1] += Jet::constant(0.0).derivative(7);
+        let md = Model::from_parts(Parts {
+            re: lane(8, p.re),
+            le,
+            l2r2: Some((Poly::constant(lane(11, l2)), Poly::constant(lane(10, r2)))),
+            bl: shifted(p.bl.coefficients(), 4),
+            kms: shifted(p.kms.coefficients(), 5),
+            mms: Jet::constant(p.mms),
+            rms: lane(9, p.rms),
+            le_i: None,
+            rms_v: None,
+        });
+        let sd: State<Jet<12>> = std::array::from_fn(|k| if k < 4 { lane(k, s[k]) } else { Jet::constant(0.0) });
+        let dd = md.deriv(&sd, Jet::constant(u));
+        let m = Model::from_parts(Parts { re: p.re, le: p.le.clone(), l2r2: Some((Poly::constant(l2), Poly::constant(r2))), bl: p.bl.clone(), kms: p.kms.clone(), mms: p.mms, rms: p.rms, le_i: None, rms_v: None });
+        let (d, q) = m.deriv_partials(&s, u).expect("the plain model");
+        // Row by row: (rate, [lane, partial]).
+        let rows: [(usize, Vec<(usize, f64)>); 3] = [
+            (idx::V, vec![(0, q.v_state[0]), (1, q.v_state[1]), (2, q.v_state[2]), (3, 0.0), (4, q.bl[0]), (5, q.kms), (6, 0.0), (7, q.dle[0]), (8, 0.0), (9, q.rms), (10, 0.0), (11, 0.0)]),
+            (idx::I, vec![(0, q.i_state[0]), (1, q.i_state[1]), (2, q.i_state[2]), (3, q.i_state[3]), (4, q.bl[1]), (5, 0.0), (6, q.le), (7, q.dle[1]), (8, q.re), (9, 0.0), (10, q.r2[0]), (11, 0.0)]),
+            (idx::I2, vec![(0, 0.0), (1, 0.0), (2, q.i2_state[0]), (3, q.i2_state[1]), (4, 0.0), (5, 0.0), (6, 0.0), (7, 0.0), (8, 0.0), (9, 0.0), (10, q.r2[1]), (11, q.l2)]),
+        ];
+        for (row, want) in rows {
+            assert_eq!(d[row], dd[row].re, "rate {row}");
+            let big = want.iter().map(|(k, _)| (dd[row].eps[*k] * [s[0], s[1], s[2], s[3], 1.0, 1.0, 1.0, 1.0, p.re, p.rms, r2, l2].get(*k).copied().unwrap_or(1.0)).abs()).fold(d[row].abs(), f64::max);
+            for (k, got) in want {
+                assert!((got - dd[row].eps[k]).abs() <= 1e-12 * big, "rate {row}, lane {k}: {got:e} against {:e}", dd[row].eps[k]);
+            }
+        }
+        // dx/dt = v, the thermal states off.
+        assert_eq!(dd[idx::X].eps[1], 1.0);
+        assert!(m.deriv_partials(&s, u).is_some() && Model { le_i: Some(Poly { c: vec![1.0, 0.1] }), ..m }.deriv_partials(&s, u).is_none());
+    }
 
     #[test]
     fn static_equilibrium_under_dc_current_balances_force() {

@@ -18,5 +18,6 @@ pub mod online;
 pub mod post_inverse;
 pub mod pre_inverse;
 pub mod quasi_static;
+mod sensitivity;
 pub mod thermal;
 pub mod volterra;

@@ -1,0 +1,227 @@
+//! Forward sensitivities: the Jacobian columns of the output error by the sensitivity
+//! equation, in `f64`, instead of dual numbers.
+//!
+//! A column `S = dy/dtheta_k` of the state's derivative by one unknown obeys the model's
+//! linearisation along the run, `S' = F(t) S + G_k(t)`, with `F = df/dy` and `G_k = df/dtheta_k`
+//! ([`coilscope_core::model::Model::deriv_partials`]). Each sample the model takes its RK4
+//! step in `f64` and records its four stages' states and partials; each column then takes the
+//! RK4 step of the linear system with those stages' `F` and `G`, which is the exact
+//! derivative of the model's step: the dual numbers' column to rounding (2e-15,
+//! `the_jacobian_on_jets_is_num_duals_to_the_last_bit`). The dual numbers carry every operation
+//! of the model's step once per column; here a column costs a step of a linear system
+//! whose coefficients are known.
+//!
+//! Only the plain model (no creep, LR-3, `Le(i)` or `Rms(v)`) at one RK4 step per sample (the
+//! woofers' final fit); every other Jacobian keeps its dual numbers. The exponential
+//! method's (stiff drivers) was tried (issue 17, session 47) as the method's step of the
+//! sensitivity equation, `A` frozen as in the model's step: on the microspeaker its columns
+//! were 1.2-1.5 % (Re(t)), 0.3-0.6 % (Bl, Kms, Rms) and 30-36 % (Le(x), L2) off a reference
+//! of eight steps, against the dual numbers' 0.06-0.08 %, 0.04-0.07 % and 0.4-2.3 %, also in
+//! the fluxes' coordinates (`psi = Le i`): a stiff step's stages do not carry the current's
+//! lag behind the drive that an inductance's column is. The derivative of the discrete step
+//! (the matrix functions' derivatives by the network's entries) is what it needs.
+
+use crate::large::{Layout, HEAT_SCALE};
+use coilscope_core::integrate::{rk4_step, Dynamics, Scheme, Stepper};
+use coilscope_core::model::{idx, DerivPartials, Model, State, NSTATE};
+use std::cell::{Cell, RefCell};
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// The stages an RK4 step records.
+const STAGES: usize = 4;
+
+/// What a Jacobian column is the derivative by.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Column {
+    /// A knot of `Re(t)`.
+    Knot(usize),
+    /// A heating term of `Re(t)`.
+    Heat(usize),
+    /// The Legendre coefficient `k` of `Le(x)`, `Bl(x)`, `Kms(x)`.
+    Le(usize),
+    Bl(usize),
+    Kms(usize),
+    Rms,
+    L2,
+    R2,
+}
+
+/// The columns of `layout`'s unknowns, in theta's order; `None` when the layout has one this
+/// module does not take (an effect's).
+fn columns(layout: &Layout) -> Option<Vec<Column>> {
+    let s = layout.slots();
+    let mut c = vec![None; s.n];
+    for (k, j) in s.re.clone().enumerate() {
+        c[j] = Some(Column::Knot(k));
+    }
+    for (k, j) in s.heat.clone().enumerate() {
+        c[j] = Some(Column::Heat(k));
+    }
+    for (k, j) in s.le.clone().enumerate() {
+        c[j] = Some(Column::Le(k));
+    }
+    for (k, j) in s.bl.clone().enumerate() {
+        c[j] = Some(Column::Bl(k));
+    }
+    for (k, j) in s.kms.clone().enumerate() {
+        c[j] = Some(Column::Kms(k));
+    }
+    c[s.rms] = Some(Column::Rms);
+    if let Some(j) = s.l2 {
+        c[j] = Some(Column::L2);
+    }
+    if let Some(j) = s.r2 {
+        c[j] = Some(Column::R2);
+    }
+    c.into_iter().collect()
+}
+
+/// Whether [`pass`] computes `layout`'s columns with `stepper`'s steps: the plain model at one
+/// RK4 step per sample.
+pub(crate) fn applies(layout: &Layout, stepper: &Stepper) -> bool {
+    layout.effects == crate::linear::Effects::NONE && stepper.scheme == Scheme::Rk4 && stepper.points() == 3
+}
+
+/// The model's step that records its stages: their states and partials, in the order the
+/// scheme evaluates them.
+struct Recording<'a> {
+    model: &'a Model<f64>,
+    stages: &'a RefCell<Stages>,
+}
+
+/// The stages' states and partials of one step, and how many were recorded.
+#[derive(Default)]
+struct Stages {
+    states: [State<f64>; STAGES],
+    partials: [DerivPartials; STAGES],
+    n: usize,
+}
+
+impl Dynamics<f64, NSTATE> for Recording<'_> {
+    #[inline]
+    fn deriv(&self, y: &State<f64>, u: f64) -> State<f64> {
+        let (d, p) = self.model.deriv_partials(y, u).expect("the plain model (applies)");
+        let mut st = self.stages.borrow_mut();
+        let k = st.n;
+        st.states[k] = *y;
+        st.partials[k] = p;
+        st.n += 1;
+        d
+    }
+}
+
+/// One column's sensitivity equation over a step: `S' = F_s S + G_s` at the step's stage `s`
+/// (RK4 evaluates its stages in the order the model's step recorded them).
+struct Linear<'a> {
+    partials: &'a [DerivPartials; STAGES],
+    /// `G_s`'s rows `dv/dt`, `di/dt`, `di2/dt`.
+    g: &'a [[f64; 3]; STAGES],
+    stage: Cell<usize>,
+}
+
+impl Dynamics<f64, NSTATE> for Linear<'_> {
+    #[inline]
+    fn deriv(&self, s: &State<f64>, _u: f64) -> State<f64> {
+        let k = self.stage.get();
+        self.stage.set(k + 1);
+        let (p, g) = (&self.partials[k], &self.g[k]);
+        let (x, v, i, i2) = (s[idx::X], s[idx::V], s[idx::I], s[idx::I2]);
+        [v, p.v_state[0] * x + p.v_state[1] * v + p.v_state[2] * i + g[0], p.i_state[0] * x + p.i_state[1] * v + p.i_state[2] * i + p.i_state[3] * i2 + g[1], p.i2_state[0] * i + p.i2_state[1] * i2 + g[2], 0.0, 0.0]
+    }
+}
+
+/// The Jacobian columns `cols` of `layout` at `th` (f64; with spare heating columns, the
+/// heated layout and its heating terms at zero), each the current's sensitivity over the
+/// samples `fit`, column `k` at `block[k * fit.len() ..]`: the dual numbers' pass
+/// ([`crate::large::OutputError`]'s `jacobian_run`) by the sensitivity equation. The run is
+/// [`crate::large`]'s `run_model`'s: `Re` from the knots (and heating terms) at each sample,
+/// the input points from `stepper`, `y = 0` at the start. A run that leaves the finite
+/// numbers or is stopped (`stop`, looked at every 4096 samples) leaves the rest at zero.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn pass(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], u: &[f64], fs: f64, stepper: &Stepper, fit: std::ops::Range<usize>, stop: Option<&AtomicBool>, block: &mut [f64]) {
+    let all = columns(layout).expect("a layout without effects (applies)");
+    let kinds: Vec<Column> = cols.iter().map(|&c| all[c]).collect();
+    let (mut model, knots) = layout.model(th);
+    let sl = layout.slots();
+    let sizes = layout.heat_sizes(th);
+    let sc = &layout.scales;
+    let legendre = layout.legendre_table();
+    let (rows, dt) = (fit.len(), 1.0 / fs);
+    let n_knots = sl.re.len();
+    let mut y: State<f64> = [0.0; NSTATE];
+    let mut sens: Vec<State<f64>> = vec![[0.0; NSTATE]; cols.len()];
+    let mut pf = vec![0.0; stepper.points()];
+    // Per stage: P_j(x / x_ref) and P_j'(x / x_ref) / x_ref; per column and stage, G's rows.
+    let mut basis = vec![(0.0, 0.0); legendre.len()];
+    let mut g = vec![[[0.0; 3]; STAGES]; cols.len()];
+    let stages = RefCell::new(Stages::default());
+    for m in 0..fit.end {
+        if !y[idx::I].is_finite() || (m % 4096 == 0 && stop.is_some_and(|s| s.load(Ordering::Relaxed))) {
+            return;
+        }
+        if m >= fit.start {
+            for (k, s) in sens.iter().enumerate() {
+                block[k * rows + m - fit.start] = s[idx::I];
+            }
+        }
+        // Re(t) and its weights on the knots ([`crate::large`]'s `re_at`).
+        let (knot, w) = {
+            let last = n_knots - 1;
+            let tk = m as f64 * dt / layout.knot_dt;
+            let k = (tk.floor() as usize).min(last.saturating_sub(1));
+            (k, (tk - k as f64).min(1.0))
+        };
+        model.re = if n_knots == 1 { knots[0] } else { knots[knot] * (1.0 - w) + knots[knot + 1] * w };
+        for (a, h) in sizes.iter().zip(heat) {
+            model.re += a * h[m];
+        }
+        stepper.fill(u, m, &mut pf);
+        stages.borrow_mut().n = 0;
+        y = rk4_step(&Recording { model: &model, stages: &stages }, &y, dt, pf[0], pf[1], pf[2]);
+        let st = stages.borrow();
+        let partials = &st.partials;
+        for (s, (state, p)) in st.states.iter().zip(partials).enumerate() {
+            let xi = state[idx::X] / layout.x_ref;
+            for (b, poly) in basis.iter_mut().zip(legendre) {
+                let (mut v, mut d) = (0.0, 0.0);
+                for c in poly.iter().rev() {
+                    d = d * xi + v;
+                    v = v * xi + c;
+                }
+                *b = (v, d / layout.x_ref);
+            }
+            for (gk, kind) in g.iter_mut().zip(&kinds) {
+                gk[s] = match *kind {
+                    Column::Knot(j) => [
+                        0.0,
+                        p.re * sc.re
+                            * if n_knots == 1 {
+                                1.0
+                            } else if j == knot {
+                                1.0 - w
+                            } else if j == knot + 1 {
+                                w
+                            } else {
+                                0.0
+                            },
+                        0.0,
+                    ],
+                    Column::Heat(j) => [0.0, p.re * sc.re * HEAT_SCALE * heat[j][m], 0.0],
+                    Column::Le(j) => {
+                        let (b, db) = (basis[j].0 * sc.le, basis[j].1 * sc.le);
+                        [p.dle[0] * db, p.le * b + p.dle[1] * db, 0.0]
+                    }
+                    Column::Bl(j) => [p.bl[0] * basis[j].0 * sc.bl, p.bl[1] * basis[j].0 * sc.bl, 0.0],
+                    Column::Kms(j) => [p.kms * basis[j].0 * sc.kms, 0.0, 0.0],
+                    Column::Rms => [p.rms * sc.rms, 0.0, 0.0],
+                    Column::L2 => [0.0, 0.0, p.l2 * sc.l2],
+                    Column::R2 => [0.0, p.r2[0] * sc.r2, p.r2[1] * sc.r2],
+                };
+            }
+        }
+        for (s, gk) in sens.iter_mut().zip(&g) {
+            let lin = Linear { partials, g: gk, stage: Cell::new(0) };
+            *s = rk4_step(&lin, s, dt, 0.0, 0.0, 0.0);
+        }
+    }
+}
