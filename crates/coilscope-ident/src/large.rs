@@ -2775,7 +2775,7 @@ fn gauss_newton_decrease(gram: &DMatrix<f64>, grad: &DVector<f64>, cols: &[usize
 /// own model, and the residual run on the base's model, these four runs on the cores in
 /// turn. Until issue 17's session 47 one model with every effect (17 states and the 3 x 3
 /// network) ran all the columns in one pass: the 0.1 g microspeaker's screen took 0.95 s
-/// instead of 0.47, the same gains within 4e-8 (the test below compares the two at every
+/// instead of 0.47, the same gains within 5e-7 (the test below compares the two at every
 /// candidate). Their unknowns act nearly linearly from there: Le(i)'s and Rms(v)'s
 /// coefficients, creep's lambda, and a branch's L3 at a given corner (its impedance
 /// `j w L3 / (1 + j w tau3)`), with tau3's column moving the corner to first order. `None`

@@ -15,10 +15,11 @@
 //! woofers' final fit); every other Jacobian keeps its dual numbers. The exponential
 //! method's (stiff drivers) was tried (issue 17, session 47) as the method's step of the
 //! sensitivity equation, `A` frozen as in the model's step: on the microspeaker its columns
-//! were 1.2-1.5 % (Re(t)), 0.3-0.6 % (Bl, Kms, Rms) and 30-36 % (Le(x), L2) off a reference
-//! of eight steps, against the dual numbers' 0.06-0.08 %, 0.04-0.07 % and 0.4-2.3 %, also in
-//! the fluxes' coordinates (`psi = Le i`): a stiff step's stages do not carry the current's
-//! lag behind the drive that an inductance's column is. The derivative of the discrete step
+//! were 1.2-1.5 % (Re(t)), 0.3-0.6 % (Bl, Kms, Rms), 1 % (L2) and 29-36 % (Le(x), R2) off a
+//! reference of eight steps, against the dual numbers' 0.06-0.08 %, 0.04-0.07 %, 0.3 %,
+//! 0.4-2.3 % and 2.2 %, and as far off in the fluxes' coordinates (`psi = Le i`): a stiff
+//! step's stages do not carry the current's lag behind the drive, which the network's
+//! columns are. The derivative of the discrete step
 //! (the matrix functions' derivatives by the network's entries) is what it needs.
 
 use crate::large::{Layout, HEAT_SCALE};
