@@ -104,12 +104,12 @@ impl Model<f64> {
     /// [`Model::deriv`] and its partial derivatives at state `s` (what a forward-sensitivity
     /// Jacobian propagates): with respect to the state, and to the values the parameters
     /// enter through there (`Bl(x)`, `Kms(x)`, `Le(x)`, `Le'(x)`, `Re`, `Rms`, `L2`, `R2`).
-    /// For the plain model only: no `Le_i`, `Rms_v` or thermal network, and L2 and R2
-    /// constants (a fit's model); `None` otherwise. Checked against dual numbers
+    /// For a fit's model: no thermal network, L2 and R2 constants, `Le_i` and `Rms_v` of
+    /// degree 2 at most; `None` otherwise. Checked against dual numbers
     /// (`the_derivative_partials_are_the_dual_numbers`).
     #[inline]
     pub fn deriv_partials(&self, s: &State<f64>, u: f64) -> Option<(State<f64>, DerivPartials)> {
-        if self.le_i.is_some() || self.rms_v.is_some() || self.thermal.is_some() {
+        if self.thermal.is_some() || self.le_i.as_ref().is_some_and(|g| g.c.len() > 3) || self.rms_v.as_ref().is_some_and(|r| r.c.len() > 3) {
             return None;
         }
         let (r2, inv_l2) = match &self.l2r2 {
@@ -121,25 +121,47 @@ impl Model<f64> {
         let (le, dle, d2le) = self.le.eval_d2(x);
         let (bl, dbl) = self.bl.eval_d(x);
         let (kms, dkms) = self.kms.eval_d(x);
-        let (inv_le, inv_m) = (le.recip(), self.inv_mms);
+        let inv_m = self.inv_mms;
         // The rates as `Model::deriv` computes them, operation for operation (its series
-        // evaluated once here for both).
+        // evaluated once here for both): with `Le_i` or `Rms_v` through `flux_modulated`.
+        let flux = self.le_i.is_some() || self.rms_v.is_some();
+        let (g, h, big) = self.flux_factors(i);
+        // g'(i), h'(i) of `Le_i`'s g = sum c_k i^k, h = sum (k + 1) c_k i^k.
+        let (dg, dh) = self.le_i.as_ref().map_or((0.0, 0.0), |p| p.c.iter().enumerate().skip(1).fold((0.0, 0.0), |(a, b), (k, c)| (a + k as f64 * c * i.powi(k as i32 - 1), b + ((k + 1) * k) as f64 * c * i.powi(k as i32 - 1))));
+        let (rms, drms) = match &self.rms_v {
+            Some(r) => r.eval_d(v.abs()),
+            None => (self.rms, 0.0),
+        };
         let u2 = r2 * (i - i2);
-        let di = (u - self.re * i - bl * v - u2 - dle * v * i) * inv_le;
-        let force = bl * i - self.rms * v - kms * x + dle * i * i * 0.5;
+        let (di, inv_d) = if flux {
+            let dd = le * h;
+            ((u - self.re * i - bl * v - u2 - dle * v * i * g) / dd, dd.recip())
+        } else {
+            let inv_le = le.recip();
+            ((u - self.re * i - bl * v - u2 - dle * v * i) * inv_le, inv_le)
+        };
+        let force = bl * i - rms * v - kms * x + if flux { dle * big } else { dle * i * i * 0.5 };
         let d = [v, force * inv_m, di, if self.l2r2.is_some() { u2 * inv_l2 } else { 0.0 }, 0.0, 0.0];
+        // Le_i's coefficients c_1, c_2: dg = i^k, dh = (k + 1) i^k, dG = i^(k + 2) / (k + 2).
+        let le_i = std::array::from_fn(|j| {
+            let k = j as i32 + 1;
+            let (pg, ph, pbig) = (i.powi(k), (k + 1) as f64 * i.powi(k), i.powi(k + 2) / (k + 2) as f64);
+            [dle * pbig * inv_m, (-dle * v * i * pg - di * le * ph) * inv_d]
+        });
         let p = DerivPartials {
-            v_state: [(dbl * i - dkms * x - kms + 0.5 * d2le * i * i) * inv_m, -self.rms * inv_m, (bl + dle * i) * inv_m],
-            i_state: [(-dbl * v - d2le * v * i - di * dle) * inv_le, (-bl - dle * i) * inv_le, (-self.re - r2 - dle * v) * inv_le, r2 * inv_le],
+            v_state: [(dbl * i - dkms * x - kms + d2le * big) * inv_m, -(rms + drms * v.abs()) * inv_m, (bl + dle * i * g) * inv_m],
+            i_state: [(-dbl * v - d2le * v * i * g - di * dle * h) * inv_d, (-bl - dle * i * g) * inv_d, (-self.re - r2 - dle * v * (g + i * dg) - di * le * dh) * inv_d, r2 * inv_d],
             i2_state: [r2 * inv_l2, -r2 * inv_l2],
-            bl: [i * inv_m, -v * inv_le],
+            bl: [i * inv_m, -v * inv_d],
             kms: -x * inv_m,
-            le: -di * inv_le,
-            dle: [0.5 * i * i * inv_m, -v * i * inv_le],
-            re: -i * inv_le,
+            le: -di * h * inv_d,
+            dle: [big * inv_m, -v * i * g * inv_d],
+            re: -i * inv_d,
             rms: -v * inv_m,
-            r2: [-(i - i2) * inv_le, (i - i2) * inv_l2],
+            r2: [-(i - i2) * inv_d, (i - i2) * inv_l2],
             l2: -d[idx::I2] * inv_l2,
+            le_i,
+            rms_v2: -v * v.abs() * v.abs() * inv_m,
         };
         Some((d, p))
     }
@@ -173,6 +195,10 @@ pub struct DerivPartials {
     pub r2: [f64; 2],
     /// `d(di2/dt) / d L2`.
     pub l2: f64,
+    /// `d(dv/dt, di/dt) / d c_k` of `Le_i`'s `g(i) = 1 + c_1 i + c_2 i^2`, `k = 1, 2`.
+    pub le_i: [[f64; 2]; 2],
+    /// `d(dv/dt) / d c_2` of `Rms_v`'s `Rms(|v|) = Rms + c_2 v^2`.
+    pub rms_v2: f64,
 }
 
 /// The constants and series of a [`Model`] (its public fields but the thermal network), for
@@ -591,51 +617,62 @@ mod tests {
 
     /// [`Model::deriv_partials`] against dual numbers: lanes on the four states and on
     /// shifts of each value the parameters enter through (`Bl(x)`, `Kms(x)`, `Le(x)` by
-    /// their constant terms, `Le'(x)` by a slope through `x`, and `Re`, `Rms`, `R2`, `L2`),
-    /// SB17's curves off rest, to 1e-12 of each rate's largest term.
+    /// their constant terms, `Le'(x)` by a slope through `x`, and `Re`, `Rms`, `R2`, `L2`,
+    /// `Le_i`'s `c_1`, `c_2` and `Rms_v`'s `c_2`), SB17's curves off rest, the plain model
+    /// and one with `Le_i` and `Rms_v`, to 1e-12 of each rate's largest term; the rates
+    /// themselves to the last bit.
     #[test]
     fn the_derivative_partials_are_the_dual_numbers() {
         use crate::jet::Jet;
+        type J = Jet<15>;
         let p = embedded_driver("sb17cac35-4").unwrap();
         let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
         let (s, u): (State<f64>, f64) = ([2e-3, 0.3, 1.5, 0.4, 0.0, 0.0], 5.0);
-        let lane = |k: usize, v: f64| Jet::<12>::constant(v).derivative(k);
-        let shifted = |c: &[f64], k: usize| -> Poly<Jet<12>> { Poly { c: c.iter().enumerate().map(|(j, &v)| if j == 0 { lane(k, v) } else { Jet::constant(v) }).collect() } };
-        // Le'(x) by eps: Le + eps (z - x) leaves Le(x) and moves its slope.
-        let mut le = shifted(p.le.coefficients(), 6);
-        le.c[0] -= Jet::constant(0.0).derivative(7) * s[0];
-        le.c[1] += Jet::constant(0.0).derivative(7);
-        let md = Model::from_parts(Parts {
-            re: lane(8, p.re),
-            le,
-            l2r2: Some((Poly::constant(lane(11, l2)), Poly::constant(lane(10, r2)))),
-            bl: shifted(p.bl.coefficients(), 4),
-            kms: shifted(p.kms.coefficients(), 5),
-            mms: Jet::constant(p.mms),
-            rms: lane(9, p.rms),
-            le_i: None,
-            rms_v: None,
-        });
-        let sd: State<Jet<12>> = std::array::from_fn(|k| if k < 4 { lane(k, s[k]) } else { Jet::constant(0.0) });
-        let dd = md.deriv(&sd, Jet::constant(u));
-        let m = Model::from_parts(Parts { re: p.re, le: p.le.clone(), l2r2: Some((Poly::constant(l2), Poly::constant(r2))), bl: p.bl.clone(), kms: p.kms.clone(), mms: p.mms, rms: p.rms, le_i: None, rms_v: None });
-        let (d, q) = m.deriv_partials(&s, u).expect("the plain model");
-        // Row by row: (rate, [lane, partial]).
-        let rows: [(usize, Vec<(usize, f64)>); 3] = [
-            (idx::V, vec![(0, q.v_state[0]), (1, q.v_state[1]), (2, q.v_state[2]), (3, 0.0), (4, q.bl[0]), (5, q.kms), (6, 0.0), (7, q.dle[0]), (8, 0.0), (9, q.rms), (10, 0.0), (11, 0.0)]),
-            (idx::I, vec![(0, q.i_state[0]), (1, q.i_state[1]), (2, q.i_state[2]), (3, q.i_state[3]), (4, q.bl[1]), (5, 0.0), (6, q.le), (7, q.dle[1]), (8, q.re), (9, 0.0), (10, q.r2[0]), (11, 0.0)]),
-            (idx::I2, vec![(0, 0.0), (1, 0.0), (2, q.i2_state[0]), (3, q.i2_state[1]), (4, 0.0), (5, 0.0), (6, 0.0), (7, 0.0), (8, 0.0), (9, 0.0), (10, q.r2[1]), (11, q.l2)]),
-        ];
-        for (row, want) in rows {
-            assert_eq!(d[row], dd[row].re, "rate {row}");
-            let big = want.iter().map(|(k, _)| (dd[row].eps[*k] * [s[0], s[1], s[2], s[3], 1.0, 1.0, 1.0, 1.0, p.re, p.rms, r2, l2].get(*k).copied().unwrap_or(1.0)).abs()).fold(d[row].abs(), f64::max);
-            for (k, got) in want {
-                assert!((got - dd[row].eps[k]).abs() <= 1e-12 * big, "rate {row}, lane {k}: {got:e} against {:e}", dd[row].eps[k]);
+        let lane = |k: usize, v: f64| J::constant(v).derivative(k);
+        let shifted = |c: &[f64], k: usize| -> Poly<J> { Poly { c: c.iter().enumerate().map(|(j, &v)| if j == 0 { lane(k, v) } else { J::constant(v) }).collect() } };
+        for effects in [false, true] {
+            let (g, c2) = ([1.0, -0.05, 0.02], 0.4);
+            // Le'(x) by eps: Le + eps (z - x) leaves Le(x) and moves its slope.
+            let mut le = shifted(p.le.coefficients(), 6);
+            le.c[0] -= J::constant(0.0).derivative(7) * s[0];
+            le.c[1] += J::constant(0.0).derivative(7);
+            let (le_i, rms_v) = if effects { (Some(Poly { c: vec![J::constant(1.0), lane(12, g[1]), lane(13, g[2])] }), Some(Poly { c: vec![lane(9, p.rms), J::constant(0.0), lane(14, c2)] })) } else { (None, None) };
+            let md = Model::from_parts(Parts {
+                re: lane(8, p.re),
+                le,
+                l2r2: Some((Poly::constant(lane(11, l2)), Poly::constant(lane(10, r2)))),
+                bl: shifted(p.bl.coefficients(), 4),
+                kms: shifted(p.kms.coefficients(), 5),
+                mms: J::constant(p.mms),
+                rms: lane(9, p.rms),
+                le_i,
+                rms_v,
+            });
+            let sd: State<J> = std::array::from_fn(|k| if k < 4 { lane(k, s[k]) } else { J::constant(0.0) });
+            let dd = md.deriv(&sd, J::constant(u));
+            let (le_i, rms_v) = if effects { (Some(Poly { c: g.to_vec() }), Some(Poly { c: vec![p.rms, 0.0, c2] })) } else { (None, None) };
+            let m = Model::from_parts(Parts { re: p.re, le: p.le.clone(), l2r2: Some((Poly::constant(l2), Poly::constant(r2))), bl: p.bl.clone(), kms: p.kms.clone(), mms: p.mms, rms: p.rms, le_i, rms_v });
+            let (d, q) = m.deriv_partials(&s, u).expect("a fit's model");
+            let (lei, rv) = if effects { (q.le_i, q.rms_v2) } else { ([[0.0; 2]; 2], 0.0) };
+            // Row by row: (rate, [(lane, partial)]).
+            let rows: [(usize, Vec<(usize, f64)>); 3] = [
+                (idx::V, vec![(0, q.v_state[0]), (1, q.v_state[1]), (2, q.v_state[2]), (3, 0.0), (4, q.bl[0]), (5, q.kms), (6, 0.0), (7, q.dle[0]), (8, 0.0), (9, q.rms), (10, 0.0), (11, 0.0), (12, lei[0][0]), (13, lei[1][0]), (14, rv)]),
+                (idx::I, vec![(0, q.i_state[0]), (1, q.i_state[1]), (2, q.i_state[2]), (3, q.i_state[3]), (4, q.bl[1]), (5, 0.0), (6, q.le), (7, q.dle[1]), (8, q.re), (9, 0.0), (10, q.r2[0]), (11, 0.0), (12, lei[0][1]), (13, lei[1][1]), (14, 0.0)]),
+                (idx::I2, vec![(0, 0.0), (1, 0.0), (2, q.i2_state[0]), (3, q.i2_state[1]), (4, 0.0), (5, 0.0), (6, 0.0), (7, 0.0), (8, 0.0), (9, 0.0), (10, q.r2[1]), (11, q.l2), (12, 0.0), (13, 0.0), (14, 0.0)]),
+            ];
+            let size = [s[0], s[1], s[2], s[3], 1.0, 1.0, 1.0, 1.0, p.re, p.rms, r2, l2, 1.0, 1.0, 1.0];
+            for (row, want) in rows {
+                assert_eq!(d[row], dd[row].re, "rate {row} (effects {effects})");
+                let big = want.iter().map(|(k, _)| (dd[row].eps[*k] * size[*k]).abs()).fold(d[row].abs(), f64::max);
+                for (k, got) in want {
+                    assert!((got - dd[row].eps[k]).abs() <= 1e-12 * big, "rate {row}, lane {k} (effects {effects}): {got:e} against {:e}", dd[row].eps[k]);
+                }
             }
+            // dx/dt = v, the thermal states off.
+            assert_eq!(dd[idx::X].eps[1], 1.0);
         }
-        // dx/dt = v, the thermal states off.
-        assert_eq!(dd[idx::X].eps[1], 1.0);
-        assert!(m.deriv_partials(&s, u).is_some() && Model { le_i: Some(Poly { c: vec![1.0, 0.1] }), ..m }.deriv_partials(&s, u).is_none());
+        let m = Model::new(&p);
+        assert!(m.thermal.is_some() && m.deriv_partials(&s, u).is_none(), "a thermal network has no partials here");
     }
 
     #[test]

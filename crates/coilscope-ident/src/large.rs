@@ -4220,9 +4220,9 @@ mod tests {
     /// `Option`); they give num-dual's `DualSVec64` Jacobian to the last bit (equal as
     /// numbers: a zero may differ in sign) on the stiff microspeaker (the exponential
     /// method), with theta off the truth; one worker and two. Session 47: a woofer's final
-    /// fit (RK4, SB17 order 4 with Re(t) knots and L2/R2, without and with heating terms)
-    /// takes its columns by the sensitivity equation (`crate::sensitivity`): num-dual's to
-    /// 1e-13 of each column's largest entry (2e-15 seen).
+    /// fit (RK4, SB17 order 4 with Re(t) knots and L2/R2, with heating terms, with Le(i) and
+    /// Rms(v)) takes its columns by the sensitivity equation (`crate::sensitivity`):
+    /// num-dual's to 1e-13 of each column's largest entry (2e-15 seen).
     #[test]
     fn the_jacobian_on_jets_is_num_duals_to_the_last_bit() {
         let fs = 48000.0;
@@ -4232,10 +4232,15 @@ mod tests {
         let (_, trm) = gain_for_peak(&pm, fs, &tr.u[..9600], 0.0004, &SimOptions::default()).unwrap();
         let laym = Layout::new(2, 3, 0.05, 0.0004, Scales::of(&pm), true, pm.mms);
         let lay_h = lay.clone().with_heat(&HEAT_TAUS);
-        for (name, p, lay, u, i) in [("SB17", &p, lay, &tr.u, &tr.i), ("SB17 with heating terms", &p, lay_h, &tr.u, &tr.i), ("microspeaker", &pm, laym, &trm.u, &trm.i)] {
+        let lay_e = lay.clone().with_effects(Effects { le_i: true, rms_v: true, ..Effects::NONE });
+        for (name, p, lay, u, i) in [("SB17", &p, lay, &tr.u, &tr.i), ("SB17 with heating terms", &p, lay_h, &tr.u, &tr.i), ("SB17 with Le(i) and Rms(v)", &p, lay_e, &tr.u, &tr.i), ("microspeaker", &pm, laym, &trm.u, &trm.i)] {
             let mut th = lay.theta_from(p, None);
             for (k, t) in th.iter_mut().enumerate() {
                 *t *= 1.0 + 0.01 * ((k % 5) as f64 - 2.0);
+            }
+            let sl = lay.slots();
+            if let (Some(k), Some(r)) = (sl.le_i, sl.rms_v) {
+                (th[k], th[k + 1], th[r]) = (-0.05, 0.02, 0.1);
             }
             for threads in [1, 2] {
                 let prob = OutputError::new(lay.clone(), u, i, fs, 480..u.len(), p.rates(), 0.05, threads);

@@ -521,11 +521,30 @@ impl Online {
     /// model's passes keep many values constant (num-dual's `None`, which costs nothing),
     /// and on jets the 20 s measurement bench took 5-10 % longer (18WU 1.75-1.77 s on
     /// num-dual, 1.92-1.96 on jets; issue 17's session 33).
-    fn jacobian_chunk(&self, y0: &ExtState<f64>, a: usize, b: usize, skip: usize, c0: usize, re_slope: f64, block: &mut [f64]) {
+    ///
+    /// The plain model at one RK4 step per sample (a woofer's) takes the columns by the
+    /// sensitivity equation in `f64` instead (`crate::sensitivity`; issue 17, session 47).
+    #[allow(clippy::too_many_arguments)]
+    fn jacobian_chunk(&self, y0: &ExtState<f64>, a: usize, b: usize, skip: usize, c0: usize, w: usize, re_slope: f64, block: &mut [f64]) {
+        let dt = 1.0 / self.fs;
+        if crate::sensitivity::applies(&self.layout, &self.stepper_jac) {
+            let re_end = self.layout.model(&self.theta).0.re;
+            let cols: Vec<usize> = (c0..c0 + w).collect();
+            let run = crate::sensitivity::Run { u: &self.u, steps: a - self.base..b - self.base, first_row: a + skip - self.base, y0: std::array::from_fn(|k| y0[k]) };
+            let re = |m: usize| (re_end + re_slope * ((m + self.base) as f64 - self.pos as f64) * dt, 0, 0.0);
+            crate::sensitivity::pass_from(&self.layout, &[], &self.theta, &cols, self.fs, &self.stepper_jac, &run, re, None, block);
+        } else {
+            self.jacobian_chunk_duals(y0, a, b, skip, c0, re_slope, block);
+        }
+    }
+
+    /// [`Online::jacobian_chunk`] on num-dual's dual numbers.
+    #[allow(clippy::too_many_arguments)]
+    fn jacobian_chunk_duals(&self, y0: &ExtState<f64>, a: usize, b: usize, skip: usize, c0: usize, re_slope: f64, block: &mut [f64]) {
+        let dt = 1.0 / self.fs;
         let (thd, cnt) = seed_duals::<CHUNK>(&self.theta, c0);
         let mut model = OnlineModel::of(&self.layout, &thd);
         let re_end = model.base().re;
-        let dt = 1.0 / self.fs;
         let points = self.stepper_jac.points();
         let mut pf = vec![0.0; points];
         let mut pd = vec![DualSVec64::<CHUNK>::from_re(0.0); points];
@@ -607,7 +626,7 @@ impl Online {
         // Jacobian of the model current (the residual is r = i - i_model).
         let np = self.theta.len();
         let stop = std::sync::atomic::AtomicBool::new(false);
-        let jac = jacobian_passes(rows, &pass_widths(np, self.threads, false), self.threads, &[&first], &stop, |c0, _, block| self.jacobian_chunk(&y0, a, b, skip, c0, slope, block));
+        let jac = jacobian_passes(rows, &pass_widths(np, self.threads, false), self.threads, &[&first], &stop, |c0, w, block| self.jacobian_chunk(&y0, a, b, skip, c0, w, slope, block));
         let (r, _) = run.into_inner().expect("window run").expect("the first task is the run")?;
         let floor_ratio = crate::checks::noise_floor(r.as_slice(), self.fs).ratio;
         let e0 = r.norm_squared();
@@ -829,6 +848,43 @@ pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Issue 17, session 47: a woofer's window Jacobian by the sensitivity equation
+    /// (`crate::sensitivity`) is num-dual's (`Online::jacobian_chunk_duals`) to 1e-13 of each
+    /// column's largest entry: SB17, 0.6 s of pink noise to 3 mm, a 0.25 s window from a live
+    /// state taken mid-record, Re on a ramp, theta off the start.
+    #[test]
+    fn the_window_jacobian_by_sensitivities_is_num_duals() {
+        use coilscope_core::excitation::{generate, Excitation, SignalSpec};
+        use coilscope_core::simulate::{gain_for_peak, SimOptions};
+        let p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
+        let fs = 48000.0;
+        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 0.6, rms: 1.0, fade: 0.05, seed: 3 }).unwrap();
+        let (_, tr) = gain_for_peak(&p, fs, &unit, 0.003, &SimOptions::default()).unwrap();
+        let mut o = Online::new(&p, fs, OnlineOptions { x_ref: 0.004, ..Default::default() }).unwrap();
+        o.push(&tr.u, &tr.i).unwrap();
+        for (k, t) in o.theta.iter_mut().enumerate() {
+            *t *= 1.0 + 0.01 * ((k % 5) as f64 - 2.0);
+        }
+        assert!(crate::sensitivity::applies(&o.layout, &o.stepper_jac), "the plain model at one RK4 step: {:?}, {:?} {}", o.layout.effects, o.stepper_jac.scheme, o.stepper_jac.points());
+        let &(a, y0) = o.snaps.iter().find(|s| s.0 >= o.base + 9600).expect("a live state mid-record");
+        assert!(y0[idx::X].abs() > 0.0 && y0[idx::I].abs() > 0.0);
+        let (b, skip, slope) = (a + 12000, 480, 0.05);
+        let (rows, np) = (b - a - skip, o.theta.len());
+        for c0 in (0..np).step_by(CHUNK) {
+            let w = CHUNK.min(np - c0);
+            let (mut got, mut want) = (vec![0.0; rows * w], vec![0.0; rows * CHUNK]);
+            o.jacobian_chunk(&y0, a, b, skip, c0, w, slope, &mut got);
+            o.jacobian_chunk_duals(&y0, a, b, skip, c0, slope, &mut want);
+            for k in 0..w {
+                let (g, e) = (&got[k * rows..(k + 1) * rows], &want[k * rows..(k + 1) * rows]);
+                let largest = e.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                assert!(largest > 0.0, "column {}: all zero", c0 + k);
+                let worst = g.iter().zip(e).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+                assert!(worst <= 1e-13 * largest, "column {}: {worst:e} off num-dual's (largest {largest:e})", c0 + k);
+            }
+        }
+    }
 
     /// Session 35: the LR-2 and LR-3 branches' priors are `2 prior_linear` of their start
     /// values, whatever the unit the slot has (tau3's was 40-60 % of it, R3's had been 3 %;

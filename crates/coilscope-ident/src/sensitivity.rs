@@ -11,8 +11,9 @@
 //! of the model's step once per column; here a column costs a step of a linear system
 //! whose coefficients are known.
 //!
-//! Only the plain model (no creep, LR-3, `Le(i)` or `Rms(v)`) at one RK4 step per sample (the
-//! woofers' final fit); every other Jacobian keeps its dual numbers. The exponential
+//! Only the model without states of its effects' own (no creep or LR-3; `Le(i)` and `Rms(v)`
+//! are in) at one RK4 step per sample (the woofers' final fit, the online estimator's
+//! windows); every other Jacobian keeps its dual numbers. The exponential
 //! method's (stiff drivers) was tried (issue 17, session 47) as the method's step of the
 //! sensitivity equation, `A` frozen as in the model's step: on the microspeaker its columns
 //! were 1.2-1.5 % (Re(t)), 0.3-0.6 % (Bl, Kms, Rms), 1 % (L2) and 29-36 % (Le(x), R2) off a
@@ -45,10 +46,14 @@ enum Column {
     Rms,
     L2,
     R2,
+    /// `Le(i)`'s coefficient `c_1` or `c_2`.
+    LeI(usize),
+    /// `Rms(v)`'s coefficient of `v^2`.
+    RmsV,
 }
 
 /// The columns of `layout`'s unknowns, in theta's order; `None` when the layout has one this
-/// module does not take (an effect's).
+/// module does not take (creep's, LR-3's).
 fn columns(layout: &Layout) -> Option<Vec<Column>> {
     let s = layout.slots();
     let mut c = vec![None; s.n];
@@ -74,13 +79,21 @@ fn columns(layout: &Layout) -> Option<Vec<Column>> {
     if let Some(j) = s.r2 {
         c[j] = Some(Column::R2);
     }
+    if let Some(j) = s.le_i {
+        c[j] = Some(Column::LeI(0));
+        c[j + 1] = Some(Column::LeI(1));
+    }
+    if let Some(j) = s.rms_v {
+        c[j] = Some(Column::RmsV);
+    }
     c.into_iter().collect()
 }
 
-/// Whether [`pass`] computes `layout`'s columns with `stepper`'s steps: the plain model at one
-/// RK4 step per sample.
+/// Whether [`pass`] computes `layout`'s columns with `stepper`'s steps: the model without
+/// states of its effects' own (no creep, no LR-3; Le(i) and Rms(v) are in) at one RK4 step
+/// per sample.
 pub(crate) fn applies(layout: &Layout, stepper: &Stepper) -> bool {
-    layout.effects == crate::linear::Effects::NONE && stepper.scheme == Scheme::Rk4 && stepper.points() == 3
+    !layout.effects.needs_ext_states() && stepper.scheme == Scheme::Rk4 && stepper.points() == 3
 }
 
 /// The model's step that records its stages: their states and partials, in the order the
@@ -140,43 +153,65 @@ impl Dynamics<f64, NSTATE> for Linear<'_> {
 /// numbers or is stopped (`stop`, looked at every 4096 samples) leaves the rest at zero.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn pass(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], u: &[f64], fs: f64, stepper: &Stepper, fit: std::ops::Range<usize>, stop: Option<&AtomicBool>, block: &mut [f64]) {
-    let all = columns(layout).expect("a layout without effects (applies)");
+    let knots = layout.model(th).1;
+    let n_knots = knots.len();
+    let knot_dt = layout.knot_dt;
+    // Re(t) and its weights on the knots ([`crate::large`]'s `re_at`).
+    let re = |m: usize| {
+        let tk = m as f64 * (1.0 / fs) / knot_dt;
+        let k = (tk.floor() as usize).min((n_knots - 1).saturating_sub(1));
+        let w = (tk - k as f64).min(1.0);
+        (if n_knots == 1 { knots[0] } else { knots[k] * (1.0 - w) + knots[k + 1] * w }, k, w)
+    };
+    let run = Run { u, steps: 0..fit.end, first_row: fit.start, y0: [0.0; NSTATE] };
+    pass_from(layout, heat, th, cols, fs, stepper, &run, re, stop, block);
+}
+
+/// A run of [`pass_from`]: the drive `u`, the samples `steps` of it the run steps over from
+/// the state `y0`, and the first of them the Jacobian's rows start at.
+pub(crate) struct Run<'a> {
+    pub u: &'a [f64],
+    pub steps: std::ops::Range<usize>,
+    pub first_row: usize,
+    pub y0: State<f64>,
+}
+
+/// [`pass`] over `run`, with `re(m)` the coil's resistance at sample `m` before the heating
+/// terms and its knot `k` and weight `w` (`Re = (1 - w) knot_k + w knot_{k+1}`; with one
+/// knot its column is `Re`'s): the online estimator's windows start from the live state,
+/// with their own `Re` ramp.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn pass_from(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], fs: f64, stepper: &Stepper, run: &Run, re: impl Fn(usize) -> (f64, usize, f64), stop: Option<&AtomicBool>, block: &mut [f64]) {
+    let all = columns(layout).expect("a layout without creep or LR-3 (applies)");
     let kinds: Vec<Column> = cols.iter().map(|&c| all[c]).collect();
-    let (mut model, knots) = layout.model(th);
-    let sl = layout.slots();
+    let mut model = layout.model(th).0;
     let sizes = layout.heat_sizes(th);
     let sc = &layout.scales;
     let legendre = layout.legendre_table();
-    let (rows, dt) = (fit.len(), 1.0 / fs);
-    let n_knots = sl.re.len();
-    let mut y: State<f64> = [0.0; NSTATE];
+    let (rows, dt) = (run.steps.end - run.first_row, 1.0 / fs);
+    let n_knots = layout.slots().re.len();
+    let mut y = run.y0;
     let mut sens: Vec<State<f64>> = vec![[0.0; NSTATE]; cols.len()];
     let mut pf = vec![0.0; stepper.points()];
     // Per stage: P_j(x / x_ref) and P_j'(x / x_ref) / x_ref; per column and stage, G's rows.
     let mut basis = vec![(0.0, 0.0); legendre.len()];
     let mut g = vec![[[0.0; 3]; STAGES]; cols.len()];
     let stages = RefCell::new(Stages::default());
-    for m in 0..fit.end {
+    for m in run.steps.clone() {
         if !y[idx::I].is_finite() || (m % 4096 == 0 && stop.is_some_and(|s| s.load(Ordering::Relaxed))) {
             return;
         }
-        if m >= fit.start {
+        if m >= run.first_row {
             for (k, s) in sens.iter().enumerate() {
-                block[k * rows + m - fit.start] = s[idx::I];
+                block[k * rows + m - run.first_row] = s[idx::I];
             }
         }
-        // Re(t) and its weights on the knots ([`crate::large`]'s `re_at`).
-        let (knot, w) = {
-            let last = n_knots - 1;
-            let tk = m as f64 * dt / layout.knot_dt;
-            let k = (tk.floor() as usize).min(last.saturating_sub(1));
-            (k, (tk - k as f64).min(1.0))
-        };
-        model.re = if n_knots == 1 { knots[0] } else { knots[knot] * (1.0 - w) + knots[knot + 1] * w };
+        let (re_m, knot, w) = re(m);
+        model.re = re_m;
         for (a, h) in sizes.iter().zip(heat) {
             model.re += a * h[m];
         }
-        stepper.fill(u, m, &mut pf);
+        stepper.fill(run.u, m, &mut pf);
         stages.borrow_mut().n = 0;
         y = rk4_step(&Recording { model: &model, stages: &stages }, &y, dt, pf[0], pf[1], pf[2]);
         let st = stages.borrow();
@@ -217,6 +252,8 @@ pub(crate) fn pass(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize
                     Column::Rms => [p.rms * sc.rms, 0.0, 0.0],
                     Column::L2 => [0.0, 0.0, p.l2 * sc.l2],
                     Column::R2 => [0.0, p.r2[0] * sc.r2, p.r2[1] * sc.r2],
+                    Column::LeI(j) => [p.le_i[j][0], p.le_i[j][1], 0.0],
+                    Column::RmsV => [p.rms_v2 * sc.rms, 0.0, 0.0],
                 };
             }
         }
