@@ -167,7 +167,7 @@ impl Model<f64> {
     }
 }
 
-/// The partial derivatives of the plain model's [`Model::deriv`] at one state
+/// The partial derivatives of a fit's [`Model::deriv`] at one state
 /// ([`Model::deriv_partials`]), in SI units of the rates per unit of what they are taken by.
 /// The rows are the states' rates `dv/dt`, `di/dt`, `di2/dt` (`dx/dt = v`; the thermal
 /// states are off); entries not listed are zero.

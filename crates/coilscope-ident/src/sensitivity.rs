@@ -20,8 +20,8 @@
 //! reference of eight steps, against the dual numbers' 0.06-0.08 %, 0.04-0.07 %, 0.3 %,
 //! 0.4-2.3 % and 2.2 %, and as far off in the fluxes' coordinates (`psi = Le i`): a stiff
 //! step's stages do not carry the current's lag behind the drive, which the network's
-//! columns are. The derivative of the discrete step
-//! (the matrix functions' derivatives by the network's entries) is what it needs.
+//! columns are. The derivative of the discrete step (the matrix functions' derivatives by
+//! the network's entries) is what it needs.
 
 use crate::large::{Layout, HEAT_SCALE};
 use coilscope_core::integrate::{rk4_step, Dynamics, Scheme, Stepper};
@@ -114,7 +114,7 @@ struct Stages {
 impl Dynamics<f64, NSTATE> for Recording<'_> {
     #[inline]
     fn deriv(&self, y: &State<f64>, u: f64) -> State<f64> {
-        let (d, p) = self.model.deriv_partials(y, u).expect("the plain model (applies)");
+        let (d, p) = self.model.deriv_partials(y, u).expect("a fit's model (applies)");
         let mut st = self.stages.borrow_mut();
         let k = st.n;
         st.states[k] = *y;
