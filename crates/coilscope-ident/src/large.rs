@@ -806,16 +806,22 @@ fn seeded<D>(th: &[f64], c0: usize, cnt: usize, constant: impl Fn(f64) -> D, see
 /// plus the heating terms `sizes[j] * heat[j][m]`. The one place [`run_model`] and
 /// [`OutputError::re_track`] take `Re(t)` from.
 #[inline]
-fn re_at<D: DualNum<Primitive = f64> + Copy>(knots: &[D], knot_dt: f64, t: f64, m: usize, (sizes, heat): (&[D], &[Vec<f64>])) -> D {
-    let last = knots.len() - 1;
-    let tk = t / knot_dt;
-    let k = (tk.floor() as usize).min(last.saturating_sub(1));
-    let w = (tk - k as f64).min(1.0);
-    let mut re = if last == 0 { knots[0] } else { knots[k] * (1.0 - w) + knots[k + 1] * w };
+pub(crate) fn re_at<D: DualNum<Primitive = f64> + Copy>(knots: &[D], knot_dt: f64, t: f64, m: usize, (sizes, heat): (&[D], &[Vec<f64>])) -> D {
+    let (k, w) = knot_at(knots.len(), knot_dt, t);
+    let mut re = if knots.len() == 1 { knots[0] } else { knots[k] * (1.0 - w) + knots[k + 1] * w };
     for (a, h) in sizes.iter().zip(heat) {
         re += *a * h[m];
     }
     re
+}
+
+/// The knot `k` at or before time `t` (s) of `n_knots` knots `knot_dt` apart (the last but
+/// one after it) and the weight `w` of knot `k + 1` in [`re_at`]'s interpolation.
+#[inline]
+pub(crate) fn knot_at(n_knots: usize, knot_dt: f64, t: f64) -> (usize, f64) {
+    let tk = t / knot_dt;
+    let k = (tk.floor() as usize).min((n_knots - 1).saturating_sub(1));
+    (k, (tk - k as f64).min(1.0))
 }
 
 /// What [`run_model`] integrates: a model whose `Re` follows the knots.
@@ -2847,7 +2853,7 @@ fn screen_effects<'a>(base: &(Layout, std::sync::Arc<KeptJacobian>), screened: &
     // 1e-6 of a branch). One model with every effect (17 states, the 3 x 3 network) ran
     // all the columns in one pass.
     let plain = screened.iter().filter(|e| !e.needs_ext_states()).fold(Effects::NONE, |a, &e| a.union(e));
-    let groups: Vec<Effects> = [Effects { lr3: all.lr3 && !at.lr3, ..Effects::NONE }, Effects { creep: all.creep && !at.creep, ..Effects::NONE }, plain].into_iter().filter(|&g| g != Effects::NONE).collect();
+    let groups: Vec<Effects> = [Effects { lr3: lr3_new, ..Effects::NONE }, Effects { creep: all.creep && !at.creep, ..Effects::NONE }, plain].into_iter().filter(|&g| g != Effects::NONE).collect();
     let fresh: Vec<usize> = (0..map.len()).filter(|&c| map[c].is_none()).collect();
     let mut parts: Vec<(OutputError, Vec<f64>, Vec<usize>, Vec<usize>)> = Vec::new();
     for &g in &groups {
@@ -3582,18 +3588,18 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         prob.residual_ahead(&th, &|_| true, None);
         let start = LmState::new(&prob, th.clone());
         let (r0, j0) = prob.residual_jacobian(&th);
-        let predicted = damped_from(&crate::lm::gram(&j0), &j0.tr_mul(&r0), &th, start.lambda).map(|(th1, _)| {
+        let test = damped_from(&crate::lm::gram(&j0), &j0.tr_mul(&r0), &th, start.lambda).map(|(th1, _)| {
             let step = DVector::from_iterator(th.len(), th1.iter().zip(&th).map(|(a, b)| a - b));
-            (wants_heat(&(&r0 + &j0 * step), &th1), th1)
+            wants_heat(&(&r0 + &j0 * step), &th1)
         });
         // The Jacobian back where the fit's first iteration takes it.
         let spare = prob.last_jacobian_at.lock().expect("jacobian cache").as_ref().and_then(|at| at.spare.clone());
         *prob.ahead.lock().expect("jacobian ahead") = Some((th.clone(), j0, spare));
-        (start, predicted)
+        (start, test)
     });
     let s = match at_start {
-        Some((start, Some((test, _)))) if test.0 => {
-            observe(&Progress { stage: Stage::Final { order }, state: &start, residual_rel: (2.0 * start.cost).sqrt() / i[settle..n].iter().map(|v| v * v).sum::<f64>().sqrt() });
+        Some((start, Some(test))) if test.0 => {
+            observe(&Progress { stage: Stage::Final { order }, state: &start, residual_rel: rel(&prob.residual(&start.theta), &i[settle..n]) });
             stopped_early.set(Some(test));
             start
         }

@@ -23,7 +23,7 @@
 //! columns are. The derivative of the discrete step (the matrix functions' derivatives by
 //! the network's entries) is what it needs.
 
-use crate::large::{Layout, HEAT_SCALE};
+use crate::large::{knot_at, re_at, Layout, HEAT_SCALE};
 use coilscope_core::integrate::{rk4_step, Dynamics, Scheme, Stepper};
 use coilscope_core::model::{idx, DerivPartials, Model, State, NSTATE};
 use std::cell::{Cell, RefCell};
@@ -153,15 +153,12 @@ impl Dynamics<f64, NSTATE> for Linear<'_> {
 /// numbers or is stopped (`stop`, looked at every 4096 samples) leaves the rest at zero.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn pass(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], u: &[f64], fs: f64, stepper: &Stepper, fit: std::ops::Range<usize>, stop: Option<&AtomicBool>, block: &mut [f64]) {
-    let knots = layout.model(th).1;
-    let n_knots = knots.len();
-    let knot_dt = layout.knot_dt;
-    // Re(t) and its weights on the knots ([`crate::large`]'s `re_at`).
+    let (knots, sizes, dt) = (layout.model(th).1, layout.heat_sizes(th), 1.0 / fs);
+    // Re(t) as the model's runs take it, and its weights on the knots.
     let re = |m: usize| {
-        let tk = m as f64 * (1.0 / fs) / knot_dt;
-        let k = (tk.floor() as usize).min((n_knots - 1).saturating_sub(1));
-        let w = (tk - k as f64).min(1.0);
-        (if n_knots == 1 { knots[0] } else { knots[k] * (1.0 - w) + knots[k + 1] * w }, k, w)
+        let t = m as f64 * dt;
+        let (k, w) = knot_at(knots.len(), layout.knot_dt, t);
+        (re_at(&knots, layout.knot_dt, t, m, (&sizes, heat)), k, w)
     };
     let run = Run { u, steps: 0..fit.end, first_row: fit.start, y0: [0.0; NSTATE] };
     pass_from(layout, heat, th, cols, fs, stepper, &run, re, stop, block);
@@ -176,8 +173,8 @@ pub(crate) struct Run<'a> {
     pub y0: State<f64>,
 }
 
-/// [`pass`] over `run`, with `re(m)` the coil's resistance at sample `m` before the heating
-/// terms and its knot `k` and weight `w` (`Re = (1 - w) knot_k + w knot_{k+1}`; with one
+/// [`pass`] over `run`, with `re(m)` the coil's resistance at sample `m` and its knot `k` and
+/// weight `w` (`Re = (1 - w) knot_k + w knot_{k+1}`; with one
 /// knot its column is `Re`'s): the online estimator's windows start from the live state,
 /// with their own `Re` ramp.
 #[allow(clippy::too_many_arguments)]
@@ -185,7 +182,6 @@ pub(crate) fn pass_from(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[
     let all = columns(layout).expect("a layout without creep or LR-3 (applies)");
     let kinds: Vec<Column> = cols.iter().map(|&c| all[c]).collect();
     let mut model = layout.model(th).0;
-    let sizes = layout.heat_sizes(th);
     let sc = &layout.scales;
     let legendre = layout.legendre_table();
     let (rows, dt) = (run.steps.end - run.first_row, 1.0 / fs);
@@ -208,9 +204,6 @@ pub(crate) fn pass_from(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[
         }
         let (re_m, knot, w) = re(m);
         model.re = re_m;
-        for (a, h) in sizes.iter().zip(heat) {
-            model.re += a * h[m];
-        }
         stepper.fill(run.u, m, &mut pf);
         stages.borrow_mut().n = 0;
         y = rk4_step(&Recording { model: &model, stages: &stages }, &y, dt, pf[0], pf[1], pf[2]);
