@@ -1747,9 +1747,14 @@ impl<'a> OutputError<'a> {
         self.jacobian_with_spare(th, &u, &self.pass_widths(), &[], &AtomicBool::new(false)).expect("nothing stops these passes")
     }
 
-    /// The widths of the Jacobian's passes ([`pass_widths`]), over the spare heating columns
+    /// The widths of the Jacobian's passes ([`pass_widths`], or one a worker by the
+    /// sensitivity equation: `crate::sensitivity::widths`), over the spare heating columns
     /// too ([`OutputError::with_spare_heat`]).
     fn pass_widths(&self) -> Vec<usize> {
+        let layout = self.spare.as_ref().map_or(&self.layout, |(l, _)| l);
+        if crate::sensitivity::applies(layout, &self.stepper_jac) {
+            return crate::sensitivity::widths(self.pass_columns(), self.threads);
+        }
         pass_widths(self.pass_columns(), self.threads, true)
     }
 
