@@ -1744,16 +1744,16 @@ impl<'a> OutputError<'a> {
     /// ([`OutputError::with_spare_heat`]).
     fn jacobian_and_spare(&self, th: &[f64]) -> (DMatrix<f64>, Option<DMatrix<f64>>) {
         let (u, _) = self.signals(th);
-        self.jacobian_with_spare(th, &u, &self.pass_widths(), &[], &AtomicBool::new(false)).expect("nothing stops these passes")
+        self.jacobian_with_spare(th, &u, &self.pass_widths(0), &[], &AtomicBool::new(false)).expect("nothing stops these passes")
     }
 
     /// The widths of the Jacobian's passes ([`pass_widths`], or one a worker by the
-    /// sensitivity equation: `crate::sensitivity::widths`), over the spare heating columns
-    /// too ([`OutputError::with_spare_heat`]).
-    fn pass_widths(&self) -> Vec<usize> {
+    /// sensitivity equation, beside `leads` model runs: `crate::sensitivity::widths`), over
+    /// the spare heating columns too ([`OutputError::with_spare_heat`]).
+    fn pass_widths(&self, leads: usize) -> Vec<usize> {
         let layout = self.spare.as_ref().map_or(&self.layout, |(l, _)| l);
         if crate::sensitivity::applies(layout, &self.stepper_jac) {
-            return crate::sensitivity::widths(self.pass_columns(), self.threads);
+            return crate::sensitivity::widths(self.pass_columns(), self.threads, leads);
         }
         pass_widths(self.pass_columns(), self.threads, true)
     }
@@ -2028,7 +2028,7 @@ impl Problem for OutputError<'_> {
             true
         };
         let lead: Vec<&(dyn Fn() -> bool + Sync)> = if alongside.is_some() { vec![&first, &side] } else { vec![&first] };
-        let j = self.jacobian_with_spare(theta, &u, &self.pass_widths(), &lead, &stop);
+        let j = self.jacobian_with_spare(theta, &u, &self.pass_widths(lead.len()), &lead, &stop);
         let r = r.into_inner().expect("residual").expect("the first task is the residual");
         *self.last_residual.lock().expect("residual cache") = Some((theta.to_vec(), r.clone()));
         if let Some((j, spare)) = j {

@@ -626,8 +626,9 @@ impl Online {
         // Jacobian of the model current (the residual is r = i - i_model).
         let np = self.theta.len();
         let stop = std::sync::atomic::AtomicBool::new(false);
-        // By the sensitivity equation one pass a worker (each pass takes the model's step again).
-        let widths = if crate::sensitivity::applies(&self.layout, &self.stepper_jac) { crate::sensitivity::widths(np, self.threads) } else { pass_widths(np, self.threads, false) };
+        // By the sensitivity equation one pass a worker (each pass takes the model's step
+        // again), the run's worker's the narrower.
+        let widths = if crate::sensitivity::applies(&self.layout, &self.stepper_jac) { crate::sensitivity::widths(np, self.threads, 1) } else { pass_widths(np, self.threads, false) };
         let jac = jacobian_passes(rows, &widths, self.threads, &[&first], &stop, |c0, w, block| self.jacobian_chunk(&y0, a, b, skip, c0, w, slope, block));
         let (r, _) = run.into_inner().expect("window run").expect("the first task is the run")?;
         let floor_ratio = crate::checks::noise_floor(r.as_slice(), self.fs).ratio;

@@ -102,14 +102,31 @@ pub(crate) fn applies(layout: &Layout, stepper: &Stepper) -> bool {
     !layout.effects.needs_ext_states() && stepper.scheme == Scheme::Rk4 && stepper.points() == 3
 }
 
+/// What a model run beside a Jacobian's passes (the residual's, with all its sub-steps)
+/// costs, in columns of a pass by the sensitivity equation: SB17's order-4 problem over 8 s
+/// on one core (`jacobian_order4_widths`, `residual_order4`; session 48) ran its residual in
+/// 100 ms, each column of a pass in 17 ms and each pass's own model step with its partials
+/// in 80 ms.
+pub(crate) const RUN_COLUMNS: usize = 6;
+
 /// The widths of the passes of an `n`-column Jacobian by the sensitivity equation on
-/// `threads` workers: one pass a worker, the columns shared out evenly (the first passes one
-/// wider). Every pass takes the model's step with its partials again (a quarter of a pass of
-/// 23 columns), so that more passes than workers cost that step for nothing; the dual
-/// numbers' passes ([`crate::large::pass_widths`]) are as wide as their registers hold.
-pub(crate) fn widths(n: usize, threads: usize) -> Vec<usize> {
+/// `threads` workers, `leads` of which first run a model run each (the residual beside the
+/// Jacobian, [`RUN_COLUMNS`] columns' worth): one pass a worker, so that all end together,
+/// the passes of the workers that start at once first (a queue takes its tasks in order),
+/// then those of the workers the runs held (narrower by what the run cost them, none when it
+/// cost them their share). Every pass takes the model's step with its partials again, so
+/// that more passes than workers cost that step for nothing; the dual numbers' passes
+/// ([`crate::large::pass_widths`]) are as wide as their registers hold.
+pub(crate) fn widths(n: usize, threads: usize, leads: usize) -> Vec<usize> {
     let k = threads.clamp(1, n.max(1));
-    (0..k).map(|j| n / k + usize::from(j < n % k)).filter(|&w| w > 0).collect()
+    let leads = if k > leads { leads } else { 0 };
+    let held = ((n + leads * RUN_COLUMNS) / k).saturating_sub(RUN_COLUMNS);
+    let free = k - leads;
+    let rest = n - leads * held;
+    let mut w: Vec<usize> = (0..free).map(|j| rest / free + usize::from(j < rest % free)).collect();
+    w.extend(std::iter::repeat_n(held, leads));
+    w.retain(|&w| w > 0);
+    w
 }
 
 /// The model's step that records its stages: their states and partials, in the order the
@@ -350,19 +367,29 @@ mod tests {
     use super::*;
     use rand::Rng;
 
-    /// One pass a worker, the columns shared evenly.
+    /// One pass a worker, the columns shared evenly; beside a model run, the pass of the
+    /// run's worker the narrower by the run's cost.
     #[test]
     fn the_passes_are_one_a_worker() {
-        assert_eq!(widths(23, 2), vec![12, 11]);
-        assert_eq!(widths(25, 1), vec![25]);
-        assert_eq!(widths(1, 2), vec![1]);
-        assert_eq!(widths(0, 2), Vec::<usize>::new());
+        assert_eq!(widths(23, 2, 0), vec![12, 11]);
+        assert_eq!(widths(23, 2, 1), vec![15, 8]);
+        assert_eq!(widths(25, 1, 1), vec![25]);
+        assert_eq!(widths(1, 2, 0), vec![1]);
+        assert_eq!(widths(5, 2, 1), vec![5]);
+        assert_eq!(widths(0, 2, 0), Vec::<usize>::new());
+        assert_eq!(widths(20, 4, 2), vec![8, 8, 2, 2]);
         for n in 1..40 {
             for t in 1..5 {
-                let w = widths(n, t);
-                assert_eq!(w.iter().sum::<usize>(), n);
-                assert_eq!(w.len(), t.min(n));
-                assert!(w.iter().max().unwrap() - w.iter().min().unwrap() <= 1);
+                for leads in 0..3 {
+                    let w = widths(n, t, leads);
+                    let k = t.min(n);
+                    assert_eq!(w.iter().sum::<usize>(), n, "{n} columns, {t} workers, {leads} runs: {w:?}");
+                    assert!(!w.is_empty() && w.len() <= k, "{n}, {t}, {leads}: {w:?}");
+                    // Each worker's load in columns (a run RUN_COLUMNS), the runs' workers last.
+                    let loads: Vec<usize> = if leads == 0 || k <= leads { w.clone() } else { (0..k).map(|j| if j < k - leads { w[j] } else { RUN_COLUMNS + w.get(j).copied().unwrap_or(0) }).collect() };
+                    let spread = loads.iter().max().unwrap() - loads.iter().min().unwrap();
+                    assert!(spread <= if leads == 0 || k <= leads { 1 } else { RUN_COLUMNS }, "{n}, {t}, {leads}: {w:?}, loads {loads:?}");
+                }
             }
         }
     }
