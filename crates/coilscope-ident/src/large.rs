@@ -134,6 +134,19 @@ pub fn pass_widths(n: usize, threads: usize, wide_ok: bool) -> Vec<usize> {
     }
     widths
 }
+
+/// The widths of the passes of an `n`-column Jacobian of `layout` with `stepper`'s steps on
+/// `threads` workers, `leads` of which first run a model run each: by the sensitivity
+/// equation one pass a worker ([`crate::sensitivity::widths`]), which is how those passes are
+/// computed when it applies; else the dual numbers' ([`pass_widths`], `wide_ok` as there).
+pub(crate) fn passes_for(layout: &Layout, stepper: &Stepper, n: usize, threads: usize, leads: usize, wide_ok: bool) -> Vec<usize> {
+    if crate::sensitivity::applies(layout, stepper) {
+        crate::sensitivity::widths(n, threads, leads)
+    } else {
+        pass_widths(n, threads, wide_ok)
+    }
+}
+
 /// Samples between two looks of a model run at its stop flag ([`run_model`]).
 const STOP_POLL: usize = 4096;
 /// Highest power-series order.
@@ -1747,15 +1760,11 @@ impl<'a> OutputError<'a> {
         self.jacobian_with_spare(th, &u, &self.pass_widths(0), &[], &AtomicBool::new(false)).expect("nothing stops these passes")
     }
 
-    /// The widths of the Jacobian's passes ([`pass_widths`], or one a worker by the
-    /// sensitivity equation, beside `leads` model runs: `crate::sensitivity::widths`), over
+    /// The widths of the Jacobian's passes beside `leads` model runs ([`passes_for`]), over
     /// the spare heating columns too ([`OutputError::with_spare_heat`]).
     fn pass_widths(&self, leads: usize) -> Vec<usize> {
         let layout = self.spare.as_ref().map_or(&self.layout, |(l, _)| l);
-        if crate::sensitivity::applies(layout, &self.stepper_jac) {
-            return crate::sensitivity::widths(self.pass_columns(), self.threads, leads);
-        }
-        pass_widths(self.pass_columns(), self.threads, true)
+        passes_for(layout, &self.stepper_jac, self.pass_columns(), self.threads, leads, true)
     }
 
     /// The columns the Jacobian's passes compute: the layout's, and the spare heating

@@ -20,7 +20,7 @@
 //! The parameters are those of [`crate::large::Layout`] (Legendre series in `x / x_ref`) with
 //! one `Re`. Nothing here allocates per sample; the history kept is a few seconds.
 
-use crate::large::{jacobian_passes, pass_widths, seed_duals, Layout, Scales, CHUNK};
+use crate::large::{jacobian_passes, passes_for, seed_duals, Layout, Scales, CHUNK};
 use crate::linear::Effects;
 use coilscope_core::integrate::{FlushTiny, Stepper, HALF_TAPS};
 use coilscope_core::jet::Jet;
@@ -626,9 +626,8 @@ impl Online {
         // Jacobian of the model current (the residual is r = i - i_model).
         let np = self.theta.len();
         let stop = std::sync::atomic::AtomicBool::new(false);
-        // By the sensitivity equation one pass a worker (each pass takes the model's step
-        // again), the run's worker's the narrower.
-        let widths = if crate::sensitivity::applies(&self.layout, &self.stepper_jac) { crate::sensitivity::widths(np, self.threads, 1) } else { pass_widths(np, self.threads, false) };
+        // Beside the window's run (the one lead task); the dual numbers' passes 8-wide.
+        let widths = passes_for(&self.layout, &self.stepper_jac, np, self.threads, 1, false);
         let jac = jacobian_passes(rows, &widths, self.threads, &[&first], &stop, |c0, w, block| self.jacobian_chunk(&y0, a, b, skip, c0, w, slope, block));
         let (r, _) = run.into_inner().expect("window run").expect("the first task is the run")?;
         let floor_ratio = crate::checks::noise_floor(r.as_slice(), self.fs).ratio;
