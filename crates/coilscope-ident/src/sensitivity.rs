@@ -28,7 +28,7 @@
 //! the network's entries) is what it needs.
 
 use crate::large::{knot_at, re_at, Layout, HEAT_SCALE};
-use coilscope_core::integrate::{rk4_step, Dynamics, Scheme, Stepper};
+use coilscope_core::integrate::{rk4_step, Dynamics, Scheme, Stepper, TINY_LANE};
 use coilscope_core::model::{idx, DerivPartials, Model, State, NSTATE};
 #[cfg(test)]
 use std::cell::Cell;
@@ -288,6 +288,7 @@ pub(crate) fn pass_from(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[
             }
         }
         sens.rk4_step(partials, dt);
+        sens.flush_tiny();
     }
 }
 
@@ -309,6 +310,21 @@ impl Columns {
             std::array::from_fn(|_| vec![0.0; n])
         }
         Columns { s: zeros(n), g: std::array::from_fn(|_| zeros(n)), k: zeros(n), sum: zeros(n) }
+    }
+
+    /// The sensitivities below [`TINY_LANE`] set to zero, as the dual numbers' runs set
+    /// their lanes ([`coilscope_core::integrate::FlushTiny`]): a column that stops being
+    /// driven (an `Re(t)` knot's after its interval) decays through the subnormal range,
+    /// where every operation takes the processor's microcode assist.
+    #[inline]
+    fn flush_tiny(&mut self) {
+        for s in self.s.iter_mut() {
+            for v in s.iter_mut() {
+                if v.abs() < TINY_LANE {
+                    *v = 0.0;
+                }
+            }
+        }
     }
 
     /// Every column's RK4 step of `S' = F_s S + G_s` over `h` at the recorded stages: the
@@ -392,6 +408,33 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A column that is no longer driven decays to zero, not through the subnormal range:
+    /// a critically damped mode of 2000 rad/s and currents decaying at 5000 /s, `G` zero,
+    /// from sensitivities of 1e-250 to 1e-270 (the same steps unflushed do pass through
+    /// it).
+    #[test]
+    fn an_undriven_column_decays_to_zero_not_into_subnormals() {
+        let h = 1.0 / 48000.0;
+        let p = DerivPartials { v_state: [-4e6, -4e3, 0.0], i_state: [0.0, 0.0, -5e3, 0.0], i2_state: [0.0, -5e3], ..Default::default() };
+        let partials = [p; STAGES];
+        let (mut flushed, mut plain) = (Columns::new(3), Columns::new(3));
+        for cols in [&mut flushed, &mut plain] {
+            for s in cols.s.iter_mut() {
+                s.copy_from_slice(&[1e-250, -3e-260, 2e-270]);
+            }
+        }
+        let mut subnormal_seen = false;
+        for _ in 0..20000 {
+            flushed.rk4_step(&partials, h);
+            flushed.flush_tiny();
+            plain.rk4_step(&partials, h);
+            subnormal_seen |= plain.s.iter().flatten().any(|v| v.is_subnormal());
+            assert!(flushed.s.iter().flatten().all(|v| *v == 0.0 || v.abs() >= TINY_LANE), "{:?}", flushed.s);
+        }
+        assert!(subnormal_seen, "the unflushed columns pass through the subnormal range");
+        assert!(flushed.s.iter().flatten().all(|v| *v == 0.0), "{:?}", flushed.s);
     }
 
     /// The columns' step side by side is each column's six-state RK4 step of [`Linear`] to
