@@ -137,6 +137,15 @@ fn jacobian_order4(b: divan::Bencher) {
     b.bench_local(|| prob.jacobian(&th));
 }
 
+/// [`jacobian_order4`]'s problem as a search stage takes its Jacobian (the midpoint rule,
+/// `OutputError::searching`), all cores.
+#[divan::bench(sample_count = 5, sample_size = 1)]
+fn jacobian_order4_search(b: divan::Bencher) {
+    let (prob, th) = problem(rec("sb17cac35-4"));
+    let prob = prob.searching();
+    b.bench_local(|| prob.jacobian(&th));
+}
+
 /// [`jacobian_order4`]'s Jacobian in passes of the given widths (as
 /// [`jacobian_microspeaker_widths`]), all cores.
 #[divan::bench(args = ["8,8,7", "10,10,3", "12,11", "8,8,4,3", "4,4,4,4,4,3", "12,8,3"], sample_count = 5, sample_size = 1)]

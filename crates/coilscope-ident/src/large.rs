@@ -4242,7 +4242,8 @@ mod tests {
     /// method), with theta off the truth; one worker and two. Session 47: a woofer's final
     /// fit (RK4, SB17 order 4 with Re(t) knots and L2/R2, with heating terms, with Le(i) and
     /// Rms(v)) takes its columns by the sensitivity equation (`crate::sensitivity`):
-    /// num-dual's to 1e-13 of each column's largest entry (2e-15 seen).
+    /// num-dual's to 1e-13 of each column's largest entry (2e-15 seen). Session 49: so do
+    /// its search stages' (the midpoint rule).
     #[test]
     fn the_jacobian_on_jets_is_num_duals_to_the_last_bit() {
         let fs = 48000.0;
@@ -4253,7 +4254,15 @@ mod tests {
         let laym = Layout::new(2, 3, 0.05, 0.0004, Scales::of(&pm), true, pm.mms);
         let lay_h = lay.clone().with_heat(&HEAT_TAUS);
         let lay_e = lay.clone().with_effects(Effects { le_i: true, rms_v: true, ..Effects::NONE });
-        for (name, p, lay, u, i) in [("SB17", &p, lay, &tr.u, &tr.i), ("SB17 with heating terms", &p, lay_h, &tr.u, &tr.i), ("SB17 with Le(i) and Rms(v)", &p, lay_e, &tr.u, &tr.i), ("microspeaker", &pm, laym, &trm.u, &trm.i)] {
+        let cases = [
+            ("SB17", &p, lay.clone(), &tr.u, &tr.i),
+            ("SB17 with heating terms", &p, lay_h, &tr.u, &tr.i),
+            ("SB17 with Le(i) and Rms(v)", &p, lay_e.clone(), &tr.u, &tr.i),
+            ("SB17, a search stage's (the midpoint rule)", &p, lay, &tr.u, &tr.i),
+            ("SB17 with Le(i) and Rms(v), a search stage's", &p, lay_e, &tr.u, &tr.i),
+            ("microspeaker", &pm, laym, &trm.u, &trm.i),
+        ];
+        for (name, p, lay, u, i) in cases {
             let mut th = lay.theta_from(p, None);
             for (k, t) in th.iter_mut().enumerate() {
                 *t *= 1.0 + 0.01 * ((k % 5) as f64 - 2.0);
@@ -4264,6 +4273,8 @@ mod tests {
             }
             for threads in [1, 2] {
                 let prob = OutputError::new(lay.clone(), u, i, fs, 480..u.len(), p.rates(), 0.05, threads);
+                let prob = if name.contains("search") { prob.searching() } else { prob };
+                assert_eq!(prob.stepper_jac.scheme == Scheme::Midpoint, name.contains("search"), "{name}");
                 let j = prob.jacobian(&th);
                 let sensitivities = crate::sensitivity::applies(&prob.layout, &prob.stepper_jac);
                 assert_eq!(sensitivities, name.starts_with("SB17"));

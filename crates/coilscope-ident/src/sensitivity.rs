@@ -17,7 +17,8 @@
 //!
 //! Only the model without states of its effects' own (no creep or LR-3; `Le(i)` and `Rms(v)`
 //! are in) at one RK4 step per sample (the woofers' final fit, the online estimator's
-//! windows); every other Jacobian keeps its dual numbers. The exponential
+//! windows) or one step of the midpoint rule (the woofers' search stages, session 49:
+//! [`Columns::midpoint_step`], 1.77x); every other Jacobian keeps its dual numbers. The exponential
 //! method's (stiff drivers) was tried (issue 17, session 47) as the method's step of the
 //! sensitivity equation, `A` frozen as in the model's step: on the microspeaker its columns
 //! were 1.2-1.5 % (Re(t)), 0.3-0.6 % (Bl, Kms, Rms), 1 % (L2) and 29-36 % (Le(x), R2) off a
@@ -28,7 +29,7 @@
 //! the network's entries) is what it needs.
 
 use crate::large::{knot_at, re_at, Layout, HEAT_SCALE};
-use coilscope_core::integrate::{rk4_step, Dynamics, Scheme, Stepper, TINY_LANE};
+use coilscope_core::integrate::{midpoint_sample, rk4_step, Dynamics, Scheme, Stepper, TINY_LANE};
 use coilscope_core::model::{idx, DerivPartials, Model, State, NSTATE};
 #[cfg(test)]
 use std::cell::Cell;
@@ -97,9 +98,10 @@ fn columns(layout: &Layout) -> Option<Vec<Column>> {
 
 /// Whether [`pass`] computes `layout`'s columns with `stepper`'s steps: the model without
 /// states of its effects' own (no creep, no LR-3; Le(i) and Rms(v) are in) at one RK4 step
-/// per sample.
+/// per sample (a woofer's final fit) or one step of the midpoint rule (a woofer's search
+/// stages, [`crate::large::OutputError::searching`]).
 pub(crate) fn applies(layout: &Layout, stepper: &Stepper) -> bool {
-    !layout.effects.needs_ext_states() && stepper.scheme == Scheme::Rk4 && stepper.points() == 3
+    !layout.effects.needs_ext_states() && matches!(stepper.scheme, Scheme::Rk4 | Scheme::Midpoint) && stepper.points() == 3
 }
 
 /// What a model run beside a Jacobian's passes (the residual's, with all its sub-steps)
@@ -229,6 +231,7 @@ pub(crate) fn pass_from(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[
     // Per stage: P_j(x / x_ref) and P_j'(x / x_ref) / x_ref.
     let mut basis = vec![(0.0, 0.0); legendre.len()];
     let stages = RefCell::new(Stages::default());
+    let midpoint = stepper.scheme == Scheme::Midpoint;
     for m in run.steps.clone() {
         if !y[idx::I].is_finite() || (m % 4096 == 0 && stop.is_some_and(|s| s.load(Ordering::Relaxed))) {
             return;
@@ -242,10 +245,11 @@ pub(crate) fn pass_from(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[
         model.re = re_m;
         stepper.fill(run.u, m, &mut pf);
         stages.borrow_mut().n = 0;
-        y = rk4_step(&Recording { model: &model, stages: &stages }, &y, dt, pf[0], pf[1], pf[2]);
+        let sys = Recording { model: &model, stages: &stages };
+        y = if midpoint { midpoint_sample(&sys, &y, dt, &pf) } else { rk4_step(&sys, &y, dt, pf[0], pf[1], pf[2]) };
         let st = stages.borrow();
         let partials = &st.partials;
-        for (s, (state, p)) in st.states.iter().zip(partials).enumerate() {
+        for (s, (state, p)) in st.states[..st.n].iter().zip(partials).enumerate() {
             let xi = state[idx::X] / layout.x_ref;
             for (b, poly) in basis.iter_mut().zip(legendre) {
                 let (mut v, mut d) = (0.0, 0.0);
@@ -287,7 +291,11 @@ pub(crate) fn pass_from(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[
                 };
             }
         }
-        sens.rk4_step(partials, dt);
+        if midpoint {
+            sens.midpoint_step(partials, dt);
+        } else {
+            sens.rk4_step(partials, dt);
+        }
         sens.flush_tiny();
     }
 }
@@ -323,6 +331,21 @@ impl Columns {
                 if v.abs() < TINY_LANE {
                     *v = 0.0;
                 }
+            }
+        }
+    }
+
+    /// Every column's step of the explicit midpoint rule over `h` at the two recorded
+    /// stages: `S + h (F_2 (S + h/2 k_1) + G_2)`, `k_1 = F_1 S + G_1` (the model's
+    /// [`midpoint_sample`], a search stage's Jacobian).
+    #[inline]
+    fn midpoint_step(&mut self, p: &[DerivPartials; STAGES], h: f64) {
+        self.stage::<0>(&p[0], 0.0);
+        self.stage::<1>(&p[1], 0.5 * h);
+        let n = self.s[0].len();
+        for (s, k) in self.s.iter_mut().zip(&self.k) {
+            for (s, k) in s[..n].iter_mut().zip(&k[..n]) {
+                *s += k * h;
             }
         }
     }
