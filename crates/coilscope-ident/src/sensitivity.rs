@@ -18,15 +18,18 @@
 //! Only the model without states of its effects' own (no creep or LR-3; `Le(i)` and `Rms(v)`
 //! are in) at one RK4 step per sample (the woofers' final fit, the online estimator's
 //! windows) or one step of the midpoint rule (the woofers' search stages, session 49:
-//! [`Columns::midpoint_step`], 1.77x); every other Jacobian keeps its dual numbers. The exponential
-//! method's (stiff drivers) was tried (issue 17, session 47) as the method's step of the
+//! [`Columns::midpoint_step`], 1.77x); every other Jacobian keeps its dual numbers. The
+//! exponential method's (stiff drivers) was tried (issue 17, session 47) as the method's step of the
 //! sensitivity equation, `A` frozen as in the model's step: on the microspeaker its columns
 //! were 1.2-1.5 % (Re(t)), 0.3-0.6 % (Bl, Kms, Rms), 1 % (L2) and 29-36 % (Le(x), R2) off a
 //! reference of eight steps, against the dual numbers' 0.06-0.08 %, 0.04-0.07 %, 0.3 %,
 //! 0.4-2.3 % and 2.2 %, and as far off in the fluxes' coordinates (`psi = Le i`): a stiff
 //! step's stages do not carry the current's lag behind the drive, which the network's
 //! columns are. The derivative of the discrete step (the matrix functions' derivatives by
-//! the network's entries) is what it needs.
+//! the network's entries) is what it needs; session 49 built it (the branch
+//! `session49-etd-tangent`): the jets' columns to 1.3e-13, and no faster than the jets (a
+//! column's derivative of the five-stage step is about 500 operations a sample), so the
+//! stiff drivers keep their jets.
 
 use crate::large::{knot_at, re_at, Layout, HEAT_SCALE};
 use coilscope_core::integrate::{midpoint_sample, rk4_step, Dynamics, Scheme, Stepper, TINY_LANE};
