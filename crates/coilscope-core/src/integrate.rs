@@ -51,6 +51,18 @@ pub trait FlushTiny {
     fn flush_tiny(&mut self);
 }
 
+/// Every lane of `lanes` below [`TINY_LANE`] set to zero: what [`FlushTiny`] does to a dual
+/// number's derivative lanes, and the sensitivity equation's passes to their columns
+/// (coilscope-ident's `sensitivity`).
+#[inline(always)]
+pub fn flush_tiny_lanes(lanes: &mut [f64]) {
+    for v in lanes {
+        if v.abs() < TINY_LANE {
+            *v = 0.0;
+        }
+    }
+}
+
 impl FlushTiny for f64 {
     #[inline(always)]
     fn flush_tiny(&mut self) {}
@@ -69,11 +81,7 @@ impl<const N: usize> FlushTiny for DualSVec64<N> {
     #[inline]
     fn flush_tiny(&mut self) {
         if let Some(e) = self.eps.0.as_mut() {
-            for v in e.iter_mut() {
-                if v.abs() < TINY_LANE {
-                    *v = 0.0;
-                }
-            }
+            flush_tiny_lanes(e.as_mut_slice());
         }
     }
 }
@@ -81,11 +89,7 @@ impl<const N: usize> FlushTiny for DualSVec64<N> {
 impl<const N: usize> FlushTiny for crate::jet::Jet<N> {
     #[inline]
     fn flush_tiny(&mut self) {
-        for v in self.eps.iter_mut() {
-            if v.abs() < TINY_LANE {
-                *v = 0.0;
-            }
-        }
+        flush_tiny_lanes(&mut self.eps);
     }
 }
 

@@ -19,8 +19,8 @@
 //! are in) at one RK4 step per sample (the woofers' final fit, the online estimator's
 //! windows) or one step of the midpoint rule (the woofers' search stages, session 49:
 //! [`Columns::midpoint_step`], 1.77x); every other Jacobian keeps its dual numbers. The
-//! exponential method's (stiff drivers) was tried (issue 17, session 47) as the method's step of the
-//! sensitivity equation, `A` frozen as in the model's step: on the microspeaker its columns
+//! exponential method's (stiff drivers) was tried (issue 17, session 47) as the method's
+//! step of the sensitivity equation, `A` frozen as in the model's step: on the microspeaker its columns
 //! were 1.2-1.5 % (Re(t)), 0.3-0.6 % (Bl, Kms, Rms), 1 % (L2) and 29-36 % (Le(x), R2) off a
 //! reference of eight steps, against the dual numbers' 0.06-0.08 %, 0.04-0.07 %, 0.3 %,
 //! 0.4-2.3 % and 2.2 %, and as far off in the fluxes' coordinates (`psi = Le i`): a stiff
@@ -32,7 +32,9 @@
 //! stiff drivers keep their jets.
 
 use crate::large::{knot_at, re_at, Layout, HEAT_SCALE};
-use coilscope_core::integrate::{midpoint_sample, rk4_step, Dynamics, Scheme, Stepper, TINY_LANE};
+#[cfg(test)]
+use coilscope_core::integrate::TINY_LANE;
+use coilscope_core::integrate::{flush_tiny_lanes, midpoint_sample, rk4_step, Dynamics, Scheme, Stepper};
 use coilscope_core::model::{idx, DerivPartials, Model, State, NSTATE};
 #[cfg(test)]
 use std::cell::Cell;
@@ -323,18 +325,14 @@ impl Columns {
         Columns { s: zeros(n), g: std::array::from_fn(|_| zeros(n)), k: zeros(n), sum: zeros(n) }
     }
 
-    /// The sensitivities below [`TINY_LANE`] set to zero, as the dual numbers' runs set
-    /// their lanes ([`coilscope_core::integrate::FlushTiny`]): a column that stops being
-    /// driven (an `Re(t)` knot's after its interval) decays through the subnormal range,
-    /// where every operation takes the processor's microcode assist.
+    /// The sensitivities below [`TINY_LANE`] set to zero ([`flush_tiny_lanes`]), as the dual
+    /// numbers' runs set their lanes ([`coilscope_core::integrate::FlushTiny`]): a column
+    /// that stops being driven (an `Re(t)` knot's after its interval) decays through the
+    /// subnormal range, where every operation takes the processor's microcode assist.
     #[inline]
     fn flush_tiny(&mut self) {
         for s in self.s.iter_mut() {
-            for v in s.iter_mut() {
-                if v.abs() < TINY_LANE {
-                    *v = 0.0;
-                }
-            }
+            flush_tiny_lanes(s);
         }
     }
 
