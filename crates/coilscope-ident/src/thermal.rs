@@ -9,16 +9,14 @@
 //! (`Pv = Re(T) i^2` from the measured current, `Pm = R2 (i - i2)^2` from the live model's
 //! LR-2 branch), block by block from a cold start.
 //!
-//! The unknowns are the logarithms of Rtv, Ctv, Rtm, Ctm (all positive). The model runs one
-//! RK4 step per block with the block's powers held (blocks are 0.1 s; the fastest thermal
-//! time constant is seconds). The sds are the cluster-robust sandwich over blocks of
+//! The unknowns are the logarithms of Rtv, Ctv, Rtm, Ctm (all positive). The model takes the
+//! network's exact solution over each block with the block's powers held ([`HeldStep`]). The sds are the cluster-robust sandwich over blocks of
 //! [`COVARIANCE_BLOCK_S`] (the tracked rise's error is correlated over a second or more), so
 //! a parameter the run cannot tell (the magnet's, in a run much shorter than its time
 //! constant) comes out with the large sd it deserves rather than a false precision.
 
 use crate::lm::{lm_step, LmState, Problem};
-use coilscope_core::integrate::{rk4_step, Dynamics};
-use coilscope_core::model::ThermalModel;
+use coilscope_core::model::{HeldStep, ThermalModel};
 use nalgebra::{DMatrix, DVector};
 
 /// Seconds per cluster of the sandwich covariance.
@@ -85,11 +83,15 @@ impl Fit<'_> {
         let rise = self.rise(&th[..4], rv);
         let lag = th[4];
         let t = &self.tr.t;
+        // Linear interpolation on the block ends (0 K at t = 0). The query times rise with k,
+        // so the block they fall in only moves forward.
+        let mut j = 0;
         (0..t.len())
             .map(|k| {
                 let tq = t[k] - lag;
-                // Linear interpolation on the block ends (0 K at t = 0).
-                let j = t.partition_point(|&v| v < tq);
+                while j < t.len() && t[j] < tq {
+                    j += 1;
+                }
                 let (t0, r0) = if j == 0 { (0.0, 0.0) } else { (t[j - 1], rise[j - 1]) };
                 let (t1, r1) = if j < t.len() { (t[j], rise[j]) } else { (t0, r0) };
                 if t1 > t0 {
@@ -102,45 +104,29 @@ impl Fit<'_> {
     }
 
     /// The coil rise at every block end for `[ln Rtv, ln Ctv, ln Rtm, ln Ctm]` and convection
-    /// `rv`: the model's own network ([`ThermalModel::rates`]) under the block's powers and
-    /// mean speed, by the project's RK4.
+    /// `rv`: the model's own network ([`ThermalModel`]) under the block's powers and mean
+    /// speed, by its exact solution ([`HeldStep`]: one matrix exponential for every run of
+    /// blocks of one length and speed, and no step-size limit where a trial point makes the
+    /// coil's time constant short).
     fn rise(&self, th: &[f64], rv: f64) -> Vec<f64> {
         let [rtv, ctv, rtm, ctm] = [th[0].exp(), th[1].exp(), th[2].exp(), th[3].exp()];
-        let mut net = Network { m: ThermalModel::new(0.0, rtv, ctv, rtm, ctm, rv), pv: 0.0, pm: 0.0, speed: 0.0 };
-        // Sub-steps keep RK4 inside its accuracy for a fast coil (h / tau <= 0.2; the
-        // fastest speed shortens the coil's time constant by 1 + rv |v|).
-        let fastest = 1.0 + rv.max(0.0) * self.tr.speed.iter().fold(0.0f64, |a, v| a.max(*v));
-        let tau = (rtv * ctv / fastest).min(1.0 / (1.0 / (rtv * ctm) + 1.0 / (rtm * ctm)));
+        let m = ThermalModel::new(0.0, rtv, ctv, rtm, ctm, rv);
         let mut y = [0.0, 0.0];
         let mut t0 = 0.0;
+        let mut step: Option<HeldStep> = None;
         let mut out = Vec::with_capacity(self.tr.t.len());
         for k in 0..self.tr.t.len() {
-            (net.pv, net.pm) = (self.tr.pv[k], self.tr.pm[k]);
-            net.speed = self.tr.speed.get(k).copied().unwrap_or(0.0);
+            let speed = if rv == 0.0 { 0.0 } else { self.tr.speed.get(k).copied().unwrap_or(0.0) };
             let h = self.tr.t[k] - t0;
-            let n = ((h / (0.2 * tau)).ceil() as usize).clamp(1, 1000);
-            for _ in 0..n {
-                y = rk4_step(&net, &y, h / n as f64, 0.0, 0.0, 0.0);
-            }
+            let s = match step {
+                Some(s) if s.is_for(h, speed) => s,
+                _ => *step.insert(HeldStep::new(&m, h, speed)),
+            };
+            y = s.apply(y, self.tr.pv[k], self.tr.pm[k], &m);
             t0 = self.tr.t[k];
             out.push(y[0]);
         }
         out
-    }
-}
-
-/// The two-node network under held powers, as a system for the integrator (no input).
-struct Network {
-    m: ThermalModel<f64>,
-    pv: f64,
-    pm: f64,
-    speed: f64,
-}
-
-impl Dynamics<f64, 2> for Network {
-    fn deriv(&self, y: &[f64; 2], _u: f64) -> [f64; 2] {
-        let (a, b) = self.m.rates(y[0], y[1], self.pv, self.pm, self.speed);
-        [a, b]
     }
 }
 
