@@ -10,10 +10,11 @@
 //! LR-2 branch), block by block from a cold start.
 //!
 //! The unknowns are the logarithms of Rtv, Ctv, Rtm, Ctm (all positive). The model takes the
-//! network's exact solution over each block with the block's powers held ([`HeldStep`]). The sds are the cluster-robust sandwich over blocks of
-//! [`COVARIANCE_BLOCK_S`] (the tracked rise's error is correlated over a second or more), so
-//! a parameter the run cannot tell (the magnet's, in a run much shorter than its time
-//! constant) comes out with the large sd it deserves rather than a false precision.
+//! network's exact solution over each block with the block's powers held ([`HeldStep`]). The
+//! sds are the cluster-robust sandwich over blocks of [`COVARIANCE_BLOCK_S`] (the tracked
+//! rise's error is correlated over a second or more), so a parameter the run cannot tell (the
+//! magnet's, in a run much shorter than its time constant) comes out with the large sd it
+//! deserves rather than a false precision.
 
 use crate::lm::{lm_step, LmState, Problem};
 use coilscope_core::model::{HeldStep, ThermalModel};
