@@ -85,6 +85,8 @@ pub struct HeldStep {
     phi: [[f64; 2]; 2],
     /// `-A^-1` row-major: the rest point is `inv_neg_a b`.
     inv_neg_a: [[f64; 2]; 2],
+    /// `1 / [Ctv, Ctm]`: `b = [Pv / Ctv, Pm / Ctm]`.
+    inv_c: [f64; 2],
     /// The inputs it was built for: `(h, speed)`.
     key: (f64, f64),
 }
@@ -110,7 +112,7 @@ impl HeldStep {
         let sh = if d * h > 1e-8 { e1 * em / (2.0 * d) } else { e1 * h * (1.0 - d * h) }; // e^(l1 h) (1 - e^(-2dh)) / (2d)
         let phi = [[c + sh * (a[0][0] - s), sh * a[0][1]], [sh * a[1][0], c + sh * (a[1][1] - s)]];
         let inv_neg_a = [[-a[1][1] / det, a[0][1] / det], [a[1][0] / det, -a[0][0] / det]];
-        HeldStep { phi, inv_neg_a, key: (h, speed) }
+        HeldStep { phi, inv_neg_a, inv_c: [ictv, ictm], key: (h, speed) }
     }
 
     /// Whether this step was built for block length `h` and speed `speed` (bit for bit).
@@ -121,8 +123,8 @@ impl HeldStep {
     /// `[Tv, Tm]` (K) at the end of the block from `y` at its start under the held powers
     /// `pv` into the coil and `pm` into the magnet (W).
     #[inline]
-    pub fn apply(&self, y: [f64; 2], pv: f64, pm: f64, m: &ThermalModel<f64>) -> [f64; 2] {
-        let (b0, b1) = (pv * m.inv[1], pm * m.inv[3]);
+    pub fn apply(&self, y: [f64; 2], pv: f64, pm: f64) -> [f64; 2] {
+        let (b0, b1) = (pv * self.inv_c[0], pm * self.inv_c[1]);
         let q = &self.inv_neg_a;
         let eq = [q[0][0] * b0 + q[0][1] * b1, q[1][0] * b0 + q[1][1] * b1];
         let (r0, r1) = (y[0] - eq[0], y[1] - eq[1]);
@@ -136,7 +138,7 @@ impl ThermalModel<f64> {
     /// `pm` (W) and the speed held: the network's exact solution ([`HeldStep`]). For one
     /// block; a series of blocks of one length and speed builds the [`HeldStep`] once.
     pub fn held_step(&self, y: [f64; 2], pv: f64, pm: f64, speed: f64, h: f64) -> [f64; 2] {
-        HeldStep::new(self, h, speed).apply(y, pv, pm, self)
+        HeldStep::new(self, h, speed).apply(y, pv, pm)
     }
 }
 
@@ -951,7 +953,7 @@ mod tests {
                 assert!((exact[k] - oracle[k]).abs() < 1e-10 * scale, "node {k}: {} vs the oracle's {} (rtv {rtv}, ctv {ctv}, h {h})", exact[k], oracle[k]);
             }
             let step = HeldStep::new(&m, 0.5 * h, speed);
-            let twice = step.apply(step.apply(y0, pv, pm, &m), pv, pm, &m);
+            let twice = step.apply(step.apply(y0, pv, pm), pv, pm);
             assert!((twice[0] - exact[0]).abs() < 1e-12 * scale && (twice[1] - exact[1]).abs() < 1e-12 * scale, "{twice:?} vs {exact:?}");
             let rest = m.held_step(y0, pv, pm, speed, 1e6 * tau.max(rtm * ctm));
             let tm = (pv + pm) * rtm;

@@ -123,7 +123,7 @@ impl Fit<'_> {
                 Some(s) if s.is_for(h, speed) => s,
                 _ => *step.insert(HeldStep::new(&m, h, speed)),
             };
-            y = s.apply(y, self.tr.pv[k], self.tr.pm[k], &m);
+            y = s.apply(y, self.tr.pv[k], self.tr.pm[k]);
             t0 = self.tr.t[k];
             out.push(y[0]);
         }
