@@ -85,8 +85,8 @@ pub struct HeldStep {
     phi: [[f64; 2]; 2],
     /// `-A^-1` row-major: the rest point is `inv_neg_a b`.
     inv_neg_a: [[f64; 2]; 2],
-    /// `1 / [Ctv, Ctm]`: `b = [Pv / Ctv, Pm / Ctm]`.
-    inv_c: [f64; 2],
+    /// `b` per watt into the coil and per watt into the magnet: `b = Pv bv + Pm bm`.
+    b_unit: [[f64; 2]; 2],
     /// The inputs it was built for: `(h, speed)`.
     key: (f64, f64),
 }
@@ -99,9 +99,13 @@ impl HeldStep {
     /// (`s` the mean, `d` half the gap), where no term overflows and none cancels, for any
     /// `h d`.
     pub fn new(m: &ThermalModel<f64>, h: f64, speed: f64) -> HeldStep {
-        let [irtv, ictv, irtm, ictm] = m.inv;
-        let g = irtv * (m.rv * speed + 1.0);
-        let a = [[-g * ictv, g * ictv], [g * ictm, -(g + irtm) * ictm]];
+        // A and b from the network's own rates ([`ThermalModel::rates`]), the one place its
+        // equations are written: A's columns are the rates of a unit rise at no power, b's
+        // those of a unit power at no rise.
+        let r = |tv: f64, tm: f64, pv: f64, pm: f64| m.rates(tv, tm, pv, pm, speed);
+        let (c0, c1) = (r(1.0, 0.0, 0.0, 0.0), r(0.0, 1.0, 0.0, 0.0));
+        let a = [[c0.0, c1.0], [c0.1, c1.1]];
+        let (bv, bm) = (r(0.0, 0.0, 1.0, 0.0), r(0.0, 0.0, 0.0, 1.0));
         let s = 0.5 * (a[0][0] + a[1][1]);
         let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
         // d^2 = ((a00 - a11) / 2)^2 + a01 a10: a sum of non-negative terms, no cancellation.
@@ -112,7 +116,7 @@ impl HeldStep {
         let sh = if d * h > 1e-8 { e1 * em / (2.0 * d) } else { e1 * h * (1.0 - d * h) }; // e^(l1 h) (1 - e^(-2dh)) / (2d)
         let phi = [[c + sh * (a[0][0] - s), sh * a[0][1]], [sh * a[1][0], c + sh * (a[1][1] - s)]];
         let inv_neg_a = [[-a[1][1] / det, a[0][1] / det], [a[1][0] / det, -a[0][0] / det]];
-        HeldStep { phi, inv_neg_a, inv_c: [ictv, ictm], key: (h, speed) }
+        HeldStep { phi, inv_neg_a, b_unit: [[bv.0, bv.1], [bm.0, bm.1]], key: (h, speed) }
     }
 
     /// Whether this step was built for block length `h` and speed `speed` (bit for bit).
@@ -124,7 +128,8 @@ impl HeldStep {
     /// `pv` into the coil and `pm` into the magnet (W).
     #[inline]
     pub fn apply(&self, y: [f64; 2], pv: f64, pm: f64) -> [f64; 2] {
-        let (b0, b1) = (pv * self.inv_c[0], pm * self.inv_c[1]);
+        let [bv, bm] = self.b_unit;
+        let (b0, b1) = (pv * bv[0] + pm * bm[0], pv * bv[1] + pm * bm[1]);
         let q = &self.inv_neg_a;
         let eq = [q[0][0] * b0 + q[0][1] * b1, q[1][0] * b0 + q[1][1] * b1];
         let (r0, r1) = (y[0] - eq[0], y[1] - eq[1]);
