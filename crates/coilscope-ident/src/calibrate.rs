@@ -79,8 +79,8 @@ struct ResistorProblem {
 /// `dk / ds = 2 s (pi / fs) (1 + k^2)`.
 #[derive(Clone, Copy)]
 struct Corner {
+    /// `(g, a)` ([`hp_coefficients`]); `g` is also `1 / (1 + k)`.
     ga: (f64, f64),
-    inv_1k: f64,
     dk_ds: f64,
 }
 
@@ -89,14 +89,15 @@ impl Corner {
         let fc = s * s;
         let ga = hp_coefficients(fc, fs);
         let k = (PI * fc / fs).tan();
-        Corner { ga, inv_1k: 1.0 / (1.0 + k), dk_ds: 2.0 * s * PI / fs * (1.0 + k * k) }
+        Corner { ga, dk_ds: 2.0 * s * PI / fs * (1.0 + k * k) }
     }
 
     /// `H` at `zi` and `d ln H / ds`.
     fn at(&self, zi: Complex64) -> (Complex64, Complex64) {
         let den = 1.0 - self.ga.1 * zi;
         let h = hp_response_at(self.ga, zi);
-        let dln_dk = -self.inv_1k - 2.0 * self.inv_1k * self.inv_1k * zi / den;
+        let g = self.ga.0;
+        let dln_dk = -g - 2.0 * g * g * zi / den;
         (h, dln_dk * self.dk_ds)
     }
 }
