@@ -2930,15 +2930,15 @@ fn screen_effects<'a>(base: &(Layout, std::sync::Arc<KeptJacobian>), screened: &
 
 /// Identify the large-signal parameters from voltage `u` (V) and current `i` (A) sampled at
 /// `fs`. `origin` names the recording in messages.
-pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &IdentifyOptions, observe: impl FnMut(&Progress)) -> Result<LargeFit, IdentifyError> {
-    let fit = identify_record(u_rec, i_rec, fs, origin, opts, observe);
+pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &IdentifyOptions, mut observe: impl FnMut(&Progress)) -> Result<LargeFit, IdentifyError> {
+    let fit = identify_record(u_rec, i_rec, fs, origin, opts, &mut observe);
     // The fit's spare Jacobians (up to 2 x 90 MB) are not kept past it.
     release_spare_jacobians();
     fit
 }
 
 /// [`identify`]'s work.
-fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &IdentifyOptions, mut observe: impl FnMut(&Progress)) -> Result<LargeFit, IdentifyError> {
+fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &IdentifyOptions, observe: &mut dyn FnMut(&Progress)) -> Result<LargeFit, IdentifyError> {
     use IdentifyError::*;
     let (u, i) = (u_rec, i_rec);
     if u.len() != i.len() {
@@ -3153,7 +3153,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         let lay = layout_for(0);
         let th = join(lay.theta_from(&current, None), &cth);
         let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching().keeping_search();
-        let s = solve(&prob, th, &Stage::Estimate { order: 0 }, 1e-3, ORDER0_FIRST_ITERATIONS, None, None, &mut observe);
+        let s = solve(&prob, th, &Stage::Estimate { order: 0 }, 1e-3, ORDER0_FIRST_ITERATIONS, None, None, observe);
         cth = s.theta[lay.slots().n..].to_vec();
         linear_rel = Some((2.0 * s.cost).sqrt() / norm_est);
         current = Parameters { mms: opts.mms, ..lay.parameters(&s.theta) };
@@ -3220,7 +3220,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     };
     for &order in &orders {
         let lay = layout_for(order);
-        let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, prev_kept.as_ref(), &mut observe);
+        let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, prev_kept.as_ref(), observe);
         cth = th_val[lay.slots().n..].to_vec();
         trials.push(OrderTrial { order, estimation_rel: est, validation_rel: val, iterations: s.iteration });
         current = Parameters { mms: opts.mms, ..lay.parameters(&s.theta) };
@@ -3239,7 +3239,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             // near (its error can only fall, and the gain with it).
             if let (Some(lin), Some((prob0, s0))) = (linear_rel, order0.take()) {
                 if !s0.converged && s0.iteration >= ORDER0_FIRST_ITERATIONS && 1.0 - est / lin < ORDER0_FINISH_BELOW_GAIN {
-                    let s = solve(&prob0, s0.theta, &Stage::Estimate { order: 0 }, 1e-3, 10, None, None, &mut observe);
+                    let s = solve(&prob0, s0.theta, &Stage::Estimate { order: 0 }, 1e-3, 10, None, None, observe);
                     linear_rel = Some(lin.min((2.0 * s.cost).sqrt() / norm_est));
                 }
             }
@@ -3318,7 +3318,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                 Some(v) => v,
                 None => {
                     let lay = layout_for(order);
-                    let (s, _, _, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, None, &mut observe);
+                    let (s, _, _, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, None, observe);
                     search_track = Some(lay.re_track(&s.theta));
                     at_kept = kept.map(|k| (lay, k));
                     (at_left, at_converged) = (s.gn_left, s.converged);
@@ -3452,14 +3452,14 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                     }
                     let seed = at_kept.as_ref().filter(|_| nested);
                     let max_it = if lay.lr3_tau { LR3_TAU_ITERATIONS } else { SEARCH_MAX_ITERATIONS };
-                    let (mut s, _, mut th_val, mut val, mut kept) = estimate_validate_for(&lay, &from, search_track.as_deref(), &cth, seed, max_it, false, &mut observe);
+                    let (mut s, _, mut th_val, mut val, mut kept) = estimate_validate_for(&lay, &from, search_track.as_deref(), &cth, seed, max_it, false, observe);
                     // A branch the record holds: the trial goes on in L3 and R3 (Slots::r3).
                     if lay.lr3_tau && !s.converged {
                         let n = lay.slots().n;
                         let (p, track) = (Parameters { mms: opts.mms, ..lay.parameters(&s.theta) }, lay.re_track(&s.theta));
                         lay.lr3_tau = false;
                         let done = s.iteration;
-                        (s, _, th_val, val, kept) = estimate_validate_for(&lay, &p, Some(&track), &s.theta[n..], None, SEARCH_MAX_ITERATIONS - done, false, &mut observe);
+                        (s, _, th_val, val, kept) = estimate_validate_for(&lay, &p, Some(&track), &s.theta[n..], None, SEARCH_MAX_ITERATIONS - done, false, observe);
                         s.iteration += done;
                     }
                     effect_trials.push((e.model_name(), val));
@@ -3478,7 +3478,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                 if let Some(b) = &best {
                     if let Some(budget) = base_goes_on_alone(b.1, b.4, at_val, at_left, at_converged) {
                         let lay = at_kept.as_ref().map_or_else(|| layout_for(order).with_effects(at), |(l, _)| l.clone());
-                        let (s, _, th_val, val, kept) = estimate_validate_for(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), budget, true, &mut observe);
+                        let (s, _, th_val, val, kept) = estimate_validate_for(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), budget, true, observe);
                         if !(b.1 < (1.0 - EFFECT_MIN_GAIN_HELD_OUT) * val) {
                             if let Some(t) = effect_trials.iter_mut().rev().find(|t| t.0 == at.model_name()) {
                                 effect_went_on.push((t.0.clone(), t.1));
@@ -3522,7 +3522,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         let mut next = order;
         while next <= MAX_ORDER {
             let lay = layout_for(next).with_effects(effects);
-            let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), &mut observe);
+            let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), observe);
             if next > order {
                 trials.push(OrderTrial { order: next, estimation_rel: est, validation_rel: val, iterations: 0 });
                 if !(val < 0.98 * cur) {
@@ -3617,7 +3617,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             stopped_early.set(Some(test));
             start
         }
-        _ => solve(&prob, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, Some(&early), &mut observe),
+        _ => solve(&prob, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, Some(&early), observe),
     };
     let r = prob.residual(&s.theta);
     let residual_rel = rel(&r, &i[settle..n]);
@@ -3629,7 +3629,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             // Where the fit's last Jacobian was computed, on it and its spare heating
             // columns (OutputError::extending); else where the fit stopped.
             let th = prob_h.extending(&prob).unwrap_or_else(|| heat_at_zero(&s.theta, lay.slots().n, lay_h.slots().n));
-            let s_h = solve(&prob_h, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, None, &mut observe);
+            let s_h = solve(&prob_h, th, &Stage::Final { order }, 1e-4, opts.max_iterations, None, None, observe);
             let r_h = prob_h.residual(&s_h.theta);
             let rel_h = rel(&r_h, &i[settle..n]);
             (rel_h < (1.0 - HEAT_MIN_GAIN) * residual_rel).then(|| {
@@ -3640,7 +3640,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         match heated.flatten() {
             Some(h) => h,
             None if stopped_early.get().is_some() => {
-                let s = solve(&prob, s.theta, &Stage::Final { order }, 1e-4, opts.max_iterations, None, None, &mut observe);
+                let s = solve(&prob, s.theta, &Stage::Final { order }, 1e-4, opts.max_iterations, None, None, observe);
                 let r = prob.residual(&s.theta);
                 let residual_rel = rel(&r, &i[settle..n]);
                 let excess = crate::checks::noise_floor(r.as_slice(), fs).ratio;

@@ -1146,7 +1146,12 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
 /// fit of the same record with the same options but for `effects`) instead of fitting it
 /// again: the same result, bit for bit (`lr2_fit_reused_is_the_fit`), the observer seeing the
 /// LM states of the models with effects only.
-pub fn fit_linear_record_from(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, lr2: Option<&Lr2Fit>, observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+pub fn fit_linear_record_from(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, lr2: Option<&Lr2Fit>, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+    linear_record_from(u, i, fs, origin, opts, lr2, &mut observe)
+}
+
+/// [`fit_linear_record_from`]'s work, compiled once (not for each caller's observer).
+fn linear_record_from(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, lr2: Option<&Lr2Fit>, observe: &mut dyn FnMut(&LmState)) -> Result<LinearFit, String> {
     refuse_large_signal_effects(opts, origin)?;
     check_channels(u, i, fs, opts.chain, origin)?;
     let h1 = h1_impedance(u, i, fs, segment_length(u.len(), fs));
@@ -1247,7 +1252,12 @@ pub fn fit_linear_record_from(u: &[f64], i: &[f64], fs: f64, origin: &str, opts:
 /// impedance error. A curve is the average of a measurement, with no record ends
 /// ([`Ends::AssumedAtRest`]) and no measurement chain (a `.zma` is taken as calibrated; the
 /// option `chain` is refused).
-pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, origin: &str, opts: &LinearOptions, observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, origin: &str, opts: &LinearOptions, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+    impedance_curve(f, z, band, origin, opts, &mut observe)
+}
+
+/// [`fit_impedance_curve`]'s work, compiled once (not for each caller's observer).
+fn impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, origin: &str, opts: &LinearOptions, observe: &mut dyn FnMut(&LmState)) -> Result<LinearFit, String> {
     if opts.chain {
         return Err(format!("{origin}: an impedance curve has no measurement chain to estimate (its tool calibrated it); --chain applies to records"));
     }
@@ -1297,7 +1307,7 @@ pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, o
 /// curve: no chain, no skew check); `lr2`: the LR-2 model's fit on these bins, taken instead
 /// of fitting it ([`fit_linear_record_from`]).
 #[allow(clippy::too_many_arguments)]
-fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64; 7], opts: &LinearOptions, fs: Option<f64>, lr2: Option<&Lr2Fit>, origin: &str, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64; 7], opts: &LinearOptions, fs: Option<f64>, lr2: Option<&Lr2Fit>, origin: &str, observe: &mut dyn FnMut(&LmState)) -> Result<LinearFit, String> {
     let map = prob.map.clone();
     let n_chain = prob.chain.map_or(0, |c| c.count());
     // LM to convergence, or to a plateau: the cost lowered by less than PLATEAU_REL over
@@ -1408,7 +1418,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     }
     let base = match lr2 {
         Some(b) => (with_effects(Effects::NONE), b.state.clone(), b.scout_rel, b.polished),
-        None => solve(Effects::NONE, &base_starts, f64::INFINITY, &mut observe),
+        None => solve(Effects::NONE, &base_starts, f64::INFINITY, observe),
     };
     let lr2 = Lr2Fit { state: base.1.clone(), scout_rel: base.2, polished: base.3 };
     let mut fitted = vec![with_residual(&mut scout_r, &mut polished, base)];
@@ -1449,7 +1459,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         EffectsChoice::Fixed(e) if e == Effects::NONE => 0,
         EffectsChoice::Fixed(e) => {
             let st = grow(&fitted[0], e);
-            fitted.push(with_residual(&mut scout_r, &mut polished, solve(e, &st, f64::INFINITY, &mut observe)));
+            fitted.push(with_residual(&mut scout_r, &mut polished, solve(e, &st, f64::INFINITY, observe)));
             1
         }
         EffectsChoice::Auto => {
@@ -1469,7 +1479,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
                 let mut best: Option<(usize, f64)> = None;
                 for e in cands {
                     let st = grow(&fitted[at], e);
-                    let (pr, s, r) = with_residual(&mut scout_r, &mut polished, solve(e, &st, gate, &mut observe));
+                    let (pr, s, r) = with_residual(&mut scout_r, &mut polished, solve(e, &st, gate, observe));
                     let lambda_ok = pr.idx_lambda().is_none_or(|k| s.theta[k] > 0.0);
                     fitted.push((pr, s, r));
                     if polished[fitted.len() - 1] && lambda_ok && r < (1.0 - EFFECT_MIN_GAIN) * r_cur && best.is_none_or(|(_, rb)| r < rb) {
@@ -1520,7 +1530,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
             let kv = keep.on();
             th.extend((0..3).filter(|&n| kv[n]).map(|n| vals[n]));
             let pr = CurrentError { f: prob.f.clone(), u: prob.u.clone(), i: prob.i.clone(), w: prob.w.clone(), map: prob.map.clone(), chain: (keep.count() > 0).then_some(keep), ..prob };
-            s = run(&pr, th, MAX_ITERATIONS, &mut observe);
+            s = run(&pr, th, MAX_ITERATIONS, observe);
             prob = pr;
         }
     }

@@ -87,6 +87,11 @@ fn with_theta(p: &Parameters, th: &[f64], order: usize) -> Parameters {
 /// measured displacement in metres back, from rest) follows `reference` driven by `input`,
 /// one update per block. `observe` sees each block.
 pub fn adapt(start: &Parameters, reference: &Parameters, input: &[f64], fs: f64, mut play: impl FnMut(&[f64]) -> Result<Vec<f64>, String>, opts: &PreInverseOptions, mut observe: impl FnMut(&Update)) -> Result<PreInverseFit, String> {
+    adapt_blocks(start, reference, input, fs, &mut play, opts, &mut observe)
+}
+
+/// [`adapt`]'s work, compiled once (not for each caller's `play` and `observe`).
+fn adapt_blocks(start: &Parameters, reference: &Parameters, input: &[f64], fs: f64, play: &mut dyn FnMut(&[f64]) -> Result<Vec<f64>, String>, opts: &PreInverseOptions, observe: &mut dyn FnMut(&Update)) -> Result<PreInverseFit, String> {
     let order = opts.order;
     let x_ref = simulate(reference, fs, input, &SimOptions::default()).map_err(|e| format!("the reference: {e}"))?.x;
     let drive_of = |th: &[f64]| compensate_to(&with_theta(start, th, order), reference, fs, input, &opts.limits).map(|c| c.drive).map_err(|e| format!("the controller: {e}"));

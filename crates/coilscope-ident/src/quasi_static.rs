@@ -263,6 +263,11 @@ fn mean(v: &[f64]) -> f64 {
 /// each time, the push's force and added mass held from the start), with `ac` the small
 /// signal (unit RMS noise of at least `record_s`).
 pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<Played, String>, ac: &[f64], opts: &QuasiStaticOptions) -> Result<QuasiStatic, String> {
+    point_by_point(&mut play, ac, opts)
+}
+
+/// [`quasi_static`]'s work, compiled once (not for each caller's `play`).
+fn point_by_point(play: &mut dyn FnMut(&[f64], Push) -> Result<Played, String>, ac: &[f64], opts: &QuasiStaticOptions) -> Result<QuasiStatic, String> {
     if opts.points < 3 || opts.points.is_multiple_of(2) {
         return Err(format!("{} working points: give an odd number, at least 3", opts.points));
     }
@@ -320,7 +325,7 @@ pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<Played, String>
         Ok((wp, p))
     };
     // At rest: the small-signal set, and the linear map from volts to displacement.
-    let (rest, p0) = point(&mut play, 0.0, Push::default())?;
+    let (rest, p0) = point(play, 0.0, Push::default())?;
     let per_volt = rest.bl_eff / (p0.re * rest.k_eff);
     let per_newton = 1.0 / rest.k_eff;
     let half = opts.points / 2;
@@ -334,8 +339,8 @@ pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<Played, String>
         for k in 1..=half {
             let target = side * opts.reach * edge * k as f64 / half as f64;
             let (wp, _) = match opts.offset {
-                Offset::Current => point(&mut play, target * volts_per_m, Push::default())?,
-                o => point(&mut play, 0.0, o.push(target * newtons_per_m))?,
+                Offset::Current => point(play, target * volts_per_m, Push::default())?,
+                o => point(play, 0.0, o.push(target * newtons_per_m))?,
             };
             if wp.x_dc.abs() > 1e-9 {
                 volts_per_m = wp.u_dc / wp.x_dc;
