@@ -253,10 +253,10 @@ impl Chart {
     }
 
     /// The chart's pixels (RGB).
-    fn rgb(&self, size: (u32, u32), legend: bool) -> Result<image::RgbImage, String> {
-        let mut buf = vec![0u8; (size.0 * size.1 * 3) as usize];
-        self.draw_with(BitMapBackend::with_buffer(&mut buf, size).into_drawing_area(), legend)?;
-        Ok(image::RgbImage::from_raw(size.0, size.1, buf).ok_or("PNG buffer size mismatch")?)
+    fn rgb(&self, size: (u32, u32), legend: bool) -> Result<Rgb, String> {
+        let mut px = vec![0u8; (size.0 * size.1 * 3) as usize];
+        self.draw_with(BitMapBackend::with_buffer(&mut px, size).into_drawing_area(), legend)?;
+        Ok(Rgb { width: size.0, height: size.1, px })
     }
 
     /// The layout check of issue 19: how many pixels of the data lines the legend box covers
@@ -265,19 +265,64 @@ impl Chart {
     /// without it.
     pub fn legend_covers_data(&self, size: (u32, u32)) -> Result<usize, String> {
         let (with, without) = (self.rgb(size, true)?, self.rgb(size, false)?);
-        let diff: Vec<(u32, u32)> = with.enumerate_pixels().filter(|(x, y, p)| without.get_pixel(*x, *y) != *p).map(|(x, y, _)| (x, y)).collect();
+        let diff: Vec<(u32, u32)> = with.pixels().filter(|&(x, y, p)| without.get(x, y) != p).map(|(x, y, _)| (x, y)).collect();
         let (Some(x0), Some(x1)) = (diff.iter().map(|p| p.0).min(), diff.iter().map(|p| p.0).max()) else { return Ok(0) };
         let (y0, y1) = (diff.iter().map(|p| p.1).min().unwrap_or(0), diff.iter().map(|p| p.1).max().unwrap_or(0));
         let colours: Vec<[u8; 3]> = (0..self.series.len()).map(|k| PALETTE[k % PALETTE.len()].rgb().into()).collect();
-        Ok(without.enumerate_pixels().filter(|(x, y, p)| (x0..=x1).contains(x) && (y0..=y1).contains(y) && colours.contains(&p.0)).count())
+        Ok(without.pixels().filter(|(x, y, p)| (x0..=x1).contains(x) && (y0..=y1).contains(y) && colours.contains(p)).count())
     }
 
     /// The chart as PNG bytes.
     pub fn png(&self, size: (u32, u32)) -> Result<Vec<u8>, String> {
         let img = self.rgb(size, true)?;
         let mut bytes = Vec::new();
-        img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png).map_err(|e| format!("chart {}: PNG encoding failed: {e}", self.id))?;
+        let mut enc = png::Encoder::new(&mut bytes, img.width, img.height);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.write_header().and_then(|mut w| w.write_image_data(&img.px)).map_err(|e| format!("chart {}: PNG encoding failed: {e}", self.id))?;
         Ok(bytes)
+    }
+}
+
+/// An 8-bit RGB image, row by row: a chart's pixels, or a PNG read back by [`Rgb::from_png`].
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Rgb {
+    pub width: u32,
+    pub height: u32,
+    /// `3 * width * height` bytes, rows from the top.
+    pub px: Vec<u8>,
+}
+
+impl Rgb {
+    /// The pixel at column `x`, row `y`.
+    pub fn get(&self, x: u32, y: u32) -> [u8; 3] {
+        let k = 3 * (y as usize * self.width as usize + x as usize);
+        [self.px[k], self.px[k + 1], self.px[k + 2]]
+    }
+
+    /// Every pixel with its column and row.
+    pub fn pixels(&self) -> impl Iterator<Item = (u32, u32, [u8; 3])> + '_ {
+        let w = self.width.max(1);
+        self.px.chunks_exact(3).enumerate().map(move |(k, c)| (k as u32 % w, k as u32 / w, [c[0], c[1], c[2]]))
+    }
+
+    /// A PNG's first frame as 8-bit RGB (grey expanded, alpha dropped): what a report's PNG
+    /// copy, or a browser's screenshot of the report, shows.
+    pub fn from_png(bytes: &[u8]) -> Result<Rgb, String> {
+        let mut dec = png::Decoder::new(std::io::Cursor::new(bytes));
+        dec.set_transformations(png::Transformations::normalize_to_color8());
+        let mut reader = dec.read_info().map_err(|e| format!("not a PNG: {e}"))?;
+        let mut buf = vec![0u8; reader.output_buffer_size().ok_or("the PNG is too large to read")?];
+        let info = reader.next_frame(&mut buf).map_err(|e| format!("PNG data: {e}"))?;
+        let buf = &buf[..info.buffer_size()];
+        let px: Vec<u8> = match info.color_type {
+            png::ColorType::Rgb => buf.to_vec(),
+            png::ColorType::Rgba => buf.chunks_exact(4).flat_map(|c| [c[0], c[1], c[2]]).collect(),
+            png::ColorType::Grayscale => buf.iter().flat_map(|&g| [g, g, g]).collect(),
+            png::ColorType::GrayscaleAlpha => buf.chunks_exact(2).flat_map(|c| [c[0], c[0], c[0]]).collect(),
+            png::ColorType::Indexed => return Err("an indexed PNG was not expanded".into()),
+        };
+        Ok(Rgb { width: info.width, height: info.height, px })
     }
 }
 
@@ -305,8 +350,10 @@ mod tests {
     #[test]
     fn png_draws_the_series_colour() {
         let bytes = sample().png((640, 400)).unwrap();
-        let img = image::load_from_memory(&bytes).unwrap().to_rgb8();
-        let blue = img.pixels().filter(|p| p.0 == [0x1f, 0x5f, 0xbf]).count();
+        let img = Rgb::from_png(&bytes).unwrap();
+        assert_eq!((img.width, img.height), (640, 400));
+        assert_eq!(img, sample().rgb((640, 400), true).unwrap(), "the PNG holds the chart's pixels");
+        let blue = img.pixels().filter(|p| p.2 == [0x1f, 0x5f, 0xbf]).count();
         assert!(blue > 200, "the first series is drawn ({blue} pixels)");
     }
 
