@@ -4299,6 +4299,40 @@ mod tests {
         }
     }
 
+    /// The sensitivity passes compiled for AVX (where the CPU has it, as the product takes
+    /// them) give the baseline's columns to the last bit: SB17's final-fit and search-stage
+    /// passes, with heating terms and with Le(i) and Rms(v), over the columns in two passes.
+    #[test]
+    fn the_avx_pass_is_the_baseline_pass_to_the_last_bit() {
+        let fs = 48000.0;
+        let (p, tr, lay) = sb17_case(0.3, 7, 4, 3, 0.1);
+        let lay_h = lay.clone().with_heat(&HEAT_TAUS);
+        let lay_e = lay.clone().with_effects(Effects { le_i: true, rms_v: true, ..Effects::NONE });
+        for (name, lay, search) in [("plain", lay.clone(), false), ("heating terms", lay_h, false), ("Le(i), Rms(v)", lay_e.clone(), false), ("search", lay, true), ("Le(i), Rms(v), search", lay_e, true)] {
+            let mut th = lay.theta_from(&p, None);
+            for (k, t) in th.iter_mut().enumerate() {
+                *t *= 1.0 + 0.01 * ((k % 5) as f64 - 2.0);
+            }
+            let sl = lay.slots();
+            if let (Some(k), Some(r)) = (sl.le_i, sl.rms_v) {
+                (th[k], th[k + 1], th[r]) = (-0.05, 0.02, 0.1);
+            }
+            let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 480..tr.u.len(), p.rates(), 0.05, 1);
+            let prob = if search { prob.searching() } else { prob };
+            assert!(crate::sensitivity::applies(&prob.layout, &prob.stepper_jac), "{name}");
+            let n = lay.slots().n;
+            let heat: Vec<Vec<f64>> = prob.heat.clone();
+            for cols in [(0..n / 2).collect::<Vec<_>>(), (n / 2..n).collect()] {
+                let rows = prob.fit.len();
+                let (mut a, mut b) = (vec![0.0; rows * cols.len()], vec![0.0; rows * cols.len()]);
+                crate::sensitivity::pass_on(&prob.layout, &heat, &th, &cols, &tr.u, fs, &prob.stepper_jac, prob.fit.clone(), None, &mut a, true);
+                crate::sensitivity::pass_on(&prob.layout, &heat, &th, &cols, &tr.u, fs, &prob.stepper_jac, prob.fit.clone(), None, &mut b, false);
+                assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()), "{name}: columns {cols:?}");
+                assert!(a.iter().any(|v| *v != 0.0), "{name}");
+            }
+        }
+    }
+
     /// SB17 driven by `seconds` of pink noise (seed `seed`, 48 kHz) to a 4 mm peak, and a
     /// layout of power-series order `order` with `n_re` Re(t) knots `knot_dt` s apart.
     fn sb17_case(seconds: f64, seed: u64, order: usize, n_re: usize, knot_dt: f64) -> (Parameters, coilscope_core::simulate::Trace, Layout) {

@@ -196,6 +196,13 @@ impl Dynamics<f64, NSTATE> for Linear<'_> {
 /// numbers or is stopped (`stop`, looked at every 4096 samples) leaves the rest at zero.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn pass(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], u: &[f64], fs: f64, stepper: &Stepper, fit: std::ops::Range<usize>, stop: Option<&AtomicBool>, block: &mut [f64]) {
+    pass_on(layout, heat, th, cols, u, fs, stepper, fit, stop, block, true);
+}
+
+/// [`pass`], compiled for AVX when `avx` and the CPU has it, for the baseline otherwise (the
+/// test that the two give the same bits).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn pass_on(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], u: &[f64], fs: f64, stepper: &Stepper, fit: std::ops::Range<usize>, stop: Option<&AtomicBool>, block: &mut [f64], avx: bool) {
     let (knots, sizes, dt) = (layout.model(th).1, layout.heat_sizes(th), 1.0 / fs);
     // Re(t) as the model's runs take it, and its weights on the knots.
     let re = |m: usize| {
@@ -204,7 +211,13 @@ pub(crate) fn pass(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize
         (re_at(&knots, layout.knot_dt, t, m, (&sizes, heat)), k, w)
     };
     let run = Run { u, steps: 0..fit.end, first_row: fit.start, y0: [0.0; NSTATE] };
-    pass_from(layout, heat, th, cols, fs, stepper, &run, re, stop, block);
+    #[cfg(target_arch = "x86_64")]
+    if avx && std::arch::is_x86_feature_detected!("avx") {
+        // SAFETY: the CPU has AVX (checked just above).
+        return unsafe { pass_from_avx(layout, heat, th, cols, fs, stepper, &run, re, stop, block) };
+    }
+    let _ = avx;
+    pass_from_body(layout, heat, th, cols, fs, stepper, &run, re, stop, block);
 }
 
 /// A run of [`pass_from`]: the drive `u`, the samples `steps` of it the run steps over from
@@ -220,8 +233,34 @@ pub(crate) struct Run<'a> {
 /// weight `w` (`Re = (1 - w) knot_k + w knot_{k+1}`; with one
 /// knot its column is `Re`'s): the online estimator's windows start from the live state,
 /// with their own `Re` ramp.
+///
+/// On a CPU with AVX the pass runs compiled for it (checked at run time: the binary keeps to
+/// the x86-64 baseline), the columns' steps four to a register instead of two; the values
+/// are the same to the last bit, since the operations and their order are the same and
+/// nothing is contracted into a fused multiply-add
+/// (`the_avx_pass_is_the_baseline_pass_to_the_last_bit`).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn pass_from(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], fs: f64, stepper: &Stepper, run: &Run, re: impl Fn(usize) -> (f64, usize, f64), stop: Option<&AtomicBool>, block: &mut [f64]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx") {
+        // SAFETY: the CPU has AVX (checked just above).
+        return unsafe { pass_from_avx(layout, heat, th, cols, fs, stepper, run, re, stop, block) };
+    }
+    pass_from_body(layout, heat, th, cols, fs, stepper, run, re, stop, block);
+}
+
+/// [`pass_from`] compiled for AVX.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+#[allow(clippy::too_many_arguments)]
+fn pass_from_avx(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], fs: f64, stepper: &Stepper, run: &Run, re: impl Fn(usize) -> (f64, usize, f64), stop: Option<&AtomicBool>, block: &mut [f64]) {
+    pass_from_body(layout, heat, th, cols, fs, stepper, run, re, stop, block);
+}
+
+/// [`pass_from`]'s work, inlined into each of its two callers (the baseline's and AVX's).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn pass_from_body(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], fs: f64, stepper: &Stepper, run: &Run, re: impl Fn(usize) -> (f64, usize, f64), stop: Option<&AtomicBool>, block: &mut [f64]) {
     let all = columns(layout).expect("a layout without creep or LR-3 (applies)");
     let kinds: Vec<Column> = cols.iter().map(|&c| all[c]).collect();
     let mut model = layout.model(th).0;
@@ -329,7 +368,7 @@ impl Columns {
     /// numbers' runs set their lanes ([`coilscope_core::integrate::FlushTiny`]): a column
     /// that stops being driven (an `Re(t)` knot's after its interval) decays through the
     /// subnormal range, where every operation takes the processor's microcode assist.
-    #[inline]
+    #[inline(always)]
     fn flush_tiny(&mut self) {
         for s in self.s.iter_mut() {
             flush_tiny_lanes(s);
@@ -339,7 +378,7 @@ impl Columns {
     /// Every column's step of the explicit midpoint rule over `h` at the two recorded
     /// stages: `S + h (F_2 (S + h/2 k_1) + G_2)`, `k_1 = F_1 S + G_1` (the model's
     /// [`midpoint_sample`], a search stage's Jacobian).
-    #[inline]
+    #[inline(always)]
     fn midpoint_step(&mut self, p: &[DerivPartials; STAGES], h: f64) {
         self.stage::<0>(&p[0], 0.0);
         self.stage::<1>(&p[1], 0.5 * h);
@@ -356,7 +395,7 @@ impl Columns {
     /// the last bit, `the_columns_step_is_linear_rk4_to_the_last_bit`). Stage by stage over
     /// all columns, so that a loop holds one stage's nine partials in registers (a loop over
     /// the whole step per column spilled them: 1.3x slower).
-    #[inline]
+    #[inline(always)]
     fn rk4_step(&mut self, p: &[DerivPartials; STAGES], h: f64) {
         self.stage::<0>(&p[0], 0.0);
         self.stage::<1>(&p[1], 0.5 * h);
