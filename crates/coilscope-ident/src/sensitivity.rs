@@ -211,13 +211,7 @@ pub(crate) fn pass_on(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[us
         (re_at(&knots, layout.knot_dt, t, m, (&sizes, heat)), k, w)
     };
     let run = Run { u, steps: 0..fit.end, first_row: fit.start, y0: [0.0; NSTATE] };
-    #[cfg(target_arch = "x86_64")]
-    if avx && std::arch::is_x86_feature_detected!("avx") {
-        // SAFETY: the CPU has AVX (checked just above).
-        return unsafe { pass_from_avx(layout, heat, th, cols, fs, stepper, &run, re, stop, block) };
-    }
-    let _ = avx;
-    pass_from_body(layout, heat, th, cols, fs, stepper, &run, re, stop, block);
+    pass_from_on(layout, heat, th, cols, fs, stepper, &run, re, stop, block, avx);
 }
 
 /// A run of [`pass_from`]: the drive `u`, the samples `steps` of it the run steps over from
@@ -241,11 +235,18 @@ pub(crate) struct Run<'a> {
 /// (`the_avx_pass_is_the_baseline_pass_to_the_last_bit`).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn pass_from(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], fs: f64, stepper: &Stepper, run: &Run, re: impl Fn(usize) -> (f64, usize, f64), stop: Option<&AtomicBool>, block: &mut [f64]) {
+    pass_from_on(layout, heat, th, cols, fs, stepper, run, re, stop, block, true);
+}
+
+/// [`pass_from`] compiled for AVX when `avx` and the CPU has it, for the baseline otherwise.
+#[allow(clippy::too_many_arguments)]
+fn pass_from_on(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], fs: f64, stepper: &Stepper, run: &Run, re: impl Fn(usize) -> (f64, usize, f64), stop: Option<&AtomicBool>, block: &mut [f64], avx: bool) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx") {
+    if avx && std::arch::is_x86_feature_detected!("avx") {
         // SAFETY: the CPU has AVX (checked just above).
         return unsafe { pass_from_avx(layout, heat, th, cols, fs, stepper, run, re, stop, block) };
     }
+    let _ = avx;
     pass_from_body(layout, heat, th, cols, fs, stepper, run, re, stop, block);
 }
 
