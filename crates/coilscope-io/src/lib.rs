@@ -90,18 +90,18 @@ pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     if name.is_empty() {
         return err(format!("{}: not a file path", path.display()));
     }
-    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
+    // A temporary file of its own beside the target (`tempfile`: a new name each time, so
+    // that writers in one process never share one; removed if anything fails), with the
+    // permissions of a plain create (0666 less the umask) rather than a temporary file's
+    // owner-only ones.
     let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
+        use std::os::unix::fs::PermissionsExt;
+        let mut f = tempfile::Builder::new().prefix(&format!(".{name}.")).suffix(".tmp").permissions(std::fs::Permissions::from_mode(0o666)).tempfile_in(&dir)?;
         f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
+        f.as_file().sync_all()?;
+        f.persist(path).map(|_| ()).map_err(|e| e.error)
     })();
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return err(format!("{}: cannot write ({e})", path.display()));
-    }
-    Ok(())
+    result.map_err(|e| IoError(format!("{}: cannot write ({e})", path.display())))
 }
 
 /// Write pretty JSON atomically (a JSON value, or a typed file such as
@@ -411,6 +411,42 @@ mod tests {
         std::fs::write(&f, r#"{"Re": 3.0, "Le": 0.5, "Bl": 5.0, "Kms": 600.0, "Mms": 0.01, "Rms": 0.5}"#).unwrap();
         let e = load_parameters(f.to_str().unwrap()).unwrap_err().0;
         assert!(e.contains("p.json: key `Le`") && e.contains("millihenry"), "{e}");
+    }
+
+    /// Threads of one process writing one file at once (a run's result beside an export of
+    /// it): each write is whole, the file ends as one of them, and no temporary file is left.
+    /// With one temporary name per process (`.NAME.tmp-PID`) two writers truncated each
+    /// other's temporary file and the second rename failed.
+    #[test]
+    fn concurrent_writes_of_one_file_in_one_process_are_each_whole() {
+        let d = tempfile::tempdir().unwrap();
+        let path = d.path().join("result.json");
+        let texts: Vec<Vec<u8>> = (0..8u8).map(|k| vec![b'a' + k; 200_000]).collect();
+        for _ in 0..20 {
+            std::thread::scope(|scope| {
+                for t in &texts {
+                    let path = &path;
+                    scope.spawn(move || atomic_write(path, t).unwrap());
+                }
+            });
+            let got = std::fs::read(&path).unwrap();
+            assert!(texts.contains(&got), "the file mixes writes: {} bytes, starting {:?}", got.len(), &got[..4.min(got.len())]);
+        }
+        let names: Vec<String> = std::fs::read_dir(d.path()).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        assert_eq!(names, ["result.json"], "temporary files left behind");
+    }
+
+    /// A written file gets the permissions a plain create gives (0666 less the umask), not a
+    /// temporary file's owner-only ones: the report and results are for others to read too.
+    #[test]
+    fn a_written_file_has_a_plain_files_permissions() {
+        use std::os::unix::fs::PermissionsExt;
+        let d = tempfile::tempdir().unwrap();
+        let (plain, written) = (d.path().join("plain"), d.path().join("written"));
+        std::fs::File::create(&plain).unwrap();
+        atomic_write(&written, b"x").unwrap();
+        let mode = |p: &Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode(&written), mode(&plain));
     }
 
     #[test]
