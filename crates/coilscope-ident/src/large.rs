@@ -4320,13 +4320,11 @@ mod tests {
             let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 480..tr.u.len(), p.rates(), 0.05, 1);
             let prob = if search { prob.searching() } else { prob };
             assert!(crate::sensitivity::applies(&prob.layout, &prob.stepper_jac), "{name}");
-            let n = lay.slots().n;
-            let heat: Vec<Vec<f64>> = prob.heat.clone();
+            let (n, rows) = (lay.slots().n, prob.fit.len());
             for cols in [(0..n / 2).collect::<Vec<_>>(), (n / 2..n).collect()] {
-                let rows = prob.fit.len();
                 let (mut a, mut b) = (vec![0.0; rows * cols.len()], vec![0.0; rows * cols.len()]);
-                crate::sensitivity::pass_on(&prob.layout, &heat, &th, &cols, &tr.u, fs, &prob.stepper_jac, prob.fit.clone(), None, &mut a, true);
-                crate::sensitivity::pass_on(&prob.layout, &heat, &th, &cols, &tr.u, fs, &prob.stepper_jac, prob.fit.clone(), None, &mut b, false);
+                crate::sensitivity::pass_on(&prob.layout, &prob.heat, &th, &cols, &tr.u, fs, &prob.stepper_jac, prob.fit.clone(), None, &mut a, true);
+                crate::sensitivity::pass_on(&prob.layout, &prob.heat, &th, &cols, &tr.u, fs, &prob.stepper_jac, prob.fit.clone(), None, &mut b, false);
                 assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()), "{name}: columns {cols:?}");
                 assert!(a.iter().any(|v| *v != 0.0), "{name}");
             }
