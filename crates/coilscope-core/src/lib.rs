@@ -21,6 +21,8 @@
 //! * [`simulate`](mod@simulate): the virtual transducer driven by a sampled voltage.
 //! * [`small_signal`]: the linearised model at rest: impedance, Thiele/Small figures.
 //! * [`creep`]: LOG creep of the suspension as a bank of Maxwell elements.
+//! * [`population`]: physically plausible drivers drawn from a seed, microspeakers to
+//!   subwoofers, for judging the tool on drivers it was not developed on.
 //! * [`limits`]: displacement limits XBl, XC, XL, Xsym, Ak over a reached range.
 //! * [`recent`]: a few values kept by key (the chain's FFT-sized vectors in a fit).
 //! * [`result`]: the identification result file, typed.
@@ -39,6 +41,7 @@ pub mod model;
 pub mod normal_form;
 pub mod params;
 pub mod poly;
+pub mod population;
 pub mod recent;
 pub mod result;
 pub mod schema;

@@ -305,14 +305,18 @@ pub fn write_voltage(path: &Path, fs: u32, u: &[f64]) -> Result<(), IoError> {
     write_float_wav(path, fs, &[u])
 }
 
-/// A parameter set from an embedded driver name or a JSON file path.
+/// A parameter set from an embedded driver name, a population name (`population:SEED`,
+/// `population:CLASS:SEED`: [`coilscope_core::population`]) or a JSON file path.
 pub fn load_parameters(spec: &str) -> Result<Parameters, IoError> {
     if let Some(p) = embedded_driver(spec) {
         return Ok(p);
     }
+    if let Some(draw) = coilscope_core::population::parse_name(spec) {
+        return draw.map(|d| d.natural()).map_err(IoError);
+    }
     let path = Path::new(spec);
     if !path.exists() {
-        return err(format!("{spec}: neither an embedded driver ({}) nor an existing parameter file", embedded_driver_names().join(", ")));
+        return err(format!("{spec}: neither an embedded driver ({}) nor an existing parameter file (nor a drawn driver, population:SEED)", embedded_driver_names().join(", ")));
     }
     let text = std::fs::read_to_string(path).map_err(|e| IoError(format!("{spec}: cannot read ({e})")))?;
     Parameters::from_json_str(&text, spec).map_err(|e| IoError(e.to_string()))
