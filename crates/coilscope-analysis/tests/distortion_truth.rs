@@ -119,7 +119,7 @@ fn volterra_agrees_at_small_level_and_diverges_at_large() {
             // The DC offset is second order too.
             let r0 = &rows[0];
             assert!((r0.full.x_dc - r0.volterra_x_dc).abs() < 0.06 * r0.volterra_x_dc.abs() + 1e-9, "{name}: x_dc {} vs {}", r0.full.x_dc, r0.volterra_x_dc);
-            let worst = rows.iter().map(|r| r.error_db()).fold(0.0, f64::max);
+            let worst = rows.iter().map(|r| r.error_db()).fold(0.0, coilscope_testkit::check::nan_max);
             println!("{name} {f:.1} Hz: worst Volterra error {worst:.2} dB, divergence (1 dB) at {:?} V", divergence_level(&rows, 1.0));
         }
     }

@@ -146,7 +146,7 @@ fn check_with(name: &str, p: &Parameters, seconds: f64, opts: &SimOptions, (tol_
     let (i_ref, x_ref) = oracle(p, &|t| drive.at(t), n);
     let peak = x_ref.iter().fold(0.0f64, |a, v| a.max(v.abs()));
     let ei = rel_rms(&tr.i[..n], &i_ref);
-    let ex = tr.x[..n].iter().zip(&x_ref).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max) / peak;
+    let ex = tr.x[..n].iter().zip(&x_ref).map(|(a, b)| (a - b).abs()).fold(0.0, coilscope_testkit::check::nan_max) / peak;
     let [lo, hi] = p.x_range.unwrap();
     println!("{name} ({} steps per sample): peak {:.2} mm of {:.2}; current {ei:.2e} (relative RMS), displacement {ex:.2e} of the peak", tr.substeps, peak * 1e3, hi.min(-lo) * 1e3);
     assert!(peak > 0.6 * hi.min(-lo), "{name}: the drive reached only {peak} m");

@@ -151,7 +151,7 @@ fn sweep(names: &[&str], seeds: std::ops::Range<u64>) {
     }
     println!("{} of {n} records within the figures", n - bad.len());
     let share = |k: f64| zs.iter().filter(|&&z| z <= k).count() as f64 / zs.len() as f64;
-    let worst = zs.iter().cloned().fold(0.0, f64::max);
+    let worst = zs.iter().cloned().fold(0.0, coilscope_testkit::check::nan_max);
     let coverage = format!("{} values: {:.1} % within 2 sd, {:.1} % within 3 sd, the largest {worst:.1} sd", zs.len(), 100.0 * share(2.0), 100.0 * share(3.0));
     println!("{coverage}");
     if (several && share(2.0) < 0.9) || share(3.0) < 0.97 || worst > 4.5 {

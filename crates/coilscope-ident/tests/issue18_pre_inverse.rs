@@ -77,7 +77,7 @@ fn run(name: &str, snr: Option<f64>) -> (f64, f64, f64, f64) {
         let first = fit.updates[0].error_rel;
         let last = *accepted.last().unwrap();
         let range = [0.7 * lo, 0.7 * hi];
-        let worst = |f: &Poly, g: &Poly| (0..=100).map(|k| range[0] + (range[1] - range[0]) * k as f64 / 100.0).map(|x| (f.eval(x) / g.eval(x) - 1.0).abs()).fold(0.0, f64::max);
+        let worst = |f: &Poly, g: &Poly| (0..=100).map(|k| range[0] + (range[1] - range[0]) * k as f64 / 100.0).map(|x| (f.eval(x) / g.eval(x) - 1.0).abs()).fold(0.0, coilscope_testkit::check::nan_max);
         let (eb, ek) = (worst(&fit.params.bl, &truth.bl), worst(&fit.params.kms, &truth.kms));
         println!("{name} (snr {snr:?}): error {first:.3e} -> {last:.3e} in {} blocks; Bl {:.3} %, Kms {:.3} % over +-70 % of the range", fit.updates.len(), 100.0 * eb, 100.0 * ek);
         let falls = accepted.windows(2).all(|w| w[1] < w[0]);

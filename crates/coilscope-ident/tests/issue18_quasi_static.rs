@@ -26,7 +26,7 @@ fn run(p: &Parameters, hold_s: f64) -> QuasiStatic {
 
 /// Largest `|f / g - 1|` over `[lo, hi]`.
 fn worst(f: &Poly, g: &Poly, lo: f64, hi: f64) -> f64 {
-    (0..=100).map(|k| lo + (hi - lo) * k as f64 / 100.0).map(|x| (f.eval(x) / g.eval(x) - 1.0).abs()).fold(0.0, f64::max)
+    (0..=100).map(|k| lo + (hi - lo) * k as f64 / 100.0).map(|x| (f.eval(x) / g.eval(x) - 1.0).abs()).fold(0.0, coilscope_testkit::check::nan_max)
 }
 
 #[test]
@@ -57,8 +57,8 @@ fn quasi_static_curves_without_creep_are_within_2_percent() {
         assert!(eb < 0.01 && ek < 0.01, "{name}: Bl {eb:.4}, Kms {ek:.4}");
         // The bands: the truth within 3 sd on the points' span.
         for (which, band, t) in [("Bl", &q.bands[0], &p.bl), ("Kms", &q.bands[1], &p.kms), ("Le", &q.bands[2], &p.le)] {
-            let z = band.x.iter().zip(&band.value).zip(&band.sd).map(|((x, v), s)| (v - t.eval(*x)).abs() / s).fold(0.0, f64::max);
-            let rel = band.x.iter().zip(&band.sd).zip(&band.value).map(|((_, s), v)| s / v).fold(0.0, f64::max);
+            let z = band.x.iter().zip(&band.value).zip(&band.sd).map(|((x, v), s)| (v - t.eval(*x)).abs() / s).fold(0.0, coilscope_testkit::check::nan_max);
+            let rel = band.x.iter().zip(&band.sd).zip(&band.value).map(|((_, s), v)| s / v).fold(0.0, coilscope_testkit::check::nan_max);
             println!("{name}: {which} band: the truth within {z:.2} sd (largest sd {:.3} %)", 100.0 * rel);
             assert!(z <= 3.0, "{name}: {which}: the truth {z:.2} sd outside the band");
         }
@@ -121,12 +121,19 @@ fn mass_and_pressure_offsets_need_no_current() {
             let q = run_with(&p, offset, 0.1);
             let [lo, hi] = p.x_range.unwrap();
             let (eb, ek) = (worst(&q.params.bl, &p.bl, 0.8 * lo, 0.8 * hi), worst(&q.params.kms, &p.kms, 0.8 * lo, 0.8 * hi));
-            let top = q.points.iter().map(|w| w.push.added_mass).fold(0.0, f64::max);
-            println!("{name} by {offset:?}: Bl {:.3} %, Kms {:.3} %; largest force {:.2} N (mass {:.1} g); warnings {:?}", 100.0 * eb, 100.0 * ek, q.points.iter().map(|w| w.force.abs()).fold(0.0, f64::max), 1e3 * top, q.warnings);
+            let top = q.points.iter().map(|w| w.push.added_mass).fold(0.0, coilscope_testkit::check::nan_max);
+            println!(
+                "{name} by {offset:?}: Bl {:.3} %, Kms {:.3} %; largest force {:.2} N (mass {:.1} g); warnings {:?}",
+                100.0 * eb,
+                100.0 * ek,
+                q.points.iter().map(|w| w.force.abs()).fold(0.0, coilscope_testkit::check::nan_max),
+                1e3 * top,
+                q.warnings
+            );
             assert!(eb < 0.01 && ek < 0.01, "{name} {offset:?}: Bl {eb:.4}, Kms {ek:.4}");
             assert!(q.points.iter().all(|w| w.i_dc.abs() < 1e-3), "{name} {offset:?}: a DC current");
             for (which, band, t) in [("Bl", &q.bands[0], &p.bl), ("Kms", &q.bands[1], &p.kms)] {
-                let z = band.x.iter().zip(&band.value).zip(&band.sd).map(|((x, v), s)| (v - t.eval(*x)).abs() / s).fold(0.0, f64::max);
+                let z = band.x.iter().zip(&band.value).zip(&band.sd).map(|((x, v), s)| (v - t.eval(*x)).abs() / s).fold(0.0, coilscope_testkit::check::nan_max);
                 assert!(z <= 3.0, "{name} {offset:?}: {which}: the truth {z:.2} sd outside the band");
             }
             assert!(q.warnings.is_empty(), "{name} {offset:?}: {:?}", q.warnings);

@@ -19,13 +19,12 @@ use coilscope_core::{embedded_driver, Parameters, Poly};
 use coilscope_io::load_parameters;
 use coilscope_measure::device::VirtualDevice;
 
-#[path = "../../coilscope-ident/tests/common/slice.rs"]
-mod slice;
 use coilscope_measure::signal::Source;
 use coilscope_measure::{measure, MeasureOptions};
+use coilscope_testkit::slice;
 
 fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
-    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, f64::max) / g.eval(0.0).abs()
+    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, coilscope_testkit::check::nan_max) / g.eval(0.0).abs()
 }
 
 fn driver(name: &str) -> Parameters {
@@ -119,7 +118,7 @@ fn sweep(cases: Vec<Case>) -> (usize, Vec<String>) {
             "{}: bands hold the truth at 2 sd on {:.0} % of points (largest {:.1} sd); {} after {:.1} s; reach {:.2}..{:.2} mm (true {:.2}..{:.2}), true peak {:.2} mm of {:.2}; dT true {:.1} K, estimated {:.1} K; Bl {:.2} %, Kms {:.2} %, Le {:.2} %, Re(cold) {:.3} % (sd {:.3} %)",
             c.label,
             100.0 * z2,
-            z.iter().cloned().fold(0.0, f64::max),
+            z.iter().cloned().fold(0.0, coilscope_testkit::check::nan_max),
             m.stop_reason.key(),
             m.seconds,
             m.x_range[0] * 1e3,

@@ -18,7 +18,7 @@ use coilscope_measure::signal::Source;
 use coilscope_measure::{measure, MeasureOptions, Measurement};
 
 fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
-    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) / g.eval(x) - 1.0).abs()).fold(0.0, f64::max)
+    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) / g.eval(x) - 1.0).abs()).fold(0.0, coilscope_testkit::check::nan_max)
 }
 
 /// The driver with every effect (Le(i) and Rms(v) scaled to 4 A and 0.5 m/s, about the peaks
@@ -48,7 +48,7 @@ fn check(label: &str, m: &Measurement, truth: &Parameters) -> Vec<String> {
         let xs = b["x"].as_array().unwrap();
         for k in 0..xs.len() {
             let (x, v, sd) = (xs[k].as_f64().unwrap(), b["value"][k].as_f64().unwrap(), b["sd"][k].as_f64().unwrap());
-            zmax = zmax.max((v - f.eval(x)).abs() / sd);
+            zmax = coilscope_testkit::check::nan_max(zmax, (v - f.eval(x)).abs() / sd);
         }
     }
     let lambda = q.creep.as_ref().map_or(0.0, |c| c.lambda);

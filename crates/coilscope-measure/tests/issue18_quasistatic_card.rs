@@ -70,7 +70,7 @@ fn card() -> Chain {
 
 /// Largest `|f / g - 1|` over `[lo, hi]`.
 fn worst(f: &Poly, g: &Poly, lo: f64, hi: f64) -> f64 {
-    (0..=100).map(|k| lo + (hi - lo) * k as f64 / 100.0).map(|x| (f.eval(x) / g.eval(x) - 1.0).abs()).fold(0.0, f64::max)
+    (0..=100).map(|k| lo + (hi - lo) * k as f64 / 100.0).map(|x| (f.eval(x) / g.eval(x) - 1.0).abs()).fold(0.0, coilscope_testkit::check::nan_max)
 }
 
 fn run(p: &Parameters, offset: Offset) -> (f64, f64, usize, coilscope_ident::quasi_static::QuasiStatic) {

@@ -14,7 +14,7 @@ use coilscope_measure::signal::Source;
 use coilscope_measure::{measure, MeasureOptions, Measurement};
 
 fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
-    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, f64::max) / g.eval(0.0).abs()
+    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, coilscope_testkit::check::nan_max) / g.eval(0.0).abs()
 }
 
 fn run(p: &Parameters, source: &mut Source, opts: MeasureOptions, seed: u64) -> Measurement {

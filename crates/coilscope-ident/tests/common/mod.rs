@@ -1,7 +1,8 @@
 //! Truth comparisons shared by the identification tests (`mod common;` in each).
 #![allow(dead_code)]
 
-pub mod slice;
+#[allow(unused_imports)]
+pub use coilscope_testkit::slice;
 pub mod world;
 
 use coilscope_core::{Parameters, Poly};
@@ -47,14 +48,14 @@ pub fn band_z(fit: &LargeFit, truth: &Parameters, which: &[&str]) -> f64 {
                 b.sd.iter().map(|v| format!("{:.2e}", v)).collect::<Vec<_>>()
             );
         }
-        z = z.max(zs.iter().fold(0.0, |m, v| m.max(v.abs())));
+        z = coilscope_testkit::check::nan_max(z, zs.iter().map(|v| v.abs()).fold(0.0, coilscope_testkit::check::nan_max));
     }
     z
 }
 
 /// Largest |f - g| over [lo, hi], relative to g(0).
 pub fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
-    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, f64::max) / g.eval(0.0).abs()
+    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, coilscope_testkit::check::nan_max) / g.eval(0.0).abs()
 }
 
 /// Errors of an identified set against the truth: Bl(x), Kms(x), Le(x) as the largest error
