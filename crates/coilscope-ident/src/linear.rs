@@ -57,6 +57,11 @@ pub const MIN_COHERENCE: f64 = 0.8;
 /// `offsets_estimated`: the fit estimates the measurement chain, offsets included, so an
 /// offset is not refused.
 pub fn check_channels(u: &[f64], i: &[f64], fs: f64, offsets_estimated: bool, origin: &str) -> Result<(), String> {
+    // Too short first: a few milliseconds of a signal have any mean at all.
+    let seconds = u.len() as f64 / fs;
+    if seconds < 0.5 {
+        return Err(format!("{origin}: {seconds:.3} s is too short; record at least 1 s (better 3 s or more)"));
+    }
     for (name, x, unit) in [("voltage (channel 1)", u, "V"), ("current (channel 2)", i, "A")] {
         let r = rms(x);
         if r < 1e-9 {
@@ -76,10 +81,6 @@ pub fn check_channels(u: &[f64], i: &[f64], fs: f64, offsets_estimated: bool, or
         if flat > 8 {
             return Err(format!("{origin}: {name} is clipped: {flat} samples sit flat at its peak {peak:.4} {unit}; lower the level or the input gain"));
         }
-    }
-    let seconds = u.len() as f64 / fs;
-    if seconds < 0.5 {
-        return Err(format!("{origin}: {seconds:.3} s is too short; record at least 1 s (better 3 s or more)"));
     }
     Ok(())
 }
@@ -272,16 +273,40 @@ impl Effects {
 /// Which effects the linear fit uses.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum EffectsChoice {
-    /// The data decide: an effect is kept when it lowers the residual by at least
-    /// [`EFFECT_MIN_GAIN`] (and creep's lambda comes out positive).
+    /// The data decide: an effect is kept when it removes a share of the error the model
+    /// leaves above the noise, and that much more than noise could ([`effect_pays`]), and
+    /// creep's lambda comes out positive.
     #[default]
     Auto,
     /// Exactly these effects.
     Fixed(Effects),
 }
 
-/// Share by which an effect must lower the current residual to be kept (`Auto`).
-pub const EFFECT_MIN_GAIN: f64 = 0.05;
+/// Share of the error power above the noise floor that an effect must remove to be kept
+/// (`Auto`). Without noise it is the rule "lower the residual by 5 %" (`1 - 0.95^2`).
+pub const EFFECT_MIN_SHARE: f64 = 0.0975;
+
+/// How far above what noise alone gives an effect's gain must be, per unknown it adds: the
+/// error power it removes in units of the noise power of one bin. Fitting k unknowns to pure
+/// noise removes about k/2 of them; a coloured residual (distortion, leakage) more. 25 per
+/// unknown keeps chance gains out and lets an effect that noise hides at a tenth of the
+/// floor in.
+pub const EFFECT_MIN_CHI2: f64 = 25.0;
+
+/// Whether an effect with `unknowns` new unknowns that lowers the relative residual from
+/// `r_cur` to `r_new` pays, on a record whose noise floor is `floor` (relative residual of
+/// the noise alone; 0 where it is not known, as on an averaged impedance curve) over `bins`
+/// frequency bins. The share is of the excess over the floor: on a record of a quiet
+/// small-signal stage most of the residual is sensor noise, which no effect can lower, and a
+/// share of the whole residual missed the creep and the LR-3 branches that the excess shows
+/// (a 9 mm woofer at 0.2 V: creep lowered the residual by 3 % of it, 6 % of its power, and
+/// its absence left the cold Re 3 % low).
+pub fn effect_pays(r_cur: f64, r_new: f64, floor: f64, bins: usize, unknowns: usize) -> bool {
+    let gain = r_cur * r_cur - r_new * r_new;
+    let excess = (r_cur * r_cur - floor * floor).max(0.0);
+    let noise_per_bin = floor * floor / bins.max(1) as f64;
+    gain >= EFFECT_MIN_SHARE * excess && (noise_per_bin == 0.0 || gain >= EFFECT_MIN_CHI2 * unknowns as f64 * noise_per_bin)
+}
 
 /// Values of the extra effects at one point: creep's lambda with the bank at its reference,
 /// the resonance `w_s = 1 / sqrt(Lces Cmes)` (see [`CreepAt`]), and the LR-3 branch (L3, R3).
@@ -510,6 +535,34 @@ pub fn mains_hum(u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64, f64)> {
             (f, rel, db)
         })
         .max_by(|a, b| a.1.total_cmp(&b.1))
+}
+
+/// A channel's mean, relative to its RMS, above which [`chain_signs`] names an offset. A
+/// driver's current and voltage have next to no mean over a record of a zero-mean drive (the
+/// current at DC is the voltage's over Re, and the cone ends where it started): drawn
+/// drivers with Le(i), Rms(v) and 40 K of heating left up to 0.2 % of the current's RMS. An
+/// offset below this is left to the fit's own checks (`dc-offset-current`).
+pub const OFFSET_SIGN: f64 = 5e-3;
+
+/// What a measurement chain leaves in a record that shows without a fit: mains hum standing
+/// out of the current's error ([`mains_hum`]), and a mean on either channel above
+/// [`OFFSET_SIGN`] of its RMS. One sentence per sign (empty: none). The skew and AC coupling
+/// need the driver's model: the fit looks for them (`IdentifyOptions::detect_chain`).
+pub fn chain_signs(u: &[f64], i: &[f64], fs: f64) -> Vec<String> {
+    let mut signs = vec![];
+    if let Some((f, rel, db)) = mains_hum(u, i, fs) {
+        if rel > 0.0 {
+            signs.push(format!("mains hum at {f:.0} Hz ({:.2} % of the current's RMS, {db:.0} dB above the noise next to it)", 100.0 * rel));
+        }
+    }
+    for (name, x, unit) in [("voltage", u, "V"), ("current", i, "A")] {
+        let r = rms(x);
+        let mean = x.iter().sum::<f64>() / x.len().max(1) as f64;
+        if r > 0.0 && mean.abs() > OFFSET_SIGN * r {
+            signs.push(format!("an offset of {mean:.3e} {unit} on the {name} channel ({:.2} % of its RMS)", 100.0 * mean.abs() / r));
+        }
+    }
+    signs
 }
 
 /// The voltage record of a `driver+shunt` wiring made into that of a `terminals` wiring: the
@@ -895,18 +948,36 @@ impl CurrentError {
         }
     }
 
-    /// `|I - U/Z - T| / |I|` over the fitted bins, unweighted (the spec's `fit.residual_rel`).
+    /// `|I - U/Z - T| / |I|` over the fitted bins, unweighted (the spec's `fit.residual_rel`),
+    /// with the fitted chain's delay and coupling between `U/Z` and the recorded current.
     fn residual_rel(&self, theta: &[f64]) -> f64 {
+        self.residual_and_floor(theta).0
+    }
+
+    /// [`CurrentError::residual_rel`] and the noise floor in the same terms: the current
+    /// error's power per bin is the noise's plus the model's misfit, which a wrong model puts
+    /// in the bins of a band (the resonance, the branches' corners) and noise in every bin.
+    /// The median bin then holds noise: a bin's noise power is a complex Gaussian's, whose
+    /// median is ln 2 times its mean. A misfit over most of the bins raises the floor, so
+    /// that fewer effects pay: the safe side.
+    fn residual_and_floor(&self, theta: &[f64]) -> (f64, f64) {
         let p = self.map.params(theta);
         let ext = self.ext(theta);
-        let (mut e, mut t) = (0.0, 0.0);
+        let chain = self.chain_factor(theta);
+        let mut t = 0.0;
+        let mut e: Vec<f64> = Vec::with_capacity(self.f.len());
         for k in 0..self.f.len() {
             let imp = impedance_ext(&p, &ext, self.f[k]);
             let (z, tr) = (imp.0, transient_term(&p, &imp, self.transient(theta), self.omega0, self.f[k]).0);
-            e += ((self.i[k] - self.u[k] / z) / self.w[k] - tr).norm_sqr();
+            // The recorded current is the driver's through the chain (when one is fitted).
+            let shift = self.shift_d(chain.as_ref(), k, false).0;
+            e.push(((self.i[k] - self.u[k] * shift / z) / self.w[k] - tr).norm_sqr());
             t += (self.i[k] / self.w[k]).norm_sqr();
         }
-        (e / t).sqrt()
+        let total: f64 = e.iter().sum();
+        let m = e.len();
+        let floor = if m == 0 { 0.0 } else { crate::checks::median(e) / std::f64::consts::LN_2 * m as f64 };
+        ((total / t).sqrt(), (floor / t).sqrt())
     }
 }
 
@@ -1341,7 +1412,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     // scouted on every k-th bin (at most SCOUT_BINS), the best is polished on all of them,
     // so the answer is the full-data optimum at a fraction of the cost.
     // A candidate whose scout residual is not below `gate` is not polished (it cannot win:
-    // the effect does not lower the residual by EFFECT_MIN_GAIN on the scout bins). Returns
+    // the effect does not gain its share of the excess on the scout bins). Returns
     // the problem, the state, the scout's residual and whether it was polished.
     // The problem of a model with `effects` on these bins.
     let with_effects = |effects: Effects| {
@@ -1463,8 +1534,14 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
             1
         }
         EffectsChoice::Auto => {
-            // Forward selection: add the effect that lowers the residual most, while one
-            // lowers it by EFFECT_MIN_GAIN or more (and creep's lambda is physical).
+            // Forward selection: add the effect that lowers the residual most, while one pays
+            // ([`effect_pays`]: a share of the excess over the noise floor, well above what
+            // noise gives) and creep's lambda is physical. The floor of a record is the
+            // lowest any fitted model shows (a model's misfit can only raise it); an averaged
+            // curve has none.
+            let floor_of = |f: &(CurrentError, LmState, f64)| if fs.is_some() { f.0.residual_and_floor(&f.1.theta).1 } else { 0.0 };
+            let mut floor = floor_of(&fitted[0]);
+            let bins = prob.f.len();
             let mut at = 0;
             loop {
                 let cur = fitted[at].0.effects;
@@ -1475,15 +1552,26 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
                 if !cur.lr3 {
                     cands.push(Effects { lr3: true, ..cur });
                 }
-                let (r_cur, gate) = (fitted[at].2, (1.0 - EFFECT_MIN_GAIN) * scout_r[at]);
-                let mut best: Option<(usize, f64)> = None;
+                // A candidate is polished on every bin when its scout gains the share of the
+                // excess (the relative floor is the same on the scout's thinned bins).
+                let r_cur = fitted[at].2;
+                let gate = (scout_r[at].powi(2) - EFFECT_MIN_SHARE * (scout_r[at].powi(2) - floor * floor).max(0.0)).sqrt();
+                let first = fitted.len();
                 for e in cands {
                     let st = grow(&fitted[at], e);
-                    let (pr, s, r) = with_residual(&mut scout_r, &mut polished, solve(e, &st, gate, observe));
-                    let lambda_ok = pr.idx_lambda().is_none_or(|k| s.theta[k] > 0.0);
-                    fitted.push((pr, s, r));
-                    if polished[fitted.len() - 1] && lambda_ok && r < (1.0 - EFFECT_MIN_GAIN) * r_cur && best.is_none_or(|(_, rb)| r < rb) {
-                        best = Some((fitted.len() - 1, r));
+                    let f = with_residual(&mut scout_r, &mut polished, solve(e, &st, gate, observe));
+                    if polished[fitted.len()] {
+                        floor = floor.min(floor_of(&f));
+                    }
+                    fitted.push(f);
+                }
+                let mut best: Option<(usize, f64)> = None;
+                for k in first..fitted.len() {
+                    let (pr, s, r) = &fitted[k];
+                    let lambda_ok = pr.idx_lambda().is_none_or(|j| s.theta[j] > 0.0);
+                    let unknowns = pr.effects.n_extra() - cur.n_extra();
+                    if polished[k] && lambda_ok && effect_pays(r_cur, *r, floor, bins, unknowns) && best.is_none_or(|(_, rb)| *r < rb) {
+                        best = Some((k, *r));
                     }
                 }
                 match best {
