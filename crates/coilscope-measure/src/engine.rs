@@ -85,6 +85,9 @@ const MAX_RESTARTS: usize = 3;
 
 /// Seconds of data per recursive update.
 const ONLINE_WINDOW_S: f64 = 0.3;
+/// Drift of the values at rest per sqrt(second) in a long-term test (relative): a ferrite
+/// magnet's Bl falls by about 0.2 % per kelvin, and a suspension softens as it warms.
+const LONG_TERM_DRIFT: f64 = 1e-4;
 /// Largest relative current error of the live model over a block for its x to count as reached.
 const TRACKING_RESIDUAL: f64 = 0.2;
 
@@ -102,8 +105,24 @@ const CONVERGED_LE: f64 = 0.01;
 /// virtual drivers sit at 0.07-0.2 %; a replay started from a linear fit of large-signal data
 /// that "converged" with Kms 43 % off sat at 1.9 %.
 pub const CONVERGED_EXCESS: f64 = 0.005;
+/// The larger of two values, NaN when either is: a missing sd is never the narrowest.
+fn nan_max(a: f64, b: f64) -> f64 {
+    if a.is_nan() || b.is_nan() {
+        f64::NAN
+    } else {
+        a.max(b)
+    }
+}
+
 /// Seconds of data the stable updates must span.
 const CONVERGED_SPAN_S: f64 = 2.0;
+/// Convergence also asks the estimate to be as precise as the accuracy a converged run
+/// stands for: three sd of Bl(x) and Kms(x) within 2 %, and of Le(x) within 5 %, of their
+/// values at rest over the reach. A settled estimate whose bands are wider has not seen enough
+/// of the driver to say so (drawn small drivers ended "converged" with Kms 4-19 % off and
+/// sds of 1-2.4 %): the run goes on, and ends loud if the data never narrow them.
+const CONVERGED_SD_BL_KMS: f64 = 0.02 / 3.0;
+const CONVERGED_SD_LE: f64 = 0.05 / 3.0;
 
 /// Options (SI units).
 #[derive(Clone, Debug)]
@@ -305,9 +324,11 @@ impl StopReason {
     pub fn describe(&self) -> String {
         match self {
             StopReason::Converged { t, residual, updates } => format!(
-                "converged after {t:.1} s: window residual {residual:.2e}, Bl/Kms curves changed by < {} % and Le by < {} % (over 90 % of the range the driver keeps visiting at the final level) at each of the last {updates} updates",
+                "converged after {t:.1} s: window residual {residual:.2e}, Bl/Kms curves changed by < {} % and Le by < {} % (over 90 % of the range the driver keeps visiting at the final level) at each of the last {updates} updates, and their bands are within {:.2} % (Bl, Kms) and {:.2} % (Le) of the values at rest",
                 100.0 * CONVERGED_BL_KMS,
-                100.0 * CONVERGED_LE
+                100.0 * CONVERGED_LE,
+                100.0 * CONVERGED_SD_BL_KMS,
+                100.0 * CONVERGED_SD_LE
             ),
             StopReason::NoConvergence { max_seconds } => format!("no convergence within {max_seconds} s (--max-seconds): the best estimate is kept; raise --max-seconds, or check the residual and warnings"),
             StopReason::DurationOver { seconds } => format!("long-term test: the duration of {seconds} s is over"),
@@ -389,9 +410,17 @@ pub struct Trace {
 }
 
 /// Bl, Kms and Le of `p` with the online estimator's sds on `xs`: the result's bands, and
-/// the live page's as they converge.
+/// the live page's as they converge. Each sd holds the estimator's statistical one and, in
+/// quadrature, the systematic part `identify`'s bands carry
+/// ([`coilscope_ident::large::CURVE_SYSTEMATIC_REL`] of the value: what the model's
+/// discretisation leaves against an independent simulator).
 fn curve_bands(p: &Parameters, on: &Online, xs: &[f64]) -> [(&'static str, Band); 3] {
-    [("Bl", &p.bl), ("Kms", &p.kms), ("Le", &p.le)].map(|(which, f)| (which, Band { x: xs.to_vec(), value: xs.iter().map(|&x| f.eval(x)).collect(), sd: xs.iter().map(|&x| on.curve_sd(which, x)).collect() }))
+    let sys = coilscope_ident::large::CURVE_SYSTEMATIC_REL;
+    [("Bl", &p.bl), ("Kms", &p.kms), ("Le", &p.le)].map(|(which, f)| {
+        let value: Vec<f64> = xs.iter().map(|&x| f.eval(x)).collect();
+        let sd = xs.iter().zip(&value).map(|(&x, v)| on.curve_sd(which, x).hypot(sys * v)).collect();
+        (which, Band { x: xs.to_vec(), value, sd })
+    })
 }
 
 /// `[min, max]` of each of `bins` equal parts of `s` (fewer when `s` is shorter).
@@ -651,7 +680,10 @@ pub fn control(opts: &MeasureOptions, c: &ControlInput) -> ControlDecision {
 /// [`RESTART_S`] of the new level, and until then the last good model runs on (a step from
 /// that far ran PTT4's replay away 0.6 s after its level jumped).
 fn online_options(opts: &MeasureOptions, x_ref: f64, controllable: bool) -> OnlineOptions {
-    OnlineOptions { order: opts.order, x_ref, window: ONLINE_WINDOW_S, max_before: if controllable { f64::INFINITY } else { RESTART_RESIDUAL }, ..Default::default() }
+    // A long-term test lets the values at rest follow the suspension and the magnet as they
+    // warm over minutes.
+    let drift = if opts.duration.is_some() { LONG_TERM_DRIFT } else { 0.0 };
+    OnlineOptions { order: opts.order, x_ref, window: ONLINE_WINDOW_S, max_before: if controllable { f64::INFINITY } else { RESTART_RESIDUAL }, drift, ..Default::default() }
 }
 
 /// The eddy-current branch an estimate drove to nothing: L2 and R2 both a hair from zero (the
@@ -761,6 +793,9 @@ pub struct Engine<'a> {
     last_residual: f64,
     /// Relative current error above the noise floor on the last held-out window.
     last_excess: f64,
+    /// The widest bands over the reach at the last update, relative to the values at rest:
+    /// (Bl and Kms, Le).
+    widest: Option<(f64, f64)>,
     updates: usize,
     /// Recent temperature estimates (one per block) for the trend.
     dtv_recent: Vec<f64>,
@@ -831,6 +866,7 @@ impl<'a> Engine<'a> {
             hold_gain: 0.0,
             last_residual: f64::NAN,
             last_excess: f64::NAN,
+            widest: None,
             updates: 0,
             dtv_recent: Vec::new(),
             temp_cut: false,
@@ -863,6 +899,11 @@ impl<'a> Engine<'a> {
                 Some(seconds) => StopReason::DurationOver { seconds },
                 None => StopReason::NoConvergence { max_seconds: self.opts.max_seconds },
             });
+            if let (None, Some((bl_kms, le))) = (self.opts.duration, self.widest) {
+                if !(bl_kms <= CONVERGED_SD_BL_KMS && le <= CONVERGED_SD_LE) {
+                    self.events.push((t, format!("the bands stayed wider than a converged run's: sd up to {:.2} % (Bl, Kms) and {:.2} % (Le) of the values at rest over the reach, against {:.2} % and {:.2} %: the record does not pin this driver's curves down (a driver whose current hardly shows its motion, or a reach too small for its nonlinearities)", 100.0 * bl_kms, 100.0 * le, 100.0 * CONVERGED_SD_BL_KMS, 100.0 * CONVERGED_SD_LE)));
+                }
+            }
             return Ok(None);
         }
         if self.opts.interrupt.as_ref().is_some_and(|f| f.load(std::sync::atomic::Ordering::Relaxed)) {
@@ -1139,7 +1180,18 @@ impl<'a> Engine<'a> {
                         self.kms_ratio = (0..=20).map(|k| 1.3 * reach * k as f64 / 20.0).map(|x| est.kms.eval(x).max(est.kms.eval(-x)) / k0).fold(0.0, f64::max);
                         self.checked_reach = reach;
                         let xs: Vec<f64> = (0..LIVE_BAND_POINTS).map(|k| reach * (2.0 * k as f64 / (LIVE_BAND_POINTS - 1) as f64 - 1.0)).collect();
-                        live.bands = curve_bands(&est, on, &xs).into();
+                        let bands = curve_bands(&est, on, &xs);
+                        // The widest band over the reach, relative to the curve at rest (NaN
+                        // when the covariance gave none: not precise).
+                        let widest = |which: &str| {
+                            let b = &bands.iter().find(|(w, _)| *w == which).expect("three bands").1;
+                            let at_rest = b.value[LIVE_BAND_POINTS / 2].abs();
+                            b.sd.iter().fold(0.0, |m, &s| nan_max(m, s)) / at_rest
+                        };
+                        let w = (nan_max(widest("Bl"), widest("Kms")), widest("Le"));
+                        self.widest = Some(w);
+                        let precise = w.0 <= CONVERGED_SD_BL_KMS && w.1 <= CONVERGED_SD_LE;
+                        live.bands = bands.into();
                         live.estimate = Some(est.clone());
                         if let Some(m) = self.meter.as_mut() {
                             m.set_params(&est);
@@ -1159,6 +1211,7 @@ impl<'a> Engine<'a> {
                             && up.before < 0.02
                             && self.last_excess <= CONVERGED_EXCESS
                             && self.changes[n - k..].iter().all(|&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE)
+                            && precise
                         {
                             self.converged = true;
                             self.stop_reason = Some(StopReason::Converged { t, residual: up.before, updates: k });
