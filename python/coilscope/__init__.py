@@ -4,8 +4,14 @@ Signals are numpy arrays in SI units (V, A, m, m/s, K); parameter sets and resul
 in the coilscope file contract (``coilscope.parameters/1``, ``coilscope.result/1``): power
 series as ascending coefficient lists in metres, uncertainties under ``uncertainty``. A
 parameter set may be given as such a dict, a result dict, an embedded driver's name (see
-:func:`drivers`) or a JSON file's path. Errors raise ``ValueError`` with the message the
-command line prints.
+:func:`drivers`), a drawn driver (``population:SEED``) or a JSON file's path. Errors raise
+``ValueError`` with the message the command line prints.
+
+A result that is not trustworthy (``result["fit"]["trustworthy"]`` false: the command line
+exits 3 on it) comes back with its warnings under ``result["fit"]["warnings"]``, and raises a
+Python warning of the category :class:`NotTrustworthy` that names them, so that it is never
+taken silently. ``warnings.simplefilter("error", coilscope.NotTrustworthy)`` makes it an
+exception.
 
 >>> import coilscope
 >>> p = coilscope.parameters("sb17cac35-4")
@@ -15,12 +21,31 @@ command line prints.
 """
 
 import json
+import warnings
 
 import numpy as np
 
 from . import _coilscope as _c
 
-__all__ = ["drivers", "parameters", "generate", "simulate", "linear", "identify", "measure_virtual", "measure_replay", "distortion", "poly"]
+__all__ = ["NotTrustworthy", "drivers", "parameters", "generate", "simulate", "linear", "identify", "measure_virtual", "measure_replay", "distortion", "poly"]
+
+
+class NotTrustworthy(UserWarning):
+    """A result that its own checks do not trust (``fit.trustworthy`` false): the command
+    line exits 3 on it. The message names each warning (its code and its text)."""
+
+
+def _checked(text, what):
+    """A result dict from JSON text, with a :class:`NotTrustworthy` warning when its own
+    checks do not trust it."""
+    r = json.loads(text)
+    fit = r.get("fit", {})
+    if fit.get("trustworthy") is not True:
+        named = [f"[{w.get('code')}] {w.get('message')}" for w in fit.get("warnings") or []]
+        reason = fit.get("stop_reason") if not named else None
+        detail = "; ".join(named) if named else (reason or "its fit did not converge")
+        warnings.warn(f"{what}: the result is not trustworthy (fit.trustworthy is false): {detail}", NotTrustworthy, stacklevel=3)
+    return r
 
 
 def _spec(p):
@@ -63,24 +88,31 @@ def simulate(params, u, fs):
     return {"u": np.asarray(u, dtype=float), "x": np.asarray(x), "v": np.asarray(v), "i": np.asarray(i), "tv": np.asarray(tv), "tm": np.asarray(tm)}
 
 
-def linear(u, i, fs, mms):
-    """Small-signal (Thiele/Small) fit of a record, Mms given (kg): the result dict."""
-    return json.loads(_c.linear(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms)))
+def linear(u, i, fs, mms, chain="detect"):
+    """Small-signal (Thiele/Small) fit of a record, Mms given (kg): the result dict.
+
+    ``chain``: ``detect`` (estimate the recording chain where the record shows one), ``auto``
+    or ``none``, as ``coilscope linear --chain``. Warns :class:`NotTrustworthy` where the
+    command line exits 3."""
+    return _checked(_c.linear(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), str(chain)), "linear")
 
 
-def identify(u, i, fs, mms, order=None):
-    """Large-signal identification of a record (Mms given, kg): the result dict."""
-    return json.loads(_c.identify(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), None if order is None else int(order)))
+def identify(u, i, fs, mms, order=None, chain="detect"):
+    """Large-signal identification of a record (Mms given, kg): the result dict.
+
+    ``chain`` as in :func:`linear`. Warns :class:`NotTrustworthy` where the command line
+    exits 3."""
+    return _checked(_c.identify(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), None if order is None else int(order), str(chain)), "identify")
 
 
 def measure_virtual(driver, seed=1, fs=48000.0, max_seconds=60.0):
     """A dynamic measurement of a virtual driver (IEC noise, ramp, protection): the result dict."""
-    return json.loads(_c.measure_virtual(_spec(driver), int(seed), float(fs), float(max_seconds)))
+    return _checked(_c.measure_virtual(_spec(driver), int(seed), float(fs), float(max_seconds)), "measure_virtual")
 
 
 def measure_replay(u, i, fs, mms, max_seconds=600.0):
     """The online estimator on a recording: the result dict."""
-    return json.loads(_c.measure_replay(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), float(max_seconds)))
+    return _checked(_c.measure_replay(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), float(max_seconds)), "measure_replay")
 
 
 def distortion(params, freq, volts, output="pressure"):

@@ -89,43 +89,53 @@ fn simulate(py: Python<'_>, params: &str, fs: f64, u: Vec<f64>) -> PyResult<(Vec
     Ok((t.x, t.v, t.i, t.tv, t.tm))
 }
 
-/// The small-signal fit of a record (`coilscope linear`, Mms given): the result as JSON text.
+/// A record of the Python caller's samples.
+fn record(u: Vec<f64>, i: Vec<f64>, fs: f64) -> coilscope_io::Recording {
+    coilscope_io::Recording { fs: fs.round() as u32, u, i, x: None }
+}
+
+/// `chain`: `detect` (the default, as on the command line), `auto`, `none`.
+fn chain_mode(chain: &str) -> PyResult<coilscope_workflow::chain::ChainMode> {
+    use coilscope_workflow::chain::ChainMode;
+    match chain {
+        "detect" => Ok(ChainMode::Detect),
+        "auto" => Ok(ChainMode::Estimate),
+        "none" => Ok(ChainMode::Ideal),
+        other => Err(err(format!("chain {other:?}: give detect, auto or none"))),
+    }
+}
+
+/// The small-signal fit of a record (`coilscope linear`, Mms given): the result as JSON text,
+/// with its warnings and verdict (`fit.trustworthy`) as the command line gives them.
 #[pyfunction]
-fn linear(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64) -> PyResult<String> {
-    use coilscope_ident::linear::{fit_linear_record, predicted_displacement, result, scale_by_mms, LinearOptions, ScaleMethod};
+#[pyo3(signature = (u, i, fs, mms, chain="detect"))]
+fn linear(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, chain: &str) -> PyResult<String> {
+    use coilscope_workflow::linear::{linear as fit, LinearInput, LinearRequest, Scale};
     check_fs(fs)?;
     check_pair(&u, &i)?;
-    py.allow_threads(|| {
-        let fit = fit_linear_record(&u, &i, fs, "python", &LinearOptions::default(), |_| {})?;
-        let p = scale_by_mms(&fit, mms)?;
-        let x = predicted_displacement(&p, &i, fs);
-        let range = [x.iter().cloned().fold(0.0, f64::min), x.iter().cloned().fold(0.0, f64::max)];
-        Ok::<_, String>(result(&p, &fit, &ScaleMethod::Mms, range, "python").to_json_value().to_string())
-    })
-    .map_err(err)
+    let req = LinearRequest { chain: chain_mode(chain)?, ..LinearRequest::new("python") };
+    py.allow_threads(|| fit(LinearInput::Record(record(u, i, fs)), Scale::Mms(mms), &req, |_| {}).map(|l| l.result.to_json_value().to_string())).map_err(err)
 }
 
 /// The large-signal identification of a record (`coilscope identify`): the result as JSON
-/// text. `order`: the power series' order (default: chosen on held-out data).
+/// text, with its warnings and verdict (`fit.trustworthy`) as the command line gives them.
+/// `order`: the power series' order (default: chosen on held-out data).
 #[pyfunction]
-#[pyo3(signature = (u, i, fs, mms, order=None))]
-fn identify(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, order: Option<usize>) -> PyResult<String> {
-    use coilscope_ident::large::{identify as ident, IdentifyError, IdentifyOptions};
+#[pyo3(signature = (u, i, fs, mms, order=None, chain="detect"))]
+fn identify(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, order: Option<usize>, chain: &str) -> PyResult<String> {
+    use coilscope_workflow::identify::{identify_record, IdentifyRequest};
     check_fs(fs)?;
     check_pair(&u, &i)?;
-    if let Some(o) = order.filter(|o| !(2..=8).contains(o)) {
-        return Err(err(format!("order {o}: give a power-series order from 2 to 8")));
-    }
-    let opts = IdentifyOptions { mms, order, ..Default::default() };
-    py.allow_threads(|| match ident(&u, &i, fs, "python", &opts, |_| {}) {
-        Ok(f) => Ok(f.result("python", "given").to_json_value().to_string()),
-        Err(IdentifyError::NotConverged { message, best }) => {
-            let mut r = best.result("python", "given");
-            r.fit.trustworthy = Some(false);
-            r.fit.stop_reason = Some(message);
-            Ok(r.to_json_value().to_string())
-        }
-        Err(e) => Err(e.to_string()),
+    let req = IdentifyRequest { order, chain: chain_mode(chain)?, ..IdentifyRequest::new("python", Some(mms)) };
+    py.allow_threads(|| {
+        let mut rec = record(u, i, fs);
+        identify_record(&mut rec, &req, |_| {}).map(|d| {
+            let mut r = d.result;
+            if let Some(m) = d.failure {
+                r.fit.stop_reason = Some(m);
+            }
+            r.to_json_value().to_string()
+        })
     })
     .map_err(err)
 }

@@ -81,3 +81,41 @@ def test_distortion_and_errors():
         coilscope.linear(np.zeros(100), np.zeros(99), FS, 0.01)
     with pytest.raises(ValueError, match="one-dimensional"):
         coilscope.simulate("sb17cac35-4", np.zeros((2, 2)), FS)
+
+
+def _late(i, samples):
+    """The current channel `samples` late (a fractional delay by the DFT's phase)."""
+    n = len(i)
+    f = np.fft.rfftfreq(n)
+    return np.fft.irfft(np.fft.rfft(i) * np.exp(-2j * np.pi * f * samples), n)
+
+
+def test_a_late_current_is_not_trusted_silently():
+    # The command line exits 3 on it with `--chain none`; Python says the same.
+    p = coilscope.parameters("sb17cac35-4")
+    u = coilscope.generate("pink", FS, 6.0, 2.3, seed=7, band=(10, 8000))
+    t = coilscope.simulate(p, u, FS)
+    with pytest.warns(coilscope.NotTrustworthy, match="current-delay|residual"):
+        r = coilscope.identify(u, _late(t["i"], 0.5), FS, p["Mms"], chain="none")
+    assert r["fit"]["trustworthy"] is False
+    assert r["fit"]["warnings"]
+    # By default the skew is found and estimated with the driver: no warning, and Re right.
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", coilscope.NotTrustworthy)
+        r = coilscope.identify(u, _late(t["i"], 0.5), FS, p["Mms"])
+    assert r["fit"]["trustworthy"] is True
+    assert abs(r["parameters"]["Re"] / p["Re"] - 1) < 0.003
+    assert r["chain"]["delay_i"] > 0
+
+
+def test_a_linear_fit_of_a_large_signal_record_is_not_trusted_silently():
+    p = coilscope.parameters("sb17cac35-4")
+    u = coilscope.generate("pink", FS, 4.0, 2.3, seed=8, band=(10, 8000))
+    t = coilscope.simulate(p, u, FS)
+    with pytest.warns(coilscope.NotTrustworthy, match="large-signal-record|residual"):
+        r = coilscope.linear(u, t["i"], FS, p["Mms"])
+    assert r["fit"]["trustworthy"] is False
+    codes = [w["code"] for w in r["fit"]["warnings"]]
+    assert codes, r["fit"]

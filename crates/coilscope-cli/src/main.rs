@@ -18,6 +18,7 @@ use coilscope_core::simulate::{simulate, SimOptions};
 use coilscope_core::small_signal::thiele_small;
 use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
 use coilscope_io::{load_parameters, read_recording, read_voltage, write_json, write_recording, Recording};
+use coilscope_workflow::chain::{load_chain, mark_wiring, ChainMode};
 use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -100,12 +101,12 @@ struct FitArgs {
     /// Scale factors of integer-PCM recordings (V, A [, m] per count).
     #[arg(long, num_args = 2..=3, value_names = ["V", "A"])]
     scale: Option<Vec<f64>>,
-    /// The measurement chain between the driver and the recorded channels: `auto` (estimated
-    /// with the driver: the current channel's delay, both channels' AC coupling, offsets and
-    /// mains hum), `none` (the channels are the driver's voltage and current, exactly), or a
-    /// chain FILE from `coilscope calibrate` (delay, corners and gain known; each record's
-    /// offsets are found). `none` is the default while the chain is being validated.
-    #[arg(long, default_value = "none")]
+    /// The measurement chain between the driver and the recorded channels: `detect` (the
+    /// default: estimated with the driver where the record shows one: a skew of the
+    /// channels, AC coupling, offsets or mains hum), `auto` (always estimated), `none` (the
+    /// channels are the driver's voltage and current, exactly), or a chain FILE from
+    /// `coilscope calibrate` (delay, corners and gain known; each record's offsets are found).
+    #[arg(long, default_value = "detect")]
     chain: String,
     /// Where the voltage channel is connected: `terminals` (across the driver alone:
     /// preferred) or `driver+shunt` (across driver and sense resistor in series, as a
@@ -123,60 +124,6 @@ struct FitArgs {
     out: PathBuf,
 }
 
-/// What `--chain` asks for (one per command: its size does not matter).
-#[derive(Clone, Debug)]
-#[allow(clippy::large_enum_variant)]
-enum ChainChoice {
-    /// The channels are the driver's voltage and current, exactly.
-    Ideal,
-    /// Estimated with the driver.
-    Estimate,
-    /// Calibrated (`coilscope calibrate`): the records are inverted through it before the fit.
-    Calibrated(coilscope_core::chain::Chain),
-}
-
-impl ChainChoice {
-    fn estimate(&self) -> bool {
-        matches!(self, ChainChoice::Estimate)
-    }
-
-    /// Make `rec` the physical voltage and current behind the recorded channels: refuse heavy
-    /// hum ([`coilscope_ident::linear::check_hum`], stricter when the chain is not
-    /// estimated), then invert a calibrated chain (each record's offsets found). Returns the
-    /// chain to report (calibrated only).
-    ///
-    /// A `driver+shunt` wiring's voltage record is first made a `terminals` one
-    /// ([`coilscope_ident::linear::remove_shunt_drop`], through this chain, or through the one
-    /// estimated for the purpose).
-    fn prepare(&self, rec: &mut coilscope_io::Recording, origin: &str, wiring: SenseWiring) -> Result<Option<coilscope_core::chain::Chain>, Failure> {
-        coilscope_ident::linear::check_hum(&rec.u, &rec.i, rec.fs as f64, self.estimate(), origin)?;
-        self.undo(rec, origin, wiring)
-    }
-
-    /// The record as the driver's terminals saw it: the shunt's drop taken out, a calibrated
-    /// chain inverted (no hum check: the Volterra method reads lines that avoid the mains).
-    fn undo(&self, rec: &mut coilscope_io::Recording, origin: &str, wiring: SenseWiring) -> Result<Option<coilscope_core::chain::Chain>, Failure> {
-        let fs = rec.fs as f64;
-        if wiring != SenseWiring::Terminals {
-            let ideal = coilscope_core::chain::Chain::default();
-            let known = match self {
-                ChainChoice::Ideal => Some(&ideal),
-                ChainChoice::Calibrated(c) => Some(c),
-                ChainChoice::Estimate => None,
-            };
-            rec.u = coilscope_ident::linear::remove_shunt_drop(&rec.u, &rec.i, fs, wiring, known, origin)?;
-        }
-        match self {
-            ChainChoice::Calibrated(c) => {
-                let (u, i, dc_u, dc_i) = c.invert_calibrated(&rec.u, &rec.i, fs);
-                (rec.u, rec.i) = (u, i);
-                Ok(Some(coilscope_core::chain::Chain { source: Some("calibrated".into()), dc_u, dc_i, ..c.clone() }))
-            }
-            _ => Ok(None),
-        }
-    }
-}
-
 /// `--sense-wiring` and `--sense-ohm`.
 fn parse_wiring(wiring: &str, ohm: Option<f64>) -> Result<SenseWiring, Failure> {
     let w = SenseWiring::parse(wiring, ohm).map_err(Failure::from)?;
@@ -187,10 +134,10 @@ fn parse_wiring(wiring: &str, ohm: Option<f64>) -> Result<SenseWiring, Failure> 
 }
 
 /// The wiring of a fit: `--sense-wiring`/`--sense-ohm`, else a chain file's, else `terminals`.
-fn fit_wiring(a: &FitArgs, chain: &ChainChoice) -> Result<SenseWiring, Failure> {
+fn fit_wiring(a: &FitArgs, chain: &ChainMode) -> Result<SenseWiring, Failure> {
     match (&a.sense_wiring, chain) {
         (Some(w), _) => parse_wiring(w, a.sense_ohm),
-        (None, ChainChoice::Calibrated(c)) if c.sense_wiring.is_some() => {
+        (None, ChainMode::Calibrated(c)) if c.sense_wiring.is_some() => {
             let w = c.sense_wiring.as_deref().unwrap_or_default();
             SenseWiring::parse(w, a.sense_ohm.or(c.sense_ohm)).map_err(|e| Failure::from(format!("the chain file's sense_wiring {w:?}: {e}")))
         }
@@ -198,52 +145,9 @@ fn fit_wiring(a: &FitArgs, chain: &ChainChoice) -> Result<SenseWiring, Failure> 
     }
 }
 
-/// Record the wiring in a reported chain (a `driver+shunt` one always; `terminals` when a
-/// chain is reported anyway).
-fn mark_wiring(chain: &mut Option<coilscope_core::chain::Chain>, wiring: SenseWiring) {
-    if wiring != SenseWiring::Terminals || chain.is_some() {
-        wiring.mark(chain.get_or_insert_with(Default::default));
-    }
-}
-
-/// `--chain`: `auto`, `none`, or a chain file (`coilscope calibrate`'s, or a result with a
-/// `chain`).
-fn parse_chain(text: &str) -> Result<ChainChoice, Failure> {
-    match text.trim() {
-        "auto" => Ok(ChainChoice::Estimate),
-        "none" => Ok(ChainChoice::Ideal),
-        other => {
-            let path = Path::new(other);
-            if !path.exists() {
-                return Err(Failure::from(format!("--chain {other:?}: give `auto` (estimate the measurement chain), `none` (ideal channels), or a chain file written by `coilscope calibrate` (no such file)")));
-            }
-            load_chain(path).map(ChainChoice::Calibrated).map_err(Failure::from)
-        }
-    }
-}
-
-/// A chain file: `coilscope calibrate`'s, or a result file's `chain`.
-fn load_chain(path: &Path) -> Result<coilscope_core::chain::Chain, String> {
-    let name = path.display();
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{name}: cannot read the chain file ({e})"))?;
-    let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| format!("{name}: not JSON ({e})"))?;
-    let v = v.get("chain").cloned().unwrap_or(v);
-    let c: coilscope_core::chain::Chain = serde_json::from_value(v).map_err(|e| format!("{name}: not a chain ({e}); write one with `coilscope calibrate`"))?;
-    let bad = |k: &str, val: f64, valid: &str| Err(format!("{name}: {k} = {val} is not valid ({valid})"));
-    if !(c.delay_i.is_finite() && c.delay_i.abs() < 0.01) {
-        return bad("delay_i", c.delay_i, "seconds, |delay| < 10 ms");
-    }
-    for (k, fc) in [("hp_u", c.hp_u), ("hp_i", c.hp_i)] {
-        if !(fc.is_finite() && (0.0..100.0).contains(&fc)) {
-            return bad(k, fc, "Hz, 0 (DC-coupled) .. 100");
-        }
-    }
-    if let Some(g) = c.gain_i {
-        if !(g.is_finite() && g > 0.1 && g < 10.0) {
-            return bad("gain_i", g, "the current channel's gain against the voltage's, 0.1 .. 10");
-        }
-    }
-    Ok(c)
+/// `--chain`: `detect`, `auto`, `none`, or a chain file.
+fn parse_chain(text: &str) -> Result<ChainMode, Failure> {
+    ChainMode::parse(text).map_err(Failure::from)
 }
 
 /// Limit thresholds and the thermal limit, shared by `diagnose` and `report`.
@@ -1041,8 +945,9 @@ fn parse_band(text: &str) -> Result<[f64; 2], Failure> {
 }
 
 fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
-    use coilscope_ident::linear::*;
-    let (sd, scale, out) = (a.fit.sd, a.fit.scale.as_deref(), a.fit.out.as_path());
+    use coilscope_ident::linear::ScaleMethod;
+    use coilscope_workflow::linear::{linear, LinearInput, LinearRequest, Scale};
+    let (scale, out) = (a.fit.scale.as_deref(), a.fit.out.as_path());
     let chain = parse_chain(&a.fit.chain)?;
     let wiring = fit_wiring(&a.fit, &chain)?;
     let effects = parse_effects(&a.effects)?;
@@ -1053,159 +958,87 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
         _ => return Err("give a recording or --impedance FILE (one of them)".into()),
     };
     let origin = path.display().to_string();
-    let (rec, calibrated) = if is_curve {
-        (None, None)
-    } else {
-        let mut r = read_recording(&path, scale).map_err(|e| e.to_string())?;
-        let c = chain.prepare(&mut r, &origin, wiring)?;
-        (Some(r), c)
-    };
-    let chain_choice = chain;
-    let chain = chain_choice.estimate();
-    if is_curve && matches!(chain_choice, ChainChoice::Calibrated(_)) {
+    if is_curve && matches!(chain, ChainMode::Calibrated(_)) {
         return Err(Failure::from(format!("{origin}: an impedance curve has no measurement chain to invert (its tool calibrated it); --chain FILE applies to records")));
     }
     // A curve measured across driver and shunt: the shunt is a plain series resistance.
-    let read_curve = |p: &Path| {
-        coilscope_io::impedance::read_impedance(p).map(|mut c| {
+    let read_input = |p: &Path| -> Result<LinearInput, Failure> {
+        if is_curve {
+            let mut c = coilscope_io::impedance::read_impedance(p).map_err(|e| e.to_string())?;
             c.z.iter_mut().for_each(|z| *z -= wiring.series_ohm());
-            c
-        })
+            Ok(LinearInput::Curve(c))
+        } else {
+            Ok(LinearInput::Record(read_recording(p, scale).map_err(|e| e.to_string())?))
+        }
     };
-    let curve = if is_curve { Some(read_curve(&path).map_err(|e| e.to_string())?) } else { None };
-    let has_x = rec.as_ref().is_some_and(|r| r.x.is_some());
+    let input = read_input(&path)?;
+    let has_x = matches!(&input, LinearInput::Record(r) if r.x.is_some());
     let with_mass = if is_curve { a.with_mass_impedance.as_ref() } else { a.with_mass.as_ref() };
     let with_name = if is_curve { "--with-mass-impedance Z2.zma" } else { "--with-mass REC2.wav" };
     // Refuse a missing or doubled scale before spending time on the fit.
-    match (a.mms, a.added_mass, with_mass, has_x) {
-        (Some(_), None, None, _) | (None, Some(_), Some(_), _) | (None, None, None, true) => {}
+    let scale = match (a.mms, a.added_mass, with_mass, has_x) {
+        (Some(m), None, None, _) => Scale::Mms(m),
+        (None, Some(m), Some(p2), _) => Scale::AddedMass { mass: m, with: Box::new(read_input(p2)?), origin: p2.display().to_string() },
+        (None, None, None, true) => Scale::Displacement,
         (None, Some(_), None, _) | (None, None, Some(_), _) => return Err(format!("--added-mass KG and {with_name} go together").into()),
         (Some(_), _, _, _) => return Err(format!("give one scale: --mms, or --added-mass with {with_name}").into()),
         (None, None, None, false) => {
             let x = if is_curve { "" } else { ", or record a displacement channel (3)" };
             return Err(Failure::from(format!("{origin}: no absolute scale: give --mms KG, or --added-mass KG {with_name}{x}")));
         }
-    }
-    if let Some(v) = a.volts {
-        if !(v.is_finite() && v > 0.0 && v < 1000.0) {
-            return Err(Failure::from(format!("--volts {v}: give the measurement's RMS voltage (V, 0 .. 1000)")));
-        }
-    }
+    };
     let live = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let progress = |s: &coilscope_ident::lm::LmState| {
         if live && (s.iteration.is_multiple_of(5) || s.converged) {
             eprint!("\r  fitting impedance: iteration {:3}, residual {:.3e}   ", s.iteration, (2.0 * s.cost).sqrt());
         }
     };
-    let opts = LinearOptions { effects, chain, ..Default::default() };
-    let fit = match (&rec, &curve) {
-        (Some(r), _) => fit_linear_record(&r.u, &r.i, r.fs as f64, &origin, &opts, progress)?,
-        (_, Some(c)) => fit_impedance_curve(&c.f, &c.z, band, &origin, &opts, progress)?,
-        _ => unreachable!("one input was read"),
-    };
+    let req = LinearRequest { origin: origin.clone(), effects, chain, wiring, sd: a.fit.sd, band, volts: a.volts };
+    let done = linear(input.clone(), scale, &req, progress)?;
     if live {
         eprintln!();
     }
-    // The same model as the first fit: the resonance shift must compare like with like.
-    let same = LinearOptions { effects: EffectsChoice::Fixed(fit.effects), chain, ..Default::default() };
-    let (mms, method) = match (a.mms, a.added_mass, with_mass) {
-        (Some(m), None, None) => (m, ScaleMethod::Mms),
-        (None, Some(madd), Some(p2)) => {
-            if !(madd.is_finite() && madd > 0.0 && madd < 2.0) {
-                return Err(Failure::from(format!("--added-mass {madd}: give the added mass in kg (0 .. 2 kg)")));
-            }
-            let o2 = p2.display().to_string();
-            let fit2 = if is_curve {
-                let c2 = read_curve(p2).map_err(|e| e.to_string())?;
-                fit_impedance_curve(&c2.f, &c2.z, band, &o2, &same, |_| {})?
-            } else {
-                let mut r2 = read_recording(p2, scale).map_err(|e| e.to_string())?;
-                chain_choice.prepare(&mut r2, &o2, wiring)?;
-                fit_linear_record(&r2.u, &r2.i, r2.fs as f64, &o2, &same, |_| {})?
-            };
-            added_mass_scale(&fit, &fit2, madd)?
-        }
-        (None, None, None) => {
-            let r = rec.as_ref().expect("a displacement channel is a record's");
-            (scale_by_displacement(&fit, &r.i, r.x.as_ref().expect("checked"), r.fs as f64, &origin)?, ScaleMethod::Displacement)
-        }
-        _ => unreachable!("scale arguments were checked above"),
-    };
-    let mut params = scale_by_mms(&fit, mms)?;
-    params.sd = sd;
-    if let Some(s) = sd {
-        params.validate("--sd").map_err(|_| format!("--sd {s}: give the radiating area in m^2 (e.g. 0.0118)"))?;
+    for d in &done.detected {
+        eprintln!("chain: estimated, as the record shows one: {d}");
     }
-    params.source = Some(format!("coilscope linear {}", path.display()));
-    let x_range = match &rec {
-        Some(r) => {
-            let x_pred = match &r.x {
-                Some(x) => x.clone(),
-                None => predicted_displacement(&params, &r.i, r.fs as f64),
-            };
-            [x_pred.iter().cloned().fold(0.0, f64::min), x_pred.iter().cloned().fold(0.0, f64::max)]
-        }
-        None => a.volts.map_or([0.0, 0.0], |v| {
-            let c = curve.as_ref().expect("a curve");
-            let peak = curve_peak_displacement(&params, &c.f, &c.z, v);
-            [-peak, peak]
-        }),
-    };
-    let mut result = coilscope_ident::linear::result(&params, &fit, &method, x_range, &origin);
-    if calibrated.is_some() {
-        result.chain = calibrated;
-    }
-    mark_wiring(&mut result.chain, wiring);
-    let warnings = match &rec {
-        Some(r) => {
-            let (floor, warnings) = linear_warnings(&fit, &params, &r.u, &r.i, r.fs as f64);
-            attach_warnings(&mut result, Some(&floor), &warnings);
-            warnings
-        }
-        None => {
-            let warnings = curve_warnings(&fit);
-            attach_warnings(&mut result, None, &warnings);
-            warnings
-        }
-    };
-    write_json(out, &result).map_err(|e| e.to_string())?;
+    print_warnings(&done.warnings);
+    let (fit, params, result, x_range) = (&done.fit, &done.params, &done.result, done.x_range);
+    write_json(out, result).map_err(|e| e.to_string())?;
     let csv = out.with_extension("csv");
     let mut wrote = vec![out.display().to_string()];
-    if rec.is_some() {
+    if !is_curve {
         let zma = out.with_extension("zma");
         let (f, z) = fit.h1.coherent();
         let comments = vec![format!("coilscope linear: H1 impedance of {origin} (coherent bins)"), "Data: Impedance (ohms), Phase (degrees)".to_string()];
         coilscope_io::impedance::write_zma(&zma, &coilscope_io::impedance::ImpedanceCurve { f, z, comments }).map_err(|e| e.to_string())?;
         wrote.push(zma.display().to_string());
     }
-    coilscope_io::atomic_write(&csv, impedance_csv(&fit.h1, &fit).as_bytes()).map_err(|e| e.to_string())?;
+    coilscope_io::atomic_write(&csv, coilscope_ident::linear::impedance_csv(&fit.h1, fit).as_bytes()).map_err(|e| e.to_string())?;
     wrote.push(csv.display().to_string());
-
-    let ts = thiele_small(&params);
+    let ts = thiele_small(params);
     let u = &result.uncertainty;
     let pm = |k: &str, scale: f64| u.value(k).map(|v| format!("+- {:.2e}", v * scale)).unwrap_or_default();
-    match (&rec, &curve) {
-        (Some(r), _) => {
+    match &input {
+        LinearInput::Record(r) => {
             println!("coilscope linear: {} ({:.2} s at {} Hz)", path.display(), r.u.len() as f64 / r.fs as f64, r.fs);
             println!("  fit {:.1} .. {:.0} Hz, {} bins, residual {:.3e} (current, relative RMS), {} iterations", fit.band[0], fit.band[1], fit.bins, fit.residual_rel, fit.iterations);
         }
-        (_, Some(c)) => {
+        LinearInput::Curve(c) => {
             println!("coilscope linear: {} (impedance file, {} points, {:.1} .. {:.0} Hz)", path.display(), c.f.len(), c.f[0], c.f[c.f.len() - 1]);
             println!("  fit {:.1} .. {:.0} Hz, {} points, residual {:.3e} (impedance, relative RMS), {} iterations", fit.band[0], fit.band[1], fit.bins, fit.residual_rel, fit.iterations);
         }
-        _ => unreachable!("one input was read"),
     }
-    let scale_text = match &method {
+    let scale_text = match &done.method {
         ScaleMethod::Mms => "Mms given".to_string(),
         ScaleMethod::AddedMass { added, fs_with, .. } => format!("added mass {:.3} g, fs with mass {:.3} Hz", added * 1e3, fs_with),
         ScaleMethod::Displacement => "displacement channel".to_string(),
     };
     println!("  scale: {scale_text}");
-    if let (Some(c), Some(r)) = (&fit.chain, &rec) {
-        println!("  chain: {}", chain_words(&c.to_chain(), r.fs as f64));
+    if let (Some(c), LinearInput::Record(r)) = (&fit.chain, &input) {
+        println!("  chain: {}", c.to_chain().describe_fitted(r.fs as f64));
     }
     println!("  model: {} (tried: {})", fit.effects.model_name(), fit.tried.iter().map(|(m, r)| format!("{m} {r:.2e}")).collect::<Vec<_>>().join(", "));
-    print_values(&params, u, &[]);
+    print_values(params, u, &[]);
     println!("  {:<6} {:>12} {:<5} {}", "fs", format!("{:.3}", ts.fs), "Hz", pm("fs", 1.0));
     println!("  {:<6} {:>12}", "Qms", format!("{:.4}", ts.qms));
     println!("  {:<6} {:>12}", "Qes", format!("{:.4}", ts.qes));
@@ -1213,29 +1046,13 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     if let Some(v) = ts.vas {
         println!("  {:<6} {:>12} {:<5}", "Vas", format!("{:.3}", v * 1e3), "l");
     }
-    if rec.is_some() || a.volts.is_some() {
+    if !is_curve || a.volts.is_some() {
         println!("  x reached {:+.3} .. {:+.3} mm", x_range[0] * 1e3, x_range[1] * 1e3);
     } else {
         println!("  x reached: unknown (give --volts, the measurement's RMS voltage)");
     }
     println!("  wrote {}", wrote.join(", "));
-    untrusted_if_warned(&warnings, out)
-}
-
-/// Peak displacement (m) of a driver with parameters `p` measured with impedance `z` at
-/// frequencies `f` by a sine (or stepped sweep) of `volts` RMS: the largest `sqrt(2) |U Bl /
-/// (Z j w Zm)|`, `Zm = j w Mms + Rms + Kms / (j w)` the mechanical impedance.
-fn curve_peak_displacement(p: &Parameters, f: &[f64], z: &[coilscope_core::Complex64], volts: f64) -> f64 {
-    use coilscope_core::Complex64;
-    let (bl, kms) = (p.bl.eval(0.0), p.kms.eval(0.0));
-    f.iter()
-        .zip(z)
-        .map(|(&f, &z)| {
-            let jw = Complex64::new(0.0, 2.0 * std::f64::consts::PI * f);
-            let zm = jw * p.mms + p.rms + kms / jw;
-            (std::f64::consts::SQRT_2 * volts * bl / (z * jw * zm)).norm()
-        })
-        .fold(0.0, f64::max)
+    untrusted_if_warned(&done.warnings, out)
 }
 
 /// The set's constants and values at rest, a line each, in the parameter schema's order and
@@ -1250,33 +1067,6 @@ fn print_values(p: &Parameters, uncertainty: &coilscope_core::result::Uncertaint
     }
 }
 
-/// An estimated chain of a record at `fs`, in words: what was fitted, with its sds.
-fn chain_words(c: &coilscope_core::chain::Chain, fs: f64) -> String {
-    let fitted = |k: &str| c.fitted.iter().any(|f| f == k);
-    let sd = |k: &str| c.sd.get(k).copied().unwrap_or(f64::NAN);
-    let mut parts = vec![];
-    if fitted("delay_i") {
-        parts.push(format!("current {:.3} +- {:.3} samples late ({:.2} us)", c.delay_i * fs, sd("delay_i") * fs, 1e6 * c.delay_i));
-    }
-    if fitted("hp_u") {
-        parts.push(format!("voltage AC-coupled at {:.2} +- {:.2} Hz", c.hp_u, sd("hp_u")));
-    }
-    if fitted("hp_i") {
-        parts.push(format!("current AC-coupled at {:.2} +- {:.2} Hz", c.hp_i, sd("hp_i")));
-    }
-    if fitted("dc_i") {
-        parts.push(format!("offsets {:.3e} V, {:.3e} +- {:.1e} A", c.dc_u, c.dc_i, sd("dc_i")));
-    }
-    if let Some(h) = &c.hum {
-        parts.push(format!("hum at {} Hz: {}", h.f, h.i.iter().map(|l| format!("{:.2e}", l[0])).collect::<Vec<_>>().join(", ") + " A"));
-    }
-    if parts.is_empty() {
-        "ideal (no delay or AC coupling found)".to_string()
-    } else {
-        parts.join(", ")
-    }
-}
-
 /// `--effects`: `auto`, or a list for [`coilscope_ident::linear::Effects::parse`].
 fn parse_effects(text: &str) -> Result<coilscope_ident::linear::EffectsChoice, Failure> {
     use coilscope_ident::linear::{Effects, EffectsChoice};
@@ -1286,12 +1076,8 @@ fn parse_effects(text: &str) -> Result<coilscope_ident::linear::EffectsChoice, F
     }
 }
 
-/// Put the noise floor and the warnings into `fit` of a result (`fit.noise_floor`,
-/// `fit.warnings`, `fit.trustworthy`) and print the warnings.
-fn attach_warnings(result: &mut ResultFile, floor: Option<&coilscope_ident::checks::NoiseFloor>, warnings: &[coilscope_ident::checks::Warning]) {
-    result.fit.noise_floor = floor.copied();
-    result.fit.warnings = Some(warnings.to_vec());
-    result.fit.trustworthy = Some(result.fit.trustworthy.unwrap_or(true) && warnings.is_empty());
+/// Print a result's warnings, one line each.
+fn print_warnings(warnings: &[coilscope_ident::checks::Warning]) {
     for w in warnings {
         eprintln!("warning [{}]: {}", w.code, w.message);
     }
@@ -1340,15 +1126,12 @@ fn cmd_drivers() -> Result<(), String> {
     Ok(())
 }
 
-/// The post-inverse (equation-error) estimate of a record with a displacement channel: the
-/// whole parameter set, Mms included. Its L2/R2 come from the linear fit of the same record
-/// (the equation error cannot separate them).
+/// The post-inverse (equation-error) estimate of a record with a displacement channel
+/// ([`coilscope_workflow::identify::post_inverse_of`]).
 fn post_inverse_of(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, origin: &str) -> Result<Parameters, Failure> {
-    let lin = coilscope_ident::linear::fit_linear_record(u, i, fs, origin, &coilscope_ident::linear::LinearOptions::LARGE_SIGNAL_START, |_| {}).map_err(|e| e.to_string())?;
-    Ok(coilscope_ident::post_inverse::post_inverse(u, i, x, fs, order, Some((lin.p[2], lin.p[3])), origin)?)
+    Ok(coilscope_workflow::identify::post_inverse_of(u, i, x, fs, order, origin)?)
 }
 
-#[allow(clippy::too_many_arguments)]
 fn cmd_calibrate(path: &Path, resistor: Option<f64>, loopback: bool, wiring: SenseWiring, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
     let origin = path.display().to_string();
     let r = match (resistor, loopback) {
@@ -1392,36 +1175,11 @@ fn cmd_calibrate(path: &Path, resistor: Option<f64>, loopback: bool, wiring: Sen
 }
 
 #[allow(clippy::too_many_arguments)]
-fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &str, chain_choice: &ChainChoice, wiring: SenseWiring, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
-    use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, Stage};
+fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &str, chain: &ChainMode, wiring: SenseWiring, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
+    use coilscope_ident::large::Stage;
+    use coilscope_workflow::identify::{identify_record, IdentifyRequest};
     let origin = path.display().to_string();
     let mut rec = read_recording(path, scale).map_err(|e| e.to_string())?;
-    let fs = rec.fs as f64;
-    let calibrated = chain_choice.prepare(&mut rec, &origin, wiring)?;
-    let chain = chain_choice.estimate();
-    if let Some(o) = order {
-        if !(2..=8).contains(&o) {
-            return Err(Failure::from(format!("--order {o}: give a power-series order from 2 to 8")));
-        }
-    }
-    if let Some(s) = sd {
-        if !(s.is_finite() && s > 0.0 && s < 1.0) {
-            return Err(Failure::from(format!("--sd {s}: give the radiating area in m^2 (e.g. 0.0118)")));
-        }
-    }
-    // With a displacement channel: the equation-error (post-inverse) estimate gives Mms (when
-    // not given), the start values, and a cross-check of the output-error result.
-    let (mms, mms_source, post) = match (mms, &rec.x) {
-        (m, Some(x)) => {
-            let pi = post_inverse_of(&rec.u, &rec.i, x, fs, order.unwrap_or(4), &origin)?;
-            match m {
-                Some(m) => (m, "given (--mms)".to_string(), Some(pi)),
-                None => (pi.mms, "displacement channel (post-inverse equation error)".to_string(), Some(pi)),
-            }
-        }
-        (Some(m), None) => (m, "given (--mms)".to_string(), None),
-        (None, None) => return Err(Failure::from(format!("{origin}: no absolute scale: give --mms KG (moving mass), or record a displacement channel (3)"))),
-    };
     let live = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let t0 = std::time::Instant::now();
     let progress = |p: &coilscope_ident::large::Progress| {
@@ -1433,87 +1191,25 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
             eprint!("\r  {:5.1} s  fitting {stage}: iteration {:2}, current error {:.3e}        ", t0.elapsed().as_secs_f64(), p.state.iteration, p.residual_rel);
         }
     };
-    let init = post.as_ref().map(|p| Parameters { mms, x_range: None, ..p.clone() });
     // A batch's worker runs on one core (`cmd_identify_batch`).
     let threads = std::env::var(JOB_THREADS).ok().and_then(|v| v.parse().ok()).unwrap_or(0);
-    let opts = IdentifyOptions { mms, order, init, effects: parse_effects(effects)?, chain, threads, ..Default::default() };
-    let (fit, failure) = match identify(&rec.u, &rec.i, fs, &origin, &opts, progress) {
-        Ok(f) => (f, None),
-        Err(IdentifyError::NotConverged { message, best }) => (*best, Some(message)),
-        Err(e) => {
-            if live {
-                eprintln!();
-            }
-            return Err(Failure::from(e.to_string()));
-        }
-    };
+    let req = IdentifyRequest { origin: origin.clone(), mms, order, effects: parse_effects(effects)?, chain: chain.clone(), wiring, sd, threads };
+    let done = identify_record(&mut rec, &req, progress);
     if live {
         eprintln!();
     }
-    let mut fit = fit;
-    fit.params.sd = sd;
-    fit.params.source = Some(format!("coilscope identify {}", path.display()));
-    let mut result = fit.result(&path.display().to_string(), &mms_source);
-    // The skew check looks at the record without a chain: with the chain estimated or
-    // calibrated the delay is taken out (and reported in `chain`), so it would warn of what
-    // is already corrected.
-    let delay_handled = chain || calibrated.is_some();
-    if calibrated.is_some() {
-        result.chain = calibrated;
+    let done = done?;
+    for d in &done.detected {
+        eprintln!("chain: estimated, as the record shows one: {d}");
     }
-    mark_wiring(&mut result.chain, wiring);
-    // The current error behind the estimated chain (its offsets and hum are fitted, not error).
-    let k = fit.settle;
-    let r: Vec<f64> = fit.i_phys[k..].iter().zip(&fit.i_model[k..]).map(|(a, b)| a - b).collect();
-    let i_rms = coilscope_core::simulate::rms(&fit.i_phys);
-    let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", i_rms, 0.0);
-    // An error that follows the drive is a misfit even when its spectrum looks like a floor.
-    if !warnings.iter().any(|w| w.code == "residual-above-noise") {
-        warnings.extend(coilscope_ident::checks::drive_warning(&r, &fit.u_phys[k..], &fit.i_model[k..], &fit.x_model[k..], fs, "large-signal fit", i_rms, 0.0));
-    }
-    let final_delay = if delay_handled { None } else { coilscope_ident::checks::residual_delay(&r, &fit.i_model[k..]) };
-    if let Some((tau, share)) = final_delay {
-        warnings.push(coilscope_ident::checks::Warning::new(
-            "current-delay",
-            format!(
-                "the current channel looks skewed against the voltage: shifting it {tau:+.2} samples ({:+.1} us at {fs} Hz; + is late) explains {:.0} % of the large-signal fit's error, and the fit has taken part of the skew into its parameters, so the skew can be larger. Channels of one interface sampled apart, or a wiring/latency mistake; the parameters are biased (Le, Kms(x), Bl(x)). Estimate the chain with --chain auto, or calibrate the card (coilscope calibrate) and give --chain FILE",
-                1e6 * tau / fs,
-                100.0 * share
-            ),
-        ));
-    } else if let Some(lin) = fit.linear.as_ref().filter(|_| !delay_handled) {
-        if let Some((tau, share)) = lin.current_delay {
-            warnings.push(coilscope_ident::checks::Warning::new(
-                "current-delay",
-                format!(
-                    "the current channel is {tau:.2} samples {} the voltage (shifting it explains {:.0} % of the small-signal fit's error): the channels are skewed, and Le, L2/R2 and Bl are biased",
-                    if tau > 0.0 { "late against" } else { "early against" },
-                    100.0 * share
-                ),
-            ));
-        }
-    }
-    if failure.is_some() {
-        result.fit.trustworthy = Some(false);
-    }
-    attach_warnings(&mut result, Some(&floor), &warnings);
-    if let Some(pi) = &post {
-        // Largest difference over the reached range, relative to the output-error value at rest.
-        let dev = |a: &coilscope_core::Poly, b: &coilscope_core::Poly| {
-            let [lo, hi] = fit.x_range;
-            (0..=200).map(|k| lo + (hi - lo) * k as f64 / 200.0).map(|x| (a.eval(x) - b.eval(x)).abs()).fold(0.0, f64::max) / b.eval(0.0).abs()
-        };
-        let diff = [("Bl", dev(&pi.bl, &fit.params.bl)), ("Kms", dev(&pi.kms, &fit.params.kms)), ("Le", dev(&pi.le, &fit.params.le)), ("Mms", (pi.mms / fit.params.mms - 1.0).abs()), ("Rms", (pi.rms / fit.params.rms - 1.0).abs())];
-        result.cross_check =
-            Some(coilscope_core::result::CrossCheck { method: "post-inverse equation error with the measured displacement".into(), parameters: pi.clone(), max_rel_difference: diff.iter().map(|(k, v)| (k.to_string(), *v)).collect() });
-    }
-    write_json(out, &result).map_err(|e| e.to_string())?;
-    print_large_summary(path, &rec, &fit, &result, t0.elapsed().as_secs_f64());
-    match failure {
+    print_warnings(&done.warnings);
+    write_json(out, &done.result).map_err(|e| e.to_string())?;
+    print_large_summary(path, &rec, &done.fit, &done.result, t0.elapsed().as_secs_f64());
+    match &done.failure {
         Some(m) => Err(Failure::Untrusted(format!("{m}; written to {}", out.display()))),
         None => {
             println!("  result: {}", out.display());
-            untrusted_if_warned(&warnings, out)
+            untrusted_if_warned(&done.warnings, out)
         }
     }
 }
@@ -1617,7 +1313,7 @@ fn cmd_identify_batch(recordings: &[PathBuf], jobs: Option<usize>, out: &Path) -
 /// (`record_lines`), the ratios and their noise (`RecordLines::harmonics`), the fit and its
 /// covariance (`identify_volterra_weighted`), the truncation check (`truncation_check`).
 #[allow(clippy::too_many_arguments)]
-fn cmd_identify_volterra(path: &Path, start: Option<&str>, mms: Option<f64>, order: Option<usize>, effects: &str, chain_choice: &ChainChoice, wiring: SenseWiring, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
+fn cmd_identify_volterra(path: &Path, start: Option<&str>, mms: Option<f64>, order: Option<usize>, effects: &str, chain_choice: &ChainMode, wiring: SenseWiring, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
     use coilscope_ident::checks::Warning;
     use coilscope_ident::volterra::{identify_volterra_weighted, record_lines, truncation_check};
     let origin = path.display().to_string();
@@ -1641,7 +1337,7 @@ fn cmd_identify_volterra(path: &Path, start: Option<&str>, mms: Option<f64>, ord
         ..start
     };
     let mut rec = read_recording(path, scale).map_err(|e| e.to_string())?;
-    if matches!(chain_choice, ChainChoice::Estimate) {
+    if matches!(chain_choice, ChainMode::Estimate) {
         return Err(Failure::from("--chain auto: the Volterra method does not estimate a chain (its lines carry no transient to tell it); calibrate the card (`coilscope calibrate`) and give --chain FILE, or --chain none"));
     }
     let calibrated = chain_choice.undo(&mut rec, &origin, wiring)?;
@@ -1719,7 +1415,8 @@ fn cmd_identify_volterra(path: &Path, start: Option<&str>, mms: Option<f64>, ord
             "lines": measured.iter().zip(&noise).map(|(h, n)| json!({"freq": h.freq, "volts_rms": h.volts, "ratio2": [h.ratio(2).re, h.ratio(2).im], "ratio3": [h.ratio(3).re, h.ratio(3).im], "sd2": n[0], "sd3": n[1]})).collect::<Vec<_>>(),
         }),
     );
-    attach_warnings(&mut result, None, &warnings);
+    coilscope_workflow::attach_warnings(&mut result, None, &warnings);
+    print_warnings(&warnings);
     write_json(out, &result).map_err(|e| e.to_string())?;
     let pct = |f: &coilscope_core::Poly, x: f64| 100.0 * (f.eval(x) / f.c[0] - 1.0);
     println!("coilscope identify --method volterra: {origin}, {} tones {}-{} Hz, {} periods, {:.2} s", lines.bins.len(), lines.bins[0], lines.bins[lines.bins.len() - 1], lines.starts.len(), t0.elapsed().as_secs_f64());
@@ -1759,7 +1456,7 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
     };
     println!("  model {} ({})", fit.layout.effects.model_name(), if tried.is_empty() { "given".to_string() } else { tried.iter().map(words).collect::<Vec<_>>().join(", ") });
     if let Some(c) = &fit.chain {
-        println!("  chain: {}", chain_words(c, fit.fs));
+        println!("  chain: {}", c.describe_fitted(fit.fs));
     }
     let u = &result.uncertainty;
     // Bl, Kms and Le are shown as curves below.

@@ -60,7 +60,8 @@ fn a_current_one_sample_late_is_named_with_its_delay() {
         r.i[0] = 0.0;
     });
     let out = d.path().join("r.json");
-    let o = coilscope(&["linear", late.to_str().unwrap(), "--mms", MMS, "--out", out.to_str().unwrap()]);
+    // Told that the channels are ideal, the fit names the skew and is not trusted.
+    let o = coilscope(&["linear", late.to_str().unwrap(), "--mms", MMS, "--chain", "none", "--out", out.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(3), "{}", text(&o));
     let t = text(&o);
     assert!(t.contains("[current-delay]") && t.contains("1.0") && t.contains("samples late"), "{t}");
@@ -68,6 +69,13 @@ fn a_current_one_sample_late_is_named_with_its_delay() {
     let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
     assert_eq!(j["fit"]["trustworthy"], false);
     assert!(j["fit"]["warnings"].as_array().unwrap().iter().any(|w| w["code"] == "current-delay"));
+    // By default the record's skew is found and estimated with the driver, and said so.
+    let o = coilscope(&["linear", late.to_str().unwrap(), "--mms", MMS, "--out", out.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    assert!(text(&o).contains("chain: estimated, as the record shows one"), "{}", text(&o));
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let late_samples = j["chain"]["delay_i"].as_f64().unwrap() * 48000.0;
+    assert!((late_samples - 1.0).abs() < 0.02, "delay {late_samples} samples");
 }
 
 #[test]
@@ -79,9 +87,20 @@ fn a_dc_offset_on_the_current_is_named_by_identify() {
     for share in [0.01, 0.03] {
         let off = damaged(&src, &format!("dc{share}.wav"), |r| r.i.iter_mut().for_each(|v| *v += share * i_rms));
         let out = d.path().join("r.json");
-        let o = coilscope(&["identify", off.to_str().unwrap(), "--mms", MMS, "--order", "4", "--out", out.to_str().unwrap()]);
+        let o = coilscope(&["identify", off.to_str().unwrap(), "--mms", MMS, "--order", "4", "--chain", "none", "--out", out.to_str().unwrap()]);
         assert_eq!(o.status.code(), Some(3), "DC {share}: {}", text(&o));
         assert!(text(&o).contains("[dc-offset-current]"), "DC {share}: {}", text(&o));
+        // By default the offset is seen and estimated with the chain.
+        let o = coilscope(&["identify", off.to_str().unwrap(), "--mms", MMS, "--order", "4", "--out", out.to_str().unwrap()]);
+        assert_eq!(o.status.code(), Some(0), "DC {share}: {}", text(&o));
+        assert!(text(&o).contains("an offset of"), "DC {share}: {}", text(&o));
+        let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+        // The record's own mean (the drive's, through the driver) is part of what the offset
+        // estimate reads, and its sd says how much.
+        let dc = j["chain"]["dc_i"].as_f64().unwrap();
+        let own = rec.i.iter().sum::<f64>() / rec.i.len() as f64;
+        let sd = j["chain"]["sd"]["dc_i"].as_f64().unwrap();
+        assert!((dc - share * i_rms - own).abs() <= 3.0 * sd, "DC {share}: estimated {dc} A against {} A (+ the record's own mean {own} A), sd {sd} A", share * i_rms);
     }
 }
 

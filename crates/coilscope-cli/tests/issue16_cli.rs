@@ -214,12 +214,34 @@ fn identify_without_the_chain_on_the_real_chain_record_is_not_trusted() {
     let rec = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings/sb17cac35-4-real-chain.wav");
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("r.json");
-    let o = coilscope(&["identify", rec.to_str().unwrap(), "--mms", "0.015367", "--out", out.to_str().unwrap()]);
+    let o = coilscope(&["identify", rec.to_str().unwrap(), "--mms", "0.015367", "--chain", "none", "--out", out.to_str().unwrap()]);
     let text = text(&o);
     assert_eq!(o.status.code(), Some(3), "{text}");
     assert!(text.contains("[residual-follows-drive]") && text.contains("--chain auto"), "{text}");
     let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
     assert_eq!(j["fit"]["trustworthy"], false);
+}
+
+/// With its default flags, `identify` finds the card in the same record (its hum, offsets,
+/// skew and AC coupling) and estimates it with the driver: trusted, and right.
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+fn identify_by_default_finds_and_estimates_the_real_chain_records_card() {
+    let rec = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings/sb17cac35-4-real-chain.wav");
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("r.json");
+    let o = coilscope(&["identify", rec.to_str().unwrap(), "--mms", "0.015367", "--out", out.to_str().unwrap()]);
+    let text = text(&o);
+    assert_eq!(o.status.code(), Some(0), "{text}");
+    assert!(text.contains("chain: estimated, as the record shows one"), "{text}");
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(j["fit"]["trustworthy"], true);
+    // The record's chain: the current 0.3 sample late, 2 Hz / 4 Hz coupling.
+    let late = j["chain"]["delay_i"].as_f64().unwrap() * 48000.0;
+    assert!((late - 0.3).abs() < 0.01, "delay {late} samples");
+    let re = j["parameters"]["Re"].as_f64().unwrap();
+    let truth = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
+    assert!((re / truth.re - 1.0).abs() < 0.003, "Re {re} against {}", truth.re);
 }
 
 /// `measure --replay` of the independent real-chain record without its calibration: loud

@@ -270,6 +270,33 @@ impl DelaySpectrum {
 const KEPT_PHASES: usize = 4;
 
 impl Chain {
+    /// What an estimated chain of a record at `fs` fitted, in words, with its sds.
+    pub fn describe_fitted(&self, fs: f64) -> String {
+        let fitted = |k: &str| self.fitted.iter().any(|f| f == k);
+        let sd = |k: &str| self.sd.get(k).copied().unwrap_or(f64::NAN);
+        let mut parts = vec![];
+        if fitted("delay_i") {
+            parts.push(format!("current {:.3} +- {:.3} samples late ({:.2} us)", self.delay_i * fs, sd("delay_i") * fs, 1e6 * self.delay_i));
+        }
+        if fitted("hp_u") {
+            parts.push(format!("voltage AC-coupled at {:.2} +- {:.2} Hz", self.hp_u, sd("hp_u")));
+        }
+        if fitted("hp_i") {
+            parts.push(format!("current AC-coupled at {:.2} +- {:.2} Hz", self.hp_i, sd("hp_i")));
+        }
+        if fitted("dc_i") {
+            parts.push(format!("offsets {:.3e} V, {:.3e} +- {:.1e} A", self.dc_u, self.dc_i, sd("dc_i")));
+        }
+        if let Some(h) = &self.hum {
+            parts.push(format!("hum at {} Hz: {}", h.f, h.i.iter().map(|l| format!("{:.2e}", l[0])).collect::<Vec<_>>().join(", ") + " A"));
+        }
+        if parts.is_empty() {
+            "ideal (no delay or AC coupling found)".to_string()
+        } else {
+            parts.join(", ")
+        }
+    }
+
     /// What the record adds after the coupling, per channel: offset plus hum, `n` samples.
     fn additive(&self, n: usize, fs: f64) -> (Vec<f64>, Vec<f64>) {
         let (mut hu, mut hi) = match &self.hum {

@@ -2162,11 +2162,16 @@ pub struct IdentifyOptions {
     /// corners, offsets and hum, all of them, from the start values of a linear fit with the
     /// chain.
     pub chain: bool,
+    /// Without `chain`: estimate it when the record shows one. The linear fit with the chain
+    /// runs beside the start's (as with `chain`), and when it keeps a delay or a corner that
+    /// stands out of its sd ([`crate::linear::CHAIN_SIGNIFICANCE`]) the fit takes the chain
+    /// ([`LargeFit::chain_detected`] says what was seen); otherwise it is the plain fit.
+    pub detect_chain: bool,
 }
 
 impl Default for IdentifyOptions {
     fn default() -> Self {
-        IdentifyOptions { mms: f64::NAN, order: None, init: None, knot_seconds: 2.0, estimation_share: 0.7, search_seconds: 5.0, max_iterations: 40, threads: 0, effects: EffectsChoice::Auto, chain: false }
+        IdentifyOptions { mms: f64::NAN, order: None, init: None, knot_seconds: 2.0, estimation_share: 0.7, search_seconds: 5.0, max_iterations: 40, threads: 0, effects: EffectsChoice::Auto, chain: false, detect_chain: false }
     }
 }
 
@@ -2238,8 +2243,11 @@ pub struct LargeFit {
     /// physical current, behind the chain.
     pub i_model: Vec<f64>,
     pub x_model: Vec<f64>,
-    /// The measurement chain estimated with the driver (None: `IdentifyOptions::chain` off).
+    /// The measurement chain estimated with the driver (None: `IdentifyOptions::chain` off,
+    /// and no chain found with `IdentifyOptions::detect_chain`).
     pub chain: Option<coilscope_core::chain::Chain>,
+    /// What made the fit take the chain when it looked for one (`detect_chain`).
+    pub chain_detected: Option<String>,
     /// The driver's voltage and current behind the estimated chain (the recorded ones without
     /// a chain): what `i_model` is to be compared with.
     pub u_phys: Vec<f64>,
@@ -2944,7 +2952,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     if u.len() != i.len() {
         return Err(Input(format!("{origin}: voltage and current have different lengths ({} and {})", u.len(), i.len())));
     }
-    check_channels(u, i, fs, opts.chain, origin).map_err(Input)?;
+    check_channels(u, i, fs, opts.chain || opts.detect_chain, origin).map_err(Input)?;
     if let Some(o) = opts.order {
         if !(MIN_ORDER..=MAX_ORDER).contains(&o) {
             return Err(Input(format!("power-series order {o} is not valid ({MIN_ORDER} ..= {MAX_ORDER})")));
@@ -2958,7 +2966,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     // (below). They are independent, and run side by side.
     let m_start = u.len().min((4.0 * fs) as usize);
     let (start_fit, chain_fit) = std::thread::scope(|scope| {
-        let chain_fit = opts.chain.then(|| {
+        let chain_fit = (opts.chain || opts.detect_chain).then(|| {
             scope.spawn(|| {
                 let lin_opts = LinearOptions { chain: true, ..LinearOptions::LARGE_SIGNAL_START };
                 fit_linear_record(&u[..m_start], &i[..m_start], fs, origin, &lin_opts, |_| {})
@@ -2992,6 +3000,27 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     // record its sds are wide (distortion is most of its residual: SB17 with a 0.3-sample delay
     // gave 0.34 +- 0.09), too wide to decide. Offsets and hum are always in.
     let mut chain_start = None;
+    // Looking for a chain: the linear fit with it kept a delay or a corner (each at
+    // CHAIN_SIGNIFICANCE sd or more), so the fit takes the chain; else it is a plain record.
+    let mut chain_detected = None;
+    let chain_fit = match chain_fit {
+        Some(Ok(lin)) if !opts.chain => {
+            // What the chain fit kept, in the ranges of a card (a skew of 0.05 sample or more,
+            // a corner of 0.2-20 Hz) and lowering the fit's error power by CHAIN_SEEN_GAIN of
+            // it: a large-signal record's linear misfit puts a few hundredths of a sample and
+            // a corner of 10 Hz at several sd into a chain that is not there.
+            let gain = linear.as_ref().map_or(1.0, |l| 1.0 - (lin.residual_rel / l.residual_rel).powi(2));
+            let seen = lin.chain.as_ref().filter(|_| gain >= CHAIN_SEEN_GAIN).map(chain_seen).unwrap_or_default();
+            if seen.is_empty() {
+                None
+            } else {
+                chain_detected = Some(format!("the small-signal fit of the first {:.1} s found {}", m_start as f64 / fs, seen.join(", ")));
+                Some(Ok(lin))
+            }
+        }
+        Some(Err(_)) if !opts.chain => None,
+        other => other,
+    };
     let (setup, mut cth) = if let Some(fit) = chain_fit {
         let lin_chain = fit.map_err(Input)?;
         let est = lin_chain.chain.clone();
@@ -3735,6 +3764,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         i_model,
         x_model,
         chain,
+        chain_detected,
         u_phys,
         i_phys,
         truncation,
@@ -3743,6 +3773,27 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         return Err(NotConverged { message: format!("{origin}: the large-signal fit did not converge ({stop_reason}); the best estimate is kept"), best: Box::new(fit) });
     }
     Ok(fit)
+}
+
+/// Share of the start fit's error power that the linear fit with the chain must remove for
+/// `IdentifyOptions::detect_chain` to take the chain.
+pub const CHAIN_SEEN_GAIN: f64 = 0.02;
+
+/// What a linear fit's chain estimate kept (each at [`crate::linear::CHAIN_SIGNIFICANCE`] sd
+/// or more) in the ranges a sound card has, in words.
+fn chain_seen(c: &crate::linear::ChainEstimate) -> Vec<String> {
+    let mut seen = vec![];
+    let corner = |f: f64| (0.2..=20.0).contains(&f);
+    if c.on[0] && c.values[0].abs() >= 0.05 {
+        seen.push(format!("the current {:+.3} +- {:.3} samples late against the voltage", c.values[0], c.sd[0]));
+    }
+    if c.on[1] && corner(c.values[1]) {
+        seen.push(format!("the voltage channel AC-coupled at {:.2} +- {:.2} Hz", c.values[1], c.sd[1]));
+    }
+    if c.on[2] && corner(c.values[2]) {
+        seen.push(format!("the current channel AC-coupled at {:.2} +- {:.2} Hz", c.values[2], c.sd[2]));
+    }
+    seen
 }
 
 /// The LR-2 and LR-3 branches are the same form in series, and the model is the same with
@@ -3833,7 +3884,7 @@ impl LargeFit {
     /// The result file (`"format": "coilscope.result/1"`).
     pub fn result(&self, recording: &str, mms_source: &str) -> ResultFile {
         let mut unc = Uncertainty::new(format!(
-            "standard deviations from the final Jacobian and the residual variance (sensor noise; Mms is taken as exact). Bands: value and sd on a grid over fit.x_range, the sd including a systematic 0.01 % of the value (measured against an independent simulator and its anti-alias chain); with the chain estimated, a systematic {DELAY_SYSTEMATIC_SAMPLES:.1e} sample on its delay, carried to what correlates with it, and {:.2} % of Le(x) in place of the 0.01 % (what the delay and Le share){}; +-2 sd is about 95 %",
+            "standard deviations from the final Jacobian and the residual variance (sensor noise; Mms is taken as exact). Bands: value and sd on a grid over fit.x_range, the sd including a systematic 0.01 % of the value (measured against an independent simulator and its anti-alias chain; Re's sd too); with the chain estimated, a systematic {DELAY_SYSTEMATIC_SAMPLES:.1e} sample on its delay, carried to what correlates with it, and {:.2} % of Le(x) in place of the 0.01 % (what the delay and Le share){}; +-2 sd is about 95 %",
             LE_DELAY_SYSTEMATIC_REL * 100.0,
             match &self.truncation {
                 Some(t) => format!("; and the power series' truncation: the difference between the curves of order {} and of order {} (the next the order search tried), both fitted on the same data", self.order, t.next_order),
@@ -3841,6 +3892,11 @@ impl LargeFit {
             }
         ));
         self.layout.uncertainties(&self.theta, &|j, k| self.cov_theta(j, k), &|_| true, &mut unc);
+        // The cold Re carries the same systematic share as the curves: the first knot of the
+        // Re(t) track is where the coil's heating within a knot interval biases it.
+        if let Some(v) = unc.value("Re") {
+            unc.set("Re", v.hypot(CURVE_SYSTEMATIC_REL * self.params.re));
+        }
         for which in ["Bl", "Kms", "Le"] {
             unc.set_band(which, self.band(which, 41));
         }
