@@ -649,8 +649,13 @@ enum Command {
     Drivers,
     /// Validate a parameter set and print its small-signal figures.
     Check {
-        /// Embedded driver name or parameter file.
+        /// Embedded driver name, drawn driver (population:SEED, population:CLASS:SEED) or
+        /// parameter file.
         params: String,
+        /// Print the parameter set itself (the file contract's JSON), e.g. to keep a drawn
+        /// driver as a file.
+        #[arg(long)]
+        json: bool,
     },
 }
 
@@ -790,7 +795,13 @@ fn main() -> ExitCode {
             let o = coilscope_io::export::SafetydOptions { name, t_limit, t_ambient, channels, is_chan, vs_chan, is_scale, vs_scale, group, ..Default::default() };
             cmd_export(&result, speakersafetyd, power_series, zma, frd, &out, &o).map_err(Failure::from)
         }
-        Command::Check { params } => load_parameters(&params).map_err(|e| Failure::Error(e.to_string())).map(|p| print_params(&p)),
+        Command::Check { params, json } => load_parameters(&params).map_err(|e| Failure::Error(e.to_string())).map(|p| {
+            if json {
+                println!("{}", serde_json::to_string_pretty(&p.to_json_value()).unwrap_or_default());
+            } else {
+                print_params(&p)
+            }
+        }),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
