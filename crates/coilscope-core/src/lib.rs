@@ -20,6 +20,7 @@
 //! * [`integrate`]: band-limited input interpolation and RK4 sub-stepping.
 //! * [`simulate`](mod@simulate): the virtual transducer driven by a sampled voltage.
 //! * [`small_signal`]: the linearised model at rest: impedance, Thiele/Small figures.
+//! * [`effects`]: which of a real driver's effects (creep, LR-3, Le(i), Rms(v)) a set has.
 //! * [`creep`]: LOG creep of the suspension as a bank of Maxwell elements.
 //! * [`population`]: physically plausible drivers drawn from a seed, microspeakers to
 //!   subwoofers, for judging the tool on drivers it was not developed on.
@@ -31,6 +32,7 @@
 
 pub mod chain;
 pub mod creep;
+pub mod effects;
 pub mod excitation;
 pub mod fft;
 pub mod integrate;

@@ -61,6 +61,7 @@
 //! The classes' ranges are deliberately a little wider than the typical: the population is a
 //! test of the tool, and a driver at the edge of its class is a driver a user will bring.
 
+pub use crate::effects::Effects;
 use crate::excitation::named_rng;
 use crate::params::{Creep, Parameters, Thermal, ALPHA_COPPER};
 use crate::poly::Poly;
@@ -234,26 +235,6 @@ const SUBWOOFER: Ranges = Ranges {
     rtm: (0.3, 1.0),
     tau_m: (1800.0, 7200.0),
 };
-
-/// The real-driver effects a unit may carry.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Effects {
-    /// LOG creep of the suspension.
-    pub creep: bool,
-    /// A second para-inductance branch.
-    pub lr3: bool,
-    /// Flux modulation Le(i).
-    pub le_i: bool,
-    /// Velocity-dependent mechanical loss Rms(v).
-    pub rms_v: bool,
-}
-
-impl Effects {
-    /// None: the plain model (the seed paper's, with LR-2 and the thermal model).
-    pub const NONE: Effects = Effects { creep: false, lr3: false, le_i: false, rms_v: false };
-    /// Every effect at once.
-    pub const ALL: Effects = Effects { creep: true, lr3: true, le_i: true, rms_v: true };
-}
 
 /// One drawn driver: the plain parameter set and the values of every effect, whether or not
 /// this unit carries it.

@@ -188,86 +188,12 @@ fn model_impedance_and_gradient(p: &[f64; 7], f: f64) -> (Complex64, [Complex64;
     (z, g)
 }
 
-/// The effects a linear fit may add to the LR-2 model (issue 15).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Effects {
-    /// LOG creep of the suspension ([`coilscope_core::creep`]): one more unknown, lambda.
-    pub creep: bool,
-    /// A second para-inductance branch L3 || R3 in series with LR-2: two more unknowns.
-    pub lr3: bool,
-    /// Flux modulation `Le_i` (large signal only: `identify`): `g(i) = 1 + g1 i + g2 i^2`.
-    pub le_i: bool,
-    /// Velocity-dependent loss `Rms_v` (large signal only: `identify`):
-    /// `Rms(|v|) = Rms + c2 v^2`.
-    pub rms_v: bool,
-}
+pub use coilscope_core::effects::Effects;
 
-impl Effects {
-    pub const NONE: Effects = Effects { creep: false, lr3: false, le_i: false, rms_v: false };
-    /// Unknowns the small-signal effects add to the seven of the LR-2 model.
-    fn n_extra(self) -> usize {
-        self.creep as usize + 2 * self.lr3 as usize
-    }
-    /// Whether a large-signal-only effect (Le(i), Rms(v)) is included: no small-signal
-    /// record can show it.
-    pub fn has_large_signal(self) -> bool {
-        self.le_i || self.rms_v
-    }
-    /// Whether an effect with states of its own (creep, LR-3) is in: the time-domain model
-    /// is then [`coilscope_core::model::ExtModel`].
-    pub fn needs_ext_states(self) -> bool {
-        self.creep || self.lr3
-    }
-    /// The effects in either set.
-    pub fn union(self, other: Effects) -> Effects {
-        Effects { creep: self.creep || other.creep, lr3: self.lr3 || other.lr3, le_i: self.le_i || other.le_i, rms_v: self.rms_v || other.rms_v }
-    }
-    /// The effects a small-signal fit can see (creep, LR-3).
-    pub fn small_signal(self) -> Effects {
-        Effects { le_i: false, rms_v: false, ..self }
-    }
-    /// The names as in `fit.model` (`LR-2`, `LR-2+creep`, `LR-2+LR-3+creep+Le(i)+Rms(v)`).
-    pub fn model_name(self) -> String {
-        let mut s = String::from("LR-2");
-        if self.lr3 {
-            s.push_str("+LR-3");
-        }
-        if self.creep {
-            s.push_str("+creep");
-        }
-        if self.le_i {
-            s.push_str("+Le(i)");
-        }
-        if self.rms_v {
-            s.push_str("+Rms(v)");
-        }
-        s
-    }
-    /// The parameter-schema keys the effects add (`creep.lambda`, `L3`, `R3`, `Le_i`, `Rms_v`).
-    pub fn keys(self) -> Vec<&'static str> {
-        let on = [(self.creep, &["creep.lambda"][..]), (self.lr3, &["L3", "R3"][..]), (self.le_i, &["Le_i"][..]), (self.rms_v, &["Rms_v"][..])];
-        on.iter().filter(|(b, _)| *b).flat_map(|(_, k)| k.iter().copied()).collect()
-    }
-    /// The effects in words, without the LR-2 base (`Le(i) and Rms(v)`; empty for none).
-    pub fn in_words(self) -> String {
-        self.model_name().trim_start_matches("LR-2").trim_start_matches('+').replace('+', " and ")
-    }
-    /// Parse `none`, or a comma-separated list of `creep`, `lr3`, `lei`, `rmsv` (the CLI's
-    /// `--effects`).
-    pub fn parse(text: &str) -> Result<Effects, String> {
-        let mut e = Effects::NONE;
-        for part in text.split(',').map(str::trim).filter(|t| !t.is_empty()) {
-            match part {
-                "none" => {}
-                "creep" => e.creep = true,
-                "lr3" | "LR-3" => e.lr3 = true,
-                "lei" | "Le_i" | "Le(i)" => e.le_i = true,
-                "rmsv" | "Rms_v" | "Rms(v)" => e.rms_v = true,
-                other => return Err(format!("unknown effect {other:?}; valid: none, creep, lr3, lei, rmsv (comma-separated), or auto")),
-            }
-        }
-        Ok(e)
-    }
+/// Unknowns the small-signal effects add to the seven of the LR-2 model: lambda for creep,
+/// the corner and R3 for LR-3.
+fn n_extra(e: Effects) -> usize {
+    e.creep as usize + 2 * e.lr3 as usize
 }
 
 /// Which effects the linear fit uses.
@@ -885,7 +811,7 @@ impl CurrentError {
 
     /// Where the transient coefficients start in theta.
     fn t0(&self) -> usize {
-        7 + self.effects.n_extra()
+        7 + n_extra(self.effects)
     }
 
     /// Where creep's lambda sits in theta.
@@ -1569,7 +1495,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
                 for k in first..fitted.len() {
                     let (pr, s, r) = &fitted[k];
                     let lambda_ok = pr.idx_lambda().is_none_or(|j| s.theta[j] > 0.0);
-                    let unknowns = pr.effects.n_extra() - cur.n_extra();
+                    let unknowns = n_extra(pr.effects) - n_extra(cur);
                     if polished[k] && lambda_ok && effect_pays(r_cur, *r, floor, bins, unknowns) && best.is_none_or(|(_, rb)| *r < rb) {
                         best = Some((k, *r));
                     }

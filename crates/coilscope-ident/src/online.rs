@@ -112,7 +112,8 @@ pub struct OnlineOptions {
     /// magnet changes by far less than the estimate's own sd, and a drift allowance kept the
     /// band at rest at 0.01 % of the value where the estimate was within 0.001 %: the bands
     /// of fresh drivers held the truth at a median of 0.12 sd, five times too wide. A
-    /// long-term test, in which the magnet and the suspension warm, sets it.
+    /// long-term test, in which the magnet and the suspension warm, sets it; a measurement
+    /// adds a drift as the coil heats ([`Online::drift_values_at_rest`]).
     pub re_drift: f64,
     pub drift: f64,
     /// Seconds of history kept (at least the window plus a margin).
@@ -706,10 +707,8 @@ impl Online {
         // warms and creeps). The shape coefficients do not drift: on the basis in x / x_ref
         // past x_ref (P6(3.3) is 1.6e4) an isotropic drift of 1e-4/sqrt(s) made the band at
         // the edge of the reach 5 to 10 times the curve itself, whatever the data said.
+        self.drift_values_at_rest(self.opts.drift * self.opts.drift * dt_upd);
         let s = self.layout.slots();
-        for k in [s.le.start, s.bl.start, s.kms.start, s.rms].into_iter().chain(s.l2).chain(s.r2) {
-            self.cov[(k, k)] += self.opts.drift * self.opts.drift * dt_upd;
-        }
         self.cov[(s.re.start, s.re.start)] += self.opts.re_drift * self.opts.re_drift * dt_upd;
         self.rebuild_live();
         // Continue the live run from the new model's state at the present (carried on from the
@@ -720,6 +719,16 @@ impl Online {
         self.re_err2 = 0.0;
         self.re_count = 0;
         Some(Update { t: self.t(), before, after: (e1 / q.max(1e-300)).sqrt(), step, floor_ratio })
+    }
+
+    /// Let the values at rest (the curves' constant terms, Rms and the LR-2 branch) drift by
+    /// `var` (variance, in theta's normalised units, about relative): a Kalman filter's
+    /// process noise, taken when they may have moved (the suspension and the magnet warm).
+    pub fn drift_values_at_rest(&mut self, var: f64) {
+        let s = self.layout.slots();
+        for k in [s.le.start, s.bl.start, s.kms.start, s.rms].into_iter().chain(s.l2).chain(s.r2) {
+            self.cov[(k, k)] += var;
+        }
     }
 
     /// The large-signal effects (Le(i), Rms(v)) of the layout whose every coefficient lies

@@ -78,9 +78,21 @@ pub struct Regression {
     pub why: String,
 }
 
-/// The regression drivers kept for `test` (`measure` or `identify`), in name order.
+/// The regression drivers kept for `test` (`measure` or `identify`) whose failure is fixed,
+/// in name order: every CI run takes its slice of them.
 pub fn regressions(test: &str) -> Vec<Regression> {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../testdata/population");
+    regressions_in("", test)
+}
+
+/// The regression drivers kept for `test` whose failure is still open
+/// (`testdata/population/open/`): the offline sweeps run them with the fresh draws, so that
+/// they fail until these pass; fixed, a driver moves up a directory.
+pub fn open_regressions(test: &str) -> Vec<Regression> {
+    regressions_in("open", test)
+}
+
+fn regressions_in(sub: &str, test: &str) -> Vec<Regression> {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../testdata/population").join(sub);
     let mut paths: Vec<PathBuf> = std::fs::read_dir(&dir).map(|d| d.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|e| e == "json")).collect()).unwrap_or_default();
     paths.sort();
     let mut out = Vec::new();
@@ -106,7 +118,7 @@ pub fn regressions(test: &str) -> Vec<Regression> {
 
 #[test]
 fn every_kept_regression_driver_reads_and_says_why() {
-    let all: Vec<Regression> = ["measure", "identify"].iter().flat_map(|t| regressions(t)).collect();
+    let all: Vec<Regression> = ["measure", "identify"].iter().flat_map(|t| regressions(t).into_iter().chain(open_regressions(t))).collect();
     assert!(!all.is_empty());
     for r in all {
         assert!(!r.why.is_empty(), "{}: say why it is kept", r.name);

@@ -150,10 +150,13 @@ fn checks(fit: &LargeFit, fs: f64, delay_handled: bool) -> (NoiseFloor, Vec<Warn
     let k = fit.settle;
     let r: Vec<f64> = fit.i_phys[k..].iter().zip(&fit.i_model[k..]).map(|(a, b)| a - b).collect();
     let i_rms = coilscope_core::simulate::rms(&fit.i_phys);
-    let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", i_rms, 0.0);
+    // An excess over the floor below the model's own systematic part (what a record of
+    // another simulator, or none of noise, leaves) moves nothing the bands do not carry.
+    let material = coilscope_ident::large::CURVE_SYSTEMATIC_REL;
+    let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", i_rms, material);
     // An error that follows the drive is a misfit even when its spectrum looks like a floor.
     if !warnings.iter().any(|w| w.code == "residual-above-noise") {
-        warnings.extend(coilscope_ident::checks::drive_warning(&r, &fit.u_phys[k..], &fit.i_model[k..], &fit.x_model[k..], fs, "large-signal fit", i_rms, 0.0));
+        warnings.extend(coilscope_ident::checks::drive_warning(&r, &fit.u_phys[k..], &fit.i_model[k..], &fit.x_model[k..], fs, "large-signal fit", i_rms, material));
     }
     let final_delay = if delay_handled { None } else { coilscope_ident::checks::residual_delay(&r, &fit.i_model[k..]) };
     if let Some((tau, share)) = final_delay {
