@@ -559,7 +559,7 @@ mod tests {
             assert!(bmin / bmax > 0.4 && bmin / bmax < 0.9, "{}: Bl min/max {}", d.name(), bmin / bmax);
             let k0 = p.kms.eval(0.0);
             let k_edge = p.kms.eval(lo).max(p.kms.eval(hi)) / k0;
-            assert!(k_edge >= 2.0 && k_edge < 4.6, "{}: Kms stiffer edge/rest {k_edge}", d.name());
+            assert!((2.0..4.6).contains(&k_edge), "{}: Kms stiffer edge/rest {k_edge}", d.name());
             assert!(p.le.eval(lo) > p.le.eval(0.0) && p.le.eval(0.0) > p.le.eval(hi), "{}: Le(x) must fall outwards", d.name());
             // The restoring force rises over the range and 10 % beyond it.
             let f = |x: f64| p.kms.eval(x) * x;
