@@ -11,7 +11,9 @@
 //! J(jkw) c[n][k] = -R[n][k](c[1], ..., c[n-1])
 //! ```
 //!
-//! `J` is the Jacobian of the equations at rest. With `a = 1` the coefficients are the
+//! `J` is the Jacobian of the equations at rest, with the linear elements that have states of
+//! their own (creep's dynamic stiffness, the LR-3 branch) at each line's frequency. Le(i) and
+//! Rms(|v|) are not in the expansion (|v| has no power series): `distortion` integrates them. With `a = 1` the coefficients are the
 //! diagonal kernels: `H1(f) = c[1][1]`, `H2(f,f) = c[2][2]`, `H3(f,f,f) = c[3][3]` (displacement,
 //! m/V^n for the complex amplitude `a` of `e^{jwt}`).
 //!
@@ -180,7 +182,15 @@ pub fn probe(p: &Parameters, freq: f64) -> Probe {
                 Some(l2) => [C::new(0.0, 0.0), C::new(-r0, 0.0), s * l2.c[0] + r0],
                 None => [C::new(0.0, 0.0), C::new(0.0, 0.0), C::new(-1.0, 0.0)],
             };
-            let j = [[-s * b0, -(s * l0) - re - r0, C::new(r0, 0.0)], row_l2, [-(s * s * m) - s * rm - k0, C::new(b0, 0.0), C::new(0.0, 0.0)]];
+            // Creep and LR-3 are linear with constant coefficients: they enter the Jacobian
+            // only, as creep's dynamic stiffness and LR-3's series impedance at this line
+            // (the residuals of order n hold products of lower orders, which they do not make).
+            let k_dyn = match (&p.creep, p.creep_f_ref()) {
+                (Some(c), Some(f_ref)) => k0 * coilscope_core::creep::stiffness_factor(c.lambda, k as f64 * w, 2.0 * PI * f_ref),
+                _ => C::new(k0, 0.0),
+            };
+            let z3 = p.l3r3.map_or(C::new(0.0, 0.0), |(l3, r3)| s * l3 * r3 / (s * l3 + r3));
+            let j = [[-s * b0, -(s * l0) - re - r0 - z3, C::new(r0, 0.0)], row_l2, [-(s * s * m) - s * rm - k_dyn, C::new(b0, 0.0), C::new(0.0, 0.0)]];
             let d = solve3(j, [-e1.at(n, k), -e2.at(n, k), -e3.at(n, k)]);
             let ki = (k + KMAX as isize) as usize;
             x.c[n][ki] = d[0];
@@ -249,6 +259,19 @@ mod tests {
                 let lin = displacement_per_current(&p, f) / impedance(&p, f);
                 assert!((h1 - lin).norm() < 1e-9 * lin.norm(), "{name} {f} Hz: {h1} vs {lin}");
             }
+        }
+    }
+
+    #[test]
+    fn first_kernel_keeps_creep_and_lr3() {
+        let mut p = embedded_driver("sb17cac35-4").unwrap();
+        p.creep = Some(coilscope_core::params::Creep { lambda: 0.1, f_ref: None });
+        let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
+        p.l3r3 = Some((0.5 * l2, 3.0 * r2));
+        for f in [5.0, 40.0, 700.0, 5000.0] {
+            let h1 = probe(&p, f).kernels()[0];
+            let lin = displacement_per_current(&p, f) / impedance(&p, f);
+            assert!((h1 - lin).norm() < 1e-9 * lin.norm(), "{f} Hz: {h1} vs {lin}");
         }
     }
 

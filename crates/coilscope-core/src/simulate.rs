@@ -6,7 +6,7 @@
 //! [`SimError`] that names the time and the state.
 
 use crate::integrate::{exp_steps_for, substeps_for, Electrical, Scheme, Stepper, STIFF_LIMIT};
-use crate::model::{idx, ExtModel, ExtState, Model, State, NEXT, NSTATE};
+use crate::model::{ext_idx, idx, ExtModel, ExtState, Model, State, NCREEP, NEXT, NSTATE};
 
 /// The model a simulation integrates, one sample at a time: [`Model`] (six states, the fast
 /// path, with Le(i) and Rms(v)), or [`ExtModel`] when the set has creep or LR-3 (their
@@ -78,6 +78,44 @@ impl Plant {
         let i = state[idx::I];
         let h = self.model.le_i_incremental(i);
         (!(h >= MIN_INCREMENTAL_LE)).then(|| format!("Le_i drives the incremental inductance to {:.0} % of Le(x) at i = {i:.3} A (below {:.0} %: the flux series is extrapolated past its valid current)", 100.0 * h, 100.0 * MIN_INCREMENTAL_LE))
+    }
+
+    /// The rates of the six observed states at `state` under the input `u`, with the
+    /// extended states (creep, LR-3) where the plant carries them and the external force.
+    pub fn deriv(&self, state: &State<f64>, u: f64) -> State<f64> {
+        let mut d = match &self.ext {
+            None => self.model.deriv(state, u),
+            Some((model, s)) => {
+                let mut full = *s;
+                full[..NSTATE].copy_from_slice(state);
+                let d = model.deriv(&full, u);
+                std::array::from_fn(|k| d[k])
+            }
+        };
+        d[idx::V] += self.accel;
+        d
+    }
+
+    /// The extended states (LR-3's current, creep's damper positions) the plant carries
+    /// beside the six observed ones; `None` for a set without them.
+    pub fn ext_state(&self) -> Option<ExtState<f64>> {
+        self.ext.as_ref().map(|(_, s)| *s)
+    }
+
+    /// Put creep's damper positions on their periodic orbit after a window of `period`
+    /// seconds that started at `start` (a state of [`Plant::ext_state`]). Each damper
+    /// follows `dy/dt = (x - y) / tau`, linear in `y`: over a window `y(T) = e^(-T/tau) y(0)
+    /// + F`, so the orbit a periodic `x` leads to starts at `F / (1 - e^(-T/tau))`. The
+    /// slowest damper relaxes in 3.2 s, so a periodic steady state reached by running
+    /// window after window would take tens of seconds; with this jump it takes a few windows.
+    pub fn settle_creep_to_period(&mut self, start: &ExtState<f64>, period: f64) {
+        let Some((model, s)) = self.ext.as_mut() else { return };
+        let Some(bank) = &model.creep else { return };
+        for k in 0..NCREEP {
+            let j = ext_idx::Y0 + k;
+            let decay = (-period * bank.rate[k]).exp();
+            s[j] = (s[j] - decay * start[j]) / (1.0 - decay);
+        }
     }
 
     /// Advance `state` by one sample period `dt` with `stepper`, the input at the points of
