@@ -1883,7 +1883,7 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     if let Some(r) = &p.rms_v {
         model += &format!(", Rms(v) = {:.4} + {:.4} v^2 kg/s", r.c[0], r.c.get(2).copied().unwrap_or(0.0));
     }
-    if m.dropped.has_large_signal() {
+    if m.dropped != coilscope_core::effects::Effects::NONE {
         model += &format!(" ({})", m.models_note());
     }
     println!("  {model}");

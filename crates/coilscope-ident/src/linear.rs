@@ -219,6 +219,14 @@ pub const EFFECT_MIN_SHARE: f64 = 0.0975;
 /// floor in.
 pub const EFFECT_MIN_CHI2: f64 = 25.0;
 
+/// The least share of the LR-2 model's Le that a model with more effects may keep. An LR-3
+/// branch whose corner lies above the band acts as an inductance with a small loss, and can
+/// take Le's place: the fit then slides Le toward zero along a flat direction (a drawn
+/// microspeaker's small-signal stage ended at Le = 1.5e-58 H, and the live model started from
+/// it was not finite at its first sample). No added branch takes a hundredth of the voice
+/// coil's own inductance away: such a model is a trade of unknowns, not physics.
+pub const LE_COLLAPSE: f64 = 0.01;
+
 /// Whether an effect with `unknowns` new unknowns that lowers the relative residual from
 /// `r_cur` to `r_new` pays, on a record whose noise floor is `floor` (relative residual of
 /// the noise alone; 0 where it is not known, as on an averaged impedance curve) over `bins`
@@ -1468,6 +1476,9 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
             let floor_of = |f: &(CurrentError, LmState, f64)| if fs.is_some() { f.0.residual_and_floor(&f.1.theta).1 } else { 0.0 };
             let mut floor = floor_of(&fitted[0]);
             let bins = prob.f.len();
+            // theta[1] is ln Le (unbounded).
+            let le_base = fitted[0].1.theta[1];
+            let le_kept = |s: &LmState| s.theta[1] >= le_base + LE_COLLAPSE.ln();
             let mut at = 0;
             loop {
                 let cur = fitted[at].0.effects;
@@ -1496,7 +1507,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
                     let (pr, s, r) = &fitted[k];
                     let lambda_ok = pr.idx_lambda().is_none_or(|j| s.theta[j] > 0.0);
                     let unknowns = n_extra(pr.effects) - n_extra(cur);
-                    if polished[k] && lambda_ok && effect_pays(r_cur, *r, floor, bins, unknowns) && best.is_none_or(|(_, rb)| *r < rb) {
+                    if polished[k] && lambda_ok && le_kept(s) && effect_pays(r_cur, *r, floor, bins, unknowns) && best.is_none_or(|(_, rb)| *r < rb) {
                         best = Some((k, *r));
                     }
                 }
@@ -1508,6 +1519,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         }
     };
     let tried: Vec<(String, f64)> = fitted.iter().map(|(pr, _, r)| (pr.effects.model_name(), *r)).collect();
+    let le_base = fitted[0].1.theta[1];
     let (mut prob, mut s, _) = fitted.swap_remove(chosen);
     // Name the branches by their corners: LR-2 is the lower one.
     if let Some(k3) = prob.idx_lr3() {
@@ -1583,6 +1595,9 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         if !inside(s.theta[k]) {
             at_bound.push("L3/R3 corner");
         }
+    }
+    if s.theta[1] < le_base + LE_COLLAPSE.ln() {
+        at_bound.push("Le");
     }
     let chain = fs.filter(|_| opts.chain).map(|fs| {
         let terms = prob.chain.unwrap_or(ChainTerms { fs, delay: false, hp_u: false, hp_i: false });
@@ -1832,7 +1847,13 @@ pub fn linear_warnings(fit: &LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs
 fn bound_warnings(fit: &LinearFit) -> Vec<crate::checks::Warning> {
     fit.at_bound
         .iter()
-        .map(|b| {
+        .map(|&b| {
+            if b == "Le" {
+                return crate::checks::Warning::new(
+                    "on-bound",
+                    format!("Le slid toward zero ({:.3e} H, under {:.0} % of the LR-2 model's): the added effects' branch took the voice coil's inductance along a flat direction, so Le, L2 and R2 are not identified; fit with fewer effects", fit.p[1], 100.0 * LE_COLLAPSE),
+                );
+            }
             crate::checks::Warning::new(
                 "on-bound",
                 format!(

@@ -119,9 +119,11 @@ pub struct OnlineOptions {
     /// Seconds of history kept (at least the window plus a margin).
     pub keep: f64,
     /// Effects estimated with the rest, besides those the start has (its creep and LR-3 are
-    /// always kept): by default flux modulation Le(i) and the velocity-dependent loss Rms(v),
-    /// which start at none, with a loose prior, and move only as far as the data at large
-    /// signal asks.
+    /// always kept): by default creep, flux modulation Le(i) and the velocity-dependent loss
+    /// Rms(v), which start at none, with a loose prior, and move only as far as the data at
+    /// large signal asks. Creep is offered because a small-signal stage at a tenth of a volt
+    /// can hide a weak one under its noise: drawn woofers with lambda 0.013-0.018 came out
+    /// without creep, with an Rms(v) they lack in its place, and Kms 1-1.7 % off.
     pub effects: Effects,
     /// An update whose window the present estimate misses by more than this (relative current
     /// error) is not made: a Gauss-Newton step that far from the data is wild, and its model
@@ -132,7 +134,7 @@ pub struct OnlineOptions {
 
 impl Default for OnlineOptions {
     fn default() -> Self {
-        OnlineOptions { order: 4, x_ref: 1e-3, window: 0.5, re_seconds: 0.25, prior_linear: 0.05, prior_nonlinear: 0.5, re_drift: 0.01, drift: 0.0, keep: 3.0, max_before: f64::INFINITY, effects: Effects { le_i: true, rms_v: true, ..Effects::NONE } }
+        OnlineOptions { order: 4, x_ref: 1e-3, window: 0.5, re_seconds: 0.25, prior_linear: 0.05, prior_nonlinear: 0.5, re_drift: 0.01, drift: 0.0, keep: 3.0, max_before: f64::INFINITY, effects: Effects { creep: true, le_i: true, rms_v: true, ..Effects::NONE } }
     }
 }
 
@@ -262,6 +264,9 @@ pub struct Online {
     pub resets: usize,
     /// Effects dropped by [`Online::drop_effects`].
     pub dropped: Effects,
+    /// Whether creep was offered (the start has none): then it may be dropped as the
+    /// large-signal effects are.
+    creep_offered: bool,
     /// Workers for the update's Jacobian passes (the machine's cores).
     threads: usize,
     /// Largest |x| of the live model since the last update, and its absolute sample: the
@@ -282,7 +287,12 @@ impl Online {
         let o = opts.effects;
         let effects = Effects { creep: start.creep.is_some() || o.creep, lr3: start.l3r3.is_some() || o.lr3, le_i: start.le_i.is_some() || o.le_i, rms_v: start.rms_v.is_some() || o.rms_v };
         let layout = Layout::new(opts.order, 1, 1.0, opts.x_ref, scales, start.l2r2.is_some(), start.mms).with_effects(effects);
-        let theta = layout.theta_from(start, None);
+        let mut theta = layout.theta_from(start, None);
+        // Offered creep starts at none, as the large-signal effects do.
+        let creep_offered = start.creep.is_none() && effects.creep;
+        if let (true, Some(k)) = (creep_offered, layout.slots().lambda) {
+            theta[k] = 0.0;
+        }
         let cov = DMatrix::from_diagonal(&DVector::from_vec(prior_variances(&layout.slots(), &theta, &opts)));
         // RK4 as before issue 17 (`Stepper::rk4_for`): with the exponential scheme the
         // fast-heating microspeaker's bands held the truth within 2 sd on 87 % of the points
@@ -320,6 +330,7 @@ impl Online {
             previous: None,
             resets: 0,
             dropped: Effects::NONE,
+            creep_offered,
             threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
             peak_since: (0.0, 0),
             opts,
@@ -731,17 +742,18 @@ impl Online {
         }
     }
 
-    /// The large-signal effects (Le(i), Rms(v)) of the layout whose every coefficient lies
+    /// The offered effects (creep where the start had none, Le(i), Rms(v)) whose every coefficient lies
     /// within [`INSIGNIFICANT_SD`] sd of none: the data did not show them (a Wald test; the
     /// estimator carries them from the start with a prior at none, so it cannot select them
     /// by held-out error as `identify` does).
     pub fn insignificant_effects(&self) -> Effects {
         let s = self.layout.slots();
         let small = |k: usize| self.theta[k].abs() < INSIGNIFICANT_SD * self.sd_theta(k);
-        Effects { le_i: s.le_i.is_some_and(|k| small(k) && small(k + 1)), rms_v: s.rms_v.is_some_and(small), ..Effects::NONE }
+        Effects { creep: self.creep_offered && s.lambda.is_some_and(small), le_i: s.le_i.is_some_and(|k| small(k) && small(k + 1)), rms_v: s.rms_v.is_some_and(small), ..Effects::NONE }
     }
 
-    /// Stop estimating the large-signal effects in `drop` (Le(i), Rms(v); others are ignored):
+    /// Stop estimating the offered effects in `drop` (creep where the start had none, Le(i),
+    /// Rms(v); others are ignored):
     /// the estimate and its covariance are conditioned on their coefficients being zero (the
     /// Gaussian conditional: `theta_K -= P_KD P_DD^-1 theta_D`, `P_KK -= P_KD P_DD^-1 P_DK`),
     /// and the live model continues without them. Each costs a fifth of an update (three more
@@ -749,12 +761,15 @@ impl Online {
     /// did not show ([`Online::insignificant_effects`]). Returns the effects dropped.
     pub fn drop_effects(&mut self, drop: Effects) -> Effects {
         let e = self.layout.effects;
-        let dropped = Effects { le_i: drop.le_i && e.le_i, rms_v: drop.rms_v && e.rms_v, ..Effects::NONE };
-        if !dropped.has_large_signal() {
+        let dropped = Effects { creep: drop.creep && e.creep && self.creep_offered, le_i: drop.le_i && e.le_i, rms_v: drop.rms_v && e.rms_v, ..Effects::NONE };
+        if dropped == Effects::NONE {
             return dropped;
         }
         let s = self.layout.slots();
         let mut gone: Vec<usize> = vec![];
+        if let (true, Some(k)) = (dropped.creep, s.lambda) {
+            gone.push(k);
+        }
         if let (true, Some(k)) = (dropped.le_i, s.le_i) {
             gone.extend([k, k + 1]);
         }
@@ -775,7 +790,7 @@ impl Online {
         let cond = sub(&keep, &keep) - &gain * p_kd.transpose();
         self.theta = keep.iter().enumerate().map(|(r, &k)| self.theta[k] - shift[r]).collect();
         self.cov = (&cond + cond.transpose()) * 0.5;
-        self.layout = self.layout.clone().with_effects(Effects { le_i: e.le_i && !dropped.le_i, rms_v: e.rms_v && !dropped.rms_v, ..e });
+        self.layout = self.layout.clone().with_effects(Effects { creep: e.creep && !dropped.creep, le_i: e.le_i && !dropped.le_i, rms_v: e.rms_v && !dropped.rms_v, ..e });
         debug_assert_eq!(self.layout.slots().n, keep.len());
         self.dropped = self.dropped.union(dropped);
         self.previous = None;

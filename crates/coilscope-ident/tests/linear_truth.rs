@@ -260,3 +260,34 @@ fn linear_sigmas_cover_the_truth_over_seeds() {
     println!("linear sigmas: {:.0} % of {} within 2 sd, largest {worst:.1} sd", 100.0 * within, z_all.len());
     assert!(within >= 0.9 && worst <= 5.0, "linear sigmas: {:.0} % within 2 sd, largest {worst:.1} sd", 100.0 * within);
 }
+
+/// An LR-3 branch with its corner above the band acts as an inductance with a small loss: a
+/// fit that takes it can slide Le to zero along a flat direction (a drawn microspeaker's
+/// small-signal stage ended at Le = 1.5e-58 H). On the kept regression drivers, `measure`'s
+/// small-signal fit (effects chosen by the data) keeps the voice coil's Le, or names Le as
+/// ended on a bound.
+#[test]
+fn the_small_signal_fit_never_trades_le_for_an_added_branch() {
+    use coilscope_ident::linear::{fit_linear_record, Ends, EffectsChoice, LinearOptions};
+    let opts = LinearOptions { ends: Ends::Fitted, effects: EffectsChoice::Auto, chain: false };
+    let mut bad = vec![];
+    for r in coilscope_testkit::population::regressions("measure") {
+        // `measure`'s small-signal stage: 2 s of IEC noise at 0.2 V rms, 0.1 mV and 0.1 mA
+        // of sensor noise.
+        let fs = 48000.0;
+        let u = generate(&Excitation::Iec, &SignalSpec { fs, seconds: 2.0, rms: 0.2, fade: 0.05, seed: r.seed }).unwrap();
+        let tr = simulate(&r.params, fs, &u, &SimOptions::default()).unwrap();
+        let (mut u, mut i) = (tr.u, tr.i);
+        let snr = |v: &[f64]| 20.0 * ((v.iter().map(|a| a * a).sum::<f64>() / v.len() as f64).sqrt() / 1e-4).log10();
+        let (su, si) = (snr(&u), snr(&i));
+        add_sensor_noise(&mut u, su, r.seed, "sensor-noise/voltage");
+        add_sensor_noise(&mut i, si, r.seed, "sensor-noise/current");
+        let fit = fit_linear_record(&u, &i, fs, &r.name, &opts, |_| {}).unwrap();
+        let (le, truth) = (fit.p[1], r.params.le.c[0]);
+        println!("{}: {} Le {:.3e} H (truth {truth:.3e}), on bound {:?}", r.name, fit.effects.model_name(), le, fit.at_bound);
+        if !(le > 0.5 * truth || fit.at_bound.contains(&"Le")) {
+            bad.push(format!("{}: Le {le:.3e} H against {truth:.3e}, not named on a bound", r.name));
+        }
+    }
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+}

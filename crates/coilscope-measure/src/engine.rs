@@ -44,7 +44,7 @@ use coilscope_ident::linear::{fit_linear_record, scale_by_mms, Effects, EffectsC
 /// The small stage's linear fit: ends free (a replay's first seconds are cut from the running
 /// record; a controlled stage fades out with the cone still moving a little), creep and LR-3
 /// chosen by the data as in `linear`; the online estimator keeps what it chose, and adds
-/// Le(i) and Rms(v) (see [`OnlineOptions::effects`]).
+/// creep (when the stage found none), Le(i) and Rms(v) (see [`OnlineOptions::effects`]).
 /// Seconds at full level (stage Hold) after which the online estimator stops estimating the
 /// large-signal effects the data have not shown ([`Online::drop_effects`]): the time the
 /// convergence test waits as well.
@@ -1141,7 +1141,7 @@ impl<'a> Engine<'a> {
                         if self.controllable && !self.pruned && self.stage == Stage::Hold && t - self.hold_since >= PRUNE_AFTER_HOLD_S {
                             self.pruned = true;
                             let d = on.drop_effects(on.insignificant_effects());
-                            if d.has_large_signal() {
+                            if d != Effects::NONE {
                                 self.events.push((t, format!("at full level for {PRUNE_AFTER_HOLD_S} s the data show no {}: no longer estimated", d.in_words())));
                             }
                         }
@@ -1352,13 +1352,16 @@ impl<'a> Engine<'a> {
         let re_end = params.re;
         let later = on.insignificant_effects();
         let dropped = later.union(on.dropped);
+        if dropped.creep {
+            params.creep = None;
+        }
         if dropped.le_i {
             params.le_i = None;
         }
         if dropped.rms_v {
             params.rms_v = None;
         }
-        let effects = Effects { le_i: on.layout.effects.le_i && !dropped.le_i, rms_v: on.layout.effects.rms_v && !dropped.rms_v, ..on.layout.effects };
+        let effects = Effects { creep: on.layout.effects.creep && !dropped.creep, le_i: on.layout.effects.le_i && !dropped.le_i, rms_v: on.layout.effects.rms_v && !dropped.rms_v, ..on.layout.effects };
         let hold_range = if self.hold_range == [0.0, 0.0] { [-on.reach, on.reach] } else { self.hold_range };
         params.x_range = Some(hold_range);
         drop_vanished_branch(&mut params, hold_range);
@@ -1453,7 +1456,7 @@ impl Measurement {
     /// What the estimator did with the effects it was offered beyond those reported.
     pub fn models_note(&self) -> String {
         let mut notes = vec![];
-        if self.dropped.has_large_signal() {
+        if self.dropped != Effects::NONE {
             notes.push(format!("estimated with {} as well; within {} sd of none, not reported", self.dropped.in_words(), coilscope_ident::online::INSIGNIFICANT_SD));
         }
         if notes.is_empty() {

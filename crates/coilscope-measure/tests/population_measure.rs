@@ -41,6 +41,8 @@ struct Outcome {
     /// their bounds): counted against the sweep, not failed in a run of a few drivers.
     outside_3sd: bool,
     converged: bool,
+    /// The run ended before any estimate (loud, exit 2; a defect on a kept driver).
+    no_estimate: bool,
     seconds: f64,
     /// Standardised errors of the band points (converged runs).
     z: Vec<f64>,
@@ -60,7 +62,7 @@ fn run(label: &str, truth: &Parameters, seed: u64) -> Outcome {
             let t = dev_truth(&dev);
             let mut bad = Vec::new();
             protection(&mut bad, truth, &t, &opts);
-            return Outcome { line: format!("{label}: error before an estimate: {e}"), bad, outside_3sd: false, converged: false, seconds: 0.0, z: vec![] };
+            return Outcome { line: format!("{label}: error before an estimate: {e}"), bad, outside_3sd: false, converged: false, no_estimate: true, seconds: 0.0, z: vec![] };
         }
     };
     let t = m.truth.expect("a virtual device knows its truth");
@@ -141,7 +143,7 @@ fn run(label: &str, truth: &Parameters, seed: u64) -> Outcome {
         // Loud, but a failure of the tool: counted against the 95 %.
         println!("{label}: failed: {message}");
     }
-    Outcome { line, bad, outside_3sd, converged: m.converged, seconds: m.seconds, z: if m.converged { z } else { vec![] } }
+    Outcome { line, bad, outside_3sd, converged: m.converged, no_estimate: false, seconds: m.seconds, z: if m.converged { z } else { vec![] } }
 }
 
 fn dev_truth(dev: &VirtualDevice) -> coilscope_measure::device::Truth {
@@ -170,6 +172,8 @@ struct Sweep {
     /// Converged runs whose truth lies outside 3 sd somewhere (a wrong answer by the sweep's
     /// count).
     outside_3sd: Vec<String>,
+    /// Runs that ended before any estimate.
+    no_estimate: Vec<String>,
     converged: usize,
     runs: usize,
     seconds: Vec<f64>,
@@ -178,7 +182,7 @@ struct Sweep {
 }
 
 fn sweep(cases: Vec<(String, Parameters, u64)>) -> Sweep {
-    let mut s = Sweep { lines: vec![], failures: vec![], outside_3sd: vec![], converged: 0, runs: 0, seconds: vec![], coverage: Coverage::new(), by_class: Default::default() };
+    let mut s = Sweep { lines: vec![], failures: vec![], outside_3sd: vec![], no_estimate: vec![], converged: 0, runs: 0, seconds: vec![], coverage: Coverage::new(), by_class: Default::default() };
     for (label, p, seed) in cases {
         let o = run(&label, &p, seed);
         println!("{}", o.line);
@@ -194,6 +198,10 @@ fn sweep(cases: Vec<(String, Parameters, u64)>) -> Sweep {
         if o.outside_3sd {
             let file = population::keep_failure(&label, &p);
             s.outside_3sd.push(format!("{}: converged with the truth outside 3 sd (driver written to {})", o.line, file.display()));
+        }
+        if o.no_estimate {
+            let file = population::keep_failure(&label, &p);
+            s.no_estimate.push(format!("{} (driver written to {})", o.line, file.display()));
         }
         s.coverage.extend(o.z);
         if !o.bad.is_empty() {
@@ -242,6 +250,8 @@ fn kept_regression_drivers_are_measured_right_or_loudly() {
     let s = sweep(cases);
     let mut bad = s.failures.clone();
     bad.extend(s.outside_3sd.iter().cloned());
+    // A kept driver is an ordinary one: the run gets at least an estimate.
+    bad.extend(s.no_estimate.iter().cloned());
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
 
