@@ -65,7 +65,13 @@ impl Effects {
     }
     /// The effects in words, without the LR-2 base (`Le(i) and Rms(v)`; empty for none).
     pub fn in_words(self) -> String {
-        self.model_name().trim_start_matches("LR-2").trim_start_matches('+').replace('+', " and ")
+        let model = self.model_name();
+        let names: Vec<&str> = model.trim_start_matches("LR-2").split('+').filter(|n| !n.is_empty()).collect();
+        match names.as_slice() {
+            [] => String::new(),
+            [one] => one.to_string(),
+            [rest @ .., last] => format!("{} and {last}", rest.join(", ")),
+        }
     }
     /// Parse `none`, or a comma-separated list of `creep`, `lr3`, `lei`, `rmsv` (the CLI's
     /// `--effects`).

@@ -369,6 +369,13 @@ pub struct LinearFit {
     pub lr3: Option<([f64; 2], [f64; 2])>,
     /// Every model fitted, with its current residual (`fit.models_tried`).
     pub tried: Vec<(String, f64)>,
+    /// How far Le moves (relative) to a model with more effects that fits the data as well
+    /// as the chosen one (the chosen model does not beat it by more than noise could:
+    /// [`effect_pays`]); 0 when there is none. The data cannot tell the two apart, so Le is
+    /// no better known than this: it is in `sigma_rel[1]`, and `measure` carries it into the
+    /// Le band (a microspeaker whose LR-3 hid under the small stage's noise: Le 28 % off in
+    /// a model without it, with an LR-3 model fitting as well).
+    pub le_model_rel: f64,
     /// The measurement chain, when estimated ([`LinearOptions::chain`]).
     pub chain: Option<ChainEstimate>,
     /// The LR-2 model's fit on the same bins, from which every model with effects grows:
@@ -1354,7 +1361,9 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         pr.norm = prob.norm;
         pr
     };
-    let solve = |effects: Effects, starts: &[Vec<f64>], gate: f64, observe: &mut dyn FnMut(&LmState)| -> (CurrentError, LmState, f64, bool) {
+    // `min_ln_le`: a start whose run ends with ln Le below it traded the voice coil's
+    // inductance for an added branch ([`LE_COLLAPSE`]): it is taken only if every start did.
+    let solve = |effects: Effects, starts: &[Vec<f64>], gate: f64, min_ln_le: f64, observe: &mut dyn FnMut(&LmState)| -> (CurrentError, LmState, f64, bool) {
         let pr = with_effects(effects);
         let scout = (pr.f.len() > 2 * SCOUT_BINS).then(|| thin(&pr, SCOUT_BINS));
         let scout_iterations = if gate.is_finite() && scout.is_some() { CANDIDATE_SCOUT_ITERATIONS } else { MAX_ITERATIONS };
@@ -1375,9 +1384,14 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
             handles.into_iter().map(|h| h.join().expect("an LM run does not panic")).collect()
         });
         let mut best: Option<LmState> = None;
+        let kept = |s: &LmState| s.theta[1] >= min_ln_le;
         for (s, seen) in runs {
             seen.iter().for_each(&mut *observe);
-            if best.as_ref().is_none_or(|b| better(&s, b)) {
+            let replace = match best.as_ref() {
+                None => true,
+                Some(b) => (kept(&s) && !kept(b)) || (kept(&s) == kept(b) && better(&s, b)),
+            };
+            if replace {
                 best = Some(s);
             }
         }
@@ -1423,7 +1437,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     }
     let base = match lr2 {
         Some(b) => (with_effects(Effects::NONE), b.state.clone(), b.scout_rel, b.polished),
-        None => solve(Effects::NONE, &base_starts, f64::INFINITY, observe),
+        None => solve(Effects::NONE, &base_starts, f64::INFINITY, f64::NEG_INFINITY, observe),
     };
     let lr2 = Lr2Fit { state: base.1.clone(), scout_rel: base.2, polished: base.3 };
     let mut fitted = vec![with_residual(&mut scout_r, &mut polished, base)];
@@ -1442,7 +1456,13 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
             (true, None) => {
                 let q = map.q(base);
                 let r2 = q[3];
-                vec![(q[2] - 4f64.ln(), r2 + 2.5f64.ln()), (q[2] + 4f64.ln(), r2)]
+                // And corners spread over the band, as LR-2's starts are: a second branch
+                // far from where the LR-2 model put its one is reached from none of the two
+                // beside it (a microspeaker with its branches at 7 and 17 kHz: LR-3's fit
+                // stayed above LR-2's error from both).
+                let mut v = vec![(q[2] - 4f64.ln(), r2 + 2.5f64.ln()), (q[2] + 4f64.ln(), r2)];
+                v.extend([0.25, 0.5, 0.75].map(|frac| ((1.0 / (2.0 * PI * band[0] * (band[1] / band[0]).powf(frac))).ln(), r2)));
+                v
             }
         };
         let mut out = vec![];
@@ -1464,7 +1484,8 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         EffectsChoice::Fixed(e) if e == Effects::NONE => 0,
         EffectsChoice::Fixed(e) => {
             let st = grow(&fitted[0], e);
-            fitted.push(with_residual(&mut scout_r, &mut polished, solve(e, &st, f64::INFINITY, observe)));
+            let min_ln_le = fitted[0].1.theta[1] + LE_COLLAPSE.ln();
+            fitted.push(with_residual(&mut scout_r, &mut polished, solve(e, &st, f64::INFINITY, min_ln_le, observe)));
             1
         }
         EffectsChoice::Auto => {
@@ -1496,7 +1517,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
                 let first = fitted.len();
                 for e in cands {
                     let st = grow(&fitted[at], e);
-                    let f = with_residual(&mut scout_r, &mut polished, solve(e, &st, gate, observe));
+                    let f = with_residual(&mut scout_r, &mut polished, solve(e, &st, gate, le_base + LE_COLLAPSE.ln(), observe));
                     if polished[fitted.len()] {
                         floor = floor.min(floor_of(&f));
                     }
@@ -1520,6 +1541,20 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     };
     let tried: Vec<(String, f64)> = fitted.iter().map(|(pr, _, r)| (pr.effects.model_name(), *r)).collect();
     let le_base = fitted[0].1.theta[1];
+    // Models with more effects than the chosen one that the data do not tell from it (on
+    // the scout's bins, where every candidate has a residual; the relative floor is the
+    // same there): the spread of their Le is Le's model uncertainty.
+    let le_model_rel = {
+        let (ce, lc) = (fitted[chosen].0.effects, fitted[chosen].1.theta[1]);
+        let scout_bins = SCOUT_BINS.min(prob.f.len());
+        let floor = if fs.is_some() { fitted[chosen].0.residual_and_floor(&fitted[chosen].1.theta).1 } else { 0.0 };
+        let d = (0..fitted.len())
+            .filter(|&k| k != chosen && fitted[k].0.effects.union(ce) == fitted[k].0.effects)
+            .filter(|&k| !effect_pays(scout_r[k], scout_r[chosen], floor, scout_bins, n_extra(fitted[k].0.effects) - n_extra(ce)))
+            .map(|k| (fitted[k].1.theta[1] - lc).abs())
+            .fold(0.0, f64::max);
+        (d.exp() - 1.0).min(1.0)
+    };
     let (mut prob, mut s, _) = fitted.swap_remove(chosen);
     // Name the branches by their corners: LR-2 is the lower one.
     if let Some(k3) = prob.idx_lr3() {
@@ -1586,6 +1621,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         });
         ([l3, r3], sd)
     });
+    sigma_rel[1] = sigma_rel[1].hypot(le_model_rel);
     let residual_rel = prob.residual_rel(&s.theta);
     if !s.converged {
         return Err(format!("{origin}: the impedance fit did not converge in {} iterations (residual {residual_rel:.3e})", s.iteration));
@@ -1633,7 +1669,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
             };
         }
     }
-    Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay, transient, effects: prob.effects, creep, lr3, tried, chain, lr2 })
+    Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay, transient, effects: prob.effects, creep, lr3, tried, le_model_rel, chain, lr2 })
 }
 
 /// Bins per cluster of the linear fit's robust covariance (see [`covariance_of`]).
@@ -1851,7 +1887,11 @@ fn bound_warnings(fit: &LinearFit) -> Vec<crate::checks::Warning> {
             if b == "Le" {
                 return crate::checks::Warning::new(
                     "on-bound",
-                    format!("Le slid toward zero ({:.3e} H, under {:.0} % of the LR-2 model's): the added effects' branch took the voice coil's inductance along a flat direction, so Le, L2 and R2 are not identified; fit with fewer effects", fit.p[1], 100.0 * LE_COLLAPSE),
+                    format!(
+                        "Le slid toward zero ({:.3e} H, under {:.0} % of the LR-2 model's): the added effects' branch took the voice coil's inductance along a flat direction, so Le, L2 and R2 are not identified; fit with fewer effects",
+                        fit.p[1],
+                        100.0 * LE_COLLAPSE
+                    ),
                 );
             }
             crate::checks::Warning::new(

@@ -134,7 +134,19 @@ pub struct OnlineOptions {
 
 impl Default for OnlineOptions {
     fn default() -> Self {
-        OnlineOptions { order: 4, x_ref: 1e-3, window: 0.5, re_seconds: 0.25, prior_linear: 0.05, prior_nonlinear: 0.5, re_drift: 0.01, drift: 0.0, keep: 3.0, max_before: f64::INFINITY, effects: Effects { creep: true, le_i: true, rms_v: true, ..Effects::NONE } }
+        OnlineOptions {
+            order: 4,
+            x_ref: 1e-3,
+            window: 0.5,
+            re_seconds: 0.25,
+            prior_linear: 0.05,
+            prior_nonlinear: 0.5,
+            re_drift: 0.01,
+            drift: 0.0,
+            keep: 3.0,
+            max_before: f64::INFINITY,
+            effects: Effects { creep: true, le_i: true, rms_v: true, ..Effects::NONE },
+        }
     }
 }
 
@@ -892,7 +904,10 @@ mod tests {
         let fs = 48000.0;
         let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 0.6, rms: 1.0, fade: 0.05, seed: 3 }).unwrap();
         let (_, tr) = gain_for_peak(&p, fs, &unit, 0.003, &SimOptions::default()).unwrap();
-        let mut o = Online::new(&p, fs, OnlineOptions { x_ref: 0.004, ..Default::default() }).unwrap();
+        // The large-signal effects offered, not creep (whose states the sensitivity path
+        // does not carry).
+        let effects = Effects { le_i: true, rms_v: true, ..Effects::NONE };
+        let mut o = Online::new(&p, fs, OnlineOptions { x_ref: 0.004, effects, ..Default::default() }).unwrap();
         o.push(&tr.u, &tr.i).unwrap();
         for (k, t) in o.theta.iter_mut().enumerate() {
             *t *= 1.0 + 0.01 * ((k % 5) as f64 - 2.0);

@@ -268,7 +268,7 @@ fn linear_sigmas_cover_the_truth_over_seeds() {
 /// ended on a bound.
 #[test]
 fn the_small_signal_fit_never_trades_le_for_an_added_branch() {
-    use coilscope_ident::linear::{fit_linear_record, Ends, EffectsChoice, LinearOptions};
+    use coilscope_ident::linear::{fit_linear_record, EffectsChoice, Ends, LinearOptions};
     let opts = LinearOptions { ends: Ends::Fitted, effects: EffectsChoice::Auto, chain: false };
     let mut bad = vec![];
     for r in coilscope_testkit::population::regressions("measure") {
@@ -284,7 +284,7 @@ fn the_small_signal_fit_never_trades_le_for_an_added_branch() {
         add_sensor_noise(&mut i, si, r.seed, "sensor-noise/current");
         let fit = fit_linear_record(&u, &i, fs, &r.name, &opts, |_| {}).unwrap();
         let (le, truth) = (fit.p[1], r.params.le.c[0]);
-        println!("{}: {} Le {:.3e} H (truth {truth:.3e}), on bound {:?}", r.name, fit.effects.model_name(), le, fit.at_bound);
+        println!("{}: {} Le {:.3e} H (truth {truth:.3e}), on bound {:?}; tried {:?}", r.name, fit.effects.model_name(), le, fit.at_bound, fit.tried);
         if !(le > 0.5 * truth || fit.at_bound.contains(&"Le")) {
             bad.push(format!("{}: Le {le:.3e} H against {truth:.3e}, not named on a bound", r.name));
         }

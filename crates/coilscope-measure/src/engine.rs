@@ -420,11 +420,18 @@ pub struct Trace {
 /// quadrature, the systematic part `identify`'s bands carry
 /// ([`coilscope_ident::large::CURVE_SYSTEMATIC_REL`] of the value: what the model's
 /// discretisation leaves against an independent simulator).
-fn curve_bands(p: &Parameters, on: &Online, xs: &[f64]) -> [(&'static str, Band); 3] {
+///
+/// The Le band also carries `le_model_rel` of the value: how far the small-signal stage's Le
+/// moved to a model with more effects that fitted it as well ([`LinearFit::le_model_rel`];
+/// the online estimator keeps the stage's model, so the data never chose between the two).
+///
+/// [`LinearFit::le_model_rel`]: coilscope_ident::linear::LinearFit::le_model_rel
+fn curve_bands(p: &Parameters, on: &Online, xs: &[f64], le_model_rel: f64) -> [(&'static str, Band); 3] {
     let sys = coilscope_ident::large::CURVE_SYSTEMATIC_REL;
     [("Bl", &p.bl), ("Kms", &p.kms), ("Le", &p.le)].map(|(which, f)| {
         let value: Vec<f64> = xs.iter().map(|&x| f.eval(x)).collect();
-        let sd = xs.iter().zip(&value).map(|(&x, v)| on.curve_sd(which, x).hypot(sys * v)).collect();
+        let model = if which == "Le" { le_model_rel } else { 0.0 };
+        let sd = xs.iter().zip(&value).map(|(&x, v)| on.curve_sd(which, x).hypot(sys * v).hypot(model * v)).collect();
         (which, Band { x: xs.to_vec(), value, sd })
     })
 }
@@ -462,6 +469,9 @@ pub struct Measurement {
     pub re_cold: f64,
     /// Standard deviation of `re_cold` (ohm; NaN when it came from no fit).
     pub re_cold_sd: f64,
+    /// Le's model uncertainty from the small-signal stage (relative; in the Le band):
+    /// [`coilscope_ident::linear::LinearFit::le_model_rel`].
+    pub le_model_rel: f64,
     /// Voice-coil resistance at the end of the run (ohm): hot.
     pub re_end: f64,
     /// Temperature coefficient of the coil's resistance used for the rise (1/K).
@@ -758,6 +768,8 @@ pub struct Engine<'a> {
     online: Option<Online>,
     /// Standard deviation of the cold Re (ohm).
     re_cold_sd: f64,
+    /// Le's model uncertainty from the small-signal stage (relative).
+    le_model_rel: f64,
     small: Option<Parameters>,
     samples: usize,
     /// Block peaks per volt over the last PEAK_MEMORY_S (and the small stage's).
@@ -846,6 +858,7 @@ impl<'a> Engine<'a> {
             i_small: Vec::new(),
             online: None,
             re_cold_sd: f64::NAN,
+            le_model_rel: 0.0,
             small: None,
             samples: 0,
             recent_peaks: Vec::new(),
@@ -911,6 +924,9 @@ impl<'a> Engine<'a> {
             if let (None, Some((bl_kms, le))) = (self.opts.duration, self.widest) {
                 if !(bl_kms <= CONVERGED_SD_BL_KMS && le <= CONVERGED_SD_LE) {
                     self.events.push((t, format!("the bands stayed wider than a converged run's: sd up to {:.2} % (Bl, Kms) and {:.2} % (Le) of the values at rest over the reach, against {:.2} % and {:.2} %: the record does not pin this driver's curves down (a driver whose current hardly shows its motion, or a reach too small for its nonlinearities)", 100.0 * bl_kms, 100.0 * le, 100.0 * CONVERGED_SD_BL_KMS, 100.0 * CONVERGED_SD_LE)));
+                    if le > CONVERGED_SD_LE && self.le_model_rel > CONVERGED_SD_LE {
+                        self.events.push((t, format!("Le is not pinned down by the model: at the small-signal stage a model with more effects (an LR-3 branch, creep) fitted as well and moved Le by {:.1} %, a choice the record cannot make; measure at a higher --start-volts, or fit the choice with `linear` on a longer quiet record", 100.0 * self.le_model_rel)));
+                    }
                 }
             }
             return Ok(None);
@@ -1006,6 +1022,7 @@ impl<'a> Engine<'a> {
                     // which the online estimator does not recover. Start from a batch
                     // large-signal fit of the same seconds, with the basis at their reach.
                     self.re_cold_sd = lin.sigma_rel[0] * p.re;
+                    self.le_model_rel = lin.le_model_rel;
                     let p = match (self.controllable, loud_start(&lin, &p, &self.u_small, &self.i_small, self.fs)) {
                         (false, Some(reach)) => {
                             self.events.push((t, format!("the replay starts at large signal (x about {:.2} mm): the start is a batch large-signal fit of its first {:.1} s", reach * 1e3, self.opts.small_seconds)));
@@ -1194,7 +1211,7 @@ impl<'a> Engine<'a> {
                         self.kms_ratio = (0..=20).map(|k| 1.3 * reach * k as f64 / 20.0).map(|x| est.kms.eval(x).max(est.kms.eval(-x)) / k0).fold(0.0, f64::max);
                         self.checked_reach = reach;
                         let xs: Vec<f64> = (0..LIVE_BAND_POINTS).map(|k| reach * (2.0 * k as f64 / (LIVE_BAND_POINTS - 1) as f64 - 1.0)).collect();
-                        let bands = curve_bands(&est, on, &xs);
+                        let bands = curve_bands(&est, on, &xs, self.le_model_rel);
                         // The widest band over the reach, relative to the curve at rest (NaN
                         // when the covariance gave none: not precise).
                         let widest = |which: &str| {
@@ -1398,6 +1415,7 @@ impl<'a> Engine<'a> {
             dtv_max: self.dtv_max,
             re_cold,
             re_cold_sd,
+            le_model_rel: self.le_model_rel,
             re_end,
             alpha: self.opts.alpha,
             limited_by: self.last_why,
@@ -1491,7 +1509,7 @@ impl Measurement {
         let mut unc = Uncertainty::new("standard deviations from the online estimator's covariance (information from every window; sensor noise and the residual's level; Mms taken as exact). Bands: value and sd on a grid over fit.x_range");
         let [lo, hi] = self.x_range;
         let xs: Vec<f64> = (0..LIVE_BAND_POINTS).map(|k| lo + (hi - lo) * k as f64 / (LIVE_BAND_POINTS - 1) as f64).collect();
-        for (which, band) in curve_bands(&self.params, &self.online, &xs) {
+        for (which, band) in curve_bands(&self.params, &self.online, &xs, self.le_model_rel) {
             unc.set_band(which, band);
         }
         // Re is the cold value: its sd is the small-signal fit's. Of the rest, the effects the
