@@ -21,40 +21,51 @@ fn reach(p: &Parameters) -> f64 {
     (-lo).min(hi)
 }
 
-/// `(HD2, HD3)` of the sound pressure (acceleration) by the slow, obvious method.
-fn oracle(p: &Parameters, f: f64, volts: f64) -> (f64, f64) {
-    let q = with_only(p, &Nonlinearity::ALL, 0.0);
-    let m = Model::new(&q);
-    let rate = q.stiffness_rate();
-    // Steps per period: |lambda| h <= 0.2, and a multiple of 64 for the DFT.
+/// One classical RK4 step of `dy/dt = f(y, t)` from `t` over `h`.
+fn rk4<const N: usize>(f: impl Fn(&[f64; N], f64) -> [f64; N], s: &[f64; N], t: f64, h: f64) -> [f64; N] {
+    let k1 = f(s, t);
+    let k2 = f(&std::array::from_fn(|j| s[j] + 0.5 * h * k1[j]), t + 0.5 * h);
+    let k3 = f(&std::array::from_fn(|j| s[j] + 0.5 * h * k2[j]), t + 0.5 * h);
+    let k4 = f(&std::array::from_fn(|j| s[j] + h * k3[j]), t + h);
+    std::array::from_fn(|j| s[j] + h / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j]))
+}
+
+/// A sine of `volts` RMS at `f` through `deriv` (the state's rates at a voltage) by the slow,
+/// obvious method: plain RK4 at a fixed step (`|lambda| h <= 0.2` for the fastest `rate`, a
+/// multiple of 64 per period) with the analytic sine as input, `settle` seconds from rest,
+/// then a direct DFT over one period of what `out` reads from the state and the voltage.
+/// Returns the smallest and largest of `out` over that period and its lines 1, 2, 3 (magnitudes).
+fn sine_oracle<const N: usize>(deriv: impl Fn(&[f64; N], f64) -> [f64; N], rate: f64, f: f64, volts: f64, settle: f64, out: impl Fn(&[f64; N], f64) -> f64) -> ([f64; 2], [f64; 3]) {
     let per = (((rate / f) / 0.2).ceil() as usize).div_ceil(64).max(4) * 64;
     let h = 1.0 / (f * per as f64);
     let amp = volts * SQRT_2;
     let u = |t: f64| amp * (2.0 * PI * f * t).cos();
-    let mut s = [0.0f64; NSTATE];
-    let periods = (1.0 * f).ceil() as usize + 1;
-    let mut lines = [(0.0f64, 0.0f64); 4];
+    let mut s = [0.0f64; N];
+    let periods = (settle * f).ceil() as usize + 1;
+    let mut lines = [(0.0f64, 0.0f64); 3];
+    let mut peak = [f64::INFINITY, f64::NEG_INFINITY];
     for k in 0..periods * per {
         let t = k as f64 * h;
         if k >= (periods - 1) * per {
-            let a = m.deriv(&s, u(t))[idx::V];
+            let y = out(&s, u(t));
+            peak = [peak[0].min(y), peak[1].max(y)];
             for (n, l) in lines.iter_mut().enumerate() {
                 let ph = 2.0 * PI * f * (n + 1) as f64 * t;
-                l.0 += a * ph.cos();
-                l.1 -= a * ph.sin();
+                l.0 += y * ph.cos();
+                l.1 -= y * ph.sin();
             }
         }
-        let k1 = m.deriv(&s, u(t));
-        let s2: [f64; NSTATE] = std::array::from_fn(|j| s[j] + 0.5 * h * k1[j]);
-        let k2 = m.deriv(&s2, u(t + 0.5 * h));
-        let s3: [f64; NSTATE] = std::array::from_fn(|j| s[j] + 0.5 * h * k2[j]);
-        let k3 = m.deriv(&s3, u(t + 0.5 * h));
-        let s4: [f64; NSTATE] = std::array::from_fn(|j| s[j] + h * k3[j]);
-        let k4 = m.deriv(&s4, u(t + h));
-        s = std::array::from_fn(|j| s[j] + h / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j]));
+        s = rk4(|y, t| deriv(y, u(t)), &s, t, h);
     }
-    let mag = |l: (f64, f64)| l.0.hypot(l.1);
-    (mag(lines[1]) / mag(lines[0]), mag(lines[2]) / mag(lines[0]))
+    (peak, lines.map(|l| l.0.hypot(l.1)))
+}
+
+/// `(HD2, HD3)` of the sound pressure (acceleration) by the slow, obvious method.
+fn oracle(p: &Parameters, f: f64, volts: f64) -> (f64, f64) {
+    let q = with_only(p, &Nonlinearity::ALL, 0.0);
+    let m = Model::new(&q);
+    let (_, l) = sine_oracle::<NSTATE>(|y, u| m.deriv(y, u), q.stiffness_rate(), f, volts, 1.0, |y, u| m.deriv(y, u)[idx::V]);
+    (l[1] / l[0], l[2] / l[0])
 }
 
 #[test]
@@ -233,44 +244,15 @@ fn harmonics_of_a_stiff_microspeaker_match_the_oracle() {
 }
 
 /// The peak excursion and displacement `(HD2, HD3)` of a sine by the slow, obvious method on
-/// the whole model ([`ExtModel`]: the six states, creep's Maxwell bank, the LR-3 branch): plain
-/// RK4 at a fixed small step with the analytic sine, `settle` seconds from rest (creep's
-/// slowest element relaxes in 3.2 s: 20 s leave e^-6 of its transient), a direct DFT over the
-/// last period.
+/// the whole model ([`ExtModel`]: the six states, creep's Maxwell bank, the LR-3 branch),
+/// `settle` seconds from rest (creep's slowest element relaxes in 3.2 s: 20 s leave e^-6 of
+/// its transient).
 fn ext_oracle(p: &Parameters, f: f64, volts: f64, settle: f64) -> ([f64; 2], f64, f64) {
     use coilscope_core::model::{ExtModel, NEXT};
     let q = with_only(p, &Nonlinearity::ALL, 0.0);
     let m = ExtModel::new(&q);
-    let per = (((q.rates().total() / f) / 0.2).ceil() as usize).div_ceil(64).max(4) * 64;
-    let h = 1.0 / (f * per as f64);
-    let amp = volts * SQRT_2;
-    let u = |t: f64| amp * (2.0 * PI * f * t).cos();
-    let mut s = [0.0f64; NEXT];
-    let periods = (settle * f).ceil() as usize + 1;
-    let mut lines = [(0.0f64, 0.0f64); 3];
-    let mut peak = [f64::INFINITY, f64::NEG_INFINITY];
-    for k in 0..periods * per {
-        let t = k as f64 * h;
-        if k >= (periods - 1) * per {
-            let x = s[idx::X];
-            peak = [peak[0].min(x), peak[1].max(x)];
-            for (n, l) in lines.iter_mut().enumerate() {
-                let ph = 2.0 * PI * f * (n + 1) as f64 * t;
-                l.0 += x * ph.cos();
-                l.1 -= x * ph.sin();
-            }
-        }
-        let k1 = m.deriv(&s, u(t));
-        let s2: [f64; NEXT] = std::array::from_fn(|j| s[j] + 0.5 * h * k1[j]);
-        let k2 = m.deriv(&s2, u(t + 0.5 * h));
-        let s3: [f64; NEXT] = std::array::from_fn(|j| s[j] + 0.5 * h * k2[j]);
-        let k3 = m.deriv(&s3, u(t + 0.5 * h));
-        let s4: [f64; NEXT] = std::array::from_fn(|j| s[j] + h * k3[j]);
-        let k4 = m.deriv(&s4, u(t + h));
-        s = std::array::from_fn(|j| s[j] + h / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j]));
-    }
-    let mag = |l: (f64, f64)| l.0.hypot(l.1);
-    (peak, mag(lines[1]) / mag(lines[0]), mag(lines[2]) / mag(lines[0]))
+    let (peak, l) = sine_oracle::<NEXT>(|y, u| m.deriv(y, u), q.rates().total(), f, volts, settle, |y, _| y[idx::X]);
+    (peak, l[1] / l[0], l[2] / l[0])
 }
 
 /// Creep and LR-3 are part of the model the distortion is computed on: the excursion and the
