@@ -263,15 +263,16 @@ fn linear_sigmas_cover_the_truth_over_seeds() {
 
 /// An LR-3 branch with its corner above the band acts as an inductance with a small loss: a
 /// fit that takes it can slide Le to zero along a flat direction (a drawn microspeaker's
-/// small-signal stage ended at Le = 1.5e-58 H). On the kept regression drivers, `measure`'s
-/// small-signal fit (effects chosen by the data) keeps the voice coil's Le, or names Le as
-/// ended on a bound.
+/// small-signal stage ended at Le = 1.5e-58 H). On the kept regression drivers (fixed and
+/// open), `measure`'s small-signal fit (effects chosen by the data) keeps the voice coil's Le,
+/// or names Le as ended on a bound.
 #[test]
 fn the_small_signal_fit_never_trades_le_for_an_added_branch() {
     use coilscope_ident::linear::{fit_linear_record, EffectsChoice, Ends, LinearOptions};
     let opts = LinearOptions { ends: Ends::Fitted, effects: EffectsChoice::Auto, chain: false };
     let mut bad = vec![];
-    for r in coilscope_testkit::population::regressions("measure") {
+    let kept = coilscope_testkit::population::regressions("measure").into_iter().chain(coilscope_testkit::population::open_regressions("measure"));
+    for r in kept {
         // `measure`'s small-signal stage: 2 s of IEC noise at 0.2 V rms, 0.1 mV and 0.1 mA
         // of sensor noise.
         let fs = 48000.0;
