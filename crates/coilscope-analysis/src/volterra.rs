@@ -13,8 +13,8 @@
 //!
 //! `J` is the Jacobian of the equations at rest, with the linear elements that have states of
 //! their own (creep's dynamic stiffness, the LR-3 branch) at each line's frequency. Le(i) and
-//! Rms(|v|) are not in the expansion (|v| has no power series): `distortion` integrates them. With `a = 1` the coefficients are the
-//! diagonal kernels: `H1(f) = c[1][1]`, `H2(f,f) = c[2][2]`, `H3(f,f,f) = c[3][3]` (displacement,
+//! Rms(|v|) are not in the expansion (|v| has no power series): `distortion` integrates them.
+//! With `a = 1` the coefficients are the diagonal kernels: `H1(f) = c[1][1]`, `H2(f,f) = c[2][2]`, `H3(f,f,f) = c[3][3]` (displacement,
 //! m/V^n for the complex amplitude `a` of `e^{jwt}`).
 //!
 //! A sine of peak `A` has `a = A / 2`, so the Volterra harmonic ratios are

@@ -37,6 +37,10 @@ impl Effects {
     pub fn union(self, other: Effects) -> Effects {
         Effects { creep: self.creep || other.creep, lr3: self.lr3 || other.lr3, le_i: self.le_i || other.le_i, rms_v: self.rms_v || other.rms_v }
     }
+    /// The effects in `self` and not in `other`.
+    pub fn without(self, other: Effects) -> Effects {
+        Effects { creep: self.creep && !other.creep, lr3: self.lr3 && !other.lr3, le_i: self.le_i && !other.le_i, rms_v: self.rms_v && !other.rms_v }
+    }
     /// The effects a small-signal fit can see (creep, LR-3).
     pub fn small_signal(self) -> Effects {
         Effects { le_i: false, rms_v: false, ..self }

@@ -106,9 +106,9 @@ impl Plant {
     /// seconds that started at `start` (a state of [`Plant::ext_state`]). Each damper
     /// follows `dy/dt = (x - y) / tau`, linear in `y`: over a window,
     /// `y(T) = e^(-T/tau) y(0) + F`, and the orbit a periodic `x` leads to starts at
-    /// `F / (1 - e^(-T/tau))`. The
-    /// slowest damper relaxes in 3.2 s: a periodic steady state reached by running window
-    /// after window would take tens of seconds, and with this jump it takes a few windows.
+    /// `F / (1 - e^(-T/tau))`. The slowest damper relaxes in 3.2 s: a periodic steady state
+    /// reached by running window after window would take tens of seconds, and with this
+    /// jump it takes a few windows.
     pub fn settle_creep_to_period(&mut self, start: &ExtState<f64>, period: f64) {
         let Some((model, s)) = self.ext.as_mut() else { return };
         let Some(bank) = &model.creep else { return };

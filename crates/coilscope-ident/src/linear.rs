@@ -1407,12 +1407,14 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     // corners spread over the band, and keep the lowest cost among the converged runs (each
     // start is a full LM run, observed like any other).
     let q0 = ParamMap::q_of(&p0);
+    // ln tau of corners at a quarter, a half and three quarters of the band (log scale): the
+    // branches' starts spread over it.
+    let spread_ln_tau = [0.25, 0.5, 0.75].map(|frac: f64| (1.0 / (2.0 * PI * (band[0] * (band[1] / band[0]).powf(frac)))).ln());
     let mut starts = vec![q0];
-    for frac in [0.25, 0.5, 0.75] {
-        let corner = band[0] * (band[1] / band[0]).powf(frac);
+    for ln_tau in spread_ln_tau {
         for r2f in [0.25, 1.0, 4.0] {
             let mut q = q0;
-            q[2] = (1.0 / (2.0 * PI * corner)).ln();
+            q[2] = ln_tau;
             q[3] += f64::ln(r2f);
             starts.push(q);
         }
@@ -1440,6 +1442,9 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         None => solve(Effects::NONE, &base_starts, f64::INFINITY, f64::NEG_INFINITY, observe),
     };
     let lr2 = Lr2Fit { state: base.1.clone(), scout_rel: base.2, polished: base.3 };
+    // theta[1] is ln Le (unbounded); below this a model with more effects took Le's place
+    // ([`LE_COLLAPSE`]).
+    let min_ln_le = base.1.theta[1] + LE_COLLAPSE.ln();
     let mut fitted = vec![with_residual(&mut scout_r, &mut polished, base)];
     // Starts of a model with more effects, from a fitted one: creep from lambda = 0.05 (the
     // middle of what Klippel's LPM reports), LR-3 from a corner 4x above and 4x below LR-2's
@@ -1461,7 +1466,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
                 // beside it (a microspeaker with its branches at 7 and 17 kHz: LR-3's fit
                 // stayed above LR-2's error from both).
                 let mut v = vec![(q[2] - 4f64.ln(), r2 + 2.5f64.ln()), (q[2] + 4f64.ln(), r2)];
-                v.extend([0.25, 0.5, 0.75].map(|frac| ((1.0 / (2.0 * PI * band[0] * (band[1] / band[0]).powf(frac))).ln(), r2)));
+                v.extend(spread_ln_tau.map(|ln_tau| (ln_tau, r2)));
                 v
             }
         };
@@ -1484,7 +1489,6 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         EffectsChoice::Fixed(e) if e == Effects::NONE => 0,
         EffectsChoice::Fixed(e) => {
             let st = grow(&fitted[0], e);
-            let min_ln_le = fitted[0].1.theta[1] + LE_COLLAPSE.ln();
             fitted.push(with_residual(&mut scout_r, &mut polished, solve(e, &st, f64::INFINITY, min_ln_le, observe)));
             1
         }
@@ -1497,9 +1501,6 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
             let floor_of = |f: &(CurrentError, LmState, f64)| if fs.is_some() { f.0.residual_and_floor(&f.1.theta).1 } else { 0.0 };
             let mut floor = floor_of(&fitted[0]);
             let bins = prob.f.len();
-            // theta[1] is ln Le (unbounded).
-            let le_base = fitted[0].1.theta[1];
-            let le_kept = |s: &LmState| s.theta[1] >= le_base + LE_COLLAPSE.ln();
             let mut at = 0;
             loop {
                 let cur = fitted[at].0.effects;
@@ -1517,7 +1518,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
                 let first = fitted.len();
                 for e in cands {
                     let st = grow(&fitted[at], e);
-                    let f = with_residual(&mut scout_r, &mut polished, solve(e, &st, gate, le_base + LE_COLLAPSE.ln(), observe));
+                    let f = with_residual(&mut scout_r, &mut polished, solve(e, &st, gate, min_ln_le, observe));
                     if polished[fitted.len()] {
                         floor = floor.min(floor_of(&f));
                     }
@@ -1528,7 +1529,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
                     let (pr, s, r) = &fitted[k];
                     let lambda_ok = pr.idx_lambda().is_none_or(|j| s.theta[j] > 0.0);
                     let unknowns = n_extra(pr.effects) - n_extra(cur);
-                    if polished[k] && lambda_ok && le_kept(s) && effect_pays(r_cur, *r, floor, bins, unknowns) && best.is_none_or(|(_, rb)| *r < rb) {
+                    if polished[k] && lambda_ok && s.theta[1] >= min_ln_le && effect_pays(r_cur, *r, floor, bins, unknowns) && best.is_none_or(|(_, rb)| *r < rb) {
                         best = Some((k, *r));
                     }
                 }
@@ -1540,7 +1541,6 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         }
     };
     let tried: Vec<(String, f64)> = fitted.iter().map(|(pr, _, r)| (pr.effects.model_name(), *r)).collect();
-    let le_base = fitted[0].1.theta[1];
     // Models with more effects than the chosen one that the data do not tell from it (on
     // the scout's bins, where every candidate has a residual; the relative floor is the
     // same there): the spread of their Le is Le's model uncertainty.
@@ -1632,7 +1632,7 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
             at_bound.push("L3/R3 corner");
         }
     }
-    if s.theta[1] < le_base + LE_COLLAPSE.ln() {
+    if s.theta[1] < min_ln_le {
         at_bound.push("Le");
     }
     let chain = fs.filter(|_| opts.chain).map(|fs| {

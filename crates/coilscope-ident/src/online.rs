@@ -754,8 +754,8 @@ impl Online {
         }
     }
 
-    /// The offered effects (creep where the start had none, Le(i), Rms(v)) whose every coefficient lies
-    /// within [`INSIGNIFICANT_SD`] sd of none: the data did not show them (a Wald test; the
+    /// The offered effects (creep where the start had none, Le(i), Rms(v)) whose every
+    /// coefficient lies within [`INSIGNIFICANT_SD`] sd of none: the data did not show them (a Wald test; the
     /// estimator carries them from the start with a prior at none, so it cannot select them
     /// by held-out error as `identify` does).
     pub fn insignificant_effects(&self) -> Effects {
@@ -765,8 +765,7 @@ impl Online {
     }
 
     /// Stop estimating the offered effects in `drop` (creep where the start had none, Le(i),
-    /// Rms(v); others are ignored):
-    /// the estimate and its covariance are conditioned on their coefficients being zero (the
+    /// Rms(v); others are ignored): the estimate and its covariance are conditioned on their coefficients being zero (the
     /// Gaussian conditional: `theta_K -= P_KD P_DD^-1 theta_D`, `P_KK -= P_KD P_DD^-1 P_DK`),
     /// and the live model continues without them. Each costs a fifth of an update (three more
     /// Jacobian columns, a slower model): the measurement drops what the data at full level
@@ -802,7 +801,7 @@ impl Online {
         let cond = sub(&keep, &keep) - &gain * p_kd.transpose();
         self.theta = keep.iter().enumerate().map(|(r, &k)| self.theta[k] - shift[r]).collect();
         self.cov = (&cond + cond.transpose()) * 0.5;
-        self.layout = self.layout.clone().with_effects(Effects { creep: e.creep && !dropped.creep, le_i: e.le_i && !dropped.le_i, rms_v: e.rms_v && !dropped.rms_v, ..e });
+        self.layout = self.layout.clone().with_effects(e.without(dropped));
         debug_assert_eq!(self.layout.slots().n, keep.len());
         self.dropped = self.dropped.union(dropped);
         self.previous = None;

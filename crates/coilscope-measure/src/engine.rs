@@ -1378,7 +1378,7 @@ impl<'a> Engine<'a> {
         if dropped.rms_v {
             params.rms_v = None;
         }
-        let effects = Effects { creep: on.layout.effects.creep && !dropped.creep, le_i: on.layout.effects.le_i && !dropped.le_i, rms_v: on.layout.effects.rms_v && !dropped.rms_v, ..on.layout.effects };
+        let effects = on.layout.effects.without(dropped);
         let hold_range = if self.hold_range == [0.0, 0.0] { [-on.reach, on.reach] } else { self.hold_range };
         params.x_range = Some(hold_range);
         drop_vanished_branch(&mut params, hold_range);

@@ -238,14 +238,7 @@ fn fresh_population_drivers_are_measured_right_or_loudly() {
 #[test]
 #[ignore = "release-profile sweep: cargo test --release -p coilscope-measure --test population_measure -- --ignored"]
 fn kept_regression_drivers_are_measured_right_or_loudly() {
-    let mut cases = Vec::new();
-    for r in population::regressions("measure") {
-        println!("regression:{}: {}", r.name, r.why);
-        // The seed it failed with, and two more.
-        for seed in [r.seed, 1, 2] {
-            cases.push((format!("regression:{} seed {seed}", r.name), r.params.clone(), seed));
-        }
-    }
+    let cases = population::regression_runs("measure").into_iter().map(|(r, seed)| (format!("regression:{} seed {seed}", r.name), r.params, seed)).collect();
     let cases = coilscope_testkit::slice::in_slice("kept_regression_drivers", cases);
     let s = sweep(cases);
     let mut bad = s.failures.clone();

@@ -69,6 +69,7 @@ pub fn keep_failure(label: &str, p: &Parameters) -> PathBuf {
 /// A driver a population test once failed on, kept in `testdata/population/NAME.json`: a
 /// parameter set with a `regression` key saying which test (`measure` or `identify`), whether
 /// the record went through a card, the seed it failed with and why.
+#[derive(Clone, Debug)]
 pub struct Regression {
     pub name: String,
     pub params: Parameters,
@@ -82,6 +83,19 @@ pub struct Regression {
 /// in name order: every CI run takes its slice of them.
 pub fn regressions(test: &str) -> Vec<Regression> {
     regressions_in("", test)
+}
+
+/// The runs of the kept regression drivers for `test`: each driver with the seed it failed
+/// with and two more (1 and 2), its reason printed.
+pub fn regression_runs(test: &str) -> Vec<(Regression, u64)> {
+    let mut runs = Vec::new();
+    for r in regressions(test) {
+        println!("regression:{}: {}", r.name, r.why);
+        for seed in [r.seed, 1, 2] {
+            runs.push((r.clone(), seed));
+        }
+    }
+    runs
 }
 
 /// The regression drivers kept for `test` whose failure is still open

@@ -35,6 +35,17 @@ enum World {
 }
 
 impl World {
+    /// The world a kept driver was recorded in: through a card or not, with its effects or
+    /// without.
+    fn of(r: &population::Regression) -> World {
+        match (r.card, Effects::of(&r.params) != Effects::NONE) {
+            (false, false) => World::Plain,
+            (false, true) => World::Effects,
+            (true, false) => World::Card,
+            (true, true) => World::All,
+        }
+    }
+
     fn name(self) -> &'static str {
         match self {
             World::Plain => "plain",
@@ -211,22 +222,9 @@ fn a_moving_mass_off_by_two_percent_scales_the_result_as_the_physics_says() {
 #[test]
 #[ignore = "release-profile sweep: cargo test --release -p coilscope-workflow --test population_identify -- --ignored kept_regression_drivers"]
 fn kept_regression_drivers_are_identified_right_or_loudly() {
-    let mut cases = Vec::new();
-    for r in population::regressions("identify") {
-        println!("regression:{}: {}", r.name, r.why);
-        for seed in [r.seed, 1, 2] {
-            cases.push((r.name.clone(), r.params.clone(), r.card, seed));
-        }
-    }
     let mut failures = Vec::new();
-    for (name, p, card, seed) in coilscope_testkit::slice::in_slice("kept_regression_drivers", cases) {
-        let world = match (card, Effects::of(&p) != Effects::NONE) {
-            (false, false) => World::Plain,
-            (false, true) => World::Effects,
-            (true, false) => World::Card,
-            (true, true) => World::All,
-        };
-        let o = identify_case(&format!("regression:{name} seed {seed}"), &p, seed, world, p.mms);
+    for (r, seed) in coilscope_testkit::slice::in_slice("kept_regression_drivers", population::regression_runs("identify")) {
+        let o = identify_case(&format!("regression:{} seed {seed}", r.name), &r.params, seed, World::of(&r), r.params.mms);
         println!("{}", o.line);
         if !o.right && !o.loud {
             failures.push(o.line);
@@ -243,13 +241,7 @@ fn population_sweep_of_identify() {
     let mut s = sweep("population_sweep_of_identify", &[World::Plain, World::Effects, World::Card, World::All], n);
     // The drivers kept in testdata/population/open/ (failures not yet fixed) with the rest.
     for r in population::open_regressions("identify") {
-        let world = match (r.card, Effects::of(&r.params) != Effects::NONE) {
-            (false, false) => World::Plain,
-            (false, true) => World::Effects,
-            (true, false) => World::Card,
-            (true, true) => World::All,
-        };
-        let o = identify_case(&format!("open:{}", r.name), &r.params, r.seed, world, r.params.mms);
+        let o = identify_case(&format!("open:{}", r.name), &r.params, r.seed, World::of(&r), r.params.mms);
         println!("{}", o.line);
         s.runs += 1;
         if o.right {
