@@ -27,7 +27,7 @@ import numpy as np
 
 from . import _coilscope as _c
 
-__all__ = ["NotTrustworthy", "drivers", "parameters", "generate", "simulate", "linear", "identify", "measure_virtual", "measure_replay", "distortion", "poly"]
+__all__ = ["NotTrustworthy", "drivers", "parameters", "generate", "simulate", "linear", "linear_impedance", "identify", "measure_virtual", "measure_replay", "distortion", "poly"]
 
 
 class NotTrustworthy(UserWarning):
@@ -95,6 +95,18 @@ def linear(u, i, fs, mms, chain="detect"):
     or ``none``, as ``coilscope linear --chain``. Warns :class:`NotTrustworthy` where the
     command line exits 3."""
     return _checked(_c.linear(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), str(chain)), "linear")
+
+
+def linear_impedance(f, z, mms, band=None):
+    """Small-signal fit of a measured impedance curve (``coilscope linear --impedance``):
+    ``f`` in Hz, ``z`` complex in ohm, Mms given (kg). Without ``band`` (Hz, ``(lo, hi)``) the
+    fit keeps to where the lumped model holds, below the cone's break-up, and
+    ``result["fit"]["band_note"]`` says where that is. Qms and Qts in ``small_signal`` are at
+    fs with creep's loss (``Rms_fs``). Warns :class:`NotTrustworthy` where the command line
+    exits 3."""
+    z = np.asarray(z, dtype=complex)
+    b = None if band is None else (float(band[0]), float(band[1]))
+    return _checked(_c.linear_impedance(_floats(f, "f"), _floats(z.real, "z"), _floats(z.imag, "z"), float(mms), b), "linear_impedance")
 
 
 def identify(u, i, fs, mms, order=None, chain="detect"):

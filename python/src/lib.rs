@@ -117,6 +117,23 @@ fn linear(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, chain: &s
     py.allow_threads(|| fit(LinearInput::Record(record(u, i, fs)), Scale::Mms(mms), &req, |_| {}).map(|l| l.result.to_json_value().to_string())).map_err(err)
 }
 
+/// The small-signal fit of a measured impedance curve (`coilscope linear --impedance`, Mms
+/// given): `f` (Hz), `z_re`, `z_im` (ohm). `band`: the fitted band (Hz); without it, the band
+/// where the lumped model holds (below break-up), as the command line finds it
+/// (`fit.band_note` says where). The result as JSON text, with its warnings and verdict.
+#[pyfunction]
+#[pyo3(signature = (f, z_re, z_im, mms, band=None))]
+fn linear_impedance(py: Python<'_>, f: Vec<f64>, z_re: Vec<f64>, z_im: Vec<f64>, mms: f64, band: Option<(f64, f64)>) -> PyResult<String> {
+    use coilscope_workflow::linear::{linear as fit, LinearInput, LinearRequest, Scale};
+    if f.len() != z_re.len() || f.len() != z_im.len() {
+        return Err(err(format!("f, z_re and z_im have {}, {} and {} points: give one impedance per frequency", f.len(), z_re.len(), z_im.len())));
+    }
+    let z = z_re.iter().zip(&z_im).map(|(&re, &im)| coilscope_core::Complex64::new(re, im)).collect();
+    let curve = coilscope_io::impedance::ImpedanceCurve { f, z, comments: vec![], magnitude_only: false };
+    let req = LinearRequest { band: band.map(|(lo, hi)| [lo, hi]), ..LinearRequest::new("python") };
+    py.allow_threads(|| fit(LinearInput::Curve(curve), Scale::Mms(mms), &req, |_| {}).map(|l| l.result.to_json_value().to_string())).map_err(err)
+}
+
 /// The large-signal identification of a record (`coilscope identify`): the result as JSON
 /// text, with its warnings and verdict (`fit.trustworthy`) as the command line gives them.
 /// `order`: the power series' order (default: chosen on held-out data).
@@ -194,6 +211,7 @@ fn _coilscope(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(generate, m)?)?;
     m.add_function(wrap_pyfunction!(simulate, m)?)?;
     m.add_function(wrap_pyfunction!(linear, m)?)?;
+    m.add_function(wrap_pyfunction!(linear_impedance, m)?)?;
     m.add_function(wrap_pyfunction!(identify, m)?)?;
     m.add_function(wrap_pyfunction!(measure_virtual, m)?)?;
     m.add_function(wrap_pyfunction!(measure_replay, m)?)?;

@@ -119,3 +119,34 @@ def test_a_linear_fit_of_a_large_signal_record_is_not_trusted_silently():
     assert r["fit"]["trustworthy"] is False
     codes = [w["code"] for w in r["fit"]["warnings"]]
     assert codes, r["fit"]
+
+
+def _seas_zma(name):
+    """A measured .zma of the SEAS L16RN-X (frequency, |Z|, phase in degrees) from the
+    repository's test data."""
+    import pathlib
+
+    path = pathlib.Path(__file__).resolve().parents[2] / "crates/coilscope-ident/tests/data/seas_l16rnx" / name
+    rows = [line.split() for line in path.read_text().splitlines()]
+    rows = [r for r in rows if len(r) >= 3 and r[0].replace(".", "", 1).isdigit()]
+    f, mag, ph = (np.array([float(r[k]) for r in rows]) for k in range(3))
+    return f, mag * np.exp(1j * np.radians(ph))
+
+
+def test_linear_impedance_keeps_below_the_break_up_as_the_command_line():
+    import warnings
+
+    f, z = _seas_zma("L16RNX_0g_242_27mV.zma")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", coilscope.NotTrustworthy)
+        r = coilscope.linear_impedance(f, z, mms=0.0149)
+    assert r["fit"]["trustworthy"] is True
+    assert 1000.0 < r["fit"]["band_hz"][1] < 5206.0, r["fit"]["band_note"]
+    assert "lumped model holds" in r["fit"]["band_note"]
+    # Qms at fs with creep's loss, as Speakerbench gives it (1.995).
+    assert abs(r["small_signal"]["Qms"] / 1.9953 - 1.0) < 0.05
+    assert r["small_signal"]["Rms_fs"] > r["parameters"]["Rms"]
+    # A band through the break-up is fitted as given, and is not trusted.
+    with pytest.warns(coilscope.NotTrustworthy, match="model-misses-curve"):
+        loud = coilscope.linear_impedance(f, z, mms=0.0149, band=(10.0, 20000.0))
+    assert loud["fit"]["trustworthy"] is False

@@ -215,7 +215,7 @@ fn multitone_distortion_is_absent_for_a_linear_set_and_grows_with_level() {
     assert_eq!(a.tones.len(), 20);
 }
 
-/// Issue 17: the steady state of a stiff microspeaker (`testdata/drivers`, Le 30 uH) is
+/// The steady state of a stiff microspeaker (`testdata/drivers`, Le 30 uH) is
 /// integrated by the exponential scheme ([`coilscope_core::integrate::Stepper::for_rates`]);
 /// its harmonics match the oracle's fixed-step RK4 as the woofers' do.
 #[test]

@@ -40,7 +40,8 @@ struct Cli {
 enum World {
     /// The parameter set as given.
     Published,
-    /// Plus typical LOG creep where the set has none ([`Parameters::with_typical_creep`]).
+    /// Plus typical LOG creep where the set has none (lambda 0.05 at the resonance), as a real
+    /// suspension has.
     Real,
 }
 
@@ -269,8 +270,8 @@ enum Command {
         /// Impedance file of the same driver with the added mass.
         #[arg(long, value_name = "Z2.zma", requires = "impedance")]
         with_mass_impedance: Option<PathBuf>,
-        /// Impedance files: the fitted band `LO,HI` (Hz); default: every point up to 20 kHz.
-        /// Below a cone's break-up the model holds; above it, it does not.
+        /// Impedance files: the fitted band `LO,HI` (Hz); default: the band where the lumped
+        /// model holds, found from the file (below the cone's break-up; the output says where).
         #[arg(long, value_name = "LO,HI", requires = "impedance")]
         band: Option<String>,
         /// Impedance files: the RMS voltage of the measurement, for the displacement it
@@ -587,7 +588,7 @@ enum Command {
         /// The signal the distortion is measured in.
         #[arg(long, value_enum, default_value = "pressure")]
         output: OutputKind,
-        /// A 30-tone multitone over --band instead of a sine.
+        /// A multitone of --tones tones over --band instead of a sine.
         #[arg(long)]
         multitone: bool,
         /// Multitone band (Hz).
@@ -1021,7 +1022,7 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
         let zma = out.with_extension("zma");
         let (f, z) = fit.h1.coherent();
         let comments = vec![format!("coilscope linear: H1 impedance of {origin} (coherent bins)"), "Data: Impedance (ohms), Phase (degrees)".to_string()];
-        coilscope_io::impedance::write_zma(&zma, &coilscope_io::impedance::ImpedanceCurve { f, z, comments }).map_err(|e| e.to_string())?;
+        coilscope_io::impedance::write_zma(&zma, &coilscope_io::impedance::ImpedanceCurve { f, z, comments, magnitude_only: false }).map_err(|e| e.to_string())?;
         wrote.push(zma.display().to_string());
     }
     coilscope_io::atomic_write(&csv, coilscope_ident::linear::impedance_csv(&fit.h1, fit).as_bytes()).map_err(|e| e.to_string())?;
@@ -1037,6 +1038,12 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
         LinearInput::Curve(c) => {
             println!("coilscope linear: {} (impedance file, {} points, {:.1} .. {:.0} Hz)", path.display(), c.f.len(), c.f[0], c.f[c.f.len() - 1]);
             println!("  fit {:.1} .. {:.0} Hz, {} points, residual {:.3e} (impedance, relative RMS), {} iterations", fit.band[0], fit.band[1], fit.bins, fit.residual_rel, fit.iterations);
+            if let Some(note) = &result.fit.band_note {
+                println!("  band: {note}");
+            }
+            if let Some(note) = &result.fit.phase_note {
+                println!("  phase: {note}");
+            }
         }
     }
     let scale_text = match &done.method {
@@ -1051,7 +1058,7 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     println!("  model: {} (tried: {})", fit.effects.model_name(), fit.tried.iter().map(|(m, r)| format!("{m} {r:.2e}")).collect::<Vec<_>>().join(", "));
     print_values(params, u, &[]);
     println!("  {:<6} {:>12} {:<5} {}", "fs", format!("{:.3}", ts.fs), "Hz", pm("fs", 1.0));
-    println!("  {:<6} {:>12}", "Qms", format!("{:.4}", ts.qms));
+    println!("  {:<6} {:>12}      (at fs, with creep's loss: Rms at fs {:.4} kg/s)", "Qms", format!("{:.4}", ts.qms), ts.rms_fs);
     println!("  {:<6} {:>12}", "Qes", format!("{:.4}", ts.qes));
     println!("  {:<6} {:>12}", "Qts", format!("{:.4}", ts.qts));
     if let Some(v) = ts.vas {
@@ -1120,7 +1127,7 @@ fn print_params(p: &Parameters) {
     if let Some(c) = &p.creep {
         println!("  creep lambda {:.4} (LOG, reference {:.2} Hz)", c.lambda, p.creep_f_ref().unwrap_or(0.0));
     }
-    println!("  fs {:.2} Hz, Qms {:.3}, Qes {:.3}, Qts {:.3}", ts.fs, ts.qms, ts.qes, ts.qts);
+    println!("  fs {:.2} Hz, Qms {:.3}, Qes {:.3}, Qts {:.3}, Rms at fs {:.3} kg/s (with creep's loss)", ts.fs, ts.qms, ts.qes, ts.qts, ts.rms_fs);
     match p.x_range {
         Some([lo, hi]) => println!("  x_range {:.2} .. {:.2} mm", lo * 1e3, hi * 1e3),
         None => println!("  x_range not given"),
@@ -1523,7 +1530,8 @@ struct CardArgs {
     /// Number of output channels the output device is opened with.
     #[arg(long, default_value_t = 2)]
     out_channels: u16,
-    /// Input channels holding the terminal voltage and the sense-resistor voltage (0-based), of --in-channels.
+    /// Input channel holding the voltage (0-based, of --in-channels): across the driver's
+    /// terminals, or across driver and shunt (--sense-wiring).
     #[arg(long, default_value_t = 0)]
     u_channel: usize,
     /// Input channel holding the sense-resistor voltage (the current), 0-based.
@@ -1546,8 +1554,8 @@ struct CardArgs {
     sense_ohm: f64,
     /// The card's calibration (a chain file from `coilscope calibrate`): its delay, AC
     /// coupling and gain are corrected block by block, the offsets found in a 0.5 s silent
-    /// lead-in. With --virtual: the virtual driver is recorded through a simulated card with
-    /// this chain (its offsets and hum too) and measured through the correction.
+    /// lead-in. With `measure --virtual`: the virtual driver is recorded through a simulated
+    /// card with this chain (its offsets and hum too) and measured through the correction.
     #[arg(long, value_name = "FILE")]
     chain: Option<PathBuf>,
     /// Where the voltage input is connected: `terminals` (across the driver alone: preferred)
@@ -2353,7 +2361,7 @@ mod tests {
     use super::*;
     use clap::CommandFactory;
 
-    /// Issue 14: every flag of every subcommand says what it is.
+    /// Every flag of every subcommand says what it is.
     #[test]
     fn every_flag_has_help() {
         let mut missing = Vec::new();

@@ -151,7 +151,7 @@ fn linear_writes_a_result_zma_and_csv() {
 
 #[test]
 fn identify_writes_the_result_contract_and_a_summary() {
-    // Issue 4: simulate a large-signal record, identify it, read the result per formats.md.
+    // Simulate a large-signal record, identify it, read the result per formats.md.
     let d = tempfile::tempdir().unwrap();
     let rec = d.path().join("big.wav");
     let rec_s = rec.to_str().unwrap();

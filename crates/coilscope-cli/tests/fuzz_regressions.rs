@@ -1,4 +1,4 @@
-//! Issue 14 item 9: the fuzz targets' kept inputs (`fuzz/regressions/<target>/`), replayed
+//! The fuzz targets' kept inputs (`fuzz/regressions/<target>/`), replayed
 //! through the same readers on the stable toolchain. Each must give a clear error or a value,
 //! never a panic. The targets themselves run with `cargo fuzz run <target>` (see
 //! `fuzz/Cargo.toml`).
@@ -56,7 +56,7 @@ fn result_json_inputs_give_errors_or_inputs() {
     }
 }
 
-/// Seen in session 21: `coilscope quasistatic ... | head` panicked in `println!` on the
+/// `coilscope quasistatic ... | head` once panicked in `println!` on the
 /// closed pipe ("failed printing to stdout: Broken pipe"). A closed pipe ends the program
 /// quietly, as any Unix tool.
 #[cfg(unix)]

@@ -1,4 +1,4 @@
-//! `coilscope measure` and `coilscope runs` (issue 5): the result and database, a kill during
+//! `coilscope measure` and `coilscope runs`: the result and database, a kill during
 //! a long-term run, bad input.
 use std::process::{Command, Output};
 
@@ -14,7 +14,7 @@ fn virtual_measurement_writes_result_and_database() {
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{text}\n{}", String::from_utf8_lossy(&o.stderr));
     assert!(text.contains("converged"), "{text}");
-    // Session 44: the live lines before the small-signal fit said "Re NaN ohm  err NaN".
+    // The live lines before the small-signal fit show "-", never "Re NaN ohm  err NaN".
     let live = String::from_utf8_lossy(&o.stderr);
     assert!(live.contains("small-signal") && live.contains("Re   -    ohm"), "{live}");
     assert!(!text.contains("NaN") && !live.contains("NaN"), "{text}\n{live}");
@@ -68,7 +68,7 @@ fn a_killed_long_term_run_keeps_its_data() {
 }
 
 #[test]
-fn issue14_ctrl_c_writes_the_result_marked_interrupted_and_exits_130() {
+fn ctrl_c_writes_the_result_marked_interrupted_and_exits_130() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("int");
     let db = out.join("run.sqlite");
@@ -107,7 +107,7 @@ fn bad_devices_files_and_limits_get_one_line_errors() {
         (vec!["measure", "--virtual", "no-such-driver", "--out", o], "no-such-driver"),
         (vec!["measure", "--virtual", "sb17cac35-4", "--target-x=-2mm", "--out", o], "--target-x"),
         (vec!["measure", "--virtual", "sb17cac35-4", "--max-dt", "0", "--out", o], "--max-dt"),
-        // Issue 14: a bare number is metres; 4 (meant as mm) is refused with the unit named.
+        // A bare number is metres; 4 (meant as mm) is refused with the unit named.
         (vec!["measure", "--virtual", "sb17cac35-4", "--target-x", "4", "--out", o], "did you mean 4mm"),
         (vec!["measure", "--virtual", "sb17cac35-4", "--target-x", "4furlongs", "--out", o], "unknown length unit"),
         (vec!["measure", "--virtual", "sb17cac35-4", "--music", "/nonexistent/song.wav", "--out", o], "song.wav"),

@@ -78,7 +78,7 @@ fn simulate_matches_independent_simulator_within_1e_3() {
 // followed by the large-signal record played three times (every record starts and ends at
 // rest, so they join without a jump of the state; the coil cools back to ambient at each
 // join, which the Re tracking follows). No control of the level. Truth: the driver file.
-// Tolerances as in the identification issue, over the range the live model reached.
+// The identification's accuracy bounds, over the range the live model reached.
 
 fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
     (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, coilscope_testkit::check::nan_max) / g.eval(0.0).abs()
@@ -128,13 +128,13 @@ fn replayed_reference_recordings_identify_every_driver() {
     }
 }
 
-/// Issue 14: `measure --replay` of one ordinary large-signal recording, as users have it: no
+/// `measure --replay` of one ordinary large-signal recording, as users have it: no
 /// quiet lead-in, played once, through the command line. The start is a batch large-signal
-/// fit of its first seconds; the result must converge within the issue's bounds (Bl, Kms
+/// fit of its first seconds; the result must converge within the accuracy bounds (Bl, Kms
 /// 2 %, Le 5 % over the reached range; measured: <= 0.15 %), with the cold Re within 0.1 %.
 #[test]
 #[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
-fn issue14_replay_of_a_single_large_recording_without_lead_in() {
+fn replay_of_a_single_large_recording_without_lead_in() {
     let dir = shared_recordings();
     let out = tempfile::tempdir().unwrap();
     for name in ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"] {
@@ -171,12 +171,12 @@ fn issue14_replay_of_a_single_large_recording_without_lead_in() {
     }
 }
 
-/// Issue 14 item 3: a replay takes its absolute scale from the recording's laser channel
+/// A replay takes its absolute scale from the recording's laser channel
 /// when no --mms is given (post-inverse Mms, as `identify` does), and without either it
 /// says what would do.
 #[test]
 #[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
-fn issue14_replay_takes_its_scale_from_the_laser_channel() {
+fn replay_takes_its_scale_from_the_laser_channel() {
     let dir = shared_recordings();
     let out = tempfile::tempdir().unwrap();
     let p = embedded_driver("sb17cac35-4").unwrap();
@@ -202,14 +202,14 @@ fn issue14_replay_takes_its_scale_from_the_laser_channel() {
     assert!(text.contains("--mms") && text.contains("displacement channel") && text.contains("sb17cac35-4-large.wav"), "{text}");
 }
 
-/// Issue 14 item 10: the post-inverse (equation-error) estimate through the command line,
+/// The post-inverse (equation-error) estimate through the command line,
 /// where it gets L2/R2 from the linear fit of the same record, not the truth (the library
 /// test hands it the true L2/R2). `identify` on the independent laser record without --mms:
-/// the cross-check set within the issue's bounds (Bl, Kms 2 %, Le 5 %, Mms, Rms, Re 1 %),
+/// the cross-check set within the accuracy bounds (Bl, Kms 2 %, Le 5 %, Mms, Rms, Re 1 %),
 /// and the output-error fit scaled by its Mms within them too.
 #[test]
 #[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
-fn issue14_post_inverse_through_the_command_line() {
+fn post_inverse_through_the_command_line() {
     let dir = shared_recordings();
     let p = embedded_driver("sb17cac35-4").unwrap();
     let out = tempfile::tempdir().unwrap();

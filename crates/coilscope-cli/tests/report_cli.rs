@@ -1,4 +1,4 @@
-//! Issue 6: `coilscope distortion`, `diagnose` and `report`; the report rendered in headless
+//! `coilscope distortion`, `diagnose` and `report`; the report rendered in headless
 //! Chromium (installed by `.ci/run`) without console messages, every plot drawn on the
 //! screenshot.
 use coilscope_report::chart::Rgb;
@@ -159,7 +159,7 @@ fn report_of_a_measurement_renders_in_chromium_with_every_plot_drawn() {
     let plots = layout["plots"].as_array().unwrap();
     assert_eq!(plots.len(), ids.len());
 
-    // No legend box covers a data line (issue 19), in any chart of this measured result's
+    // No legend box covers a data line, in any chart of this measured result's
     // report (the time charts and the live distortion among them), at both sizes.
     let mut input = coilscope_report::input_from(run.join("result.json").to_str().unwrap()).unwrap();
     let rows = coilscope_measure::store::read_states(&run.join("run.sqlite"), None).unwrap();

@@ -34,7 +34,7 @@ fn three_state(bencher: Bencher, name: &str) {
     bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &SimOptions::default()).unwrap());
 }
 
-/// Issue 15: the extended model (creep bank lambda 0.07 and LR-3: 17 states), against
+/// The extended model (creep bank lambda 0.07 and LR-3: 17 states), against
 /// `full_model` on the same driver and drive.
 #[divan::bench(args = embedded_driver_names())]
 fn creep_and_lr3(bencher: Bencher, name: &str) {
@@ -56,7 +56,7 @@ fn full_model_rk4(bencher: Bencher, name: &str) {
     bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &opts).unwrap());
 }
 
-/// Issue 17, session 31: the full model in the current's exponential method (one step per
+/// The full model in the current's exponential method (one step per
 /// sample: the current's decay and the drive exactly, RK4's weights for the rest), against
 /// `full_model` (RK4 at two sub-steps).
 #[divan::bench(args = embedded_driver_names())]
@@ -67,7 +67,7 @@ fn full_model_exp_current(bencher: Bencher, name: &str) {
     bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &opts).unwrap());
 }
 
-/// Issue 17, session 33: the full model in the exponential method at one step per sample
+/// The full model in the exponential method at one step per sample
 /// (each step's drive the quartic through its own five points), against `full_model`.
 #[divan::bench(args = embedded_driver_names())]
 fn full_model_exponential_1(bencher: Bencher, name: &str) {
@@ -77,8 +77,8 @@ fn full_model_exponential_1(bencher: Bencher, name: &str) {
     bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &opts).unwrap());
 }
 
-/// Issue 17: the stiff microspeaker of `testdata/drivers` (Le 30 uH), in the scheme it takes
-/// (exponential, 3 steps per sample; 4 until session 30) and in RK4 (21 sub-steps).
+/// The stiff microspeaker of `testdata/drivers` (Le 30 uH), in the scheme it takes
+/// (exponential, 3 steps per sample) and in RK4 (21 sub-steps).
 #[divan::bench(args = ["exponential", "rk4"])]
 fn microspeaker(bencher: Bencher, scheme: &str) {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers/microspeaker-0g1.json");

@@ -18,7 +18,7 @@
 //!   offset), so it reaches the record but not the driver.
 //! * **Hum** ([`Hum`]): mains and its harmonics, added to the record.
 //!
-//! Conventions and keys are those of `shared/spec/formats.md` ("Extensions": a result's
+//! Conventions and keys are those of `docs/formats.md` ("Extensions": a result's
 //! `chain`). Everything is SI; the delay is in seconds (the fits work in samples and convert).
 
 use crate::recent::Recent;
@@ -482,7 +482,7 @@ mod tests {
         }
     }
 
-    /// Issue 17, session 45: a part of a delayed signal ([`DelaySpectrum::delayed_range`]) is
+    /// A part of a delayed signal ([`DelaySpectrum::delayed_range`]) is
     /// that part of [`DelaySpectrum::delayed`], the shared phase factors are
     /// [`DelaySpectrum::phases`], to the last bit, also when more delays are asked for than
     /// are kept (`KEPT_PHASES`), and [`delays`] is [`delay`] of each amount.

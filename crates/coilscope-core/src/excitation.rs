@@ -475,7 +475,7 @@ mod tests {
             .sum()
     }
 
-    /// Issue 18: the IEC signal's one-third-octave band levels (IEC 225 base-ten bands,
+    /// The IEC signal's one-third-octave band levels (IEC 225 base-ten bands,
     /// edges at the centre times 10^(+-1/20)), relative to the power mean of the six 0 dB
     /// bands, against Table II on 30 s records: the default (crest 2, three seeds), the
     /// standard's unlimited Gaussian noise (three seeds) and 96 kHz. Returns nothing; fails

@@ -12,7 +12,7 @@
 //!   ([`crate::params::Parameters::stiffness_rate`]), so that the stiff current equation
 //!   (Le/(Re+R2) down to a few microseconds in microspeakers) stays stable *and* accurate at
 //!   48 kHz: `|lambda| h <= STIFF_LIMIT` with at least `MIN_SUBSTEPS` sub-steps.
-//! * [`etd4_sample`] (issue 17): an exponential Runge-Kutta method (Hochbruck and
+//! * [`etd4_sample`]: an exponential Runge-Kutta method (Hochbruck and
 //!   Ostermann's, stiff order 4) that integrates the currents' linear RL network
 //!   ([`Electrical`]; with an LR-3 branch the 3 x 3 one, [`Electrical::network3`])
 //!   exactly and the rest as a Runge-Kutta method does, so that the steps
@@ -100,8 +100,8 @@ const KAISER_BETA: f64 = 14.0;
 /// Fewest sub-steps per sample, for the accuracy of the forced response at audio frequencies:
 /// with `|lambda| h <= STIFF_LIMIT` the current stays within 3e-5 (relative RMS) of a
 /// 256-sub-step run under IEC noise at 90 % of x_range (SB17 at 2 sub-steps: 2.6e-5, PTT4 and
-/// 18WU 7.5e-6, the large coil 1.2e-6; `examples/steps`), below issue 17's 1e-4. Four (the
-/// value before issue 17) bought 1.5e-6 for twice the cost; one misses by 1.4-4.9e-4.
+/// 18WU 7.5e-6, the large coil 1.2e-6; `examples/steps`), below the accuracy bar for the
+/// current (1e-4). Four bought 1.5e-6 for twice the cost; one misses by 1.4-4.9e-4.
 pub const MIN_SUBSTEPS: usize = 2;
 /// Largest `|lambda| h` allowed for the fastest eigenvalue (RK4's real stability limit: 2.78).
 pub const STIFF_LIMIT: f64 = 0.5;
@@ -451,7 +451,7 @@ fn mat_vec<D: DualNum<Primitive = f64> + Copy>(m: &[[D; 2]; 2], v: [D; 2]) -> [D
 /// crawl: 12 iterations at gain ratios 0.36 instead of 9 at 0.99, for 15 % less per
 /// Jacobian).
 ///
-/// Held as 2 x 2 matrices until issue 17's session 30, the coefficients took a quarter of a
+/// Held as pairs: as 2 x 2 matrices the coefficients took a quarter of a
 /// stiff driver's Jacobian (8-lane dual numbers: 14 matrices of four, each built from its
 /// pair); as pairs the same values to rounding (`pairs_are_the_matrix_coefficients`).
 #[derive(Clone, Copy, Debug)]
@@ -1459,14 +1459,14 @@ where
 /// the tiny-step reference's current by 1.8e-4 (relative RMS) at 2 steps per sample, 4.0e-5
 /// at 3, 1.3e-5 at 4 (its displacement by 8.9e-6, 2.4e-6, 9.1e-7) while the method took the
 /// drive into its quadrature (a quadratic over each step); with the drive integrated exactly
-/// as the quartic through five band-limited points ([`Drive`], issue 17's session 30),
+/// as the quartic through five band-limited points ([`Drive`]),
 /// 4.1e-5, 3.8e-6, 7.1e-7 (displacement 5.3e-6, 1.3e-6, 4.8e-7; `examples/steps`; the
 /// second microspeaker, 10.8: 4.1e-5, 3.9e-6, 6.8e-7). The limit takes 3 steps up to
 /// `|lambda| / fs` = 12 (were 4 from 9): a current three times closer than at 4 steps
 /// before, a displacement within 1.5 times, a quarter fewer evaluations of the model (the
 /// independent oracle: current 6.2e-8, displacement 5.7e-7, against 1.1e-7 and 6.1e-7 at 4
-/// steps before). With each step's quartic through its own five points (at quarter steps,
-/// session 33): 5.1e-6, 9.8e-7, 3.0e-7 (displacement unchanged; the second microspeaker
+/// steps before). With each step's quartic through its own five points (at quarter steps):
+/// 5.1e-6, 9.8e-7, 3.0e-7 (displacement unchanged; the second microspeaker
 /// 1.2e-6, 1.9e-7, 5.5e-8), and at one step 9.3e-5 (displacement 5.1e-5).
 pub const EXP_STIFF_LIMIT: f64 = 4.0;
 
@@ -1479,8 +1479,8 @@ pub const EXP_STIFF_LIMIT: f64 = 4.0;
 /// through its own five points, the microspeakers of `testdata/drivers` (`|lambda| / fs` =
 /// 10.1 and 10.8) missed the tiny-step reference's current by 5.1e-6 and 1.2e-6 (relative
 /// RMS, IEC noise to 90 % of x_range), their displacement by 5.3e-6 and 1.6e-7
-/// (`examples/steps`), 60 times below a 70 dB record's noise and 20 times below issue 17's
-/// bar (1e-4). Each residual run then costs two thirds of the evaluations of the model, and
+/// (`examples/steps`), 60 times below a 70 dB record's noise and 20 times below the
+/// accuracy bar for the current (1e-4). Each residual run then costs two thirds of the evaluations of the model, and
 /// the 0.1 g microspeaker's `identify` took 8.3 -> 7.4 s (the stages example) with the same
 /// iterations and errors to four digits.
 pub const FIT_EXP_STIFF_LIMIT: f64 = 6.0;
@@ -1510,10 +1510,9 @@ pub struct Rates {
     pub stiff: f64,
     /// The LR-3 branch's (`R3 / Le + R3 / L3`; 0 without it): in the exponential method's
     /// network ([`Electrical::network3`]), which integrates it exactly, so it sets no
-    /// exponential steps (issue 17's session 38: a microspeaker with a branch 1.5 times
-    /// as fast as its LR-2 network followed a tiny-step run as closely at 2, 3 and 4 steps
-    /// as without it; until then the branch stayed outside the network and such a set took
-    /// RK4); classical RK4 must resolve it ([`Rates::total`]).
+    /// exponential steps (a microspeaker with a branch 1.5 times as fast as its LR-2
+    /// network follows a tiny-step run as closely at 2, 3 and 4 steps as without it; with
+    /// the branch outside the network such a set took RK4); classical RK4 must resolve it ([`Rates::total`]).
     pub lr3: f64,
 }
 
@@ -1623,9 +1622,8 @@ impl Stepper {
     /// The residual and Jacobian steppers of a fit: [`Stepper::for_rates`]'s choice with
     /// [`fit_exp_steps_for`]'s exponential steps (fewer than a simulation's,
     /// [`FIT_EXP_STIFF_LIMIT`]) and [`Stepper::for_jacobian`]. A fitted LR-3 branch is in
-    /// the exponential method's network ([`Electrical::network3`]); until issue 17's
-    /// session 38 it stayed outside, and a stiff driver's model with one took RK4 at 21
-    /// sub-steps (a fit's vanishing LR-3 start has `R3 / L3 = 6 R2 / L2`, as fast as the
+    /// the exponential method's network ([`Electrical::network3`]); outside it, a stiff
+    /// driver's model with one took RK4 at 21 sub-steps (a fit's vanishing LR-3 start has `R3 / L3 = 6 R2 / L2`, as fast as the
     /// network).
     pub fn for_fit(rates: Rates, fs: f64) -> (Self, Self) {
         (Stepper::cheaper(rates, fs, fit_exp_steps_for(rates, fs)), Stepper::for_jacobian(rates, fs))
@@ -1633,7 +1631,7 @@ impl Stepper {
 
     /// Classical RK4 for the model runs and for the Jacobian's, with the sub-steps the
     /// fastest mode needs (`|lambda| h <= STIFF_LIMIT`, at least `MIN_SUBSTEPS`; and
-    /// `|lambda| h <= JACOBIAN_STIFF_LIMIT`): the scheme before issue 17, which the
+    /// `|lambda| h <= JACOBIAN_STIFF_LIMIT`): the scheme before the exponential one, which the
     /// measurement path (the virtual device, the online estimator) keeps for now.
     pub fn rk4_for(rates: Rates, fs: f64) -> (Self, Self) {
         let n = substeps_for(rates.total(), fs);
@@ -1911,7 +1909,7 @@ mod tests {
         sum
     }
 
-    /// Issue 17, session 30: the coefficients held as pairs `p I + q A` are Hochbruck and
+    /// The coefficients held as pairs `p I + q A` are Hochbruck and
     /// Ostermann's matrices (Eq. 5.19) computed from the slow series of each `phi_j(c h A)`,
     /// for a microspeaker's network (`|lambda| h` = 10, the closed forms) and a woofer's
     /// (0.3, the series).
@@ -1953,9 +1951,8 @@ mod tests {
         }
     }
 
-    /// Issue 17, session 30: with two steps or more per sample the exponential method takes
-    /// the drive exactly, as the quartic through five points of each step (its own, at
-    /// quarter steps, since session 33; five around it, at half steps, before): a stiff
+    /// With two steps or more per sample the exponential method takes the drive exactly, as
+    /// the quartic through five points of each step (its own, at quarter steps): a stiff
     /// network (`|lambda| h` = 5 per step) under a quartic drive comes out exact, where the
     /// method's own quadrature (one step per sample, the drive in `N`) misses by the
     /// drive's cubic and quartic parts.
@@ -1981,7 +1978,7 @@ mod tests {
         assert!((one[2] - exact[2]).abs() > 1e-4 * exact[2].abs(), "one step: {} vs {}", one[2], exact[2]);
     }
 
-    /// Issue 17, session 31: the current's exponential method takes the current's decay and a
+    /// The current's exponential method takes the current's decay and a
     /// quartic drive exactly: a woofer's current equation alone (`|c| h` = 0.6 per sample, no
     /// coupling) under a quartic drive comes out exact at one step per sample, where RK4
     /// (one sub-step, the drive at three points) misses by the decay's and the drive's
@@ -2106,7 +2103,7 @@ mod tests {
         y
     }
 
-    /// Issue 17, session 38: the three eigenvalues of an LR-3 network's matrix are the roots
+    /// The three eigenvalues of an LR-3 network's matrix are the roots
     /// of its characteristic polynomial (to 1e-12 of the largest), in order, with the trace
     /// and the determinant theirs, and their dual parts the roots' derivatives (central
     /// differences); also with two branches of the same time constant and with a vanishing
@@ -2154,7 +2151,7 @@ mod tests {
         }
     }
 
-    /// Issue 17, session 38: with an LR-3 branch the exponential method integrates the 3 x 3
+    /// With an LR-3 branch the exponential method integrates the 3 x 3
     /// network of `i`, `i2` and `i3` exactly (a constant drive, no mechanics: `|lambda| h` =
     /// 15, where one RK4 step diverges), and takes a quartic drive exactly at two steps or
     /// more, as the 2 x 2 network's tests above; the exponential midpoint rule (a stiff
@@ -2188,7 +2185,7 @@ mod tests {
         check(&etd2_sample(&sys, &y0, dt, &[q(0.0), q(0.5 * dt), q(dt)]), &exact, 1e-11, "exponential midpoint, quadratic drive");
     }
 
-    /// Issue 17, session 38: on the LR-3 network coupled to the nonlinear mechanics the
+    /// On the LR-3 network coupled to the nonlinear mechanics the
     /// exponential method stays fourth order (`|lambda| h` from 7.5 down to 1.9), the
     /// exponential midpoint rule second order; and dual numbers through a sample's steps
     /// carry the sensitivity to R3 (against central differences), through the eigenvalues'

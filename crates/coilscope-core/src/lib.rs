@@ -3,7 +3,7 @@
 //! The physics core of coilscope: parameter sets, the nonlinear electrodynamic transducer
 //! model, its normal form, the integrator and the excitation signals.
 //!
-//! ## Conventions (from `shared/spec/formats.md`)
+//! ## Conventions (from `docs/formats.md`)
 //!
 //! * SI units everywhere: metres, seconds, volts, amperes, ohms, henries, kilograms, newtons,
 //!   kelvin (temperatures are rises above ambient).

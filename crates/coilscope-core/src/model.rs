@@ -550,8 +550,8 @@ pub struct CreepBank<D> {
     pub rate: [f64; NCREEP],
 }
 
-/// [`Model`] with the effects of real drivers that need states of their own (issue 15,
-/// formats.md "Extensions"), added as components to the same equations:
+/// [`Model`] with the effects of real drivers that need states of their own (formats.md
+/// "Extensions"), added as components to the same equations:
 ///
 /// ```text
 /// u  = ... + R3 (i - i3),                  L3 di3/dt = R3 (i - i3)        (LR-3, in series with LR-2)

@@ -1,4 +1,4 @@
-//! Parameter sets (`"format": "coilscope.parameters/1"`, see `shared/spec/formats.md`).
+//! Parameter sets (`"format": "coilscope.parameters/1"`, see `docs/formats.md`).
 //!
 //! A value is a number (a constant) or an ascending SI power series in x (metres). Parsing
 //! is strict about what the contract defines and lenient about what it does not: unknown keys
@@ -173,7 +173,8 @@ fn describe(v: &Value) -> String {
 impl Parameters {
     /// Parse and validate a parameter set from JSON text. `origin` names it in errors.
     pub fn from_json_str(text: &str, origin: &str) -> Result<Self, ParamError> {
-        let value: Value = serde_json::from_str(text).map_err(|e| ParamError { origin: origin.to_string(), key: String::new(), message: format!("not valid JSON ({e}); a parameter set is a JSON object, see shared/spec/formats.md") })?;
+        let value: Value =
+            serde_json::from_str(text).map_err(|e| ParamError { origin: origin.to_string(), key: String::new(), message: format!("not valid JSON ({e}); a parameter set is a JSON object, see docs/formats.md in coilscope's repository") })?;
         Self::from_json_value(&value, origin)
     }
 

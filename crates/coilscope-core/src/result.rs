@@ -1,4 +1,4 @@
-//! The identification result file (`"format": "coilscope.result/1"`, `shared/spec/formats.md`)
+//! The identification result file (`"format": "coilscope.result/1"`, `docs/formats.md`)
 //! as typed serde structs: `linear`, `identify` and `measure` build a [`ResultFile`], the
 //! report and scripts read one back, and every key the contract names is a field here.
 //!
@@ -52,7 +52,7 @@ pub struct ResultFile {
     /// The post-inverse estimate with a measured displacement, against this result.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cross_check: Option<CrossCheck>,
-    /// The measurement chain, as estimated or calibrated (`shared/spec/formats.md`,
+    /// The measurement chain, as estimated or calibrated (`docs/formats.md`,
     /// "Extensions").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub chain: Option<crate::chain::Chain>,
@@ -78,6 +78,14 @@ pub struct Fit {
     /// Fitted band (Hz), `linear`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub band_hz: Option<[f64; 2]>,
+    /// How the fitted band was chosen, `linear` on an impedance curve: where the lumped
+    /// model stops holding (cone break-up), or that it holds over the whole curve.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub band_note: Option<String>,
+    /// `linear` on an impedance curve without a phase column: how it was fitted (to |Z|
+    /// alone). Absent when the file has its phase.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub phase_note: Option<String>,
     /// Frequency bins fitted, `linear`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub bins: Option<usize>,
@@ -516,14 +524,15 @@ impl ResultFile {
     pub fn from_json_value(v: serde_json::Value, origin: &str) -> Result<Self, ResultError> {
         let err = |message: String| ResultError { message: format!("{origin}: {message}") };
         match v.get("format").and_then(|f| f.as_str()) {
-            Some(f) if f.starts_with("coilscope.result/") => {}
+            Some(f) if f == RESULT_FORMAT => {}
+            Some(f) if f.starts_with("coilscope.result/") => return Err(err(format!("format {f:?} is a result version this coilscope does not read (it reads {RESULT_FORMAT:?}): a newer coilscope wrote it"))),
             Some(f) => return Err(err(format!("format {f:?} is not a result ({RESULT_FORMAT:?})"))),
             None => return Err(err(format!("no `format` key: a result file has \"format\": {RESULT_FORMAT:?}"))),
         }
         // The parameter set first, for its own errors (they name the key and what is valid).
         let pv = v.get("parameters").ok_or_else(|| err("the result has no `parameters` object".into()))?;
         Parameters::from_json_value(pv, &format!("{origin} (parameters)")).map_err(|e| ResultError { message: e.to_string() })?;
-        serde_json::from_value(v).map_err(|e| err(format!("not a valid result ({e}); see shared/spec/formats.md")))
+        serde_json::from_value(v).map_err(|e| err(format!("not a valid result ({e}); see docs/formats.md in coilscope's repository")))
     }
 
     /// As JSON.
@@ -547,18 +556,20 @@ impl<'de> Deserialize<'de> for Parameters {
 
 impl Serialize for ThieleSmall {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        ThieleSmallRecord { fs: self.fs, qms: self.qms, qes: self.qes, qts: self.qts, cms: self.cms, vas: self.vas }.serialize(s)
+        ThieleSmallRecord { fs: self.fs, qms: self.qms, qes: self.qes, qts: self.qts, cms: self.cms, vas: self.vas, rms_fs: self.rms_fs }.serialize(s)
     }
 }
 
 impl<'de> Deserialize<'de> for ThieleSmall {
     fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
         let r = ThieleSmallRecord::deserialize(d)?;
-        Ok(ThieleSmall { fs: r.fs, qms: r.qms, qes: r.qes, qts: r.qts, cms: r.cms, vas: r.vas })
+        Ok(ThieleSmall { fs: r.fs, qms: r.qms, qes: r.qes, qts: r.qts, cms: r.cms, vas: r.vas, rms_fs: r.rms_fs })
     }
 }
 
-/// `small_signal` of a result: fs (Hz), Qms, Qes, Qts, Cms (m/N), Vas (m^3, null without Sd).
+/// `small_signal` of a result: fs (Hz), Qms, Qes, Qts, Cms (m/N), Vas (m^3, null without Sd),
+/// and `Rms_fs` (kg/s): the mechanical resistance at fs, the viscous `Rms` plus creep's loss
+/// there, which Qms and Qts include (see [`ThieleSmall`]; NaN when a file predates it).
 #[derive(Serialize, Deserialize)]
 struct ThieleSmallRecord {
     #[serde(deserialize_with = "nan_if_null")]
@@ -573,6 +584,12 @@ struct ThieleSmallRecord {
     cms: f64,
     #[serde(rename = "Vas", default)]
     vas: Option<f64>,
+    #[serde(rename = "Rms_fs", default = "nan", deserialize_with = "nan_if_null")]
+    rms_fs: f64,
+}
+
+fn nan() -> f64 {
+    f64::NAN
 }
 
 /// JSON writes NaN as `null`: read it back as NaN.
@@ -636,5 +653,9 @@ mod tests {
         assert!(e.starts_with("r.json: ") && e.contains("invalid type"), "{e}");
         let e = ResultFile::from_json_str(r#"{"format": "coilscope.parameters/1"}"#, "p.json").unwrap_err().to_string();
         assert!(e.contains("p.json") && e.contains("not a result"), "{e}");
+        let mut v = example().to_json_value();
+        v["format"] = "coilscope.result/2".into();
+        let e = ResultFile::from_json_value(v, "new.json").unwrap_err().to_string();
+        assert!(e.contains("new.json") && e.contains("\"coilscope.result/2\"") && e.contains("does not read"), "{e}");
     }
 }

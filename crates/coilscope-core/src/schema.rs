@@ -1,4 +1,4 @@
-//! The parameter schema: every key of a parameter set (`shared/spec/formats.md`), with its SI
+//! The parameter schema: every key of a parameter set (`docs/formats.md`), with its SI
 //! unit, its kind (a constant, a power series in x, in the current, in |v|, …), the component
 //! of the model it belongs to and what it means.
 //!
@@ -222,5 +222,8 @@ mod tests {
             let last = e.key.rsplit('.').next().unwrap();
             assert!(spec.contains(&format!("`{last}`")) || spec.contains(&format!("`{}`", e.key)), "formats.md does not name {}", e.key);
         }
+        // The repository carries the contract for its users (`docs/formats.md`): the same text.
+        let copy = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../docs/formats.md")).expect("docs/formats.md");
+        assert!(copy == spec, "docs/formats.md differs from shared/spec/formats.md: copy the contract again");
     }
 }

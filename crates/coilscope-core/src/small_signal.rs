@@ -22,10 +22,7 @@ pub fn impedance(p: &Parameters, f: f64) -> Complex64 {
     if let Some((l3, r3)) = p.l3r3 {
         z += jw * l3 * r3 / (jw * l3 + r3);
     }
-    let k = match (&p.creep, p.creep_f_ref()) {
-        (Some(c), Some(f_ref)) => p.kms.c[0] * crate::creep::stiffness_factor(c.lambda, 2.0 * PI * f, 2.0 * PI * f_ref),
-        _ => Complex64::new(p.kms.c[0], 0.0),
-    };
+    let k = dynamic_stiffness(p, 2.0 * PI * f);
     let zm = p.rms + jw * p.mms + k / jw;
     z + p.bl.c[0] * p.bl.c[0] / zm
 }
@@ -33,14 +30,19 @@ pub fn impedance(p: &Parameters, f: f64) -> Complex64 {
 /// Displacement per current `X / I` (m/A) at x = 0: `Bl / (K(jw) - w^2 Mms + jw Rms)`.
 pub fn displacement_per_current(p: &Parameters, f: f64) -> Complex64 {
     let w = 2.0 * PI * f;
-    let k = match (&p.creep, p.creep_f_ref()) {
-        (Some(c), Some(f_ref)) => p.kms.c[0] * crate::creep::stiffness_factor(c.lambda, w, 2.0 * PI * f_ref),
-        _ => Complex64::new(p.kms.c[0], 0.0),
-    };
+    let k = dynamic_stiffness(p, w);
     p.bl.c[0] / (k + Complex64::new(-w * w * p.mms, w * p.rms))
 }
 
-/// Thiele/Small figures at x = 0.
+/// Thiele/Small figures at x = 0, as KLIPPEL LPM and Speakerbench report them: at the
+/// resonance `fs`, with the suspension's creep in its stiffness and its loss.
+///
+/// With creep ([`crate::creep`]) the suspension's stiffness is complex, `K(jw)`: its real
+/// part sets the resonance, where `Re K(jw_s) = w_s^2 Mms`, and its imaginary part is a loss
+/// that acts at `fs` as a mechanical resistance `Im K(jw_s) / w_s` (about `0.68 lambda
+/// Kms(0) / w_s`) beside the viscous `Rms`. `rms_fs` is their sum, and `Qms = w_s Mms /
+/// rms_fs`, so `Qms`, `Qts` and `Res = Bl^2 / rms_fs` are the figures read off the
+/// impedance peak. Without creep, `rms_fs = Rms` and `fs = sqrt(Kms(0) / Mms) / 2 pi`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ThieleSmall {
     /// Resonance frequency (Hz).
@@ -52,17 +54,40 @@ pub struct ThieleSmall {
     pub cms: f64,
     /// Equivalent air volume (m^3), when Sd is known.
     pub vas: Option<f64>,
+    /// Mechanical resistance at `fs` (kg/s): the viscous `Rms` plus creep's loss there.
+    pub rms_fs: f64,
 }
 
-/// Thiele/Small figures of a parameter set at x = 0.
+/// The suspension's dynamic stiffness `K(jw)` (N/m) at x = 0: `Kms(0)` without creep, the
+/// [`crate::creep`] bank's with it.
+pub fn dynamic_stiffness(p: &Parameters, w: f64) -> Complex64 {
+    match (&p.creep, p.creep_f_ref()) {
+        (Some(c), Some(f_ref)) => p.kms.c[0] * crate::creep::stiffness_factor(c.lambda, w, 2.0 * PI * f_ref),
+        _ => Complex64::new(p.kms.c[0], 0.0),
+    }
+}
+
+/// Thiele/Small figures of a parameter set at x = 0 (see [`ThieleSmall`]).
 pub fn thiele_small(p: &Parameters) -> ThieleSmall {
     let kms = p.kms.c[0];
     let bl = p.bl.c[0];
-    let ws = (kms / p.mms).sqrt();
-    let qms = ws * p.mms / p.rms;
+    // The resonance: `Re K(jw) = w^2 Mms`. `Re K` moves by lambda Kms(0) per decade, so the
+    // fixed point contracts by about lambda / (2 ln 10) per step; without creep it is exact
+    // at once.
+    let mut ws = (kms / p.mms).sqrt();
+    for _ in 0..50 {
+        let next = (dynamic_stiffness(p, ws).re / p.mms).sqrt();
+        let done = (next - ws).abs() <= 1e-13 * ws;
+        ws = next;
+        if done || !ws.is_finite() {
+            break;
+        }
+    }
+    let rms_fs = p.rms + dynamic_stiffness(p, ws).im / ws;
+    let qms = ws * p.mms / rms_fs;
     let qes = ws * p.mms * p.re / (bl * bl);
     let cms = 1.0 / kms;
-    ThieleSmall { fs: ws / (2.0 * PI), qms, qes, qts: qms * qes / (qms + qes), cms, vas: p.sd.map(|sd| RHO_AIR * C_AIR * C_AIR * sd * sd * cms) }
+    ThieleSmall { fs: ws / (2.0 * PI), qms, qes, qts: qms * qes / (qms + qes), cms, vas: p.sd.map(|sd| RHO_AIR * C_AIR * C_AIR * sd * sd * cms), rms_fs }
 }
 
 #[cfg(test)]
@@ -83,6 +108,32 @@ mod tests {
         assert!((ts.qes - ts.qms * p.re / (p.bl.c[0].powi(2) / p.rms)).abs() < 1e-12);
         assert!((ts.fs - 32.38).abs() < 0.01, "{}", ts.fs);
         assert!(ts.vas.unwrap() > 0.02 && ts.vas.unwrap() < 0.04);
+    }
+
+    /// With creep, fs is where the motional impedance is real, and there it is `Bl^2 /
+    /// rms_fs`: the peak an impedance curve shows, whatever the creep's reference.
+    #[test]
+    fn qms_at_fs_takes_creeps_loss_from_the_impedance_peak() {
+        let plain = embedded_driver("sb17cac35-4").unwrap();
+        for (lambda, f_ref) in [(0.02, None), (0.1, None), (0.15, None), (0.1, Some(10.0)), (0.1, Some(300.0))] {
+            let p = Parameters { creep: Some(crate::params::Creep { lambda, f_ref }), ..plain.clone() };
+            let ts = thiele_small(&p);
+            let zmot = impedance(&p, ts.fs) - impedance(&Parameters { bl: crate::Poly::constant(1e-12), ..p.clone() }, ts.fs);
+            let peak = p.bl.c[0].powi(2) / ts.rms_fs;
+            assert!(zmot.im.abs() < 1e-9 * zmot.re, "lambda {lambda} f_ref {f_ref:?}: Zmot {zmot} at fs {}", ts.fs);
+            assert!((zmot.re - peak).abs() < 1e-9 * peak, "lambda {lambda} f_ref {f_ref:?}: Zmot {zmot}, Bl^2/rms_fs {peak}");
+            // The loss is the Kramers-Kronig partner of the LOG law, about 0.68 lambda K / w.
+            let ws = 2.0 * PI * ts.fs;
+            let loss = ts.rms_fs - p.rms;
+            let kk = lambda * p.kms.c[0] * PI / (2.0 * std::f64::consts::LN_10) / ws;
+            assert!(loss > 0.0 && (loss / kk - 1.0).abs() < 0.1, "lambda {lambda} f_ref {f_ref:?}: loss {loss}, 0.68 lambda Kms / ws {kk}");
+            assert!((ts.qms - ws * p.mms / ts.rms_fs).abs() < 1e-12 * ts.qms);
+            assert!(ts.qms < thiele_small(&plain).qms);
+        }
+        // Without creep nothing moves.
+        let ts = thiele_small(&plain);
+        assert_eq!(ts.rms_fs, plain.rms);
+        assert_eq!(ts.fs, plain.resonance_hz());
     }
 
     #[test]

@@ -1,4 +1,4 @@
-//! Issue 14 item 10: the simulator against a reference written apart from `model.rs`.
+//! The simulator against a reference written apart from `model.rs`.
 //!
 //! The tiny-step test in `physics.rs` runs the same model code with more sub-steps, so a
 //! mistake in `model.rs` or in the sampled-input interpolation would hide there. This oracle
@@ -16,8 +16,8 @@
 //!
 //! Measured: current 4e-9 to 1.8e-7 (relative RMS), displacement 3e-10 to 1.6e-8 of the peak
 //! with RK4 (the README's figures); the test fails at 1e-6 and 1e-7. The microspeaker with
-//! the exponential scheme (issue 17; 3 steps per sample with the drive integrated exactly
-//! since session 30, 1.1e-7 and 6.1e-7 at 4 steps before): 6.2e-8 and 5.7e-7; fails at 3e-7
+//! the exponential scheme (3 steps per sample with the drive integrated exactly; 1.1e-7 and
+//! 6.1e-7 at 4 steps with the drive in the quadrature): 6.2e-8 and 5.7e-7; fails at 3e-7
 //! and 3e-6.
 
 use coilscope_core::integrate::{Scheme, Stepper};
@@ -170,7 +170,7 @@ fn simulator_matches_the_oracle_on_a_stiff_microspeaker_and_a_large_coil() {
         if name == "large-coil" {
             check(name, &p, 0.15);
         } else {
-            // Issue 17: the microspeaker takes the exponential scheme (3 steps per sample;
+            // The microspeaker takes the exponential scheme (3 steps per sample;
             // measured: current 6.2e-8, displacement 5.7e-7 of the peak), and RK4 with its
             // 21 sub-steps stays checked too (1.9e-8, 1.6e-8).
             assert_eq!(Stepper::for_rates(p.rates(), FS).scheme, Scheme::Exponential);
@@ -189,7 +189,7 @@ fn hd(x: &[f64], f0: f64, order: usize) -> f64 {
     s[order * bin.round() as usize].norm() / s[bin.round() as usize].norm()
 }
 
-/// Issue 18 (compensation): a 30 Hz tone whose linear reference reaches 80 % of x_range,
+/// Compensation: a 30 Hz tone whose linear reference reaches 80 % of x_range,
 /// played plain and through the pre-inverse ([`coilscope_core::inverse::compensate`]), each
 /// run through this file's oracle (not the simulator the controller was written against):
 /// the worst of the displacement's HD2 and HD3 falls by at least 20 dB. Measured: see the

@@ -49,7 +49,7 @@ fn simulator_matches_tiny_step_reference_at_full_excursion() {
         let ex = rel_rms(&fast.x, &tiny.x);
         eprintln!("{name}: {} sub-steps, current {ei:.2e}, displacement {ex:.2e}", fast.substeps);
         // README: current 0.7-2.6e-5, displacement < 1.5e-7 (2 sub-steps); the test fails
-        // at about 4x, at issue 17's bar for the current (1e-4).
+        // at about 4x, at the accuracy bar for the current (1e-4).
         assert!(ei < 1e-4, "{name}: current differs by {ei:.3e} (relative RMS)");
         assert!(ex < 6e-7, "{name}: displacement differs by {ex:.3e} (relative RMS)");
     }
@@ -100,7 +100,7 @@ fn energy_account(p: &Parameters, seconds: f64, stepper: Stepper) -> (Stepper, [
     (stepper, [e_in, e_re, e_r2, e_rms, stored, imbalance])
 }
 
-/// Issue 17: the exponential scheme on the stiff microspeaker of `testdata/drivers` (the
+/// The exponential scheme on the stiff microspeaker of `testdata/drivers` (the
 /// scheme its simulations take) closes the same energy balance.
 #[test]
 fn energy_balances_in_the_exponential_scheme_on_a_microspeaker() {
@@ -110,8 +110,8 @@ fn energy_balances_in_the_exponential_scheme_on_a_microspeaker() {
     assert_eq!(stepper.scheme, Scheme::Exponential);
     eprintln!("microspeaker, {} exponential steps: E_in {e_in:.4e} J, Re {e_re:.4e}, R2 {e_r2:.4e}, Rms {e_rms:.4e}, stored {stored:.3e}, imbalance {imbalance:.2e}", stepper.n());
     // Measured 6.6e-8 of the input energy at 3 steps, each step's drive the quartic through
-    // its own five points (session 33; 1.0e-7 with five points around each step, session
-    // 30; 9e-7 at 4 steps before); the test fails at 4.5x.
+    // its own five points (1.0e-7 with five points around each step; 9e-7 at 4 steps); the
+    // test fails at 4.5x.
     assert!(imbalance.abs() < 3e-7 * e_in, "imbalance {imbalance:.3e} J of {e_in:.3e} J");
     // A fit's model runs take 2 steps (Stepper::for_fit): measured 4.6e-7; fails at 4.3x.
     let (stepper, [e_in, .., imbalance]) = energy_account(&p, 0.3, Stepper::for_fit(p.rates(), FS).0);
@@ -137,7 +137,7 @@ fn energy_in_equals_losses_plus_stored_energy() {
     }
 }
 
-/// Issue 17, session 31: the current's exponential method ([`Scheme::ExpCurrent`]: the
+/// The current's exponential method ([`Scheme::ExpCurrent`]: the
 /// current's decay and the drive exactly, RK4's weights for the rest) at one step per
 /// sample against 128 RK4 sub-steps: the three bundled drivers at 44.1, 48 and 96 kHz, two
 /// seeds each, IEC noise to 90 % of the range. Measured: current 1.4e-7 (96 kHz) to 5.5e-6
@@ -168,7 +168,7 @@ fn the_current_exponential_method_matches_the_tiny_step_reference_in_one_step() 
     }
 }
 
-/// Issue 17, session 31: the current's exponential method closes the energy balance (the
+/// The current's exponential method closes the energy balance (the
 /// energies integrated as states of their own, [`energy_account`]) as RK4 does at the two
 /// sub-steps a simulation takes, and closer.
 #[test]
@@ -242,12 +242,12 @@ fn stiff_microspeaker_is_stable_and_accurate_at_48_khz() {
     let u = full_excursion_voltage(&p, 0.4, 0.9);
     let tiny = simulate(&p, FS, &u, &SimOptions { substeps: Some(256), ..Default::default() }).unwrap();
     // RK4 needs 14 sub-steps or more here; the default takes the exponential scheme
-    // (Issue 17), whose steps follow the drive, not Le / (Re + R2).
+    // whose steps follow the drive, not Le / (Re + R2).
     let rk4 = simulate(&p, FS, &u, &SimOptions { scheme: Some(Scheme::Rk4), ..Default::default() }).unwrap();
     assert!(rk4.substeps >= 14, "{}", rk4.substeps);
     let fast = simulate(&p, FS, &u, &SimOptions::default()).unwrap();
     assert!(fast.substeps <= 5 && Stepper::for_rates(p.rates(), FS).scheme == Scheme::Exponential, "{} steps", fast.substeps);
-    // A fit's model runs (Stepper::for_fit, issue 17's session 33): fewer exponential steps.
+    // A fit's model runs (Stepper::for_fit): fewer exponential steps.
     let fit_steps = Stepper::for_fit(p.rates(), FS).0;
     assert!(fit_steps.scheme == Scheme::Exponential && fit_steps.n() < fast.substeps, "{:?}", fit_steps);
     let fit = simulate(&p, FS, &u, &SimOptions { scheme: Some(Scheme::Exponential), substeps: Some(fit_steps.n()), ..Default::default() }).unwrap();
@@ -256,9 +256,9 @@ fn stiff_microspeaker_is_stable_and_accurate_at_48_khz() {
         let ex = rel_rms(&tr.x, &tiny.x);
         eprintln!("microspeaker, {what}: {} steps, current {ei:.2e}, displacement {ex:.2e}", tr.substeps);
         // Measured: RK4 1.3e-6 / 4e-11; exponential 1.9e-6 / 1.1e-6 at 3 steps with each
-        // step's drive the quartic through its own five points (session 33; 5.0e-6 / 1.1e-6
-        // with five points around it, session 30; 1.7e-5 / 4.4e-7 at 4 steps before), and
-        // 9.5e-6 / 3.9e-6 at a fit's 2 steps (the issue's bar: 1e-4). The exponential bounds
+        // step's drive the quartic through its own five points (5.0e-6 / 1.1e-6 with five
+        // points around it; 1.7e-5 / 4.4e-7 at 4 steps), and 9.5e-6 / 3.9e-6 at a fit's 2
+        // steps (the accuracy bar for the current: 1e-4). The exponential bounds
         // fail at 10x and 3.6x, the fit's at 4x.
         assert!(ei < ti && ex < tx, "{what}: current {ei:.3e}, displacement {ex:.3e}");
     }
@@ -300,7 +300,7 @@ fn leaving_the_valid_range_stops_with_time_and_state() {
     assert!(simulate(&p, FS, &bad, &SimOptions::default()).unwrap_err().to_string().contains("sample 0 is not finite"));
 }
 
-/// A bundled driver with every effect of issue 15, as in shared/recordings' `-real-`
+/// A bundled driver with every effect of a real driver, as in shared/recordings' `-real-`
 /// records: LOG creep (lambda 0.07), an LR-3 branch (L3 = 0.6 L2, R3 = 2.5 R2), flux
 /// modulation with Le 4 % down (and 1 % asymmetry) at the peak current of a full-excursion
 /// record, and Rms 40 % up at its peak velocity.
@@ -369,11 +369,11 @@ fn energy_balance_of(p: &Parameters, u: &[f64], stepper: &Stepper) -> (f64, f64)
     (e[0], e[0] - e[1..].iter().sum::<f64>() - stored)
 }
 
-/// Issue 17, session 38: a stiff microspeaker with every effect of a real driver, its LR-3
+/// A stiff microspeaker with every effect of a real driver, its LR-3
 /// branch as fast as its network (`testdata/drivers`' 0.1 g one with the harsh world's
 /// LR-3, creep, Le(i) and Rms(v)). The LR-3 branch is in the exponential method's 3 x 3
-/// network (`Electrical::network3`): a simulation takes the exponential steps (before:
-/// RK4, the branch outside the network), and follows a tiny-step RK4 run and closes the
+/// network (`Electrical::network3`): a simulation takes the exponential steps (with the
+/// branch outside the network it would take RK4), and follows a tiny-step RK4 run and closes the
 /// energy balance as the plain microspeaker does (`stiff_microspeaker_is_stable_and_accurate_at_48_khz`,
 /// `energy_balances_in_the_exponential_scheme_on_a_microspeaker`), at a simulation's and at
 /// a fit's steps.
@@ -400,7 +400,7 @@ fn a_microspeaker_with_every_effect_in_the_exponential_method() {
     }
 }
 
-/// Issue 15: with creep, LR-3, Le(i) and Rms(v) the energy still balances over a full-excursion record
+/// With creep, LR-3, Le(i) and Rms(v) the energy still balances over a full-excursion record
 /// (the production integrator and sub-step count; and the current's exponential method at
 /// one step per sample).
 #[test]
@@ -414,10 +414,10 @@ fn energy_balances_with_every_effect() {
         // At the steps a simulation takes (README: < 3e-5 of the input energy; the test fails
         // at about 3x), at 8 RK4 sub-steps, where the balance must close further (an error
         // in the model's equations would not shrink with the steps), and in the current's
-        // exponential method at one step (issue 17, session 37: 0.13-1.8e-5 of the input,
-        // against RK4's 1.5-3.4e-5 at two sub-steps; the test fails at 4x). The stepper
-        // itself, not RK4 at its step count: session 37's trial of that method as the
-        // default read 6.3e-4 here, which was RK4 at one sub-step.
+        // exponential method at one step (0.13-1.8e-5 of the input, against RK4's 1.5-3.4e-5
+        // at two sub-steps; the test fails at 4x). The stepper itself, not RK4 at its step
+        // count: a trial of that method as the default once read 6.3e-4 here, which was RK4
+        // at one sub-step.
         for (stepper, tol) in [(production, 1e-4), (Stepper::new(Scheme::Rk4, 8), 8e-6), (Stepper::new(Scheme::ExpCurrent, 1), 7e-5)] {
             let (e_in, imbalance) = energy_balance_of(&p, &u, &stepper);
             let (scheme, n) = (stepper.scheme.name(), stepper.n());
@@ -427,7 +427,7 @@ fn energy_balances_with_every_effect() {
     }
 }
 
-/// Issue 15: the time-domain model with every effect follows the analytic small-signal
+/// The time-domain model with every effect follows the analytic small-signal
 /// impedance (the creep bank's and LR-3's frequency responses in `small_signal::impedance`;
 /// Le(i) and Rms(v) vanish at small signal).
 #[test]
@@ -446,7 +446,7 @@ fn small_signal_current_with_every_effect_follows_the_analytic_impedance() {
     }
 }
 
-/// Issue 15: the production step count is as accurate with the extra states as without.
+/// The production step count is as accurate with the extra states as without.
 #[test]
 fn simulator_with_every_effect_matches_tiny_step_reference() {
     for name in embedded_driver_names() {
@@ -484,7 +484,7 @@ fn an_external_force_is_held_by_the_suspension() {
     }
 }
 
-/// Issue 17 ([`FlushTiny`]): the sensitivity to an `Re` that acts only over the first 0.1 s
+/// [`FlushTiny`]: the sensitivity to an `Re` that acts only over the first 0.1 s
 /// (a Jacobian's `Re(t)` knot) decays through the subnormal range once the drive stops
 /// feeding it, and a run that does not flush keeps subnormal lanes for many samples (what
 /// made the microspeaker's knot passes three times slower); with the flush after every

@@ -61,9 +61,9 @@ fn rec(name: &str) -> &'static Rec {
 }
 
 /// The microspeaker of `testdata/drivers` (Le 30 uH, L2 15 uH, R2 2 ohm: 21 RK4 sub-steps
-/// per sample at 48 kHz, or 3 exponential steps (4 until session 30), the scheme it takes since issue 17; 1 in
-/// the Jacobian), LR-2, one sample. The record is made before the timed run (until session
-/// 30 its simulation, 1-1.5 s, was inside this bench's one sample).
+/// per sample at 48 kHz, or 3 exponential steps, the scheme it takes; 1 in the Jacobian),
+/// LR-2, one sample. The record is made before the timed run (its simulation, 1-1.5 s,
+/// would otherwise be inside this bench's one sample).
 #[divan::bench(args = ["microspeaker-0g1"], sample_count = 1, sample_size = 1)]
 fn identify_8s_microspeaker(b: divan::Bencher, name: &str) {
     rec(name);
@@ -71,7 +71,7 @@ fn identify_8s_microspeaker(b: divan::Bencher, name: &str) {
 }
 
 /// The whole `identify` (linear start, order selection, final fit, covariance), the LR-2
-/// model given (what it was before issue 15).
+/// model given (no effects chosen).
 #[divan::bench(args = ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"], sample_count = 3, sample_size = 1)]
 fn identify_8s(name: &str) {
     let r = rec(name);
@@ -81,7 +81,7 @@ fn identify_8s(name: &str) {
 }
 
 /// The same with the effects chosen on held-out data (the default): creep, LR-3 and both are
-/// tried at the chosen order. Issue 17's target: 5 s for each bundled driver.
+/// tried at the chosen order. The target: 5 s for each bundled driver.
 #[divan::bench(args = ["sb17cac35-4", "ptt4.0w04-01a", "18wu-4741t-00"], sample_count = 2, sample_size = 1)]
 fn identify_8s_effects_auto(name: &str) {
     let r = rec(name);
@@ -90,7 +90,7 @@ fn identify_8s_effects_auto(name: &str) {
 }
 
 /// The microspeaker of `testdata/drivers` with the effects chosen on held-out data (one
-/// sample; the record made before the timed run). Issue 17's 5 s target with the real-driver
+/// sample; the record made before the timed run). The 5 s target with the real-driver
 /// model is for a microspeaker too.
 #[divan::bench(args = ["microspeaker-0g1"], sample_count = 1, sample_size = 1)]
 fn identify_8s_effects_auto_microspeaker(b: divan::Bencher, name: &str) {
@@ -98,7 +98,7 @@ fn identify_8s_effects_auto_microspeaker(b: divan::Bencher, name: &str) {
     b.bench_local(|| identify_8s_effects_auto(name));
 }
 
-/// A production line's batch (issue 17): four 8 s SB17 records (seeds 1-4, LR-2), identified
+/// A production line's batch: four 8 s SB17 records (seeds 1-4, LR-2), identified
 /// one at a time on all cores (`workers` 1: what four `identify` calls do), or by one worker
 /// per core each on one core (`workers` 2: what `identify A B C D --out DIR` does, less
 /// its process start-up, a few milliseconds).

@@ -3,7 +3,7 @@
 //! high. This drives *our* model with the same record's voltage at `OS` times the rate
 //! (FFT interpolation, default 16, as the reference integrates), brings the current back to
 //! 48 kHz (FFT brickwall) and identifies it the same way (order 4, LR-2, chain estimated, no
-//! noise). Measured 2026-11-26: OS 16: delay +1.6e-5 sample, Le 0.0075 % high; OS 1: -4e-8
+//! noise). Measured: OS 16: delay +1.6e-5 sample, Le 0.0075 % high; OS 1: -4e-8
 //! sample, 0.0088 %. Our 48 kHz discretisation agrees with our continuous model to 1.6e-5
 //! sample: the reference's offset is its own (`LE_DELAY_SYSTEMATIC_REL`).
 //!

@@ -14,8 +14,8 @@
 //! `chain`: record through a sound card (current 0.3 sample late, AC coupling at 2 Hz on the
 //! voltage and 4 Hz on the current, offsets of 0.5 % of each channel's peak, 50 Hz hum at
 //! -60 dB) and estimate the chain with the driver (`--chain auto`); `slow-lr3`: give the
-//! driver a second branch of half its L2 at twice its time constant (issue 17's
-//! `issue17_branch_order` record; implies `auto`); `clean`: no sensor noise.
+//! driver a second branch of half its L2 at twice its time constant (the
+//! `branch_order` test's record; implies `auto`); `clean`: no sensor noise.
 //! The profile by function is `perf record -g` on the `identify` benchmark.
 
 use coilscope_core::chain::{Chain, Hum};

@@ -264,7 +264,7 @@ pub fn calibrate(u: &[f64], i: &[f64], fs: f64, resistor: f64, origin: &str) -> 
     // explain. A likelihood-ratio test, not the difference's sd from the covariance: along
     // the common corner (not identifiable) that covariance is singular, and its round-off
     // once reported a difference of 2e-6 Hz as resolved (sd 0, with a faster-falling LM damping
-    // tried in session 26).
+    // tried).
     let sigma2 = r.norm_squared() / (2 * m).saturating_sub(4).max(1) as f64;
     let (tied, diff_sd) = tied_corners(&prob, &th, sigma2.sqrt());
     let resolved = tied - r.norm_squared() > 9.0 * sigma2;

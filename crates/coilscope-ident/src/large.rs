@@ -37,16 +37,16 @@ use num_dual::{DualNum, DualSVec64};
 use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
-/// Parameters per dual-number pass of the Jacobian. Measured 2026-11-26 with the
+/// Parameters per dual-number pass of the Jacobian. Measured with the
 /// `jacobian_order4` bench (23 columns, 8 s, both cores, medians of 5, repeated): 826 ms
 /// (width 4), 618 (6), 565 (8), 680 (10), 753 (12), 874 (16). At width 8 each pass's value
 /// part and the dual numbers' `Option` test are shared by twice the columns of width 4, and
-/// it still fits the registers; `identify_8s` went 5.93 -> 4.75 s (SB17), 5.96 -> 4.78
-/// (PTT4), 9.03 -> 6.95 (18WU), the effects search 14.85 -> 11.26, with every result
-/// bit-identical. (Until then 4, from a one-core timing per column of an older model.)
+/// it still fits the registers; against width 4, `identify_8s` takes 4.75 s instead of 5.93
+/// (SB17), 4.78 instead of 5.96 (PTT4), 6.95 instead of 9.03 (18WU), the effects search
+/// 11.26 instead of 14.85, with every result bit-identical.
 pub const CHUNK: usize = 8;
 /// The widths of `identify`'s Jacobian passes and the cost of one pass of each, in units of
-/// an 8-lane pass ([`CHUNK`]). Measured in session 34 on [`Jet`]s (the benches
+/// an 8-lane pass ([`CHUNK`]). Measured on [`Jet`]s (the benches
 /// `jacobian_order4_widths` and `jacobian_microspeaker_widths`, medians of 5 and of 3, two
 /// cores): a woofer's RK4 pass (SB17, 23 columns) 4 lanes 0.57, 10 lanes 1.22, 12 lanes
 /// 1.53 (16 lanes 2.24, in passes of 16 and 7); the microspeaker's exponential pass (17
@@ -58,8 +58,9 @@ pub const CHUNK: usize = 8;
 /// arithmetic at any width (the Jacobian is bit-identical:
 /// `a_jacobian_in_wide_passes_is_the_jacobian`).
 ///
-/// (On num-dual's dual numbers, until session 33, a 10-lane pass had cost 1.13 of an 8-lane
-/// one and a 12-lane one 2.6: 8 lanes, with 10 where it saved a pass, had been the choice.)
+/// (On num-dual's dual numbers, which the passes ran on before [`Jet`]s, a 10-lane pass cost
+/// 1.13 of an 8-lane one and a 12-lane one 2.6: 8 lanes, with 10 where it saved a pass, were
+/// the choice there.)
 pub const PASS_COSTS: [(usize, f64); 4] = [(CHUNK_SHORT, 0.56), (CHUNK, 1.0), (CHUNK_TEN, 1.27), (CHUNK_WIDE, 1.6)];
 /// The narrowest pass.
 pub const CHUNK_SHORT: usize = 4;
@@ -310,7 +311,7 @@ pub struct Slots {
     /// (1.9 s); it takes 3 in tau3.
     ///
     /// Every other fit uses L3 and R3: where the record holds the branch, tau3 bends the
-    /// valley. Sessions 34-35 fitted every stage in tau3, and on 18WU `-real-all` the
+    /// valley. With every stage fitted in tau3, on 18WU `-real-all` the
     /// stage with every effect crawled at damping 1e-3 (each step at a third of it
     /// rejected): 1.86e-3 of the current after 10 iterations where L3 and R3 reach 6.6e-4
     /// in 5; order 8 was then taken on a crawl and the bands missed the truth by 4.75 sd.
@@ -370,7 +371,7 @@ pub const EFFECT_MIN_GAIN_HELD_OUT: f64 = 0.01;
 /// stage did not converge goes on alone whatever the gain, for as many iterations as the
 /// trial took (its Gauss-Newton promise can fall far short of what is left).
 ///
-/// Seen (issue 17, session 41): SB17 with a slow second branch (half L2 at twice tau2) took
+/// Seen: SB17 with a slow second branch (half L2 at twice tau2) took
 /// creep, which it lacks. Its LR-3 trial stopped where its Gauss-Newton model left 4.6 % of
 /// the cost; creep's trial lowered the held-out error by 1.2 %, and the final fits with and
 /// without creep ended at the same error (3.797e-4). The same driver at 3 V (`simulate
@@ -385,8 +386,8 @@ fn held_out_gain_is_within_reach(val: f64, at_val: f64, left: f64) -> bool {
 
 /// The relative cost decrease below which the model taken so far, going on alone before a
 /// trial is compared with it (`base_goes_on_alone`), ends (a search stage's is 1e-3): it
-/// follows the valley it is in as the final fit does (`solve_following`). Seen (issue 17,
-/// session 43): SB17 with a slow second branch at 3 V, its linear start moved by a
+/// follows the valley it is in as the final fit does (`solve_following`). Seen: SB17 with
+/// a slow second branch at 3 V, its linear start moved by a
 /// thousandth of an sd (a faster-converging damping rule, `lm::lambda_after_gain`): LR-3's
 /// trial stopped at 3.909e-4 of the current (`gn_left` 2.7 %), creep's trial went on from it
 /// to 3.883e-4, and LR-3 alone, going on as a search stage, stopped at its first step (a
@@ -418,7 +419,7 @@ fn base_goes_on_alone(val: f64, iterations: usize, at_val: f64, left: f64, conve
 /// holds scored 2.8-93 % in the round that took it (32 cases in the harsh world, 4 on the
 /// shared `-real-*` records; the lowest Rms(v) on the large coil and Le(i) on PTT4, both
 /// with every effect). One it lacks, since the screen scores from the base model itself
-/// (issue 17's session 46): at most 2e-4 in the harsh world's 48 screens, 9e-7 to 1.7e-4
+/// (`screen_effects`): at most 2e-4 in the harsh world's 48 screens, 9e-7 to 1.7e-4
 /// on the bundled woofers' `-large` records, up to 8.5e-3 on the shared `-real-*` ones
 /// (fitted and dropped as before: the screen only ever skips a trial), and where an effect
 /// not yet in is confused with one the record holds, as much as that one: on `-real-lr3`
@@ -436,8 +437,8 @@ pub const EFFECT_SCREEN_GAIN: f64 = 1e-3;
 /// by this is not fitted in that round (it is screened again in the next). Of those fitted
 /// the lowest held-out error is taken, as before.
 ///
-/// Until session 40 every candidate above [`EFFECT_SCREEN_GAIN`] was fitted in every round:
-/// 18WU `-real-all` through its card fitted 10 trials in four rounds, where 4 effects were
+/// Fitting every candidate above [`EFFECT_SCREEN_GAIN`] in every round instead, 18WU
+/// `-real-all` through its card fitted 10 trials in four rounds, where 4 effects were
 /// taken. Over the unsliced sweeps that pick effects (the harsh world, the real-driver
 /// records, the chain tests and sweep, the identify sweep: 102 rounds, 207 trials), the
 /// round's winner by held-out error scored within 2.6 times the best-scoring passing
@@ -2558,12 +2559,12 @@ pub const FINAL_SETTLED_GAIN: f64 = 0.01;
 /// Size of the vanishing LR-3 branch the effects search also starts from, relative to the
 /// typical start (L3 = 0.5 L2, R3 = 3 R2; the branch's time constant is the typical one's).
 ///
-/// Kept at 0.02. With L3 and R3 as the fit's unknowns (until session 34), a trial from here
+/// Kept at 0.02. With L3 and R3 as the fit's unknowns, a trial from here
 /// on a record without LR-3 crawled 10 iterations back (PTT4: 1.9 s of a 5.7 s `identify`);
 /// with L3 and tau3 (see `Slots::r3`'s doc) it takes 3. Smaller starts fail both ways:
-/// - session 33, L3 and R3 at 1e-3: the chain sweep's PTT4 (AC-coupled card, every effect
+/// - L3 and R3 at 1e-3: the chain sweep's PTT4 (AC-coupled card, every effect
 ///   in the record, seed 1706) never grew the branch (LR-2 + creep, Bl 3 % off);
-/// - session 34, L3 and tau3 at 1e-3: that case passed and the trials without LR-3 took 2
+/// - L3 and tau3 at 1e-3: that case passed and the trials without LR-3 took 2
 ///   iterations, but the harsh world's PTT4 (seeds 2 and 34) and large coil (seed 4) kept
 ///   the branch small (L3 1.7e-5 H against 2.75e-4): tau3's column scales with L3, so from a
 ///   corner far off the fit grows L3 only as far as that corner allows.
@@ -2579,8 +2580,7 @@ pub const LR3_SCREEN: f64 = 1e-6;
 /// Creep factor of the vanishing creep the effects search also starts from (a typical
 /// driver's is 0.03-0.1): on records without creep the linear fit's creep start missed
 /// 5-8e-3 of the current (PTT4, 18WU, SB17) against this one's 4-8e-4, and the creep trial
-/// took 3-4 iterations instead of 2 (issue 17's session 33: 0.35-0.45 s of the effects
-/// search). Creep acts in proportion to lambda, so the trial grows it from here when the
+/// took 3-4 iterations instead of 2 (0.35-0.45 s of the effects search). Creep acts in proportion to lambda, so the trial grows it from here when the
 /// record holds it; where it does, the linear fit's start misses less and is taken. The
 /// screen (`screen_effects`) scores creep from zero instead.
 pub const CREEP_VANISHING: f64 = 1e-3;
@@ -2645,8 +2645,8 @@ fn solve_following(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64,
     while s.iteration < max_it {
         // Geodesic acceleration in the final fit, after a step whose decrease the linearised
         // model missed by FINAL_FAST_GAIN or more (a curved valley; where the model holds
-        // the acceleration is negligible and its residual run would be wasted). Issue 17's
-        // slow-branch record: 16 iterations of a full Jacobian at gain ratios 0.18-0.98, 10
+        // the acceleration is negligible and its residual run would be wasted). The
+        // slow-branch record (`branch_order`): 16 iterations of a full Jacobian at gain ratios 0.18-0.98, 10
         // with it (final fit 12.8 -> 7.5 s). The search stages keep their straight steps:
         // where they stop moves the order search's truncation term (see chords), and 18WU's
         // `-real-all` effect trials did not gain (51 against 53 iterations, same time).
@@ -2801,9 +2801,8 @@ fn gauss_newton_decrease(gram: &DMatrix<f64>, grad: &DVector<f64>, cols: &[usize
 /// each on the smallest model that has it: LR-3's on the base with the branch (the 3 x 3
 /// network), creep's on the base with the creep bank, Le(i)'s and Rms(v)'s on the base's
 /// own model, and the residual run on the base's model, these four runs on the cores in
-/// turn. Until issue 17's session 47 one model with every effect (17 states and the 3 x 3
-/// network) ran all the columns in one pass: the 0.1 g microspeaker's screen took 0.95 s
-/// instead of 0.47, the same gains within 5e-7 (the test below compares the two at every
+/// turn. With one model with every effect (17 states and the 3 x 3 network) running all the
+/// columns in one pass, the 0.1 g microspeaker's screen took 0.95 s instead of 0.47, the same gains within 5e-7 (the test below compares the two at every
 /// candidate). Their unknowns act nearly linearly from there: Le(i)'s and Rms(v)'s
 /// coefficients, creep's lambda, and a branch's L3 at a given corner (its impedance
 /// `j w L3 / (1 + j w tau3)`), with tau3's column moving the corner to first order. `None`
@@ -2812,7 +2811,7 @@ fn gauss_newton_decrease(gram: &DMatrix<f64>, grad: &DVector<f64>, cols: &[usize
 ///
 /// The screen's model is the base model itself (its current error the base's to 1e-5):
 /// creep's lambda is zero, where the bank's springs vanish and lambda's column does not.
-/// Until issue 17's session 46 creep sat at the trials' [`CREEP_VANISHING`], whose start
+/// When the screen started from the trials' [`CREEP_VANISHING`] instead, that start
 /// missed the current by 23-36 % more than the base (in cost) on the bundled woofers'
 /// records; the step with creep's column won that back and it counted as creep's gain
 /// (1.0-3.5 %, against 4e-10 to 2e-6 from zero), and LR-3's by the columns' overlap
@@ -2975,7 +2974,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         // The start needs no more than a few seconds (the fit is O(n) per iteration). The
         // small-signal effects are chosen as in `linear`: on a large coil with an LR-3
         // branch the LR-2 fit alone landed on fs = 1.4 kHz and Re 3x too high, and the
-        // start model then hardly moved (issue 15). The order search below starts from
+        // start model then hardly moved. The order search below starts from
         // the LR-2 part of that fit; the effects are chosen again on held-out data.
         let start_fit = opts.init.is_none().then(|| {
             let lin_opts = LinearOptions { effects: EffectsChoice::Auto, ..LinearOptions::LARGE_SIGNAL_START };
@@ -3095,7 +3094,7 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         }
     }
     // A start outside physics (a resistance or inductance at zero: with a faster-falling LM
-    // damping tried in session 26, the impedance fit of 1 s cut mid-signal from SB17 ended on
+    // damping once tried, the impedance fit of 1 s cut mid-signal from SB17 ended on
     // Re = 0, and the start model's NaN read "diverged at sample 1") cannot run; say what it
     // was.
     // The start's values, for the messages below.
@@ -3540,10 +3539,9 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         // may stop before it converges, and the orders above compare with this fit. Taking
         // the trial's own validation error instead, 18WU `-real-all` compared order 8 with
         // 1.77e-3 where the fit gets 1.61e-3, and kept order 6. Given effects: fitted here,
-        // from the order's stage without them. Each stage taken starts the next (until
-        // session 36 the higher orders started from the trial's parameters with this fit's
-        // Re(t) track: where the fit moved on far, 18WU `-real-all`'s order-6 stage started
-        // 70x above it).
+        // from the order's stage without them. Each stage taken starts the next (started
+        // instead from the trial's parameters with this fit's Re(t) track, where the fit
+        // moved on far, 18WU `-real-all`'s order-6 stage started 70x above it).
         // The pair without the effects no longer applies: the search below makes its own (none
         // at the highest order, as above).
         truncation = None;
@@ -3973,7 +3971,7 @@ mod tests {
         (u, i)
     }
 
-    /// Issue 17, session 45: the chain's computations made cheaper give the same values to
+    /// The chain's computations made cheaper give the same values to
     /// the last bit. Through a card (0.3-sample delay, AC coupling at 2 and 4 Hz, offsets,
     /// hum): a kept target (`ChainSetup::targets`) is the one computed afresh, also after more
     /// thetas than are kept; [`ChainSetup::targets_delayed`] is `target` at each delay; the
@@ -4037,7 +4035,7 @@ mod tests {
         }
     }
 
-    /// Issue 17, session 46: the effects screen scores every candidate from the base model
+    /// The effects screen scores every candidate from the base model
     /// itself, creep at zero. SB17, 1.5 s of pink noise to 85 % of its range at 70 dB, the
     /// order-4 layout at the truth: on the record without creep no candidate reaches
     /// [`EFFECT_SCREEN_GAIN`] (from the vanishing creep the trials start from, the screen's
@@ -4047,8 +4045,8 @@ mod tests {
     /// record from the driver with creep (lambda 0.07) creep scores far above it. On both
     /// records every gain is the one of a slow reference within 1e-3 of it (or of
     /// [`EFFECT_SCREEN_GAIN`], when smaller): one model with every effect, its whole
-    /// Jacobian and residual at the screen's start (session 47: the screen runs each
-    /// effect's columns on the smallest model that has it).
+    /// Jacobian and residual at the screen's start (the screen runs each effect's columns
+    /// on the smallest model that has it).
     #[test]
     fn the_effects_screen_scores_from_the_base_model_itself() {
         let (p, u, i, lay, _) = chord_case();
@@ -4251,7 +4249,7 @@ mod tests {
         }
     }
 
-    /// Issue 17: a final fit with spare heating columns ([`OutputError::with_spare_heat`])
+    /// A final fit with spare heating columns ([`OutputError::with_spare_heat`])
     /// computes the same Jacobian as without them, to the last bit; and the fit with heating
     /// terms that starts from it ([`OutputError::extending`]) starts where its last Jacobian
     /// was computed, with the residual and Jacobian it would compute itself there, to the
@@ -4292,14 +4290,14 @@ mod tests {
         assert!(OutputError::new(lay_h, &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).extending(&prob).is_none());
     }
 
-    /// Issue 17, session 33: the Jacobian's passes run on [`Jet`]s (plain lanes, no
+    /// The Jacobian's passes run on [`Jet`]s (plain lanes, no
     /// `Option`); they give num-dual's `DualSVec64` Jacobian to the last bit (equal as
     /// numbers: a zero may differ in sign) on the stiff microspeaker (the exponential
-    /// method), with theta off the truth; one worker and two. Session 47: a woofer's final
+    /// method), with theta off the truth; one worker and two. A woofer's final
     /// fit (RK4, SB17 order 4 with Re(t) knots and L2/R2, with heating terms, with Le(i) and
     /// Rms(v)) takes its columns by the sensitivity equation (`crate::sensitivity`):
-    /// num-dual's to 1e-13 of each column's largest entry (2e-15 seen). Session 49: so do
-    /// its search stages' (the midpoint rule).
+    /// num-dual's to 1e-13 of each column's largest entry (2e-15 seen); so do its search
+    /// stages' (the midpoint rule).
     #[test]
     fn the_jacobian_on_jets_is_num_duals_to_the_last_bit() {
         let fs = 48000.0;
@@ -4398,12 +4396,12 @@ mod tests {
         (p, tr, lay)
     }
 
-    /// Issue 17: a search stage's Jacobian of a woofer (the midpoint rule,
+    /// A search stage's Jacobian of a woofer (the midpoint rule,
     /// [`OutputError::searching`]) against the final fit's (RK4, one sub-step) and a
     /// reference (RK4, eight): the final fit's columns within 1.1 % of the reference
     /// (measured 0.02-1.08 %), the search's within 16 % (Le(x)'s columns, which the stiff
     /// electrical mode carries: 15 %), 3.5 % (Re(t), L2, R2: 0.3-3.4 %) and 1.2 % (Bl, Kms,
-    /// Rms: 0.3-1.04 %). The microspeaker's (the exponential midpoint rule, session 30)
+    /// Rms: 0.3-1.04 %). The microspeaker's (the exponential midpoint rule)
     /// against the final fit's (the exponential method, one step) and a reference (eight):
     /// the final fit's within 2.5 % (0.04-2.3 %), the search's within 4.5 % (Le(x): 1.7-3.8
     /// %), 1 % (Re(t): 0.55-0.76 %), 2.5 % (L2, R2: 0.9-2.0 %) and 5.5 % (Bl, Kms, Rms: 3.9-4.6
@@ -4462,7 +4460,7 @@ mod tests {
         }
     }
 
-    /// Issue 17: the passes' widths do not change the Jacobian (each column is the same
+    /// The passes' widths do not change the Jacobian (each column is the same
     /// arithmetic in a 4-, an 8-, a 10- or a 12-lane dual number), and two cores share the
     /// lanes about evenly.
     #[test]
@@ -4495,7 +4493,7 @@ mod tests {
         }
     }
 
-    /// Issue 17: a search stage that starts on the last Jacobian of a stage whose model its
+    /// A search stage that starts on the last Jacobian of a stage whose model its
     /// own holds ([`OutputError::seed_first`]) starts on its own Jacobian: at the same point
     /// (the new unknowns at zero) every column, the kept ones and the new ones computed
     /// beside the residual, is the one a whole Jacobian has, for a higher order, for Le(i)
@@ -4624,7 +4622,8 @@ mod tests {
     /// A trial's held-out gain is put to the model it went on from when that gain is within
     /// the bar plus what the model's own fit had left (its Gauss-Newton promise, a share of
     /// the cost, in the current error `1 - sqrt(1 - left)`), or whatever it is when that
-    /// model's stage did not converge ([`base_goes_on_alone`]): the cases seen in session 41.
+    /// model's stage did not converge ([`base_goes_on_alone`]): the cases seen on SB17 with a
+    /// slow second branch.
     #[test]
     fn a_gain_within_what_the_base_had_left_or_after_an_unconverged_base_is_put_to_the_base() {
         // SB17 with a slow branch: creep's 1.2 % after an LR-3 trial that left 4.64 % of its cost.

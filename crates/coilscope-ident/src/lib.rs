@@ -14,6 +14,7 @@ pub mod checks;
 pub mod large;
 pub mod linear;
 pub mod lm;
+pub mod min_phase;
 pub mod online;
 pub mod post_inverse;
 pub mod pre_inverse;

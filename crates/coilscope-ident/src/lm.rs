@@ -649,7 +649,7 @@ mod tests {
     /// parameter (the two decays in either order) and 1e-12 in the cost. Measured: 91
     /// iterations over the seven starts with the acceleration, 95 without (one start 14
     /// against 11, two 17 and 19 against 19 and 24); the slow-branch record's final fit,
-    /// where the acceleration earns its keep, is `issue17_branch_order`'s.
+    /// where the acceleration earns its keep, is `branch_order`'s.
     #[test]
     fn geodesic_acceleration_reaches_the_optimum_of_straight_steps() {
         struct TwoDecays {

@@ -157,10 +157,10 @@ impl Default for OnlineOptions {
 /// lambda / 0.1), g1 +- 0.2 / A and g2 +- 0.2 / A^2 (Le 20 % down at 1 A), c2 +- 1 Rms per
 /// (m/s)^2.
 ///
-/// Until session 35 the branches' sds were `2 prior_linear` absolute: 10 % of L2 and R2, but
-/// for LR-3, fitted as L3 and tau3 = L3 / R3 since session 34 (tau3 ~ 0.17-0.24 in units of
-/// L2 / R2), 40-60 % of tau3, where R3 (~3 in units of R2) had had about 3 %. The online
-/// estimator's layout has L3 and R3 again since session 36 ([`crate::large::Slots::r3`]).
+/// The branches' sds are relative to their start values: as `2 prior_linear` absolute they
+/// were 10 % of L2 and R2, but for LR-3 fitted as L3 and tau3 = L3 / R3 (tau3 ~ 0.17-0.24 in
+/// units of L2 / R2), 40-60 % of tau3, where R3 (~3 in units of R2) had about 3 %. The online
+/// estimator's layout has L3 and R3 ([`crate::large::Slots::r3`]).
 fn prior_variances(s: &crate::large::Slots, theta: &[f64], opts: &OnlineOptions) -> Vec<f64> {
     let mut prior = vec![opts.prior_nonlinear.powi(2); s.n];
     for k in [s.re.start, s.le.start, s.bl.start, s.kms.start, s.rms] {
@@ -306,7 +306,7 @@ impl Online {
             theta[k] = 0.0;
         }
         let cov = DMatrix::from_diagonal(&DVector::from_vec(prior_variances(&layout.slots(), &theta, &opts)));
-        // RK4 as before issue 17 (`Stepper::rk4_for`): with the exponential scheme the
+        // RK4 (`Stepper::rk4_for`), not the exponential scheme: with the exponential scheme the
         // fast-heating microspeaker's bands held the truth within 2 sd on 87 % of the points
         // of one seed-sweep slice (3 runs; over all 12 seeds 90 % or more), against 90 %
         // required: the measurement path keeps RK4 until that is understood.
@@ -549,10 +549,10 @@ impl Online {
     /// On num-dual's `DualSVec64`, not on [`Jet`]s as `identify`'s passes: the online
     /// model's passes keep many values constant (num-dual's `None`, which costs nothing),
     /// and on jets the 20 s measurement bench took 5-10 % longer (18WU 1.75-1.77 s on
-    /// num-dual, 1.92-1.96 on jets; issue 17's session 33).
+    /// num-dual, 1.92-1.96 on jets).
     ///
     /// The plain model at one RK4 step per sample (a woofer's) takes the columns by the
-    /// sensitivity equation in `f64` instead (`crate::sensitivity`; issue 17, session 47).
+    /// sensitivity equation in `f64` instead (`crate::sensitivity`).
     #[allow(clippy::too_many_arguments)]
     fn jacobian_chunk(&self, y0: &ExtState<f64>, a: usize, b: usize, skip: usize, c0: usize, w: usize, re_slope: f64, block: &mut [f64]) {
         let dt = 1.0 / self.fs;
@@ -891,7 +891,7 @@ pub fn fit_re(p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64
 mod tests {
     use super::*;
 
-    /// Issue 17, session 47: a woofer's window Jacobian by the sensitivity equation
+    /// A woofer's window Jacobian by the sensitivity equation
     /// (`crate::sensitivity`) is num-dual's (`Online::jacobian_chunk_duals`) to 1e-13 of each
     /// column's largest entry: SB17, 0.6 s of pink noise to 3 mm, a 0.25 s window from a live
     /// state taken mid-record, Re on a ramp, theta off the start.
@@ -931,9 +931,9 @@ mod tests {
         }
     }
 
-    /// Session 35: the LR-2 and LR-3 branches' priors are `2 prior_linear` of their start
-    /// values, whatever the unit the slot has (tau3's was 40-60 % of it, R3's had been 3 %;
-    /// R3 again since session 36).
+    /// The LR-2 and LR-3 branches' priors are `2 prior_linear` of their start values,
+    /// whatever the unit the slot has (as absolute sds, tau3's was 40-60 % of it where R3's
+    /// was 3 %).
     #[test]
     fn branch_priors_are_relative_to_the_start() {
         let mut p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();

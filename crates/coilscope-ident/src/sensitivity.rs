@@ -12,22 +12,22 @@
 //! whose coefficients are known. The columns take that step side by side ([`Columns`]: one
 //! array over the columns for each state and `G` row, RK4's stages one loop each over all of
 //! them, vectorised), and a Jacobian takes one pass a worker ([`widths`]), since each pass
-//! takes the model's step with its partials again (issue 17, session 48: SB17's order-4
-//! Jacobian on one core 1.3x faster, the values to the last bit).
+//! takes the model's step with its partials again (SB17's order-4 Jacobian on one core
+//! 1.3x faster than on dual numbers, the values to the last bit).
 //!
 //! Only the model without states of its effects' own (no creep or LR-3; `Le(i)` and `Rms(v)`
 //! are in) at one RK4 step per sample (the woofers' final fit, the online estimator's
-//! windows) or one step of the midpoint rule (the woofers' search stages, session 49:
+//! windows) or one step of the midpoint rule (the woofers' search stages:
 //! [`Columns::midpoint_step`], 1.77x); every other Jacobian keeps its dual numbers. The
-//! exponential method's (stiff drivers) was tried (issue 17, session 47) as the method's
+//! exponential method's (stiff drivers) was tried as the method's
 //! step of the sensitivity equation, `A` frozen as in the model's step: on the microspeaker its columns
 //! were 1.2-1.5 % (Re(t)), 0.3-0.6 % (Bl, Kms, Rms), 1 % (L2) and 29-36 % (Le(x), R2) off a
 //! reference of eight steps, against the dual numbers' 0.06-0.08 %, 0.04-0.07 %, 0.3 %,
 //! 0.4-2.3 % and 2.2 %, and as far off in the fluxes' coordinates (`psi = Le i`): a stiff
 //! step's stages do not carry the current's lag behind the drive, which the network's
 //! columns are. The derivative of the discrete step (the matrix functions' derivatives by
-//! the network's entries) is what it needs; session 49 built it (the branch
-//! `session49-etd-tangent`): the jets' columns to 1.3e-13, and no faster than the jets (a
+//! the network's entries) is what it needs; built and measured, it gave the jets' columns to
+//! 1.3e-13, and no faster than the jets (a
 //! column's derivative of the five-stage step is about 500 operations a sample), so the
 //! stiff drivers keep their jets.
 
@@ -111,7 +111,7 @@ pub(crate) fn applies(layout: &Layout, stepper: &Stepper) -> bool {
 
 /// What a model run beside a Jacobian's passes (the residual's, with all its sub-steps)
 /// costs, in columns of a pass by the sensitivity equation: SB17's order-4 problem over 8 s
-/// on one core (`jacobian_order4_widths`, `residual_order4`; session 48) ran its residual in
+/// on one core (`jacobian_order4_widths`, `residual_order4`) ran its residual in
 /// 100 ms, each column of a pass in 17 ms and each pass's own model step with its partials
 /// in 80 ms.
 pub(crate) const RUN_COLUMNS: usize = 6;

@@ -1,5 +1,5 @@
 //! Thermal parameters from a long measurement (seed paper 4.2, the long-term test): the
-//! two-node model of `shared/spec/formats.md`,
+//! two-node model of `docs/formats.md`,
 //!
 //! ```text
 //! Ctv dTv/dt = Pv - (Tv - Tm) / Rtv,   Ctm dTm/dt = Pm + (Tv - Tm) / Rtv - Tm / Rtm,

@@ -16,7 +16,7 @@
 //! their own generation (Bl(x) and Kms(x) change by tens of percent, the displacement's
 //! harmonics move x, which moves Bl and Kms again), the series truncated after the third
 //! order no longer describes the response, and the fitted coefficients absorb what the
-//! truncation leaves out. `issue18_volterra.rs` tabulates the error over level.
+//! truncation leaves out. `volterra_kernels.rs` tabulates the error over level.
 
 use crate::lm::{lm_step, LmState, Problem};
 use coilscope_analysis::distortion::{Harmonics, Output};

@@ -1,4 +1,4 @@
-//! Large-signal identification against the truth (issue 4).
+//! Large-signal identification against the truth.
 //!
 //! Recordings: 8 s at 48 kHz of pink noise (10 Hz - 8 kHz, crest factor 3) whose level makes
 //! the driver reach 85 % of its `x_range`, with the two-node thermal model on (the coil heats
@@ -17,7 +17,7 @@ use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions, LargeFit}
 use coilscope_ident::linear::{Effects, EffectsChoice};
 
 /// The LR-2 model: these tests are about accuracy in its world (the choice of effects is
-/// tested in issue15_real_drivers.rs), and Auto would triple their time.
+/// tested in real_driver_recordings.rs), and Auto would triple their time.
 const LR2: EffectsChoice = EffectsChoice::Fixed(Effects::NONE);
 use std::path::Path;
 
@@ -53,7 +53,7 @@ struct Tol {
     le: f64,
     re_rms: f64,
 }
-/// The tolerances protect the README's figures (issue 14): each fails at about 4 times what
+/// The tolerances protect the README's figures: each fails at about 4 times what
 /// is published. 70 dB, own simulator (3 drivers, 44.1 / 96 kHz, a start with Kms 2x off):
 /// Bl, Kms <= 0.005 %, Le <= 0.015 %, Re, Rms <= 0.002 %.
 const AT_70_DB: Tol = Tol { bl_kms: 2e-4, le: 6e-4, re_rms: 1e-4 };
@@ -179,7 +179,7 @@ fn independent_reference_recordings() {
         let fit = run(&r, IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() });
         assert_truth(&format!("{name} (independent)"), &fit, &p, range, &INDEPENDENT);
         // The heating the other simulator put in: within 15 % (it runs 8 % hotter than the
-        // spec's model; see the issue 2 note).
+        // spec's model).
         let dt = fit.temperature_track(0.00393).last().unwrap().1;
         let dt_ref = info["dT_end"].as_f64().unwrap();
         assert!((dt / dt_ref - 1.0).abs() < 0.15, "{name}: dT {dt} vs {dt_ref}");

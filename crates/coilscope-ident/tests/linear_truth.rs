@@ -225,7 +225,7 @@ mod bad_input {
     }
 }
 
-/// Issue 14: the linear fit's reported standard deviations are claims too. Over the three
+/// The linear fit's reported standard deviations are claims too. Over the three
 /// drivers and six noise seeds (4 s of IEC noise at 0.05 mm peak, 70 dB), each of the seven
 /// fitted quantities (Re, Le, L2, R2, Res, Cmes, Lces) against the truth in units of its own
 /// sd: the share within 2 sd must be at least 90 % (a Gaussian: 95 %), with none beyond 5 sd.

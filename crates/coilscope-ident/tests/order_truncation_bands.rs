@@ -12,7 +12,7 @@
 //!
 //! The sweep: every bundled driver and the large semi-inductive coil, at 30-50 % of the range,
 //! at 44.1, 48 and 96 kHz, IEC and pink noise, 70 dB sensor noise. The truth must lie within
-//! 3 sd of the Bl, Kms and Le bands, and the curves within the bounds.
+//! 3 sd of the Bl, Kms and Le bands, and the curves within the accuracy bounds.
 //!
 //! Slow in a debug build: `cargo test --release -p coilscope-ident --test
 //! order_truncation_bands -- --ignored` (`.ci/run` runs one slice of four).
@@ -63,7 +63,7 @@ fn order_truncation_is_in_the_bands() {
                 let line = format!("{label}: order {} (next tried {:?}), x {:.2} .. {:.2} mm, {e}, the truth within {z:.2} sd of the bands", fit.order, fit.truncation.as_ref().map(|t| t.next_order), 1e3 * s.x_min, 1e3 * s.x_max);
                 println!("{line}");
                 if !(e.bl <= 0.02 && e.kms <= 0.03 && e.le <= 0.05 && e.re <= 0.005) {
-                    failures.push(format!("{line}: beyond the issue's bounds"));
+                    failures.push(format!("{line}: beyond the accuracy bounds"));
                 }
                 if !(z <= 3.0) {
                     failures.push(format!("{line}: the bands miss the truth"));

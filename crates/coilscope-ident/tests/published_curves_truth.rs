@@ -1,4 +1,4 @@
-//! Issue 14 item 10: truth outside the model class.
+//! Truth outside the model class.
 //!
 //! The other truth tests simulate drivers whose Bl(x), Kms(x), Le(x) are the parameter sets'
 //! power series, of order 2-6, inside the order range `identify` fits, so a shared mistake

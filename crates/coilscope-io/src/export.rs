@@ -130,7 +130,7 @@ pub fn power_series_csv(p: &Parameters) -> String {
 pub fn impedance_curve(p: &Parameters, f_lo: f64, f_hi: f64, points: usize) -> crate::impedance::ImpedanceCurve {
     let f: Vec<f64> = (0..points).map(|k| f_lo * (f_hi / f_lo).powf(k as f64 / (points - 1).max(1) as f64)).collect();
     let z = f.iter().map(|&v| coilscope_core::small_signal::impedance(p, v)).collect();
-    crate::impedance::ImpedanceCurve { f, z, comments: vec![format!("coilscope: small-signal impedance of {} at rest", p.name.clone().unwrap_or_else(|| "the driver".into()))] }
+    crate::impedance::ImpedanceCurve { f, z, magnitude_only: false, comments: vec![format!("coilscope: small-signal impedance of {} at rest", p.name.clone().unwrap_or_else(|| "the driver".into()))] }
 }
 
 /// `.frd` text of an impedance (frequency Hz, magnitude ohm, phase degrees; `*` comments),

@@ -14,8 +14,15 @@
 //!
 //! The decimal separator is the point. Frequencies must be positive and strictly
 //! increasing, magnitudes positive and finite: a file that breaks this is refused with its
-//! line and value named, never read half. Phase is what the fit needs as much as magnitude:
-//! a file with magnitude only is refused.
+//! line and value named, never read half.
+//!
+//! **Magnitude only.** Many tools export |Z| alone (REW, KLIPPEL LPM's export with its
+//! quoted header lines and a measured and a fitted column: the first magnitude column, the
+//! measured one, is read). A `.zma` line of two numbers, or named columns with a magnitude
+//! and no phase, give a curve with [`ImpedanceCurve::magnitude_only`] set; its `z` holds the
+//! magnitudes as real numbers, and the fit takes the magnitude alone. Lines of names before
+//! the data that name no frequency column (a title, a quoted header line) are kept as
+//! comments.
 
 use crate::{atomic_write, IoError};
 use coilscope_core::Complex64;
@@ -28,6 +35,18 @@ pub struct ImpedanceCurve {
     pub z: Vec<Complex64>,
     /// The file's comment lines, without their leading markers (the measurement's notes).
     pub comments: Vec<String>,
+    /// The file has no phase: `z` holds the magnitudes (real, phase 0), and only `|z|` is
+    /// data.
+    pub magnitude_only: bool,
+}
+
+/// Where a file's impedance is: magnitude and phase columns (phase in radians when `true`),
+/// real and imaginary parts, or a magnitude alone.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Parts {
+    MagPhase(usize, usize, bool),
+    ReIm(usize, usize),
+    Mag(usize),
 }
 
 /// Fewest points of a curve worth fitting (the linear model has 7 to 10 unknowns).
@@ -83,8 +102,8 @@ fn is_comment(line: &str) -> Option<&str> {
 /// Read an impedance curve from `text`; `name` (the file) is named in every error.
 pub fn parse_impedance(text: &str, name: &str) -> Result<ImpedanceCurve, IoError> {
     let mut comments = vec![];
-    // Column indices: frequency, then either (mag, phase, rad) or (re, im).
-    let mut layout: Option<(usize, Result<(usize, usize, bool), (usize, usize)>)> = None;
+    // Column indices: the frequency's, then the impedance's.
+    let mut layout: Option<(usize, Parts)> = None;
     let (mut f, mut z) = (Vec::<f64>::new(), Vec::<Complex64>::new());
     for (ln, raw) in text.lines().enumerate() {
         let line_no = ln + 1;
@@ -108,27 +127,29 @@ pub fn parse_impedance(text: &str, name: &str) -> Result<ImpedanceCurve, IoError
             }
             let roles: Vec<Column> = cols.iter().map(|c| column_of(c)).collect();
             let find = |want: fn(Column) -> bool| roles.iter().position(|&r| want(r));
-            let fc = find(|r| r == Column::Freq).ok_or_else(|| IoError(format!("{name}, line {line_no}: no frequency column among {cols:?} (name one `freq`, `frequency` or `Hz`)")))?;
+            let Some(fc) = find(|r| r == Column::Freq) else {
+                // A title or a quoted header line before the column names: a comment.
+                comments.push(line.replace('"', "").trim().to_string());
+                continue;
+            };
             let parts = match (find(|r| r == Column::Re), find(|r| r == Column::Im), find(|r| r == Column::Mag), find(|r| matches!(r, Column::Phase(_)))) {
-                (Some(a), Some(b), _, _) => Err((a, b)),
-                (_, _, Some(m), Some(p)) => Ok((m, p, matches!(roles[p], Column::Phase(true)))),
-                (_, _, Some(_), None) => return Err(IoError(format!("{name}, line {line_no}: magnitude without phase ({cols:?}); the fit needs the complex impedance: export magnitude and phase, or real and imaginary parts"))),
+                (Some(a), Some(b), _, _) => Parts::ReIm(a, b),
+                (_, _, Some(m), Some(p)) => Parts::MagPhase(m, p, matches!(roles[p], Column::Phase(true))),
+                (_, _, Some(m), None) => Parts::Mag(m),
                 _ => return Err(IoError(format!("{name}, line {line_no}: no impedance columns among {cols:?} (name them magnitude and phase, or real and imaginary)"))),
             };
             layout = Some((fc, parts));
             continue;
         }
-        let (fc, parts) = *layout.get_or_insert((0, Ok((1, 2, false))));
+        // Without names, a .zma line: `frequency magnitude phase`, or `frequency magnitude`.
+        let (fc, parts) = *layout.get_or_insert((0, if nums.len() == 2 { Parts::Mag(1) } else { Parts::MagPhase(1, 2, false) }));
         let need = match parts {
-            Ok((m, p, _)) => fc.max(m).max(p),
-            Err((a, b)) => fc.max(a).max(b),
+            Parts::MagPhase(m, p, _) => fc.max(m).max(p),
+            Parts::ReIm(a, b) => fc.max(a).max(b),
+            Parts::Mag(m) => fc.max(m),
         };
         if nums.len() <= need {
-            return Err(IoError(if nums.len() == 2 && need == 2 {
-                format!("{name}, line {line_no}: two columns (frequency and magnitude?): the fit needs the phase too (a .zma line is `frequency magnitude phase`)")
-            } else {
-                format!("{name}, line {line_no}: {} columns, expected at least {} (frequency Hz, magnitude ohm, phase deg)", nums.len(), need + 1)
-            }));
+            return Err(IoError(format!("{name}, line {line_no}: {} columns, expected at least {} (frequency Hz, magnitude ohm{})", nums.len(), need + 1, if matches!(parts, Parts::Mag(_)) { "" } else { ", phase deg" })));
         }
         let v = |k: usize| nums[k].expect("checked numeric");
         let fk = v(fc);
@@ -141,7 +162,14 @@ pub fn parse_impedance(text: &str, name: &str) -> Result<ImpedanceCurve, IoError
             }
         }
         let zk = match parts {
-            Ok((m, p, rad)) => {
+            Parts::Mag(m) => {
+                let mag = v(m);
+                if !(mag.is_finite() && mag > 0.0) {
+                    return Err(IoError(format!("{name}, line {line_no}: magnitude {mag} ohm at {fk} Hz is not positive and finite")));
+                }
+                Complex64::new(mag, 0.0)
+            }
+            Parts::MagPhase(m, p, rad) => {
                 let (mag, ph) = (v(m), v(p));
                 if !(mag.is_finite() && mag > 0.0) {
                     return Err(IoError(format!("{name}, line {line_no}: magnitude {mag} ohm at {fk} Hz is not positive and finite")));
@@ -152,7 +180,7 @@ pub fn parse_impedance(text: &str, name: &str) -> Result<ImpedanceCurve, IoError
                 }
                 Complex64::from_polar(mag, if rad { ph } else { ph.to_radians() })
             }
-            Err((a, b)) => {
+            Parts::ReIm(a, b) => {
                 let c = Complex64::new(v(a), v(b));
                 if !(c.re.is_finite() && c.im.is_finite() && c.norm() > 0.0) {
                     return Err(IoError(format!("{name}, line {line_no}: impedance {} {:+}j ohm at {fk} Hz is not finite and non-zero", c.re, c.im)));
@@ -166,7 +194,8 @@ pub fn parse_impedance(text: &str, name: &str) -> Result<ImpedanceCurve, IoError
     if f.len() < MIN_POINTS {
         return Err(IoError(format!("{name}: {} impedance points; at least {MIN_POINTS} are needed (frequency Hz, magnitude ohm, phase deg per line)", f.len())));
     }
-    Ok(ImpedanceCurve { f, z, comments })
+    let magnitude_only = matches!(layout, Some((_, Parts::Mag(_))));
+    Ok(ImpedanceCurve { f, z, comments, magnitude_only })
 }
 
 /// Read an impedance curve file (see the module docs).
@@ -190,6 +219,14 @@ pub fn curve_text(curve: &ImpedanceCurve, magnitude: &str) -> String {
     let mut out = String::new();
     for c in &curve.comments {
         out.push_str(&format!("* {c}\n"));
+    }
+    if curve.magnitude_only {
+        // No phase to write: the file's own two columns.
+        out.push_str(&format!("* Freq(Hz) {magnitude}(Ohm)\n"));
+        for (f, z) in curve.f.iter().zip(&curve.z) {
+            out.push_str(&format!("{:.9e} {:.9e}\n", f, z.norm()));
+        }
+        return out;
     }
     out.push_str(&format!("* Freq(Hz) {magnitude}(Ohm) Phase(Deg)\n"));
     for (f, z) in curve.f.iter().zip(&curve.z) {
@@ -239,6 +276,21 @@ mod tests {
         assert!((c.z[5].im - c.f[5] * 2e-3).abs() < 1e-12);
     }
 
+    /// |Z| alone, as REW writes it (two columns) and as KLIPPEL LPM exports it (tab
+    /// separated, quoted header lines, a measured and a fitted magnitude: the measured one).
+    #[test]
+    fn reads_magnitude_only_files() {
+        let c = parse_impedance(&curve_text(25, |f, z| format!("{f} {}", z.norm())), "rew.txt").unwrap();
+        assert!(c.magnitude_only && (c.z[4].re - (6.0 + c.f[4] * 1e-3).hypot(c.f[4] * 2e-3)).abs() < 1e-9 && c.z[4].im == 0.0);
+        let text = format!("\"LPM Linear Parameter Measurement\"\n\"Driver: woofer 5.25\"\n\"Frequency [Hz]\"\t\"Impedance measured [Ohm]\"\t\"Impedance fitted [Ohm]\"\n{}", curve_text(25, |f, z| format!("{f}\t{}\t{}", z.norm(), z.norm() * 1.05)));
+        let c = parse_impedance(&text, "lpm.txt").unwrap();
+        assert!(c.magnitude_only);
+        assert_eq!(c.comments, vec!["LPM Linear Parameter Measurement", "Driver: woofer 5.25"]);
+        assert!((c.z[7].re - (6.0 + c.f[7] * 1e-3).hypot(c.f[7] * 2e-3)).abs() < 1e-9, "the measured column, not the fitted one");
+        let c = parse_impedance(&curve_text(25, |f, z| format!("{f} {} {}", z.norm(), z.arg().to_degrees())), "full.zma").unwrap();
+        assert!(!c.magnitude_only);
+    }
+
     #[test]
     fn zma_round_trip_is_exact_to_1e8() {
         let c = parse_impedance(&curve_text(40, |f, z| format!("{f} {} {}", z.norm(), z.arg().to_degrees())), "x").unwrap();
@@ -253,8 +305,7 @@ mod tests {
     fn bad_files_are_named_with_line_and_value() {
         let good = curve_text(25, |f, z| format!("{f} {} {}", z.norm(), z.arg().to_degrees()));
         let cases = [
-            (curve_text(25, |f, z| format!("{f} {}", z.norm())), "needs the phase"),
-            (format!("Freq,Mag\n{}", curve_text(25, |f, z| format!("{f},{}", z.norm()))), "magnitude without phase"),
+            (good.replacen("\n", "\n10 6\n", 3), "expected at least 3"),
             (good.replacen("\n", "\n10 6 2\n", 3), "does not increase"),
             (good.clone() + "5000 -1 0\n", "not positive"),
             (good.clone() + "6000 7 400\n", "outside +-180"),

@@ -1,6 +1,6 @@
 //! # coilscope-io
 //!
-//! Files at the edge of coilscope, per `shared/spec/formats.md`:
+//! Files at the edge of coilscope, per `docs/formats.md`:
 //!
 //! * Recordings: WAV, channel 1 voltage (V), channel 2 current (A), optional channel 3
 //!   displacement (m, + = coil out). 32-bit float holds physical units; integer PCM (or float
@@ -460,7 +460,7 @@ mod tests {
     }
 
     #[test]
-    fn issue14_writes_go_through_symlinks_and_never_replace_special_files() {
+    fn writes_go_through_symlinks_and_never_replace_special_files() {
         use std::os::unix::fs::FileTypeExt;
         let d = tempfile::tempdir().unwrap();
         let real = d.path().join("real.json");

@@ -1581,7 +1581,7 @@ impl Measurement {
 
 #[cfg(test)]
 mod control_tests {
-    //! One test per controller policy (issue 14): each sets up the situation the policy is for
+    //! One test per controller policy: each sets up the situation the policy is for
     //! and checks the level it chooses against the rule's own arithmetic.
     use super::*;
 

@@ -1,8 +1,8 @@
-//! Virtual measurements against the truth (issue 5).
+//! Virtual measurements against the truth.
 //!
 //! The virtual transducer is the core simulator with the driver's thermal model and sensor
 //! noise of 0.1 mV / 0.1 mA rms; the excitation is IEC 60268-1 noise unless said otherwise.
-//! Tolerances (the identification issue's): over the range reached at the final level,
+//! Tolerances (the identification's accuracy bounds): over the range reached at the final level,
 //! Bl(x), Kms(x) within 2 %, Le(x) within 5 % of the true value at rest; Re (cold), Rms within
 //! 1 %. Protection: the true peak excursion and voice-coil rise stay within 5 % of their limits.
 
@@ -51,7 +51,7 @@ fn assert_truth(label: &str, m: &Measurement, p: &Parameters) {
     assert!(m.seconds <= 60.0, "{label}: {} s", m.seconds);
     assert!(e_bl <= 0.02 && e_k <= 0.02 && e_le <= 0.05, "{label}: Bl {e_bl}, Kms {e_k}, Le {e_le}");
     assert!(e_re <= 0.01 && e_rms <= 0.01, "{label}: Re {e_re}, Rms {e_rms}");
-    // Issue 14: `Re` of the result is the cold value (the truth at ambient), not the hot one.
+    // `Re` of the result is the cold value (the truth at ambient), not the hot one.
     let e_re_param = (q.re / p.re - 1.0).abs();
     assert!(e_re_param <= 0.001, "{label}: parameters.Re {} vs cold truth {}", q.re, p.re);
     let j = m.result().to_json_value();

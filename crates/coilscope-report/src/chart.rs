@@ -259,7 +259,7 @@ impl Chart {
         Ok(Rgb { width: size.0, height: size.1, px })
     }
 
-    /// The layout check of issue 19: how many pixels of the data lines the legend box covers
+    /// The layout check of the reports' charts: how many pixels of the data lines the legend box covers
     /// at `size` (0 for a good layout). The box is where the chart drawn with and without its
     /// legend differs; the data lines are the pixels of a series colour in the chart drawn
     /// without it.
@@ -368,7 +368,7 @@ mod tests {
 mod axis_tests {
     use super::*;
 
-    /// Issue 19: a log frequency axis is ticked at 1-2-5 per decade (labels 20, 50, 100, ...
+    /// A log frequency axis is ticked at 1-2-5 per decade (labels 20, 50, 100, ...
     /// rather than 158, 251, 398), and a decibel axis stops at its floor.
     #[test]
     fn log_ticks_are_round_and_the_floor_clips() {

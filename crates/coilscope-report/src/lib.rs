@@ -267,7 +267,8 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     };
     let pm = |sd: Option<f64>, factor: f64| sd.filter(|s| *s > 0.0).map(|s| format!("± {}", sig(s * factor))).unwrap_or_default();
     let mut rows: Vec<Vec<String>> = p.values_at_rest().map(|(e, v)| vec![e.label(), sig(v * e.display.1), pm(sd_of(e.key), e.display.1), e.display.0.to_string()]).collect();
-    // Thiele/Small and the derived figures (no sd of their own).
+    // Thiele/Small and the derived figures (no sd of their own), at fs with creep's loss as
+    // LPM and Speakerbench give them (`ThieleSmall`); the table's Rms above is the viscous one.
     let bl0 = p.bl.c[0];
     let qtp = {
         // Total Q with the electrical losses the para-inductance adds at the resonance:
@@ -281,7 +282,16 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         let qes_p = w * p.mms * ze.re / (bl0 * bl0);
         ts.qms * qes_p / (ts.qms + qes_p)
     };
-    for (k, v, u) in [("fs", ts.fs, "Hz"), ("Qms", ts.qms, ""), ("Qes", ts.qes, ""), ("Qts", ts.qts, ""), ("Qtp (with the eddy-current losses at fs)", qtp, ""), ("Cms", 1e3 * ts.cms, "mm/N"), ("Res (Bl²/Rms)", bl0 * bl0 / p.rms, "ohm")] {
+    for (k, v, u) in [
+        ("fs", ts.fs, "Hz"),
+        ("Qms", ts.qms, ""),
+        ("Qes", ts.qes, ""),
+        ("Qts", ts.qts, ""),
+        ("Qtp (with the eddy-current losses at fs)", qtp, ""),
+        ("Cms", 1e3 * ts.cms, "mm/N"),
+        ("Rms at fs (with creep's loss)", ts.rms_fs, "kg/s"),
+        ("Res (Bl²/Rms at fs)", bl0 * bl0 / ts.rms_fs, "ohm"),
+    ] {
         rows.push(vec![k.into(), sig(v), String::new(), u.into()]);
     }
     match ts.vas {
@@ -797,7 +807,7 @@ fn method_label(input: &ReportInput) -> String {
 mod legend_overlap {
     use super::*;
 
-    /// Issue 19: no legend box covers a data line, in any chart of the reports of the bundled
+    /// No legend box covers a data line, in any chart of the reports of the bundled
     /// drivers, at the PNG size and at the inline SVG's size.
     #[test]
     fn no_legend_covers_a_data_line() {
@@ -821,7 +831,7 @@ mod legend_overlap {
 mod degenerate {
     use super::*;
 
-    /// Issue 17 (session 44): `measure --replay` of SB17's `-real-chain` record without its
+    /// `measure --replay` of SB17's `-real-chain` record without its
     /// calibration ended on curves that vary by 1e-16 of their value over the range; the
     /// Volterra identification's error (over the size of the nonlinearity) was 0/0 and the
     /// whole report failed on its chart. The report is written, without that chart.

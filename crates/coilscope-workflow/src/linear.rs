@@ -7,10 +7,16 @@ use coilscope_core::chain::{Chain, SenseWiring};
 use coilscope_core::result::ResultFile;
 use coilscope_core::{Complex64, Parameters};
 use coilscope_ident::checks::{NoiseFloor, Warning};
-use coilscope_ident::linear::{added_mass_scale, curve_warnings, fit_impedance_curve, fit_linear_record, linear_warnings, predicted_displacement, result, scale_by_displacement, scale_by_mms, EffectsChoice, LinearFit, LinearOptions, ScaleMethod};
+use coilscope_ident::linear::{
+    added_mass_scale, curve_warnings, fit_impedance_curve, fit_impedance_magnitude, fit_linear_record, linear_warnings, lumped_band, predicted_displacement, result, scale_by_displacement, scale_by_mms, EffectsChoice, LinearFit, LinearOptions,
+    ScaleMethod,
+};
 use coilscope_ident::lm::LmState;
 use coilscope_io::impedance::ImpedanceCurve;
 use coilscope_io::Recording;
+
+/// What a fit of a curve without phase says of it (`fit.phase_note`).
+pub const MAGNITUDE_ONLY_NOTE: &str = "the file has no phase: fitted to |Z| alone (a driver's impedance, as the model's, is minimum phase, so |Z| holds what the phase would tell); the sds are those of |Z| alone";
 
 /// What is fitted: a record (voltage and current, optionally displacement) or a measured
 /// impedance curve (a shunt's series resistance already taken out).
@@ -120,6 +126,7 @@ fn record_warnings(fit: &LinearFit, params: &Parameters, r: &Recording) -> (Nois
 fn fit_input(input: &LinearInput, origin: &str, opts: &LinearOptions, band: Option<[f64; 2]>, progress: &mut dyn FnMut(&LmState)) -> Result<LinearFit, String> {
     match input {
         LinearInput::Record(r) => fit_linear_record(&r.u, &r.i, r.fs as f64, origin, opts, &mut *progress),
+        LinearInput::Curve(c) if c.magnitude_only => fit_impedance_magnitude(&c.f, &c.z.iter().map(|z| z.norm()).collect::<Vec<_>>(), band, origin, opts, &mut *progress),
         LinearInput::Curve(c) => fit_impedance_curve(&c.f, &c.z, band, origin, opts, &mut *progress),
     }
 }
@@ -164,6 +171,19 @@ fn linear_body(mut input: LinearInput, scale: Scale, req: &LinearRequest, progre
     };
     let mut chain = req.chain.estimate() || !detected.is_empty();
     let opts = |chain: bool| LinearOptions { effects: req.effects, chain, ..Default::default() };
+    // A curve's band: the one given, or where the lumped model holds (below break-up); the
+    // measurement with an added mass is fitted in the same band.
+    let mut band_note = None;
+    let found;
+    let req = match (&input, req.band) {
+        (LinearInput::Curve(c), None) => {
+            let b = lumped_band(&c.f, &c.z, c.magnitude_only, origin, &opts(false))?;
+            band_note = Some(b.note);
+            found = LinearRequest { band: Some(b.band), ..req.clone() };
+            &found
+        }
+        _ => req,
+    };
     let mut fit = fit_input(&input, origin, &opts(chain), req.band, progress)?;
     let (mut mms, mut method) = scale_mms(&fit, &input, &scale, req, origin, chain)?;
     let mut params = scale_by_mms(&fit, mms)?;
@@ -198,6 +218,10 @@ fn linear_body(mut input: LinearInput, scale: Scale, req: &LinearRequest, progre
         }),
     };
     let mut res = result(&params, &fit, &method, x_range, origin);
+    res.fit.band_note = band_note;
+    if matches!(&input, LinearInput::Curve(c) if c.magnitude_only) {
+        res.fit.phase_note = Some(MAGNITUDE_ONLY_NOTE.to_string());
+    }
     if calibrated.is_some() {
         res.chain = calibrated;
     }

@@ -9,7 +9,7 @@ use coilscope_core::{Parameters, Poly};
 use coilscope_ident::large::{LargeFit, EFFECT_SCREEN_GAIN};
 use coilscope_ident::linear::Effects;
 
-/// The effects screen's problems (issue 17) on a fit of a record that holds `want`: an
+/// The effects screen's problems on a fit of a record that holds `want`: an
 /// effect the record holds must score at least ten times the screen's bar in the round that
 /// takes it (its best screen), so the screen never stands between it and its trial. In the
 /// rounds before, a dominant effect not yet in (LR-3) can mask it below the bar (creep 5.7e-4

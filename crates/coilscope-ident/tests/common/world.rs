@@ -74,7 +74,7 @@ pub fn record(name: &str, seed: u64, effects: Effects, fs: f64, seconds: f64, ca
     Record { u, i, fs, truth, summary, lambda, g2, c2, chain }
 }
 
-/// What a sound card may do to the channels, as issue 16 bounds it.
+/// What a sound card may do to the channels, within the bounds the chain estimate is tested to.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Card {
     /// A wire.
@@ -95,7 +95,7 @@ pub enum Card {
 
 impl Card {
     /// The card's chain for physical channels `u`, `i` at `fs`; the values drawn from the
-    /// named RNG `card/<seed>` within the issue's bounds.
+    /// named RNG `card/<seed>` within those bounds.
     pub fn chain(self, seed: u64, u: &[f64], i: &[f64], fs: f64) -> Chain {
         let mut rng = named_rng(seed, "card");
         let mut c = Chain::default();
