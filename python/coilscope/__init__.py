@@ -97,16 +97,19 @@ def linear(u, i, fs, mms, chain="detect"):
     return _checked(_c.linear(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), str(chain)), "linear")
 
 
-def linear_impedance(f, z, mms, band=None):
+def linear_impedance(f, z, mms, band=None, magnitude_only=False):
     """Small-signal fit of a measured impedance curve (``coilscope linear --impedance``):
     ``f`` in Hz, ``z`` complex in ohm, Mms given (kg). Without ``band`` (Hz, ``(lo, hi)``) the
     fit keeps to where the lumped model holds, below the cone's break-up, and
     ``result["fit"]["band_note"]`` says where that is. Qms and Qts in ``small_signal`` are at
-    fs with creep's loss (``Rms_fs``). Warns :class:`NotTrustworthy` where the command line
-    exits 3."""
+    fs with creep's loss (``Rms_fs``). ``magnitude_only``: only ``abs(z)`` is data (a file
+    without phase), fitted to the magnitude alone (``result["fit"]["phase_note"]``). Warns
+    :class:`NotTrustworthy` where the command line exits 3."""
     z = np.asarray(z, dtype=complex)
+    if magnitude_only:
+        z = np.abs(z).astype(complex)
     b = None if band is None else (float(band[0]), float(band[1]))
-    return _checked(_c.linear_impedance(_floats(f, "f"), _floats(z.real, "z"), _floats(z.imag, "z"), float(mms), b), "linear_impedance")
+    return _checked(_c.linear_impedance(_floats(f, "f"), _floats(z.real, "z"), _floats(z.imag, "z"), float(mms), b, bool(magnitude_only)), "linear_impedance")
 
 
 def identify(u, i, fs, mms, order=None, chain="detect"):

@@ -120,16 +120,19 @@ fn linear(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, chain: &s
 /// The small-signal fit of a measured impedance curve (`coilscope linear --impedance`, Mms
 /// given): `f` (Hz), `z_re`, `z_im` (ohm). `band`: the fitted band (Hz); without it, the band
 /// where the lumped model holds (below break-up), as the command line finds it
-/// (`fit.band_note` says where). The result as JSON text, with its warnings and verdict.
+/// (`fit.band_note` says where). `magnitude_only`: only `|z|` is data (a file without
+/// phase): fitted to the magnitude alone. The result as JSON text, with its warnings and
+/// verdict.
 #[pyfunction]
-#[pyo3(signature = (f, z_re, z_im, mms, band=None))]
-fn linear_impedance(py: Python<'_>, f: Vec<f64>, z_re: Vec<f64>, z_im: Vec<f64>, mms: f64, band: Option<(f64, f64)>) -> PyResult<String> {
+#[pyo3(signature = (f, z_re, z_im, mms, band=None, magnitude_only=false))]
+#[allow(clippy::too_many_arguments)]
+fn linear_impedance(py: Python<'_>, f: Vec<f64>, z_re: Vec<f64>, z_im: Vec<f64>, mms: f64, band: Option<(f64, f64)>, magnitude_only: bool) -> PyResult<String> {
     use coilscope_workflow::linear::{linear as fit, LinearInput, LinearRequest, Scale};
     if f.len() != z_re.len() || f.len() != z_im.len() {
         return Err(err(format!("f, z_re and z_im have {}, {} and {} points: give one impedance per frequency", f.len(), z_re.len(), z_im.len())));
     }
     let z = z_re.iter().zip(&z_im).map(|(&re, &im)| coilscope_core::Complex64::new(re, im)).collect();
-    let curve = coilscope_io::impedance::ImpedanceCurve { f, z, comments: vec![], magnitude_only: false };
+    let curve = coilscope_io::impedance::ImpedanceCurve { f, z, comments: vec![], magnitude_only };
     let req = LinearRequest { band: band.map(|(lo, hi)| [lo, hi]), ..LinearRequest::new("python") };
     py.allow_threads(|| fit(LinearInput::Curve(curve), Scale::Mms(mms), &req, |_| {}).map(|l| l.result.to_json_value().to_string())).map_err(err)
 }

@@ -150,3 +150,10 @@ def test_linear_impedance_keeps_below_the_break_up_as_the_command_line():
     with pytest.warns(coilscope.NotTrustworthy, match="model-misses-curve"):
         loud = coilscope.linear_impedance(f, z, mms=0.0149, band=(10.0, 20000.0))
     assert loud["fit"]["trustworthy"] is False
+    # |Z| alone: said so, and the same figures.
+    mag = coilscope.linear_impedance(f, np.abs(z), mms=0.0149, magnitude_only=True)
+    assert "|Z| alone" in mag["fit"]["phase_note"]
+    assert abs(mag["parameters"]["Bl"] / r["parameters"]["Bl"] - 1.0) < 0.01
+    # Frequencies out of order are refused with the reason, not fitted.
+    with pytest.raises(ValueError, match="increasing"):
+        coilscope.linear_impedance(f[::-1], z[::-1], mms=0.0149)

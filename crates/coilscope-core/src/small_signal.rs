@@ -50,7 +50,8 @@ pub struct ThieleSmall {
     pub qms: f64,
     pub qes: f64,
     pub qts: f64,
-    /// Compliance 1/Kms(0) (m/N).
+    /// Compliance 1/Kms(0) (m/N): with creep, the compliance at its reference frequency
+    /// (the resonance, unless the set names another `f_ref`).
     pub cms: f64,
     /// Equivalent air volume (m^3), when Sd is known.
     pub vas: Option<f64>,

@@ -1322,9 +1322,25 @@ pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, o
 /// The start values take the curve's minimum phase ([`crate::min_phase`]), which is also
 /// what `h1` holds. The sds are those of the magnitude alone.
 pub fn fit_impedance_magnitude(f: &[f64], mag: &[f64], band: Option<[f64; 2]>, origin: &str, opts: &LinearOptions, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+    check_curve(f, &mag.iter().map(|&m| Complex64::new(m, 0.0)).collect::<Vec<_>>(), origin)?;
     check_magnitude_span(f, origin)?;
     let z = magnitude_curve(f, mag);
     impedance_curve(f, &z, band, origin, opts, true, &mut observe)
+}
+
+/// A curve's frequencies positive, finite and increasing, one finite non-zero impedance
+/// each (what a file's reader checks, for callers that build a curve themselves).
+fn check_curve(f: &[f64], z: &[Complex64], origin: &str) -> Result<(), String> {
+    if f.len() != z.len() {
+        return Err(format!("{origin}: {} frequencies for {} impedance points", f.len(), z.len()));
+    }
+    if let Some(k) = (0..f.len()).find(|&k| !(f[k].is_finite() && f[k] > 0.0) || (k > 0 && !(f[k] > f[k - 1]))) {
+        return Err(format!("{origin}: frequency {} Hz at point {k} is not positive, finite and above the one before: give increasing frequencies", f[k]));
+    }
+    if let Some(k) = (0..z.len()).find(|&k| !(z[k].re.is_finite() && z[k].im.is_finite() && z[k].norm() > 0.0)) {
+        return Err(format!("{origin}: impedance {} at {} Hz is not finite and non-zero", z[k], f[k]));
+    }
+    Ok(())
 }
 
 /// The fewest decades a curve without phase must span: the magnitude's slopes over the
@@ -1390,6 +1406,7 @@ pub const LUMPED_PART_BOUND: f64 = 2.0;
 /// with its minimum phase ([`crate::min_phase`]), as a curve with its phase: break-up shows
 /// in the phase as much as in |Z|, where a fit of |Z| alone could bend through it.
 pub fn lumped_band(f: &[f64], z: &[Complex64], magnitude_only: bool, origin: &str, opts: &LinearOptions) -> Result<LumpedBand, String> {
+    check_curve(f, z, origin)?;
     let rebuilt;
     let z = if magnitude_only {
         check_magnitude_span(f, origin)?;
@@ -1426,49 +1443,55 @@ pub fn lumped_band(f: &[f64], z: &[Complex64], magnitude_only: bool, origin: &st
     let Ok(full) = fit_to(top) else {
         return Ok(LumpedBand { band: whole, note: "the whole curve (no fit to search a band with)".into() });
     };
-    // At least 40 points below the first top (the fit has up to 10 unknowns).
-    let start = (LUMPED_START_OVER_FS * full.fs()).max(lo * LUMPED_STEP * LUMPED_STEP).max(f[pts[pts.len().min(40) - 1]]);
+    // The first top: ten times the resonance, two half-octaves above the bottom, and at least
+    // 40 points below it (the fit has up to 10 unknowns); whichever is highest.
+    let by_points = f[pts[pts.len().min(40) - 1]];
+    let start = (LUMPED_START_OVER_FS * full.fs()).max(lo * LUMPED_STEP * LUMPED_STEP).max(by_points);
     if start >= top / LUMPED_STEP {
-        return Ok(LumpedBand { band: whole, note: format!("the whole curve: it ends below {LUMPED_START_OVER_FS} times the resonance ({:.0} Hz)", full.fs()) });
+        let why = if by_points >= top / LUMPED_STEP { format!("it has too few points ({}) to fit a part of it", pts.len()) } else { format!("it ends below {LUMPED_START_OVER_FS} times the resonance ({:.0} Hz)", full.fs()) };
+        return Ok(LumpedBand { band: whole, note: format!("the whole curve ({lo:.0} .. {top:.0} Hz): {why}") });
     }
-    // Every top, half an octave apart: whether the fit to it holds, in the whole band and in
-    // its top half-octave (a narrow mode below a top that holds is averaged in; a fit that
-    // holds to a higher top wins over a failure below it).
+    // Every top, half an octave apart from the first: whether the fit to it holds, over its
+    // whole band and in each half-octave above the first top (a narrow mode is averaged in; a
+    // fit that holds to a higher top wins over a failure below it). A NaN misfit fails.
     let mut tops = vec![start];
     while *tops.last().expect("one") < top {
         tops.push((tops.last().expect("one") * LUMPED_STEP).min(top));
     }
     // The largest top whose fit holds, and the first failure above it, (top, misfit, worst, at).
-    let mut held = start;
+    let mut held: Option<f64> = None;
     let mut failed_above: Option<(f64, f64, f64, f64)> = None;
-    for (i, w) in tops.windows(2).enumerate() {
-        let t = w[1];
+    for (i, &t) in tops.iter().enumerate() {
         let Ok(fit) = fit_to(t) else { continue };
-        // The worst half-octave of the fit's band above the start, and its top one.
-        let parts: Vec<(f64, usize, f64, f64)> = tops[..=i + 1].windows(2).map(|s| misfit(&fit, s[0], s[1])).collect();
-        let (worst_part, n, worst, at) = parts.iter().copied().fold((0.0, 0, 0.0, 0.0), |a, b| if b.0 > a.0 { b } else { a });
-        if n == 0 || (worst_part <= LUMPED_PART_BOUND * CURVE_RESIDUAL_WARN && fit.residual_rel <= CURVE_RESIDUAL_WARN) {
-            held = t;
+        let parts: Vec<(f64, usize, f64, f64)> = tops[..=i].windows(2).map(|s| misfit(&fit, s[0], s[1])).collect();
+        let bad_part = parts.iter().filter(|p| p.1 > 0).find(|p| !(p.0 <= LUMPED_PART_BOUND * CURVE_RESIDUAL_WARN));
+        if fit.residual_rel <= CURVE_RESIDUAL_WARN && bad_part.is_none() {
+            held = Some(t);
             failed_above = None;
         } else if failed_above.is_none() {
-            failed_above = Some((t, worst_part.max(fit.residual_rel), worst, at));
+            let (e, worst, at) = match bad_part {
+                Some(&(e, _, worst, at)) => (e.max(fit.residual_rel), worst, at),
+                None => (fit.residual_rel, f64::NAN, f64::NAN),
+            };
+            failed_above = Some((t, e, worst, at));
         }
     }
-    match failed_above {
-        Some((t, e, worst, at)) => {
-            let band = [lo, held];
+    match (held, failed_above) {
+        (Some(h), Some((t, e, worst, at))) => {
+            let band = [lo, h];
+            let worst_text = if worst.is_finite() { format!(" (worst {:.1} % at {at:.0} Hz)", 100.0 * worst) } else { String::new() };
             let note = format!(
-                "fitted {:.0} .. {:.0} Hz, where the lumped model holds: fitted to {:.0} Hz it misses the curve by {:.1} % RMS (worst {:.1} % at {:.0} Hz), cone break-up or modes, which are left out (--band LO,HI sets the band)",
+                "fitted {:.0} .. {:.0} Hz, where the lumped model holds: fitted to {t:.0} Hz it misses the curve by {:.1} % RMS{worst_text}, cone break-up or modes, which are left out (--band LO,HI sets the band)",
                 band[0],
                 band[1],
-                t,
                 100.0 * e,
-                100.0 * worst,
-                at
             );
             Ok(LumpedBand { band, note })
         }
-        None => Ok(LumpedBand { band: whole, note: format!("the whole curve ({:.0} .. {:.0} Hz): the lumped model holds to its end", lo, top) }),
+        (Some(_), None) => Ok(LumpedBand { band: whole, note: format!("the whole curve ({lo:.0} .. {top:.0} Hz): the lumped model holds to its end") }),
+        // Not even the lowest part holds: the whole curve is fitted, and its fit's warnings
+        // say how the model misses it.
+        (None, _) => Ok(LumpedBand { band: whole, note: format!("the whole curve ({lo:.0} .. {top:.0} Hz): no part of it holds the lumped model within {:.0} % (from its first {start:.0} Hz on)", 100.0 * CURVE_RESIDUAL_WARN) }),
     }
 }
 
@@ -1478,9 +1501,7 @@ fn impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, origin: &
         return Err(format!("{origin}: an impedance curve has no measurement chain to estimate (its tool calibrated it); --chain applies to records"));
     }
     refuse_large_signal_effects(opts, origin)?;
-    if f.len() != z.len() {
-        return Err(format!("{origin}: {} frequencies for {} impedance points", f.len(), z.len()));
-    }
+    check_curve(f, z, origin)?;
     let [lo, hi] = band.unwrap_or([0.0, 20000.0]);
     if !(lo >= 0.0 && hi > lo) {
         return Err(format!("{origin}: fit band {lo} .. {hi} Hz is empty (give LO < HI, Hz)"));

@@ -31,6 +31,9 @@ use std::f64::consts::PI;
 /// it `pi^2/4 - 2 sum_{k odd} e^{-k x} / k^2` (`ln coth(t/2) = 2 sum_{k odd} e^{-k t} / k`);
 /// both to better than 1e-9.
 pub fn kernel_integral(x: f64) -> f64 {
+    if x.is_nan() {
+        return f64::NAN;
+    }
     if x <= 0.0 {
         return 0.0;
     }
@@ -60,7 +63,7 @@ fn g(x: f64) -> f64 {
 const MAX_POINTS: usize = 1000;
 
 /// The minimum phase (rad) at each of the frequencies `f` (Hz, increasing, positive) of a
-/// curve with magnitudes `mag` (positive).
+/// curve with magnitudes `mag` (positive); the caller checks both (a NaN in, NaN out).
 pub fn min_phase(f: &[f64], mag: &[f64]) -> Vec<f64> {
     let n = f.len().min(mag.len());
     if n < 2 {
@@ -78,7 +81,11 @@ pub fn min_phase(f: &[f64], mag: &[f64]) -> Vec<f64> {
     };
     // Below the band: points on the settling tail, 0.1 apart in ln f over 6 (the slope down
     // to e^-12 of the bottom's).
-    let s_below = ((a[1] - a[0]) / (u[1] - u[0])).max(0.0);
+    // The bottom's slope over the band's first tenth in ln f (one segment's would carry its
+    // points' noise).
+    let u_first = u[0] + 0.1 * (u[u.len() - 1] - u[0]);
+    let j_lo = (1..u.len()).find(|&j| u[j] >= u_first).unwrap_or(u.len() - 1);
+    let s_below = ((a[j_lo] - a[0]) / (u[j_lo] - u[0])).max(0.0);
     let (u, a): (Vec<f64>, Vec<f64>) = (1..=60).rev().map(|k| (u[0] - 0.1 * k as f64, a[0] + s_below / 2.0 * ((-0.2 * k as f64).exp() - 1.0))).chain(u.iter().copied().zip(a.iter().copied())).unzip();
     // Above the band: `|R + jwL|` through the top point with the slope of the band's top
     // tenth (in ln f), `w^2 L^2 = s |Z|^2`, `R^2 = (1 - s) |Z|^2`, on points 0.1 apart in ln f

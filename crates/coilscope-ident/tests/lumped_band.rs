@@ -58,7 +58,7 @@ fn impedance_with_modes(p: &Parameters, modes: &[ConeMode], f: f64) -> Complex64
     blocked + p.bl.c[0].powi(2) / zm
 }
 
-/// A curve from 10 Hz (or a fifth of the resonance, if higher) to 20 kHz, 300 log-spaced
+/// A curve from 10 Hz (or a fifth of the resonance, if higher) to 20 kHz, 600 log-spaced
 /// points, with complex relative noise of `noise` RMS.
 fn curve(p: &Parameters, modes: &[ConeMode], noise: f64, seed: u64) -> (Vec<f64>, Vec<Complex64>) {
     let lo = (thiele_small(p).fs / 5.0).max(10.0);

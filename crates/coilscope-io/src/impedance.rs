@@ -128,7 +128,12 @@ pub fn parse_impedance(text: &str, name: &str) -> Result<ImpedanceCurve, IoError
             let roles: Vec<Column> = cols.iter().map(|c| column_of(c)).collect();
             let find = |want: fn(Column) -> bool| roles.iter().position(|&r| want(r));
             let Some(fc) = find(|r| r == Column::Freq) else {
-                // A title or a quoted header line before the column names: a comment.
+                // A title or a quoted header line before the column names: a comment. A line
+                // that names impedance columns but no frequency is a header that would be
+                // misread by position: refused.
+                if roles.iter().any(|r| !matches!(r, Column::Other)) {
+                    return Err(IoError(format!("{name}, line {line_no}: no frequency column among {cols:?} (name one `freq`, `frequency` or `Hz`)")));
+                }
                 comments.push(line.replace('"', "").trim().to_string());
                 continue;
             };
@@ -312,6 +317,7 @@ mod tests {
             (good.clone() + "7000 7,5 3\n", "is not a number"),
             ("10 6 1\n11 6 1\n".to_string(), "at least 20"),
             (format!("Hz,Coherence\n{good}"), "no impedance columns"),
+            (format!("Frequenz,Real,Imag\n{good}"), "no frequency column"),
         ];
         for (text, want) in cases {
             let e = parse_impedance(&text, "bad.zma").unwrap_err().0;
