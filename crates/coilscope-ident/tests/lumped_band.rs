@@ -75,8 +75,9 @@ fn rel(a: f64, b: f64) -> f64 {
 }
 
 /// The figures a fit in the found band gives, against the truth's, each with its bound: the
-/// failures named, what the fit did in words, and the top of the band found.
-fn figures_off(p: &Parameters, f: &[f64], z: &[Complex64], magnitude_only: bool, label: &str) -> (Vec<String>, String, f64) {
+/// failures named, what the fit did in words, the top of the band found, and whether the fit
+/// warned (was loud: `linear` exits 3 on it).
+fn figures_off(p: &Parameters, f: &[f64], z: &[Complex64], magnitude_only: bool, label: &str) -> (Vec<String>, String, f64, bool) {
     let opts = LinearOptions::default();
     let band = lumped_band(f, z, magnitude_only, label, &opts).unwrap_or_else(|e| panic!("{label}: {e}"));
     let fit = if magnitude_only { fit_impedance_magnitude(f, &z.iter().map(|z| z.norm()).collect::<Vec<_>>(), Some(band.band), label, &opts, |_| {}) } else { fit_impedance_curve(f, z, Some(band.band), label, &opts, |_| {}) }
@@ -102,7 +103,7 @@ fn figures_off(p: &Parameters, f: &[f64], z: &[Complex64], magnitude_only: bool,
     let warned: Vec<String> = curve_warnings(&fit).iter().map(|w| w.code.to_string()).collect();
     let text =
         format!("band {:.0} .. {:.0} Hz ({}), model {} (truth {}), residual {:.2e}, Re sd {:.2e} (relative), warnings {warned:?}", band.band[0], band.band[1], band.note, fit.effects.model_name(), truth_model(p), fit.residual_rel, fit.sigma_rel[0]);
-    (off, text, band.band[1])
+    (off, text, band.band[1], !warned.is_empty())
 }
 
 /// The truth's small-signal effects, named as a fit's model.
@@ -118,21 +119,27 @@ fn truth_model(p: &Parameters) -> String {
 }
 
 /// Over fresh drivers for `test`: `make` gives each one's curve and what was done to it, and
-/// `top_ok` judges the band's top (Hz) on the curve's frequencies. A driver fails on a figure
-/// off its bound or a top not as expected, and is kept.
+/// `top_ok` judges the band's top (Hz) on the curve's frequencies. Each driver is right (every
+/// figure within its bound) or loud (the fit warns, so `linear` exits 3 with the reason); a
+/// driver fails on a figure off its bound without a warning, or a top not as expected, and
+/// is kept. At most a quarter may be loud.
 fn over_drivers(test: &str, magnitude_only: bool, make: impl Fn(&Parameters, u64) -> (String, Vec<f64>, Vec<Complex64>), top_ok: impl Fn(&Parameters, &[f64], f64) -> bool) {
     let mut failures = vec![];
+    let (mut loud, mut n) = (0, 0);
     for d in draws(test, cases(8)) {
         let p = d.natural();
         let label = format!("{} ({})", d.name(), p.name.clone().unwrap_or_default());
         let (what, f, z) = make(&p, d.seed);
-        let (off, text, top) = figures_off(&p, &f, &z, magnitude_only, &label);
-        println!("{label}: {what}: {text}");
-        if !top_ok(&p, &f, top) || !off.is_empty() {
+        let (off, text, top, warned) = figures_off(&p, &f, &z, magnitude_only, &label);
+        println!("{label}: {what}: {text}; off {off:?}");
+        n += 1;
+        loud += usize::from(warned);
+        if !top_ok(&p, &f, top) || (!off.is_empty() && !warned) {
             failures.push(format!("{label}: {what}: {text}; off: {off:?}; kept as {}", keep_failure(&label, &p).display()));
         }
     }
     assert!(failures.is_empty(), "{failures:#?}");
+    assert!(loud * 4 <= n, "{loud} of {n} fits were loud (warned): more than a quarter");
 }
 
 #[test]
@@ -207,9 +214,12 @@ fn a_magnitude_only_curve_gives_the_drivers_figures() {
 
 /// Drivers a fresh draw failed on, kept: each with whether its curve is |Z| alone, the
 /// curve's seed, and whether it is still open (run and printed, not asserted, until fixed).
-const KEPT: [(&str, bool, u64, bool); 2] = [
+const KEPT: [(&str, bool, u64, bool); 3] = [
     // |Z| alone: Re 1.3 % high (LR-2+LR-3+creep, 0.3 % noise), 1.65 of its sd (0.8 %).
     ("population:woofer:3042703063", true, 3042703063, false),
+    // |Z| alone: the LR-2 corner on its bound, Re 1.03 % high: loud (on-bound), so right or
+    // loud holds; kept so that it stays loud or becomes right.
+    ("population:fullrange:1444849663", true, 1444849663, false),
     // Open: a heavily damped microspeaker (Qms 1.3) with creep (lambda 0.094) and an LR-3
     // branch of 10 Le whose corner (645 Hz) sits at the resonance (565 Hz): the fit takes
     // LR-2+LR-3 without creep, and Bl is 2.3 % low with Mms given.
@@ -222,9 +232,9 @@ fn kept_curves_give_the_drivers_figures() {
     for (name, magnitude_only, seed, open) in KEPT {
         let p = coilscope_core::population::parse_name(name).expect("a population name").expect("a valid name").natural();
         let (f, z) = curve(&p, &[], 0.003, seed);
-        let (off, text, _) = figures_off(&p, &f, &z, magnitude_only, name);
+        let (off, text, _, warned) = figures_off(&p, &f, &z, magnitude_only, name);
         println!("{name} (|Z| alone: {magnitude_only}, open: {open}): {text}; off {off:?}");
-        if !off.is_empty() && !open {
+        if !off.is_empty() && !warned && !open {
             failures.push(format!("{name}: {text}; off: {off:?}"));
         }
         if off.is_empty() && open {
