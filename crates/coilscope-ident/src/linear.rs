@@ -2138,11 +2138,28 @@ fn bound_warnings(fit: &LinearFit) -> Vec<crate::checks::Warning> {
 /// several percent.
 pub const CURVE_RESIDUAL_WARN: f64 = 0.02;
 
+/// The relative sd above which a figure of the resonance fitted from an impedance curve is
+/// not identified (a good curve gives well under 1 %).
+pub const FIGURE_SD_WARN: f64 = 0.1;
+
 /// What makes a fit of an impedance curve doubtful: a bound, or a model that misses the
 /// curve (a file has no noise floor to compare with: the threshold is
 /// [`CURVE_RESIDUAL_WARN`]); the worst point is named.
 pub fn curve_warnings(fit: &LinearFit) -> Vec<crate::checks::Warning> {
     let mut w = bound_warnings(fit);
+    // The figures of the resonance (Re, Res, Cmes, Lces: Qms, Qts, fs, Bl) must come out
+    // determined; a NaN sd counts as undetermined.
+    let loose: Vec<String> = [0, 4, 5, 6].iter().filter(|&&k| !(fit.sigma_rel[k] <= FIGURE_SD_WARN)).map(|&k| format!("{} ({:.2e})", NAMES[k], fit.sigma_rel[k])).collect();
+    if !loose.is_empty() {
+        w.push(crate::checks::Warning::new(
+            "not-identified",
+            format!(
+                "the fit leaves {} undetermined (relative sd over {:.0} %): it ended in a wrong minimum, or the curve does not show the resonance; check the file, or fit a band around the resonance (--band LO,HI)",
+                loose.join(", "),
+                100.0 * FIGURE_SD_WARN
+            ),
+        ));
+    }
     if fit.residual_rel > CURVE_RESIDUAL_WARN {
         let h = &fit.h1;
         let err = |k: usize| fit.point_error(h.f[k], h.z[k]);

@@ -101,8 +101,22 @@ fn figures_off(p: &Parameters, f: &[f64], z: &[Complex64], magnitude_only: bool,
     // `!(e <= bound)`: a NaN fails.
     let off = rows.iter().filter(|(_, g, t, b)| !(rel(*g, *t) <= *b)).map(|(k, g, t, b)| format!("{k} {g:.5} vs {t:.5} ({:+.2} %, bound {:.0} %)", 100.0 * (g / t - 1.0), 100.0 * b)).collect();
     let warned: Vec<String> = curve_warnings(&fit).iter().map(|w| w.code.to_string()).collect();
-    let text =
-        format!("band {:.0} .. {:.0} Hz ({}), model {} (truth {}), residual {:.2e}, Re sd {:.2e} (relative), warnings {warned:?}", band.band[0], band.band[1], band.note, fit.effects.model_name(), truth_model(p), fit.residual_rel, fit.sigma_rel[0]);
+    let text = format!(
+        "band {:.0} .. {:.0} Hz ({}), model {} (truth {}), residual {:.2e}, Re sd {:.2e} (relative), warnings {warned:?} (on the bound of {:?}) tried {:?} corners fit {:.0} {:?} truth {:?} {:?}",
+        band.band[0],
+        band.band[1],
+        band.note,
+        fit.effects.model_name(),
+        truth_model(p),
+        fit.residual_rel,
+        fit.sigma_rel[0],
+        fit.at_bound,
+        fit.tried,
+        fit.p[3] / (2.0 * PI * fit.p[2]),
+        fit.lr3.map(|(v, _)| v[1] / (2.0 * PI * v[0])),
+        p.l2r2.as_ref().map(|(l, r)| r.eval(0.0) / (2.0 * PI * l.eval(0.0))),
+        p.l3r3.map(|(l, r)| r / (2.0 * PI * l))
+    );
     (off, text, band.band[1], !warned.is_empty())
 }
 
@@ -122,11 +136,13 @@ fn truth_model(p: &Parameters) -> String {
 /// `top_ok` judges the band's top (Hz) on the curve's frequencies. Each driver is right (every
 /// figure within its bound) or loud (the fit warns, so `linear` exits 3 with the reason); a
 /// driver fails on a figure off its bound without a warning, or a top not as expected, and
-/// is kept. At most a quarter may be loud.
+/// is kept. At most a quarter may be loud: over 128 drivers of two seeds 3-12 % were (each
+/// on a bound of the L2/R2 branch in a band cut below break-up, or the search finding none),
+/// and 16 draws keep a chance failure of that bound near 1 %.
 fn over_drivers(test: &str, magnitude_only: bool, make: impl Fn(&Parameters, u64) -> (String, Vec<f64>, Vec<Complex64>), top_ok: impl Fn(&Parameters, &[f64], f64) -> bool) {
     let mut failures = vec![];
     let (mut loud, mut n) = (0, 0);
-    for d in draws(test, cases(8)) {
+    for d in draws(test, cases(16)) {
         let p = d.natural();
         let label = format!("{} ({})", d.name(), p.name.clone().unwrap_or_default());
         let (what, f, z) = make(&p, d.seed);
@@ -134,7 +150,11 @@ fn over_drivers(test: &str, magnitude_only: bool, make: impl Fn(&Parameters, u64
         println!("{label}: {what}: {text}; off {off:?}");
         n += 1;
         loud += usize::from(warned);
-        if !top_ok(&p, &f, top) || (!off.is_empty() && !warned) {
+        // A search that found no band holding (break-up below its first top, 10 fs: a
+        // microspeaker resonating at 930 Hz whose cone breaks up from 5 kHz) fits the whole
+        // curve and must say so, loudly.
+        let nothing_held = warned && text.contains("no part of it holds");
+        if !(top_ok(&p, &f, top) || nothing_held) || (!off.is_empty() && !warned) {
             failures.push(format!("{label}: {what}: {text}; off: {off:?}; kept as {}", keep_failure(&label, &p).display()));
         }
     }
@@ -214,7 +234,7 @@ fn a_magnitude_only_curve_gives_the_drivers_figures() {
 
 /// Drivers a fresh draw failed on, kept: each with whether its curve is |Z| alone, the
 /// curve's seed, and whether it is still open (run and printed, not asserted, until fixed).
-const KEPT: [(&str, bool, u64, bool); 3] = [
+const KEPT: [(&str, bool, u64, bool); 4] = [
     // |Z| alone: Re 1.3 % high (LR-2+LR-3+creep, 0.3 % noise), 1.65 of its sd (0.8 %).
     ("population:woofer:3042703063", true, 3042703063, false),
     // |Z| alone: the LR-2 corner on its bound, Re 1.03 % high: loud (on-bound), so right or
@@ -224,6 +244,10 @@ const KEPT: [(&str, bool, u64, bool); 3] = [
     // branch of 10 Le whose corner (645 Hz) sits at the resonance (565 Hz): the fit takes
     // LR-2+LR-3 without creep, and Bl is 2.3 % low with Mms given.
     ("population:microspeaker:3590927445", false, 3590927445, true),
+    // |Z| alone: LR-2+LR-3 with its second corner at 17 Hz (the truth's at 567 and 1510 Hz)
+    // misfit by 1.7 %, under the 2 % of a file's misfit warning, with Re's sd 4e69 and Qts
+    // 0: now loud (not-identified).
+    ("population:midwoofer:1257859559", true, 1257859559, false),
 ];
 
 #[test]
