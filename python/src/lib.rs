@@ -20,9 +20,14 @@ fn err<E: std::fmt::Display>(e: E) -> PyErr {
 /// A parameter set from JSON text, an embedded driver's name or a file path.
 fn params_from(spec: &str) -> PyResult<Parameters> {
     if spec.trim_start().starts_with('{') {
-        let v: serde_json::Value = serde_json::from_str(spec).map_err(|e| err(format!("parameters: not JSON ({e})")))?;
+        let v: serde_json::Value =
+            serde_json::from_str(spec).map_err(|e| err(format!("parameters: not JSON ({e})")))?;
         // A result file gives its parameters.
-        let v = if v.get("format").and_then(|f| f.as_str()).is_some_and(|f| f.starts_with("coilscope.result")) { v["parameters"].clone() } else { v };
+        let v = if v.get("format").and_then(|f| f.as_str()).is_some_and(|f| f.starts_with("coilscope.result")) {
+            v["parameters"].clone()
+        } else {
+            v
+        };
         let p = Parameters::from_json_value(&v, "parameters").map_err(err)?;
         p.validate("parameters").map_err(err)?;
         Ok(p)
@@ -65,7 +70,17 @@ fn parameters(spec: &str) -> PyResult<String> {
 #[pyfunction]
 #[pyo3(signature = (kind, fs, seconds, rms, seed=1, band=None, freq=None, tones=30, fade=0.05))]
 #[allow(clippy::too_many_arguments)]
-fn generate(kind: &str, fs: f64, seconds: f64, rms: f64, seed: u64, band: Option<(f64, f64)>, freq: Option<f64>, tones: usize, fade: f64) -> PyResult<Vec<f64>> {
+fn generate(
+    kind: &str,
+    fs: f64,
+    seconds: f64,
+    rms: f64,
+    seed: u64,
+    band: Option<(f64, f64)>,
+    freq: Option<f64>,
+    tones: usize,
+    fade: f64,
+) -> PyResult<Vec<f64>> {
     let (lo, hi) = band.unwrap_or((10.0, (8000.0f64).min(0.45 * fs)));
     let exc = match kind {
         "noise" => Excitation::Iec,
@@ -74,7 +89,9 @@ fn generate(kind: &str, fs: f64, seconds: f64, rms: f64, seed: u64, band: Option
         "multitone" => Excitation::Multitone { f_lo: lo, f_hi: hi, count: tones, crest: None },
         "sweep" => Excitation::Sweep { f_lo: lo, f_hi: hi },
         "readable" => Excitation::Readable { f_lo: lo, f_hi: hi, count: tones, crest: None },
-        other => return Err(err(format!("excitation {other:?}: give noise, pink, sine, multitone, sweep or readable"))),
+        other => {
+            return Err(err(format!("excitation {other:?}: give noise, pink, sine, multitone, sweep or readable")))
+        }
     };
     gen(&exc, &SignalSpec { fs, seconds, rms, fade, seed }).map_err(err)
 }
@@ -82,7 +99,12 @@ fn generate(kind: &str, fs: f64, seconds: f64, rms: f64, seed: u64, band: Option
 /// Simulate a voltage record on a parameter set: `(x m, v m/s, i A, coil rise K, magnet rise K)`.
 #[pyfunction]
 #[allow(clippy::type_complexity)]
-fn simulate(py: Python<'_>, params: &str, fs: f64, u: Vec<f64>) -> PyResult<(Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>)> {
+fn simulate(
+    py: Python<'_>,
+    params: &str,
+    fs: f64,
+    u: Vec<f64>,
+) -> PyResult<(Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>)> {
     let p = params_from(params)?;
     check_fs(fs)?;
     let t = py.allow_threads(|| sim(&p, fs, &u, &SimOptions::default())).map_err(err)?;
@@ -114,7 +136,11 @@ fn linear(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, chain: &s
     check_fs(fs)?;
     check_pair(&u, &i)?;
     let req = LinearRequest { chain: chain_mode(chain)?, ..LinearRequest::new("python") };
-    py.allow_threads(|| fit(LinearInput::Record(record(u, i, fs)), Scale::Mms(mms), &req, |_| {}).map(|l| l.result.to_json_value().to_string())).map_err(err)
+    py.allow_threads(|| {
+        fit(LinearInput::Record(record(u, i, fs)), Scale::Mms(mms), &req, |_| {})
+            .map(|l| l.result.to_json_value().to_string())
+    })
+    .map_err(err)
 }
 
 /// The small-signal fit of a measured impedance curve (`coilscope linear --impedance`, Mms
@@ -126,15 +152,31 @@ fn linear(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, chain: &s
 #[pyfunction]
 #[pyo3(signature = (f, z_re, z_im, mms, band=None, magnitude_only=false))]
 #[allow(clippy::too_many_arguments)]
-fn linear_impedance(py: Python<'_>, f: Vec<f64>, z_re: Vec<f64>, z_im: Vec<f64>, mms: f64, band: Option<(f64, f64)>, magnitude_only: bool) -> PyResult<String> {
+fn linear_impedance(
+    py: Python<'_>,
+    f: Vec<f64>,
+    z_re: Vec<f64>,
+    z_im: Vec<f64>,
+    mms: f64,
+    band: Option<(f64, f64)>,
+    magnitude_only: bool,
+) -> PyResult<String> {
     use coilscope_workflow::linear::{linear as fit, LinearInput, LinearRequest, Scale};
     if f.len() != z_re.len() || f.len() != z_im.len() {
-        return Err(err(format!("f, z_re and z_im have {}, {} and {} points: give one impedance per frequency", f.len(), z_re.len(), z_im.len())));
+        return Err(err(format!(
+            "f, z_re and z_im have {}, {} and {} points: give one impedance per frequency",
+            f.len(),
+            z_re.len(),
+            z_im.len()
+        )));
     }
     let z = z_re.iter().zip(&z_im).map(|(&re, &im)| coilscope_core::Complex64::new(re, im)).collect();
     let curve = coilscope_io::impedance::ImpedanceCurve { f, z, comments: vec![], magnitude_only };
     let req = LinearRequest { band: band.map(|(lo, hi)| [lo, hi]), ..LinearRequest::new("python") };
-    py.allow_threads(|| fit(LinearInput::Curve(curve), Scale::Mms(mms), &req, |_| {}).map(|l| l.result.to_json_value().to_string())).map_err(err)
+    py.allow_threads(|| {
+        fit(LinearInput::Curve(curve), Scale::Mms(mms), &req, |_| {}).map(|l| l.result.to_json_value().to_string())
+    })
+    .map_err(err)
 }
 
 /// The large-signal identification of a record (`coilscope identify`): the result as JSON
@@ -142,7 +184,15 @@ fn linear_impedance(py: Python<'_>, f: Vec<f64>, z_re: Vec<f64>, z_im: Vec<f64>,
 /// `order`: the power series' order (default: chosen on held-out data).
 #[pyfunction]
 #[pyo3(signature = (u, i, fs, mms, order=None, chain="detect"))]
-fn identify(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, order: Option<usize>, chain: &str) -> PyResult<String> {
+fn identify(
+    py: Python<'_>,
+    u: Vec<f64>,
+    i: Vec<f64>,
+    fs: f64,
+    mms: f64,
+    order: Option<usize>,
+    chain: &str,
+) -> PyResult<String> {
     use coilscope_workflow::identify::{identify_record, IdentifyRequest};
     check_fs(fs)?;
     check_pair(&u, &i)?;
@@ -160,7 +210,14 @@ fn identify(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, order: 
     .map_err(err)
 }
 
-fn run_measure(py: Python<'_>, dev: &mut (dyn coilscope_measure::device::Device + Send), fs: f64, mms: f64, seed: u64, max_seconds: f64) -> PyResult<String> {
+fn run_measure(
+    py: Python<'_>,
+    dev: &mut (dyn coilscope_measure::device::Device + Send),
+    fs: f64,
+    mms: f64,
+    seed: u64,
+    max_seconds: f64,
+) -> PyResult<String> {
     use coilscope_measure::signal::Source;
     use coilscope_measure::{measure, MeasureOptions};
     let mut src = Source::noise(&Excitation::Iec, fs, seed).map_err(err)?;

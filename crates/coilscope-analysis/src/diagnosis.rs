@@ -93,7 +93,8 @@ pub fn thermal_handling(p: &Parameters, dt_max: f64) -> Option<ThermalHandling> 
     let t = p.thermal.as_ref()?;
     let hot = Parameters { re: p.re * (1.0 + t.alpha * dt_max), ..p.clone() };
     let freqs = crate::distortion::log_frequencies(10.0, 20_000.0, 24);
-    let (f_sine, worst) = freqs.iter().map(|&f| (f, heating_per_v2(&hot, t, f))).fold((0.0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+    let (f_sine, worst) =
+        freqs.iter().map(|&f| (f, heating_per_v2(&hot, t, f))).fold((0.0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
     let fs = 48_000.0;
     let noise = generate(&Excitation::Iec, &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.0, seed: 1 }).ok()?;
     let spec = rfft(&noise);
@@ -108,7 +109,16 @@ pub fn thermal_handling(p: &Parameters, dt_max: f64) -> Option<ThermalHandling> 
     }
     let iec = heat / power;
     let volts_iec = (dt_max / iec).sqrt();
-    Some(ThermalHandling { dt_max, tau_v: t.rtv * t.ctv, tau_m: t.rtm * t.ctm, p_max: dt_max / (t.rtv + t.rtm), volts_sine: (dt_max / worst).sqrt(), f_sine, volts_iec, p_nominal_iec: volts_iec * volts_iec / p.re })
+    Some(ThermalHandling {
+        dt_max,
+        tau_v: t.rtv * t.ctv,
+        tau_m: t.rtm * t.ctm,
+        p_max: dt_max / (t.rtv + t.rtm),
+        volts_sine: (dt_max / worst).sqrt(),
+        f_sine,
+        volts_iec,
+        p_nominal_iec: volts_iec * volts_iec / p.re,
+    })
 }
 
 /// Limits, shift, polarity and thermal handling of a set over its reached range.
@@ -132,7 +142,12 @@ impl Diagnosis {
             Some(s) if s.abs() < 0.02 * self.limits.reach.max(1e-9) => {
                 format!("Bl(x) is symmetric within {:.2} mm: no shift needed", 0.02 * self.limits.reach * 1e3)
             }
-            Some(s) => format!("Bl(x) is centred at {:+.2} mm: move the voice-coil rest position {:.2} mm {}", s * 1e3, s.abs() * 1e3, if s > 0.0 { "outward (coil out, away from the back plate)" } else { "inward (toward the back plate)" }),
+            Some(s) => format!(
+                "Bl(x) is centred at {:+.2} mm: move the voice-coil rest position {:.2} mm {}",
+                s * 1e3,
+                s.abs() * 1e3,
+                if s > 0.0 { "outward (coil out, away from the back plate)" } else { "inward (toward the back plate)" }
+            ),
             None => "the Bl(x) symmetry point lies outside the reached range".into(),
         }
     }

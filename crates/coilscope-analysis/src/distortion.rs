@@ -202,8 +202,14 @@ fn check_periodic(p: &Parameters, exc: &Periodic) -> Result<(), AnalysisError> {
         return Err(AnalysisError::Input("the excitation has no tones".into()));
     }
     for t in &exc.tones {
-        if t.bin == 0 || !(t.amplitude.is_finite() && t.amplitude >= 0.0 && t.amplitude <= 1000.0) || !t.phase.is_finite() {
-            return Err(AnalysisError::Input(format!("tone on bin {} with amplitude {} V is not valid (bin >= 1, 0 .. 1000 V peak)", t.bin, t.amplitude)));
+        if t.bin == 0
+            || !(t.amplitude.is_finite() && t.amplitude >= 0.0 && t.amplitude <= 1000.0)
+            || !t.phase.is_finite()
+        {
+            return Err(AnalysisError::Input(format!(
+                "tone on bin {} with amplitude {} V is not valid (bin >= 1, 0 .. 1000 V peak)",
+                t.bin, t.amplitude
+            )));
         }
     }
     p.validate("distortion").map_err(|e| AnalysisError::Input(e.to_string()))
@@ -224,7 +230,9 @@ fn run_steady(q: &Parameters, exc: &Periodic, opts: &SteadyOptions) -> Result<Re
     let n = (fs_target * t).ceil() as usize;
     let fs = n as f64 / t;
     if n > 4_000_000 {
-        return Err(AnalysisError::Input(format!("a period of {t} s at {fs:.0} Hz is too long ({n} samples); use shorter periods or lower tones")));
+        return Err(AnalysisError::Input(format!(
+            "a period of {t} s at {fs:.0} Hz is too long ({n} samples); use shorter periods or lower tones"
+        )));
     }
     let stepper = Stepper::for_rates(q.rates(), fs);
     // The input at the stepper's points ([`Stepper::points`]): `per` intervals per sample.
@@ -233,7 +241,10 @@ fn run_steady(q: &Parameters, exc: &Periodic, opts: &SteadyOptions) -> Result<Re
     let mut spec = vec![C::new(0.0, 0.0); fine / 2 + 1];
     for tone in &exc.tones {
         if tone.bin >= n / 2 {
-            return Err(AnalysisError::Input(format!("tone at {:.1} Hz is above the analysis band", tone.bin as f64 / t)));
+            return Err(AnalysisError::Input(format!(
+                "tone at {:.1} Hz is above the analysis band",
+                tone.bin as f64 / t
+            )));
         }
         spec[tone.bin] += C::from_polar(0.5 * tone.amplitude, tone.phase);
     }
@@ -287,8 +298,20 @@ fn run_steady(q: &Parameters, exc: &Periodic, opts: &SteadyOptions) -> Result<Re
                     }
                     v
                 };
-                let x_peak = [xs.iter().copied().fold(f64::INFINITY, f64::min), xs.iter().copied().fold(f64::NEG_INFINITY, f64::max)];
-                return Ok(Response { period: t, fs, n, x: scale(fx), i: scale(fi), a: scale(rfft(&acc)), x_peak, seconds: windows as f64 * t });
+                let x_peak = [
+                    xs.iter().copied().fold(f64::INFINITY, f64::min),
+                    xs.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+                ];
+                return Ok(Response {
+                    period: t,
+                    fs,
+                    n,
+                    x: scale(fx),
+                    i: scale(fi),
+                    a: scale(rfft(&acc)),
+                    x_peak,
+                    seconds: windows as f64 * t,
+                });
             }
         }
         if windows >= max_windows {
@@ -358,17 +381,33 @@ fn sine_window(freq: f64, min_seconds: f64) -> (f64, usize) {
     (m as f64 / freq, m)
 }
 
-fn sine_harmonics(q: &Parameters, freq: f64, volts: f64, output: Output, opts: &SteadyOptions) -> Result<Harmonics, AnalysisError> {
+fn sine_harmonics(
+    q: &Parameters,
+    freq: f64,
+    volts: f64,
+    output: Output,
+    opts: &SteadyOptions,
+) -> Result<Harmonics, AnalysisError> {
     let (period, bin) = sine_window(freq, 0.05);
     let exc = Periodic { period, tones: vec![Tone { bin, amplitude: volts * SQRT_2, phase: 0.0 }] };
     let r = run_steady(q, &exc, opts)?;
     let fund = r.line(output, bin);
-    let lines = (2..=opts.harmonics.max(2)).map(|h| h * bin).take_while(|&b| b <= r.max_bin()).map(|b| (b / bin, r.line(output, b) / fund)).collect();
+    let lines = (2..=opts.harmonics.max(2))
+        .map(|h| h * bin)
+        .take_while(|&b| b <= r.max_bin())
+        .map(|b| (b / bin, r.line(output, b) / fund))
+        .collect();
     Ok(Harmonics { freq, volts, output, fundamental: fund, lines, x_dc: r.x_dc(), x_peak: r.x_peak })
 }
 
 /// Harmonic distortion of a sine of `volts` RMS at `freq` with every nonlinearity.
-pub fn harmonics(p: &Parameters, freq: f64, volts: f64, output: Output, opts: &SteadyOptions) -> Result<Harmonics, AnalysisError> {
+pub fn harmonics(
+    p: &Parameters,
+    freq: f64,
+    volts: f64,
+    output: Output,
+    opts: &SteadyOptions,
+) -> Result<Harmonics, AnalysisError> {
     check_freq("--freq", freq)?;
     check_level(volts)?;
     sine_harmonics(&with_only(p, &Nonlinearity::ALL, opts.dt_coil), freq, volts, output, opts)
@@ -410,9 +449,18 @@ impl Analysis {
 }
 
 /// Harmonic distortion of a sine, total and per nonlinearity.
-pub fn analyse(p: &Parameters, freq: f64, volts: f64, output: Output, opts: &SteadyOptions) -> Result<Analysis, AnalysisError> {
+pub fn analyse(
+    p: &Parameters,
+    freq: f64,
+    volts: f64,
+    output: Output,
+    opts: &SteadyOptions,
+) -> Result<Analysis, AnalysisError> {
     let total = harmonics(p, freq, volts, output, opts)?;
-    let parts = Nonlinearity::ALL.iter().map(|&nl| sine_harmonics(&with_only(p, &[nl], opts.dt_coil), freq, volts, output, opts).map(|h| (nl, h))).collect::<Result<Vec<_>, _>>()?;
+    let parts = Nonlinearity::ALL
+        .iter()
+        .map(|&nl| sine_harmonics(&with_only(p, &[nl], opts.dt_coil), freq, volts, output, opts).map(|h| (nl, h)))
+        .collect::<Result<Vec<_>, _>>()?;
     Ok(Analysis { total, parts })
 }
 
@@ -449,7 +497,15 @@ impl Intermod {
 }
 
 /// Intermodulation of a two-tone of `volts` RMS in total, `f2`'s amplitude `ratio` times `f1`'s.
-pub fn intermod(p: &Parameters, f1: f64, f2: f64, volts: f64, ratio: f64, output: Output, opts: &SteadyOptions) -> Result<Intermod, AnalysisError> {
+pub fn intermod(
+    p: &Parameters,
+    f1: f64,
+    f2: f64,
+    volts: f64,
+    ratio: f64,
+    output: Output,
+    opts: &SteadyOptions,
+) -> Result<Intermod, AnalysisError> {
     check_freq("--freq", f1)?;
     check_freq("--freq2", f2)?;
     check_level(volts)?;
@@ -457,25 +513,43 @@ pub fn intermod(p: &Parameters, f1: f64, f2: f64, volts: f64, ratio: f64, output
         return Err(AnalysisError::Input(format!("the amplitude ratio {ratio} is not valid (0 .. 10)")));
     }
     if f2 < 3.0 * f1 {
-        return Err(AnalysisError::Input(format!("--freq2 {f2} Hz must be at least 3 times --freq {f1} Hz (IEC 60268-5: f1 low, f2 high)")));
+        return Err(AnalysisError::Input(format!(
+            "--freq2 {f2} Hz must be at least 3 times --freq {f1} Hz (IEC 60268-5: f1 low, f2 high)"
+        )));
     }
     let (period, k1) = sine_window(f1, 0.2);
     let k2 = (f2 * period).round() as usize;
     let products = [k2 - 2 * k1, k2 - k1, k2 + k1, k2 + 2 * k1];
     let others: Vec<usize> = (1..=6).map(|h| h * k1).chain([k2, 2 * k2]).collect();
     if products.iter().any(|b| others.contains(b)) {
-        return Err(AnalysisError::Input(format!("--freq2 {f2} Hz puts intermodulation lines on harmonics of --freq {f1} Hz; move f2 off a multiple of f1")));
+        return Err(AnalysisError::Input(format!(
+            "--freq2 {f2} Hz puts intermodulation lines on harmonics of --freq {f1} Hz; move f2 off a multiple of f1"
+        )));
     }
     // Total RMS `volts`: A1^2 (1 + ratio^2) / 2 = volts^2.
     let a1 = volts * (2.0 / (1.0 + ratio * ratio)).sqrt();
-    let exc = Periodic { period, tones: vec![Tone { bin: k1, amplitude: a1, phase: 0.0 }, Tone { bin: k2, amplitude: a1 * ratio, phase: 0.0 }] };
+    let exc = Periodic {
+        period,
+        tones: vec![Tone { bin: k1, amplitude: a1, phase: 0.0 }, Tone { bin: k2, amplitude: a1 * ratio, phase: 0.0 }],
+    };
     let q = with_only(p, &Nonlinearity::ALL, opts.dt_coil);
     let r = run_steady(&q, &exc, opts)?;
     let ref2 = r.line(output, k2).norm();
     let lev = |b: usize| r.line(output, b).norm() / ref2;
     let labels = ["f2-2f1", "f2-f1", "f2+f1", "f2+2f1"];
     let lines = labels.iter().zip(products).map(|(l, b)| (l.to_string(), r.freq(b), lev(b))).collect();
-    Ok(Intermod { f1, f2: r.freq(k2), volts, amplitude_ratio: ratio, output, d2: lev(products[1]) + lev(products[2]), d3: lev(products[0]) + lev(products[3]), lines, x_dc: r.x_dc(), x_peak: r.x_peak })
+    Ok(Intermod {
+        f1,
+        f2: r.freq(k2),
+        volts,
+        amplitude_ratio: ratio,
+        output,
+        d2: lev(products[1]) + lev(products[2]),
+        d3: lev(products[0]) + lev(products[3]),
+        lines,
+        x_dc: r.x_dc(),
+        x_peak: r.x_peak,
+    })
 }
 
 /// A multitone's distortion spectrum.
@@ -508,19 +582,33 @@ impl MultitoneResult {
 
 /// `count` log-spaced tones from `f_lo` to `f_hi` on a 1 Hz grid with seeded random phases
 /// (RNG "multitone-phase"), equal amplitudes, `volts` RMS in total.
-pub fn multitone(p: &Parameters, f_lo: f64, f_hi: f64, count: usize, volts: f64, output: Output, seed: u64, opts: &SteadyOptions) -> Result<MultitoneResult, AnalysisError> {
+pub fn multitone(
+    p: &Parameters,
+    f_lo: f64,
+    f_hi: f64,
+    count: usize,
+    volts: f64,
+    output: Output,
+    seed: u64,
+    opts: &SteadyOptions,
+) -> Result<MultitoneResult, AnalysisError> {
     check_freq("the lowest tone", f_lo)?;
     check_freq("the highest tone", f_hi)?;
     check_level(volts)?;
     if !(f_hi > f_lo && (2..=200).contains(&count)) {
-        return Err(AnalysisError::Input(format!("multitone {count} tones in {f_lo} .. {f_hi} Hz is not valid (2 .. 200 tones, f_hi > f_lo)")));
+        return Err(AnalysisError::Input(format!(
+            "multitone {count} tones in {f_lo} .. {f_hi} Hz is not valid (2 .. 200 tones, f_hi > f_lo)"
+        )));
     }
     let period = 1.0;
-    let mut bins: Vec<usize> = (0..count).map(|k| (f_lo * (f_hi / f_lo).powf(k as f64 / (count - 1) as f64)).round().max(1.0) as usize).collect();
+    let mut bins: Vec<usize> = (0..count)
+        .map(|k| (f_lo * (f_hi / f_lo).powf(k as f64 / (count - 1) as f64)).round().max(1.0) as usize)
+        .collect();
     bins.dedup();
     let mut rng = named_rng(seed, "multitone-phase");
     let amp = volts * (2.0 / bins.len() as f64).sqrt();
-    let tones: Vec<Tone> = bins.iter().map(|&bin| Tone { bin, amplitude: amp, phase: rng.random_range(0.0..2.0 * PI) }).collect();
+    let tones: Vec<Tone> =
+        bins.iter().map(|&bin| Tone { bin, amplitude: amp, phase: rng.random_range(0.0..2.0 * PI) }).collect();
     let exc = Periodic { period, tones };
     let q = with_only(p, &Nonlinearity::ALL, opts.dt_coil);
     let opts = SteadyOptions { harmonics: opts.harmonics.min(3), ..*opts };
@@ -538,7 +626,15 @@ pub fn multitone(p: &Parameters, f_lo: f64, f_hi: f64, count: usize, volts: f64,
     }
     let pt: f64 = t.iter().map(|x| x.1 * x.1).sum();
     let pd: f64 = d.iter().map(|x| x.1 * x.1).sum();
-    Ok(MultitoneResult { volts, output, tones: t, distortion: d, mtd: (pd / pt).sqrt(), x_dc: r.x_dc(), x_peak: r.x_peak })
+    Ok(MultitoneResult {
+        volts,
+        output,
+        tones: t,
+        distortion: d,
+        mtd: (pd / pt).sqrt(),
+        x_dc: r.x_dc(),
+        x_peak: r.x_peak,
+    })
 }
 
 /// Log-spaced frequencies, `per_octave` per octave, from `f_lo` to `f_hi` inclusive.
@@ -548,7 +644,13 @@ pub fn log_frequencies(f_lo: f64, f_hi: f64, per_octave: usize) -> Vec<f64> {
 }
 
 /// The analysis at each frequency (total and parts) at one level.
-pub fn frequency_sweep(p: &Parameters, freqs: &[f64], volts: f64, output: Output, opts: &SteadyOptions) -> Result<Vec<Analysis>, AnalysisError> {
+pub fn frequency_sweep(
+    p: &Parameters,
+    freqs: &[f64],
+    volts: f64,
+    output: Output,
+    opts: &SteadyOptions,
+) -> Result<Vec<Analysis>, AnalysisError> {
     freqs.iter().map(|&f| analyse(p, f, volts, output, opts)).collect()
 }
 
@@ -584,10 +686,26 @@ impl LevelRow {
 }
 
 /// HD2/HD3 of the full model and of the Volterra series at each level (RMS volts) of a sine.
-pub fn level_sweep(p: &Parameters, freq: f64, levels: &[f64], output: Output, opts: &SteadyOptions) -> Result<Vec<LevelRow>, AnalysisError> {
+pub fn level_sweep(
+    p: &Parameters,
+    freq: f64,
+    levels: &[f64],
+    output: Output,
+    opts: &SteadyOptions,
+) -> Result<Vec<LevelRow>, AnalysisError> {
     let q = with_only(p, &Nonlinearity::ALL, opts.dt_coil);
     let pr = crate::volterra::probe(&q, freq);
-    levels.iter().map(|&v| harmonics(p, freq, v, output, opts).map(|full| LevelRow { volts: v, full, volterra: pr.hd(output, v), volterra_x_dc: pr.x_dc(v) })).collect()
+    levels
+        .iter()
+        .map(|&v| {
+            harmonics(p, freq, v, output, opts).map(|full| LevelRow {
+                volts: v,
+                full,
+                volterra: pr.hd(output, v),
+                volterra_x_dc: pr.x_dc(v),
+            })
+        })
+        .collect()
 }
 
 /// The lowest level of a sweep at which the Volterra series is off by more than `tol_db`.

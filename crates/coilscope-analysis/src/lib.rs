@@ -46,6 +46,8 @@ pub enum AnalysisError {
     Input(String),
     #[error("the model left its valid range: {0}")]
     Range(String),
-    #[error("no periodic steady state after {seconds:.2} s of simulation (last change {change:.2e} of the fundamental)")]
+    #[error(
+        "no periodic steady state after {seconds:.2} s of simulation (last change {change:.2e} of the fundamental)"
+    )]
     NotSteady { seconds: f64, change: f64 },
 }

@@ -126,7 +126,11 @@ impl DistortionMeter {
         for &[x, v, i] in traj {
             let di = self.last.map_or(0.0, |l| (i - l[2]) * self.fs);
             let (bl, kms, le, dle) = (self.p.bl.eval(x), self.p.kms.eval(x), self.p.le.eval(x), self.dle.eval(x));
-            let src = [Vector2::new((bl - bl0) * i, -(bl - bl0) * v), Vector2::new(-(kms - k0) * x, 0.0), Vector2::new(0.5 * dle * i * i, -((le - le0) * di + dle * v * i))];
+            let src = [
+                Vector2::new((bl - bl0) * i, -(bl - bl0) * v),
+                Vector2::new(-(kms - k0) * x, 0.0),
+                Vector2::new(0.5 * dle * i * i, -((le - le0) * di + dle * v * i)),
+            ];
             for k in 0..3 {
                 let z = self.z[k];
                 // Acceleration of the contribution at this instant (with the force's direct part).
@@ -178,7 +182,8 @@ mod tests {
                 .map(|k| {
                     let t = k as f64 / fs;
                     let env = if t < 0.1 { 0.5 - 0.5 * (std::f64::consts::PI * t / 0.1).cos() } else { 1.0 };
-                    env * ((2.0 * std::f64::consts::PI * 35.0 * t).sin() + 0.5 * (2.0 * std::f64::consts::PI * 70.0 * t + 1.0).sin())
+                    env * ((2.0 * std::f64::consts::PI * 35.0 * t).sin()
+                        + 0.5 * (2.0 * std::f64::consts::PI * 70.0 * t + 1.0).sin())
                 })
                 .collect();
             let s = simulate(&p, fs, &unit, &SimOptions::default()).unwrap().summary();
@@ -196,10 +201,17 @@ mod tests {
                 let dx: Vec<f64> = full.x[tail..].iter().zip(&frozen.x[tail..]).map(|(a, b)| a - b).collect();
                 let di: Vec<f64> = full.i[tail..].iter().zip(&frozen.i[tail..]).map(|(a, b)| a - b).collect();
                 let (rx, ri) = (rms(&dx) / rms(&full.x[tail..]), rms(&di) / rms(&full.i[tail..]));
-                println!("{name} {}: x {:.4} (full - frozen {rx:.4}), i {:.4} ({ri:.4}), p {:.4}", NAMES[k], c.x[k], c.i[k], c.p[k]);
+                println!(
+                    "{name} {}: x {:.4} (full - frozen {rx:.4}), i {:.4} ({ri:.4}), p {:.4}",
+                    NAMES[k], c.x[k], c.i[k], c.p[k]
+                );
                 for (got, want) in [(c.x[k], rx), (c.i[k], ri)] {
                     if want > 0.01 {
-                        assert!((got / want - 1.0).abs() < 0.1, "{name} {}: meter {got:.4}, full - frozen {want:.4}", NAMES[k]);
+                        assert!(
+                            (got / want - 1.0).abs() < 0.1,
+                            "{name} {}: meter {got:.4}, full - frozen {want:.4}",
+                            NAMES[k]
+                        );
                     }
                 }
             }

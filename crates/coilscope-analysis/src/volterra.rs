@@ -14,7 +14,8 @@
 //! `J` is the Jacobian of the equations at rest, with the linear elements that have states of
 //! their own (creep's dynamic stiffness, the LR-3 branch) at each line's frequency. Le(i) and
 //! Rms(|v|) are not in the expansion (|v| has no power series): `distortion` integrates them.
-//! With `a = 1` the coefficients are the diagonal kernels: `H1(f) = c[1][1]`, `H2(f,f) = c[2][2]`, `H3(f,f,f) = c[3][3]` (displacement,
+//! With `a = 1` the coefficients are the diagonal kernels: `H1(f) = c[1][1]`, `H2(f,f) = c[2][2]`,
+//! `H3(f,f,f) = c[3][3]` (displacement,
 //! m/V^n for the complex amplitude `a` of `e^{jwt}`).
 //!
 //! A sine of peak `A` has `a = A / 2`, so the Volterra harmonic ratios are
@@ -161,7 +162,12 @@ pub fn probe(p: &Parameters, freq: f64) -> Probe {
         let ir = i.sub(i2);
         let r2x = poly(&r2, x);
         let e1 = u.sub(&i.scale(p.re)).sub(&poly(&p.le, x).mul(i).dt()).sub(&poly(&p.bl, x).mul(&v)).sub(&r2x.mul(&ir));
-        let mut e3 = poly(&p.bl, x).mul(i).sub(&v.dt().scale(p.mms)).sub(&v.scale(p.rms)).sub(&poly(&p.kms, x).mul(x)).add(&poly(&dle, x).mul(&i.mul(i)).scale(0.5));
+        let mut e3 = poly(&p.bl, x)
+            .mul(i)
+            .sub(&v.dt().scale(p.mms))
+            .sub(&v.scale(p.rms))
+            .sub(&poly(&p.kms, x).mul(x))
+            .add(&poly(&dle, x).mul(&i.mul(i)).scale(0.5));
         let e2 = match (&l2, &dl2) {
             (Some(l2), Some(dl2)) => {
                 e3 = e3.add(&poly(dl2, x).mul(&i2.mul(i2)).scale(0.5));
@@ -186,11 +192,17 @@ pub fn probe(p: &Parameters, freq: f64) -> Probe {
             // only, as creep's dynamic stiffness and LR-3's series impedance at this line
             // (the residuals of order n hold products of lower orders, which they do not make).
             let k_dyn = match (&p.creep, p.creep_f_ref()) {
-                (Some(c), Some(f_ref)) => k0 * coilscope_core::creep::stiffness_factor(c.lambda, k as f64 * w, 2.0 * PI * f_ref),
+                (Some(c), Some(f_ref)) => {
+                    k0 * coilscope_core::creep::stiffness_factor(c.lambda, k as f64 * w, 2.0 * PI * f_ref)
+                }
                 _ => C::new(k0, 0.0),
             };
             let z3 = p.l3r3.map_or(C::new(0.0, 0.0), |(l3, r3)| s * l3 * r3 / (s * l3 + r3));
-            let j = [[-s * b0, -(s * l0) - re - r0 - z3, C::new(r0, 0.0)], row_l2, [-(s * s * m) - s * rm - k_dyn, C::new(b0, 0.0), C::new(0.0, 0.0)]];
+            let j = [
+                [-s * b0, -(s * l0) - re - r0 - z3, C::new(r0, 0.0)],
+                row_l2,
+                [-(s * s * m) - s * rm - k_dyn, C::new(b0, 0.0), C::new(0.0, 0.0)],
+            ];
             let d = solve3(j, [-e1.at(n, k), -e2.at(n, k), -e3.at(n, k)]);
             let ki = (k + KMAX as isize) as usize;
             x.c[n][ki] = d[0];

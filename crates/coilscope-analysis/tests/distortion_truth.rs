@@ -8,7 +8,10 @@
 //!   the power series.
 
 use coilscope_analysis::db;
-use coilscope_analysis::distortion::{analyse, divergence_level, harmonics, level_for_excursion, level_sweep, with_only, Nonlinearity, Output, SteadyOptions};
+use coilscope_analysis::distortion::{
+    analyse, divergence_level, harmonics, level_for_excursion, level_sweep, with_only, Nonlinearity, Output,
+    SteadyOptions,
+};
 use coilscope_analysis::volterra::probe;
 use coilscope_core::model::{idx, NSTATE};
 use coilscope_core::{embedded_driver, Model, Parameters};
@@ -35,7 +38,14 @@ fn rk4<const N: usize>(f: impl Fn(&[f64; N], f64) -> [f64; N], s: &[f64; N], t: 
 /// multiple of 64 per period) with the analytic sine as input, `settle` seconds from rest,
 /// then a direct DFT over one period of what `out` reads from the state and the voltage.
 /// Returns the smallest and largest of `out` over that period and its lines 1, 2, 3 (magnitudes).
-fn sine_oracle<const N: usize>(deriv: impl Fn(&[f64; N], f64) -> [f64; N], rate: f64, f: f64, volts: f64, settle: f64, out: impl Fn(&[f64; N], f64) -> f64) -> ([f64; 2], [f64; 3]) {
+fn sine_oracle<const N: usize>(
+    deriv: impl Fn(&[f64; N], f64) -> [f64; N],
+    rate: f64,
+    f: f64,
+    volts: f64,
+    settle: f64,
+    out: impl Fn(&[f64; N], f64) -> f64,
+) -> ([f64; 2], [f64; 3]) {
     let per = (((rate / f) / 0.2).ceil() as usize).div_ceil(64).max(4) * 64;
     let h = 1.0 / (f * per as f64);
     let amp = volts * SQRT_2;
@@ -64,7 +74,8 @@ fn sine_oracle<const N: usize>(deriv: impl Fn(&[f64; N], f64) -> [f64; N], rate:
 fn oracle(p: &Parameters, f: f64, volts: f64) -> (f64, f64) {
     let q = with_only(p, &Nonlinearity::ALL, 0.0);
     let m = Model::new(&q);
-    let (_, l) = sine_oracle::<NSTATE>(|y, u| m.deriv(y, u), q.stiffness_rate(), f, volts, 1.0, |y, u| m.deriv(y, u)[idx::V]);
+    let (_, l) =
+        sine_oracle::<NSTATE>(|y, u| m.deriv(y, u), q.stiffness_rate(), f, volts, 1.0, |y, u| m.deriv(y, u)[idx::V]);
     (l[1] / l[0], l[2] / l[0])
 }
 
@@ -83,7 +94,12 @@ fn harmonics_match_an_independent_sine_simulation() {
                 for (order, (a, b)) in [(2, (ours.hd(2), o2)), (3, (ours.hd(3), o3))] {
                     println!("{name} {f:7.1} Hz {volts:6.2} V HD{order}: {:8.3} dB (oracle {:8.3} dB)", db(a), db(b));
                     if db(b) > -60.0 {
-                        assert!((db(a) - db(b)).abs() < 0.5, "{name} {f} Hz {volts} V HD{order}: {} vs {} dB", db(a), db(b));
+                        assert!(
+                            (db(a) - db(b)).abs() < 0.5,
+                            "{name} {f} Hz {volts} V HD{order}: {} vs {} dB",
+                            db(a),
+                            db(b)
+                        );
                     }
                 }
             }
@@ -105,7 +121,11 @@ fn contributions_add_up_at_small_distortion() {
             let volts = level_for_excursion(&p, &[f], frac * reach(&p));
             let a = analyse(&p, f, volts, Output::Pressure, &opts).unwrap();
             let (m2, m3) = (a.sum_mismatch(2), a.sum_mismatch(3));
-            println!("{name} {frac}: HD2 {:.2} dB, mismatch HD2 {m2:.4} HD3 {m3:.4}, dominant {}", db(a.total.hd(2)), a.dominant().name());
+            println!(
+                "{name} {frac}: HD2 {:.2} dB, mismatch HD2 {m2:.4} HD3 {m3:.4}, dominant {}",
+                db(a.total.hd(2)),
+                a.dominant().name()
+            );
             assert!(m2 < last, "{name}: the HD2 mismatch must fall with the level ({m2} after {last})");
             last = m2;
         }
@@ -121,17 +141,39 @@ fn volterra_agrees_at_small_level_and_diverges_at_large() {
         let ts = coilscope_core::small_signal::thiele_small(&p);
         for f in [0.5 * ts.fs, 2.0 * ts.fs] {
             let small = level_for_excursion(&p, &[f], 0.1 * reach(&p));
-            let levels: Vec<f64> = (0..=6).map(|k| small * 1.5f64.powi(k)).filter(|&v| v <= level_for_excursion(&p, &[f], 0.95 * reach(&p))).collect();
+            let levels: Vec<f64> = (0..=6)
+                .map(|k| small * 1.5f64.powi(k))
+                .filter(|&v| v <= level_for_excursion(&p, &[f], 0.95 * reach(&p)))
+                .collect();
             let rows = level_sweep(&p, f, &levels, Output::Pressure, &opts).unwrap();
             for r in &rows {
-                println!("{name} {f:6.1} Hz {:6.2} V: full HD2 {:7.2} HD3 {:7.2} | Volterra {:7.2} {:7.2}", r.volts, db(r.full.hd(2)), db(r.full.hd(3)), db(r.volterra.0), db(r.volterra.1));
+                println!(
+                    "{name} {f:6.1} Hz {:6.2} V: full HD2 {:7.2} HD3 {:7.2} | Volterra {:7.2} {:7.2}",
+                    r.volts,
+                    db(r.full.hd(2)),
+                    db(r.full.hd(3)),
+                    db(r.volterra.0),
+                    db(r.volterra.1)
+                );
             }
-            assert!(rows[0].error_db() < 0.5, "{name} {f} Hz: Volterra off by {} dB at small level", rows[0].error_db());
+            assert!(
+                rows[0].error_db() < 0.5,
+                "{name} {f} Hz: Volterra off by {} dB at small level",
+                rows[0].error_db()
+            );
             // The DC offset is second order too.
             let r0 = &rows[0];
-            assert!((r0.full.x_dc - r0.volterra_x_dc).abs() < 0.06 * r0.volterra_x_dc.abs() + 1e-9, "{name}: x_dc {} vs {}", r0.full.x_dc, r0.volterra_x_dc);
+            assert!(
+                (r0.full.x_dc - r0.volterra_x_dc).abs() < 0.06 * r0.volterra_x_dc.abs() + 1e-9,
+                "{name}: x_dc {} vs {}",
+                r0.full.x_dc,
+                r0.volterra_x_dc
+            );
             let worst = rows.iter().map(|r| r.error_db()).fold(0.0, coilscope_testkit::check::nan_max);
-            println!("{name} {f:.1} Hz: worst Volterra error {worst:.2} dB, divergence (1 dB) at {:?} V", divergence_level(&rows, 1.0));
+            println!(
+                "{name} {f:.1} Hz: worst Volterra error {worst:.2} dB, divergence (1 dB) at {:?} V",
+                divergence_level(&rows, 1.0)
+            );
         }
     }
     // At full excursion the series is far off for the strongly nonlinear SB17 at resonance.
@@ -174,9 +216,18 @@ fn curve_limit(curve: &[(f64, f64)], a: f64, crossed: impl Fn(f64, f64, f64) -> 
 fn limits_agree_with_the_published_curves() {
     for name in DRIVERS {
         let p = embedded_driver(name).unwrap();
-        let text = std::fs::read_to_string(format!("{}/../../../shared/drivers/{name}.json", env!("CARGO_MANIFEST_DIR"))).unwrap();
+        let text =
+            std::fs::read_to_string(format!("{}/../../../shared/drivers/{name}.json", env!("CARGO_MANIFEST_DIR")))
+                .unwrap();
         let v: serde_json::Value = serde_json::from_str(&text).unwrap();
-        let curve = |key: &str| -> Vec<(f64, f64)> { v["published_curves"][key].as_array().unwrap().iter().map(|pt| (pt[0].as_f64().unwrap(), pt[1].as_f64().unwrap())).collect() };
+        let curve = |key: &str| -> Vec<(f64, f64)> {
+            v["published_curves"][key]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|pt| (pt[0].as_f64().unwrap(), pt[1].as_f64().unwrap()))
+                .collect()
+        };
         let range = p.x_range.unwrap();
         let a = reach(&p);
         let l = coilscope_core::limits::limits(&p, range);
@@ -184,7 +235,11 @@ fn limits_agree_with_the_published_curves() {
         let xc = curve_limit(&curve("Kms"), a, |p, m, _| p.max(m) >= 1.0 / 0.75);
         let xl = curve_limit(&curve("Le"), a, |p, m, _| (p - 1.0).abs().max((m - 1.0).abs()) >= 0.10);
         for (key, series, published) in [("XBl", l.xbl, xbl), ("XC", l.xc, xc), ("XL", l.xl, xl)] {
-            println!("{name} {key}: series {:?} mm, curve {:?} mm", series.map(|x| x * 1e3), published.map(|x| x * 1e3));
+            println!(
+                "{name} {key}: series {:?} mm, curve {:?} mm",
+                series.map(|x| x * 1e3),
+                published.map(|x| x * 1e3)
+            );
             match (series, published) {
                 (Some(s), Some(c)) => assert!((s - c).abs() < 0.05 * c + 0.1e-3, "{name} {key}: {s} vs {c}"),
                 (None, None) => {}
@@ -222,7 +277,10 @@ fn multitone_distortion_is_absent_for_a_linear_set_and_grows_with_level() {
 fn harmonics_of_a_stiff_microspeaker_match_the_oracle() {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers/microspeaker-0g1.json");
     let p = Parameters::from_json_str(&std::fs::read_to_string(path).unwrap(), "microspeaker").unwrap();
-    assert_eq!(coilscope_core::integrate::Stepper::for_rates(p.rates(), 48000.0).scheme, coilscope_core::integrate::Scheme::Exponential);
+    assert_eq!(
+        coilscope_core::integrate::Stepper::for_rates(p.rates(), 48000.0).scheme,
+        coilscope_core::integrate::Scheme::Exponential
+    );
     let opts = SteadyOptions::default();
     let ts = coilscope_core::small_signal::thiele_small(&p);
     let freqs = [0.5 * ts.fs, 1.5 * ts.fs, 6.0 * ts.fs];
@@ -284,6 +342,13 @@ fn distortion_keeps_creep_and_lr3() {
             let rel = (ours.x_peak[k] - peak[k]).abs() / peak[k].abs();
             assert!(rel < 2e-4, "{f} Hz: peak {} mm against the oracle's {} mm", ours.x_peak[k] * 1e3, peak[k] * 1e3);
         }
-        assert!((db(ours.hd(2)) - db(o2)).abs() < 0.05 && (db(ours.hd(3)) - db(o3)).abs() < 0.05, "{f} Hz: HD2 {} / {} dB, HD3 {} / {} dB", db(ours.hd(2)), db(o2), db(ours.hd(3)), db(o3));
+        assert!(
+            (db(ours.hd(2)) - db(o2)).abs() < 0.05 && (db(ours.hd(3)) - db(o3)).abs() < 0.05,
+            "{f} Hz: HD2 {} / {} dB, HD3 {} / {} dB",
+            db(ours.hd(2)),
+            db(o2),
+            db(ours.hd(3)),
+            db(o3)
+        );
     }
 }

@@ -7,7 +7,8 @@
 //! |---|---|
 //! | 0 | done, and the result can be trusted |
 //! | 2 | error: bad input, or the work could not be done (nothing trustworthy written) |
-//! | 3 | a result was written but is not trustworthy: not converged, or a warning that the fit does not describe the record (the best estimate is on disk, `fit.converged`/`fit.warnings` say why) |
+//! | 3 | a result was written but is not trustworthy: not converged, or a warning that the fit does
+//! not describe the record (the best estimate is on disk, `fit.converged`/`fit.warnings` say why) |
 //! | 130 | interrupted (Ctrl-C): the result so far is written and marked interrupted |
 
 use clap::{Parser, Subcommand, ValueEnum};
@@ -140,7 +141,8 @@ fn fit_wiring(a: &FitArgs, chain: &ChainMode) -> Result<SenseWiring, Failure> {
         (Some(w), _) => parse_wiring(w, a.sense_ohm),
         (None, ChainMode::Calibrated(c)) if c.sense_wiring.is_some() => {
             let w = c.sense_wiring.as_deref().unwrap_or_default();
-            SenseWiring::parse(w, a.sense_ohm.or(c.sense_ohm)).map_err(|e| Failure::from(format!("the chain file's sense_wiring {w:?}: {e}")))
+            SenseWiring::parse(w, a.sense_ohm.or(c.sense_ohm))
+                .map_err(|e| Failure::from(format!("the chain file's sense_wiring {w:?}: {e}")))
         }
         (None, _) => parse_wiring("terminals", a.sense_ohm),
     }
@@ -218,7 +220,8 @@ enum Command {
         /// Band of pink noise, multitone or sweep (Hz).
         #[arg(long, num_args = 2, value_names = ["LO", "HI"])]
         band: Option<Vec<f64>>,
-        /// Crest-factor target: noise (default 2; inf: not limited, Gaussian as IEC 60268-1 itself), pink noise, multitone.
+        /// Crest-factor target: noise (default 2; inf: not limited, Gaussian as IEC 60268-1
+        /// itself), pink noise, multitone.
         #[arg(long)]
         crest: Option<f64>,
         /// Number of multitone tones.
@@ -369,7 +372,9 @@ enum Command {
         world: World,
         #[command(flatten)]
         card: CardArgs,
-        /// Replay a recording (WAV: voltage, current, and optionally displacement) instead of driving a device; its displacement channel (a laser) gives the absolute scale when --mms is not given.
+        /// Replay a recording (WAV: voltage, current, and optionally displacement) instead of
+        /// driving a device; its displacement channel (a laser) gives the absolute scale when --mms
+        /// is not given.
         #[arg(long, value_name = "WAV", conflicts_with = "card")]
         replay: Option<PathBuf>,
         /// Output directory.
@@ -667,7 +672,8 @@ fn parse_length(s: &str) -> Result<f64, String> {
     let t = s.trim();
     let split = t.find(|c: char| c.is_alphabetic() || c == 'µ').unwrap_or(t.len());
     let (num, unit) = (t[..split].trim(), t[split..].trim());
-    let v: f64 = num.parse().map_err(|_| format!("'{s}' is not a length: write a number and a unit, e.g. 4mm or 0.004m"))?;
+    let v: f64 =
+        num.parse().map_err(|_| format!("'{s}' is not a length: write a number and a unit, e.g. 4mm or 0.004m"))?;
     if !v.is_finite() {
         return Err(format!("'{s}' is not a finite length"));
     }
@@ -677,7 +683,10 @@ fn parse_length(s: &str) -> Result<f64, String> {
         "um" | "µm" => v * 1e-6,
         "" => {
             if v != 0.0 && !(1e-5..=0.1).contains(&v.abs()) {
-                return Err(format!("{v} m = {} mm is not a plausible excursion: did you mean {v}mm? (a bare number is metres)", v * 1e3));
+                return Err(format!(
+                    "{v} m = {} mm is not a plausible excursion: did you mean {v}mm? (a bare number is metres)",
+                    v * 1e3
+                ));
             }
             v
         }
@@ -862,7 +871,10 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
             if let Some(v) = a.volts {
                 let r = coilscope_core::simulate::rms(&u);
                 if r == 0.0 {
-                    return Err(format!("{}: the voltage channel is silent; cannot scale it to {v} V RMS", path.display()));
+                    return Err(format!(
+                        "{}: the voltage channel is silent; cannot scale it to {v} V RMS",
+                        path.display()
+                    ));
                 }
                 u.iter_mut().for_each(|x| *x *= v / r);
             }
@@ -878,20 +890,33 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
                 ExcitationKind::Noise => iec_noise(a.crest),
                 ExcitationKind::Pink => Excitation::Pink { f_lo: band.0, f_hi: band.1, crest: a.crest },
                 ExcitationKind::Sine => Excitation::Sine { freq: a.freq },
-                ExcitationKind::Multitone => Excitation::Multitone { f_lo: band.0, f_hi: band.1, count: a.tones, crest: a.crest },
+                ExcitationKind::Multitone => {
+                    Excitation::Multitone { f_lo: band.0, f_hi: band.1, count: a.tones, crest: a.crest }
+                }
                 ExcitationKind::Sweep => Excitation::Sweep { f_lo: band.0, f_hi: band.1 },
-                ExcitationKind::Readable => Excitation::Readable { f_lo: band.0, f_hi: band.1, count: a.tones, crest: a.crest },
+                ExcitationKind::Readable => {
+                    Excitation::Readable { f_lo: band.0, f_hi: band.1, count: a.tones, crest: a.crest }
+                }
             };
             let spec = SignalSpec { fs: a.rate as f64, seconds: a.seconds, rms: volts, fade: a.fade, seed: a.seed };
             let u = generate(&exc, &spec)?;
             let cf = crest_factor(&u);
-            (a.rate as f64, u, json!({"excitation": format!("{exc:?}"), "rms": volts, "seconds": a.seconds, "crest_factor": cf, "seed": a.seed}))
+            (
+                a.rate as f64,
+                u,
+                json!({"excitation": format!("{exc:?}"), "rms": volts, "seconds": a.seconds, "crest_factor": cf, "seed": a.seed}),
+            )
         }
     };
     let trace = simulate(&params, fs, &u, &SimOptions::default()).map_err(|e| e.to_string())?;
     let s = trace.summary();
     // The channels: the wiring, then the chain (the sensor noise after both).
-    let mut chain = a.chain.as_deref().map(load_chain).transpose()?.map(|c| coilscope_core::chain::Chain { source: Some("simulated".into()), ..c });
+    let mut chain = a
+        .chain
+        .as_deref()
+        .map(load_chain)
+        .transpose()?
+        .map(|c| coilscope_core::chain::Chain { source: Some("simulated".into()), ..c });
     let u_channel = a.wiring.channel_voltage(&trace.u, &trace.i);
     let (u_rec, i_rec) = match &chain {
         Some(c) => c.apply(&u_channel, &trace.i, fs),
@@ -920,8 +945,18 @@ fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
     write_json(&info_file, &info).map_err(|e| e.to_string())?;
 
     let name = params.name.as_deref().unwrap_or(&a.driver);
-    println!("coilscope simulate: {name}, {:.2} s at {} Hz ({} scheme, {} step{} per sample)", u.len() as f64 / fs, fs, trace.scheme.name(), trace.substeps, if trace.substeps == 1 { "" } else { "s" });
-    let range = params.x_range.map(|[lo, hi]| format!(" ({:.0} % / {:.0} % of x_range)", 100.0 * s.x_min / lo, 100.0 * s.x_max / hi)).unwrap_or_default();
+    println!(
+        "coilscope simulate: {name}, {:.2} s at {} Hz ({} scheme, {} step{} per sample)",
+        u.len() as f64 / fs,
+        fs,
+        trace.scheme.name(),
+        trace.substeps,
+        if trace.substeps == 1 { "" } else { "s" }
+    );
+    let range = params
+        .x_range
+        .map(|[lo, hi]| format!(" ({:.0} % / {:.0} % of x_range)", 100.0 * s.x_min / lo, 100.0 * s.x_max / hi))
+        .unwrap_or_default();
     println!("  peak excursion   {:+.3} mm .. {:+.3} mm{range}", s.x_min * 1e3, s.x_max * 1e3);
     println!("  voltage, current {:.3} V RMS, {:.3} A RMS", s.u_rms, s.i_rms);
     println!("  electrical power {:.3} W (mean u i)", s.p_mean);
@@ -949,7 +984,11 @@ struct LinearArgs {
 
 /// `--band LO,HI` (Hz).
 fn parse_band(text: &str) -> Result<[f64; 2], Failure> {
-    let v: Vec<f64> = text.split([',', ':']).map(|t| t.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|_| format!("--band {text:?}: give LO,HI in Hz, e.g. 10,2000"))?;
+    let v: Vec<f64> = text
+        .split([',', ':'])
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| format!("--band {text:?}: give LO,HI in Hz, e.g. 10,2000"))?;
     match v[..] {
         [lo, hi] if lo >= 0.0 && hi > lo && hi.is_finite() => Ok([lo, hi]),
         _ => Err(Failure::from(format!("--band {text:?}: give LO,HI in Hz with 0 <= LO < HI, e.g. 10,2000"))),
@@ -998,13 +1037,19 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     // Refuse a missing or doubled scale before spending time on the fit.
     let scale = match (a.mms, a.added_mass, with_mass, has_x) {
         (Some(m), None, None, _) => Scale::Mms(m),
-        (None, Some(m), Some(p2), _) => Scale::AddedMass { mass: m, with: Box::new(read_input(p2)?), origin: p2.display().to_string() },
+        (None, Some(m), Some(p2), _) => {
+            Scale::AddedMass { mass: m, with: Box::new(read_input(p2)?), origin: p2.display().to_string() }
+        }
         (None, None, None, true) => Scale::Displacement,
-        (None, Some(_), None, _) | (None, None, Some(_), _) => return Err(format!("--added-mass KG and {with_name} go together").into()),
+        (None, Some(_), None, _) | (None, None, Some(_), _) => {
+            return Err(format!("--added-mass KG and {with_name} go together").into())
+        }
         (Some(_), _, _, _) => return Err(format!("give one scale: --mms, or --added-mass with {with_name}").into()),
         (None, None, None, false) => {
             let x = if is_curve { "" } else { ", or record a displacement channel (3)" };
-            return Err(Failure::from(format!("{origin}: no absolute scale: give --mms KG, or --added-mass KG {with_name}{x}")));
+            return Err(Failure::from(format!(
+                "{origin}: no absolute scale: give --mms KG, or --added-mass KG {with_name}{x}"
+            )));
         }
     };
     let live = std::io::IsTerminal::is_terminal(&std::io::stderr());
@@ -1029,11 +1074,19 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     if !is_curve {
         let zma = out.with_extension("zma");
         let (f, z) = fit.h1.coherent();
-        let comments = vec![format!("coilscope linear: H1 impedance of {origin} (coherent bins)"), "Data: Impedance (ohms), Phase (degrees)".to_string()];
-        coilscope_io::impedance::write_zma(&zma, &coilscope_io::impedance::ImpedanceCurve { f, z, comments, magnitude_only: false }).map_err(|e| e.to_string())?;
+        let comments = vec![
+            format!("coilscope linear: H1 impedance of {origin} (coherent bins)"),
+            "Data: Impedance (ohms), Phase (degrees)".to_string(),
+        ];
+        coilscope_io::impedance::write_zma(
+            &zma,
+            &coilscope_io::impedance::ImpedanceCurve { f, z, comments, magnitude_only: false },
+        )
+        .map_err(|e| e.to_string())?;
         wrote.push(zma.display().to_string());
     }
-    coilscope_io::atomic_write(&csv, coilscope_ident::linear::impedance_csv(&fit.h1, fit).as_bytes()).map_err(|e| e.to_string())?;
+    coilscope_io::atomic_write(&csv, coilscope_ident::linear::impedance_csv(&fit.h1, fit).as_bytes())
+        .map_err(|e| e.to_string())?;
     wrote.push(csv.display().to_string());
     let ts = thiele_small(params);
     let u = &result.uncertainty;
@@ -1041,11 +1094,23 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     match &input {
         LinearInput::Record(r) => {
             println!("coilscope linear: {} ({:.2} s at {} Hz)", path.display(), r.u.len() as f64 / r.fs as f64, r.fs);
-            println!("  fit {:.1} .. {:.0} Hz, {} bins, residual {:.3e} (current, relative RMS), {} iterations", fit.band[0], fit.band[1], fit.bins, fit.residual_rel, fit.iterations);
+            println!(
+                "  fit {:.1} .. {:.0} Hz, {} bins, residual {:.3e} (current, relative RMS), {} iterations",
+                fit.band[0], fit.band[1], fit.bins, fit.residual_rel, fit.iterations
+            );
         }
         LinearInput::Curve(c) => {
-            println!("coilscope linear: {} (impedance file, {} points, {:.1} .. {:.0} Hz)", path.display(), c.f.len(), c.f[0], c.f[c.f.len() - 1]);
-            println!("  fit {:.1} .. {:.0} Hz, {} points, residual {:.3e} (impedance, relative RMS), {} iterations", fit.band[0], fit.band[1], fit.bins, fit.residual_rel, fit.iterations);
+            println!(
+                "coilscope linear: {} (impedance file, {} points, {:.1} .. {:.0} Hz)",
+                path.display(),
+                c.f.len(),
+                c.f[0],
+                c.f[c.f.len() - 1]
+            );
+            println!(
+                "  fit {:.1} .. {:.0} Hz, {} points, residual {:.3e} (impedance, relative RMS), {} iterations",
+                fit.band[0], fit.band[1], fit.bins, fit.residual_rel, fit.iterations
+            );
             if let Some(note) = &result.fit.band_note {
                 println!("  band: {note}");
             }
@@ -1056,17 +1121,28 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     }
     let scale_text = match &done.method {
         ScaleMethod::Mms => "Mms given".to_string(),
-        ScaleMethod::AddedMass { added, fs_with, .. } => format!("added mass {:.3} g, fs with mass {:.3} Hz", added * 1e3, fs_with),
+        ScaleMethod::AddedMass { added, fs_with, .. } => {
+            format!("added mass {:.3} g, fs with mass {:.3} Hz", added * 1e3, fs_with)
+        }
         ScaleMethod::Displacement => "displacement channel".to_string(),
     };
     println!("  scale: {scale_text}");
     if let (Some(c), LinearInput::Record(r)) = (&fit.chain, &input) {
         println!("  chain: {}", c.to_chain().describe_fitted(r.fs as f64));
     }
-    println!("  model: {} (tried: {})", fit.effects.model_name(), fit.tried.iter().map(|(m, r)| format!("{m} {r:.2e}")).collect::<Vec<_>>().join(", "));
+    println!(
+        "  model: {} (tried: {})",
+        fit.effects.model_name(),
+        fit.tried.iter().map(|(m, r)| format!("{m} {r:.2e}")).collect::<Vec<_>>().join(", ")
+    );
     print_values(params, u, &[]);
     println!("  {:<6} {:>12} {:<5} {}", "fs", format!("{:.3}", ts.fs), "Hz", pm("fs", 1.0));
-    println!("  {:<6} {:>12}      (at fs, with creep's loss: Rms at fs {:.4} kg/s)", "Qms", format!("{:.4}", ts.qms), ts.rms_fs);
+    println!(
+        "  {:<6} {:>12}      (at fs, with creep's loss: Rms at fs {:.4} kg/s)",
+        "Qms",
+        format!("{:.4}", ts.qms),
+        ts.rms_fs
+    );
     println!("  {:<6} {:>12}", "Qes", format!("{:.4}", ts.qes));
     println!("  {:<6} {:>12}", "Qts", format!("{:.4}", ts.qts));
     if let Some(v) = ts.vas {
@@ -1085,7 +1161,9 @@ fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
 /// display units (`coilscope_core::schema`), with the result's sd (`uncertainty.<key>`) where
 /// it has one; `skip`: keys shown otherwise. The thermal constants are not fitted here.
 fn print_values(p: &Parameters, uncertainty: &coilscope_core::result::Uncertainty, skip: &[&str]) {
-    let shown = p.values_at_rest().filter(|(e, _)| e.component != coilscope_core::schema::Component::Thermal && !skip.contains(&e.key));
+    let shown = p
+        .values_at_rest()
+        .filter(|(e, _)| e.component != coilscope_core::schema::Component::Thermal && !skip.contains(&e.key));
     for (e, v) in shown {
         let (unit, scale) = e.display;
         let sd = uncertainty.value(e.key).map(|s| format!("+- {:.2e}", s * scale)).unwrap_or_default();
@@ -1115,7 +1193,12 @@ fn untrusted_if_warned(warnings: &[coilscope_ident::checks::Warning], out: &Path
         return Ok(());
     }
     let codes: Vec<&str> = warnings.iter().map(|w| w.code.as_ref()).collect();
-    Err(Failure::Untrusted(format!("{} warning(s) ({}); the result is written to {} with fit.trustworthy = false", warnings.len(), codes.join(", "), out.display())))
+    Err(Failure::Untrusted(format!(
+        "{} warning(s) ({}); the result is written to {} with fit.trustworthy = false",
+        warnings.len(),
+        codes.join(", "),
+        out.display()
+    )))
 }
 
 fn resonance(p: &Parameters) -> f64 {
@@ -1125,7 +1208,15 @@ fn resonance(p: &Parameters) -> f64 {
 fn print_params(p: &Parameters) {
     let ts = thiele_small(p);
     println!("{}", p.name.as_deref().unwrap_or("(unnamed)"));
-    println!("  Re {:.3} ohm, Le(0) {:.4} mH, Bl(0) {:.3} T m, Kms(0) {:.1} N/m, Mms {:.3} g, Rms {:.3} kg/s", p.re, p.le.c[0] * 1e3, p.bl.c[0], p.kms.c[0], p.mms * 1e3, p.rms);
+    println!(
+        "  Re {:.3} ohm, Le(0) {:.4} mH, Bl(0) {:.3} T m, Kms(0) {:.1} N/m, Mms {:.3} g, Rms {:.3} kg/s",
+        p.re,
+        p.le.c[0] * 1e3,
+        p.bl.c[0],
+        p.kms.c[0],
+        p.mms * 1e3,
+        p.rms
+    );
     if let Some((l2, r2)) = &p.l2r2 {
         println!("  L2 {:.4} mH, R2 {:.3} ohm", l2.c[0] * 1e3, r2.c[0]);
     }
@@ -1135,7 +1226,10 @@ fn print_params(p: &Parameters) {
     if let Some(c) = &p.creep {
         println!("  creep lambda {:.4} (LOG, reference {:.2} Hz)", c.lambda, p.creep_f_ref().unwrap_or(0.0));
     }
-    println!("  fs {:.2} Hz, Qms {:.3}, Qes {:.3}, Qts {:.3}, Rms at fs {:.3} kg/s (with creep's loss)", ts.fs, ts.qms, ts.qes, ts.qts, ts.rms_fs);
+    println!(
+        "  fs {:.2} Hz, Qms {:.3}, Qes {:.3}, Qts {:.3}, Rms at fs {:.3} kg/s (with creep's loss)",
+        ts.fs, ts.qms, ts.qes, ts.qts, ts.rms_fs
+    );
     match p.x_range {
         Some([lo, hi]) => println!("  x_range {:.2} .. {:.2} mm", lo * 1e3, hi * 1e3),
         None => println!("  x_range not given"),
@@ -1147,22 +1241,44 @@ fn cmd_drivers() -> Result<(), String> {
     for name in embedded_driver_names() {
         let p = embedded_driver(name).ok_or("embedded driver missing")?;
         let [lo, hi] = p.x_range.unwrap_or([0.0, 0.0]);
-        println!("{name:<15} {:<40} fs {:6.2} Hz  x_range {:+.1} .. {:+.1} mm", p.name.as_deref().unwrap_or(""), resonance(&p), lo * 1e3, hi * 1e3);
+        println!(
+            "{name:<15} {:<40} fs {:6.2} Hz  x_range {:+.1} .. {:+.1} mm",
+            p.name.as_deref().unwrap_or(""),
+            resonance(&p),
+            lo * 1e3,
+            hi * 1e3
+        );
     }
     Ok(())
 }
 
 /// The post-inverse (equation-error) estimate of a record with a displacement channel
 /// ([`coilscope_workflow::identify::post_inverse_of`]).
-fn post_inverse_of(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, origin: &str) -> Result<Parameters, Failure> {
+fn post_inverse_of(
+    u: &[f64],
+    i: &[f64],
+    x: &[f64],
+    fs: f64,
+    order: usize,
+    origin: &str,
+) -> Result<Parameters, Failure> {
     Ok(coilscope_workflow::identify::post_inverse_of(u, i, x, fs, order, origin)?)
 }
 
-fn cmd_calibrate(path: &Path, resistor: Option<f64>, loopback: bool, wiring: SenseWiring, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
+fn cmd_calibrate(
+    path: &Path,
+    resistor: Option<f64>,
+    loopback: bool,
+    wiring: SenseWiring,
+    scale: Option<&[f64]>,
+    out: &Path,
+) -> Result<(), Failure> {
     let origin = path.display().to_string();
     let r = match (resistor, loopback) {
         (Some(r), false) if r.is_finite() && r > 0.0 && r < 1e6 => r,
-        (Some(r), false) => return Err(Failure::from(format!("--resistor {r}: give the resistor's measured value in ohm (> 0)"))),
+        (Some(r), false) => {
+            return Err(Failure::from(format!("--resistor {r}: give the resistor's measured value in ohm (> 0)")))
+        }
         _ => 1.0,
     };
     let rec = read_recording(path, scale).map_err(|e| e.to_string())?;
@@ -1188,11 +1304,33 @@ fn cmd_calibrate(path: &Path, resistor: Option<f64>, loopback: bool, wiring: Sen
     }
     write_json(out, &chain).map_err(|e| e.to_string())?;
     let sd = |k: &str| chain.sd.get(k).copied().unwrap_or(f64::NAN);
-    println!("coilscope calibrate: {} ({:.1} s at {} Hz, {})", origin, rec.u.len() as f64 / fs, rec.fs, if loopback { "loopback".to_string() } else { format!("resistor {r} ohm") });
-    println!("  fit {:.2} .. {:.0} Hz, {} bins, residual {:.2}x the noise ({:.2e} relative)", cal.band[0], cal.band[1], cal.bins, cal.residual_in_noise, cal.residual_rel);
-    println!("  current channel {:+.4} +- {:.4} samples late ({:+.3} us), gain {:.5} +- {:.1e} against the voltage's", chain.delay_i * fs, sd("delay_i") * fs, chain.delay_i * 1e6, chain.gain_i.unwrap_or(1.0), sd("gain_i"));
+    println!(
+        "coilscope calibrate: {} ({:.1} s at {} Hz, {})",
+        origin,
+        rec.u.len() as f64 / fs,
+        rec.fs,
+        if loopback { "loopback".to_string() } else { format!("resistor {r} ohm") }
+    );
+    println!(
+        "  fit {:.2} .. {:.0} Hz, {} bins, residual {:.2}x the noise ({:.2e} relative)",
+        cal.band[0], cal.band[1], cal.bins, cal.residual_in_noise, cal.residual_rel
+    );
+    println!(
+        "  current channel {:+.4} +- {:.4} samples late ({:+.3} us), gain {:.5} +- {:.1e} against the voltage's",
+        chain.delay_i * fs,
+        sd("delay_i") * fs,
+        chain.delay_i * 1e6,
+        chain.gain_i.unwrap_or(1.0),
+        sd("gain_i")
+    );
     if chain.fitted.iter().any(|k| k == "hp_u") {
-        println!("  AC coupling: voltage {:.3} +- {:.3} Hz, current {:.3} +- {:.3} Hz", chain.hp_u, sd("hp_u"), chain.hp_i, sd("hp_i"));
+        println!(
+            "  AC coupling: voltage {:.3} +- {:.3} Hz, current {:.3} +- {:.3} Hz",
+            chain.hp_u,
+            sd("hp_u"),
+            chain.hp_i,
+            sd("hp_i")
+        );
     } else if let Some(n) = chain.other.get("note").and_then(|v| v.as_str()) {
         println!("  AC coupling: {n}");
     }
@@ -1201,7 +1339,17 @@ fn cmd_calibrate(path: &Path, resistor: Option<f64>, loopback: bool, wiring: Sen
 }
 
 #[allow(clippy::too_many_arguments)]
-fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &str, chain: &ChainMode, wiring: SenseWiring, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
+fn cmd_identify(
+    path: &Path,
+    mms: Option<f64>,
+    order: Option<usize>,
+    effects: &str,
+    chain: &ChainMode,
+    wiring: SenseWiring,
+    sd: Option<f64>,
+    scale: Option<&[f64]>,
+    out: &Path,
+) -> Result<(), Failure> {
     use coilscope_ident::large::Stage;
     use coilscope_workflow::identify::{identify_record, IdentifyRequest};
     let origin = path.display().to_string();
@@ -1214,12 +1362,26 @@ fn cmd_identify(path: &Path, mms: Option<f64>, order: Option<usize>, effects: &s
                 Stage::Estimate { order } => format!("order {order} on the estimation part"),
                 Stage::Final { order } => format!("order {order} on the whole record"),
             };
-            eprint!("\r  {:5.1} s  fitting {stage}: iteration {:2}, current error {:.3e}        ", t0.elapsed().as_secs_f64(), p.state.iteration, p.residual_rel);
+            eprint!(
+                "\r  {:5.1} s  fitting {stage}: iteration {:2}, current error {:.3e}        ",
+                t0.elapsed().as_secs_f64(),
+                p.state.iteration,
+                p.residual_rel
+            );
         }
     };
     // A batch's worker runs on one core (`cmd_identify_batch`).
     let threads = std::env::var(JOB_THREADS).ok().and_then(|v| v.parse().ok()).unwrap_or(0);
-    let req = IdentifyRequest { origin: origin.clone(), mms, order, effects: parse_effects(effects)?, chain: chain.clone(), wiring, sd, threads };
+    let req = IdentifyRequest {
+        origin: origin.clone(),
+        mms,
+        order,
+        effects: parse_effects(effects)?,
+        chain: chain.clone(),
+        wiring,
+        sd,
+        threads,
+    };
     let done = identify_record(&mut rec, &req, progress);
     if live {
         eprintln!();
@@ -1255,13 +1417,25 @@ fn cmd_identify_batch(recordings: &[PathBuf], jobs: Option<usize>, out: &Path) -
         return Err(Failure::from("--jobs 0: give at least 1"));
     }
     if out.is_file() || out.extension().is_some_and(|e| e == "json") {
-        return Err(Failure::from(format!("{}: with {} recordings --out is a directory (each result is OUT/NAME.json)", out.display(), recordings.len())));
+        return Err(Failure::from(format!(
+            "{}: with {} recordings --out is a directory (each result is OUT/NAME.json)",
+            out.display(),
+            recordings.len()
+        )));
     }
     let mut names = std::collections::BTreeMap::new();
     for r in recordings {
-        let stem = r.file_stem().map(|s| s.to_string_lossy().into_owned()).ok_or_else(|| format!("{}: not a file name", r.display()))?;
+        let stem = r
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .ok_or_else(|| format!("{}: not a file name", r.display()))?;
         if let Some(other) = names.insert(stem.clone(), r) {
-            return Err(Failure::from(format!("{} and {} would both write {}.json: give recordings with different names", other.display(), r.display(), stem)));
+            return Err(Failure::from(format!(
+                "{} and {} would both write {}.json: give recordings with different names",
+                other.display(),
+                r.display(),
+                stem
+            )));
         }
     }
     std::fs::create_dir_all(out).map_err(|e| format!("{}: cannot create the output directory: {e}", out.display()))?;
@@ -1294,9 +1468,19 @@ fn cmd_identify_batch(recordings: &[PathBuf], jobs: Option<usize>, out: &Path) -
                 let stem = r.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
                 let result = out.join(format!("{stem}.json"));
                 let t = std::time::Instant::now();
-                let o = std::process::Command::new(&exe).args(&options).arg(r).arg("--out").arg(&result).env(JOB_THREADS, "1").stdin(std::process::Stdio::null()).output();
+                let o = std::process::Command::new(&exe)
+                    .args(&options)
+                    .arg(r)
+                    .arg("--out")
+                    .arg(&result)
+                    .env(JOB_THREADS, "1")
+                    .stdin(std::process::Stdio::null())
+                    .output();
                 let (code, text) = match o {
-                    Ok(o) => (o.status.code().unwrap_or(2), format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))),
+                    Ok(o) => (
+                        o.status.code().unwrap_or(2),
+                        format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr)),
+                    ),
                     Err(e) => (2, format!("cannot start a worker: {e}")),
                 };
                 // Each recording's report whole, as it finishes.
@@ -1329,7 +1513,9 @@ fn cmd_identify_batch(recordings: &[PathBuf], jobs: Option<usize>, out: &Path) -
     let bad = done.iter().filter(|d| d.1 != 0).count();
     match worst {
         0 => Ok(()),
-        3 => Err(Failure::Untrusted(format!("{bad} of {} recordings gave results that are not trustworthy", done.len()))),
+        3 => {
+            Err(Failure::Untrusted(format!("{bad} of {} recordings gave results that are not trustworthy", done.len())))
+        }
         _ => Err(Failure::Error(format!("{bad} of {} recordings failed or are not trustworthy", done.len()))),
     }
 }
@@ -1339,7 +1525,18 @@ fn cmd_identify_batch(recordings: &[PathBuf], jobs: Option<usize>, out: &Path) -
 /// (`record_lines`), the ratios and their noise (`RecordLines::harmonics`), the fit and its
 /// covariance (`identify_volterra_weighted`), the truncation check (`truncation_check`).
 #[allow(clippy::too_many_arguments)]
-fn cmd_identify_volterra(path: &Path, start: Option<&str>, mms: Option<f64>, order: Option<usize>, effects: &str, chain_choice: &ChainMode, wiring: SenseWiring, sd: Option<f64>, scale: Option<&[f64]>, out: &Path) -> Result<(), Failure> {
+fn cmd_identify_volterra(
+    path: &Path,
+    start: Option<&str>,
+    mms: Option<f64>,
+    order: Option<usize>,
+    effects: &str,
+    chain_choice: &ChainMode,
+    wiring: SenseWiring,
+    sd: Option<f64>,
+    scale: Option<&[f64]>,
+    out: &Path,
+) -> Result<(), Failure> {
     use coilscope_ident::checks::Warning;
     use coilscope_ident::volterra::{identify_volterra_weighted, record_lines, truncation_check};
     let origin = path.display().to_string();
@@ -1350,7 +1547,9 @@ fn cmd_identify_volterra(path: &Path, start: Option<&str>, mms: Option<f64>, ord
         return Err(Failure::from(format!("--effects {effects}: the Volterra method fits Bl, Kms, Le to the kernels of the start's linear model; its effects (creep, LR-3) come from --start")));
     }
     if mms.is_some() {
-        return Err(Failure::from("--mms: the Volterra method takes the moving mass (and the rest of the linear part) from --start"));
+        return Err(Failure::from(
+            "--mms: the Volterra method takes the moving mass (and the rest of the linear part) from --start",
+        ));
     }
     let start_spec = start.ok_or("--method volterra needs --start FILE: the small-signal parameters (run `coilscope linear` on a noise record of the driver, or give a parameter set)")?;
     let start = coilscope_report::input_from(start_spec)?.params;
@@ -1377,7 +1576,8 @@ fn cmd_identify_volterra(path: &Path, start: Option<&str>, mms: Option<f64>, ord
     // The reach: the fitted model driven by the record.
     let mut q = fit.params.clone();
     q.x_range = None;
-    let trace = simulate(&q, fs, &rec.u, &SimOptions::default()).map_err(|e| format!("{origin}: the fitted model under the record: {e}"))?;
+    let trace = simulate(&q, fs, &rec.u, &SimOptions::default())
+        .map_err(|e| format!("{origin}: the fitted model under the record: {e}"))?;
     let from = lines.starts[0];
     let reach = trace.x[from..].iter().fold([0.0f64, 0.0f64], |a, &v| [a[0].min(v), a[1].max(v)]);
     q.x_range = Some(reach);
@@ -1445,19 +1645,42 @@ fn cmd_identify_volterra(path: &Path, start: Option<&str>, mms: Option<f64>, ord
     print_warnings(&warnings);
     write_json(out, &result).map_err(|e| e.to_string())?;
     let pct = |f: &coilscope_core::Poly, x: f64| 100.0 * (f.eval(x) / f.c[0] - 1.0);
-    println!("coilscope identify --method volterra: {origin}, {} tones {}-{} Hz, {} periods, {:.2} s", lines.bins.len(), lines.bins[0], lines.bins[lines.bins.len() - 1], lines.starts.len(), t0.elapsed().as_secs_f64());
+    println!(
+        "coilscope identify --method volterra: {origin}, {} tones {}-{} Hz, {} periods, {:.2} s",
+        lines.bins.len(),
+        lines.bins[0],
+        lines.bins[lines.bins.len() - 1],
+        lines.starts.len(),
+        t0.elapsed().as_secs_f64()
+    );
     println!("  reach {:+.3} .. {:+.3} mm; kernel chi^2/dof {chi2:.2}, truncation {trunc:.2} (both about 1 or less where the series holds)", 1e3 * reach[0], 1e3 * reach[1]);
     for (name, f) in [("Bl", &q.bl), ("Kms", &q.kms), ("Le", &q.le)] {
-        println!("  {name:>3}(x) at the reach: {:+.2} % / {:+.2} % of its value at rest", pct(f, reach[0]), pct(f, reach[1]));
+        println!(
+            "  {name:>3}(x) at the reach: {:+.2} % / {:+.2} % of its value at rest",
+            pct(f, reach[0]),
+            pct(f, reach[1])
+        );
     }
     println!("  result: {}", out.display());
     untrusted_if_warned(&warnings, out)
 }
 
-fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::large::LargeFit, result: &ResultFile, seconds: f64) {
+fn print_large_summary(
+    path: &Path,
+    rec: &Recording,
+    fit: &coilscope_ident::large::LargeFit,
+    result: &ResultFile,
+    seconds: f64,
+) {
     let p = &fit.params;
     let fs = rec.fs as f64;
-    println!("coilscope identify: {} ({:.2} s at {} Hz), fitted in {:.1} s", path.display(), rec.u.len() as f64 / fs, rec.fs, seconds);
+    println!(
+        "coilscope identify: {} ({:.2} s at {} Hz), fitted in {:.1} s",
+        path.display(),
+        rec.u.len() as f64 / fs,
+        rec.fs,
+        seconds
+    );
     println!(
         "  order {} ({}), {} iterations, current error {:.3e} (relative RMS), x reached {:.3} .. {:.3} mm",
         fit.order,
@@ -1471,7 +1694,8 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
         println!("    order {}: estimation {:.3e}, validation {:.3e}", t.order, t.estimation_rel, t.validation_rel);
     }
     let tried = fit.models_tried();
-    let words = |t: &coilscope_core::result::ModelTrial| match (t.validation_rel, t.screen_gain) {
+    let words = |t: &coilscope_core::result::ModelTrial| {
+        match (t.validation_rel, t.screen_gain) {
         (Some(v), _) => match t.validation_rel_before {
             Some(b) => format!("{} validation {v:.3e} (went on alone from {b:.3e}: the next trial's gain was within what its fit had left)", t.model),
             None => format!("{} validation {v:.3e}", t.model),
@@ -1479,8 +1703,13 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
         (None, Some(g)) if t.outscored_by.is_some() => format!("{} not fitted: {} took its round (could gain {:.2e})", t.model, t.outscored_by.as_deref().unwrap_or_default(), g),
         (None, Some(g)) => format!("{} screened out (could gain {:.2e})", t.model, g),
         (None, None) => t.model.clone(),
+    }
     };
-    println!("  model {} ({})", fit.layout.effects.model_name(), if tried.is_empty() { "given".to_string() } else { tried.iter().map(words).collect::<Vec<_>>().join(", ") });
+    println!(
+        "  model {} ({})",
+        fit.layout.effects.model_name(),
+        if tried.is_empty() { "given".to_string() } else { tried.iter().map(words).collect::<Vec<_>>().join(", ") }
+    );
     if let Some(c) = &fit.chain {
         println!("  chain: {}", c.describe_fitted(fit.fs));
     }
@@ -1488,7 +1717,13 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
     // Bl, Kms and Le are shown as curves below.
     print_values(p, u, &["Bl", "Kms", "Le"]);
     let [lo, hi] = fit.x_range;
-    println!("  {:<6} {:>14} {:>14} {:>14}", "", format!("x={:.2} mm", lo * 1e3), "x=0", format!("x={:.2} mm", hi * 1e3));
+    println!(
+        "  {:<6} {:>14} {:>14} {:>14}",
+        "",
+        format!("x={:.2} mm", lo * 1e3),
+        "x=0",
+        format!("x={:.2} mm", hi * 1e3)
+    );
     for (name, unit, scale) in [("Bl", "T m", 1.0), ("Kms", "N/m", 1.0), ("Le", "mH", 1e3)] {
         let b = fit.band(name, 3);
         let cell = |k: usize| format!("{:.4} +- {:.1e}", b.value[k] * scale, b.sd[k] * scale);
@@ -1504,14 +1739,32 @@ fn print_large_summary(path: &Path, rec: &Recording, fit: &coilscope_ident::larg
             Some(v) => format!("{:.2} mm", v * 1e3),
             None => format!("> {:.2} mm", beyond.unwrap_or(0.0) * 1e3),
         };
-        println!("  limits: XBl {}, XC {}, XL {}, Xsym {}, Ak {:.1} %", lim(l.xbl, l.xbl_beyond), lim(l.xc, l.xc_beyond), lim(l.xl, l.xl_beyond), l.xsym.map(|v| format!("{:+.2} mm", v * 1e3)).unwrap_or("-".into()), l.ak);
+        println!(
+            "  limits: XBl {}, XC {}, XL {}, Xsym {}, Ak {:.1} %",
+            lim(l.xbl, l.xbl_beyond),
+            lim(l.xc, l.xc_beyond),
+            lim(l.xl, l.xl_beyond),
+            l.xsym.map(|v| format!("{:+.2} mm", v * 1e3)).unwrap_or("-".into()),
+            l.ak
+        );
     }
     if let Some(d) = &result.cross_check {
         let pc = |k: &str| 100.0 * d.max_rel_difference.get(k).copied().unwrap_or(f64::NAN);
-        println!("  cross-check (post-inverse, measured x): Bl {:.2} %, Kms {:.2} %, Le {:.2} %, Mms {:.2} %", pc("Bl"), pc("Kms"), pc("Le"), pc("Mms"));
+        println!(
+            "  cross-check (post-inverse, measured x): Bl {:.2} %, Kms {:.2} %, Le {:.2} %, Mms {:.2} %",
+            pc("Bl"),
+            pc("Kms"),
+            pc("Le"),
+            pc("Mms")
+        );
     }
     if let Some(dt) = result.thermal.as_ref().and_then(|t| t.dt_end) {
-        println!("  voice coil: Re {:.4} -> {:.4} ohm over the record (+{:.2} K)", fit.re_track[0].1, fit.re_track.last().unwrap().1, dt);
+        println!(
+            "  voice coil: Re {:.4} -> {:.4} ohm over the record (+{:.2} K)",
+            fit.re_track[0].1,
+            fit.re_track.last().unwrap().1,
+            dt
+        );
         if !fit.layout.heat_taus.is_empty() {
             println!("  Re(t): knots every {:.2} s plus heating terms (time constants {:?} s): the coil heated faster than the knots could follow", fit.layout.knot_dt, fit.layout.heat_taus);
         }
@@ -1576,7 +1829,11 @@ struct CardArgs {
 /// `device` read through the card's calibration `c`, corrected block by block, and the
 /// calibration used: it knows the card (delay, corners, gain), not this run's offsets or hum
 /// (found in the lead-in).
-fn corrected(device: Box<dyn coilscope_measure::device::Device>, c: coilscope_core::chain::Chain, wiring: SenseWiring) -> Result<(Box<dyn coilscope_measure::device::Device>, coilscope_core::chain::Chain), String> {
+fn corrected(
+    device: Box<dyn coilscope_measure::device::Device>,
+    c: coilscope_core::chain::Chain,
+    wiring: SenseWiring,
+) -> Result<(Box<dyn coilscope_measure::device::Device>, coilscope_core::chain::Chain), String> {
     let cal = coilscope_core::chain::Chain { dc_u: 0.0, dc_i: 0.0, hum: None, ..c };
     Ok((Box::new(coilscope_measure::card::Corrected::new(device, &cal, wiring)?), cal))
 }
@@ -1595,7 +1852,10 @@ impl CardArgs {
     fn wiring(&self, chain: Option<&coilscope_core::chain::Chain>) -> Result<SenseWiring, String> {
         match (&self.sense_wiring, chain) {
             (Some(w), _) => SenseWiring::parse(w, Some(self.sense_ohm)),
-            (None, Some(c)) if c.sense_wiring.is_some() => SenseWiring::parse(c.sense_wiring.as_deref().unwrap_or_default(), Some(c.sense_ohm.unwrap_or(self.sense_ohm))),
+            (None, Some(c)) if c.sense_wiring.is_some() => SenseWiring::parse(
+                c.sense_wiring.as_deref().unwrap_or_default(),
+                Some(c.sense_ohm.unwrap_or(self.sense_ohm)),
+            ),
             (None, _) => Ok(SenseWiring::Terminals),
         }
     }
@@ -1740,7 +2000,12 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
             let mms = a.mms.ok_or("--card needs --mms KG (the absolute scale: weigh the cone, or measure it by the added-mass method with `coilscope linear`)")?;
             (open_card(&a.card, a.rate)?, mms, "given (--mms)".to_string())
         }
-        _ => return Err("give the device: --virtual DRIVER (embedded name or parameter file), --replay REC.wav or --card".into()),
+        _ => {
+            return Err(
+                "give the device: --virtual DRIVER (embedded name or parameter file), --replay REC.wav or --card"
+                    .into(),
+            )
+        }
     };
     // The card's chain and wiring: corrected block by block (a virtual driver with a chain is
     // recorded through a simulated card first).
@@ -1751,7 +2016,12 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         }
         if a.virtual_driver.is_some() {
             let full_scale = (a.card.u_volts_fs, a.card.i_volts_fs / a.card.sense_ohm);
-            device = Box::new(coilscope_measure::card::SimulatedCard::new(device, &coilscope_core::chain::Chain { source: Some("simulated".into()), ..c.clone() }, wiring, full_scale)?);
+            device = Box::new(coilscope_measure::card::SimulatedCard::new(
+                device,
+                &coilscope_core::chain::Chain { source: Some("simulated".into()), ..c.clone() },
+                wiring,
+                full_scale,
+            )?);
         }
         let cal;
         (device, cal) = corrected(device, c, wiring)?;
@@ -1766,8 +2036,16 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     // The live page, before the first block; a virtual or replayed run is paced to real time
     // for it unless --pace says otherwise (a sound card is paced by its clock).
     let pace = match (a.serve.pace, a.card.card) {
-        (Some(_), true) => return Err(Failure::from("--pace applies to --virtual and --replay; a sound card plays in real time".to_string())),
-        (Some(f), false) if !(f > 0.0 && f.is_finite()) => return Err(Failure::from(format!("--pace {f}: give a positive factor of real time (1: real time, 4: four times faster)"))),
+        (Some(_), true) => {
+            return Err(Failure::from(
+                "--pace applies to --virtual and --replay; a sound card plays in real time".to_string(),
+            ))
+        }
+        (Some(f), false) if !(f > 0.0 && f.is_finite()) => {
+            return Err(Failure::from(format!(
+                "--pace {f}: give a positive factor of real time (1: real time, 4: four times faster)"
+            )))
+        }
         (Some(f), false) => Some(f),
         (None, false) if a.serve.serve.is_some() => Some(1.0),
         (None, _) => None,
@@ -1775,7 +2053,12 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     if !(a.serve.serve_linger >= 0.0 && a.serve.serve_linger.is_finite()) {
         return Err(Failure::from(format!("--serve-linger {}: give seconds, 0 or more", a.serve.serve_linger)));
     }
-    let server = a.serve.serve.as_deref().map(|addr| coilscope_live::LiveServer::start(addr, a.serve.serve_public)).transpose()?;
+    let server = a
+        .serve
+        .serve
+        .as_deref()
+        .map(|addr| coilscope_live::LiveServer::start(addr, a.serve.serve_public))
+        .transpose()?;
     if let Some(s) = &server {
         s.info(&device.describe(), source.name(), device.controllable(), fs);
         eprintln!("live page: {}", s.url());
@@ -1797,16 +2080,28 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         ..Default::default()
     };
     opts.validate()?;
-    std::fs::create_dir_all(&a.out).map_err(|e| format!("{}: cannot create the output directory: {e}", a.out.display()))?;
+    std::fs::create_dir_all(&a.out)
+        .map_err(|e| format!("{}: cannot create the output directory: {e}", a.out.display()))?;
     let options = json!({"target_x": opts.target_x, "max_dt": opts.max_dt, "kms_limit": opts.kms_limit, "max_volts": opts.max_volts, "duration": opts.duration, "volts": opts.hold_volts, "cool": opts.cool, "excitation": source.name(), "mms": mms});
     let mut store = Store::create(&a.out.join("run.sqlite"), &device.describe(), &options)?;
     let tty = std::io::stderr().is_terminal();
     let mut last_print = -1.0;
     let controllable = device.controllable();
     if controllable {
-        eprintln!("measuring {} with {} (run {} in {})", device.describe(), source.name(), store.run, a.out.join("run.sqlite").display());
+        eprintln!(
+            "measuring {} with {} (run {} in {})",
+            device.describe(),
+            source.name(),
+            store.run,
+            a.out.join("run.sqlite").display()
+        );
     } else {
-        eprintln!("identifying from the {} (run {} in {})", device.describe(), store.run, a.out.join("run.sqlite").display());
+        eprintln!(
+            "identifying from the {} (run {} in {})",
+            device.describe(),
+            store.run,
+            a.out.join("run.sqlite").display()
+        );
     }
     let started = std::time::Instant::now();
     let result = coilscope_measure::measure(device.as_mut(), &mut source, &opts, Some(&mut store), |l| {
@@ -1824,9 +2119,24 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
             // Before the small-signal fit there is no estimate yet: a dash, not NaN.
             let re = if l.re.is_finite() { format!("{:.4}", l.re) } else { "  -   ".to_string() };
             let err = if l.residual.is_finite() { format!("{:.1e}", l.residual) } else { "  -   ".to_string() };
-            let state = format!("x {:+6.2} .. {:+6.2} mm  dT {:5.1} K  Re {re} ohm  err {err}", l.x_min * 1e3, l.x_max * 1e3, l.dtv);
+            let state = format!(
+                "x {:+6.2} .. {:+6.2} mm  dT {:5.1} K  Re {re} ohm  err {err}",
+                l.x_min * 1e3,
+                l.x_max * 1e3,
+                l.dtv
+            );
             // A replay's level was set when it was recorded: no drive level, no controller.
-            let line = if controllable { format!("t {:6.1} s  {:<12} {:7.3} V  {state}  limited by {}", l.t, l.stage.name(), l.volts, l.limited_by) } else { format!("t {:6.1} s  {state}", l.t) };
+            let line = if controllable {
+                format!(
+                    "t {:6.1} s  {:<12} {:7.3} V  {state}  limited by {}",
+                    l.t,
+                    l.stage.name(),
+                    l.volts,
+                    l.limited_by
+                )
+            } else {
+                format!("t {:6.1} s  {state}", l.t)
+            };
             if tty {
                 eprint!("\r{line}   ");
             } else {
@@ -1870,10 +2180,28 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     }
     let p = &m.params;
     println!("{status}: {}", m.stop_reason.describe());
-    println!("measured {:.1} s, peak x {:.2} mm, voice-coil rise up to {:.1} K, {} updates, window residual {:.2e}", m.seconds, m.x_peak_max * 1e3, m.dtv_max, m.updates, m.residual_rel);
-    println!("start (the first {} s): Re {:.4} ohm, Bl {:.3} T m, Kms {:.1} N/m, Rms {:.3} kg/s", opts.small_seconds, m.small.re, m.small.bl.eval(0.0), m.small.kms.eval(0.0), m.small.rms);
+    println!(
+        "measured {:.1} s, peak x {:.2} mm, voice-coil rise up to {:.1} K, {} updates, window residual {:.2e}",
+        m.seconds,
+        m.x_peak_max * 1e3,
+        m.dtv_max,
+        m.updates,
+        m.residual_rel
+    );
+    println!(
+        "start (the first {} s): Re {:.4} ohm, Bl {:.3} T m, Kms {:.1} N/m, Rms {:.3} kg/s",
+        opts.small_seconds,
+        m.small.re,
+        m.small.bl.eval(0.0),
+        m.small.kms.eval(0.0),
+        m.small.rms
+    );
     // An sd the fit could not give (a degenerate small-signal fit) is said so, not printed as NaN.
-    let re_cold_sd = if m.re_cold_sd.is_finite() { format!("+- {:.1e}", m.re_cold_sd) } else { "(no sd: the small-signal fit gave none)".to_string() };
+    let re_cold_sd = if m.re_cold_sd.is_finite() {
+        format!("+- {:.1e}", m.re_cold_sd)
+    } else {
+        "(no sd: the small-signal fit gave none)".to_string()
+    };
     println!("cold Re (the temperature reference: the small-signal stage refitted with the final model when converged, else its impedance fit): {:.4} ohm {re_cold_sd}", m.re_cold);
     let [lo, hi] = m.x_range;
     println!("large signal (end), over {:.2} .. {:.2} mm:", lo * 1e3, hi * 1e3);
@@ -1882,7 +2210,12 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         if let Some(coilscope_core::schema::Value::Series(f)) = p.get(e.key) {
             let ((unit, k), name) = (e.display, e.key);
             if f.c.len() > 1 {
-                println!("  {name:<4} {:10.4} {:10.4} {:10.4} {unit}  (x_min, 0, x_max)", f.eval(lo) * k, f.eval(0.0) * k, f.eval(hi) * k);
+                println!(
+                    "  {name:<4} {:10.4} {:10.4} {:10.4} {unit}  (x_min, 0, x_max)",
+                    f.eval(lo) * k,
+                    f.eval(0.0) * k,
+                    f.eval(hi) * k
+                );
             }
         }
     }
@@ -1922,9 +2255,15 @@ fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     }
     let written = a.out.join("result.json");
     match m.stop_reason {
-        coilscope_measure::StopReason::Interrupted { .. } => Err(Failure::Interrupted(format!("{}; written to {}", m.stop_reason.describe(), written.display()))),
-        coilscope_measure::StopReason::Failed { .. } => Err(Failure::Error(format!("{}; written to {}", m.stop_reason.describe(), written.display()))),
-        ref r if !r.is_success() => Err(Failure::Untrusted(format!("{}; written to {}", r.describe(), written.display()))),
+        coilscope_measure::StopReason::Interrupted { .. } => {
+            Err(Failure::Interrupted(format!("{}; written to {}", m.stop_reason.describe(), written.display())))
+        }
+        coilscope_measure::StopReason::Failed { .. } => {
+            Err(Failure::Error(format!("{}; written to {}", m.stop_reason.describe(), written.display())))
+        }
+        ref r if !r.is_success() => {
+            Err(Failure::Untrusted(format!("{}; written to {}", r.describe(), written.display())))
+        }
         _ => Ok(()),
     }
 }
@@ -1936,7 +2275,10 @@ static LINGERING: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool:
 /// Ctrl-C.
 fn linger(server: coilscope_live::LiveServer, seconds: f64, interrupt: &std::sync::atomic::AtomicBool) {
     if seconds > 0.0 {
-        eprintln!("live page: the run is over; serving {} and its report for {seconds:.0} s more (Ctrl-C ends it)", server.url());
+        eprintln!(
+            "live page: the run is over; serving {} and its report for {seconds:.0} s more (Ctrl-C ends it)",
+            server.url()
+        );
         let end = std::time::Instant::now() + std::time::Duration::from_secs_f64(seconds);
         // A Ctrl-C during the run has already been answered by the run's end.
         LINGERING.store(true, std::sync::atomic::Ordering::SeqCst);
@@ -1978,9 +2320,19 @@ fn cmd_runs(path: &Path) -> Result<(), String> {
         println!("{}: no runs", db.display());
     }
     for r in runs {
-        print!("run {:>3}  {:<12} {:8.1} s  {:>6} states  {:>4} estimates  {}", r.id, r.status, r.seconds, r.states, r.estimates, r.device);
+        print!(
+            "run {:>3}  {:<12} {:8.1} s  {:>6} states  {:>4} estimates  {}",
+            r.id, r.status, r.seconds, r.states, r.estimates, r.device
+        );
         if let Some(l) = r.last {
-            print!("  | last t {:.1} s: x {:+.2} .. {:+.2} mm, dT {:.1} K, {:.3} V", l.t, l.x_min * 1e3, l.x_max * 1e3, l.dtv, l.gain);
+            print!(
+                "  | last t {:.1} s: x {:+.2} .. {:+.2} mm, dT {:.1} K, {:.3} V",
+                l.t,
+                l.x_min * 1e3,
+                l.x_max * 1e3,
+                l.dtv,
+                l.gain
+            );
         }
         println!();
     }
@@ -2037,10 +2389,15 @@ fn cmd_quasistatic(a: QuasiArgs) -> Result<(), Failure> {
         return Err(format!("--hold {hold} s is not valid (0.5 .. 600 s)").into());
     }
     let fs = if a.card.card { a.rate as f64 } else { 48000.0 };
-    let ac = generate(&Excitation::Pink { f_lo: 5.0, f_hi: 16000.0, crest: None }, &SignalSpec { fs, seconds: 2.0, rms: 1.0, fade: 0.0, seed: 1 })?;
+    let ac = generate(
+        &Excitation::Pink { f_lo: 5.0, f_hi: 16000.0, crest: None },
+        &SignalSpec { fs, seconds: 2.0, rms: 1.0, fade: 0.0, seed: 1 },
+    )?;
     let (q, opts, set_name, name, device, offset) = if a.card.card {
         // A real driver: what the virtual set would tell, the user gives.
-        let mms = a.mms.ok_or("quasistatic --card needs --mms KG (the moving mass: the absolute scale of the small-signal fits)")?;
+        let mms = a.mms.ok_or(
+            "quasistatic --card needs --mms KG (the moving mass: the absolute scale of the small-signal fits)",
+        )?;
         let xmax = a.xmax.ok_or("quasistatic --card needs --xmax LENGTH: how far the working points may go on each side (the driver's Xmax from its data sheet, or less)")?;
         if !(mms > 0.0 && mms < 10.0) {
             return Err(format!("--mms {mms} kg is not valid (0 .. 10 kg)").into());
@@ -2058,37 +2415,89 @@ fn cmd_quasistatic(a: QuasiArgs) -> Result<(), Failure> {
             device = corrected(device, c, wiring)?.0;
         }
         let describe = device.describe();
-        let opts = QuasiStaticOptions { mms, points, reach, range: [-xmax, xmax], hold_s: hold, record_s: 2.0, ac_volts: a.ac_volts, order, fs, offset };
-        let mut operator = coilscope_measure::quasi_static_card::PromptOperator::new(std::io::stdin().lock(), std::io::stderr());
+        let opts = QuasiStaticOptions {
+            mms,
+            points,
+            reach,
+            range: [-xmax, xmax],
+            hold_s: hold,
+            record_s: 2.0,
+            ac_volts: a.ac_volts,
+            order,
+            fs,
+            offset,
+        };
+        let mut operator =
+            coilscope_measure::quasi_static_card::PromptOperator::new(std::io::stdin().lock(), std::io::stderr());
         eprintln!("quasistatic on {describe}: {points} working points to {:.0} % of +-{:.2} mm, offset by {}; a gauge on the cone reads the static displacement (q stops)", reach * 100.0, xmax * 1e3, opts.offset_name());
-        let q = quasi_static(coilscope_measure::quasi_static_card::card_play(device.as_mut(), &mut operator, offset, 4800), &ac, &opts)?;
+        let q = quasi_static(
+            coilscope_measure::quasi_static_card::card_play(device.as_mut(), &mut operator, offset, 4800),
+            &ac,
+            &opts,
+        )?;
         (q, opts, None, "the driver on the card".to_string(), describe, offset)
     } else {
         let driver = a.driver.as_deref().unwrap_or_default();
         let p = a.world.apply(load_parameters(driver).map_err(|e| e.to_string())?);
-        let range = p.x_range.ok_or_else(|| format!("{driver}: the set has no x_range: the working points need the range they may go to"))?;
+        let range = p.x_range.ok_or_else(|| {
+            format!("{driver}: the set has no x_range: the working points need the range they may go to")
+        })?;
         // The small signal at about 2 % of the range at the resonance (a linear estimate).
         let ts = thiele_small(&p);
         let per_volt = p.bl.c[0] / (p.re * p.kms.c[0]) * ts.qts.max(0.3);
         let ac_volts = (0.02 * range[1].min(-range[0]) / per_volt).clamp(0.01, 1.0);
         let offset = match a.offset.as_str() {
             "mass" => Offset::Mass,
-            "pressure" => Offset::Pressure { sd: p.sd.ok_or_else(|| format!("{driver}: --offset pressure needs the diaphragm's area: the set has no Sd (m^2)"))? },
+            "pressure" => Offset::Pressure {
+                sd: p.sd.ok_or_else(|| {
+                    format!("{driver}: --offset pressure needs the diaphragm's area: the set has no Sd (m^2)")
+                })?,
+            },
             _ => Offset::Current,
         };
-        let opts = QuasiStaticOptions { mms: p.mms, points, reach, range, hold_s: hold, record_s: 2.0, ac_volts, order, fs, offset };
+        let opts = QuasiStaticOptions {
+            mms: p.mms,
+            points,
+            reach,
+            range,
+            hold_s: hold,
+            record_s: 2.0,
+            ac_volts,
+            order,
+            fs,
+            offset,
+        };
         let play = |d: &[f64], push: Push| {
             let q = Parameters { mms: p.mms + push.added_mass, ..p.clone() };
-            simulate(&q, fs, d, &SimOptions { force: push.force, ..Default::default() }).map(|t| Played::from((t.u, t.i, t.x))).map_err(|e| e.to_string())
+            simulate(&q, fs, d, &SimOptions { force: push.force, ..Default::default() })
+                .map(|t| Played::from((t.u, t.i, t.x)))
+                .map_err(|e| e.to_string())
         };
         let q = quasi_static(play, &ac, &opts)?;
         let name = p.name.clone().unwrap_or_else(|| driver.to_string());
         (q, opts, p.name.clone(), name.clone(), format!("virtual {name}"), offset)
     };
-    println!("coilscope quasistatic: {name}, {points} working points to {:.0} % of the range, {hold} s hold, offset by {}", reach * 100.0, opts.offset_name());
-    println!("  {:>8} {:>9} {:>9} {:>8} {:>8} {:>9} {:>9} {:>8}", "U_dc V", "x_dc mm", "I_dc A", "Re ohm", "Bl T m", "Kms N/m", "k_t N/m", "Le mH");
+    println!(
+        "coilscope quasistatic: {name}, {points} working points to {:.0} % of the range, {hold} s hold, offset by {}",
+        reach * 100.0,
+        opts.offset_name()
+    );
+    println!(
+        "  {:>8} {:>9} {:>9} {:>8} {:>8} {:>9} {:>9} {:>8}",
+        "U_dc V", "x_dc mm", "I_dc A", "Re ohm", "Bl T m", "Kms N/m", "k_t N/m", "Le mH"
+    );
     for w in &q.points {
-        println!("  {:>8.3} {:>9.3} {:>9.4} {:>8.4} {:>8.4} {:>9.1} {:>9.1} {:>8.4}", w.u_dc, w.x_dc * 1e3, w.i_dc, w.re_dc, w.bl, w.kms_static, w.k_tangent, w.le * 1e3);
+        println!(
+            "  {:>8.3} {:>9.3} {:>9.4} {:>8.4} {:>8.4} {:>9.1} {:>9.1} {:>8.4}",
+            w.u_dc,
+            w.x_dc * 1e3,
+            w.i_dc,
+            w.re_dc,
+            w.bl,
+            w.kms_static,
+            w.k_tangent,
+            w.le * 1e3
+        );
     }
     println!("  stiffness at rest: dynamic (small signal at the resonance) {:.1} N/m, static (the secants' series) {:.1} N/m", q.k_dynamic_rest, q.params.kms.eval(0.0));
     if q.rest_drift.is_finite() {
@@ -2140,7 +2549,15 @@ fn cmd_quasistatic(a: QuasiArgs) -> Result<(), Failure> {
 }
 
 /// `export`: one file for another tool, written atomically.
-fn cmd_export(spec: &str, speakersafetyd: bool, power_series: bool, zma: bool, frd: bool, out: &Path, o: &coilscope_io::export::SafetydOptions) -> Result<(), String> {
+fn cmd_export(
+    spec: &str,
+    speakersafetyd: bool,
+    power_series: bool,
+    zma: bool,
+    frd: bool,
+    out: &Path,
+    o: &coilscope_io::export::SafetydOptions,
+) -> Result<(), String> {
     use coilscope_io::export;
     let input = coilscope_report::input_from(spec)?;
     let mut p = input.params;
@@ -2169,24 +2586,35 @@ fn cmd_export(spec: &str, speakersafetyd: bool, power_series: bool, zma: bool, f
 
 /// `compensate`: the pre-inverse drive, and what the model predicts it does (the largest
 /// deviation of the displacement from the linear reference, plain and compensated).
-fn cmd_compensate(params: &str, input: &Path, out: &Path, max_volts: Option<f64>, min_force_factor: f64, scale: Option<f64>) -> Result<(), String> {
+fn cmd_compensate(
+    params: &str,
+    input: &Path,
+    out: &Path,
+    max_volts: Option<f64>,
+    min_force_factor: f64,
+    scale: Option<f64>,
+) -> Result<(), String> {
     use coilscope_core::inverse::{compensate, CompensateOptions};
     let p = coilscope_report::input_from(params)?.params;
     let (fs, u) = read_voltage(input, scale.map(|s| vec![s]).as_deref()).map_err(|e| e.to_string())?;
     if u.is_empty() {
         return Err(format!("{}: the input has no samples", input.display()));
     }
-    let c = compensate(&p, fs as f64, &u, &CompensateOptions { max_volts, min_force_factor }).map_err(|e| format!("{}: {e}", input.display()))?;
+    let c = compensate(&p, fs as f64, &u, &CompensateOptions { max_volts, min_force_factor })
+        .map_err(|e| format!("{}: {e}", input.display()))?;
     coilscope_io::write_voltage(out, fs, &c.drive).map_err(|e| e.to_string())?;
     let dev = |x: &[f64]| x.iter().zip(&c.x_target).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
     let peak = c.x_target.iter().fold(0.0f64, |a, v| a.max(v.abs()));
-    let sim = |d: &[f64]| simulate(&p, fs as f64, d, &SimOptions::default()).map(|t| dev(&t.x)).map_err(|e| e.to_string());
+    let sim =
+        |d: &[f64]| simulate(&p, fs as f64, d, &SimOptions::default()).map(|t| dev(&t.x)).map_err(|e| e.to_string());
     let name = p.name.clone().unwrap_or_else(|| params.to_string());
     println!("coilscope compensate: {name}, {:.2} s at {fs} Hz", u.len() as f64 / fs as f64);
     println!("  linear reference peak excursion {:.3} mm", peak * 1e3);
     println!("  drive peak {:.3} V (input {:.3} V)", c.peak_volts, u.iter().fold(0.0f64, |a, v| a.max(v.abs())));
     match (sim(&u), sim(&c.drive)) {
-        (Ok(a), Ok(b)) => println!("  the model's displacement off the linear reference (largest): plain {a:.3e} m, compensated {b:.3e} m"),
+        (Ok(a), Ok(b)) => println!(
+            "  the model's displacement off the linear reference (largest): plain {a:.3e} m, compensated {b:.3e} m"
+        ),
         (Err(e), _) | (_, Err(e)) => println!("  (the model's check did not run: {e})"),
     }
     for w in &c.warnings {
@@ -2217,7 +2645,12 @@ fn cmd_distortion(a: DistortionArgs) -> Result<(), String> {
         } else {
             println!("{name}: {} tones {:.0} .. {:.0} Hz, {:.3} V RMS, {out}", m.tones.len(), band[0], band[1], volts);
             println!("  multitone total distortion {:.2} dB ({:.3} %)", db(m.mtd), 100.0 * m.mtd);
-            println!("  DC displacement {:+.4} mm, x {:+.3} .. {:+.3} mm", m.x_dc * 1e3, m.x_peak[0] * 1e3, m.x_peak[1] * 1e3);
+            println!(
+                "  DC displacement {:+.4} mm, x {:+.3} .. {:+.3} mm",
+                m.x_dc * 1e3,
+                m.x_peak[0] * 1e3,
+                m.x_peak[1] * 1e3
+            );
         }
         return Ok(());
     }
@@ -2225,19 +2658,29 @@ fn cmd_distortion(a: DistortionArgs) -> Result<(), String> {
         return Err("--sweep F_LO F_HI sets the frequencies itself: drop --freq".into());
     }
     // A frequency sweep needs no --freq (it runs from F_LO to F_HI).
-    let freq = a.freq.or(a.sweep.as_ref().map(|b| b[0])).ok_or("--freq F is required (the sine, or the low tone of a two-tone); or use --multitone or --sweep F_LO F_HI")?;
+    let freq = a.freq.or(a.sweep.as_ref().map(|b| b[0])).ok_or(
+        "--freq F is required (the sine, or the low tone of a two-tone); or use --multitone or --sweep F_LO F_HI",
+    )?;
     if let Some(f2) = a.freq2 {
         let im = d::intermod(p, freq, f2, volts, a.ratio, a.output, &opts).map_err(e)?;
         if a.json {
             print_json(&im.to_json());
         } else {
-            println!("{name}: two-tone {:.2} Hz + {:.2} Hz (f2/f1 amplitude {}), {:.3} V RMS, {out}", im.f1, im.f2, im.amplitude_ratio, volts);
+            println!(
+                "{name}: two-tone {:.2} Hz + {:.2} Hz (f2/f1 amplitude {}), {:.3} V RMS, {out}",
+                im.f1, im.f2, im.amplitude_ratio, volts
+            );
             println!("  d2 (f2 +- f1)   {:8.2} dB  {:8.4} %", db(im.d2), 100.0 * im.d2);
             println!("  d3 (f2 +- 2f1)  {:8.2} dB  {:8.4} %", db(im.d3), 100.0 * im.d3);
             for (l, f, r) in &im.lines {
                 println!("    {l:<7} {f:9.2} Hz {:8.2} dB", db(*r));
             }
-            println!("  DC displacement {:+.4} mm, x {:+.3} .. {:+.3} mm", im.x_dc * 1e3, im.x_peak[0] * 1e3, im.x_peak[1] * 1e3);
+            println!(
+                "  DC displacement {:+.4} mm, x {:+.3} .. {:+.3} mm",
+                im.x_dc * 1e3,
+                im.x_peak[0] * 1e3,
+                im.x_peak[1] * 1e3
+            );
         }
         return Ok(());
     }
@@ -2251,7 +2694,14 @@ fn cmd_distortion(a: DistortionArgs) -> Result<(), String> {
             println!("{name}: sine {freq} Hz, {out}; full model against the 3rd-order Volterra series");
             println!("  {:>9} {:>9} {:>9} {:>11} {:>11}", "V RMS", "HD2 dB", "HD3 dB", "HD2 Volt.", "HD3 Volt.");
             for r in &rows {
-                println!("  {:9.3} {:9.2} {:9.2} {:11.2} {:11.2}", r.volts, db(r.full.hd(2)), db(r.full.hd(3)), db(r.volterra.0), db(r.volterra.1));
+                println!(
+                    "  {:9.3} {:9.2} {:9.2} {:11.2} {:11.2}",
+                    r.volts,
+                    db(r.full.hd(2)),
+                    db(r.full.hd(3)),
+                    db(r.volterra.0),
+                    db(r.volterra.1)
+                );
             }
             match div {
                 Some(v) => println!("  the Volterra series is off by more than 1 dB from {v:.3} V"),
@@ -2285,14 +2735,30 @@ fn cmd_distortion(a: DistortionArgs) -> Result<(), String> {
     for (an, pr) in sweep.iter().zip(&probes) {
         let t = &an.total;
         let (v2, v3) = pr.hd(a.output, volts);
-        println!("  {:.2} Hz: x {:+.3} .. {:+.3} mm, DC displacement {:+.4} mm", t.freq, t.x_peak[0] * 1e3, t.x_peak[1] * 1e3, t.x_dc * 1e3);
+        println!(
+            "  {:.2} Hz: x {:+.3} .. {:+.3} mm, DC displacement {:+.4} mm",
+            t.freq,
+            t.x_peak[0] * 1e3,
+            t.x_peak[1] * 1e3,
+            t.x_dc * 1e3
+        );
         println!("    {:<10} {:>9} {:>9} {:>9}", "", "HD2 dB", "HD3 dB", "THD dB");
         println!("    {:<10} {:9.2} {:9.2} {:9.2}", "total", db(t.hd(2)), db(t.hd(3)), db(t.thd()));
         for (nl, h) in &an.parts {
-            println!("    {:<10} {:9.2} {:9.2} {:9.2}", format!("{} only", nl.key()), db(h.hd(2)), db(h.hd(3)), db(h.thd()));
+            println!(
+                "    {:<10} {:9.2} {:9.2} {:9.2}",
+                format!("{} only", nl.key()),
+                db(h.hd(2)),
+                db(h.hd(3)),
+                db(h.thd())
+            );
         }
         println!("    {:<10} {:9.2} {:9.2}", "Volterra", db(v2), db(v3));
-        println!("    dominant: {}; the parts' HD2 lines add up to the total within {:.1} %", an.dominant().name(), 100.0 * an.sum_mismatch(2));
+        println!(
+            "    dominant: {}; the parts' HD2 lines add up to the total within {:.1} %",
+            an.dominant().name(),
+            100.0 * an.sum_mismatch(2)
+        );
     }
     Ok(())
 }
@@ -2305,15 +2771,29 @@ fn cmd_diagnose(spec: &str, l: &LimitArgs, json: bool) -> Result<(), String> {
         print_json(&d.to_json());
         return Ok(());
     }
-    let mm = |v: Option<f64>| v.map(|x| format!("{:.2} mm", x * 1e3)).unwrap_or_else(|| format!("beyond the reach ({:.2} mm)", d.limits.reach * 1e3));
-    println!("{}: over {:.2} .. {:.2} mm", input.params.name.clone().unwrap_or_else(|| spec.into()), input.range[0] * 1e3, input.range[1] * 1e3);
+    let mm = |v: Option<f64>| {
+        v.map(|x| format!("{:.2} mm", x * 1e3))
+            .unwrap_or_else(|| format!("beyond the reach ({:.2} mm)", d.limits.reach * 1e3))
+    };
+    println!(
+        "{}: over {:.2} .. {:.2} mm",
+        input.params.name.clone().unwrap_or_else(|| spec.into()),
+        input.range[0] * 1e3,
+        input.range[1] * 1e3
+    );
     println!("  XBl (Bl {:.0} %)   {}", th.bl * 100.0, mm(d.limits.xbl));
     println!("  XC  (Cms {:.0} %)  {}", th.cms * 100.0, mm(d.limits.xc));
     println!("  XL  (Le {:.0} %)   {}", th.le * 100.0, mm(d.limits.xl));
     println!("  Ak               {:.1} %", d.limits.ak);
     println!("  Bl               {}", d.bl_shift_advice());
     let pol = &d.polarity;
-    println!("  polarity         {} (Le(-{:.2} mm) / Le(+{:.2} mm) = {:.3})", pol.verdict, pol.at * 1e3, pol.at * 1e3, pol.le_minus / pol.le_plus);
+    println!(
+        "  polarity         {} (Le(-{:.2} mm) / Le(+{:.2} mm) = {:.3})",
+        pol.verdict,
+        pol.at * 1e3,
+        pol.at * 1e3,
+        pol.le_minus / pol.le_plus
+    );
     match &d.thermal {
         Some(t) => {
             println!("  thermal (+{:.0} K) {:.1} W continuous in Re; {:.2} V RMS worst sine ({:.0} Hz); {:.2} V RMS IEC noise ({:.1} W nominal)", t.dt_max, t.p_max, t.volts_sine, t.f_sine, t.volts_iec, t.p_nominal_iec);
@@ -2323,7 +2803,14 @@ fn cmd_diagnose(spec: &str, l: &LimitArgs, json: bool) -> Result<(), String> {
     Ok(())
 }
 
-fn cmd_report(spec: &str, out: &Path, db: Option<&Path>, volts: Option<f64>, compare: Option<&str>, l: &LimitArgs) -> Result<(), String> {
+fn cmd_report(
+    spec: &str,
+    out: &Path,
+    db: Option<&Path>,
+    volts: Option<f64>,
+    compare: Option<&str>,
+    l: &LimitArgs,
+) -> Result<(), String> {
     let th = l.thresholds()?;
     if let Some(v) = volts {
         if !(v.is_finite() && v > 0.0 && v <= 500.0) {
@@ -2331,17 +2818,27 @@ fn cmd_report(spec: &str, out: &Path, db: Option<&Path>, volts: Option<f64>, com
         }
     }
     let mut input = coilscope_report::input_from(spec)?;
-    let db_path = db.map(Path::to_path_buf).or_else(|| Path::new(spec).parent().map(|d| d.join("run.sqlite")).filter(|p| p.exists()));
+    let db_path = db
+        .map(Path::to_path_buf)
+        .or_else(|| Path::new(spec).parent().map(|d| d.join("run.sqlite")).filter(|p| p.exists()));
     if let Some(path) = db_path {
         // The database must be this measurement's: its last run's device is the result's.
-        if let (Some(m), Some(run)) = (input.result.as_ref().and_then(|r| r.measurement.as_ref()), coilscope_measure::store::list_runs(&path)?.last()) {
+        if let (Some(m), Some(run)) = (
+            input.result.as_ref().and_then(|r| r.measurement.as_ref()),
+            coilscope_measure::store::list_runs(&path)?.last(),
+        ) {
             if run.device != m.device {
                 return Err(format!("{}: its last run (#{}) measured {:?}, but {spec} is of {:?}: give the run database of this measurement (--db), or none", path.display(), run.id, run.device, m.device));
             }
         }
         let rows = coilscope_measure::store::read_states(&path, None)?;
         if !rows.is_empty() {
-            input.states = Some(coilscope_report::TimeSeries { t: rows.iter().map(|r| r.t).collect(), x_min: rows.iter().map(|r| r.x_min).collect(), x_max: rows.iter().map(|r| r.x_max).collect(), dtv: rows.iter().map(|r| r.dtv).collect() });
+            input.states = Some(coilscope_report::TimeSeries {
+                t: rows.iter().map(|r| r.t).collect(),
+                x_min: rows.iter().map(|r| r.x_min).collect(),
+                x_max: rows.iter().map(|r| r.x_max).collect(),
+                dtv: rows.iter().map(|r| r.dtv).collect(),
+            });
         }
     }
     if let Some(c) = compare {
@@ -2359,8 +2856,18 @@ fn cmd_report(spec: &str, out: &Path, db: Option<&Path>, volts: Option<f64>, com
     for w in &rep.warnings {
         eprintln!("warning: the report could not draw {w}");
     }
-    println!("report: {} plots, distortion at {:.2} V RMS{}", rep.charts.len(), rep.volts, rep.volterra_divergence.map(|v| format!(", Volterra off by > 1 dB from {v:.2} V")).unwrap_or_default());
-    println!("wrote {} and {} files in {}", out.display(), written.len() - 1, coilscope_report::files_dir(out).display());
+    println!(
+        "report: {} plots, distortion at {:.2} V RMS{}",
+        rep.charts.len(),
+        rep.volts,
+        rep.volterra_divergence.map(|v| format!(", Volterra off by > 1 dB from {v:.2} V")).unwrap_or_default()
+    );
+    println!(
+        "wrote {} and {} files in {}",
+        out.display(),
+        written.len() - 1,
+        coilscope_report::files_dir(out).display()
+    );
     Ok(())
 }
 
@@ -2394,7 +2901,13 @@ mod tests {
     #[test]
     fn lengths_take_a_unit_or_plausible_metres() {
         let near = |s: &str, m: f64| (parse_length(s).unwrap() - m).abs() <= 1e-12 * m;
-        assert!(near("4mm", 4e-3) && near("4.5 mm", 4.5e-3) && near("0.004m", 0.004) && near("450um", 450e-6) && near("0.004", 0.004));
+        assert!(
+            near("4mm", 4e-3)
+                && near("4.5 mm", 4.5e-3)
+                && near("0.004m", 0.004)
+                && near("450um", 450e-6)
+                && near("0.004", 0.004)
+        );
         assert!(parse_length("4").unwrap_err().contains("did you mean 4mm"));
         assert!(parse_length("0.000004").unwrap_err().contains("did you mean"));
         assert!(parse_length("4in").unwrap_err().contains("unknown length unit"));

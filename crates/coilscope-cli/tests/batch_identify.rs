@@ -22,12 +22,33 @@ fn a_batch_identifies_each_recording_and_names_the_bad_one() {
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
     for seed in ["1", "2"] {
-        let o = coilscope(&["simulate", "ptt4.0w04-01a", "--excitation", "pink", "--volts", "2.5", "--seconds", "3", "--snr-db", "70", "--seed", seed, "--out", &p(&format!("rec{seed}.wav"))]);
+        let o = coilscope(&[
+            "simulate",
+            "ptt4.0w04-01a",
+            "--excitation",
+            "pink",
+            "--volts",
+            "2.5",
+            "--seconds",
+            "3",
+            "--snr-db",
+            "70",
+            "--seed",
+            seed,
+            "--out",
+            &p(&format!("rec{seed}.wav")),
+        ]);
         assert!(o.status.success(), "{}", text(&o));
     }
     std::fs::write(p("broken.wav"), b"not a wav").unwrap();
     let fit = ["--mms", "0.012596", "--order", "4", "--effects", "none"];
-    let o = coilscope(&[&["identify", &p("rec1.wav"), &p("broken.wav"), &p("rec2.wav"), "--jobs", "2", "--out", &p("batch")][..], &fit[..]].concat());
+    let o = coilscope(
+        &[
+            &["identify", &p("rec1.wav"), &p("broken.wav"), &p("rec2.wav"), "--jobs", "2", "--out", &p("batch")][..],
+            &fit[..],
+        ]
+        .concat(),
+    );
     let t = text(&o);
     // The broken recording fails, by name; the others are identified.
     assert_eq!(o.status.code(), Some(2), "{t}");
@@ -53,9 +74,15 @@ fn batch_arguments_are_checked_before_any_work() {
     std::fs::create_dir_all(&other).unwrap();
     let same = other.join("a.wav");
     for (args, want) in [
-        (vec!["identify", &p("a.wav"), same.to_str().unwrap(), "--mms", "0.01", "--out", &p("o")], "would both write a.json"),
+        (
+            vec!["identify", &p("a.wav"), same.to_str().unwrap(), "--mms", "0.01", "--out", &p("o")],
+            "would both write a.json",
+        ),
         (vec!["identify", &p("a.wav"), &p("b.wav"), "--mms", "0.01", "--out", &p("o.json")], "--out is a directory"),
-        (vec!["identify", &p("a.wav"), "--jobs", "2", "--mms", "0.01", "--out", &p("o.json")], "--jobs applies to several recordings"),
+        (
+            vec!["identify", &p("a.wav"), "--jobs", "2", "--mms", "0.01", "--out", &p("o.json")],
+            "--jobs applies to several recordings",
+        ),
         (vec!["identify", &p("a.wav"), &p("b.wav"), "--jobs", "0", "--mms", "0.01", "--out", &p("o")], "--jobs 0"),
     ] {
         let o = coilscope(&args);

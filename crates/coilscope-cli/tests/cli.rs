@@ -19,7 +19,21 @@ fn one_error_line(o: &Output) -> String {
 fn simulate_writes_a_recording_and_reports_excursion_temperature_and_power() {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("rec.wav");
-    let o = coilscope(&["simulate", "ptt4.0w04-01a", "--volts", "2", "--seconds", "1", "--laser", "--snr-db", "70", "--seed", "3", "--out", out.to_str().unwrap()]);
+    let o = coilscope(&[
+        "simulate",
+        "ptt4.0w04-01a",
+        "--volts",
+        "2",
+        "--seconds",
+        "1",
+        "--laser",
+        "--snr-db",
+        "70",
+        "--seed",
+        "3",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let text = String::from_utf8_lossy(&o.stdout);
     for want in ["peak excursion", "electrical power", "voice coil", "mm"] {
@@ -29,7 +43,8 @@ fn simulate_writes_a_recording_and_reports_excursion_temperature_and_power() {
     assert_eq!(rec.fs, 48000);
     assert_eq!(rec.u.len(), 48000);
     let x = rec.x.unwrap();
-    let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.path().join("rec.info.json")).unwrap()).unwrap();
+    let info: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.path().join("rec.info.json")).unwrap()).unwrap();
     let x_max = info["x_max"].as_f64().unwrap();
     let peak_rec = x.iter().cloned().fold(f64::MIN, f64::max);
     // The recorded displacement (with 70 dB noise) peaks where the summary says.
@@ -37,7 +52,21 @@ fn simulate_writes_a_recording_and_reports_excursion_temperature_and_power() {
     assert!(info["dT_end"].as_f64().unwrap() > 0.0);
     // Deterministic: the same seed gives the same file.
     let again = d.path().join("again.wav");
-    let o = coilscope(&["simulate", "ptt4.0w04-01a", "--volts", "2", "--seconds", "1", "--laser", "--snr-db", "70", "--seed", "3", "--out", again.to_str().unwrap()]);
+    let o = coilscope(&[
+        "simulate",
+        "ptt4.0w04-01a",
+        "--volts",
+        "2",
+        "--seconds",
+        "1",
+        "--laser",
+        "--snr-db",
+        "70",
+        "--seed",
+        "3",
+        "--out",
+        again.to_str().unwrap(),
+    ]);
     assert!(o.status.success());
     assert_eq!(std::fs::read(&out).unwrap(), std::fs::read(&again).unwrap());
 }
@@ -47,7 +76,20 @@ fn simulate_runs_other_rates_and_excitations() {
     let d = tempfile::tempdir().unwrap();
     for (rate, exc) in [("44100", "sine"), ("96000", "multitone"), ("48000", "sweep"), ("48000", "pink")] {
         let out = d.path().join(format!("{rate}-{exc}.wav"));
-        let o = coilscope(&["simulate", "sb17cac35-4", "--excitation", exc, "--volts", "1", "--seconds", "0.5", "--rate", rate, "--out", out.to_str().unwrap()]);
+        let o = coilscope(&[
+            "simulate",
+            "sb17cac35-4",
+            "--excitation",
+            exc,
+            "--volts",
+            "1",
+            "--seconds",
+            "0.5",
+            "--rate",
+            rate,
+            "--out",
+            out.to_str().unwrap(),
+        ]);
         assert!(o.status.success(), "{rate} {exc}: {}", String::from_utf8_lossy(&o.stderr));
         assert_eq!(coilscope_io::read_recording(&out, None).unwrap().fs.to_string(), rate);
     }
@@ -79,13 +121,47 @@ fn bad_inputs_get_one_clear_line() {
     let e = one_error_line(&coilscope(&["simulate", "sb17cac35-4", "--out", out]));
     assert!(e.contains("--volts RMS is required"), "{e}");
     // Driven past its valid range: names time and state.
-    let e = one_error_line(&coilscope(&["simulate", "sb17cac35-4", "--excitation", "sine", "--freq", "20", "--volts", "20", "--seconds", "1", "--out", out]));
+    let e = one_error_line(&coilscope(&[
+        "simulate",
+        "sb17cac35-4",
+        "--excitation",
+        "sine",
+        "--freq",
+        "20",
+        "--volts",
+        "20",
+        "--seconds",
+        "1",
+        "--out",
+        out,
+    ]));
     assert!(e.contains("simulation stopped at t = ") && e.contains("outside x_range"), "{e}");
     // Output directory missing.
-    let e = one_error_line(&coilscope(&["simulate", "sb17cac35-4", "--volts", "1", "--seconds", "0.2", "--out", "/nonexistent-dir-xyz/o.wav"]));
+    let e = one_error_line(&coilscope(&[
+        "simulate",
+        "sb17cac35-4",
+        "--volts",
+        "1",
+        "--seconds",
+        "0.2",
+        "--out",
+        "/nonexistent-dir-xyz/o.wav",
+    ]));
     assert!(e.contains("does not exist"), "{e}");
     // Bad band.
-    let e = one_error_line(&coilscope(&["simulate", "sb17cac35-4", "--excitation", "pink", "--band", "500", "100", "--volts", "1", "--out", out]));
+    let e = one_error_line(&coilscope(&[
+        "simulate",
+        "sb17cac35-4",
+        "--excitation",
+        "pink",
+        "--band",
+        "500",
+        "100",
+        "--volts",
+        "1",
+        "--out",
+        out,
+    ]));
     assert!(e.contains("band 500 .. 100 Hz is not valid"), "{e}");
 }
 
@@ -115,7 +191,19 @@ fn typed_result(path: &std::path::Path) -> serde_json::Value {
 fn linear_writes_a_result_zma_and_csv() {
     let d = tempfile::tempdir().unwrap();
     let rec = d.path().join("small.wav");
-    let o = coilscope(&["simulate", "18wu-4741t-00", "--volts", "0.12", "--seconds", "3", "--snr-db", "70", "--laser", "--out", rec.to_str().unwrap()]);
+    let o = coilscope(&[
+        "simulate",
+        "18wu-4741t-00",
+        "--volts",
+        "0.12",
+        "--seconds",
+        "3",
+        "--snr-db",
+        "70",
+        "--laser",
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let out = d.path().join("lin.json");
     // The displacement channel gives the scale; --sd gives Vas.
@@ -144,7 +232,18 @@ fn linear_writes_a_result_zma_and_csv() {
     assert!(std::fs::read_to_string(d.path().join("lin.csv")).unwrap().starts_with("frequency_hz,magnitude_ohm"));
     // Without a scale the command says which to give.
     let plain = d.path().join("plain.wav");
-    assert!(coilscope(&["simulate", "18wu-4741t-00", "--volts", "0.12", "--seconds", "2", "--out", plain.to_str().unwrap()]).status.success());
+    assert!(coilscope(&[
+        "simulate",
+        "18wu-4741t-00",
+        "--volts",
+        "0.12",
+        "--seconds",
+        "2",
+        "--out",
+        plain.to_str().unwrap()
+    ])
+    .status
+    .success());
     let e = one_error_line(&coilscope(&["linear", plain.to_str().unwrap(), "--out", out.to_str().unwrap()]));
     assert!(e.contains("no absolute scale: give --mms KG"), "{e}");
 }
@@ -155,10 +254,35 @@ fn identify_writes_the_result_contract_and_a_summary() {
     let d = tempfile::tempdir().unwrap();
     let rec = d.path().join("big.wav");
     let rec_s = rec.to_str().unwrap();
-    let o = coilscope(&["simulate", "sb17cac35-4", "--excitation", "pink", "--volts", "2.2", "--seconds", "4", "--snr-db", "70", "--laser", "--out", rec_s]);
+    let o = coilscope(&[
+        "simulate",
+        "sb17cac35-4",
+        "--excitation",
+        "pink",
+        "--volts",
+        "2.2",
+        "--seconds",
+        "4",
+        "--snr-db",
+        "70",
+        "--laser",
+        "--out",
+        rec_s,
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let out = d.path().join("big.json");
-    let o = coilscope(&["identify", rec_s, "--mms", "0.015367", "--order", "4", "--sd", "0.0118", "--out", out.to_str().unwrap()]);
+    let o = coilscope(&[
+        "identify",
+        rec_s,
+        "--mms",
+        "0.015367",
+        "--order",
+        "4",
+        "--sd",
+        "0.0118",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let text = String::from_utf8_lossy(&o.stdout);
     for want in ["order 4", "Bl", "Kms", "Le", "XC", "cross-check", "voice coil"] {

@@ -14,7 +14,20 @@ fn compensate_writes_a_drive_that_linearises_the_displacement() {
     let tone = d.path().join("tone.wav");
     let drive = d.path().join("drive.wav");
     let p = |p: &std::path::Path| p.to_str().unwrap().to_string();
-    let o = coilscope(&["simulate", "sb17cac35-4", "--excitation", "sine", "--freq", "30", "--volts", "3", "--seconds", "1", "--out", &p(&tone)]);
+    let o = coilscope(&[
+        "simulate",
+        "sb17cac35-4",
+        "--excitation",
+        "sine",
+        "--freq",
+        "30",
+        "--volts",
+        "3",
+        "--seconds",
+        "1",
+        "--out",
+        &p(&tone),
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let o = coilscope(&["compensate", "sb17cac35-4", "--input", &p(&tone), "--out", &p(&drive)]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -32,7 +45,8 @@ fn compensate_writes_a_drive_that_linearises_the_displacement() {
     assert!(String::from_utf8_lossy(&o.stdout).contains("warning: the drive was clipped at 2.000 V"));
     // Too loud for the range: one clear line, exit 2.
     let loud = d.path().join("loud.wav");
-    let u: Vec<f64> = (0..14400).map(|k| 60.0 * (2.0 * std::f64::consts::PI * 20.0 * k as f64 / 48000.0).sin()).collect();
+    let u: Vec<f64> =
+        (0..14400).map(|k| 60.0 * (2.0 * std::f64::consts::PI * 20.0 * k as f64 / 48000.0).sin()).collect();
     coilscope_io::write_voltage(&loud, 48000, &u).unwrap();
     let o = coilscope(&["compensate", "sb17cac35-4", "--input", &p(&loud), "--out", &p(&drive)]);
     assert_eq!(o.status.code(), Some(2));
@@ -51,7 +65,8 @@ fn compensate_writes_a_drive_that_linearises_the_displacement() {
 fn quasistatic_writes_the_points_and_the_fitted_curves() {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("qs.json");
-    let o = coilscope(&["quasistatic", "ptt4.0w04-01a", "--points", "5", "--hold", "1", "--out", out.to_str().unwrap()]);
+    let o =
+        coilscope(&["quasistatic", "ptt4.0w04-01a", "--points", "5", "--hold", "1", "--out", out.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(3), "{}", String::from_utf8_lossy(&o.stderr));
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(text.contains("4 static points for a series of order 4"), "{text}");
@@ -68,7 +83,16 @@ fn quasistatic_writes_the_points_and_the_fitted_curves() {
     let truth = coilscope_core::embedded_driver("ptt4.0w04-01a").unwrap().bl.c[0];
     assert!((bl0 / truth - 1.0).abs() < 5e-3, "{bl0} vs {truth}");
     // By pressure (the set's Sd): no current at any point, the pressure recorded.
-    let o = coilscope(&["quasistatic", "ptt4.0w04-01a", "--offset", "pressure", "--hold", "1", "--out", out.to_str().unwrap()]);
+    let o = coilscope(&[
+        "quasistatic",
+        "ptt4.0w04-01a",
+        "--offset",
+        "pressure",
+        "--hold",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
     assert_eq!(r["quasi_static"]["offset"], "pressure on the diaphragm");
@@ -95,7 +119,12 @@ fn report_compares_quasi_static_with_dynamic_curves() {
     let o = coilscope(&["report", &p(&qs), "--compare", "ptt4.0w04-01a", "--out", &p(&html)]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let text = std::fs::read_to_string(&html).unwrap();
-    assert!(text.contains("quasi-static and parameter set compared") && text.contains("quasi-static caveat") && text.contains("rest position 1.5 s after the largest offset"), "compare section missing");
+    assert!(
+        text.contains("quasi-static and parameter set compared")
+            && text.contains("quasi-static caveat")
+            && text.contains("rest position 1.5 s after the largest offset"),
+        "compare section missing"
+    );
     let csv = std::fs::read_to_string(d.path().join("r_files/compare.csv")).unwrap();
     // Without creep the quasi-static curves are the set's: Bl and Kms within 1 % over the
     // common range (measured 0.06 % and 0.15 %).

@@ -31,7 +31,18 @@ fn linear_finds_creep_and_lr3_in_a_simulated_record_and_writes_them() {
     let drv = d.path().join("sb17-real.json");
     std::fs::write(&drv, serde_json::to_string_pretty(&p.to_json_value()).unwrap()).unwrap();
     let rec = d.path().join("small.wav");
-    let o = coilscope(&["simulate", drv.to_str().unwrap(), "--volts", "0.1", "--seconds", "4", "--snr-db", "70", "--out", rec.to_str().unwrap()]);
+    let o = coilscope(&[
+        "simulate",
+        drv.to_str().unwrap(),
+        "--volts",
+        "0.1",
+        "--seconds",
+        "4",
+        "--snr-db",
+        "70",
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let out = d.path().join("lin.json");
     let mms = p.mms.to_string();
@@ -51,12 +62,30 @@ fn linear_finds_creep_and_lr3_in_a_simulated_record_and_writes_them() {
     let back = coilscope_core::Parameters::from_json_value(&r["parameters"], "result").unwrap();
     assert!(back.creep.is_some() && back.l3r3.is_some());
     // Forced: the LR-2 model alone, named as such, with the misfit that says why it is wrong.
-    let o = coilscope(&["linear", rec.to_str().unwrap(), "--mms", &mms, "--effects", "none", "--out", out.to_str().unwrap()]);
+    let o = coilscope(&[
+        "linear",
+        rec.to_str().unwrap(),
+        "--mms",
+        &mms,
+        "--effects",
+        "none",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
     assert_eq!(r["fit"]["model"], "LR-2", "{}", String::from_utf8_lossy(&o.stderr));
     assert!(r["parameters"].get("creep").is_none());
     // A bad --effects names the valid ones.
-    let o = coilscope(&["linear", rec.to_str().unwrap(), "--mms", &mms, "--effects", "crep", "--out", out.to_str().unwrap()]);
+    let o = coilscope(&[
+        "linear",
+        rec.to_str().unwrap(),
+        "--mms",
+        &mms,
+        "--effects",
+        "crep",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     let e = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{e}");
     assert!(e.contains("--effects \"crep\"") && e.contains("valid: none, creep, lr3"), "{e}");
@@ -71,7 +100,16 @@ fn a_parameter_file_whose_rms_v_disagrees_with_rms_is_refused_by_simulate() {
     v["Rms_v"] = serde_json::json!([1.0, 0.0, 0.8]);
     let drv = d.path().join("d.json");
     std::fs::write(&drv, v.to_string()).unwrap();
-    let o = coilscope(&["simulate", drv.to_str().unwrap(), "--volts", "0.1", "--seconds", "1", "--out", d.path().join("r.wav").to_str().unwrap()]);
+    let o = coilscope(&[
+        "simulate",
+        drv.to_str().unwrap(),
+        "--volts",
+        "0.1",
+        "--seconds",
+        "1",
+        "--out",
+        d.path().join("r.wav").to_str().unwrap(),
+    ]);
     let e = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{e}");
     assert!(e.contains("Rms_v") && e.contains("must equal Rms") && e.contains("0.355"), "{e}");
@@ -83,9 +121,29 @@ fn a_parameter_file_whose_rms_v_disagrees_with_rms_is_refused_by_simulate() {
 fn linear_refuses_the_large_signal_effects() {
     let d = tempfile::tempdir().unwrap();
     let rec = d.path().join("small.wav");
-    let o = coilscope(&["simulate", "sb17cac35-4", "--volts", "0.1", "--seconds", "2", "--snr-db", "70", "--out", rec.to_str().unwrap()]);
+    let o = coilscope(&[
+        "simulate",
+        "sb17cac35-4",
+        "--volts",
+        "0.1",
+        "--seconds",
+        "2",
+        "--snr-db",
+        "70",
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let o = coilscope(&["linear", rec.to_str().unwrap(), "--mms", "0.0154", "--effects", "creep,lei", "--out", d.path().join("l.json").to_str().unwrap()]);
+    let o = coilscope(&[
+        "linear",
+        rec.to_str().unwrap(),
+        "--mms",
+        "0.0154",
+        "--effects",
+        "creep,lei",
+        "--out",
+        d.path().join("l.json").to_str().unwrap(),
+    ]);
     let e = String::from_utf8_lossy(&o.stderr);
     assert_ne!(o.status.code(), Some(0), "{e}");
     assert!(e.contains("Le(i)") && e.contains("large signal") && e.contains("identify"), "{e}");
@@ -102,7 +160,8 @@ fn measure_virtual_assumes_a_creeping_suspension_and_finds_it() {
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{text}\n{}", String::from_utf8_lossy(&o.stderr));
     assert!(text.contains("virtual world: real (LOG creep lambda 0.05 assumed"), "{text}");
-    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
     assert_eq!(r["fit"]["model"], "LR-2+creep", "{}", r["fit"]);
     let lambda = r["parameters"]["creep"]["lambda"].as_f64().unwrap();
     let sd = r["uncertainty"]["creep.lambda"].as_f64().unwrap();
@@ -110,9 +169,19 @@ fn measure_virtual_assumes_a_creeping_suspension_and_finds_it() {
     assert!((lambda / 0.05 - 1.0).abs() < 0.2 && (lambda - 0.05).abs() < 3.0 * sd.max(1e-4), "lambda {lambda} +- {sd}");
     // The set as given: no creep in the world, none in the result.
     let out2 = d.path().join("run2");
-    let o = coilscope(&["measure", "--virtual", "ptt4.0w04-01a", "--world", "published", "--no-report", "--out", out2.to_str().unwrap()]);
+    let o = coilscope(&[
+        "measure",
+        "--virtual",
+        "ptt4.0w04-01a",
+        "--world",
+        "published",
+        "--no-report",
+        "--out",
+        out2.to_str().unwrap(),
+    ]);
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success() && !text.contains("virtual world"), "{text}");
-    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out2.join("result.json")).unwrap()).unwrap();
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out2.join("result.json")).unwrap()).unwrap();
     assert_eq!(r["fit"]["model"], "LR-2", "{}", r["fit"]);
 }

@@ -14,11 +14,16 @@ fn coilscope(args: &[&str]) -> Output {
 }
 
 fn parse_int(c: &Ini, s: &str, k: &str) -> i64 {
-    c.getint(s, k).unwrap_or_else(|e| panic!("{s}/{k}: Invalid value ({e})")).unwrap_or_else(|| panic!("{s}/{k}: Missing key"))
+    c.getint(s, k)
+        .unwrap_or_else(|e| panic!("{s}/{k}: Invalid value ({e})"))
+        .unwrap_or_else(|| panic!("{s}/{k}: Missing key"))
 }
 
 fn parse_float(c: &Ini, s: &str, k: &str) -> f32 {
-    let v = c.getfloat(s, k).unwrap_or_else(|e| panic!("{s}/{k}: Invalid value ({e})")).unwrap_or_else(|| panic!("{s}/{k}: Missing key")) as f32;
+    let v = c
+        .getfloat(s, k)
+        .unwrap_or_else(|e| panic!("{s}/{k}: Invalid value ({e})"))
+        .unwrap_or_else(|| panic!("{s}/{k}: Missing key")) as f32;
     assert!(v.is_finite(), "{s}/{k}");
     v
 }
@@ -32,14 +37,37 @@ fn speakersafetyd_export_of_a_measured_result_loads_as_the_daemon_loads_it() {
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
     let run = d.path().join("run");
-    let o = coilscope(&["measure", "--virtual", "sb17cac35-4", "--world", "published", "--duration", "200", "--volts", "4", "--no-report", "--out", run.to_str().unwrap()]);
+    let o = coilscope(&[
+        "measure",
+        "--virtual",
+        "sb17cac35-4",
+        "--world",
+        "published",
+        "--duration",
+        "200",
+        "--volts",
+        "4",
+        "--no-report",
+        "--out",
+        run.to_str().unwrap(),
+    ]);
     assert!(o.status.code() == Some(0) || o.status.code() == Some(3), "{}", String::from_utf8_lossy(&o.stderr));
     let result = run.join("result.json");
     let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
     let th = &r["parameters"]["thermal"];
     assert!(th["Rtv"].as_f64().is_some(), "the long-term run fitted no thermal model: {}", r["parameters"]);
     let conf = p("sb17.conf");
-    let o = coilscope(&["export", result.to_str().unwrap(), "--speakersafetyd", "--name", "Left Woofer", "--t-limit", "110", "--out", &conf]);
+    let o = coilscope(&[
+        "export",
+        result.to_str().unwrap(),
+        "--speakersafetyd",
+        "--name",
+        "Left Woofer",
+        "--t-limit",
+        "110",
+        "--out",
+        &conf,
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     // speakersafetyd's loader.
     let mut cfg = Ini::new_cs();
@@ -54,16 +82,35 @@ fn speakersafetyd_export_of_a_measured_result_loads_as_the_daemon_loads_it() {
     for k in ["vsense", "isense", "amp_gain", "volume"] {
         parse_string(&cfg, "Controls", k);
     }
-    let speakers: Vec<String> = cfg.sections().iter().filter_map(|a| a.strip_prefix("Speaker/")).map(|a| a.to_string()).collect();
+    let speakers: Vec<String> =
+        cfg.sections().iter().filter_map(|a| a.strip_prefix("Speaker/")).map(|a| a.to_string()).collect();
     assert_eq!(speakers, vec!["Left Woofer".to_string()]);
     let s = "Speaker/Left Woofer";
     parse_int(&cfg, s, "group");
-    let f: Vec<f32> = ["tau_coil", "tau_magnet", "tr_coil", "tr_magnet", "t_limit", "t_headroom", "z_nominal", "is_scale", "vs_scale"].iter().map(|k| parse_float(&cfg, s, k)).collect();
+    let f: Vec<f32> = [
+        "tau_coil",
+        "tau_magnet",
+        "tr_coil",
+        "tr_magnet",
+        "t_limit",
+        "t_headroom",
+        "z_nominal",
+        "is_scale",
+        "vs_scale",
+    ]
+    .iter()
+    .map(|k| parse_float(&cfg, s, k))
+    .collect();
     let (is_chan, vs_chan) = (parse_int(&cfg, s, "is_chan"), parse_int(&cfg, s, "vs_chan"));
     assert!(is_chan < channels && vs_chan < channels);
     assert!(f[4] - t_window > t_ambient);
     // The figures are the result's: the resistances, and the network's time constants.
-    let (rtv, ctv, rtm, ctm) = (th["Rtv"].as_f64().unwrap(), th["Ctv"].as_f64().unwrap(), th["Rtm"].as_f64().unwrap(), th["Ctm"].as_f64().unwrap());
+    let (rtv, ctv, rtm, ctm) = (
+        th["Rtv"].as_f64().unwrap(),
+        th["Ctv"].as_f64().unwrap(),
+        th["Rtm"].as_f64().unwrap(),
+        th["Ctm"].as_f64().unwrap(),
+    );
     assert!((f[2] as f64 / rtv - 1.0).abs() < 1e-3 && (f[3] as f64 / rtm - 1.0).abs() < 1e-3, "{f:?}");
     let (tc, tm) = coilscope_io::export::thermal_time_constants(rtv, ctv, rtm, ctm);
     assert!((f[0] as f64 / tc - 1.0).abs() < 1e-3 && (f[1] as f64 / tm - 1.0).abs() < 1e-3, "{f:?} vs {tc} {tm}");
@@ -90,7 +137,15 @@ fn power_series_and_impedance_exports_read_back() {
     let o = coilscope(&["export", "sb17cac35-4", "--power-series", "--out", &p("ps.csv")]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let text = std::fs::read_to_string(p("ps.csv")).unwrap();
-    let le: Vec<f64> = text.lines().find(|l| l.starts_with("Le,mH/mm^n")).unwrap().split(',').skip(2).filter(|v| !v.is_empty()).map(|v| v.parse().unwrap()).collect();
+    let le: Vec<f64> = text
+        .lines()
+        .find(|l| l.starts_with("Le,mH/mm^n"))
+        .unwrap()
+        .split(',')
+        .skip(2)
+        .filter(|v| !v.is_empty())
+        .map(|v| v.parse().unwrap())
+        .collect();
     let at = |x_mm: f64| le.iter().enumerate().map(|(j, c)| c * x_mm.powi(j as i32)).sum::<f64>();
     assert!((at(-2.0) / (1e3 * truth.le.eval(-2e-3)) - 1.0).abs() < 1e-5);
     for fmt in ["zma", "frd"] {

@@ -7,7 +7,10 @@ use std::path::PathBuf;
 
 fn inputs(target: &str) -> Vec<(String, Vec<u8>)> {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/regressions").join(target);
-    let mut v: Vec<_> = std::fs::read_dir(&dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display())).map(|e| e.unwrap().path()).collect();
+    let mut v: Vec<_> = std::fs::read_dir(&dir)
+        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
+        .map(|e| e.unwrap().path())
+        .collect();
     v.sort();
     assert!(!v.is_empty(), "{}: no kept inputs", dir.display());
     v.into_iter().map(|p| (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read(&p).unwrap())).collect()
@@ -27,7 +30,10 @@ fn wav_reader_inputs_give_errors_or_recordings() {
 
 #[test]
 fn the_claimed_length_of_a_wav_is_not_trusted() {
-    let bytes = std::fs::read(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/regressions/wav_reader/huge-claimed-length.wav")).unwrap();
+    let bytes = std::fs::read(
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/regressions/wav_reader/huge-claimed-length.wav"),
+    )
+    .unwrap();
     // The header claims 4 GiB; the two frames that are there are read, or a clear error.
     match coilscope_io::read_recording_bytes(&bytes, "huge.wav", None) {
         Ok(r) => assert!(r.u.len() <= 2),
@@ -63,7 +69,12 @@ fn result_json_inputs_give_errors_or_inputs() {
 #[test]
 fn a_closed_pipe_is_not_a_panic() {
     use std::process::{Command, Stdio};
-    let mut child = Command::new(env!("CARGO_BIN_EXE_coilscope")).args(["check", "sb17cac35-4"]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_coilscope"))
+        .args(["check", "sb17cac35-4"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
     // Close the read end before the program writes.
     drop(child.stdout.take());
     let out = child.wait_with_output().unwrap();

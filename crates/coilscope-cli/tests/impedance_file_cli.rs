@@ -23,7 +23,21 @@ fn seas(name: &str) -> String {
 fn linear_fits_a_measured_zma_with_an_added_mass_file() {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("l16.json");
-    let o = coilscope(&["linear", "--impedance", &seas("L16RNX_0g_242_27mV.zma"), "--added-mass", "0.016048", "--with-mass-impedance", &seas("L16RNX_16_048g_242_27mV.zma"), "--band", "10,2000", "--volts", "0.24227", "--out", out.to_str().unwrap()]);
+    let o = coilscope(&[
+        "linear",
+        "--impedance",
+        &seas("L16RNX_0g_242_27mV.zma"),
+        "--added-mass",
+        "0.016048",
+        "--with-mass-impedance",
+        &seas("L16RNX_16_048g_242_27mV.zma"),
+        "--band",
+        "10,2000",
+        "--volts",
+        "0.24227",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{text}\n{}", String::from_utf8_lossy(&o.stderr));
     assert!(text.contains("impedance file, 386 points") && text.contains("added mass 16.048 g"), "{text}");
@@ -46,7 +60,15 @@ fn linear_fits_a_measured_zma_with_an_added_mass_file() {
 fn linear_on_a_zma_fits_below_the_break_up_and_says_where() {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("l16.json");
-    let o = coilscope(&["linear", "--impedance", &seas("L16RNX_0g_242_27mV.zma"), "--mms", "0.0149", "--out", out.to_str().unwrap()]);
+    let o = coilscope(&[
+        "linear",
+        "--impedance",
+        &seas("L16RNX_0g_242_27mV.zma"),
+        "--mms",
+        "0.0149",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     let t = text(&o);
     assert_eq!(o.status.code(), Some(0), "{t}");
     assert!(t.contains("band: fitted 10 .. ") && t.contains("cone break-up or modes"), "{t}");
@@ -55,7 +77,8 @@ fn linear_on_a_zma_fits_below_the_break_up_and_says_where() {
     assert!(top > 1000.0 && top < 5206.0, "band top {top} Hz: the break-up's worst point, 5206 Hz, is left out");
     assert!(r["fit"]["band_note"].as_str().unwrap().contains("lumped model holds"), "{}", r["fit"]);
     let ss = &r["small_signal"];
-    let (qms, rms_fs, rms) = (ss["Qms"].as_f64().unwrap(), ss["Rms_fs"].as_f64().unwrap(), r["parameters"]["Rms"].as_f64().unwrap());
+    let (qms, rms_fs, rms) =
+        (ss["Qms"].as_f64().unwrap(), ss["Rms_fs"].as_f64().unwrap(), r["parameters"]["Rms"].as_f64().unwrap());
     assert!(rms_fs > rms, "creep's loss is in Rms at fs: {rms_fs} vs viscous {rms}");
     assert!((qms / 1.9953 - 1.0).abs() < 0.05, "Qms {qms} vs Speakerbench's 1.995");
     assert_eq!(r["fit"]["trustworthy"], true);
@@ -68,17 +91,35 @@ fn linear_on_a_magnitude_only_file_fits_the_magnitude_and_says_so() {
     let d = tempfile::tempdir().unwrap();
     let mag = d.path().join("l16_mag.txt");
     let zma = std::fs::read_to_string(seas("L16RNX_0g_242_27mV.zma")).unwrap();
-    let cut: String = zma.lines().map(|l| if l.starts_with('*') { l.to_string() } else { l.split_whitespace().take(2).collect::<Vec<_>>().join(" ") }).map(|l| l + "\n").collect();
+    let cut: String = zma
+        .lines()
+        .map(|l| {
+            if l.starts_with('*') {
+                l.to_string()
+            } else {
+                l.split_whitespace().take(2).collect::<Vec<_>>().join(" ")
+            }
+        })
+        .map(|l| l + "\n")
+        .collect();
     std::fs::write(&mag, cut).unwrap();
     let out = d.path().join("l16.json");
-    let o = coilscope(&["linear", "--impedance", mag.to_str().unwrap(), "--mms", "0.0149", "--out", out.to_str().unwrap()]);
+    let o =
+        coilscope(&["linear", "--impedance", mag.to_str().unwrap(), "--mms", "0.0149", "--out", out.to_str().unwrap()]);
     let t = text(&o);
     assert_eq!(o.status.code(), Some(0), "{t}");
     assert!(t.contains("phase: the file has no phase: fitted to |Z| alone"), "{t}");
     let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
     assert!(r["fit"]["phase_note"].as_str().unwrap().contains("|Z| alone"));
-    let (re, bl, qms) = (r["parameters"]["Re"].as_f64().unwrap(), r["parameters"]["Bl"].as_f64().unwrap(), r["small_signal"]["Qms"].as_f64().unwrap());
-    assert!((re / 5.7212 - 1.0).abs() < 0.01 && (bl / 7.0089 - 1.0).abs() < 0.02 && (qms / 1.9953 - 1.0).abs() < 0.05, "Re {re}, Bl {bl}, Qms {qms}");
+    let (re, bl, qms) = (
+        r["parameters"]["Re"].as_f64().unwrap(),
+        r["parameters"]["Bl"].as_f64().unwrap(),
+        r["small_signal"]["Qms"].as_f64().unwrap(),
+    );
+    assert!(
+        (re / 5.7212 - 1.0).abs() < 0.01 && (bl / 7.0089 - 1.0).abs() < 0.02 && (qms / 1.9953 - 1.0).abs() < 0.05,
+        "Re {re}, Bl {bl}, Qms {qms}"
+    );
 }
 
 /// A band given through the break-up is fitted as given, and the misfit is loud.
@@ -86,7 +127,17 @@ fn linear_on_a_magnitude_only_file_fits_the_magnitude_and_says_so() {
 fn linear_on_a_zma_through_the_break_up_warns_and_exits_3() {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("l16.json");
-    let o = coilscope(&["linear", "--impedance", &seas("L16RNX_0g_242_27mV.zma"), "--mms", "0.0151", "--band", "10,20000", "--out", out.to_str().unwrap()]);
+    let o = coilscope(&[
+        "linear",
+        "--impedance",
+        &seas("L16RNX_0g_242_27mV.zma"),
+        "--mms",
+        "0.0151",
+        "--band",
+        "10,20000",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert_eq!(o.status.code(), Some(3), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(String::from_utf8_lossy(&o.stderr).contains("model-misses-curve"));
     assert!(out.exists(), "the result is kept");
@@ -103,7 +154,10 @@ fn linear_impedance_refusals_name_the_cause() {
     let cases: Vec<(Vec<&str>, &str)> = vec![
         (vec!["linear", "--impedance", &z, "--out", out], "no absolute scale"),
         (vec!["linear", "--impedance", &z, "--added-mass", "0.016", "--out", out], "--with-mass-impedance"),
-        (vec!["linear", "--impedance", mag_only.to_str().unwrap(), "--mms", "0.015", "--out", out], "at least 2 (from below the resonance"),
+        (
+            vec!["linear", "--impedance", mag_only.to_str().unwrap(), "--mms", "0.015", "--out", out],
+            "at least 2 (from below the resonance",
+        ),
         (vec!["linear", "--impedance", &z, "--mms", "0.015", "--band", "2000,10", "--out", out], "--band"),
         (vec!["linear", "--impedance", &z, "--mms", "0.015", "--chain", "auto", "--out", out], "no measurement chain"),
     ];
@@ -133,7 +187,11 @@ fn calibrate_then_linear_with_the_chain_file() {
         write_recording(&p, &Recording { fs: fs as u32, u: ur, i: ir, x: None }).unwrap();
         p.to_str().unwrap().to_string()
     };
-    let noise = generate(&Excitation::Pink { f_lo: 0.3, f_hi: 20000.0, crest: None }, &SignalSpec { fs, seconds: 40.0, rms: 1.0, fade: 0.0, seed: 11 }).unwrap();
+    let noise = generate(
+        &Excitation::Pink { f_lo: 0.3, f_hi: 20000.0, crest: None },
+        &SignalSpec { fs, seconds: 40.0, rms: 1.0, fade: 0.0, seed: 11 },
+    )
+    .unwrap();
     let r_rec = rec(&noise, &noise.iter().map(|v| v / 4.7).collect::<Vec<_>>(), [0.002, 0.001], 11, "resistor.wav");
     let chain_file = d.path().join("card.json");
     let o = coilscope(&["calibrate", &r_rec, "--resistor", "4.7", "--out", chain_file.to_str().unwrap()]);
@@ -142,11 +200,19 @@ fn calibrate_then_linear_with_the_chain_file() {
     assert!(text.contains("samples late") && text.contains("AC coupling: voltage"), "{text}");
     let c: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&chain_file).unwrap()).unwrap();
     assert_eq!(c["source"], "calibrated");
-    assert!((c["delay_i"].as_f64().unwrap() * fs - 0.3).abs() < 0.01 && (c["gain_i"].as_f64().unwrap() - 1.015).abs() < 1e-3, "{c}");
+    assert!(
+        (c["delay_i"].as_f64().unwrap() * fs - 0.3).abs() < 0.01
+            && (c["gain_i"].as_f64().unwrap() - 1.015).abs() < 1e-3,
+        "{c}"
+    );
 
     // The driver through the same card (its own offsets), small signal.
     let p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
-    let u0 = generate(&Excitation::Pink { f_lo: 5.0, f_hi: 20000.0, crest: None }, &SignalSpec { fs, seconds: 6.0, rms: 0.15, fade: 0.05, seed: 12 }).unwrap();
+    let u0 = generate(
+        &Excitation::Pink { f_lo: 5.0, f_hi: 20000.0, crest: None },
+        &SignalSpec { fs, seconds: 6.0, rms: 0.15, fade: 0.05, seed: 12 },
+    )
+    .unwrap();
     let tr = coilscope_core::simulate(&p, fs, &u0, &coilscope_core::SimOptions::default()).unwrap();
     let d_rec = rec(&tr.u, &tr.i, [-0.003, 0.001], 12, "driver.wav");
     let mms = p.mms.to_string();
@@ -177,14 +243,20 @@ fn linear_names_swapped_inverted_voltage_as_current_and_heavy_hum() {
     let d = tempfile::tempdir().unwrap();
     let fs = 48000.0;
     let p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
-    let u0 = generate(&Excitation::Pink { f_lo: 5.0, f_hi: 20000.0, crest: None }, &SignalSpec { fs, seconds: 4.0, rms: 0.15, fade: 0.05, seed: 21 }).unwrap();
+    let u0 = generate(
+        &Excitation::Pink { f_lo: 5.0, f_hi: 20000.0, crest: None },
+        &SignalSpec { fs, seconds: 4.0, rms: 0.15, fade: 0.05, seed: 21 },
+    )
+    .unwrap();
     let tr = coilscope_core::simulate(&p, fs, &u0, &coilscope_core::SimOptions::default()).unwrap();
     let (mut u, mut i) = (tr.u.clone(), tr.i.clone());
     add_sensor_noise(&mut u, 70.0, 21, "sensor-noise/voltage");
     add_sensor_noise(&mut i, 70.0, 21, "sensor-noise/current");
     let i_rms = (i.iter().map(|v| v * v).sum::<f64>() / i.len() as f64).sqrt();
-    let hum: Vec<f64> = (0..i.len()).map(|k| i[k] + 0.3 * i_rms * (2.0 * std::f64::consts::PI * 50.0 * k as f64 / fs).sin()).collect();
-    let mild: Vec<f64> = (0..i.len()).map(|k| i[k] + 0.03 * i_rms * (2.0 * std::f64::consts::PI * 50.0 * k as f64 / fs).sin()).collect();
+    let hum: Vec<f64> =
+        (0..i.len()).map(|k| i[k] + 0.3 * i_rms * (2.0 * std::f64::consts::PI * 50.0 * k as f64 / fs).sin()).collect();
+    let mild: Vec<f64> =
+        (0..i.len()).map(|k| i[k] + 0.03 * i_rms * (2.0 * std::f64::consts::PI * 50.0 * k as f64 / fs).sin()).collect();
     let cases: Vec<(&str, Vec<f64>, Vec<f64>, &str, &str)> = vec![
         ("swapped", i.clone(), u.clone(), "none", "look swapped"),
         ("inverted", u.clone(), i.iter().map(|v| -v).collect(), "none", "inverted"),
@@ -196,7 +268,16 @@ fn linear_names_swapped_inverted_voltage_as_current_and_heavy_hum() {
         let path = d.path().join(format!("{name}.wav"));
         write_recording(&path, &Recording { fs: fs as u32, u: uu, i: ii, x: None }).unwrap();
         let out = d.path().join(format!("{name}.json"));
-        let o = coilscope(&["linear", path.to_str().unwrap(), "--mms", "0.0154", "--chain", chain, "--out", out.to_str().unwrap()]);
+        let o = coilscope(&[
+            "linear",
+            path.to_str().unwrap(),
+            "--mms",
+            "0.0154",
+            "--chain",
+            chain,
+            "--out",
+            out.to_str().unwrap(),
+        ]);
         let e = String::from_utf8_lossy(&o.stderr);
         assert!(!o.status.success() && e.contains(want) && e.contains(&format!("{name}.wav")), "{name}: {e}");
     }
@@ -216,18 +297,46 @@ fn identify_takes_a_card_delay_out_with_the_chain_auto_or_a_chain_file() {
     let chain = Chain { source: Some("calibrated".into()), delay_i: 0.5 / fs, ..Default::default() };
     std::fs::write(&card, serde_json::to_string_pretty(&chain).unwrap()).unwrap();
     let rec = d.path().join("late.wav");
-    let o = coilscope(&["simulate", "sb17cac35-4", "--excitation", "pink", "--volts", "2.3", "--seconds", "6", "--snr-db", "70", "--seed", "5", "--chain", card.to_str().unwrap(), "--out", rec.to_str().unwrap()]);
+    let o = coilscope(&[
+        "simulate",
+        "sb17cac35-4",
+        "--excitation",
+        "pink",
+        "--volts",
+        "2.3",
+        "--seconds",
+        "6",
+        "--snr-db",
+        "70",
+        "--seed",
+        "5",
+        "--chain",
+        card.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
     let mms = p.mms.to_string();
     let run = |chain: &str, name: &str| -> (String, serde_json::Value) {
         let out = d.path().join(name);
-        let o = coilscope(&["identify", rec.to_str().unwrap(), "--mms", &mms, "--chain", chain, "--out", out.to_str().unwrap()]);
+        let o = coilscope(&[
+            "identify",
+            rec.to_str().unwrap(),
+            "--mms",
+            &mms,
+            "--chain",
+            chain,
+            "--out",
+            out.to_str().unwrap(),
+        ]);
         let text = text(&o);
         assert!(o.status.code().is_some_and(|c| c == 0 || c == 3), "--chain {chain}: {text}");
         (text, serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap())
     };
-    let has_delay_warning = |j: &serde_json::Value| j["fit"]["warnings"].as_array().is_some_and(|w| w.iter().any(|w| w["code"] == "current-delay"));
+    let has_delay_warning = |j: &serde_json::Value| {
+        j["fit"]["warnings"].as_array().is_some_and(|w| w.iter().any(|w| w["code"] == "current-delay"))
+    };
     let (text, none) = run("none", "none.json");
     assert!(has_delay_warning(&none) && text.contains("[current-delay]"), "--chain none: {text}");
     for chain in ["auto", card.to_str().unwrap()] {
@@ -236,8 +345,14 @@ fn identify_takes_a_card_delay_out_with_the_chain_auto_or_a_chain_file() {
         let delay = j["chain"]["delay_i"].as_f64().unwrap() * fs;
         assert!((delay - 0.5).abs() < 0.01, "--chain {chain}: delay {delay} samples");
         // Bl and Kms at rest within the accuracy bounds (2 %, 3 %), Le within its 5 %.
-        let at0 = |k: &str| j["parameters"][k].as_array().map_or_else(|| j["parameters"][k].as_f64().unwrap(), |c| c[0].as_f64().unwrap());
-        for (k, t, tol) in [("Bl", p.bl.c[0], 0.02), ("Kms", p.kms.c[0], 0.03), ("Le", p.le.c[0], 0.05), ("Re", p.re, 0.005)] {
+        let at0 = |k: &str| {
+            j["parameters"][k]
+                .as_array()
+                .map_or_else(|| j["parameters"][k].as_f64().unwrap(), |c| c[0].as_f64().unwrap())
+        };
+        for (k, t, tol) in
+            [("Bl", p.bl.c[0], 0.02), ("Kms", p.kms.c[0], 0.03), ("Le", p.le.c[0], 0.05), ("Re", p.re, 0.005)]
+        {
             assert!((at0(k) / t - 1.0).abs() < tol, "--chain {chain}: {k} {} vs {t}", at0(k));
         }
     }
@@ -256,7 +371,16 @@ fn identify_without_the_chain_on_the_real_chain_record_is_not_trusted() {
     let rec = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings/sb17cac35-4-real-chain.wav");
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("r.json");
-    let o = coilscope(&["identify", rec.to_str().unwrap(), "--mms", "0.015367", "--chain", "none", "--out", out.to_str().unwrap()]);
+    let o = coilscope(&[
+        "identify",
+        rec.to_str().unwrap(),
+        "--mms",
+        "0.015367",
+        "--chain",
+        "none",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     let text = text(&o);
     assert_eq!(o.status.code(), Some(3), "{text}");
     assert!(text.contains("[residual-follows-drive]") && text.contains("--chain auto"), "{text}");
@@ -297,7 +421,8 @@ fn measure_replay_of_the_real_chain_record_without_its_calibration_is_loud_and_r
     let rec = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings/sb17cac35-4-real-chain.wav");
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("m");
-    let o = coilscope(&["measure", "--replay", rec.to_str().unwrap(), "--mms", "0.015367", "--out", out.to_str().unwrap()]);
+    let o =
+        coilscope(&["measure", "--replay", rec.to_str().unwrap(), "--mms", "0.015367", "--out", out.to_str().unwrap()]);
     let text = text(&o);
     assert_eq!(o.status.code(), Some(3), "{text}");
     assert!(text.contains("[residual-above-noise]"), "{text}");

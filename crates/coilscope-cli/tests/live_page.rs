@@ -13,12 +13,25 @@ use std::time::{Duration, Instant};
 use tungstenite::stream::MaybeTlsStream;
 use tungstenite::{Message, WebSocket};
 
-const CHROMIUM_FLAGS: [&str; 10] =
-    ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync", "--hide-scrollbars", "--remote-allow-origins=*"];
+const CHROMIUM_FLAGS: [&str; 10] = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--hide-scrollbars",
+    "--remote-allow-origins=*",
+];
 
 fn chromium() -> String {
     let c = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
-    assert!(Path::new(&c).exists(), "headless Chromium not found at {c}: `.ci/run` installs Debian's chromium (or set CHROMIUM)");
+    assert!(
+        Path::new(&c).exists(),
+        "headless Chromium not found at {c}: `.ci/run` installs Debian's chromium (or set CHROMIUM)"
+    );
     c
 }
 
@@ -53,7 +66,11 @@ impl Cdp {
         match self.ws.read() {
             Ok(Message::Text(t)) => Some(serde_json::from_str(&t).unwrap()),
             Ok(_) => None,
-            Err(tungstenite::Error::Io(e)) if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => None,
+            Err(tungstenite::Error::Io(e))
+                if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) =>
+            {
+                None
+            }
             Err(e) => panic!("DevTools connection: {e}"),
         }
     }
@@ -115,7 +132,11 @@ impl Cdp {
 
     /// Every address the page asked for.
     fn requests(&self) -> Vec<String> {
-        self.events.iter().filter(|e| e["method"] == "Network.requestWillBeSent").filter_map(|e| e["params"]["request"]["url"].as_str().map(str::to_string)).collect()
+        self.events
+            .iter()
+            .filter(|e| e["method"] == "Network.requestWillBeSent")
+            .filter_map(|e| e["params"]["request"]["url"].as_str().map(str::to_string))
+            .collect()
     }
 }
 
@@ -141,8 +162,14 @@ fn decode_base64(s: &str) -> Vec<u8> {
 /// Headless Chromium with the DevTools protocol on a free port, attached to a new blank page
 /// with the runtime, log, network and page domains on.
 fn browser(profile: &Path) -> (Reaped, Cdp) {
-    let child =
-        Command::new(chromium()).args(CHROMIUM_FLAGS).arg(format!("--user-data-dir={}", profile.display())).args(["--remote-debugging-port=0", "--window-size=1200,1800", "about:blank"]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+    let child = Command::new(chromium())
+        .args(CHROMIUM_FLAGS)
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .args(["--remote-debugging-port=0", "--window-size=1200,1800", "about:blank"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
     let child = Reaped(child);
     let port_file = profile.join("DevToolsActivePort");
     let end = Instant::now() + Duration::from_secs(30);
@@ -158,13 +185,20 @@ fn browser(profile: &Path) -> (Reaped, Cdp) {
     let mut lines = text.lines();
     let (port, path) = (lines.next().unwrap(), lines.next().unwrap());
     let mut cdp = Cdp::connect(&format!("ws://127.0.0.1:{port}{path}"));
-    let target = cdp.call("Target.createTarget", json!({"url": "about:blank"}))["targetId"].as_str().unwrap().to_string();
-    let session = cdp.call("Target.attachToTarget", json!({"targetId": target, "flatten": true}))["sessionId"].as_str().unwrap().to_string();
+    let target =
+        cdp.call("Target.createTarget", json!({"url": "about:blank"}))["targetId"].as_str().unwrap().to_string();
+    let session = cdp.call("Target.attachToTarget", json!({"targetId": target, "flatten": true}))["sessionId"]
+        .as_str()
+        .unwrap()
+        .to_string();
     cdp.session = Some(session);
     for domain in ["Runtime.enable", "Log.enable", "Network.enable", "Page.enable"] {
         cdp.call(domain, json!({}));
     }
-    cdp.call("Emulation.setDeviceMetricsOverride", json!({"width": 1200, "height": 1800, "deviceScaleFactor": 1, "mobile": false}));
+    cdp.call(
+        "Emulation.setDeviceMetricsOverride",
+        json!({"width": 1200, "height": 1800, "deviceScaleFactor": 1, "mobile": false}),
+    );
     (child, cdp)
 }
 
@@ -188,7 +222,19 @@ fn live_page_updates_during_a_virtual_run_and_links_the_report() {
     let out = dir.path().join("sb17");
     // Four times real time: the SB17 run (about 35 s of measurement) takes about 10 s.
     let run = Command::new(env!("CARGO_BIN_EXE_coilscope"))
-        .args(["measure", "--virtual", "sb17cac35-4", "--out", out.to_str().unwrap(), "--serve", "127.0.0.1:0", "--pace", "4", "--serve-linger", "120"])
+        .args([
+            "measure",
+            "--virtual",
+            "sb17cac35-4",
+            "--out",
+            out.to_str().unwrap(),
+            "--serve",
+            "127.0.0.1:0",
+            "--pace",
+            "4",
+            "--serve-linger",
+            "120",
+        ])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()
@@ -214,7 +260,9 @@ fn live_page_updates_during_a_virtual_run_and_links_the_report() {
     cdp.call("Page.navigate", json!({"url": url}));
     cdp.pump(Duration::from_millis(2500));
     let first = cdp.screenshot();
-    let s1 = cdp.eval("({blocks: coilscopeLive.blocks.length, frames: coilscopeLive.frames, traces: coilscopeLive.traces.length})");
+    let s1 = cdp.eval(
+        "({blocks: coilscopeLive.blocks.length, frames: coilscopeLive.frames, traces: coilscopeLive.traces.length})",
+    );
     cdp.pump(Duration::from_millis(2500));
     let second = cdp.screenshot();
     let s2 = cdp.eval("({blocks: coilscopeLive.blocks.length, frames: coilscopeLive.frames, traces: coilscopeLive.traces.length, bands: coilscopeLive.est ? Object.keys(coilscopeLive.est.bands).join(',') : '', t: coilscopeLive.blocks[coilscopeLive.blocks.length - 1].t})");
@@ -260,6 +308,7 @@ fn live_page_updates_during_a_virtual_run_and_links_the_report() {
     assert!(errors.is_empty(), "console errors: {errors:?}");
     // Everything the page asked for came from its own server: no CDN, no other host.
     let origin = url.trim_end_matches('/');
-    let foreign: Vec<String> = cdp.requests().into_iter().filter(|u| !u.starts_with(origin) && !u.starts_with("data:")).collect();
+    let foreign: Vec<String> =
+        cdp.requests().into_iter().filter(|u| !u.starts_with(origin) && !u.starts_with("data:")).collect();
     assert!(foreign.is_empty(), "requests elsewhere: {foreign:?}");
 }

@@ -18,7 +18,8 @@ fn virtual_measurement_writes_result_and_database() {
     let live = String::from_utf8_lossy(&o.stderr);
     assert!(live.contains("small-signal") && live.contains("Re   -    ohm"), "{live}");
     assert!(!text.contains("NaN") && !live.contains("NaN"), "{text}\n{live}");
-    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
     assert_eq!(j["format"], "coilscope.result/1");
     // The typed reader knows every key and writes the file back unchanged.
     let r = coilscope_core::result::ResultFile::from_json_value(j.clone(), "result.json").unwrap();
@@ -37,7 +38,17 @@ fn a_killed_long_term_run_keeps_its_data() {
     let out = dir.path().join("long");
     let db = out.join("run.sqlite");
     let mut child = Command::new(env!("CARGO_BIN_EXE_coilscope"))
-        .args(["measure", "--virtual", "ptt4.0w04-01a", "--target-x", "6mm", "--duration", "3600", "--out", out.to_str().unwrap()])
+        .args([
+            "measure",
+            "--virtual",
+            "ptt4.0w04-01a",
+            "--target-x",
+            "6mm",
+            "--duration",
+            "3600",
+            "--out",
+            out.to_str().unwrap(),
+        ])
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .spawn()
@@ -73,7 +84,16 @@ fn ctrl_c_writes_the_result_marked_interrupted_and_exits_130() {
     let out = dir.path().join("int");
     let db = out.join("run.sqlite");
     let child = Command::new(env!("CARGO_BIN_EXE_coilscope"))
-        .args(["measure", "--virtual", "ptt4.0w04-01a", "--duration", "3600", "--no-report", "--out", out.to_str().unwrap()])
+        .args([
+            "measure",
+            "--virtual",
+            "ptt4.0w04-01a",
+            "--duration",
+            "3600",
+            "--no-report",
+            "--out",
+            out.to_str().unwrap(),
+        ])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
@@ -90,7 +110,8 @@ fn ctrl_c_writes_the_result_marked_interrupted_and_exits_130() {
     assert!(k.success());
     let o = child.wait_with_output().unwrap();
     assert_eq!(o.status.code(), Some(130), "{}", String::from_utf8_lossy(&o.stderr));
-    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
     assert_eq!(j["measurement"]["stop_reason"], "interrupted");
     assert_eq!(j["fit"]["converged"], false);
     let listing = String::from_utf8_lossy(&coilscope(&["runs", out.to_str().unwrap()]).stdout).into_owned();
@@ -114,7 +135,10 @@ fn bad_devices_files_and_limits_get_one_line_errors() {
         (vec!["measure", "--replay", "/nonexistent/rec.wav", "--out", o], "rec.wav: no such file"),
         (vec!["runs", "/nonexistent/run.sqlite"], "no such run database"),
         (vec!["measure", "--card", "--out", o], "--card needs --mms"),
-        (vec!["measure", "--card", "--mms", "0.02", "--u-channel", "1", "--i-channel", "1", "--out", o], if cfg!(feature = "soundcard") { "--u-channel" } else { "--features soundcard" }),
+        (
+            vec!["measure", "--card", "--mms", "0.02", "--u-channel", "1", "--i-channel", "1", "--out", o],
+            if cfg!(feature = "soundcard") { "--u-channel" } else { "--features soundcard" },
+        ),
         (vec!["devices"], if cfg!(feature = "soundcard") { "" } else { "--features soundcard" }),
     ] {
         if want.is_empty() {

@@ -81,7 +81,11 @@ fn simulate_matches_independent_simulator_within_1e_3() {
 // The identification's accuracy bounds, over the range the live model reached.
 
 fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
-    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, coilscope_testkit::check::nan_max) / g.eval(0.0).abs()
+    (0..=400)
+        .map(|k| lo + (hi - lo) * k as f64 / 400.0)
+        .map(|x| (f.eval(x) - g.eval(x)).abs())
+        .fold(0.0, coilscope_testkit::check::nan_max)
+        / g.eval(0.0).abs()
 }
 
 #[test]
@@ -141,12 +145,28 @@ fn replay_of_a_single_large_recording_without_lead_in() {
         let p = embedded_driver(name).unwrap();
         let rec = dir.join(format!("{name}-large.wav"));
         let res = out.path().join(name);
-        let o = Command::new(env!("CARGO_BIN_EXE_coilscope")).args(["measure", "--replay", rec.to_str().unwrap(), "--mms", &p.mms.to_string(), "--no-report", "--out", res.to_str().unwrap()]).output().unwrap();
+        let o = Command::new(env!("CARGO_BIN_EXE_coilscope"))
+            .args([
+                "measure",
+                "--replay",
+                rec.to_str().unwrap(),
+                "--mms",
+                &p.mms.to_string(),
+                "--no-report",
+                "--out",
+                res.to_str().unwrap(),
+            ])
+            .output()
+            .unwrap();
         let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
         assert!(o.status.success(), "{name}: {text}");
         // Output that fits a replay: no drive level, no controller.
-        assert!(text.contains("batch large-signal fit") && !text.contains(" V  x") && !text.contains("limited by"), "{name}: {text}");
-        let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(res.join("result.json")).unwrap()).unwrap();
+        assert!(
+            text.contains("batch large-signal fit") && !text.contains(" V  x") && !text.contains("limited by"),
+            "{name}: {text}"
+        );
+        let j: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(res.join("result.json")).unwrap()).unwrap();
         let q = coilscope_core::Parameters::from_json_value(&j["parameters"], name).unwrap();
         let r = [j["fit"]["x_range"][0].as_f64().unwrap(), j["fit"]["x_range"][1].as_f64().unwrap()];
         let (e_bl, e_k, e_le) = (worst(&q.bl, &p.bl, r), worst(&q.kms, &p.kms, r), worst(&q.le, &p.le, r));
@@ -182,24 +202,47 @@ fn replay_takes_its_scale_from_the_laser_channel() {
     let p = embedded_driver("sb17cac35-4").unwrap();
     let res = out.path().join("laser");
     let rec = dir.join("sb17cac35-4-large-laser.wav");
-    let o = Command::new(env!("CARGO_BIN_EXE_coilscope")).args(["measure", "--replay", rec.to_str().unwrap(), "--no-report", "--out", res.to_str().unwrap()]).output().unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_coilscope"))
+        .args(["measure", "--replay", rec.to_str().unwrap(), "--no-report", "--out", res.to_str().unwrap()])
+        .output()
+        .unwrap();
     let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
     assert!(o.status.success(), "{text}");
-    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(res.join("result.json")).unwrap()).unwrap();
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(res.join("result.json")).unwrap()).unwrap();
     assert!(j["fit"]["Mms_source"].as_str().unwrap().contains("displacement channel"), "{j}");
     let q = coilscope_core::Parameters::from_json_value(&j["parameters"], "laser replay").unwrap();
     let r = [j["fit"]["x_range"][0].as_f64().unwrap(), j["fit"]["x_range"][1].as_f64().unwrap()];
     let e_mms = (q.mms / p.mms - 1.0).abs();
     let (e_bl, e_k, e_le) = (worst(&q.bl, &p.bl, r), worst(&q.kms, &p.kms, r), worst(&q.le, &p.le, r));
-    println!("laser-scaled replay: Mms {:.3} %, Bl {:.3} %, Kms {:.3} %, Le {:.3} %", 100.0 * e_mms, 100.0 * e_bl, 100.0 * e_k, 100.0 * e_le);
+    println!(
+        "laser-scaled replay: Mms {:.3} %, Bl {:.3} %, Kms {:.3} %, Le {:.3} %",
+        100.0 * e_mms,
+        100.0 * e_bl,
+        100.0 * e_k,
+        100.0 * e_le
+    );
     assert!(e_mms <= 0.005, "Mms {e_mms}");
     assert!(e_bl <= 0.02 && e_k <= 0.02 && e_le <= 0.05, "Bl {e_bl}, Kms {e_k}, Le {e_le}");
     // Neither a laser nor --mms: refused, naming both ways out.
     let plain = dir.join("sb17cac35-4-large.wav");
-    let o = Command::new(env!("CARGO_BIN_EXE_coilscope")).args(["measure", "--replay", plain.to_str().unwrap(), "--no-report", "--out", out.path().join("plain").to_str().unwrap()]).output().unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_coilscope"))
+        .args([
+            "measure",
+            "--replay",
+            plain.to_str().unwrap(),
+            "--no-report",
+            "--out",
+            out.path().join("plain").to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
     let text = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{text}");
-    assert!(text.contains("--mms") && text.contains("displacement channel") && text.contains("sb17cac35-4-large.wav"), "{text}");
+    assert!(
+        text.contains("--mms") && text.contains("displacement channel") && text.contains("sb17cac35-4-large.wav"),
+        "{text}"
+    );
 }
 
 /// The post-inverse (equation-error) estimate through the command line,
@@ -215,7 +258,10 @@ fn post_inverse_through_the_command_line() {
     let out = tempfile::tempdir().unwrap();
     let res = out.path().join("laser.json");
     let rec = dir.join("sb17cac35-4-large-laser.wav");
-    let o = Command::new(env!("CARGO_BIN_EXE_coilscope")).args(["identify", rec.to_str().unwrap(), "--out", res.to_str().unwrap()]).output().unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_coilscope"))
+        .args(["identify", rec.to_str().unwrap(), "--out", res.to_str().unwrap()])
+        .output()
+        .unwrap();
     let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
     assert!(o.status.success(), "{text}");
     let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&res).unwrap()).unwrap();
@@ -225,7 +271,15 @@ fn post_inverse_through_the_command_line() {
     for (label, s) in [("post-inverse (CLI)", &pi), ("output error scaled by it", &q)] {
         let (e_bl, e_k, e_le) = (worst(&s.bl, &p.bl, r), worst(&s.kms, &p.kms, r), worst(&s.le, &p.le, r));
         let (e_m, e_r, e_re) = ((s.mms / p.mms - 1.0).abs(), (s.rms / p.rms - 1.0).abs(), (s.re / p.re - 1.0).abs());
-        println!("{label}: Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Mms {:.3} %, Rms {:.3} %, Re {:.3} %", 100.0 * e_bl, 100.0 * e_k, 100.0 * e_le, 100.0 * e_m, 100.0 * e_r, 100.0 * e_re);
+        println!(
+            "{label}: Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Mms {:.3} %, Rms {:.3} %, Re {:.3} %",
+            100.0 * e_bl,
+            100.0 * e_k,
+            100.0 * e_le,
+            100.0 * e_m,
+            100.0 * e_r,
+            100.0 * e_re
+        );
         assert!(e_bl < 0.02 && e_k < 0.02 && e_le < 0.05, "{label}: Bl {e_bl}, Kms {e_k}, Le {e_le}");
         assert!(e_m < 0.01 && e_r < 0.01 && e_re < 0.01, "{label}: Mms {e_m}, Rms {e_r}, Re {e_re}");
     }

@@ -44,11 +44,15 @@ fn intermodulation_of_bl_modulation_matches_the_closed_form() {
     let file = dir.path().join("bl.json");
     std::fs::write(&file, serde_json::to_string(&p.to_json_value()).unwrap()).unwrap();
     let (f1, f2, volts) = (20.0, 3000.0, 2.0);
-    let o = coilscope(&["distortion", file.to_str().unwrap(), "--freq", "20", "--freq2", "3000", "--volts", "2", "--json"]);
+    let o =
+        coilscope(&["distortion", file.to_str().unwrap(), "--freq", "20", "--freq2", "3000", "--volts", "2", "--json"]);
     assert!(o.status.success(), "{}", text(&o));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let a1 = volts; // each tone: total RMS 2 V with equal tones -> peak 2 V each
-    let x1 = (coilscope_core::small_signal::displacement_per_current(&p, f1) / coilscope_core::small_signal::impedance(&p, f1)).norm() * a1;
+    let x1 = (coilscope_core::small_signal::displacement_per_current(&p, f1)
+        / coilscope_core::small_signal::impedance(&p, f1))
+    .norm()
+        * a1;
     let expect = b1.abs() * x1 / p.bl.c[0];
     let d2 = j["d2"].as_f64().unwrap();
     assert!((d2 / expect - 1.0).abs() < 0.05, "d2 {d2} vs closed form {expect} (f2 {f2})");
@@ -93,18 +97,38 @@ fn bad_distortion_input_gets_clear_errors() {
     assert!(text(&o).contains(blocker.to_str().unwrap()), "{}", text(&o));
 }
 
-const CHROMIUM_FLAGS: [&str; 9] = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync", "--hide-scrollbars"];
+const CHROMIUM_FLAGS: [&str; 9] = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--hide-scrollbars",
+];
 
 fn chromium() -> String {
     let c = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
-    assert!(Path::new(&c).exists(), "headless Chromium not found at {c}: `.ci/run` installs Debian's chromium (or set CHROMIUM)");
+    assert!(
+        Path::new(&c).exists(),
+        "headless Chromium not found at {c}: `.ci/run` installs Debian's chromium (or set CHROMIUM)"
+    );
     c
 }
 
 /// Run Chromium on a page; return (stdout, console lines from its log).
 fn run_chromium(page: &Path, extra: &[&str]) -> (String, Vec<String>) {
     let profile = tempfile::tempdir().unwrap();
-    let o = Command::new(chromium()).args(CHROMIUM_FLAGS).arg(format!("--user-data-dir={}", profile.path().display())).args(["--enable-logging=stderr", "--v=0"]).args(extra).arg(format!("file://{}", page.display())).output().unwrap();
+    let o = Command::new(chromium())
+        .args(CHROMIUM_FLAGS)
+        .arg(format!("--user-data-dir={}", profile.path().display()))
+        .args(["--enable-logging=stderr", "--v=0"])
+        .args(extra)
+        .arg(format!("file://{}", page.display()))
+        .output()
+        .unwrap();
     let log = String::from_utf8_lossy(&o.stderr).into_owned();
     let console = log.lines().filter(|l| l.contains("CONSOLE")).map(str::to_string).collect();
     (String::from_utf8_lossy(&o.stdout).into_owned(), console)
@@ -117,7 +141,10 @@ fn the_console_check_catches_a_broken_page() {
     let page = dir.path().join("bad.html");
     std::fs::write(&page, "<html><body><script>console.error('boom'); notDefined();</script></body></html>").unwrap();
     let (_, console) = run_chromium(&page, &["--dump-dom"]);
-    assert!(console.iter().any(|l| l.contains("boom")) && console.iter().any(|l| l.contains("notDefined")), "{console:?}");
+    assert!(
+        console.iter().any(|l| l.contains("boom")) && console.iter().any(|l| l.contains("notDefined")),
+        "{console:?}"
+    );
 }
 
 #[test]
@@ -133,18 +160,38 @@ fn report_of_a_measurement_renders_in_chromium_with_every_plot_drawn() {
     // Self-contained: no external resources.
     let page = std::fs::read_to_string(&html).unwrap();
     for bad in ["http://", "https://", "<link", "src=\""] {
-        let hits: Vec<_> = page.match_indices(bad).filter(|(i, _)| !page[i.saturating_sub(30)..*i].contains("xmlns")).collect();
+        let hits: Vec<_> =
+            page.match_indices(bad).filter(|(i, _)| !page[i.saturating_sub(30)..*i].contains("xmlns")).collect();
         assert!(hits.is_empty(), "the report refers to an external resource ({bad})");
     }
-    let ids: Vec<&str> = page.match_indices("<figure class=\"plot\" id=\"").map(|(i, m)| page[i + m.len()..].split('"').next().unwrap()).collect();
-    for want in ["plot-bl", "plot-kms", "plot-cms", "plot-le", "plot-impedance", "plot-hd", "plot-contrib-hd2", "plot-contrib-hd3", "plot-volterra", "plot-x-time", "plot-temperature-time", "plot-multitone"] {
+    let ids: Vec<&str> = page
+        .match_indices("<figure class=\"plot\" id=\"")
+        .map(|(i, m)| page[i + m.len()..].split('"').next().unwrap())
+        .collect();
+    for want in [
+        "plot-bl",
+        "plot-kms",
+        "plot-cms",
+        "plot-le",
+        "plot-impedance",
+        "plot-hd",
+        "plot-contrib-hd2",
+        "plot-contrib-hd3",
+        "plot-volterra",
+        "plot-x-time",
+        "plot-temperature-time",
+        "plot-multitone",
+    ] {
         assert!(ids.contains(&want), "{want} missing from {ids:?}");
     }
     // PNG and CSV copies.
     let files = dir.path().join("report_files");
     for id in &ids {
         let png = files.join(format!("{}.png", id.trim_start_matches("plot-")));
-        let img = std::fs::read(&png).map_err(|e| e.to_string()).and_then(|b| Rgb::from_png(&b)).unwrap_or_else(|e| panic!("{}: {e}", png.display()));
+        let img = std::fs::read(&png)
+            .map_err(|e| e.to_string())
+            .and_then(|b| Rgb::from_png(&b))
+            .unwrap_or_else(|e| panic!("{}: {e}", png.display()));
         assert!(img.width > 500, "{}", png.display());
     }
     let curves = std::fs::read_to_string(files.join("curves.csv")).unwrap();
@@ -153,7 +200,11 @@ fn report_of_a_measurement_renders_in_chromium_with_every_plot_drawn() {
     // Layout and console: the page's script records each plot's box.
     let (dom, console) = run_chromium(&html, &["--window-size=1000,2000", "--dump-dom"]);
     assert!(console.is_empty(), "console messages: {console:?}");
-    let layout = dom.split("<pre id=\"layout\" hidden=\"\">").nth(1).and_then(|s| s.split("</pre>").next()).expect("the layout record");
+    let layout = dom
+        .split("<pre id=\"layout\" hidden=\"\">")
+        .nth(1)
+        .and_then(|s| s.split("</pre>").next())
+        .expect("the layout record");
     let layout: serde_json::Value = serde_json::from_str(layout).unwrap();
     let height = layout["height"].as_u64().unwrap();
     let plots = layout["plots"].as_array().unwrap();
@@ -163,10 +214,19 @@ fn report_of_a_measurement_renders_in_chromium_with_every_plot_drawn() {
     // report (the time charts and the live distortion among them), at both sizes.
     let mut input = coilscope_report::input_from(run.join("result.json").to_str().unwrap()).unwrap();
     let rows = coilscope_measure::store::read_states(&run.join("run.sqlite"), None).unwrap();
-    input.states = Some(coilscope_report::TimeSeries { t: rows.iter().map(|r| r.t).collect(), x_min: rows.iter().map(|r| r.x_min).collect(), x_max: rows.iter().map(|r| r.x_max).collect(), dtv: rows.iter().map(|r| r.dtv).collect() });
+    input.states = Some(coilscope_report::TimeSeries {
+        t: rows.iter().map(|r| r.t).collect(),
+        x_min: rows.iter().map(|r| r.x_min).collect(),
+        x_max: rows.iter().map(|r| r.x_max).collect(),
+        dtv: rows.iter().map(|r| r.dtv).collect(),
+    });
     let rep = coilscope_report::build(&input, &coilscope_report::ReportOptions::default()).unwrap();
     let with_legend: Vec<&coilscope_report::chart::Chart> = rep.charts.iter().filter(|c| c.series.len() > 1).collect();
-    assert!(with_legend.iter().any(|c| c.id == "x-time") && with_legend.iter().any(|c| c.id == "live-distortion-x"), "{:?}", with_legend.iter().map(|c| &c.id).collect::<Vec<_>>());
+    assert!(
+        with_legend.iter().any(|c| c.id == "x-time") && with_legend.iter().any(|c| c.id == "live-distortion-x"),
+        "{:?}",
+        with_legend.iter().map(|c| &c.id).collect::<Vec<_>>()
+    );
     for c in with_legend {
         for size in [coilscope_report::ReportOptions::default().png_size, coilscope_report::SVG_SIZE] {
             let n = c.legend_covers_data(size).unwrap();
@@ -176,12 +236,14 @@ fn report_of_a_measurement_renders_in_chromium_with_every_plot_drawn() {
 
     // Screenshot of the whole page; every plot's box must hold its data colours.
     let shot = dir.path().join("shot.png");
-    let (_, console) = run_chromium(&html, &[&format!("--window-size=1000,{height}"), &format!("--screenshot={}", shot.display())]);
+    let (_, console) =
+        run_chromium(&html, &[&format!("--window-size=1000,{height}"), &format!("--screenshot={}", shot.display())]);
     assert!(console.is_empty(), "console messages: {console:?}");
     let img = Rgb::from_png(&std::fs::read(&shot).unwrap()).unwrap();
     let palette = coilscope_report::chart::PALETTE;
     for p in plots {
-        let (x, y, w, h) = (p["x"].as_f64().unwrap(), p["y"].as_f64().unwrap(), p["w"].as_f64().unwrap(), p["h"].as_f64().unwrap());
+        let (x, y, w, h) =
+            (p["x"].as_f64().unwrap(), p["y"].as_f64().unwrap(), p["w"].as_f64().unwrap(), p["h"].as_f64().unwrap());
         assert!(w > 300.0 && h > 200.0, "{p}");
         let mut data = 0usize;
         for py in y as u32..((y + h) as u32).min(img.height) {

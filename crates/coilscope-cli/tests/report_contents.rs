@@ -18,19 +18,74 @@ fn report_tables_sds_and_what_the_result_supports() {
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
     // A large-signal result with bands and sds (identify on a recording).
-    assert!(coilscope(&["simulate", "ptt4.0w04-01a", "--excitation", "pink", "--volts", "2.5", "--seconds", "4", "--snr-db", "70", "--out", &p("rec.wav")]).status.success());
-    let o = coilscope(&["identify", &p("rec.wav"), "--mms", "0.012596", "--order", "4", "--effects", "none", "--sd", "0.00567", "--out", &p("large.json")]);
+    assert!(coilscope(&[
+        "simulate",
+        "ptt4.0w04-01a",
+        "--excitation",
+        "pink",
+        "--volts",
+        "2.5",
+        "--seconds",
+        "4",
+        "--snr-db",
+        "70",
+        "--out",
+        &p("rec.wav")
+    ])
+    .status
+    .success());
+    let o = coilscope(&[
+        "identify",
+        &p("rec.wav"),
+        "--mms",
+        "0.012596",
+        "--order",
+        "4",
+        "--effects",
+        "none",
+        "--sd",
+        "0.00567",
+        "--out",
+        &p("large.json"),
+    ]);
     assert!(o.status.code() == Some(0) || o.status.code() == Some(3), "{}", text(&o));
     let o = coilscope(&["report", &p("large.json"), "--out", &p("large.html")]);
     assert!(o.status.success(), "{}", text(&o));
     let html = std::fs::read_to_string(p("large.html")).unwrap();
-    for want in ["Xmax = min(XBl, XC, XL)", "<td>Vas</td>", "<td>Cms</td>", "Res (Bl²/Rms at fs)", "Rms at fs (with creep's loss)", "Qtp", "Dominant nonlinearity", "± ", "plot-bl-symmetry", "plot-kms-symmetry", "plot-ak"] {
+    for want in [
+        "Xmax = min(XBl, XC, XL)",
+        "<td>Vas</td>",
+        "<td>Cms</td>",
+        "Res (Bl²/Rms at fs)",
+        "Rms at fs (with creep's loss)",
+        "Qtp",
+        "Dominant nonlinearity",
+        "± ",
+        "plot-bl-symmetry",
+        "plot-kms-symmetry",
+        "plot-ak",
+    ] {
         assert!(html.contains(want), "the large-signal report lacks {want:?}");
     }
     // Engineering units: Mms in g, Le in mH.
     assert!(html.contains("<td>g</td>") && html.contains("<td>mH</td>"), "units");
     // A small-signal result: no curves, limits or distortion.
-    assert!(coilscope(&["simulate", "ptt4.0w04-01a", "--excitation", "pink", "--volts", "0.3", "--seconds", "4", "--snr-db", "70", "--out", &p("small.wav")]).status.success());
+    assert!(coilscope(&[
+        "simulate",
+        "ptt4.0w04-01a",
+        "--excitation",
+        "pink",
+        "--volts",
+        "0.3",
+        "--seconds",
+        "4",
+        "--snr-db",
+        "70",
+        "--out",
+        &p("small.wav")
+    ])
+    .status
+    .success());
     let o = coilscope(&["linear", &p("small.wav"), "--mms", "0.012596", "--out", &p("lin.json")]);
     assert!(o.status.success(), "{}", text(&o));
     let o = coilscope(&["report", &p("lin.json"), "--out", &p("lin.html")]);
@@ -49,15 +104,38 @@ fn a_run_database_of_another_measurement_is_refused() {
     let a = d.path().join("a");
     let b = d.path().join("b");
     for (dir, driver) in [(&a, "ptt4.0w04-01a"), (&b, "sb17cac35-4")] {
-        let o = coilscope(&["measure", "--virtual", driver, "--max-seconds", "6", "--no-report", "--out", dir.to_str().unwrap()]);
+        let o = coilscope(&[
+            "measure",
+            "--virtual",
+            driver,
+            "--max-seconds",
+            "6",
+            "--no-report",
+            "--out",
+            dir.to_str().unwrap(),
+        ]);
         assert!(dir.join("result.json").exists(), "{}", text(&o));
     }
     let out = d.path().join("r.html");
-    let o = coilscope(&["report", a.join("result.json").to_str().unwrap(), "--db", b.join("run.sqlite").to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let o = coilscope(&[
+        "report",
+        a.join("result.json").to_str().unwrap(),
+        "--db",
+        b.join("run.sqlite").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert_eq!(o.status.code(), Some(2), "{}", text(&o));
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(e.contains("run.sqlite") && e.contains("give the run database of this measurement"), "{e}");
     // Its own database is taken.
-    let o = coilscope(&["report", a.join("result.json").to_str().unwrap(), "--db", a.join("run.sqlite").to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let o = coilscope(&[
+        "report",
+        a.join("result.json").to_str().unwrap(),
+        "--db",
+        a.join("run.sqlite").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", text(&o));
 }

@@ -20,7 +20,25 @@ const RS: &str = "0.22";
 /// `simulate` (wiring, chain).
 fn record(dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
     let out = dir.join(name);
-    let mut args = vec!["simulate", "sb17cac35-4", "--excitation", "pink", "--band", "5", "20000", "--volts", "0.3", "--seconds", "4", "--snr-db", "80", "--seed", "31", "--out", out.to_str().unwrap()];
+    let mut args = vec![
+        "simulate",
+        "sb17cac35-4",
+        "--excitation",
+        "pink",
+        "--band",
+        "5",
+        "20000",
+        "--volts",
+        "0.3",
+        "--seconds",
+        "4",
+        "--snr-db",
+        "80",
+        "--seed",
+        "31",
+        "--out",
+        out.to_str().unwrap(),
+    ];
     args.extend_from_slice(extra);
     let o = coilscope(&args);
     assert!(o.status.success(), "{}", text(&o));
@@ -39,7 +57,9 @@ fn linear(rec: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
 /// Re within 0.5 %, Bl within 2 %, Kms within 3 %, Le within 5 % (the accuracy bounds).
 fn check(r: &serde_json::Value, what: &str) {
     let p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
-    for (k, t, tol) in [("Re", p.re, 0.005), ("Bl", p.bl.c[0], 0.02), ("Kms", p.kms.c[0], 0.03), ("Le", p.le.c[0], 0.05)] {
+    for (k, t, tol) in
+        [("Re", p.re, 0.005), ("Bl", p.bl.c[0], 0.02), ("Kms", p.kms.c[0], 0.03), ("Le", p.le.c[0], 0.05)]
+    {
         let got = r["parameters"][k].as_f64().unwrap();
         assert!((got / t - 1.0).abs() < tol, "{what}: {k} {got} vs {t} (tolerance {tol})");
     }
@@ -49,7 +69,8 @@ fn check(r: &serde_json::Value, what: &str) {
 fn a_driver_plus_shunt_record_gives_the_driver_when_read_with_its_wiring() {
     let d = tempfile::tempdir().unwrap();
     let rec = record(d.path(), "series.wav", &["--sense-wiring", "driver+shunt", "--sense-ohm", RS]);
-    let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.path().join("series.info.json")).unwrap()).unwrap();
+    let info: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.path().join("series.info.json")).unwrap()).unwrap();
     assert_eq!(info["chain"]["sense_wiring"], "driver+shunt");
     let with = linear(&rec, &d.path().join("with.json"), &["--sense-wiring", "driver+shunt", "--sense-ohm", RS]);
     check(&with, "driver+shunt, --chain none");
@@ -67,8 +88,16 @@ fn a_driver_plus_shunt_record_through_a_real_card_with_the_chain_estimated() {
     let d = tempfile::tempdir().unwrap();
     let card = d.path().join("card.json");
     std::fs::write(&card, r#"{"delay_i": 8.333e-6, "hp_u": 1.5, "hp_i": 3.5, "dc_u": 0.002, "dc_i": 0.0005}"#).unwrap();
-    let rec = record(d.path(), "card.wav", &["--sense-wiring", "driver+shunt", "--sense-ohm", RS, "--chain", card.to_str().unwrap()]);
-    let r = linear(&rec, &d.path().join("auto.json"), &["--chain", "auto", "--sense-wiring", "driver+shunt", "--sense-ohm", RS]);
+    let rec = record(
+        d.path(),
+        "card.wav",
+        &["--sense-wiring", "driver+shunt", "--sense-ohm", RS, "--chain", card.to_str().unwrap()],
+    );
+    let r = linear(
+        &rec,
+        &d.path().join("auto.json"),
+        &["--chain", "auto", "--sense-wiring", "driver+shunt", "--sense-ohm", RS],
+    );
     check(&r, "driver+shunt through a card, --chain auto");
     assert_eq!(r["chain"]["source"], "estimated");
     assert_eq!(r["chain"]["sense_wiring"], "driver+shunt");
@@ -85,9 +114,21 @@ fn calibrate_keeps_the_wiring_for_the_records_that_follow() {
     use coilscope_io::{write_recording, Recording};
     let d = tempfile::tempdir().unwrap();
     let fs = 48000.0;
-    let card = Chain { delay_i: 0.25 / fs, hp_u: 2.5, hp_i: 1.2, gain_i: Some(0.99), dc_u: 0.001, dc_i: -0.002, ..Default::default() };
+    let card = Chain {
+        delay_i: 0.25 / fs,
+        hp_u: 2.5,
+        hp_i: 1.2,
+        gain_i: Some(0.99),
+        dc_u: 0.001,
+        dc_i: -0.002,
+        ..Default::default()
+    };
     let wiring = SenseWiring::DriverPlusShunt { ohm: 0.22 };
-    let noise = generate(&Excitation::Pink { f_lo: 0.3, f_hi: 20000.0, crest: None }, &SignalSpec { fs, seconds: 40.0, rms: 1.0, fade: 0.0, seed: 41 }).unwrap();
+    let noise = generate(
+        &Excitation::Pink { f_lo: 0.3, f_hi: 20000.0, crest: None },
+        &SignalSpec { fs, seconds: 40.0, rms: 1.0, fade: 0.0, seed: 41 },
+    )
+    .unwrap();
     let i: Vec<f64> = noise.iter().map(|v| v / 4.7).collect();
     let (mut ur, mut ir) = card.apply(&wiring.channel_voltage(&noise, &i), &i, fs);
     add_sensor_noise(&mut ur, 80.0, 41, "sensor-noise/voltage");
@@ -95,14 +136,40 @@ fn calibrate_keeps_the_wiring_for_the_records_that_follow() {
     let r_rec = d.path().join("resistor.wav");
     write_recording(&r_rec, &Recording { fs: fs as u32, u: ur, i: ir, x: None }).unwrap();
     let chain_file = d.path().join("card.json");
-    let o = coilscope(&["calibrate", r_rec.to_str().unwrap(), "--resistor", "4.7", "--sense-wiring", "driver+shunt", "--sense-ohm", RS, "--out", chain_file.to_str().unwrap()]);
+    let o = coilscope(&[
+        "calibrate",
+        r_rec.to_str().unwrap(),
+        "--resistor",
+        "4.7",
+        "--sense-wiring",
+        "driver+shunt",
+        "--sense-ohm",
+        RS,
+        "--out",
+        chain_file.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", text(&o));
     let c: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&chain_file).unwrap()).unwrap();
     assert_eq!(c["sense_wiring"], "driver+shunt");
-    assert!((c["gain_i"].as_f64().unwrap() - 0.99).abs() < 1e-3 && (c["delay_i"].as_f64().unwrap() * fs - 0.25).abs() < 0.01, "{c}");
+    assert!(
+        (c["gain_i"].as_f64().unwrap() - 0.99).abs() < 1e-3
+            && (c["delay_i"].as_f64().unwrap() * fs - 0.25).abs() < 0.01,
+        "{c}"
+    );
 
     std::fs::write(d.path().join("sim-card.json"), serde_json::to_string(&card).unwrap()).unwrap();
-    let rec = record(d.path(), "driver.wav", &["--sense-wiring", "driver+shunt", "--sense-ohm", RS, "--chain", d.path().join("sim-card.json").to_str().unwrap()]);
+    let rec = record(
+        d.path(),
+        "driver.wav",
+        &[
+            "--sense-wiring",
+            "driver+shunt",
+            "--sense-ohm",
+            RS,
+            "--chain",
+            d.path().join("sim-card.json").to_str().unwrap(),
+        ],
+    );
     let r = linear(&rec, &d.path().join("cal.json"), &["--chain", chain_file.to_str().unwrap()]);
     check(&r, "driver+shunt through a calibrated card");
     assert_eq!(r["chain"]["source"], "calibrated");

@@ -19,7 +19,22 @@ fn text(o: &Output) -> String {
 /// A 4 s pink-noise record of SB17 at `volts` (70 dB sensor noise), optionally with laser.
 fn record(dir: &Path, name: &str, volts: &str, laser: bool) -> PathBuf {
     let out = dir.join(name);
-    let mut args = vec!["simulate", "sb17cac35-4", "--excitation", "pink", "--volts", volts, "--seconds", "4", "--snr-db", "70", "--seed", "5", "--out", out.to_str().unwrap()];
+    let mut args = vec![
+        "simulate",
+        "sb17cac35-4",
+        "--excitation",
+        "pink",
+        "--volts",
+        volts,
+        "--seconds",
+        "4",
+        "--snr-db",
+        "70",
+        "--seed",
+        "5",
+        "--out",
+        out.to_str().unwrap(),
+    ];
     if laser {
         args.push("--laser");
     }
@@ -47,7 +62,11 @@ fn an_inverted_current_is_refused_by_name() {
     for cmd in ["linear", "identify"] {
         let o = coilscope(&[cmd, inv.to_str().unwrap(), "--mms", MMS, "--out", out.to_str().unwrap()]);
         assert_eq!(o.status.code(), Some(2), "{cmd}: {}", text(&o));
-        assert!(text(&o).contains("current looks inverted") && text(&o).contains("inverted.wav"), "{cmd}: {}", text(&o));
+        assert!(
+            text(&o).contains("current looks inverted") && text(&o).contains("inverted.wav"),
+            "{cmd}: {}",
+            text(&o)
+        );
     }
 }
 
@@ -61,7 +80,8 @@ fn a_current_one_sample_late_is_named_with_its_delay() {
     });
     let out = d.path().join("r.json");
     // Told that the channels are ideal, the fit names the skew and is not trusted.
-    let o = coilscope(&["linear", late.to_str().unwrap(), "--mms", MMS, "--chain", "none", "--out", out.to_str().unwrap()]);
+    let o =
+        coilscope(&["linear", late.to_str().unwrap(), "--mms", MMS, "--chain", "none", "--out", out.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(3), "{}", text(&o));
     let t = text(&o);
     assert!(t.contains("[current-delay]") && t.contains("1.0") && t.contains("samples late"), "{t}");
@@ -87,11 +107,31 @@ fn a_dc_offset_on_the_current_is_named_by_identify() {
     for share in [0.01, 0.03] {
         let off = damaged(&src, &format!("dc{share}.wav"), |r| r.i.iter_mut().for_each(|v| *v += share * i_rms));
         let out = d.path().join("r.json");
-        let o = coilscope(&["identify", off.to_str().unwrap(), "--mms", MMS, "--order", "4", "--chain", "none", "--out", out.to_str().unwrap()]);
+        let o = coilscope(&[
+            "identify",
+            off.to_str().unwrap(),
+            "--mms",
+            MMS,
+            "--order",
+            "4",
+            "--chain",
+            "none",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
         assert_eq!(o.status.code(), Some(3), "DC {share}: {}", text(&o));
         assert!(text(&o).contains("[dc-offset-current]"), "DC {share}: {}", text(&o));
         // By default the offset is seen and estimated with the chain.
-        let o = coilscope(&["identify", off.to_str().unwrap(), "--mms", MMS, "--order", "4", "--out", out.to_str().unwrap()]);
+        let o = coilscope(&[
+            "identify",
+            off.to_str().unwrap(),
+            "--mms",
+            MMS,
+            "--order",
+            "4",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
         assert_eq!(o.status.code(), Some(0), "DC {share}: {}", text(&o));
         assert!(text(&o).contains("an offset of"), "DC {share}: {}", text(&o));
         let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
@@ -100,7 +140,11 @@ fn a_dc_offset_on_the_current_is_named_by_identify() {
         let dc = j["chain"]["dc_i"].as_f64().unwrap();
         let own = rec.i.iter().sum::<f64>() / rec.i.len() as f64;
         let sd = j["chain"]["sd"]["dc_i"].as_f64().unwrap();
-        assert!((dc - share * i_rms - own).abs() <= 3.0 * sd, "DC {share}: estimated {dc} A against {} A (+ the record's own mean {own} A), sd {sd} A", share * i_rms);
+        assert!(
+            (dc - share * i_rms - own).abs() <= 3.0 * sd,
+            "DC {share}: estimated {dc} A against {} A (+ the record's own mean {own} A), sd {sd} A",
+            share * i_rms
+        );
     }
 }
 
@@ -140,7 +184,20 @@ fn a_microspeaker_small_signal_fit_is_clean_with_its_lr2_above_the_band() {
     let d = tempfile::tempdir().unwrap();
     let rec = d.path().join("micro.wav");
     let drv = format!("{}/../../testdata/drivers/microspeaker-0g1.json", env!("CARGO_MANIFEST_DIR"));
-    let o = coilscope(&["simulate", &drv, "--volts", "0.1", "--seconds", "3", "--snr-db", "70", "--seed", "2", "--out", rec.to_str().unwrap()]);
+    let o = coilscope(&[
+        "simulate",
+        &drv,
+        "--volts",
+        "0.1",
+        "--seconds",
+        "3",
+        "--snr-db",
+        "70",
+        "--seed",
+        "2",
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", text(&o));
     let out = d.path().join("r.json");
     let o = coilscope(&["linear", rec.to_str().unwrap(), "--mms", "1e-4", "--out", out.to_str().unwrap()]);
@@ -167,12 +224,25 @@ fn a_failed_measurement_still_writes_its_result() {
     let driver = d.path().join("narrow.json");
     std::fs::write(&driver, serde_json::to_string(&p.to_json_value()).unwrap()).unwrap();
     let out = d.path().join("run");
-    let o = coilscope(&["measure", "--virtual", driver.to_str().unwrap(), "--out", out.to_str().unwrap(), "--no-report", "--max-seconds", "30"]);
+    let o = coilscope(&[
+        "measure",
+        "--virtual",
+        driver.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-report",
+        "--max-seconds",
+        "30",
+    ]);
     assert_eq!(o.status.code(), Some(2), "{}", text(&o));
     assert!(text(&o).contains("destroyed") && text(&o).contains("result.json"), "{}", text(&o));
-    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
     assert_eq!(j["measurement"]["stop_reason"], "failed");
     assert_eq!(j["fit"]["converged"], false);
     assert_eq!(j["fit"]["trustworthy"], false);
-    assert!(j["parameters"]["Bl"].as_array().is_some_and(|c| c.iter().all(|v| v.as_f64().is_some_and(f64::is_finite))), "{j}");
+    assert!(
+        j["parameters"]["Bl"].as_array().is_some_and(|c| c.iter().all(|v| v.as_f64().is_some_and(f64::is_finite))),
+        "{j}"
+    );
 }

@@ -23,7 +23,9 @@ fn full_model(bencher: Bencher, name: &str) {
     let p = embedded_driver(name).unwrap();
     assert!(p.l2r2.is_some() && p.thermal.is_some());
     let u = voltage(3.0);
-    bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &SimOptions::default()).unwrap());
+    bencher
+        .counter(ItemsCount::new(u.len()))
+        .bench(|| simulate(&p, FS, divan::black_box(&u), &SimOptions::default()).unwrap());
 }
 
 /// The three-state model of the seed (no LR-2, no thermal), for comparison.
@@ -31,7 +33,9 @@ fn full_model(bencher: Bencher, name: &str) {
 fn three_state(bencher: Bencher, name: &str) {
     let p = embedded_driver(name).unwrap().three_state();
     let u = voltage(3.0);
-    bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &SimOptions::default()).unwrap());
+    bencher
+        .counter(ItemsCount::new(u.len()))
+        .bench(|| simulate(&p, FS, divan::black_box(&u), &SimOptions::default()).unwrap());
 }
 
 /// The extended model (creep bank lambda 0.07 and LR-3: 17 states), against
@@ -43,7 +47,9 @@ fn creep_and_lr3(bencher: Bencher, name: &str) {
     p.creep = Some(coilscope_core::params::Creep { lambda: 0.07, f_ref: None });
     p.l3r3 = Some((0.6 * l2, 2.5 * r2));
     let u = voltage(3.0);
-    bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &SimOptions::default()).unwrap());
+    bencher
+        .counter(ItemsCount::new(u.len()))
+        .bench(|| simulate(&p, FS, divan::black_box(&u), &SimOptions::default()).unwrap());
 }
 
 /// The full model with classical RK4 and its sub-steps (the scheme before the exponential
@@ -73,7 +79,11 @@ fn full_model_exp_current(bencher: Bencher, name: &str) {
 fn full_model_exponential_1(bencher: Bencher, name: &str) {
     let p = embedded_driver(name).unwrap();
     let u = voltage(3.0);
-    let opts = SimOptions { scheme: Some(coilscope_core::integrate::Scheme::Exponential), substeps: Some(1), ..Default::default() };
+    let opts = SimOptions {
+        scheme: Some(coilscope_core::integrate::Scheme::Exponential),
+        substeps: Some(1),
+        ..Default::default()
+    };
     bencher.counter(ItemsCount::new(u.len())).bench(|| simulate(&p, FS, divan::black_box(&u), &opts).unwrap());
 }
 

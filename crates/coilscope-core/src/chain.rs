@@ -276,7 +276,12 @@ impl Chain {
         let sd = |k: &str| self.sd.get(k).copied().unwrap_or(f64::NAN);
         let mut parts = vec![];
         if fitted("delay_i") {
-            parts.push(format!("current {:.3} +- {:.3} samples late ({:.2} us)", self.delay_i * fs, sd("delay_i") * fs, 1e6 * self.delay_i));
+            parts.push(format!(
+                "current {:.3} +- {:.3} samples late ({:.2} us)",
+                self.delay_i * fs,
+                sd("delay_i") * fs,
+                1e6 * self.delay_i
+            ));
         }
         if fitted("hp_u") {
             parts.push(format!("voltage AC-coupled at {:.2} +- {:.2} Hz", self.hp_u, sd("hp_u")));
@@ -288,7 +293,11 @@ impl Chain {
             parts.push(format!("offsets {:.3e} V, {:.3e} +- {:.1e} A", self.dc_u, self.dc_i, sd("dc_i")));
         }
         if let Some(h) = &self.hum {
-            parts.push(format!("hum at {} Hz: {}", h.f, h.i.iter().map(|l| format!("{:.2e}", l[0])).collect::<Vec<_>>().join(", ") + " A"));
+            parts.push(format!(
+                "hum at {} Hz: {}",
+                h.f,
+                h.i.iter().map(|l| format!("{:.2e}", l[0])).collect::<Vec<_>>().join(", ") + " A"
+            ));
         }
         if parts.is_empty() {
             "ideal (no delay or AC coupling found)".to_string()
@@ -329,7 +338,10 @@ impl Chain {
         let uc: Vec<f64> = (0..n).map(|m| u_rec[m] - au[m]).collect();
         let ic: Vec<f64> = (0..n).map(|m| i_rec[m] - ai[m]).collect();
         let g = self.gain_i.unwrap_or(1.0);
-        (hp_inverse(&uc, self.hp_u, fs), delay(&hp_inverse(&ic, self.hp_i, fs), -self.delay_i * fs).into_iter().map(|v| v / g).collect())
+        (
+            hp_inverse(&uc, self.hp_u, fs),
+            delay(&hp_inverse(&ic, self.hp_i, fs), -self.delay_i * fs).into_iter().map(|v| v / g).collect(),
+        )
     }
 
     /// The physical `u`, `i` behind the records of a new measurement through a *calibrated*
@@ -345,12 +357,19 @@ impl Chain {
 
     /// What the chain multiplies the recorded `U/I` by at `f`: `Z_rec = Z * ratio`.
     pub fn impedance_factor(&self, f: f64, fs: f64) -> Complex64 {
-        hp_response(self.hp_u, f, fs) / hp_response(self.hp_i, f, fs) * Complex64::from_polar(1.0 / self.gain_i.unwrap_or(1.0), 2.0 * PI * f * self.delay_i)
+        hp_response(self.hp_u, f, fs) / hp_response(self.hp_i, f, fs)
+            * Complex64::from_polar(1.0 / self.gain_i.unwrap_or(1.0), 2.0 * PI * f * self.delay_i)
     }
 
     /// True when every quantity is 0 (an ideal chain).
     pub fn is_ideal(&self) -> bool {
-        self.delay_i == 0.0 && self.hp_u == 0.0 && self.hp_i == 0.0 && self.gain_i.is_none_or(|g| g == 1.0) && self.dc_u == 0.0 && self.dc_i == 0.0 && self.hum.is_none()
+        self.delay_i == 0.0
+            && self.hp_u == 0.0
+            && self.hp_i == 0.0
+            && self.gain_i.is_none_or(|g| g == 1.0)
+            && self.dc_u == 0.0
+            && self.dc_i == 0.0
+            && self.hum.is_none()
     }
 }
 
@@ -497,7 +516,11 @@ mod tests {
                 let whole = s.delayed(&shared);
                 assert_eq!(whole.len(), x.len());
                 for r in [0..3000, 0..1, 17..2900, 2999..3000, 5..5] {
-                    assert_eq!(s.delayed_range(&shared, r.clone()), whole[r.clone()].to_vec(), "tau {tau}, range {r:?}");
+                    assert_eq!(
+                        s.delayed_range(&shared, r.clone()),
+                        whole[r.clone()].to_vec(),
+                        "tau {tau}, range {r:?}"
+                    );
                 }
             }
         }
@@ -581,7 +604,15 @@ mod tests {
         let fs = 48000.0;
         let n = 96000;
         let (u, i) = (noise(2, n), noise(3, n));
-        let c = Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, dc_u: 0.01, dc_i: 1e-3, hum: Some(Hum { f: 50.0, u: vec![[1e-3, 0.2], [0.0, 0.0], [5e-4, 1.0]], i: vec![[1e-4, -0.5]] }), ..Chain::default() };
+        let c = Chain {
+            delay_i: 0.3 / fs,
+            hp_u: 2.0,
+            hp_i: 4.0,
+            dc_u: 0.01,
+            dc_i: 1e-3,
+            hum: Some(Hum { f: 50.0, u: vec![[1e-3, 0.2], [0.0, 0.0], [5e-4, 1.0]], i: vec![[1e-4, -0.5]] }),
+            ..Chain::default()
+        };
         let (ur, ir) = c.apply(&u, &i, fs);
         let (ub, ib) = c.invert(&ur, &ir, fs);
         // Exact but at the record's ends: what a fractional delay moves past them is not
@@ -597,7 +628,8 @@ mod tests {
         assert!(err(&u, &ub) < 3e-3 * rms, "{}", err(&u, &ub) / rms);
         // The impedance factor: the recorded U/I of a resistor.
         let z = c2.impedance_factor(100.0, fs);
-        let want = hp_response(2.0, 100.0, fs) / (hp_response(4.0, 100.0, fs) * Complex64::from_polar(1.0, -2.0 * PI * 100.0 * 0.3 / fs));
+        let want = hp_response(2.0, 100.0, fs)
+            / (hp_response(4.0, 100.0, fs) * Complex64::from_polar(1.0, -2.0 * PI * 100.0 * 0.3 / fs));
         assert!((z - want).norm() < 1e-12);
     }
 
@@ -610,7 +642,19 @@ mod tests {
         let (u, i) = (noise(4, n), noise(5, n));
         let rs = 0.47;
         let w = SenseWiring::DriverPlusShunt { ohm: rs };
-        for c in [Chain::default(), Chain { delay_i: 0.4 / fs, hp_u: 1.0, hp_i: 5.0, dc_u: 0.02, dc_i: -2e-3, gain_i: Some(1.03), ..Chain::default() }, Chain { delay_i: -0.2 / fs, hp_u: 3.0, hp_i: 3.0, ..Chain::default() }] {
+        for c in [
+            Chain::default(),
+            Chain {
+                delay_i: 0.4 / fs,
+                hp_u: 1.0,
+                hp_i: 5.0,
+                dc_u: 0.02,
+                dc_i: -2e-3,
+                gain_i: Some(1.03),
+                ..Chain::default()
+            },
+            Chain { delay_i: -0.2 / fs, hp_u: 3.0, hp_i: 3.0, ..Chain::default() },
+        ] {
             let (ur, ir) = c.apply(&w.channel_voltage(&u, &i), &i, fs);
             let (ut, _) = c.apply(&u, &i, fs);
             let got = c.remove_shunt_drop(&ur, &ir, rs, fs);
@@ -625,7 +669,9 @@ mod tests {
         }
         assert_eq!(SenseWiring::parse("driver+shunt", Some(0.1)).unwrap(), SenseWiring::DriverPlusShunt { ohm: 0.1 });
         assert_eq!(SenseWiring::parse("terminals", None).unwrap(), SenseWiring::Terminals);
-        for (w, r, say) in [("driver+shunt", None, "--sense-ohm"), ("driver+shunt", Some(-1.0), "-1"), ("both", None, "terminals")] {
+        for (w, r, say) in
+            [("driver+shunt", None, "--sense-ohm"), ("driver+shunt", Some(-1.0), "-1"), ("both", None, "terminals")]
+        {
             let e = SenseWiring::parse(w, r).unwrap_err();
             assert!(e.contains(say), "{e}");
         }
@@ -633,7 +679,8 @@ mod tests {
 
     #[test]
     fn chain_round_trips_as_json_with_unknown_keys() {
-        let text = r#"{"delay_i":6.25e-6,"hp_u":2.0,"hp_i":4.0,"dc_i":0.001,"hum":{"f":50.0,"i":[[1e-4,0.5]]},"future":1}"#;
+        let text =
+            r#"{"delay_i":6.25e-6,"hp_u":2.0,"hp_i":4.0,"dc_i":0.001,"hum":{"f":50.0,"i":[[1e-4,0.5]]},"future":1}"#;
         let c: Chain = serde_json::from_str(text).unwrap();
         assert_eq!(c.hp_i, 4.0);
         assert_eq!(c.other["future"], 1);

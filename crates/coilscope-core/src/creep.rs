@@ -33,7 +33,13 @@ pub const F_MAX: f64 = 2000.0;
 /// Relaxation times `tau_k = 1 / (2 pi f_k)` of the bank (s), slowest first (computed once:
 /// the linear fit evaluates the bank at every bin).
 pub fn taus() -> &'static [f64] {
-    static TAUS: std::sync::LazyLock<Vec<f64>> = std::sync::LazyLock::new(|| (0..).map(|k| F_MIN * 10f64.powf(k as f64 / PER_DECADE as f64)).take_while(|&f| f <= F_MAX * (1.0 + 1e-9)).map(|f| 1.0 / (2.0 * PI * f)).collect());
+    static TAUS: std::sync::LazyLock<Vec<f64>> = std::sync::LazyLock::new(|| {
+        (0..)
+            .map(|k| F_MIN * 10f64.powf(k as f64 / PER_DECADE as f64))
+            .take_while(|&f| f <= F_MAX * (1.0 + 1e-9))
+            .map(|f| 1.0 / (2.0 * PI * f))
+            .collect()
+    });
     &TAUS
 }
 

@@ -35,11 +35,21 @@ impl Effects {
     }
     /// The effects in either set.
     pub fn union(self, other: Effects) -> Effects {
-        Effects { creep: self.creep || other.creep, lr3: self.lr3 || other.lr3, le_i: self.le_i || other.le_i, rms_v: self.rms_v || other.rms_v }
+        Effects {
+            creep: self.creep || other.creep,
+            lr3: self.lr3 || other.lr3,
+            le_i: self.le_i || other.le_i,
+            rms_v: self.rms_v || other.rms_v,
+        }
     }
     /// The effects in `self` and not in `other`.
     pub fn without(self, other: Effects) -> Effects {
-        Effects { creep: self.creep && !other.creep, lr3: self.lr3 && !other.lr3, le_i: self.le_i && !other.le_i, rms_v: self.rms_v && !other.rms_v }
+        Effects {
+            creep: self.creep && !other.creep,
+            lr3: self.lr3 && !other.lr3,
+            le_i: self.le_i && !other.le_i,
+            rms_v: self.rms_v && !other.rms_v,
+        }
     }
     /// The effects a small-signal fit can see (creep, LR-3).
     pub fn small_signal(self) -> Effects {
@@ -64,7 +74,12 @@ impl Effects {
     }
     /// The parameter-schema keys the effects add (`creep.lambda`, `L3`, `R3`, `Le_i`, `Rms_v`).
     pub fn keys(self) -> Vec<&'static str> {
-        let on = [(self.creep, &["creep.lambda"][..]), (self.lr3, &["L3", "R3"][..]), (self.le_i, &["Le_i"][..]), (self.rms_v, &["Rms_v"][..])];
+        let on = [
+            (self.creep, &["creep.lambda"][..]),
+            (self.lr3, &["L3", "R3"][..]),
+            (self.le_i, &["Le_i"][..]),
+            (self.rms_v, &["Rms_v"][..]),
+        ];
         on.iter().filter(|(b, _)| *b).flat_map(|(_, k)| k.iter().copied()).collect()
     }
     /// The effects in words, without the LR-2 base (`Le(i) and Rms(v)`; empty for none).
@@ -88,7 +103,11 @@ impl Effects {
                 "lr3" | "LR-3" => e.lr3 = true,
                 "lei" | "Le_i" | "Le(i)" => e.le_i = true,
                 "rmsv" | "Rms_v" | "Rms(v)" => e.rms_v = true,
-                other => return Err(format!("unknown effect {other:?}; valid: none, creep, lr3, lei, rmsv (comma-separated), or auto")),
+                other => {
+                    return Err(format!(
+                        "unknown effect {other:?}; valid: none, creep, lr3, lei, rmsv (comma-separated), or auto"
+                    ))
+                }
             }
         }
         Ok(e)

@@ -142,7 +142,10 @@ pub struct SignalSpec {
 
 fn check_band(fs: f64, f_lo: f64, f_hi: f64) -> Result<(), String> {
     if !(f_lo > 0.0 && f_hi > f_lo && f_hi < fs / 2.0) {
-        return Err(format!("band {f_lo} .. {f_hi} Hz is not valid at {fs} Hz: need 0 < f_lo < f_hi < fs/2 = {} Hz", fs / 2.0));
+        return Err(format!(
+            "band {f_lo} .. {f_hi} Hz is not valid at {fs} Hz: need 0 < f_lo < f_hi < fs/2 = {} Hz",
+            fs / 2.0
+        ));
     }
     Ok(())
 }
@@ -226,7 +229,10 @@ pub fn generate(exc: &Excitation, spec: &SignalSpec) -> Result<Vec<f64>, String>
             let np = np.round() as usize;
             let bins = readable_multitone(f_lo.ceil() as usize, f_hi.floor() as usize, count);
             if bins.len() < 2 {
-                return Err(format!("only {} readable tone(s) between {f_lo} and {f_hi} Hz: widen the band", bins.len()));
+                return Err(format!(
+                    "only {} readable tone(s) between {f_lo} and {f_hi} Hz: widen the band",
+                    bins.len()
+                ));
             }
             let mut spec = vec![Complex64::new(0.0, 0.0); np / 2 + 1];
             for &b in &bins {
@@ -304,7 +310,9 @@ pub fn is_readable_multitone(set: &[usize]) -> bool {
     for a in 0..n {
         for b in a..n {
             let sum = f[a] + f[b];
-            if (a != b && (harmonic(sum) || fundamental(sum))) || (a == b && (fundamental(sum) || f.iter().any(|&k| sum == 3 * k))) {
+            if (a != b && (harmonic(sum) || fundamental(sum)))
+                || (a == b && (fundamental(sum) || f.iter().any(|&k| sum == 3 * k)))
+            {
                 return false;
             }
             let diff = (f[a] - f[b]).abs();
@@ -482,7 +490,11 @@ mod tests {
     /// with the band, its level and the table's.
     #[test]
     fn iec_signal_meets_every_table_ii_band_on_30_s_records() {
-        let cases: Vec<(Excitation, f64, u64)> = (1..=3).map(|seed| (Excitation::Iec, 48000.0, seed)).chain((1..=3).map(|seed| (Excitation::IecCrest { crest: None }, 48000.0, seed))).chain([(Excitation::Iec, 96000.0, 4)]).collect();
+        let cases: Vec<(Excitation, f64, u64)> = (1..=3)
+            .map(|seed| (Excitation::Iec, 48000.0, seed))
+            .chain((1..=3).map(|seed| (Excitation::IecCrest { crest: None }, 48000.0, seed)))
+            .chain([(Excitation::Iec, 96000.0, 4)])
+            .collect();
         let mut worst_margin = f64::INFINITY;
         for (exc, fs, seed) in cases {
             let x = generate(&exc, &SignalSpec { fs, seconds: 30.0, rms: 1.0, fade: 0.0, seed }).unwrap();
@@ -491,14 +503,21 @@ mod tests {
             let band = |k: usize| {
                 let fc = iec_band_centre(k);
                 let (lo, hi) = (fc * 10f64.powf(-0.05), fc * 10f64.powf(0.05));
-                spec.iter().enumerate().filter(|(b, _)| (lo..hi).contains(&(*b as f64 * fs / n as f64))).map(|(_, c)| c.norm_sqr()).sum::<f64>()
+                spec.iter()
+                    .enumerate()
+                    .filter(|(b, _)| (lo..hi).contains(&(*b as f64 * fs / n as f64)))
+                    .map(|(_, c)| c.norm_sqr())
+                    .sum::<f64>()
             };
             let zero: f64 = (11..=16).map(band).sum::<f64>() / 6.0;
             let cf = crest_factor(&x);
             for (k, &(nominal, level, tol)) in IEC_TABLE_II.iter().enumerate() {
                 let got = 10.0 * (band(k) / zero).log10();
                 worst_margin = worst_margin.min(tol - (got - level).abs());
-                assert!((got - level).abs() <= tol, "{exc:?} at {fs} Hz, seed {seed}: the {nominal} Hz band is {got:.2} dB, Table II {level} +- {tol}");
+                assert!(
+                    (got - level).abs() <= tol,
+                    "{exc:?} at {fs} Hz, seed {seed}: the {nominal} Hz band is {got:.2} dB, Table II {level} +- {tol}"
+                );
             }
             match exc {
                 Excitation::Iec => assert!((cf - IEC_CREST).abs() < 0.1, "crest {cf}"),

@@ -242,7 +242,12 @@ where
 /// `u_points.len() / 2` equal steps `step(y, h, u0, um, u1)` over one sample period `dt`, the
 /// input at each step's start, midpoint and end from `u_points`.
 #[inline(always)]
-fn steps_over_sample<D: Copy, const N: usize>(y: &[D; N], dt: f64, u_points: &[D], step: impl Fn(&[D; N], f64, D, D, D) -> [D; N]) -> [D; N] {
+fn steps_over_sample<D: Copy, const N: usize>(
+    y: &[D; N],
+    dt: f64,
+    u_points: &[D],
+    step: impl Fn(&[D; N], f64, D, D, D) -> [D; N],
+) -> [D; N] {
     let n = (u_points.len() - 1) / 2;
     let h = dt / n as f64;
     let mut y = *y;
@@ -352,7 +357,8 @@ fn phis_and_halves<D: DualNum<Primitive = f64> + Copy>(z: D) -> ([D; 6], [D; 6])
     let rh = r * 2.0;
     let (mut full, mut half) = ([e; 6], [eh; 6]);
     // Partial sums of the series and powers of 1/z, independent of the exponential.
-    let (mut t, mut th, mut zk, mut zhk, mut rk, mut rhk) = (D::zero(), D::zero(), D::one(), D::one(), D::one(), D::one());
+    let (mut t, mut th, mut zk, mut zhk, mut rk, mut rhk) =
+        (D::zero(), D::zero(), D::one(), D::one(), D::one(), D::one());
     for k in 1..6 {
         t += zk * INV_FACT[k - 1];
         th += zhk * INV_FACT[k - 1];
@@ -374,7 +380,10 @@ const PHI_PAIR_SERIES: f64 = 0.2;
 /// `g_k(M) = alpha_k I + beta_k M` (the interpolating polynomial on its two eigenvalues).
 /// The eigenvalues are real: `M` is an RL network's `-L^-1 R`, similar to a symmetric matrix.
 #[inline]
-fn matrix_functions<D: DualNum<Primitive = f64> + Copy, const K: usize>(m: &[[D; 2]; 2], g: impl Fn(D) -> [D; K]) -> [(D, D); K] {
+fn matrix_functions<D: DualNum<Primitive = f64> + Copy, const K: usize>(
+    m: &[[D; 2]; 2],
+    g: impl Fn(D) -> [D; K],
+) -> [(D, D); K] {
     let half_tr = (m[0][0] + m[1][1]) * 0.5;
     let diff = (m[0][0] - m[1][1]) * 0.5;
     let disc = diff * diff + m[0][1] * m[1][0];
@@ -496,15 +505,24 @@ impl<D: DualNum<Primitive = f64> + Copy> EtdCoefficients<D> {
         let [e1, p11, p21, p31, p41, p51] = matrix_functions(&full, phis::<D, 6>);
         const FACT: [f64; 5] = [1.0, 1.0, 2.0, 6.0, 24.0];
         const HALF_POW: [f64; 5] = [0.5, 0.25, 0.125, 0.0625, 0.03125];
-        let drive_half = std::array::from_fn(|k| Pair::of([p15, p25, p35, p45, p55][k], 0.5 * h, h * HALF_POW[k] * FACT[k]));
+        let drive_half =
+            std::array::from_fn(|k| Pair::of([p15, p25, p35, p45, p55][k], 0.5 * h, h * HALF_POW[k] * FACT[k]));
         let drive_full = std::array::from_fn(|k| Pair::of([p11, p21, p31, p41, p51][k], h, h * FACT[k]));
         Self::from_functions(a, h, [e5, p15, p25, p35], [e1, p11, p21, p31], Some((drive_half, drive_full)))
     }
 
     #[inline(always)]
     #[allow(clippy::type_complexity)]
-    fn from_functions(a: &[[D; 2]; 2], h: f64, [e5, p15, p25, p35]: [(D, D); 4], [e1, p11, p21, p31]: [(D, D); 4], drive: Option<([Pair<D>; 5], [Pair<D>; 5])>) -> Self {
-        let lin = |f: &[(D, D)], w: &[f64]| -> (D, D) { f.iter().zip(w).fold((D::zero(), D::zero()), |acc, (g, &c)| (acc.0 + g.0 * c, acc.1 + g.1 * c)) };
+    fn from_functions(
+        a: &[[D; 2]; 2],
+        h: f64,
+        [e5, p15, p25, p35]: [(D, D); 4],
+        [e1, p11, p21, p31]: [(D, D); 4],
+        drive: Option<([Pair<D>; 5], [Pair<D>; 5])>,
+    ) -> Self {
+        let lin = |f: &[(D, D)], w: &[f64]| -> (D, D) {
+            f.iter().zip(w).fold((D::zero(), D::zero()), |acc, (g, &c)| (acc.0 + g.0 * c, acc.1 + g.1 * c))
+        };
         // a52 = a53 = phi2(M/2)/2 - phi3(M/2)/2 + phi2(M)/4 - phi3(M): a pair on each matrix.
         let a52h = lin(&[p25, p35], &[0.5, -0.5]);
         let a52f = lin(&[p21, p31], &[0.25, -1.0]);
@@ -547,7 +565,13 @@ impl<D: DualNum<Primitive = f64> + Copy> EtdCoefficients<D> {
 /// four-stage ETDRK4, tried first, has stiff order 2: its stage currents put an error of 3e-4
 /// of the peak into a microspeaker's displacement at two steps per sample).
 #[inline]
-pub fn etd4_step<D, S, const N: usize>(sys: &S, y: &[D; N], k: &EtdCoefficients<D>, [u0, um, u1]: [D; 3], drive: Option<&Drive<D>>) -> [D; N]
+pub fn etd4_step<D, S, const N: usize>(
+    sys: &S,
+    y: &[D; N],
+    k: &EtdCoefficients<D>,
+    [u0, um, u1]: [D; 3],
+    drive: Option<&Drive<D>>,
+) -> [D; N]
 where
     D: DualNum<Primitive = f64> + Copy,
     S: Dynamics<D, N>,
@@ -722,7 +746,15 @@ impl<D: DualNum<Primitive = f64> + Copy> Etd2Coefficients<D> {
 /// the microspeaker's Le(x) columns missed a reference's by 30 % (with them 1.7-3.8 %; its
 /// mechanical ones 3.9-4.6 %, the midpoint's quadrature of a current that follows the drive).
 #[inline]
-pub fn etd2_step<D, S, const N: usize>(sys: &S, y: &[D; N], k: &Etd2Coefficients<D>, b: D, u0: D, um: D, u1: D) -> [D; N]
+pub fn etd2_step<D, S, const N: usize>(
+    sys: &S,
+    y: &[D; N],
+    k: &Etd2Coefficients<D>,
+    b: D,
+    u0: D,
+    um: D,
+    u1: D,
+) -> [D; N]
 where
     D: DualNum<Primitive = f64> + Copy,
     S: Dynamics<D, N>,
@@ -757,7 +789,12 @@ where
 /// `e^{M/2} y` and `e^M y` on the currents (`e5`, `e1` as pairs on `a`): where every stage
 /// of an exponential step starts.
 #[inline(always)]
-fn exponentials_on_currents<D: DualNum<Primitive = f64> + Copy, const N: usize>(y: &[D; N], a: &[[D; 2]; 2], e5: &Pair<D>, e1: &Pair<D>) -> ([D; 2], [D; 2]) {
+fn exponentials_on_currents<D: DualNum<Primitive = f64> + Copy, const N: usize>(
+    y: &[D; N],
+    a: &[[D; 2]; 2],
+    e5: &Pair<D>,
+    e1: &Pair<D>,
+) -> ([D; 2], [D; 2]) {
     use crate::model::idx::{I, I2};
     let y_el = [y[I], y[I2]];
     let ay = mat_vec(a, y_el);
@@ -789,7 +826,12 @@ where
 /// A stage of [`etd4_step`]: `ey` (e^{cM} y on the currents) + sum_j (h a_j) N_j, and on the
 /// other states y + h sum_j a_j(0) N_j (`at0`, zero terms left out).
 #[inline(always)]
-fn etd_stage<D: DualNum<Primitive = f64> + Copy, const N: usize>(y: &[D; N], h: f64, ey: [D; 2], terms: &[(&Pair<D>, f64, &Rest<D, N>)]) -> [D; N] {
+fn etd_stage<D: DualNum<Primitive = f64> + Copy, const N: usize>(
+    y: &[D; N],
+    h: f64,
+    ey: [D; 2],
+    terms: &[(&Pair<D>, f64, &Rest<D, N>)],
+) -> [D; N] {
     use crate::model::idx::{I, I2};
     let mut s: [D; N] = *y;
     for j in (0..N).filter(|&j| j != I && j != I2) {
@@ -875,8 +917,11 @@ mod net {
     #[inline]
     pub(super) fn eigenvalues3<D: DualNum<Primitive = f64> + Copy>(m: &[[D; 3]; 3]) -> [D; 3] {
         let t = -(m[0][0] + m[1][1] + m[2][2]);
-        let s = (m[0][0] * m[1][1] - m[0][1] * m[1][0]) + (m[0][0] * m[2][2] - m[0][2] * m[2][0]) + (m[1][1] * m[2][2] - m[1][2] * m[2][1]);
-        let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+        let s = (m[0][0] * m[1][1] - m[0][1] * m[1][0])
+            + (m[0][0] * m[2][2] - m[0][2] * m[2][0])
+            + (m[1][1] * m[2][2] - m[1][2] * m[2][1]);
+        let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
         let p = -det;
         let (tf, sf, pf) = (t.re(), s.re(), p.re());
         let poly = |x: f64| ((x + tf) * x + sf) * x + pf;
@@ -932,7 +977,10 @@ mod net {
     /// eigenvalues ([`eigenvalues3`]) in Newton's form, from the largest (nearest zero) down:
     /// `g[mu1] + g[mu1, mu2] (M - mu1) + g[mu1, mu2, mu3] (M - mu1) (M - mu2)`.
     #[inline]
-    pub(super) fn matrix_functions3<D: DualNum<Primitive = f64> + Copy, const K: usize>(m: &[[D; 3]; 3], g: impl Fn(D) -> [D; K]) -> [[D; 3]; K] {
+    pub(super) fn matrix_functions3<D: DualNum<Primitive = f64> + Copy, const K: usize>(
+        m: &[[D; 3]; 3],
+        g: impl Fn(D) -> [D; K],
+    ) -> [[D; 3]; K] {
         let [mu1, mu2, mu3] = eigenvalues3(m);
         let (g1, g2, g3) = (g(mu1), g(mu2), g(mu3));
         let (i12, i23, i13) = ((mu1 - mu2).recip(), (mu2 - mu3).recip(), (mu1 - mu3).recip());
@@ -1093,14 +1141,21 @@ mod net {
             let [e1, p11, p21, p31, p41, p51] = full.functions(phis::<D, 6>);
             const FACT: [f64; 5] = [1.0, 1.0, 2.0, 6.0, 24.0];
             const HALF_POW: [f64; 5] = [0.5, 0.25, 0.125, 0.0625, 0.03125];
-            let drive_half = std::array::from_fn(|k| NetFn::of([p15, p25, p35, p45, p55][k], 0.5 * h, h * HALF_POW[k] * FACT[k]));
+            let drive_half =
+                std::array::from_fn(|k| NetFn::of([p15, p25, p35, p45, p55][k], 0.5 * h, h * HALF_POW[k] * FACT[k]));
             let drive_full = std::array::from_fn(|k| NetFn::of([p11, p21, p31, p41, p51][k], h, h * FACT[k]));
             Self::from_functions(a, h, [e5, p15, p25, p35], [e1, p11, p21, p31], Some((drive_half, drive_full)))
         }
 
         #[inline(always)]
         #[allow(clippy::type_complexity)]
-        fn from_functions(a: &[[D; M]; M], h: f64, [e5, p15, p25, p35]: [[D; M]; 4], [e1, p11, p21, p31]: [[D; M]; 4], drive: Option<([NetFn<D, M>; 5], [NetFn<D, M>; 5])>) -> Self {
+        fn from_functions(
+            a: &[[D; M]; M],
+            h: f64,
+            [e5, p15, p25, p35]: [[D; M]; 4],
+            [e1, p11, p21, p31]: [[D; M]; 4],
+            drive: Option<([NetFn<D, M>; 5], [NetFn<D, M>; 5])>,
+        ) -> Self {
             let lin = |f: &[[D; M]], w: &[f64]| -> [D; M] {
                 build(|j| {
                     let mut acc = D::zero();
@@ -1144,7 +1199,13 @@ mod net {
     }
 
     #[inline]
-    pub fn etd4_step<D, S, const N: usize, const M: usize>(sys: &S, y: &[D; N], k: &EtdCoefficients<D, M>, [u0, um, u1]: [D; 3], drive: Option<&Drive<D>>) -> [D; N]
+    pub fn etd4_step<D, S, const N: usize, const M: usize>(
+        sys: &S,
+        y: &[D; N],
+        k: &EtdCoefficients<D, M>,
+        [u0, um, u1]: [D; 3],
+        drive: Option<&Drive<D>>,
+    ) -> [D; N]
     where
         D: DualNum<Primitive = f64> + Copy,
         S: Dynamics<D, N>,
@@ -1178,7 +1239,8 @@ mod net {
         let s3 = etd_stage(y, h, ey5, &[(&k.a31, 0.0, &n1), (&k.a32, 0.5, &n2)]);
         let n3 = rest(&s3, um);
         // Stages 2 and 3 share their coefficients in stages 4 and 5 (a42 = a43, a52 = a53).
-        let n23 = Rest { n: std::array::from_fn(|j| n2.n[j] + n3.n[j]), kn: build(|q| build(|j| n2.kn[q][j] + n3.kn[q][j])) };
+        let n23 =
+            Rest { n: std::array::from_fn(|j| n2.n[j] + n3.n[j]), kn: build(|q| build(|j| n2.kn[q][j] + n3.kn[q][j])) };
         let s4 = etd_stage(y, h, ey1, &[(&k.a41, 0.0, &n1), (&k.a42, 0.5, &n23)]);
         let n4 = rest(&s4, u1);
         let s5 = etd_stage(y, h, ey5, &[(&k.a51, 0.25, &n1), (&k.a52, 0.125, &n23), (&k.a54, 0.0, &n4)]);
@@ -1228,13 +1290,25 @@ mod net {
     /// `f(A) (v, 0, ..)`: a function of the network on a vector in the current `i` alone (the
     /// drive's), `ke` the Krylov vectors of that current's unit vector ([`krylov_of_current`]).
     #[inline(always)]
-    fn on_current<D: DualNum<Primitive = f64> + Copy, const M: usize>(ke: &[[D; M]; M], f: &NetFn<D, M>, v: D) -> [D; M] {
+    fn on_current<D: DualNum<Primitive = f64> + Copy, const M: usize>(
+        ke: &[[D; M]; M],
+        f: &NetFn<D, M>,
+        v: D,
+    ) -> [D; M] {
         let kv: [[D; M]; M] = build(|q| build(|j| ke[q][j] * v));
         f.apply(&kv)
     }
 
     #[inline]
-    pub fn etd2_step<D, S, const N: usize, const M: usize>(sys: &S, y: &[D; N], k: &Etd2Coefficients<D, M>, b: D, u0: D, um: D, u1: D) -> [D; N]
+    pub fn etd2_step<D, S, const N: usize, const M: usize>(
+        sys: &S,
+        y: &[D; N],
+        k: &Etd2Coefficients<D, M>,
+        b: D,
+        u0: D,
+        um: D,
+        u1: D,
+    ) -> [D; N]
     where
         D: DualNum<Primitive = f64> + Copy,
         S: Dynamics<D, N>,
@@ -1250,7 +1324,13 @@ mod net {
     }
 
     #[inline(always)]
-    pub(super) fn etd2_sample_on<D, S, const N: usize, const M: usize>(sys: &S, y: &[D; N], dt: f64, u_points: &[D], a: &[[D; M]; M]) -> [D; N]
+    pub(super) fn etd2_sample_on<D, S, const N: usize, const M: usize>(
+        sys: &S,
+        y: &[D; N],
+        dt: f64,
+        u_points: &[D],
+        a: &[[D; M]; M],
+    ) -> [D; N]
     where
         D: DualNum<Primitive = f64> + Copy,
         S: Electrical<D, N>,
@@ -1265,7 +1345,12 @@ mod net {
     /// `e^{M/2} y` and `e^M y` on the currents (`e5`, `e1` as functions of `a`): where every
     /// stage of an exponential step starts.
     #[inline(always)]
-    fn exponentials_on_currents<D: DualNum<Primitive = f64> + Copy, const N: usize, const M: usize>(y: &[D; N], a: &[[D; M]; M], e5: &NetFn<D, M>, e1: &NetFn<D, M>) -> ([D; M], [D; M]) {
+    fn exponentials_on_currents<D: DualNum<Primitive = f64> + Copy, const N: usize, const M: usize>(
+        y: &[D; N],
+        a: &[[D; M]; M],
+        e5: &NetFn<D, M>,
+        e1: &NetFn<D, M>,
+    ) -> ([D; M], [D; M]) {
         let idx = const { currents::<M>() };
         let ky = krylov(a, build(|k| y[idx[k]]));
         (e5.apply(&ky), e1.apply(&ky))
@@ -1297,7 +1382,14 @@ mod net {
     /// [`etd_rest`] less the drive `b u` (`b`: its gain, `None`: the drive stays in `N`) on the
     /// current, `ke` the Krylov vectors of that current's unit vector.
     #[inline(always)]
-    fn etd_rest_driven<D, S, const N: usize, const M: usize>(sys: &S, a: &[[D; M]; M], s: &[D; N], u: D, b: Option<D>, ke: &[[D; M]; M]) -> Rest<D, N, M>
+    fn etd_rest_driven<D, S, const N: usize, const M: usize>(
+        sys: &S,
+        a: &[[D; M]; M],
+        s: &[D; N],
+        u: D,
+        b: Option<D>,
+        ke: &[[D; M]; M],
+    ) -> Rest<D, N, M>
     where
         D: DualNum<Primitive = f64> + Copy,
         S: Dynamics<D, N>,
@@ -1319,7 +1411,12 @@ mod net {
     /// A stage of [`etd4_step`]: `ey` (e^{cM} y on the currents) + sum_j (h a_j) N_j, and on the
     /// other states y + h sum_j a_j(0) N_j (`at0`, zero terms left out).
     #[inline(always)]
-    fn etd_stage<D: DualNum<Primitive = f64> + Copy, const N: usize, const M: usize>(y: &[D; N], h: f64, ey: [D; M], terms: &[(&NetFn<D, M>, f64, &Rest<D, N, M>)]) -> [D; N] {
+    fn etd_stage<D: DualNum<Primitive = f64> + Copy, const N: usize, const M: usize>(
+        y: &[D; N],
+        h: f64,
+        ey: [D; M],
+        terms: &[(&NetFn<D, M>, f64, &Rest<D, N, M>)],
+    ) -> [D; N] {
         let idx = const { currents::<M>() };
         let mut s: [D; N] = *y;
         for j in (0..N).filter(|j| !idx.contains(j)) {
@@ -1342,7 +1439,13 @@ mod net {
 
     /// [`etd4_sample`] on the network `a` (2 x 2, or 3 x 3 with an LR-3 branch).
     #[inline(always)]
-    pub(super) fn etd4_sample_on<D, S, const N: usize, const M: usize>(sys: &S, y: &[D; N], dt: f64, u_points: &[D], a: &[[D; M]; M]) -> [D; N]
+    pub(super) fn etd4_sample_on<D, S, const N: usize, const M: usize>(
+        sys: &S,
+        y: &[D; N],
+        dt: f64,
+        u_points: &[D],
+        a: &[[D; M]; M],
+    ) -> [D; N]
     where
         D: DualNum<Primitive = f64> + Copy,
         S: Electrical<D, N>,
@@ -1438,7 +1541,9 @@ where
         d
     };
     // A half-step stage from `base` on the rate `n`, plus `add` on the current.
-    let stage = |base: &[D; N], n: &[D; N], add: D| -> [D; N] { std::array::from_fn(|k| if k == I { eh * base[k] + q1h * n[k] + add } else { base[k] + n[k] * (0.5 * h) }) };
+    let stage = |base: &[D; N], n: &[D; N], add: D| -> [D; N] {
+        std::array::from_fn(|k| if k == I { eh * base[k] + q1h * n[k] + add } else { base[k] + n[k] * (0.5 * h) })
+    };
     let n1 = rest(y, w[0]);
     let a = stage(y, &n1, dh);
     let n2 = rest(&a, w[2]);
@@ -1449,7 +1554,13 @@ where
     let n4 = rest(&s4, w[4]);
     let (p1, p2, p3) = (full[1], full[2], full[3]);
     let (b1, b23, b4) = (p1 - p2 * 3.0 + p3 * 4.0, p2 * 2.0 - p3 * 4.0, p3 * 4.0 - p2);
-    std::array::from_fn(|k| if k == I { e * y[k] + (b1 * n1[k] + b23 * (n2[k] + n3[k]) + b4 * n4[k]) * h + d1 } else { y[k] + (n1[k] + (n2[k] + n3[k]) * 2.0 + n4[k]) * (h / 6.0) })
+    std::array::from_fn(|k| {
+        if k == I {
+            e * y[k] + (b1 * n1[k] + b23 * (n2[k] + n3[k]) + b4 * n4[k]) * h + d1
+        } else {
+            y[k] + (n1[k] + (n2[k] + n3[k]) * 2.0 + n4[k]) * (h / 6.0)
+        }
+    })
 }
 
 /// Largest `|lambda| h` of the stiff electrical mode in an exponential step: the network is
@@ -1623,7 +1734,8 @@ impl Stepper {
     /// [`fit_exp_steps_for`]'s exponential steps (fewer than a simulation's,
     /// [`FIT_EXP_STIFF_LIMIT`]) and [`Stepper::for_jacobian`]. A fitted LR-3 branch is in
     /// the exponential method's network ([`Electrical::network3`]); outside it, a stiff
-    /// driver's model with one took RK4 at 21 sub-steps (a fit's vanishing LR-3 start has `R3 / L3 = 6 R2 / L2`, as fast as the
+    /// driver's model with one took RK4 at 21 sub-steps (a fit's vanishing LR-3 start has `R3 / L3
+    /// = 6 R2 / L2`, as fast as the
     /// network).
     pub fn for_fit(rates: Rates, fs: f64) -> (Self, Self) {
         (Stepper::cheaper(rates, fs, fit_exp_steps_for(rates, fs)), Stepper::for_jacobian(rates, fs))
@@ -1846,7 +1958,12 @@ mod tests {
         fn deriv(&self, y: &[D; 4], u: D) -> [D; 4] {
             let [x, v, i, i2] = *y;
             let a = &self.a;
-            [v, i * self.g - x * 4.0e4 - x * x * x * self.k3 - v * 20.0, i * a[0][0] + i2 * a[0][1] + u, i * a[1][0] + i2 * a[1][1]]
+            [
+                v,
+                i * self.g - x * 4.0e4 - x * x * x * self.k3 - v * 20.0,
+                i * a[0][0] + i2 * a[0][1] + u,
+                i * a[1][0] + i2 * a[1][1],
+            ]
         }
     }
     impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, 4> for Network {
@@ -1893,7 +2010,9 @@ mod tests {
     /// `phi_k(M)` of a 2 x 2 matrix by its Taylor series `sum_j M^j / (j + k)!` (200 terms):
     /// slow, and obviously the definition.
     fn slow_phi(m: [[f64; 2]; 2], k: usize) -> [[f64; 2]; 2] {
-        let mul = |x: [[f64; 2]; 2], y: [[f64; 2]; 2]| -> [[f64; 2]; 2] { std::array::from_fn(|r| std::array::from_fn(|c| x[r][0] * y[0][c] + x[r][1] * y[1][c])) };
+        let mul = |x: [[f64; 2]; 2], y: [[f64; 2]; 2]| -> [[f64; 2]; 2] {
+            std::array::from_fn(|r| std::array::from_fn(|c| x[r][0] * y[0][c] + x[r][1] * y[1][c]))
+        };
         let mut sum = [[0.0; 2]; 2];
         let mut power = [[1.0, 0.0], [0.0, 1.0]];
         let mut fact: f64 = (1..=k).map(|v| v as f64).product();
@@ -1918,9 +2037,14 @@ mod tests {
         let h = 1.0 / 48000.0;
         for (a, tol) in [(STIFF, 1e-8), ([[-1.2e4, 2.0e3], [3.0e3, -3.0e3]], 1e-12)] {
             let k = EtdCoefficients::new(&a, h);
-            let scaled = |c: f64| -> [[f64; 2]; 2] { std::array::from_fn(|r| std::array::from_fn(|j| a[r][j] * c * h)) };
+            let scaled =
+                |c: f64| -> [[f64; 2]; 2] { std::array::from_fn(|r| std::array::from_fn(|j| a[r][j] * c * h)) };
             let ph = |j: usize, c: f64| slow_phi(scaled(c), j);
-            let comb = |terms: &[([[f64; 2]; 2], f64)], scale: f64| -> [[f64; 2]; 2] { std::array::from_fn(|r| std::array::from_fn(|c| scale * terms.iter().map(|(m, w)| m[r][c] * w).sum::<f64>())) };
+            let comb = |terms: &[([[f64; 2]; 2], f64)], scale: f64| -> [[f64; 2]; 2] {
+                std::array::from_fn(|r| {
+                    std::array::from_fn(|c| scale * terms.iter().map(|(m, w)| m[r][c] * w).sum::<f64>())
+                })
+            };
             let a52 = comb(&[(ph(2, 0.5), 0.5), (ph(3, 1.0), -1.0), (ph(2, 1.0), 0.25), (ph(3, 0.5), -0.5)], 1.0);
             let a54 = comb(&[(ph(2, 0.5), 0.25), (a52, -1.0)], 1.0);
             let a51 = comb(&[(ph(1, 0.5), 0.5), (a52, -2.0), (a54, -1.0)], 1.0);
@@ -1944,7 +2068,12 @@ mod tests {
                 for r in 0..2 {
                     for c in 0..2 {
                         let got = if r == c { pair.p } else { 0.0 } + pair.q * a[r][c];
-                        assert!((got - want[r][c]).abs() <= tol * scale, "{name}[{r}][{c}]: {got:e} vs {:e} (|A h| {:.1})", want[r][c], a[0][0].abs() * h);
+                        assert!(
+                            (got - want[r][c]).abs() <= tol * scale,
+                            "{name}[{r}][{c}]: {got:e} vs {:e} (|A h| {:.1})",
+                            want[r][c],
+                            a[0][0].abs() * h
+                        );
                     }
                 }
             }
@@ -1970,7 +2099,12 @@ mod tests {
             let pts: Vec<f64> = (0..=4 * n).map(|j| u(j as f64 * dt / (4 * n) as f64)).collect();
             let y = etd4_sample(&sys, &y0, dt, &pts);
             for j in 2..4 {
-                assert!((y[j] - exact[j]).abs() < 1e-10 * exact[j].abs().max(1.0), "{n} steps, state {j}: {} vs {}", y[j], exact[j]);
+                assert!(
+                    (y[j] - exact[j]).abs() < 1e-10 * exact[j].abs().max(1.0),
+                    "{n} steps, state {j}: {} vs {}",
+                    y[j],
+                    exact[j]
+                );
             }
         }
         let pts: Vec<f64> = (0..=2).map(|j| u(j as f64 * dt / 2.0)).collect();
@@ -2009,7 +2143,10 @@ mod tests {
     /// sample at 48 kHz), against a tiny-step RK4 reference.
     fn coupled_errors(step: impl Fn(&Network, &[f64; 4], f64, [f64; 3]) -> [f64; 4]) -> [f64; 3] {
         let sys = Network { a: STIFF, g: 3.0e3, k3: 2.0e9 };
-        let u = |t: f64| 4.0e4 * (2.0 * std::f64::consts::PI * 700.0 * t).sin() + 1.0e4 * (2.0 * std::f64::consts::PI * 2300.0 * t).cos();
+        let u = |t: f64| {
+            4.0e4 * (2.0 * std::f64::consts::PI * 700.0 * t).sin()
+                + 1.0e4 * (2.0 * std::f64::consts::PI * 2300.0 * t).cos()
+        };
         let t_end = 2.0e-3;
         let y0 = [1e-4, 0.0, 0.0, 0.0];
         let exact = reference(&sys, y0, t_end, &u);
@@ -2028,7 +2165,8 @@ mod tests {
     fn the_exponential_method_is_fourth_order_on_the_coupled_system() {
         // A smooth drive and the nonlinear mechanics: halving h divides the error by ~16
         // even though |lambda| h stays far above RK4's stability limit.
-        let [e1, e2, e3] = coupled_errors(|sys, y, h, u| etd4_step(sys, y, &EtdCoefficients::new(&sys.electrical(y), h), u, None));
+        let [e1, e2, e3] =
+            coupled_errors(|sys, y, h, u| etd4_step(sys, y, &EtdCoefficients::new(&sys.electrical(y), h), u, None));
         assert!(e2 < 1e-5, "{e2:.3e}");
         let (r1, r2) = (e1 / e2, e2 / e3);
         assert!(r1 > 11.0 && r2 > 13.0, "error ratios {r1:.1}, {r2:.1} ({e1:.2e}, {e2:.2e}, {e3:.2e})");
@@ -2049,7 +2187,9 @@ mod tests {
         for j in 2..4 {
             assert!((y[j] - exact[j]).abs() < 1e-11 * exact[j].abs().max(1.0), "state {j}: {} vs {}", y[j], exact[j]);
         }
-        let [e1, e2, e3] = coupled_errors(|sys, y, h, [u0, um, u1]| etd2_step(sys, y, &Etd2Coefficients::new(&sys.electrical(y), h), 1.0, u0, um, u1));
+        let [e1, e2, e3] = coupled_errors(|sys, y, h, [u0, um, u1]| {
+            etd2_step(sys, y, &Etd2Coefficients::new(&sys.electrical(y), h), 1.0, u0, um, u1)
+        });
         assert!(e1 < 1e-3, "{e1:.3e}");
         let (r1, r2) = (e1 / e2, e2 / e3);
         assert!(r1 > 3.0 && r2 > 3.5, "error ratios {r1:.1}, {r2:.1} ({e1:.2e}, {e2:.2e}, {e3:.2e})");
@@ -2068,7 +2208,15 @@ mod tests {
             let [x, v, i, i2, _, _, i3] = *y;
             let a = &self.a;
             let z = D::zero();
-            [v, i * self.g - x * 4.0e4 - x * x * x * self.k3 - v * 20.0, a[0][0] * i + a[0][1] * i2 + a[0][2] * i3 + u, a[1][0] * i + a[1][1] * i2 + a[1][2] * i3, z, z, a[2][0] * i + a[2][1] * i2 + a[2][2] * i3]
+            [
+                v,
+                i * self.g - x * 4.0e4 - x * x * x * self.k3 - v * 20.0,
+                a[0][0] * i + a[0][1] * i2 + a[0][2] * i3 + u,
+                a[1][0] * i + a[1][1] * i2 + a[1][2] * i3,
+                z,
+                z,
+                a[2][0] * i + a[2][1] * i2 + a[2][2] * i3,
+            ]
         }
     }
     impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, 7> for Network3<D> {
@@ -2089,10 +2237,19 @@ mod tests {
     fn lr3_network<D: DualNum<Primitive = f64> + Copy>(r3: D) -> [[D; 3]; 3] {
         let (le, l2, l3, re, r2) = (30e-6, 15e-6, 5e-6, 7.5, 2.0);
         let z = D::zero();
-        [[-(r3 + (re + r2)) / le, D::from(r2 / le), r3 / le], [D::from(r2 / l2), D::from(-r2 / l2), z], [r3 / l3, z, -r3 / l3]]
+        [
+            [-(r3 + (re + r2)) / le, D::from(r2 / le), r3 / le],
+            [D::from(r2 / l2), D::from(-r2 / l2), z],
+            [r3 / l3, z, -r3 / l3],
+        ]
     }
 
-    fn reference3<D: DualNum<Primitive = f64> + Copy>(sys: &Network3<D>, y0: [D; 7], t: f64, u: &dyn Fn(f64) -> f64) -> [D; 7] {
+    fn reference3<D: DualNum<Primitive = f64> + Copy>(
+        sys: &Network3<D>,
+        y0: [D; 7],
+        t: f64,
+        u: &dyn Fn(f64) -> f64,
+    ) -> [D; 7] {
         let n = 200_000;
         let h = t / n as f64;
         let mut y = y0;
@@ -2128,7 +2285,9 @@ mod tests {
                 assert!(mu[0].re >= mu[1].re && mu[1].re >= mu[2].re, "{name} {r3}: order {mu:?}");
                 let tr = af[0][0] + af[1][1] + af[2][2];
                 assert!((mu.iter().map(|v| v.re).sum::<f64>() - tr).abs() < 1e-12 * big, "{name} {r3}: trace");
-                let det = af[0][0] * (af[1][1] * af[2][2] - af[1][2] * af[2][1]) - af[0][1] * (af[1][0] * af[2][2] - af[1][2] * af[2][0]) + af[0][2] * (af[1][0] * af[2][1] - af[1][1] * af[2][0]);
+                let det = af[0][0] * (af[1][1] * af[2][2] - af[1][2] * af[2][1])
+                    - af[0][1] * (af[1][0] * af[2][2] - af[1][2] * af[2][0])
+                    + af[0][2] * (af[1][0] * af[2][1] - af[1][1] * af[2][0]);
                 assert!((mu.iter().map(|v| v.re).product::<f64>() - det).abs() < 1e-9 * det.abs(), "{name} {r3}: det");
                 // The derivatives d mu / d R3 against central differences of the f64 roots.
                 let roots = |r: f64| {
@@ -2164,7 +2323,12 @@ mod tests {
         let states = [2, 3, 6];
         let check = |y: &[f64; 7], exact: &[f64; 7], tol: f64, what: &str| {
             for j in states {
-                assert!((y[j] - exact[j]).abs() < tol * exact[j].abs().max(1.0), "{what}, state {j}: {} vs {}", y[j], exact[j]);
+                assert!(
+                    (y[j] - exact[j]).abs() < tol * exact[j].abs().max(1.0),
+                    "{what}, state {j}: {} vs {}",
+                    y[j],
+                    exact[j]
+                );
             }
         };
         let exact = reference3(&sys, y0, dt, &|_| 2.0e5);
@@ -2182,7 +2346,12 @@ mod tests {
         }
         let q = |t: f64| 2.0e5 + 3.0e9 * t - 4.0e13 * t * t;
         let exact = reference3(&sys, y0, dt, &q);
-        check(&etd2_sample(&sys, &y0, dt, &[q(0.0), q(0.5 * dt), q(dt)]), &exact, 1e-11, "exponential midpoint, quadratic drive");
+        check(
+            &etd2_sample(&sys, &y0, dt, &[q(0.0), q(0.5 * dt), q(dt)]),
+            &exact,
+            1e-11,
+            "exponential midpoint, quadratic drive",
+        );
     }
 
     /// On the LR-3 network coupled to the nonlinear mechanics the
@@ -2193,7 +2362,10 @@ mod tests {
     #[test]
     fn the_exponential_method_is_fourth_order_with_an_lr3_branch_and_carries_its_sensitivity() {
         let sys = Network3 { a: lr3_network(3.0), g: 3.0e3, k3: 2.0e9 };
-        let u = |t: f64| 4.0e4 * (2.0 * std::f64::consts::PI * 700.0 * t).sin() + 1.0e4 * (2.0 * std::f64::consts::PI * 2300.0 * t).cos();
+        let u = |t: f64| {
+            4.0e4 * (2.0 * std::f64::consts::PI * 700.0 * t).sin()
+                + 1.0e4 * (2.0 * std::f64::consts::PI * 2300.0 * t).cos()
+        };
         let t_end = 2.0e-3;
         let y0 = [1e-4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
         let exact = reference3(&sys, y0, t_end, &u);
@@ -2206,16 +2378,25 @@ mod tests {
                     let p: Vec<f64> = (0..pts).map(|j| u(t0 + h * j as f64 / (pts - 1) as f64)).collect();
                     y = sample(&y, h, &p);
                 }
-                ((y[0] - exact[0]) / exact[0]).abs().max(((y[2] - exact[2]) / exact[2]).abs()).max(((y[6] - exact[6]) / exact[6]).abs())
+                ((y[0] - exact[0]) / exact[0])
+                    .abs()
+                    .max(((y[2] - exact[2]) / exact[2]).abs())
+                    .max(((y[6] - exact[6]) / exact[6]).abs())
             })
         };
         let [e1, e2, e3, e4] = errors(&|y, h, p| etd4_sample(&sys, y, h, p), 3);
         // (Measured: 7.4e-5, 8.5e-6, 6.8e-7, 4.6e-8: ratios 8.6, 12.5, 14.9 as |lambda| h
         // falls from 7.3 to 0.9, the 2 x 2 network's fastest mode being half as fast.)
         assert!(e2 < 1e-5, "{e2:.3e}");
-        assert!(e1 / e2 > 7.0 && e2 / e3 > 11.0 && e3 / e4 > 13.0, "exponential: {e1:.2e}, {e2:.2e}, {e3:.2e}, {e4:.2e}");
+        assert!(
+            e1 / e2 > 7.0 && e2 / e3 > 11.0 && e3 / e4 > 13.0,
+            "exponential: {e1:.2e}, {e2:.2e}, {e3:.2e}, {e4:.2e}"
+        );
         let [m1, m2, m3, m4] = errors(&|y, h, p| etd2_sample(&sys, y, h, p), 3);
-        assert!(m1 < 1e-3 && m1 / m2 > 3.0 && m2 / m3 > 3.5 && m3 / m4 > 3.5, "exponential midpoint: {m1:.2e}, {m2:.2e}, {m3:.2e}, {m4:.2e}");
+        assert!(
+            m1 < 1e-3 && m1 / m2 > 3.0 && m2 / m3 > 3.5 && m3 / m4 > 3.5,
+            "exponential midpoint: {m1:.2e}, {m2:.2e}, {m3:.2e}, {m4:.2e}"
+        );
         // d(state)/dR3 over ten samples of two steps.
         let dt = 1.0 / 48000.0;
         let run = |r3: Dual64| {
@@ -2268,7 +2449,12 @@ mod tests {
             // phi_4 and phi_5 by the recurrence just above |z| = 0.5 lose digits (see phis).
             for k in 0..6 {
                 let tol = if k < 4 { 1e-14 } else { 1e-11 };
-                assert!((p[k] - slow(k)).abs() < tol * slow(k).abs().max(1e-3), "phi_{k}({z}) = {} vs {}", p[k], slow(k));
+                assert!(
+                    (p[k] - slow(k)).abs() < tol * slow(k).abs().max(1e-3),
+                    "phi_{k}({z}) = {} vs {}",
+                    p[k],
+                    slow(k)
+                );
             }
         }
     }
@@ -2330,13 +2516,18 @@ mod tests {
         let sim = Stepper::for_rates(micro, fs);
         assert_eq!((sim.scheme, sim.n(), sim.points()), (Scheme::Exponential, 3, 13));
         let (r, j) = Stepper::for_fit(micro, fs);
-        assert_eq!((r.scheme, r.n(), r.points(), j.scheme, j.n(), j.points()), (Scheme::Exponential, 2, 9, Scheme::Exponential, 1, 3));
+        assert_eq!(
+            (r.scheme, r.n(), r.points(), j.scheme, j.n(), j.points()),
+            (Scheme::Exponential, 2, 9, Scheme::Exponential, 1, 3)
+        );
         // (up to |lambda| / fs = 12 in a fit, then 3).
         assert_eq!(Stepper::for_fit(Rates::stiff(12.0 * fs), fs).0.n(), 2);
         assert_eq!(Stepper::for_fit(Rates::stiff(12.1 * fs), fs).0.n(), 3);
         // A search stage's Jacobian: the midpoint rule for woofers, the exponential midpoint
         // rule for the stiff ones (RK4 between the two limits).
-        for (rates, scheme) in [(woofer, Scheme::Midpoint), (Rates::stiff(1.2 * fs), Scheme::Rk4), (micro, Scheme::ExpMidpoint)] {
+        for (rates, scheme) in
+            [(woofer, Scheme::Midpoint), (Rates::stiff(1.2 * fs), Scheme::Rk4), (micro, Scheme::ExpMidpoint)]
+        {
             let s = Stepper::for_search_jacobian(rates, fs);
             assert_eq!(s.scheme, scheme, "{rates:?}");
             assert_eq!(s.n(), if scheme == Scheme::Midpoint { 1 } else { Stepper::for_fit(rates, fs).1.n() });
@@ -2346,7 +2537,10 @@ mod tests {
         // counts in RK4's.
         let with_lr3 = Rates { stiff: 10.4 * fs, lr3: 15.0 * fs };
         let (r, j) = Stepper::for_fit(with_lr3, fs);
-        assert_eq!((exp_steps_for(with_lr3, fs), r.scheme, r.n(), j.scheme, j.n()), (3, Scheme::Exponential, 2, Scheme::Exponential, 1));
+        assert_eq!(
+            (exp_steps_for(with_lr3, fs), r.scheme, r.n(), j.scheme, j.n()),
+            (3, Scheme::Exponential, 2, Scheme::Exponential, 1)
+        );
         assert_eq!(substeps_for(with_lr3.total(), fs), 51);
         // A woofer's keeps RK4 (2 sub-steps against 2 exponential steps) until the branch
         // needs 5 RK4 sub-steps.

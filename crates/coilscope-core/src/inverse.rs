@@ -82,7 +82,16 @@ pub struct Compensation {
 /// a constant `Rms`, no thermal model (Re cold). Creep and LR-3 are kept (they are linear).
 pub fn linear_reference(p: &Parameters) -> Parameters {
     let at_rest = |f: &Poly| Poly::constant(f.c[0]);
-    Parameters { bl: at_rest(&p.bl), kms: at_rest(&p.kms), le: at_rest(&p.le), l2r2: p.l2r2.as_ref().map(|(l2, r2)| (at_rest(l2), at_rest(r2))), le_i: None, rms_v: None, thermal: None, ..p.clone() }
+    Parameters {
+        bl: at_rest(&p.bl),
+        kms: at_rest(&p.kms),
+        le: at_rest(&p.le),
+        l2r2: p.l2r2.as_ref().map(|(l2, r2)| (at_rest(l2), at_rest(r2))),
+        le_i: None,
+        rms_v: None,
+        thermal: None,
+        ..p.clone()
+    }
 }
 
 /// The drive that makes the transducer `p`, sampled at `fs`, follow the displacement of its
@@ -94,7 +103,13 @@ pub fn compensate(p: &Parameters, fs: f64, input: &[f64], opts: &CompensateOptio
 /// [`compensate`] towards the displacement of another `reference` set driven by `input`
 /// (normally a linear one: the pre-inverse identification keeps the reference fixed, from the
 /// small-signal parameters, while it adapts `p`).
-pub fn compensate_to(p: &Parameters, reference: &Parameters, fs: f64, input: &[f64], opts: &CompensateOptions) -> Result<Compensation, SimError> {
+pub fn compensate_to(
+    p: &Parameters,
+    reference: &Parameters,
+    fs: f64,
+    input: &[f64],
+    opts: &CompensateOptions,
+) -> Result<Compensation, SimError> {
     if p.creep.is_some() || p.l3r3.is_some() {
         return Err(SimError::Input(
             "compensation of a set with creep or LR-3 is not implemented: both are linear and belong in the linear reference, which does not carry them yet; compensate the set without them (the nonlinearities Bl(x), Kms(x), Le(x), Le(i), Rms(v) are compensated)".into(),
@@ -160,7 +175,15 @@ pub fn compensate_to(p: &Parameters, reference: &Parameters, fs: f64, input: &[f
     };
 
     let mut c: State<f64> = [0.0; NSTATE];
-    let mut out = Compensation { drive: Vec::with_capacity(n), x_target: reference.x.clone(), current: Vec::with_capacity(n), clipped: 0, force_factor_limited: 0, peak_volts: 0.0, warnings: vec![] };
+    let mut out = Compensation {
+        drive: Vec::with_capacity(n),
+        x_target: reference.x.clone(),
+        current: Vec::with_capacity(n),
+        clipped: 0,
+        force_factor_limited: 0,
+        peak_volts: 0.0,
+        warnings: vec![],
+    };
     let mut fl = flow(0);
     (c[idx::X], c[idx::V]) = (fl[0], fl[1]);
     let mut limited;
@@ -190,7 +213,12 @@ pub fn compensate_to(p: &Parameters, reference: &Parameters, fs: f64, input: &[f
             }
         }
         if !u.is_finite() {
-            return Err(SimError::OutOfRange { t: k as f64 / fs, sample: k, state: c, reason: "the inverse has no finite drive here".into() });
+            return Err(SimError::OutOfRange {
+                t: k as f64 / fs,
+                sample: k,
+                state: c,
+                reason: "the inverse has no finite drive here".into(),
+            });
         }
         out.force_factor_limited += limited as usize;
         out.peak_volts = out.peak_volts.max(u.abs());
@@ -246,7 +274,8 @@ mod tests {
         let fade = (0.1 * fs) as usize;
         (0..n)
             .map(|k| {
-                let env = if k < fade { 0.5 - 0.5 * (std::f64::consts::PI * k as f64 / fade as f64).cos() } else { 1.0 };
+                let env =
+                    if k < fade { 0.5 - 0.5 * (std::f64::consts::PI * k as f64 / fade as f64).cos() } else { 1.0 };
                 env * volts * (2.0 * std::f64::consts::PI * f * k as f64 / fs).sin()
             })
             .collect()
@@ -273,7 +302,11 @@ mod tests {
                 let z = [r.x[k], r.v[k], d[idx::V]];
                 let st = crate::normal_form::inverse(&m, &z).unwrap();
                 let u = (jerk - crate::normal_form::f(&m, &st)) / crate::normal_form::g(&m, &st);
-                assert!((u - c.drive[k]).abs() < 1e-8 * u.abs().max(1.0), "{name} sample {k}: Eq. 9 gives {u}, the inverse {}", c.drive[k]);
+                assert!(
+                    (u - c.drive[k]).abs() < 1e-8 * u.abs().max(1.0),
+                    "{name} sample {k}: Eq. 9 gives {u}, the inverse {}",
+                    c.drive[k]
+                );
                 assert!((st[2] - c.current[k]).abs() < 1e-9 * st[2].abs().max(1.0));
             }
         }
@@ -295,7 +328,8 @@ mod tests {
             assert!(c.warnings.is_empty(), "{name}: {:?}", c.warnings);
             let plain = simulate(&p, fs, &u_in, &SimOptions::default()).unwrap();
             let comp = simulate(&p, fs, &c.drive, &SimOptions::default()).unwrap();
-            let dev = |x: &[f64]| x.iter().zip(&c.x_target).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max) / hi.min(-lo);
+            let dev =
+                |x: &[f64]| x.iter().zip(&c.x_target).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max) / hi.min(-lo);
             let (e_plain, e_comp) = (dev(&plain.x), dev(&comp.x));
             println!("{name}: largest deviation from the linear reference, of the range: plain {e_plain:.2e}, compensated {e_comp:.2e}");
             assert!(e_plain > 0.02, "{name}: the level does not make the driver nonlinear ({e_plain:.2e})");

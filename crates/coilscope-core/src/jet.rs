@@ -613,10 +613,25 @@ mod tests {
     fn a_jet_computes_num_duals_derivatives_to_the_last_bit() {
         let mut rng = ChaCha8Rng::seed_from_u64(0x6a6574);
         for _ in 0..200 {
-            let (a, b, c, k): (f64, f64, f64, f64) = (rng.random_range(0.2..2.0), rng.random_range(0.1..3.0), rng.random_range(-2.0..2.0), rng.random_range(-3.0..3.0));
+            let (a, b, c, k): (f64, f64, f64, f64) = (
+                rng.random_range(0.2..2.0),
+                rng.random_range(0.1..3.0),
+                rng.random_range(-2.0..2.0),
+                rng.random_range(-3.0..3.0),
+            );
             // a and c seeded (lanes 0 and 2), b a constant.
-            let jd = expression(Jet::<3>::constant(a).derivative(0), Jet::constant(b), Jet::<3>::constant(c).derivative(2), k);
-            let nd = expression(DualSVec64::<3>::from_re(a).derivative(0), DualSVec64::from_re(b), DualSVec64::<3>::from_re(c).derivative(2), k);
+            let jd = expression(
+                Jet::<3>::constant(a).derivative(0),
+                Jet::constant(b),
+                Jet::<3>::constant(c).derivative(2),
+                k,
+            );
+            let nd = expression(
+                DualSVec64::<3>::from_re(a).derivative(0),
+                DualSVec64::from_re(b),
+                DualSVec64::<3>::from_re(c).derivative(2),
+                k,
+            );
             assert_eq!(jd.re.to_bits(), nd.re.to_bits(), "value at {a} {b} {c} {k}");
             let e = nd.eps.0.expect("seeded");
             for lane in 0..3 {
@@ -630,7 +645,12 @@ mod tests {
     fn a_jet_matches_finite_differences() {
         let f = |a: f64, c: f64| expression(a, 1.3, c, 0.7);
         let (a, c) = (0.9, 0.4);
-        let j = expression(Jet::<2>::constant(a).derivative(0), Jet::constant(1.3), Jet::<2>::constant(c).derivative(1), 0.7);
+        let j = expression(
+            Jet::<2>::constant(a).derivative(0),
+            Jet::constant(1.3),
+            Jet::<2>::constant(c).derivative(1),
+            0.7,
+        );
         let h = 1e-6;
         let da = (f(a + h, c) - f(a - h, c)) / (2.0 * h);
         let dc = (f(a, c + h) - f(a, c - h)) / (2.0 * h);

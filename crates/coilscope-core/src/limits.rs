@@ -44,7 +44,9 @@ impl Thresholds {
     pub fn validate(&self) -> Result<(), String> {
         for (name, v) in [("Bl", self.bl), ("Cms", self.cms), ("Le", self.le)] {
             if !(v > 0.0 && v < 1.0) {
-                return Err(format!("the {name} threshold {v} is not valid: give a fraction in (0, 1), e.g. 0.82 / 0.75 / 0.10"));
+                return Err(format!(
+                    "the {name} threshold {v} is not valid: give a fraction in (0, 1), e.g. 0.82 / 0.75 / 0.10"
+                ));
             }
         }
         Ok(())
@@ -139,9 +141,23 @@ pub fn limits_with(p: &Parameters, range: [f64; 2], th: Thresholds) -> Limits {
     let xc = first_crossing(a, |x| p.kms.eval(x).max(p.kms.eval(-x)) >= k0 / th.cms);
     let xl = first_crossing(a, |x| ((p.le.eval(x) / le0 - 1.0).abs()).max((p.le.eval(-x) / le0 - 1.0).abs()) >= th.le);
     // The largest amplitude (0.8 a down to 0.2 a) whose symmetry point lies inside the range.
-    let (xsym, amp) = (2..=8).rev().map(|k| 0.1 * k as f64 * a).find_map(|amp| symmetry_point(&p.bl, amp, range).map(|s| (Some(s), amp))).unwrap_or((None, 0.8 * a));
+    let (xsym, amp) = (2..=8)
+        .rev()
+        .map(|k| 0.1 * k as f64 * a)
+        .find_map(|amp| symmetry_point(&p.bl, amp, range).map(|s| (Some(s), amp)))
+        .unwrap_or((None, 0.8 * a));
     let (kp, km) = (p.kms.eval(a), p.kms.eval(-a));
-    Limits { thresholds: th, range, reach: a, xbl, xc, xl, xsym, xsym_amplitude: amp, ak: 100.0 * (kp - km) / kp.max(km) }
+    Limits {
+        thresholds: th,
+        range,
+        reach: a,
+        xbl,
+        xc,
+        xl,
+        xsym,
+        xsym_amplitude: amp,
+        ak: 100.0 * (kp - km) / kp.max(km),
+    }
 }
 
 #[cfg(test)]

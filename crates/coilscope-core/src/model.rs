@@ -182,7 +182,10 @@ impl Model<f64> {
     /// (`the_derivative_partials_are_the_dual_numbers`).
     #[inline]
     pub fn deriv_partials(&self, s: &State<f64>, u: f64) -> Option<(State<f64>, DerivPartials)> {
-        if self.thermal.is_some() || self.le_i.as_ref().is_some_and(|g| g.c.len() > 3) || self.rms_v.as_ref().is_some_and(|r| r.c.len() > 3) {
+        if self.thermal.is_some()
+            || self.le_i.as_ref().is_some_and(|g| g.c.len() > 3)
+            || self.rms_v.as_ref().is_some_and(|r| r.c.len() > 3)
+        {
             return None;
         }
         let (r2, inv_l2) = match &self.l2r2 {
@@ -200,7 +203,11 @@ impl Model<f64> {
         let flux = self.le_i.is_some() || self.rms_v.is_some();
         let (g, h, big) = self.flux_factors(i);
         // g'(i), h'(i) of `Le_i`'s g = sum c_k i^k, h = sum (k + 1) c_k i^k.
-        let (dg, dh) = self.le_i.as_ref().map_or((0.0, 0.0), |p| p.c.iter().enumerate().skip(1).fold((0.0, 0.0), |(a, b), (k, c)| (a + k as f64 * c * i.powi(k as i32 - 1), b + ((k + 1) * k) as f64 * c * i.powi(k as i32 - 1))));
+        let (dg, dh) = self.le_i.as_ref().map_or((0.0, 0.0), |p| {
+            p.c.iter().enumerate().skip(1).fold((0.0, 0.0), |(a, b), (k, c)| {
+                (a + k as f64 * c * i.powi(k as i32 - 1), b + ((k + 1) * k) as f64 * c * i.powi(k as i32 - 1))
+            })
+        });
         let (rms, drms) = match &self.rms_v {
             Some(r) => r.eval_d(v.abs()),
             None => (self.rms, 0.0),
@@ -222,8 +229,17 @@ impl Model<f64> {
             [dle * pbig * inv_m, (-dle * v * i * pg - di * le * ph) * inv_d]
         });
         let p = DerivPartials {
-            v_state: [(dbl * i - dkms * x - kms + d2le * big) * inv_m, -(rms + drms * v.abs()) * inv_m, (bl + dle * i * g) * inv_m],
-            i_state: [(-dbl * v - d2le * v * i * g - di * dle * h) * inv_d, (-bl - dle * i * g) * inv_d, (-self.re - r2 - dle * v * (g + i * dg) - di * le * dh) * inv_d, r2 * inv_d],
+            v_state: [
+                (dbl * i - dkms * x - kms + d2le * big) * inv_m,
+                -(rms + drms * v.abs()) * inv_m,
+                (bl + dle * i * g) * inv_m,
+            ],
+            i_state: [
+                (-dbl * v - d2le * v * i * g - di * dle * h) * inv_d,
+                (-bl - dle * i * g) * inv_d,
+                (-self.re - r2 - dle * v * (g + i * dg) - di * le * dh) * inv_d,
+                r2 * inv_d,
+            ],
             i2_state: [r2 * inv_l2, -r2 * inv_l2],
             bl: [i * inv_m, -v * inv_d],
             kms: -x * inv_m,
@@ -316,7 +332,16 @@ impl Model<f64> {
 impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
     /// The model of a parameter set, with scalars of type `D` (zero derivative parts).
     pub fn lift_from(p: &Parameters) -> Self {
-        let thermal = p.thermal.as_ref().map(|t| ThermalModel::new(D::from(t.alpha), D::from(t.rtv), D::from(t.ctv), D::from(t.rtm), D::from(t.ctm), D::from(t.rv)));
+        let thermal = p.thermal.as_ref().map(|t| {
+            ThermalModel::new(
+                D::from(t.alpha),
+                D::from(t.rtv),
+                D::from(t.ctv),
+                D::from(t.rtm),
+                D::from(t.ctm),
+                D::from(t.rv),
+            )
+        });
         let parts = Parts {
             re: D::from(p.re),
             le: p.le.lift(),
@@ -335,7 +360,20 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
     /// the heating in its `Re(t)` track instead).
     pub fn from_parts(p: Parts<D>) -> Self {
         let inv_l2 = p.l2r2.as_ref().filter(|(l2, _)| l2.c.len() == 1).map(|(l2, _)| l2.c[0].recip());
-        Model { re: p.re, le: p.le, l2r2: p.l2r2, bl: p.bl, kms: p.kms, mms: p.mms, rms: p.rms, thermal: None, le_i: p.le_i, rms_v: p.rms_v, inv_mms: p.mms.recip(), inv_l2 }
+        Model {
+            re: p.re,
+            le: p.le,
+            l2r2: p.l2r2,
+            bl: p.bl,
+            kms: p.kms,
+            mms: p.mms,
+            rms: p.rms,
+            thermal: None,
+            le_i: p.le_i,
+            rms_v: p.rms_v,
+            inv_mms: p.mms.recip(),
+            inv_l2,
+        }
     }
 
     /// Flux modulation at current `i`: `(g(i), h(i) = d(i g)/di, G(i) = int_0^i s g(s) ds)`;
@@ -518,7 +556,14 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
             Some((_, r2)) => r2.eval(x) * (i - i2) * (i - i2),
             None => D::zero(),
         };
-        Powers { input: u * i, re_loss: self.re_at(tv) * i * i, r2_loss, rms_loss: self.rms_at(v) * v * v, r3_loss: D::zero(), creep_loss: D::zero() }
+        Powers {
+            input: u * i,
+            re_loss: self.re_at(tv) * i * i,
+            r2_loss,
+            rms_loss: self.rms_at(v) * v * v,
+            r3_loss: D::zero(),
+            creep_loss: D::zero(),
+        }
     }
 }
 
@@ -579,7 +624,9 @@ impl<D: DualNum<Primitive = f64> + Copy> ExtModel<D> {
     /// The extended model of a parameter set in scalar type `D`.
     pub fn lift_from(p: &Parameters) -> Self {
         let (lambda, f_ref) = match &p.creep {
-            Some(c) => (Some(D::from(c.lambda)), Some(c.f_ref.unwrap_or_else(|| p.creep_f_ref().expect("creep present")))),
+            Some(c) => {
+                (Some(D::from(c.lambda)), Some(c.f_ref.unwrap_or_else(|| p.creep_f_ref().expect("creep present"))))
+            }
             None => (None, None),
         };
         ExtModel::from_parts(Model::lift_from(p), p.l3r3.map(|(l, r)| (D::from(l), D::from(r))), lambda, f_ref)
@@ -598,7 +645,11 @@ impl<D: DualNum<Primitive = f64> + Copy> ExtModel<D> {
                 Some(f) => D::from(2.0 * std::f64::consts::PI * f),
                 None => (k0 / base.mms).sqrt(),
             };
-            CreepBank { dk: lambda * k0 / crate::creep::PER_DECADE as f64, kc: lambda * k0 * crate::creep::bank_re(w_ref), rate: std::array::from_fn(|k| 1.0 / taus[k]) }
+            CreepBank {
+                dk: lambda * k0 / crate::creep::PER_DECADE as f64,
+                kc: lambda * k0 * crate::creep::bank_re(w_ref),
+                rate: std::array::from_fn(|k| 1.0 / taus[k]),
+            }
         });
         ExtModel { base, lr3, creep }
     }
@@ -702,14 +753,23 @@ mod tests {
         let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
         let (s, u): (State<f64>, f64) = ([2e-3, 0.3, 1.5, 0.4, 0.0, 0.0], 5.0);
         let lane = |k: usize, v: f64| J::constant(v).derivative(k);
-        let shifted = |c: &[f64], k: usize| -> Poly<J> { Poly { c: c.iter().enumerate().map(|(j, &v)| if j == 0 { lane(k, v) } else { J::constant(v) }).collect() } };
+        let shifted = |c: &[f64], k: usize| -> Poly<J> {
+            Poly { c: c.iter().enumerate().map(|(j, &v)| if j == 0 { lane(k, v) } else { J::constant(v) }).collect() }
+        };
         for effects in [false, true] {
             let (g, c2) = ([1.0, -0.05, 0.02], 0.4);
             // Le'(x) by eps: Le + eps (z - x) leaves Le(x) and moves its slope.
             let mut le = shifted(p.le.coefficients(), 6);
             le.c[0] -= J::constant(0.0).derivative(7) * s[0];
             le.c[1] += J::constant(0.0).derivative(7);
-            let (le_i, rms_v) = if effects { (Some(Poly { c: vec![J::constant(1.0), lane(12, g[1]), lane(13, g[2])] }), Some(Poly { c: vec![lane(9, p.rms), J::constant(0.0), lane(14, c2)] })) } else { (None, None) };
+            let (le_i, rms_v) = if effects {
+                (
+                    Some(Poly { c: vec![J::constant(1.0), lane(12, g[1]), lane(13, g[2])] }),
+                    Some(Poly { c: vec![lane(9, p.rms), J::constant(0.0), lane(14, c2)] }),
+                )
+            } else {
+                (None, None)
+            };
             let md = Model::from_parts(Parts {
                 re: lane(8, p.re),
                 le,
@@ -723,22 +783,97 @@ mod tests {
             });
             let sd: State<J> = std::array::from_fn(|k| if k < 4 { lane(k, s[k]) } else { J::constant(0.0) });
             let dd = md.deriv(&sd, J::constant(u));
-            let (le_i, rms_v) = if effects { (Some(Poly { c: g.to_vec() }), Some(Poly { c: vec![p.rms, 0.0, c2] })) } else { (None, None) };
-            let m = Model::from_parts(Parts { re: p.re, le: p.le.clone(), l2r2: Some((Poly::constant(l2), Poly::constant(r2))), bl: p.bl.clone(), kms: p.kms.clone(), mms: p.mms, rms: p.rms, le_i, rms_v });
+            let (le_i, rms_v) = if effects {
+                (Some(Poly { c: g.to_vec() }), Some(Poly { c: vec![p.rms, 0.0, c2] }))
+            } else {
+                (None, None)
+            };
+            let m = Model::from_parts(Parts {
+                re: p.re,
+                le: p.le.clone(),
+                l2r2: Some((Poly::constant(l2), Poly::constant(r2))),
+                bl: p.bl.clone(),
+                kms: p.kms.clone(),
+                mms: p.mms,
+                rms: p.rms,
+                le_i,
+                rms_v,
+            });
             let (d, q) = m.deriv_partials(&s, u).expect("a fit's model");
             let (lei, rv) = if effects { (q.le_i, q.rms_v2) } else { ([[0.0; 2]; 2], 0.0) };
             // Row by row: (rate, [(lane, partial)]).
             let rows: [(usize, Vec<(usize, f64)>); 3] = [
-                (idx::V, vec![(0, q.v_state[0]), (1, q.v_state[1]), (2, q.v_state[2]), (3, 0.0), (4, q.bl[0]), (5, q.kms), (6, 0.0), (7, q.dle[0]), (8, 0.0), (9, q.rms), (10, 0.0), (11, 0.0), (12, lei[0][0]), (13, lei[1][0]), (14, rv)]),
-                (idx::I, vec![(0, q.i_state[0]), (1, q.i_state[1]), (2, q.i_state[2]), (3, q.i_state[3]), (4, q.bl[1]), (5, 0.0), (6, q.le), (7, q.dle[1]), (8, q.re), (9, 0.0), (10, q.r2[0]), (11, 0.0), (12, lei[0][1]), (13, lei[1][1]), (14, 0.0)]),
-                (idx::I2, vec![(0, 0.0), (1, 0.0), (2, q.i2_state[0]), (3, q.i2_state[1]), (4, 0.0), (5, 0.0), (6, 0.0), (7, 0.0), (8, 0.0), (9, 0.0), (10, q.r2[1]), (11, q.l2), (12, 0.0), (13, 0.0), (14, 0.0)]),
+                (
+                    idx::V,
+                    vec![
+                        (0, q.v_state[0]),
+                        (1, q.v_state[1]),
+                        (2, q.v_state[2]),
+                        (3, 0.0),
+                        (4, q.bl[0]),
+                        (5, q.kms),
+                        (6, 0.0),
+                        (7, q.dle[0]),
+                        (8, 0.0),
+                        (9, q.rms),
+                        (10, 0.0),
+                        (11, 0.0),
+                        (12, lei[0][0]),
+                        (13, lei[1][0]),
+                        (14, rv),
+                    ],
+                ),
+                (
+                    idx::I,
+                    vec![
+                        (0, q.i_state[0]),
+                        (1, q.i_state[1]),
+                        (2, q.i_state[2]),
+                        (3, q.i_state[3]),
+                        (4, q.bl[1]),
+                        (5, 0.0),
+                        (6, q.le),
+                        (7, q.dle[1]),
+                        (8, q.re),
+                        (9, 0.0),
+                        (10, q.r2[0]),
+                        (11, 0.0),
+                        (12, lei[0][1]),
+                        (13, lei[1][1]),
+                        (14, 0.0),
+                    ],
+                ),
+                (
+                    idx::I2,
+                    vec![
+                        (0, 0.0),
+                        (1, 0.0),
+                        (2, q.i2_state[0]),
+                        (3, q.i2_state[1]),
+                        (4, 0.0),
+                        (5, 0.0),
+                        (6, 0.0),
+                        (7, 0.0),
+                        (8, 0.0),
+                        (9, 0.0),
+                        (10, q.r2[1]),
+                        (11, q.l2),
+                        (12, 0.0),
+                        (13, 0.0),
+                        (14, 0.0),
+                    ],
+                ),
             ];
             let size = [s[0], s[1], s[2], s[3], 1.0, 1.0, 1.0, 1.0, p.re, p.rms, r2, l2, 1.0, 1.0, 1.0];
             for (row, want) in rows {
                 assert_eq!(d[row], dd[row].re, "rate {row} (effects {effects})");
                 let big = want.iter().map(|(k, _)| (dd[row].eps[*k] * size[*k]).abs()).fold(d[row].abs(), f64::max);
                 for (k, got) in want {
-                    assert!((got - dd[row].eps[k]).abs() <= 1e-12 * big, "rate {row}, lane {k} (effects {effects}): {got:e} against {:e}", dd[row].eps[k]);
+                    assert!(
+                        (got - dd[row].eps[k]).abs() <= 1e-12 * big,
+                        "rate {row}, lane {k} (effects {effects}): {got:e} against {:e}",
+                        dd[row].eps[k]
+                    );
                 }
             }
             // dx/dt = v, the thermal states off.
@@ -942,7 +1077,11 @@ mod tests {
     /// step is exact, so it composes).
     #[test]
     fn the_held_step_is_the_networks_exact_solution() {
-        for (rtv, ctv, rtm, ctm, rv, speed, h) in [(3.2f64, 9.0f64, 1.1, 700.0, 0.0f64, 0.0f64, 0.1f64), (60.0, 0.0017, 25.0, 2.0, 0.0, 0.0, 2.0), (3.2, 9.0, 1.1, 700.0, 1.5, 0.4, 5.0)] {
+        for (rtv, ctv, rtm, ctm, rv, speed, h) in [
+            (3.2f64, 9.0f64, 1.1, 700.0, 0.0f64, 0.0f64, 0.1f64),
+            (60.0, 0.0017, 25.0, 2.0, 0.0, 0.0, 2.0),
+            (3.2, 9.0, 1.1, 700.0, 1.5, 0.4, 5.0),
+        ] {
             let m = ThermalModel::new(0.00393, rtv, ctv, rtm, ctm, rv);
             let (pv, pm, y0) = (2.5, 0.3, [4.0, 1.5]);
             let tau = rtv * ctv / (1.0 + rv * speed);
@@ -955,15 +1094,26 @@ mod tests {
             let exact = m.held_step(y0, pv, pm, speed, h);
             let scale = oracle[0].abs().max(1.0);
             for k in 0..2 {
-                assert!((exact[k] - oracle[k]).abs() < 1e-10 * scale, "node {k}: {} vs the oracle's {} (rtv {rtv}, ctv {ctv}, h {h})", exact[k], oracle[k]);
+                assert!(
+                    (exact[k] - oracle[k]).abs() < 1e-10 * scale,
+                    "node {k}: {} vs the oracle's {} (rtv {rtv}, ctv {ctv}, h {h})",
+                    exact[k],
+                    oracle[k]
+                );
             }
             let step = HeldStep::new(&m, 0.5 * h, speed);
             let twice = step.apply(step.apply(y0, pv, pm), pv, pm);
-            assert!((twice[0] - exact[0]).abs() < 1e-12 * scale && (twice[1] - exact[1]).abs() < 1e-12 * scale, "{twice:?} vs {exact:?}");
+            assert!(
+                (twice[0] - exact[0]).abs() < 1e-12 * scale && (twice[1] - exact[1]).abs() < 1e-12 * scale,
+                "{twice:?} vs {exact:?}"
+            );
             let rest = m.held_step(y0, pv, pm, speed, 1e6 * tau.max(rtm * ctm));
             let tm = (pv + pm) * rtm;
             let tv = tm + pv * rtv / (1.0 + rv * speed);
-            assert!((rest[0] - tv).abs() < 1e-9 * tv && (rest[1] - tm).abs() < 1e-9 * tm, "rest {rest:?} vs [{tv}, {tm}]");
+            assert!(
+                (rest[0] - tv).abs() < 1e-9 * tv && (rest[1] - tm).abs() < 1e-9 * tm,
+                "rest {rest:?} vs [{tv}, {tm}]"
+            );
             assert!(step.is_for(0.5 * h, speed) && !step.is_for(h, speed));
         }
     }

@@ -61,7 +61,9 @@ pub fn f<D: DualNum<Primitive = f64> + Copy>(m: &Model<D>, s: &[D; 3]) -> D {
     let (l, dl, ddl) = m.le.eval_d2(x1);
     let z3 = transform(m, s)[2];
     let beff = b + dl * x3;
-    -(dk * x1 + k) * x2 / m.mms + (db * x2 + ddl * x2 * x3 * 0.5) * x3 / m.mms - m.rms / m.mms * z3 - beff / (m.mms * l) * (beff * x2 + m.re * x3)
+    -(dk * x1 + k) * x2 / m.mms + (db * x2 + ddl * x2 * x3 * 0.5) * x3 / m.mms
+        - m.rms / m.mms * z3
+        - beff / (m.mms * l) * (beff * x2 + m.re * x3)
 }
 
 /// `g(z)` of Eq. (8), evaluated from the original state `[x, v, i]`.

@@ -140,13 +140,23 @@ impl Ctx<'_> {
     fn series(&self, key: &str, v: &Value) -> Result<Poly, ParamError> {
         match v {
             Value::Number(_) => Ok(Poly::constant(self.number(key, v)?)),
-            Value::Array(items) if items.is_empty() => Err(self.err(key, "empty power series; give a number or ascending coefficients [c0, c1, ...] in SI (x in metres)")),
+            Value::Array(items) if items.is_empty() => Err(self.err(
+                key,
+                "empty power series; give a number or ascending coefficients [c0, c1, ...] in SI (x in metres)",
+            )),
             Value::Array(items) => {
                 let mut c = Vec::with_capacity(items.len());
                 for (j, item) in items.iter().enumerate() {
                     match item {
-                        Value::Number(_) => c.push(self.number(key, item).map_err(|e| self.err(key, format!("coefficient c{j}: {}", e.message)))?),
-                        other => return Err(self.err(key, format!("coefficient c{j} must be a number, found {}", describe(other)))),
+                        Value::Number(_) => c.push(
+                            self.number(key, item)
+                                .map_err(|e| self.err(key, format!("coefficient c{j}: {}", e.message)))?,
+                        ),
+                        other => {
+                            return Err(
+                                self.err(key, format!("coefficient c{j} must be a number, found {}", describe(other)))
+                            )
+                        }
                     }
                 }
                 if c.len() > 16 {
@@ -154,7 +164,10 @@ impl Ctx<'_> {
                 }
                 Ok(Poly { c })
             }
-            other => Err(self.err(key, format!("expected a number or an array of power-series coefficients, found {}", describe(other)))),
+            other => Err(self.err(
+                key,
+                format!("expected a number or an array of power-series coefficients, found {}", describe(other)),
+            )),
         }
     }
 }
@@ -173,15 +186,29 @@ fn describe(v: &Value) -> String {
 impl Parameters {
     /// Parse and validate a parameter set from JSON text. `origin` names it in errors.
     pub fn from_json_str(text: &str, origin: &str) -> Result<Self, ParamError> {
-        let value: Value =
-            serde_json::from_str(text).map_err(|e| ParamError { origin: origin.to_string(), key: String::new(), message: format!("not valid JSON ({e}); a parameter set is a JSON object, see docs/formats.md in coilscope's repository") })?;
+        let value: Value = serde_json::from_str(text).map_err(|e| ParamError {
+            origin: origin.to_string(),
+            key: String::new(),
+            message: format!(
+                "not valid JSON ({e}); a parameter set is a JSON object, see docs/formats.md in coilscope's repository"
+            ),
+        })?;
         Self::from_json_value(&value, origin)
     }
 
     /// Parse and validate a parameter set from a JSON value.
     pub fn from_json_value(value: &Value, origin: &str) -> Result<Self, ParamError> {
         let ctx = Ctx { origin };
-        let obj = value.as_object().ok_or_else(|| ctx.err("", format!("expected a JSON object with keys {}; found {}", crate::schema::required_keys(), describe(value))))?;
+        let obj = value.as_object().ok_or_else(|| {
+            ctx.err(
+                "",
+                format!(
+                    "expected a JSON object with keys {}; found {}",
+                    crate::schema::required_keys(),
+                    describe(value)
+                ),
+            )
+        })?;
         if let Some(f) = obj.get("format") {
             if f.as_str() != Some(PARAMETERS_FORMAT) {
                 return Err(ctx.err("format", format!("{} is not {PARAMETERS_FORMAT:?}", describe(f))));
@@ -196,7 +223,9 @@ impl Parameters {
                 }
             }
         }
-        let required = |key: &str| -> Result<&Value, ParamError> { obj.get(key).ok_or_else(|| ctx.err(key, format!("missing (required: {})", crate::schema::required_keys()))) };
+        let required = |key: &str| -> Result<&Value, ParamError> {
+            obj.get(key).ok_or_else(|| ctx.err(key, format!("missing (required: {})", crate::schema::required_keys())))
+        };
         let text = |key: &str| -> Result<Option<String>, ParamError> {
             match obj.get(key) {
                 None | Some(Value::Null) => Ok(None),
@@ -214,21 +243,34 @@ impl Parameters {
         let l2r2 = match (obj.get("L2"), obj.get("R2")) {
             (None, None) => None,
             (Some(l2), Some(r2)) => Some((ctx.series("L2", l2)?, ctx.series("R2", r2)?)),
-            (Some(_), None) => return Err(ctx.err("R2", "missing: L2 is given, and the LR-2 branch needs both L2 and R2")),
-            (None, Some(_)) => return Err(ctx.err("L2", "missing: R2 is given, and the LR-2 branch needs both L2 and R2")),
+            (Some(_), None) => {
+                return Err(ctx.err("R2", "missing: L2 is given, and the LR-2 branch needs both L2 and R2"))
+            }
+            (None, Some(_)) => {
+                return Err(ctx.err("L2", "missing: R2 is given, and the LR-2 branch needs both L2 and R2"))
+            }
         };
         let sd = obj.get("Sd").map(|v| ctx.number("Sd", v)).transpose()?;
         let x_range = match obj.get("x_range") {
             None => None,
-            Some(Value::Array(a)) if a.len() == 2 => Some([ctx.number("x_range", &a[0])?, ctx.number("x_range", &a[1])?]),
-            Some(other) => return Err(ctx.err("x_range", format!("expected [x_min, x_max] in metres, found {}", describe(other)))),
+            Some(Value::Array(a)) if a.len() == 2 => {
+                Some([ctx.number("x_range", &a[0])?, ctx.number("x_range", &a[1])?])
+            }
+            Some(other) => {
+                return Err(ctx.err("x_range", format!("expected [x_min, x_max] in metres, found {}", describe(other))))
+            }
         };
         let thermal = match obj.get("thermal") {
             None | Some(Value::Null) => None,
             Some(Value::Object(t)) => {
                 let get = |k: &str| -> Result<f64, ParamError> {
                     let key = format!("thermal.{k}");
-                    ctx.number(&key, t.get(k).ok_or_else(|| ctx.err(&key, "missing (thermal needs Rtv, Ctv, Rtm, Ctm; alpha is optional)"))?)
+                    ctx.number(
+                        &key,
+                        t.get(k).ok_or_else(|| {
+                            ctx.err(&key, "missing (thermal needs Rtv, Ctv, Rtm, Ctm; alpha is optional)")
+                        })?,
+                    )
                 };
                 let alpha = match t.get("alpha") {
                     None => ALPHA_COPPER,
@@ -240,14 +282,28 @@ impl Parameters {
                 };
                 Some(Thermal { alpha, rtv: get("Rtv")?, ctv: get("Ctv")?, rtm: get("Rtm")?, ctm: get("Ctm")?, rv })
             }
-            Some(other) => return Err(ctx.err("thermal", format!("expected an object {{alpha, Rtv, Ctv, Rtm, Ctm}}, found {}", describe(other)))),
+            Some(other) => {
+                return Err(ctx.err(
+                    "thermal",
+                    format!("expected an object {{alpha, Rtv, Ctv, Rtm, Ctm}}, found {}", describe(other)),
+                ))
+            }
         };
         let creep = match obj.get("creep") {
             None | Some(Value::Null) => None,
             Some(Value::Object(c)) => {
-                let lambda = ctx.number("creep.lambda", c.get("lambda").ok_or_else(|| ctx.err("creep.lambda", "missing (creep needs lambda, Klippel's LOG creep factor, e.g. 0.05)"))?)?;
+                let lambda = ctx.number(
+                    "creep.lambda",
+                    c.get("lambda").ok_or_else(|| {
+                        ctx.err("creep.lambda", "missing (creep needs lambda, Klippel's LOG creep factor, e.g. 0.05)")
+                    })?,
+                )?;
                 let f_ref = c.get("f_ref").map(|v| ctx.number("creep.f_ref", v)).transpose()?;
-                for (k, want) in [("per_decade", crate::creep::PER_DECADE as f64), ("f_min", crate::creep::F_MIN), ("f_max", crate::creep::F_MAX)] {
+                for (k, want) in [
+                    ("per_decade", crate::creep::PER_DECADE as f64),
+                    ("f_min", crate::creep::F_MIN),
+                    ("f_max", crate::creep::F_MAX),
+                ] {
                     if let Some(v) = c.get(k) {
                         let got = ctx.number(&format!("creep.{k}"), v)?;
                         if (got - want).abs() > 1e-9 * want {
@@ -260,24 +316,57 @@ impl Parameters {
                 }
                 Some(Creep { lambda, f_ref })
             }
-            Some(other) => return Err(ctx.err("creep", format!("expected an object {{\"lambda\": 0.05}}, found {}", describe(other)))),
+            Some(other) => {
+                return Err(
+                    ctx.err("creep", format!("expected an object {{\"lambda\": 0.05}}, found {}", describe(other)))
+                )
+            }
         };
         let constant = |key: &str, v: &Value| -> Result<f64, ParamError> {
             match v {
-                Value::Array(_) => Err(ctx.err(key, format!("{key} is a constant here (the LR-3 branch does not depend on x); give a number"))),
+                Value::Array(_) => Err(ctx.err(
+                    key,
+                    format!("{key} is a constant here (the LR-3 branch does not depend on x); give a number"),
+                )),
                 _ => ctx.number(key, v),
             }
         };
         let l3r3 = match (obj.get("L3"), obj.get("R3")) {
             (None, None) => None,
             (Some(l3), Some(r3)) => Some((constant("L3", l3)?, constant("R3", r3)?)),
-            (Some(_), None) => return Err(ctx.err("R3", "missing: L3 is given, and the LR-3 branch needs both L3 and R3")),
-            (None, Some(_)) => return Err(ctx.err("L3", "missing: R3 is given, and the LR-3 branch needs both L3 and R3")),
+            (Some(_), None) => {
+                return Err(ctx.err("R3", "missing: L3 is given, and the LR-3 branch needs both L3 and R3"))
+            }
+            (None, Some(_)) => {
+                return Err(ctx.err("L3", "missing: R3 is given, and the LR-3 branch needs both L3 and R3"))
+            }
         };
         let le_i = obj.get("Le_i").map(|v| ctx.series("Le_i", v)).transpose()?;
         let rms_v = obj.get("Rms_v").map(|v| ctx.series("Rms_v", v)).transpose()?;
-        let extra: Map<String, Value> = obj.iter().filter(|(k, _)| !known_keys.contains(&k.as_str())).map(|(k, v)| (k.clone(), v.clone())).collect();
-        let p = Parameters { name: text("name")?, source: text("source")?, re, le, l2r2, bl, kms, mms, rms, sd, creep, l3r3, le_i, rms_v, thermal, x_range, extra };
+        let extra: Map<String, Value> = obj
+            .iter()
+            .filter(|(k, _)| !known_keys.contains(&k.as_str()))
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect();
+        let p = Parameters {
+            name: text("name")?,
+            source: text("source")?,
+            re,
+            le,
+            l2r2,
+            bl,
+            kms,
+            mms,
+            rms,
+            sd,
+            creep,
+            l3r3,
+            le_i,
+            rms_v,
+            thermal,
+            x_range,
+            extra,
+        };
         p.validate(origin)?;
         Ok(p)
     }
@@ -300,13 +389,24 @@ impl Parameters {
         }
         // Plausibility: a loudspeaker, headphone, microspeaker or shaker, in SI units.
         if self.mms > 2.0 {
-            return Err(ctx.err("Mms", format!("{} kg is not a plausible moving mass (expected 1e-6 .. 2 kg); it looks like grams: {} g = {} kg", self.mms, self.mms, self.mms / 1000.0)));
+            return Err(ctx.err(
+                "Mms",
+                format!(
+                    "{} kg is not a plausible moving mass (expected 1e-6 .. 2 kg); it looks like grams: {} g = {} kg",
+                    self.mms,
+                    self.mms,
+                    self.mms / 1000.0
+                ),
+            ));
         }
         if self.mms < 1e-7 {
             return Err(ctx.err("Mms", format!("{} kg is implausibly small (expected 1e-6 .. 2 kg)", self.mms)));
         }
         if self.re > 5000.0 || self.re < 0.01 {
-            return Err(ctx.err("Re", format!("{} ohm is not a plausible voice-coil resistance (expected 0.01 .. 5000 ohm)", self.re)));
+            return Err(ctx.err(
+                "Re",
+                format!("{} ohm is not a plausible voice-coil resistance (expected 0.01 .. 5000 ohm)", self.re),
+            ));
         }
         let le0 = self.le.c[0];
         if le0 > 0.1 {
@@ -325,22 +425,38 @@ impl Parameters {
                 return Err(ctx.err("Sd", format!("{sd} m^2 must be > 0")));
             }
             if sd > 2.0 {
-                return Err(ctx.err("Sd", format!("{sd} m^2 is not plausible (expected < 2 m^2); it looks like cm^2: {sd} cm^2 = {} m^2", sd * 1e-4)));
+                return Err(ctx.err(
+                    "Sd",
+                    format!(
+                        "{sd} m^2 is not plausible (expected < 2 m^2); it looks like cm^2: {sd} cm^2 = {} m^2",
+                        sd * 1e-4
+                    ),
+                ));
             }
         }
         if let Some(c) = &self.creep {
             if !(c.lambda >= 0.0 && c.lambda < 0.5) {
-                return Err(ctx.err("creep.lambda", format!("{} is not a plausible LOG creep factor (expected 0 .. 0.5; typical 0.03 .. 0.1)", c.lambda)));
+                return Err(ctx.err(
+                    "creep.lambda",
+                    format!(
+                        "{} is not a plausible LOG creep factor (expected 0 .. 0.5; typical 0.03 .. 0.1)",
+                        c.lambda
+                    ),
+                ));
             }
             if let Some(f) = c.f_ref {
                 if !(f > 0.0 && f < 1e5) {
-                    return Err(ctx.err("creep.f_ref", format!("{f} Hz must be > 0 (and below 100 kHz); absent: the resonance")));
+                    return Err(ctx
+                        .err("creep.f_ref", format!("{f} Hz must be > 0 (and below 100 kHz); absent: the resonance")));
                 }
             }
         }
         if let Some((l3, r3)) = self.l3r3 {
             if !(l3 > 0.0 && l3 < 0.1) {
-                return Err(ctx.err("L3", format!("{l3} H is not a plausible para-inductance (expected 0 .. 0.1 H; give H, not mH)")));
+                return Err(ctx.err(
+                    "L3",
+                    format!("{l3} H is not a plausible para-inductance (expected 0 .. 0.1 H; give H, not mH)"),
+                ));
             }
             if !(r3 > 0.0 && r3 < 1e4) {
                 return Err(ctx.err("R3", format!("{r3} ohm must be > 0 (and below 10 kohm)")));
@@ -353,7 +469,10 @@ impl Parameters {
         }
         if let Some(r) = &self.rms_v {
             if !(r.c[0] >= 0.0) || (r.c[0] - self.rms).abs() > 1e-6 * self.rms.max(1e-12) {
-                return Err(ctx.err("Rms_v", format!("Rms_v(0) = {} kg/s must equal Rms = {} kg/s (Rms is the value at rest)", r.c[0], self.rms)));
+                return Err(ctx.err(
+                    "Rms_v",
+                    format!("Rms_v(0) = {} kg/s must equal Rms = {} kg/s (Rms is the value at rest)", r.c[0], self.rms),
+                ));
             }
             let (mn, _) = r.min_max_on(0.0, 10.0);
             if !(mn >= 0.0) {
@@ -362,23 +481,40 @@ impl Parameters {
         }
         if let Some([lo, hi]) = self.x_range {
             if !(lo < 0.0 && hi > 0.0) {
-                return Err(ctx.err("x_range", format!("[{lo}, {hi}] must contain the rest position: x_min < 0 < x_max (m)")));
+                return Err(
+                    ctx.err("x_range", format!("[{lo}, {hi}] must contain the rest position: x_min < 0 < x_max (m)"))
+                );
             }
             if hi - lo > 0.2 {
-                return Err(ctx.err("x_range", format!("[{lo}, {hi}] m spans more than 0.2 m; it looks like millimetres: [{lo}, {hi}] mm = [{}, {}] m", lo / 1000.0, hi / 1000.0)));
+                return Err(ctx.err(
+                    "x_range",
+                    format!(
+                        "[{lo}, {hi}] m spans more than 0.2 m; it looks like millimetres: [{lo}, {hi}] mm = [{}, {}] m",
+                        lo / 1000.0,
+                        hi / 1000.0
+                    ),
+                ));
             }
         }
         if let Some(t) = &self.thermal {
-            for (k, v) in [("thermal.Rtv", t.rtv), ("thermal.Ctv", t.ctv), ("thermal.Rtm", t.rtm), ("thermal.Ctm", t.ctm)] {
+            for (k, v) in
+                [("thermal.Rtv", t.rtv), ("thermal.Ctv", t.ctv), ("thermal.Rtm", t.rtm), ("thermal.Ctm", t.ctm)]
+            {
                 if !(v > 0.0) {
                     return Err(ctx.err(k, format!("{v} must be > 0")));
                 }
             }
             if !(t.rv >= 0.0 && t.rv < 1000.0) {
-                return Err(ctx.err("thermal.rv", format!("{} s/m is not valid (0 .. 1000 s/m: Rtv(v) = Rtv / (1 + rv |v|), v in m/s)", t.rv)));
+                return Err(ctx.err(
+                    "thermal.rv",
+                    format!("{} s/m is not valid (0 .. 1000 s/m: Rtv(v) = Rtv / (1 + rv |v|), v in m/s)", t.rv),
+                ));
             }
             if !(t.alpha >= 0.0 && t.alpha < 0.02) {
-                return Err(ctx.err("thermal.alpha", format!("{} 1/K is not plausible (copper: 0.00393, aluminium: 0.0040)", t.alpha)));
+                return Err(ctx.err(
+                    "thermal.alpha",
+                    format!("{} 1/K is not plausible (copper: 0.00393, aluminium: 0.0040)", t.alpha),
+                ));
             }
         }
         // x-dependent functions must stay positive where they are valid.
@@ -386,11 +522,15 @@ impl Parameters {
             Some([lo, hi]) => (lo, hi),
             None => (0.0, 0.0),
         };
-        let where_ = if self.x_range.is_some() { format!("inside x_range [{lo}, {hi}] m") } else { "at x = 0".to_string() };
-        let funcs = crate::schema::ENTRIES.iter().filter(|e| e.kind == crate::schema::Kind::SeriesX).filter_map(|e| match self.get(e.key) {
-            Some(SchemaValue::Series(p)) => Some((e.key, p, e.unit)),
-            _ => None,
-        });
+        let where_ =
+            if self.x_range.is_some() { format!("inside x_range [{lo}, {hi}] m") } else { "at x = 0".to_string() };
+        let funcs =
+            crate::schema::ENTRIES.iter().filter(|e| e.kind == crate::schema::Kind::SeriesX).filter_map(|e| match self
+                .get(e.key)
+            {
+                Some(SchemaValue::Series(p)) => Some((e.key, p, e.unit)),
+                _ => None,
+            });
         for (key, p, unit) in funcs {
             let (mn, _) = p.min_max_on(lo, hi);
             if !(mn > 0.0) {
@@ -449,7 +589,10 @@ impl Parameters {
     /// order, without the creep bank's realisation keys: what a table of values shows.
     pub fn values_at_rest(&self) -> impl Iterator<Item = (&'static crate::schema::Entry, f64)> + '_ {
         use crate::schema::{Kind, ENTRIES};
-        ENTRIES.iter().filter(|e| !e.realisation && matches!(e.kind, Kind::Number | Kind::SeriesX)).filter_map(|e| self.get(e.key).and_then(|v| v.at_rest()).map(|v| (e, v)))
+        ENTRIES
+            .iter()
+            .filter(|e| !e.realisation && matches!(e.kind, Kind::Number | Kind::SeriesX))
+            .filter_map(|e| self.get(e.key).and_then(|v| v.at_rest()).map(|v| (e, v)))
     }
 
     /// Write the set as contract JSON (constants as numbers, series in x as a number when
@@ -563,11 +706,18 @@ fn series_json(p: &Poly) -> Value {
 
 fn argmin_on(p: &Poly, lo: f64, hi: f64) -> f64 {
     let n = 2000;
-    (0..=n).map(|k| lo + (hi - lo) * k as f64 / n as f64).min_by(|a, b| p.eval(*a).total_cmp(&p.eval(*b))).unwrap_or(0.0)
+    (0..=n)
+        .map(|k| lo + (hi - lo) * k as f64 / n as f64)
+        .min_by(|a, b| p.eval(*a).total_cmp(&p.eval(*b)))
+        .unwrap_or(0.0)
 }
 
 /// The real drivers bundled with coilscope (Klippel LSI measurements, see `drivers/README`).
-pub const EMBEDDED_DRIVERS: &[(&str, &str)] = &[("sb17cac35-4", include_str!("../drivers/sb17cac35-4.json")), ("ptt4.0w04-01a", include_str!("../drivers/ptt4.0w04-01a.json")), ("18wu-4741t-00", include_str!("../drivers/18wu-4741t-00.json"))];
+pub const EMBEDDED_DRIVERS: &[(&str, &str)] = &[
+    ("sb17cac35-4", include_str!("../drivers/sb17cac35-4.json")),
+    ("ptt4.0w04-01a", include_str!("../drivers/ptt4.0w04-01a.json")),
+    ("18wu-4741t-00", include_str!("../drivers/18wu-4741t-00.json")),
+];
 
 /// The names of the embedded drivers.
 pub fn embedded_driver_names() -> Vec<&'static str> {
@@ -576,7 +726,10 @@ pub fn embedded_driver_names() -> Vec<&'static str> {
 
 /// An embedded driver by name (case-insensitive), or None.
 pub fn embedded_driver(name: &str) -> Option<Parameters> {
-    EMBEDDED_DRIVERS.iter().find(|(n, _)| n.eq_ignore_ascii_case(name)).map(|(n, text)| Parameters::from_json_str(text, &format!("embedded driver {n}")).expect("embedded drivers are validated by the test suite"))
+    EMBEDDED_DRIVERS.iter().find(|(n, _)| n.eq_ignore_ascii_case(name)).map(|(n, text)| {
+        Parameters::from_json_str(text, &format!("embedded driver {n}"))
+            .expect("embedded drivers are validated by the test suite")
+    })
 }
 
 #[cfg(test)]
@@ -645,7 +798,8 @@ mod tests {
         assert!(plain.to_json_value()["thermal"].get("rv").is_none());
         let mut v = plain.to_json_value();
         v["thermal"]["rv"] = (-1.0).into();
-        let e = Parameters::from_json_value(&v, "neg").and_then(|p| p.validate("neg").map(|_| p)).unwrap_err().to_string();
+        let e =
+            Parameters::from_json_value(&v, "neg").and_then(|p| p.validate("neg").map(|_| p)).unwrap_err().to_string();
         assert!(e.contains("thermal.rv"), "{e}");
     }
 

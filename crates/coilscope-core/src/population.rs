@@ -86,7 +86,8 @@ pub enum Class {
 
 impl Class {
     /// Every class, smallest first.
-    pub const ALL: [Class; 5] = [Class::Microspeaker, Class::Fullrange, Class::Midwoofer, Class::Woofer, Class::Subwoofer];
+    pub const ALL: [Class; 5] =
+        [Class::Microspeaker, Class::Fullrange, Class::Midwoofer, Class::Woofer, Class::Subwoofer];
 
     /// The name used in `population:CLASS:SEED` and in messages.
     pub fn name(self) -> &'static str {
@@ -452,7 +453,10 @@ fn try_draw(class: Class, seed: u64, rng: &mut ChaCha8Rng) -> Option<Draw> {
 
     let plain = Parameters {
         name: Some(format!("population {} {seed}", class.name())),
-        source: Some(format!("coilscope driver population (synthetic, not a measured unit): population:{}:{seed}", class.name())),
+        source: Some(format!(
+            "coilscope driver population (synthetic, not a measured unit): population:{}:{seed}",
+            class.name()
+        )),
         re,
         le: in_metres(&le_u, x, le0),
         l2r2: Some((Poly::constant(l2), Poly::constant(r2))),
@@ -488,7 +492,12 @@ fn try_draw(class: Class, seed: u64, rng: &mut ChaCha8Rng) -> Option<Draw> {
     let l3r3 = (r3 / (2.0 * PI * f3c), r3);
     let le_i = Poly { c: vec![1.0, 0.0, -uniform(rng, (0.002, 0.025)) / (i_ref * i_ref)] };
     let rms_v = Poly { c: vec![rms, 0.0, rms * uniform(rng, (0.1, 1.0)) / (v_ref * v_ref)] };
-    let effects = Effects { creep: rng.random::<f64>() < 0.9, lr3: rng.random::<f64>() < 0.4, le_i: rng.random::<f64>() < 0.3, rms_v: rng.random::<f64>() < 0.3 };
+    let effects = Effects {
+        creep: rng.random::<f64>() < 0.9,
+        lr3: rng.random::<f64>() < 0.4,
+        le_i: rng.random::<f64>() < 0.3,
+        rms_v: rng.random::<f64>() < 0.3,
+    };
     let draw = Draw { seed, class, plain, effects, creep, l3r3, le_i, rms_v };
     draw.with_effects(Effects::ALL).validate("population").ok()?;
     Some(draw)
@@ -542,8 +551,15 @@ mod tests {
                 // The class's Qms range is drawn as the viscous Q (creep's loss, drawn apart,
                 // lowers the Qms at fs below it).
                 let q_viscous = 2.0 * std::f64::consts::PI * ts.fs * p.mms / p.rms;
-                assert!(q_viscous >= r.qms.0 * 0.999 && q_viscous <= r.qms.1 * 1.001, "{class} {seed}: viscous Qms {q_viscous}");
-                assert!(ts.qms <= q_viscous * (1.0 + 1e-12), "{class} {seed}: Qms at fs {} above the viscous {q_viscous}", ts.qms);
+                assert!(
+                    q_viscous >= r.qms.0 * 0.999 && q_viscous <= r.qms.1 * 1.001,
+                    "{class} {seed}: viscous Qms {q_viscous}"
+                );
+                assert!(
+                    ts.qms <= q_viscous * (1.0 + 1e-12),
+                    "{class} {seed}: Qms at fs {} above the viscous {q_viscous}",
+                    ts.qms
+                );
                 assert!(p.mms >= r.mms.0 * 0.999 && p.mms <= r.mms.1 * 1.001);
                 let le_lo = r.le.0.min(r.le.1);
                 assert!(p.le.c[0] >= le_lo * 0.999 && p.le.c[0] <= r.le.1 * 1.001, "{class} {seed}: Le {}", p.le.c[0]);
@@ -564,11 +580,18 @@ mod tests {
             let k0 = p.kms.eval(0.0);
             let k_edge = p.kms.eval(lo).max(p.kms.eval(hi)) / k0;
             assert!((2.0..4.6).contains(&k_edge), "{}: Kms stiffer edge/rest {k_edge}", d.name());
-            assert!(p.le.eval(lo) > p.le.eval(0.0) && p.le.eval(0.0) > p.le.eval(hi), "{}: Le(x) must fall outwards", d.name());
+            assert!(
+                p.le.eval(lo) > p.le.eval(0.0) && p.le.eval(0.0) > p.le.eval(hi),
+                "{}: Le(x) must fall outwards",
+                d.name()
+            );
             // The restoring force rises over the range and 10 % beyond it.
             let f = |x: f64| p.kms.eval(x) * x;
             for k in 0..200 {
-                let (a, b) = (1.1 * lo + 1.1 * (hi - lo) * k as f64 / 200.0, 1.1 * lo + 1.1 * (hi - lo) * (k + 1) as f64 / 200.0);
+                let (a, b) = (
+                    1.1 * lo + 1.1 * (hi - lo) * k as f64 / 200.0,
+                    1.1 * lo + 1.1 * (hi - lo) * (k + 1) as f64 / 200.0,
+                );
                 assert!(f(b) > f(a), "{}: Kms(x) x falls at {a}", d.name());
             }
         }

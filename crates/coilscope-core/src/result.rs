@@ -478,8 +478,19 @@ impl FailedResult {
             format: RESULT_FORMAT,
             kind: "large-signal",
             recording: device.into(),
-            fit: Fit { converged: Some(false), trustworthy: Some(false), stop_reason: Some(error.into()), warnings: Some(vec![]), ..Default::default() },
-            measurement: FailedMeasurement { stop_reason: "failed", error: error.into(), device: device.into(), excitation: excitation.into() },
+            fit: Fit {
+                converged: Some(false),
+                trustworthy: Some(false),
+                stop_reason: Some(error.into()),
+                warnings: Some(vec![]),
+                ..Default::default()
+            },
+            measurement: FailedMeasurement {
+                stop_reason: "failed",
+                error: error.into(),
+                device: device.into(),
+                excitation: excitation.into(),
+            },
         }
     }
 }
@@ -495,7 +506,14 @@ pub struct ResultError {
 impl ResultFile {
     /// A result of `kind` (`linear`, `large-signal`) with the figures that follow from the
     /// set: Thiele/Small at rest and, for a reached range, the limits.
-    pub fn new(kind: &str, recording: &str, parameters: Parameters, fit: Fit, uncertainty: Uncertainty, limits: Option<&Limits>) -> Self {
+    pub fn new(
+        kind: &str,
+        recording: &str,
+        parameters: Parameters,
+        fit: Fit,
+        uncertainty: Uncertainty,
+        limits: Option<&Limits>,
+    ) -> Self {
         ResultFile {
             format: RESULT_FORMAT.into(),
             kind: kind.into(),
@@ -531,8 +549,10 @@ impl ResultFile {
         }
         // The parameter set first, for its own errors (they name the key and what is valid).
         let pv = v.get("parameters").ok_or_else(|| err("the result has no `parameters` object".into()))?;
-        Parameters::from_json_value(pv, &format!("{origin} (parameters)")).map_err(|e| ResultError { message: e.to_string() })?;
-        serde_json::from_value(v).map_err(|e| err(format!("not a valid result ({e}); see docs/formats.md in coilscope's repository")))
+        Parameters::from_json_value(pv, &format!("{origin} (parameters)"))
+            .map_err(|e| ResultError { message: e.to_string() })?;
+        serde_json::from_value(v)
+            .map_err(|e| err(format!("not a valid result ({e}); see docs/formats.md in coilscope's repository")))
     }
 
     /// As JSON.
@@ -556,7 +576,16 @@ impl<'de> Deserialize<'de> for Parameters {
 
 impl Serialize for ThieleSmall {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        ThieleSmallRecord { fs: self.fs, qms: self.qms, qes: self.qes, qts: self.qts, cms: self.cms, vas: self.vas, rms_fs: self.rms_fs }.serialize(s)
+        ThieleSmallRecord {
+            fs: self.fs,
+            qms: self.qms,
+            qes: self.qes,
+            qts: self.qts,
+            cms: self.cms,
+            vas: self.vas,
+            rms_fs: self.rms_fs,
+        }
+        .serialize(s)
     }
 }
 
@@ -617,9 +646,20 @@ mod tests {
         u.set("Mms", f64::NAN);
         u.set_coefficients("Le_i", vec![0.0, 1e-3, f64::NAN]);
         u.set_band("Bl", Band { x: vec![-1e-3, 0.0, 1e-3], value: vec![5.0, 5.1, f64::NAN], sd: vec![0.01; 3] });
-        let fit = Fit { residual_rel: 1e-3, x_range: [-3e-3, 3e-3], model: "LR-2".into(), warnings: Some(vec![Warning::new("on-bound", "x".into())]), ..Default::default() };
+        let fit = Fit {
+            residual_rel: 1e-3,
+            x_range: [-3e-3, 3e-3],
+            model: "LR-2".into(),
+            warnings: Some(vec![Warning::new("on-bound", "x".into())]),
+            ..Default::default()
+        };
         let mut r = ResultFile::new("large-signal", "rec.wav", p, fit, u, Some(&lim));
-        r.thermal = Some(Thermal { note: "n".into(), dt_track: vec![(0.0, 0.0), (1.0, 2.5)], dt_end: Some(2.5), ..Default::default() });
+        r.thermal = Some(Thermal {
+            note: "n".into(),
+            dt_track: vec![(0.0, 0.0), (1.0, 2.5)],
+            dt_end: Some(2.5),
+            ..Default::default()
+        });
         r
     }
 

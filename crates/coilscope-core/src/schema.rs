@@ -71,17 +71,45 @@ pub struct Entry {
     pub meaning: &'static str,
 }
 
-const fn e(key: &'static str, unit: &'static str, kind: Kind, component: Component, required: bool, display: (&'static str, f64), meaning: &'static str) -> Entry {
+const fn e(
+    key: &'static str,
+    unit: &'static str,
+    kind: Kind,
+    component: Component,
+    required: bool,
+    display: (&'static str, f64),
+    meaning: &'static str,
+) -> Entry {
     Entry { key, unit, kind, component, required, display, realisation: false, extension: false, meaning }
 }
 
 /// An optional key beyond the file contract's (see [`Entry::extension`]).
 const fn extension(key: &'static str, unit: &'static str, component: Component, meaning: &'static str) -> Entry {
-    Entry { key, unit, kind: Kind::Number, component, required: false, display: (unit, 1.0), realisation: false, extension: true, meaning }
+    Entry {
+        key,
+        unit,
+        kind: Kind::Number,
+        component,
+        required: false,
+        display: (unit, 1.0),
+        realisation: false,
+        extension: true,
+        meaning,
+    }
 }
 
 const fn realisation(key: &'static str, unit: &'static str, meaning: &'static str) -> Entry {
-    Entry { key, unit, kind: Kind::Number, component: Component::Suspension, required: false, display: (unit, 1.0), realisation: true, extension: false, meaning }
+    Entry {
+        key,
+        unit,
+        kind: Kind::Number,
+        component: Component::Suspension,
+        required: false,
+        display: (unit, 1.0),
+        realisation: true,
+        extension: false,
+        meaning,
+    }
 }
 
 use Component as C;
@@ -91,23 +119,71 @@ use Kind as K;
 pub const ENTRIES: &[Entry] = &[
     e("name", "", K::Text, C::About, false, ("", 1.0), "what the driver is"),
     e("source", "", K::Text, C::About, false, ("", 1.0), "where the numbers come from"),
-    e("Re", "ohm", K::Number, C::VoiceCoil, true, ("ohm", 1.0), "DC resistance of the voice coil at ambient temperature"),
+    e(
+        "Re",
+        "ohm",
+        K::Number,
+        C::VoiceCoil,
+        true,
+        ("ohm", 1.0),
+        "DC resistance of the voice coil at ambient temperature",
+    ),
     e("Le", "H", K::SeriesX, C::VoiceCoil, true, ("mH", 1e3), "voice-coil inductance Le(x)"),
-    e("Le_i", "1", K::SeriesI, C::VoiceCoil, false, ("", 1.0), "flux modulation: the factor g(i) in the flux Le(x) g(i) i, g(0) = 1"),
+    e(
+        "Le_i",
+        "1",
+        K::SeriesI,
+        C::VoiceCoil,
+        false,
+        ("", 1.0),
+        "flux modulation: the factor g(i) in the flux Le(x) g(i) i, g(0) = 1",
+    ),
     e("L2", "H", K::SeriesX, C::Eddy, false, ("mH", 1e3), "LR-2 para-inductance L2(x)"),
     e("R2", "ohm", K::SeriesX, C::Eddy, false, ("ohm", 1.0), "LR-2 eddy-current resistance R2(x)"),
     e("L3", "H", K::Number, C::Eddy, false, ("mH", 1e3), "LR-3 para-inductance (a second branch, in series with LR-2)"),
     e("R3", "ohm", K::Number, C::Eddy, false, ("ohm", 1.0), "LR-3 eddy-current resistance"),
     e("Bl", "T m", K::SeriesX, C::Motor, true, ("T m", 1.0), "force factor Bl(x)"),
-    e("Kms", "N/m", K::SeriesX, C::Suspension, true, ("N/m", 1.0), "secant stiffness Kms(x) (with creep: the dynamic stiffness at f_ref)"),
-    e("creep.lambda", "1", K::Number, C::Suspension, false, ("", 1.0), "LOG creep factor: Cms(f) = Cms(f_ref) (1 - lambda log10(f / f_ref))"),
-    e("creep.f_ref", "Hz", K::Number, C::Suspension, false, ("Hz", 1.0), "creep's reference frequency (absent: the resonance)"),
+    e(
+        "Kms",
+        "N/m",
+        K::SeriesX,
+        C::Suspension,
+        true,
+        ("N/m", 1.0),
+        "secant stiffness Kms(x) (with creep: the dynamic stiffness at f_ref)",
+    ),
+    e(
+        "creep.lambda",
+        "1",
+        K::Number,
+        C::Suspension,
+        false,
+        ("", 1.0),
+        "LOG creep factor: Cms(f) = Cms(f_ref) (1 - lambda log10(f / f_ref))",
+    ),
+    e(
+        "creep.f_ref",
+        "Hz",
+        K::Number,
+        C::Suspension,
+        false,
+        ("Hz", 1.0),
+        "creep's reference frequency (absent: the resonance)",
+    ),
     realisation("creep.per_decade", "1", "Maxwell elements per decade of the creep bank"),
     realisation("creep.f_min", "Hz", "lowest relaxation frequency of the creep bank"),
     realisation("creep.f_max", "Hz", "highest relaxation frequency of the creep bank"),
     e("Mms", "kg", K::Number, C::Mechanics, true, ("g", 1e3), "moving mass including air load"),
     e("Rms", "kg/s", K::Number, C::Mechanics, true, ("kg/s", 1.0), "mechanical resistance (at rest)"),
-    e("Rms_v", "kg/s", K::SeriesV, C::Mechanics, false, ("kg/s", 1.0), "velocity-dependent loss Rms(|v|), replacing Rms in the model"),
+    e(
+        "Rms_v",
+        "kg/s",
+        K::SeriesV,
+        C::Mechanics,
+        false,
+        ("kg/s", 1.0),
+        "velocity-dependent loss Rms(|v|), replacing Rms in the model",
+    ),
     e("Sd", "m^2", K::Number, C::Mechanics, false, ("cm^2", 1e4), "effective radiating area"),
     e("thermal.alpha", "1/K", K::Number, C::Thermal, false, ("1/K", 1.0), "temperature coefficient of Re"),
     e("thermal.Rtv", "K/W", K::Number, C::Thermal, false, ("K/W", 1.0), "voice coil to magnet thermal resistance"),
@@ -115,7 +191,15 @@ pub const ENTRIES: &[Entry] = &[
     e("thermal.Rtm", "K/W", K::Number, C::Thermal, false, ("K/W", 1.0), "magnet to ambient thermal resistance"),
     e("thermal.Ctm", "J/K", K::Number, C::Thermal, false, ("J/K", 1.0), "magnet heat capacity"),
     extension("thermal.rv", "s/m", C::Thermal, "convection cooling: Rtv(v) = Rtv / (1 + rv |v|)"),
-    e("x_range", "m", K::Range, C::About, false, ("mm", 1e3), "[x_min, x_max]: where the x-dependent functions are valid"),
+    e(
+        "x_range",
+        "m",
+        K::Range,
+        C::About,
+        false,
+        ("mm", 1e3),
+        "[x_min, x_max]: where the x-dependent functions are valid",
+    ),
 ];
 
 /// The entry of a key.
@@ -217,13 +301,19 @@ mod tests {
         // The contract names each key (dotted ones by their last part, in their object's row);
         // the creep bank's realisation keys are its "further keys"; coilscope's extensions
         // (new optional keys) are not in it.
-        let spec = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/spec/formats.md")).expect("shared/spec/formats.md (set COILSCOPE_NO_SHARED=1 to skip, reported as ignored)");
+        let spec = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/spec/formats.md"))
+            .expect("shared/spec/formats.md (set COILSCOPE_NO_SHARED=1 to skip, reported as ignored)");
         for e in ENTRIES.iter().filter(|e| !e.realisation && !e.extension) {
             let last = e.key.rsplit('.').next().unwrap();
-            assert!(spec.contains(&format!("`{last}`")) || spec.contains(&format!("`{}`", e.key)), "formats.md does not name {}", e.key);
+            assert!(
+                spec.contains(&format!("`{last}`")) || spec.contains(&format!("`{}`", e.key)),
+                "formats.md does not name {}",
+                e.key
+            );
         }
         // The repository carries the contract for its users (`docs/formats.md`): the same text.
-        let copy = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../docs/formats.md")).expect("docs/formats.md");
+        let copy = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../docs/formats.md"))
+            .expect("docs/formats.md");
         assert!(copy == spec, "docs/formats.md differs from shared/spec/formats.md: copy the contract again");
     }
 }

@@ -50,7 +50,11 @@ impl<S: Electrical<f64, N>, const N: usize> Electrical<f64, N> for Pushed<'_, S>
 
 impl Plant {
     pub fn new(params: &Parameters) -> Self {
-        Plant { model: Model::new(params), ext: params.needs_ext_states().then(|| (ExtModel::new(params), [0.0; NEXT])), accel: 0.0 }
+        Plant {
+            model: Model::new(params),
+            ext: params.needs_ext_states().then(|| (ExtModel::new(params), [0.0; NEXT])),
+            accel: 0.0,
+        }
     }
 
     /// The plant with a constant external force `force` (N, + pushes the coil out) on the
@@ -128,7 +132,11 @@ impl Plant {
             None => *state = stepper.sample(&Pushed { sys: &self.model, accel }, state, dt, u_points),
             Some((model, s)) => {
                 s[..NSTATE].copy_from_slice(state);
-                *s = if accel == 0.0 { stepper.sample(model, s, dt, u_points) } else { stepper.sample(&Pushed { sys: &*model, accel }, s, dt, u_points) };
+                *s = if accel == 0.0 {
+                    stepper.sample(model, s, dt, u_points)
+                } else {
+                    stepper.sample(&Pushed { sys: &*model, accel }, s, dt, u_points)
+                };
                 state.copy_from_slice(&s[..NSTATE]);
             }
         }
@@ -181,7 +189,15 @@ pub enum SimError {
 }
 
 fn fmt_state(s: &State<f64>) -> String {
-    format!("x = {:.4} mm, v = {:.4} m/s, i = {:.4} A, i2 = {:.4} A, dTv = {:.3} K, dTm = {:.3} K", s[idx::X] * 1e3, s[idx::V], s[idx::I], s[idx::I2], s[idx::TV], s[idx::TM])
+    format!(
+        "x = {:.4} mm, v = {:.4} m/s, i = {:.4} A, i2 = {:.4} A, dTv = {:.3} K, dTm = {:.3} K",
+        s[idx::X] * 1e3,
+        s[idx::V],
+        s[idx::I],
+        s[idx::I2],
+        s[idx::TV],
+        s[idx::TM]
+    )
 }
 
 impl fmt::Display for SimError {
@@ -293,13 +309,31 @@ impl Simulator {
             (None, None) => Stepper::for_rates(params.rates(), fs),
             (None, Some(n)) | (Some(Scheme::Rk4), Some(n)) => Stepper::new(Scheme::Rk4, n),
             (Some(Scheme::Rk4), None) => Stepper::new(Scheme::Rk4, substeps_for(params.rates().total(), fs)),
-            (Some(Scheme::Exponential), n) => Stepper::new(Scheme::Exponential, n.unwrap_or_else(|| exp_steps_for(params.rates(), fs))),
-            (Some(Scheme::ExpCurrent), n) => Stepper::new(Scheme::ExpCurrent, n.unwrap_or_else(|| exp_current_steps(params, fs))),
-            (Some(s @ (Scheme::Midpoint | Scheme::ExpMidpoint)), _) => return Err(SimError::Input(format!("the {} rule is the search's Jacobian scheme, not a simulation's: take rk4 or exponential", s.name()))),
+            (Some(Scheme::Exponential), n) => {
+                Stepper::new(Scheme::Exponential, n.unwrap_or_else(|| exp_steps_for(params.rates(), fs)))
+            }
+            (Some(Scheme::ExpCurrent), n) => {
+                Stepper::new(Scheme::ExpCurrent, n.unwrap_or_else(|| exp_current_steps(params, fs)))
+            }
+            (Some(s @ (Scheme::Midpoint | Scheme::ExpMidpoint)), _) => {
+                return Err(SimError::Input(format!(
+                    "the {} rule is the search's Jacobian scheme, not a simulation's: take rk4 or exponential",
+                    s.name()
+                )))
+            }
         };
         let points = stepper.points();
         let bounds = params.x_range.map(|[lo, hi]| [lo * (1.0 + opts.range_margin), hi * (1.0 + opts.range_margin)]);
-        Ok(Simulator { plant: Plant::with_force(params, opts.force), params: params.clone(), fs, stepper, bounds, range: params.x_range, state: opts.initial, scratch: vec![0.0; points] })
+        Ok(Simulator {
+            plant: Plant::with_force(params, opts.force),
+            params: params.clone(),
+            fs,
+            stepper,
+            bounds,
+            range: params.x_range,
+            state: opts.initial,
+            scratch: vec![0.0; points],
+        })
     }
 
     /// Sub-steps per sample.
@@ -328,7 +362,10 @@ impl Simulator {
                 let p = &self.params;
                 for (name, v) in [("Bl", p.bl.eval(x)), ("Kms", p.kms.eval(x)), ("Le", p.le.eval(x))] {
                     if !(v > 0.0) {
-                        return fail(format!("{name}({:.3} mm) = {v:.4e} is not positive (the set has no x_range)", x * 1e3));
+                        return fail(format!(
+                            "{name}({:.3} mm) = {v:.4e} is not positive (the set has no x_range)",
+                            x * 1e3
+                        ));
                     }
                 }
             }
@@ -406,7 +443,13 @@ pub fn simulate(params: &Parameters, fs: f64, u: &[f64], opts: &SimOptions) -> R
 /// excursion of `target` (m, either direction), within 2 %, found by simulating up to six
 /// times; returns the gain and the trace at that gain. What a test or a virtual measurement
 /// uses to play "at 85 % of x_range".
-pub fn gain_for_peak(params: &Parameters, fs: f64, unit: &[f64], target: f64, opts: &SimOptions) -> Result<(f64, Trace), SimError> {
+pub fn gain_for_peak(
+    params: &Parameters,
+    fs: f64,
+    unit: &[f64],
+    target: f64,
+    opts: &SimOptions,
+) -> Result<(f64, Trace), SimError> {
     let mut g = 1.0;
     let mut last = None;
     for _ in 0..6 {

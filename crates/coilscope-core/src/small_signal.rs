@@ -88,7 +88,15 @@ pub fn thiele_small(p: &Parameters) -> ThieleSmall {
     let qms = ws * p.mms / rms_fs;
     let qes = ws * p.mms * p.re / (bl * bl);
     let cms = 1.0 / kms;
-    ThieleSmall { fs: ws / (2.0 * PI), qms, qes, qts: qms * qes / (qms + qes), cms, vas: p.sd.map(|sd| RHO_AIR * C_AIR * C_AIR * sd * sd * cms), rms_fs }
+    ThieleSmall {
+        fs: ws / (2.0 * PI),
+        qms,
+        qes,
+        qts: qms * qes / (qms + qes),
+        cms,
+        vas: p.sd.map(|sd| RHO_AIR * C_AIR * C_AIR * sd * sd * cms),
+        rms_fs,
+    }
 }
 
 #[cfg(test)]
@@ -119,15 +127,22 @@ mod tests {
         for (lambda, f_ref) in [(0.02, None), (0.1, None), (0.15, None), (0.1, Some(10.0)), (0.1, Some(300.0))] {
             let p = Parameters { creep: Some(crate::params::Creep { lambda, f_ref }), ..plain.clone() };
             let ts = thiele_small(&p);
-            let zmot = impedance(&p, ts.fs) - impedance(&Parameters { bl: crate::Poly::constant(1e-12), ..p.clone() }, ts.fs);
+            let zmot =
+                impedance(&p, ts.fs) - impedance(&Parameters { bl: crate::Poly::constant(1e-12), ..p.clone() }, ts.fs);
             let peak = p.bl.c[0].powi(2) / ts.rms_fs;
             assert!(zmot.im.abs() < 1e-9 * zmot.re, "lambda {lambda} f_ref {f_ref:?}: Zmot {zmot} at fs {}", ts.fs);
-            assert!((zmot.re - peak).abs() < 1e-9 * peak, "lambda {lambda} f_ref {f_ref:?}: Zmot {zmot}, Bl^2/rms_fs {peak}");
+            assert!(
+                (zmot.re - peak).abs() < 1e-9 * peak,
+                "lambda {lambda} f_ref {f_ref:?}: Zmot {zmot}, Bl^2/rms_fs {peak}"
+            );
             // The loss is the Kramers-Kronig partner of the LOG law, about 0.68 lambda K / w.
             let ws = 2.0 * PI * ts.fs;
             let loss = ts.rms_fs - p.rms;
             let kk = lambda * p.kms.c[0] * PI / (2.0 * std::f64::consts::LN_10) / ws;
-            assert!(loss > 0.0 && (loss / kk - 1.0).abs() < 0.1, "lambda {lambda} f_ref {f_ref:?}: loss {loss}, 0.68 lambda Kms / ws {kk}");
+            assert!(
+                loss > 0.0 && (loss / kk - 1.0).abs() < 0.1,
+                "lambda {lambda} f_ref {f_ref:?}: loss {loss}, 0.68 lambda Kms / ws {kk}"
+            );
             assert!((ts.qms - ws * p.mms / ts.rms_fs).abs() < 1e-12 * ts.qms);
             assert!(ts.qms < thiele_small(&plain).qms);
         }

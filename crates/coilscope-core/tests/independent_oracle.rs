@@ -79,7 +79,9 @@ fn rhs(p: &Parameters, y: &[f64; 6], u: f64) -> [f64; 6] {
     let u_r2 = r2 * (i - i2);
     let force = bl * i - p.rms * v - kms * x + 0.5 * dle * i * i + 0.5 * dl2 * i2 * i2;
     let (dtv, dtm) = match th {
-        Some(t) => ((re * i * i - (tv - tm) / t.rtv) / t.ctv, (u_r2 * (i - i2) + (tv - tm) / t.rtv - tm / t.rtm) / t.ctm),
+        Some(t) => {
+            ((re * i * i - (tv - tm) / t.rtv) / t.ctv, (u_r2 * (i - i2) + (tv - tm) / t.rtv - tm / t.rtm) / t.ctm)
+        }
         None => (0.0, 0.0),
     };
     [v, force / p.mms, u - re * i - bl * v - u_r2, if p.l2r2.is_some() { u_r2 } else { 0.0 }, dtv, dtm]
@@ -117,7 +119,8 @@ fn rel_rms(a: &[f64], b: &[f64]) -> f64 {
 /// scaled so the driver reaches about 80 % of its x_range.
 fn drive_for(p: &Parameters, n: usize) -> Drive {
     let freqs = [23.0, 37.0, 52.0, 71.0, 98.0, 140.0, 210.0, 330.0, 520.0, 900.0, 1700.0, 3900.0];
-    let tones: Vec<(f64, f64, f64)> = freqs.iter().enumerate().map(|(k, &f)| (f, 1.0 / (1.0 + f / 200.0), 2.4 * k as f64)).collect();
+    let tones: Vec<(f64, f64, f64)> =
+        freqs.iter().enumerate().map(|(k, &f)| (f, 1.0 / (1.0 + f / 200.0), 2.4 * k as f64)).collect();
     let mut d = Drive { tones, fade: 0.05 };
     let [lo, hi] = p.x_range.unwrap();
     let target = 0.8 * hi.min(-lo);
@@ -146,7 +149,8 @@ fn check_with(name: &str, p: &Parameters, seconds: f64, opts: &SimOptions, (tol_
     let (i_ref, x_ref) = oracle(p, &|t| drive.at(t), n);
     let peak = x_ref.iter().fold(0.0f64, |a, v| a.max(v.abs()));
     let ei = rel_rms(&tr.i[..n], &i_ref);
-    let ex = tr.x[..n].iter().zip(&x_ref).map(|(a, b)| (a - b).abs()).fold(0.0, coilscope_testkit::check::nan_max) / peak;
+    let ex =
+        tr.x[..n].iter().zip(&x_ref).map(|(a, b)| (a - b).abs()).fold(0.0, coilscope_testkit::check::nan_max) / peak;
     let [lo, hi] = p.x_range.unwrap();
     println!("{name} ({} steps per sample): peak {:.2} mm of {:.2}; current {ei:.2e} (relative RMS), displacement {ex:.2e} of the peak", tr.substeps, peak * 1e3, hi.min(-lo) * 1e3);
     assert!(peak > 0.6 * hi.min(-lo), "{name}: the drive reached only {peak} m");
@@ -248,7 +252,11 @@ fn compensation_lowers_the_displacement_distortion_at_30_hz_in_the_oracle() {
             20.0 * (wp / wc).log10()
         );
         assert!(c.warnings.is_empty(), "{name}: {:?}", c.warnings);
-        assert!(wc < 0.1 * wp, "{name}: compensation lowered the worst of HD2/HD3 by only {:.1} dB", 20.0 * (wp / wc).log10());
+        assert!(
+            wc < 0.1 * wp,
+            "{name}: compensation lowered the worst of HD2/HD3 by only {:.1} dB",
+            20.0 * (wp / wc).log10()
+        );
         // README: -130 to -160 dB compensated (the integrators' agreement, not a physical
         // floor); fails 20 dB above the worst of them.
         assert!(20.0 * wc.log10() < -110.0, "{name}: compensated worst of HD2/HD3 {:.1} dB", 20.0 * wc.log10());

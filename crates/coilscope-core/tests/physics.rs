@@ -105,8 +105,13 @@ fn energy_account(p: &Parameters, seconds: f64, stepper: Stepper) -> (Stepper, [
 #[test]
 fn energy_balances_in_the_exponential_scheme_on_a_microspeaker() {
     let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers");
-    let p = Parameters::from_json_str(&std::fs::read_to_string(format!("{dir}/microspeaker-0g1.json")).unwrap(), "microspeaker").unwrap();
-    let (stepper, [e_in, e_re, e_r2, e_rms, stored, imbalance]) = energy_account(&p, 0.3, Stepper::for_rates(p.rates(), FS));
+    let p = Parameters::from_json_str(
+        &std::fs::read_to_string(format!("{dir}/microspeaker-0g1.json")).unwrap(),
+        "microspeaker",
+    )
+    .unwrap();
+    let (stepper, [e_in, e_re, e_r2, e_rms, stored, imbalance]) =
+        energy_account(&p, 0.3, Stepper::for_rates(p.rates(), FS));
     assert_eq!(stepper.scheme, Scheme::Exponential);
     eprintln!("microspeaker, {} exponential steps: E_in {e_in:.4e} J, Re {e_re:.4e}, R2 {e_r2:.4e}, Rms {e_rms:.4e}, stored {stored:.3e}, imbalance {imbalance:.2e}", stepper.n());
     // Measured 6.6e-8 of the input energy at 3 steps, each step's drive the quartic through
@@ -115,7 +120,11 @@ fn energy_balances_in_the_exponential_scheme_on_a_microspeaker() {
     assert!(imbalance.abs() < 3e-7 * e_in, "imbalance {imbalance:.3e} J of {e_in:.3e} J");
     // A fit's model runs take 2 steps (Stepper::for_fit): measured 4.6e-7; fails at 4.3x.
     let (stepper, [e_in, .., imbalance]) = energy_account(&p, 0.3, Stepper::for_fit(p.rates(), FS).0);
-    eprintln!("microspeaker, a fit's {} exponential steps: imbalance {:.2e} of the input", stepper.n(), imbalance / e_in);
+    eprintln!(
+        "microspeaker, a fit's {} exponential steps: imbalance {:.2e} of the input",
+        stepper.n(),
+        imbalance / e_in
+    );
     assert!(imbalance.abs() < 2e-6 * e_in, "a fit's steps: imbalance {imbalance:.3e} J of {e_in:.3e} J");
 }
 
@@ -123,7 +132,8 @@ fn energy_balances_in_the_exponential_scheme_on_a_microspeaker() {
 fn energy_in_equals_losses_plus_stored_energy() {
     for name in embedded_driver_names() {
         let p = embedded_driver(name).unwrap();
-        let (stepper, [e_in, e_re, e_r2, e_rms, stored, imbalance]) = energy_account(&p, 0.5, Stepper::for_rates(p.rates(), FS));
+        let (stepper, [e_in, e_re, e_r2, e_rms, stored, imbalance]) =
+            energy_account(&p, 0.5, Stepper::for_rates(p.rates(), FS));
         assert_eq!(stepper.scheme, Scheme::Rk4);
         eprintln!("{name}: {} sub-steps: E_in {e_in:.4} J, Re {e_re:.4}, R2 {e_r2:.4}, Rms {e_rms:.4}, stored {stored:.3e}, imbalance {:.2e} of the input", stepper.n(), imbalance / e_in);
         // README: < 3e-5 of the input energy at the sub-steps a simulation takes (2); the
@@ -155,9 +165,13 @@ fn the_current_exponential_method_matches_the_tiny_step_reference_in_one_step() 
             for seed in [3, 4] {
                 let spec = SignalSpec { fs, seconds: 0.25, rms: 1.0, fade: 0.05, seed };
                 let u1 = generate(&Excitation::Iec, &spec).unwrap();
-                let (_, tr) = coilscope_core::simulate::gain_for_peak(&p, fs, &u1, 0.9 * hi.min(-lo), &SimOptions::default()).unwrap();
+                let (_, tr) =
+                    coilscope_core::simulate::gain_for_peak(&p, fs, &u1, 0.9 * hi.min(-lo), &SimOptions::default())
+                        .unwrap();
                 let tiny = simulate(&p, fs, &tr.u, &SimOptions { substeps: Some(128), ..Default::default() }).unwrap();
-                let one = simulate(&p, fs, &tr.u, &SimOptions { scheme: Some(Scheme::ExpCurrent), ..Default::default() }).unwrap();
+                let one =
+                    simulate(&p, fs, &tr.u, &SimOptions { scheme: Some(Scheme::ExpCurrent), ..Default::default() })
+                        .unwrap();
                 assert_eq!(one.substeps, 1);
                 let (ei, ex) = (rel_rms(&one.i, &tiny.i), rel_rms(&one.x, &tiny.x));
                 eprintln!("{name} at {fs} Hz, seed {seed}: current {ei:.2e}, displacement {ex:.2e}");
@@ -222,7 +236,12 @@ fn small_signal_current_follows_the_analytic_impedance() {
             let z = impedance(&p, f);
             let err = (z_sim - z).norm() / z.norm();
             eprintln!("{name} {f} Hz: error {err:.2e}");
-            assert!(err < impedance_tol(f), "{name} at {f} Hz: |Z| {:.4} vs {:.4}, error {err:.2e}", z_sim.norm(), z.norm());
+            assert!(
+                err < impedance_tol(f),
+                "{name} at {f} Hz: |Z| {:.4} vs {:.4}, error {err:.2e}",
+                z_sim.norm(),
+                z.norm()
+            );
         }
     }
 }
@@ -246,12 +265,26 @@ fn stiff_microspeaker_is_stable_and_accurate_at_48_khz() {
     let rk4 = simulate(&p, FS, &u, &SimOptions { scheme: Some(Scheme::Rk4), ..Default::default() }).unwrap();
     assert!(rk4.substeps >= 14, "{}", rk4.substeps);
     let fast = simulate(&p, FS, &u, &SimOptions::default()).unwrap();
-    assert!(fast.substeps <= 5 && Stepper::for_rates(p.rates(), FS).scheme == Scheme::Exponential, "{} steps", fast.substeps);
+    assert!(
+        fast.substeps <= 5 && Stepper::for_rates(p.rates(), FS).scheme == Scheme::Exponential,
+        "{} steps",
+        fast.substeps
+    );
     // A fit's model runs (Stepper::for_fit): fewer exponential steps.
     let fit_steps = Stepper::for_fit(p.rates(), FS).0;
     assert!(fit_steps.scheme == Scheme::Exponential && fit_steps.n() < fast.substeps, "{:?}", fit_steps);
-    let fit = simulate(&p, FS, &u, &SimOptions { scheme: Some(Scheme::Exponential), substeps: Some(fit_steps.n()), ..Default::default() }).unwrap();
-    for (what, tr, (ti, tx)) in [("RK4", &rk4, (1e-5, 1e-7)), ("exponential", &fast, (2e-5, 4e-6)), ("a fit's exponential", &fit, (4e-5, 1.6e-5))] {
+    let fit = simulate(
+        &p,
+        FS,
+        &u,
+        &SimOptions { scheme: Some(Scheme::Exponential), substeps: Some(fit_steps.n()), ..Default::default() },
+    )
+    .unwrap();
+    for (what, tr, (ti, tx)) in [
+        ("RK4", &rk4, (1e-5, 1e-7)),
+        ("exponential", &fast, (2e-5, 4e-6)),
+        ("a fit's exponential", &fit, (4e-5, 1.6e-5)),
+    ] {
         let ei = rel_rms(&tr.i, &tiny.i);
         let ex = rel_rms(&tr.x, &tiny.x);
         eprintln!("microspeaker, {what}: {} steps, current {ei:.2e}, displacement {ex:.2e}", tr.substeps);
@@ -380,7 +413,14 @@ fn energy_balance_of(p: &Parameters, u: &[f64], stepper: &Stepper) -> (f64, f64)
 #[test]
 fn a_microspeaker_with_every_effect_in_the_exponential_method() {
     let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers");
-    let p = with_effects_on(Parameters::from_json_str(&std::fs::read_to_string(format!("{dir}/microspeaker-0g1.json")).unwrap(), "microspeaker").unwrap(), 0.3);
+    let p = with_effects_on(
+        Parameters::from_json_str(
+            &std::fs::read_to_string(format!("{dir}/microspeaker-0g1.json")).unwrap(),
+            "microspeaker",
+        )
+        .unwrap(),
+        0.3,
+    );
     let u = full_excursion_voltage(&p, 0.3, 0.9);
     let sim = Stepper::for_rates(p.rates(), FS);
     let fit = Stepper::for_fit(p.rates(), FS).0;
@@ -391,12 +431,24 @@ fn a_microspeaker_with_every_effect_in_the_exponential_method() {
     // Measured: current 2.1e-6, displacement 1.0e-6, imbalance 5.0e-7 of the input at 3
     // steps (the plain microspeaker: 9.7e-7 and 1.3e-6), 8.8e-6, 3.8e-6, 1.9e-6 at 2 (5.1e-6
     // and 5.4e-6); one step: 1.7e-3. The bounds fail at 4x.
-    for (what, stepper, (ti, tx, te)) in [("simulation", &sim, (8e-6, 4e-6, 2e-6)), ("fit", &fit, (3.5e-5, 1.5e-5, 8e-6))] {
-        let tr = simulate(&p, FS, &u, &SimOptions { scheme: Some(stepper.scheme), substeps: Some(stepper.n()), ..Default::default() }).unwrap();
+    for (what, stepper, (ti, tx, te)) in
+        [("simulation", &sim, (8e-6, 4e-6, 2e-6)), ("fit", &fit, (3.5e-5, 1.5e-5, 8e-6))]
+    {
+        let tr = simulate(
+            &p,
+            FS,
+            &u,
+            &SimOptions { scheme: Some(stepper.scheme), substeps: Some(stepper.n()), ..Default::default() },
+        )
+        .unwrap();
         let (ei, ex) = (rel_rms(&tr.i, &tiny.i), rel_rms(&tr.x, &tiny.x));
         let (e_in, imbalance) = energy_balance_of(&p, &u, stepper);
         eprintln!("microspeaker with every effect, a {what}'s {} exponential steps: current {ei:.2e}, displacement {ex:.2e}, imbalance {:.2e} of the input", stepper.n(), imbalance / e_in);
-        assert!(ei < ti && ex < tx && imbalance.abs() < te * e_in, "{what}: current {ei:.3e}, displacement {ex:.3e}, imbalance {:.3e}", imbalance / e_in);
+        assert!(
+            ei < ti && ex < tx && imbalance.abs() < te * e_in,
+            "{what}: current {ei:.3e}, displacement {ex:.3e}, imbalance {:.3e}",
+            imbalance / e_in
+        );
     }
 }
 
@@ -418,11 +470,16 @@ fn energy_balances_with_every_effect() {
         // at two sub-steps; the test fails at 4x). The stepper itself, not RK4 at its step
         // count: a trial of that method as the default once read 6.3e-4 here, which was RK4
         // at one sub-step.
-        for (stepper, tol) in [(production, 1e-4), (Stepper::new(Scheme::Rk4, 8), 8e-6), (Stepper::new(Scheme::ExpCurrent, 1), 7e-5)] {
+        for (stepper, tol) in
+            [(production, 1e-4), (Stepper::new(Scheme::Rk4, 8), 8e-6), (Stepper::new(Scheme::ExpCurrent, 1), 7e-5)]
+        {
             let (e_in, imbalance) = energy_balance_of(&p, &u, &stepper);
             let (scheme, n) = (stepper.scheme.name(), stepper.n());
             eprintln!("{name}, {scheme} x {n}: E_in {e_in:.4} J, imbalance {:.2e} of the input", imbalance / e_in);
-            assert!(imbalance.abs() < tol * e_in, "{name}, {scheme} x {n}: imbalance {imbalance:.3e} J of {e_in:.3e} J");
+            assert!(
+                imbalance.abs() < tol * e_in,
+                "{name}, {scheme} x {n}: imbalance {imbalance:.3e} J of {e_in:.3e} J"
+            );
         }
     }
 }
@@ -441,7 +498,12 @@ fn small_signal_current_with_every_effect_follows_the_analytic_impedance() {
             // The effects change |Z| by far more than the tolerance near the resonance.
             let z0 = impedance(&embedded_driver(name).unwrap(), f);
             eprintln!("{name} {f} Hz: error {err:.2e} (the effects move Z by {:.2e})", (z - z0).norm() / z.norm());
-            assert!(err < impedance_tol(f), "{name} at {f} Hz: |Z| {:.4} vs {:.4}, error {err:.2e}", z_sim.norm(), z.norm());
+            assert!(
+                err < impedance_tol(f),
+                "{name} at {f} Hz: |Z| {:.4} vs {:.4}, error {err:.2e}",
+                z_sim.norm(),
+                z.norm()
+            );
         }
     }
 }
@@ -478,7 +540,11 @@ fn an_external_force_is_held_by_the_suspension() {
             let t = simulate(&p, 48000.0, &vec![0.0; 96000], &SimOptions { force, ..Default::default() }).unwrap();
             let x = *t.x.last().unwrap();
             let held = p.kms.eval(x) * x;
-            assert!((held / force - 1.0).abs() < 1e-6, "{name}: Kms(x) x = {held} N at x = {} mm, the force {force} N", x * 1e3);
+            assert!(
+                (held / force - 1.0).abs() < 1e-6,
+                "{name}: Kms(x) x = {held} N at x = {} mm, the force {force} N",
+                x * 1e3
+            );
             assert!(t.i.last().unwrap().abs() < 1e-9, "{name}: current {} A at rest", t.i.last().unwrap());
         }
     }
@@ -497,7 +563,11 @@ fn flushed_lanes_only_lose_what_is_below_tiny() {
     use coilscope_core::integrate::{FlushTiny, TINY_LANE};
     use num_dual::DualSVec64;
     let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers");
-    let mut p = Parameters::from_json_str(&std::fs::read_to_string(format!("{dir}/microspeaker-0g1.json")).unwrap(), "microspeaker").unwrap();
+    let mut p = Parameters::from_json_str(
+        &std::fs::read_to_string(format!("{dir}/microspeaker-0g1.json")).unwrap(),
+        "microspeaker",
+    )
+    .unwrap();
     // As `identify` models it: Re(t) given (here constant), no thermal states (whose slow
     // sensitivities would keep the others alive).
     p.thermal = None;
@@ -546,7 +616,8 @@ fn flushed_lanes_only_lose_what_is_below_tiny() {
 fn a_simulation_refuses_the_midpoint_rule() {
     let p = embedded_driver("sb17cac35-4").unwrap();
     for scheme in [Scheme::Midpoint, Scheme::ExpMidpoint] {
-        let err = simulate(&p, FS, &[0.0; 100], &SimOptions { scheme: Some(scheme), ..Default::default() }).unwrap_err();
+        let err =
+            simulate(&p, FS, &[0.0; 100], &SimOptions { scheme: Some(scheme), ..Default::default() }).unwrap_err();
         let msg = err.to_string();
         assert!(msg.contains(scheme.name()) && msg.contains("rk4") && msg.contains("exponential"), "{msg}");
     }

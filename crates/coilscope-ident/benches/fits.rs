@@ -58,7 +58,11 @@ fn calibrate_40s(b: divan::Bencher) {
     static REC: OnceLock<(Vec<f64>, Vec<f64>)> = OnceLock::new();
     let fs = 48000.0;
     let (u, i) = REC.get_or_init(|| {
-        let u = generate(&Excitation::Pink { f_lo: 0.3, f_hi: 0.45 * fs, crest: None }, &SignalSpec { fs, seconds: 40.0, rms: 1.0, fade: 0.0, seed: 1 }).unwrap();
+        let u = generate(
+            &Excitation::Pink { f_lo: 0.3, f_hi: 0.45 * fs, crest: None },
+            &SignalSpec { fs, seconds: 40.0, rms: 1.0, fade: 0.0, seed: 1 },
+        )
+        .unwrap();
         let i: Vec<f64> = u.iter().map(|v| v / 4.7).collect();
         let chain = Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, ..Default::default() };
         let (mut ur, mut ir) = chain.apply(&u, &i, fs);

@@ -39,7 +39,11 @@ fn record_seed(name: &str, seed: u64) -> Rec {
     let p = driver(name);
     let [lo, hi] = p.x_range.unwrap();
     let target = 0.85 * hi.min(-lo);
-    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs: FS, seconds: 8.0, rms: 1.0, fade: 0.05, seed }).unwrap();
+    let unit = generate(
+        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+        &SignalSpec { fs: FS, seconds: 8.0, rms: 1.0, fade: 0.05, seed },
+    )
+    .unwrap();
     let (_, tr) = gain_for_peak(&p, FS, &unit, target, &SimOptions::default()).unwrap();
     let (mut u, mut i) = (tr.u, tr.i);
     add_sensor_noise(&mut u, 70.0, seed, "sensor-noise/voltage");
@@ -76,7 +80,15 @@ fn identify_8s_microspeaker(b: divan::Bencher, name: &str) {
 fn identify_8s(name: &str) {
     let r = rec(name);
     let lr2 = coilscope_ident::linear::EffectsChoice::Fixed(coilscope_ident::linear::Effects::NONE);
-    let f = identify(&r.u, &r.i, FS, "bench", &IdentifyOptions { mms: r.p.mms, effects: lr2, ..Default::default() }, |_| {}).unwrap();
+    let f = identify(
+        &r.u,
+        &r.i,
+        FS,
+        "bench",
+        &IdentifyOptions { mms: r.p.mms, effects: lr2, ..Default::default() },
+        |_| {},
+    )
+    .unwrap();
     assert!(f.residual_rel < 0.01);
 }
 
@@ -113,7 +125,15 @@ fn batch_of_4_sb17(workers: usize) {
             scope.spawn(|| {
                 while let Some(r) = recs.get(next.fetch_add(1, std::sync::atomic::Ordering::Relaxed)) {
                     let lr2 = coilscope_ident::linear::EffectsChoice::Fixed(coilscope_ident::linear::Effects::NONE);
-                    let f = identify(&r.u, &r.i, FS, "bench", &IdentifyOptions { mms: r.p.mms, effects: lr2, threads, ..Default::default() }, |_| {}).unwrap();
+                    let f = identify(
+                        &r.u,
+                        &r.i,
+                        FS,
+                        "bench",
+                        &IdentifyOptions { mms: r.p.mms, effects: lr2, threads, ..Default::default() },
+                        |_| {},
+                    )
+                    .unwrap();
                     assert!(f.residual_rel < 0.01);
                 }
             });
@@ -123,7 +143,15 @@ fn batch_of_4_sb17(workers: usize) {
 
 fn problem(r: &'static Rec) -> (OutputError<'static>, Vec<f64>) {
     let p = &r.p;
-    let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
+    let sc = Scales {
+        re: p.re,
+        le: p.le.eval(0.0),
+        l2: 5e-4,
+        r2: 0.3,
+        bl: p.bl.eval(0.0),
+        kms: p.kms.eval(0.0),
+        rms: p.rms,
+    };
     let lay = Layout::new(4, 5, 2.0, 0.005, sc, true, p.mms);
     let th = lay.theta_from(p, None);
     let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
@@ -225,7 +253,15 @@ fn residual_order4_effects(b: divan::Bencher, which: &str) {
             coilscope_ident::linear::Effects { creep: true, ..coilscope_ident::linear::Effects::NONE }
         }
     };
-    let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
+    let sc = Scales {
+        re: p.re,
+        le: p.le.eval(0.0),
+        l2: 5e-4,
+        r2: 0.3,
+        bl: p.bl.eval(0.0),
+        kms: p.kms.eval(0.0),
+        rms: p.rms,
+    };
     let lay = Layout::new(4, 5, 2.0, 0.005, sc, true, p.mms).with_effects(effects);
     let th = lay.theta_from(&p, None);
     let prob = OutputError::new(lay, &r.u, &r.i, FS, 0..r.u.len(), p.rates(), 0.05, 1);
@@ -259,11 +295,23 @@ fn linear_start(b: divan::Bencher, which: &str) {
     let (u, i) = if chain {
         let peak = |v: &[f64]| v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
         let (pu, pi) = (peak(&r.u), peak(&r.i));
-        let card = Chain { delay_i: 0.3 / FS, hp_u: 2.0, hp_i: 4.0, dc_u: 5e-3 * pu, dc_i: 5e-3 * pi, hum: Some(Hum { f: 50.0, u: vec![[1e-3 * pu, 0.3]], i: vec![[1e-3 * pi, 1.1]] }), ..Default::default() };
+        let card = Chain {
+            delay_i: 0.3 / FS,
+            hp_u: 2.0,
+            hp_i: 4.0,
+            dc_u: 5e-3 * pu,
+            dc_i: 5e-3 * pi,
+            hum: Some(Hum { f: 50.0, u: vec![[1e-3 * pu, 0.3]], i: vec![[1e-3 * pi, 1.1]] }),
+            ..Default::default()
+        };
         card.apply(&r.u[..m], &r.i[..m], FS)
     } else {
         (r.u[..m].to_vec(), r.i[..m].to_vec())
     };
-    let opts = if chain { LinearOptions { chain: true, ..LinearOptions::LARGE_SIGNAL_START } } else { LinearOptions { effects: EffectsChoice::Auto, ..LinearOptions::LARGE_SIGNAL_START } };
+    let opts = if chain {
+        LinearOptions { chain: true, ..LinearOptions::LARGE_SIGNAL_START }
+    } else {
+        LinearOptions { effects: EffectsChoice::Auto, ..LinearOptions::LARGE_SIGNAL_START }
+    };
     b.bench_local(|| fit_linear_record(&u, &i, FS, "bench", &opts, |_| {}).unwrap());
 }

@@ -29,7 +29,8 @@ fn resample(x: &[f64], n_out: usize) -> Vec<f64> {
 fn main() {
     let os: usize = std::env::args().nth(1).and_then(|a| a.parse().ok()).unwrap_or(16);
     let p = embedded_driver("sb17cac35-4").unwrap();
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings/sb17cac35-4-large.wav");
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings/sb17cac35-4-large.wav");
     let rec = coilscope_io::read_recording(&path, None).unwrap_or_else(|e| {
         eprintln!("{}: {e:?} (the shared recordings sit beside the repository)", path.display());
         std::process::exit(2);
@@ -40,8 +41,33 @@ fn main() {
     let tr = simulate(&p, fs * os as f64, &u_hi, &SimOptions::default()).unwrap();
     let i = resample(&tr.i, n);
     let u = resample(&tr.u, n);
-    println!("simulated at {} Hz, {} substeps; u diff {:.2e}", fs * os as f64, tr.substeps, u.iter().zip(&rec.u).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max));
-    let fit = identify(&u, &i, fs, "oversampled", &IdentifyOptions { mms: p.mms, chain: true, order: Some(4), effects: EffectsChoice::Fixed(Default::default()), ..Default::default() }, |_| {}).unwrap();
+    println!(
+        "simulated at {} Hz, {} substeps; u diff {:.2e}",
+        fs * os as f64,
+        tr.substeps,
+        u.iter().zip(&rec.u).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max)
+    );
+    let fit = identify(
+        &u,
+        &i,
+        fs,
+        "oversampled",
+        &IdentifyOptions {
+            mms: p.mms,
+            chain: true,
+            order: Some(4),
+            effects: EffectsChoice::Fixed(Default::default()),
+            ..Default::default()
+        },
+        |_| {},
+    )
+    .unwrap();
     let c = fit.chain.unwrap();
-    println!("delay {:.3e} samples, Le0 {:.6e} (true {:.6e}), rel {:.2e}", c.delay_i * fs, fit.params.le.c[0], p.le.c[0], fit.params.le.c[0] / p.le.c[0] - 1.0);
+    println!(
+        "delay {:.3e} samples, Le0 {:.6e} (true {:.6e}), rel {:.2e}",
+        c.delay_i * fs,
+        fit.params.le.c[0],
+        p.le.c[0],
+        fit.params.le.c[0] / p.le.c[0] - 1.0
+    );
 }

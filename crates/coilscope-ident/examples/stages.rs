@@ -40,7 +40,9 @@ fn main() {
     // An embedded driver, or one of testdata/drivers (microspeaker-0g1, microspeaker-2g7,
     // large-coil).
     let path = format!("{}/../../testdata/drivers/{name}.json", env!("CARGO_MANIFEST_DIR"));
-    let Some(p) = embedded_driver(&name).or_else(|| Parameters::from_json_str(&std::fs::read_to_string(&path).ok()?, &path).ok()) else {
+    let Some(p) =
+        embedded_driver(&name).or_else(|| Parameters::from_json_str(&std::fs::read_to_string(&path).ok()?, &path).ok())
+    else {
         eprintln!("{name}: not an embedded driver (see `coilscope drivers`) nor one of testdata/drivers");
         std::process::exit(2);
     };
@@ -49,13 +51,26 @@ fn main() {
         _ => p,
     };
     let [lo, hi] = p.x_range.expect("embedded drivers have an x_range");
-    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.05, seed: 1 }).expect("valid signal");
-    let (_, tr) = gain_for_peak(&p, fs, &unit, 0.85 * hi.min(-lo), &SimOptions::default()).expect("the driver simulates");
+    let unit = generate(
+        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+        &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.05, seed: 1 },
+    )
+    .expect("valid signal");
+    let (_, tr) =
+        gain_for_peak(&p, fs, &unit, 0.85 * hi.min(-lo), &SimOptions::default()).expect("the driver simulates");
     let (mut u, mut i) = (tr.u, tr.i);
     if chain {
         let peak = |v: &[f64]| v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
         let (pu, pi) = (peak(&u), peak(&i));
-        let card = Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, dc_u: 5e-3 * pu, dc_i: 5e-3 * pi, hum: Some(Hum { f: 50.0, u: vec![[1e-3 * pu, 0.3]], i: vec![[1e-3 * pi, 1.1]] }), ..Default::default() };
+        let card = Chain {
+            delay_i: 0.3 / fs,
+            hp_u: 2.0,
+            hp_i: 4.0,
+            dc_u: 5e-3 * pu,
+            dc_i: 5e-3 * pi,
+            hum: Some(Hum { f: 50.0, u: vec![[1e-3 * pu, 0.3]], i: vec![[1e-3 * pi, 1.1]] }),
+            ..Default::default()
+        };
         (u, i) = card.apply(&u, &i, fs);
     }
     if !clean {
@@ -71,7 +86,12 @@ fn main() {
 fn recording(path: &str, chain: bool) {
     let rec = coilscope_io::read_recording(std::path::Path::new(path), None).unwrap_or_else(|e| panic!("{e}"));
     let file = std::path::Path::new(path).file_name().map(|f| f.to_string_lossy().to_string()).unwrap_or_default();
-    let mms = coilscope_core::embedded_driver_names().into_iter().find(|d| file.starts_with(d)).and_then(embedded_driver).map(|p| p.mms).unwrap_or_else(|| panic!("{file}: no embedded driver names it"));
+    let mms = coilscope_core::embedded_driver_names()
+        .into_iter()
+        .find(|d| file.starts_with(d))
+        .and_then(embedded_driver)
+        .map(|p| p.mms)
+        .unwrap_or_else(|| panic!("{file}: no embedded driver names it"));
     run(&rec.u, &rec.i, rec.fs as f64, &file, &IdentifyOptions { mms, chain, ..Default::default() });
 }
 
@@ -83,7 +103,9 @@ fn run(u: &[f64], i: &[f64], fs: f64, name: &str, opts: &IdentifyOptions) {
         let (t, cpu) = (t0.elapsed().as_secs_f64(), cpu_seconds());
         let s = pr.state;
         // The cores' use since the last line: CPU time over wall time (200 % = both busy).
-        let used = cpu.zip(last_cpu).map_or(String::new(), |(c, l)| format!(" cpu {:3.0} %", 100.0 * (c - l) / (t - last).max(1e-9)));
+        let used = cpu
+            .zip(last_cpu)
+            .map_or(String::new(), |(c, l)| format!(" cpu {:3.0} %", 100.0 * (c - l) / (t - last).max(1e-9)));
         println!(
             "{t:7.3} s (+{:.3}{used}) {:?} it {} error {:.3e} unknowns {} decrease {:.2e} gain ratio {:.3} damping {:.1e} gn_left {:.2e}",
             t - last,
@@ -100,9 +122,16 @@ fn run(u: &[f64], i: &[f64], fs: f64, name: &str, opts: &IdentifyOptions) {
     });
     match fit {
         Ok(f) => {
-            println!("total {:.3} s: order {}, model {}, sub-steps per sample {:?} (residual, Jacobian)", t0.elapsed().as_secs_f64(), f.order, f.layout.effects.model_name(), f.substeps);
+            println!(
+                "total {:.3} s: order {}, model {}, sub-steps per sample {:?} (residual, Jacobian)",
+                t0.elapsed().as_secs_f64(),
+                f.order,
+                f.layout.effects.model_name(),
+                f.substeps
+            );
             for t in f.models_tried() {
-                let before = t.validation_rel_before.map_or(String::new(), |b| format!(" (went on alone from {b:.4e})"));
+                let before =
+                    t.validation_rel_before.map_or(String::new(), |b| format!(" (went on alone from {b:.4e})"));
                 println!("  {}: validation {:?}{before}, screen gain {:?}", t.model, t.validation_rel, t.screen_gain);
             }
         }

@@ -193,7 +193,9 @@ pub fn calibrate(u: &[f64], i: &[f64], fs: f64, resistor: f64, origin: &str) -> 
     let averages = (2 * u.len() / seg).saturating_sub(1).max(1) as f64;
     let df = fs / seg as f64;
     let f_hi = 0.45 * fs;
-    let keep: Vec<usize> = (1..h1.f.len()).filter(|&k| h1.f[k] >= 2.0 * df && h1.f[k] <= f_hi && h1.usable(k, MIN_COHERENCE) && !near_hum(h1.f[k])).collect();
+    let keep: Vec<usize> = (1..h1.f.len())
+        .filter(|&k| h1.f[k] >= 2.0 * df && h1.f[k] <= f_hi && h1.usable(k, MIN_COHERENCE) && !near_hum(h1.f[k]))
+        .collect();
     if keep.len() < 100 {
         return Err(format!("{origin}: only {} coherent, excited bins; play broadband noise (0.3 Hz .. 20 kHz) at a level well above the noise", keep.len()));
     }
@@ -207,7 +209,9 @@ pub fn calibrate(u: &[f64], i: &[f64], fs: f64, resistor: f64, origin: &str) -> 
         })
         .collect();
     let zmed = crate::checks::median(z.iter().map(|z| z.norm()).collect());
-    let low_re = crate::checks::median(keep.iter().filter(|&&k| h1.f[k] > 20.0 && h1.f[k] < 2000.0).map(|&k| h1.z[k].re).collect());
+    let low_re = crate::checks::median(
+        keep.iter().filter(|&&k| h1.f[k] > 20.0 && h1.f[k] < 2000.0).map(|&k| h1.z[k].re).collect(),
+    );
     if low_re < 0.0 {
         return Err(format!("{origin}: U/I is negative ({low_re:.3} ohm median, 20 Hz .. 2 kHz): the current channel is inverted; swap its leads or invert its scale"));
     }
@@ -247,14 +251,19 @@ pub fn calibrate(u: &[f64], i: &[f64], fs: f64, resistor: f64, origin: &str) -> 
     let m = prob.f.len();
     let residual_in_noise = (r.norm_squared() / (2 * m) as f64).sqrt();
     let (cu, ci) = (Corner::new(th[2], fs), Corner::new(th[3], fs));
-    let residual_rel = ((0..m).map(|k| ((prob.z[k] - prob.model(&th, &cu, &ci, k).0) / prob.z[k].norm()).norm_sqr()).sum::<f64>() / m as f64).sqrt();
+    let residual_rel =
+        ((0..m).map(|k| ((prob.z[k] - prob.model(&th, &cu, &ci, k).0) / prob.z[k].norm()).norm_sqr()).sum::<f64>()
+            / m as f64)
+            .sqrt();
     if residual_in_noise > MAX_RESIDUAL_IN_NOISE {
         return Err(format!(
             "{origin}: this does not look like a resistor through a first-order chain: the fit misses by {residual_in_noise:.1}x the noise (|U/I| median {zmed:.3}, {:.2} % RMS). A driver or a reactive load on the channels, a second-order coupling, or a gain that drifts",
             100.0 * residual_rel
         ));
     }
-    let cov = sandwich_covariance(&j, &r, 32).ok_or_else(|| format!("{origin}: the calibration is not identifiable (singular Jacobian): excite below the coupling corners"))?;
+    let cov = sandwich_covariance(&j, &r, 32).ok_or_else(|| {
+        format!("{origin}: the calibration is not identifiable (singular Jacobian): excite below the coupling corners")
+    })?;
     let sd = |c: usize| crate::lm::sd_from_variance(cov[(c, c)]);
     let (hp_u, hp_i) = (th[2] * th[2], th[3] * th[3]);
     let gain = resistor * (-th[0]).exp();
@@ -268,7 +277,8 @@ pub fn calibrate(u: &[f64], i: &[f64], fs: f64, resistor: f64, origin: &str) -> 
     let sigma2 = r.norm_squared() / (2 * m).saturating_sub(4).max(1) as f64;
     let (tied, diff_sd) = tied_corners(&prob, &th, sigma2.sqrt());
     let resolved = tied - r.norm_squared() > 9.0 * sigma2;
-    let mut chain = Chain { source: Some("calibrated".into()), delay_i: th[1] / fs, gain_i: Some(gain), ..Default::default() };
+    let mut chain =
+        Chain { source: Some("calibrated".into()), delay_i: th[1] / fs, gain_i: Some(gain), ..Default::default() };
     chain.sd.insert("delay_i".into(), sd(1) / fs);
     chain.sd.insert("gain_i".into(), gain * sd(0));
     chain.fitted = vec!["delay_i".into(), "gain_i".into()];
@@ -329,7 +339,10 @@ mod tests {
                         err = err.max((d - fd).norm());
                         scale = scale.max(d.norm());
                     }
-                    assert!(scale > 0.0 && err < 1e-6 * scale, "fs {fs}, theta {th:?}, column {c}: {err:e} of {scale:e}");
+                    assert!(
+                        scale > 0.0 && err < 1e-6 * scale,
+                        "fs {fs}, theta {th:?}, column {c}: {err:e} of {scale:e}"
+                    );
                 }
             }
         }

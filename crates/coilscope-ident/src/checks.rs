@@ -31,7 +31,8 @@ pub fn noise_floor(r: &[f64], _fs: f64) -> NoiseFloor {
     }
     let mut planner = RealFftPlanner::<f64>::new();
     let fft = planner.plan_fft_forward(seg);
-    let win: Vec<f64> = (0..seg).map(|k| 0.5 - 0.5 * (2.0 * std::f64::consts::PI * k as f64 / seg as f64).cos()).collect();
+    let win: Vec<f64> =
+        (0..seg).map(|k| 0.5 - 0.5 * (2.0 * std::f64::consts::PI * k as f64 / seg as f64).cos()).collect();
     let wss: f64 = win.iter().map(|w| w * w).sum();
     let mut psd = vec![0.0; seg / 2 + 1];
     let (mut buf, mut out) = (vec![0.0; seg], fft.make_output_vec());
@@ -189,7 +190,8 @@ pub fn drive_explained_ratio(r: &[f64], u: &[f64], i_model: &[f64], x_model: &[f
         return 1.0;
     }
     let m = n - 2 * L;
-    let at = |s: &[f64], lag: isize| -> Vec<f64> { (0..m).map(|k| s[(k as isize + L as isize + lag) as usize]).collect() };
+    let at =
+        |s: &[f64], lag: isize| -> Vec<f64> { (0..m).map(|k| s[(k as isize + L as isize + lag) as usize]).collect() };
     let mut g: Vec<Vec<f64>> = Vec::new();
     for lag in -(L as isize)..=(L as isize) {
         g.push(at(i_model, lag));
@@ -231,7 +233,16 @@ pub fn drive_explained_ratio(r: &[f64], u: &[f64], i_model: &[f64], x_model: &[f
 /// modelled current, on the samples of `u`, `i_model` and `x_model`): when
 /// [`drive_explained_ratio`] reaches [`DRIVE_RATIO_WARN`] and the misfit it explains is at
 /// least `min_misfit` of the current's RMS `i_rms` (`linear` asks for its material 0.5 %).
-pub fn drive_warning(r: &[f64], u: &[f64], i_model: &[f64], x_model: &[f64], fs: f64, what: &str, i_rms: f64, min_misfit: f64) -> Option<Warning> {
+pub fn drive_warning(
+    r: &[f64],
+    u: &[f64],
+    i_model: &[f64],
+    x_model: &[f64],
+    fs: f64,
+    what: &str,
+    i_rms: f64,
+    min_misfit: f64,
+) -> Option<Warning> {
     let ratio = drive_explained_ratio(r, u, i_model, x_model, fs);
     let rms = (r.iter().map(|v| v * v).sum::<f64>() / r.len().max(1) as f64).sqrt();
     let misfit = rms * (1.0 - 1.0 / (ratio * ratio)).max(0.0).sqrt() / i_rms.max(1e-300);
@@ -300,7 +311,14 @@ mod tests {
     /// (exact for the tones), with noise of 1e-3 of it.
     fn tones(n: usize, fs: f64, tau: f64) -> Vec<f64> {
         let f = [37.0, 113.0, 421.0, 1290.0, 4870.0];
-        (0..n).map(|k| f.iter().enumerate().map(|(j, f)| (2.0 * std::f64::consts::PI * f * (k as f64 - tau) / fs + j as f64).sin()).sum()).collect()
+        (0..n)
+            .map(|k| {
+                f.iter()
+                    .enumerate()
+                    .map(|(j, f)| (2.0 * std::f64::consts::PI * f * (k as f64 - tau) / fs + j as f64).sin())
+                    .sum()
+            })
+            .collect()
     }
 
     #[test]
@@ -311,7 +329,8 @@ mod tests {
             let noise = white(n, 1e-3, seed);
             let rec: Vec<f64> = tones(n, fs, tau).iter().zip(&noise).map(|(a, b)| a + b).collect();
             let r: Vec<f64> = rec.iter().zip(&model).map(|(a, b)| a - b).collect();
-            let (got, share) = residual_delay(&r, &model).unwrap_or_else(|| panic!("seed {seed}: a skew of {tau} not found"));
+            let (got, share) =
+                residual_delay(&r, &model).unwrap_or_else(|| panic!("seed {seed}: a skew of {tau} not found"));
             // First order in tau, with a central difference for i': within 10 % (6 % here,
             // the 4.9 kHz tone's difference is 7 % short of its derivative).
             assert!((got - tau).abs() < 0.1 * tau.abs() + 2e-3, "seed {seed}: {got} for {tau}");
@@ -345,7 +364,9 @@ mod tests {
             let ratio = drive_explained_ratio(&r, &u, &i, &x, fs);
             assert!(ratio > 3.0, "seed {seed}: an AC coupling gives {ratio}");
             // Le(i) left out: i^2 i', at the noise's level.
-            let r: Vec<f64> = (0..n).map(|k| noise[k] + if k > 0 && k + 1 < n { 2e-2 * i[k] * i[k] * (i[k + 1] - i[k - 1]) } else { 0.0 }).collect();
+            let r: Vec<f64> = (0..n)
+                .map(|k| noise[k] + if k > 0 && k + 1 < n { 2e-2 * i[k] * i[k] * (i[k + 1] - i[k - 1]) } else { 0.0 })
+                .collect();
             let ratio = drive_explained_ratio(&r, &u, &i, &x, fs);
             assert!(ratio > DRIVE_RATIO_WARN, "seed {seed}: Le(i) left out gives {ratio}");
         }

@@ -23,7 +23,9 @@
 //! The solver ([`crate::lm::lm_step`]) is a pure state transition; [`identify`] hands every
 //! iteration to an observer (progress bars, logs) as a [`Progress`].
 
-use crate::linear::{check_channels, fit_linear_record, scale_by_mms, Effects, EffectsChoice, LinearFit, LinearOptions};
+use crate::linear::{
+    check_channels, fit_linear_record, scale_by_mms, Effects, EffectsChoice, LinearFit, LinearOptions,
+};
 use crate::lm::{lm_step_accelerated, AtLastTrial, LmState, Problem};
 use coilscope_core::integrate::{Electrical, FlushTiny, Rates, Scheme, Stepper};
 use coilscope_core::jet::Jet;
@@ -140,7 +142,14 @@ pub fn pass_widths(n: usize, threads: usize, wide_ok: bool) -> Vec<usize> {
 /// `threads` workers, `leads` of which first run a model run each: by the sensitivity
 /// equation one pass a worker ([`crate::sensitivity::widths`]), which is how those passes are
 /// computed when it applies; else the dual numbers' ([`pass_widths`], `wide_ok` as there).
-pub(crate) fn passes_for(layout: &Layout, stepper: &Stepper, n: usize, threads: usize, leads: usize, wide_ok: bool) -> Vec<usize> {
+pub(crate) fn passes_for(
+    layout: &Layout,
+    stepper: &Stepper,
+    n: usize,
+    threads: usize,
+    leads: usize,
+    wide_ok: bool,
+) -> Vec<usize> {
     if crate::sensitivity::applies(layout, stepper) {
         crate::sensitivity::widths(n, threads, leads)
     } else {
@@ -241,7 +250,8 @@ pub const HEAT_TAUS: [f64; 3] = [0.5, 1.5, 4.5];
 /// value: `|R[k-1] - 2 R[k] + R[k+1]| / 8`, the most that straight lines between the knots
 /// miss a parabola through them by (the heating test's measure, [`KNOT_BEND`]).
 pub fn track_bend(track: &[f64]) -> f64 {
-    track.windows(3).map(|w| (w[0] - 2.0 * w[1] + w[2]).abs() / 8.0).fold(0.0, f64::max) / track.first().map_or(1e-9, |r| r.abs().max(1e-9))
+    track.windows(3).map(|w| (w[0] - 2.0 * w[1] + w[2]).abs() / 8.0).fold(0.0, f64::max)
+        / track.first().map_or(1e-9, |r| r.abs().max(1e-9))
 }
 
 /// `theta` of a layout with `n` entries (the chain's unknowns after them) as the theta of the
@@ -523,7 +533,19 @@ const LAMBDA_SCALE: f64 = 0.1;
 
 impl Layout {
     pub fn new(order: usize, n_re: usize, knot_dt: f64, x_ref: f64, scales: Scales, has_l2r2: bool, mms: f64) -> Self {
-        Layout { order, n_re, knot_dt, x_ref, scales, has_l2r2, mms, effects: Effects::NONE, heat_taus: Vec::new(), lr3_tau: false, legendre: legendre(order) }
+        Layout {
+            order,
+            n_re,
+            knot_dt,
+            x_ref,
+            scales,
+            has_l2r2,
+            mms,
+            effects: Effects::NONE,
+            heat_taus: Vec::new(),
+            lr3_tau: false,
+            legendre: legendre(order),
+        }
     }
 
     /// The same layout with heating terms of these time constants in `Re(t)`.
@@ -558,7 +580,8 @@ impl Layout {
         let o = self.order + 1;
         let re = 0..self.n_re;
         let le = re.end..re.end + o;
-        let (l2, r2, next) = if self.has_l2r2 { (Some(le.end), Some(le.end + 1), le.end + 2) } else { (None, None, le.end) };
+        let (l2, r2, next) =
+            if self.has_l2r2 { (Some(le.end), Some(le.end + 1), le.end + 2) } else { (None, None, le.end) };
         let bl = next..next + o;
         let kms = bl.end..bl.end + o;
         let rms = kms.end;
@@ -775,7 +798,13 @@ impl Layout {
 
     /// Every standard deviation the layout has, in the schema's order, into `unc` (from theta
     /// `th` and its covariance, as [`Layout::sd_of`]); `keep` chooses the entries.
-    pub fn uncertainties(&self, th: &[f64], cov: &dyn Fn(usize, usize) -> f64, keep: &dyn Fn(&schema::Entry) -> bool, unc: &mut Uncertainty) {
+    pub fn uncertainties(
+        &self,
+        th: &[f64],
+        cov: &dyn Fn(usize, usize) -> f64,
+        keep: &dyn Fn(&schema::Entry) -> bool,
+        unc: &mut Uncertainty,
+    ) {
         for e in schema::ENTRIES.iter().filter(|e| keep(e)) {
             if let Some(sd) = self.sd_of(e.key, th, cov) {
                 unc.sd.insert(e.key.to_string(), sd);
@@ -792,7 +821,10 @@ impl Layout {
         let sl = self.slots();
         let positive = |k: Option<usize>| k.is_none_or(|k| th[k] > 0.0);
         let bounded = |k: Option<usize>| k.is_none_or(|k| th[k] < BRANCH_MAX);
-        th[sl.re.clone()].iter().all(|&r| r > 0.0) && th[sl.rms] > 0.0 && [sl.l2, sl.r2, sl.l3, sl.r3].into_iter().all(positive) && [sl.l2, sl.l3].into_iter().all(bounded)
+        th[sl.re.clone()].iter().all(|&r| r > 0.0)
+            && th[sl.rms] > 0.0
+            && [sl.l2, sl.r2, sl.l3, sl.r3].into_iter().all(positive)
+            && [sl.l2, sl.l3].into_iter().all(bounded)
     }
 
     /// `Re` at each knot (ohm).
@@ -811,8 +843,18 @@ pub fn seed_duals<const N: usize>(th: &[f64], c0: usize) -> (Vec<DualSVec64<N>>,
 }
 
 /// `theta` with entries `c0 .. c0 + cnt` seeded (`seed(t, k)`: lane `k`), the rest constants.
-fn seeded<D>(th: &[f64], c0: usize, cnt: usize, constant: impl Fn(f64) -> D, seed: impl Fn(f64, usize) -> D) -> (Vec<D>, usize) {
-    let thd = th.iter().enumerate().map(|(j, &t)| if (c0..c0 + cnt).contains(&j) { seed(t, j - c0) } else { constant(t) }).collect();
+fn seeded<D>(
+    th: &[f64],
+    c0: usize,
+    cnt: usize,
+    constant: impl Fn(f64) -> D,
+    seed: impl Fn(f64, usize) -> D,
+) -> (Vec<D>, usize) {
+    let thd = th
+        .iter()
+        .enumerate()
+        .map(|(j, &t)| if (c0..c0 + cnt).contains(&j) { seed(t, j - c0) } else { constant(t) })
+        .collect();
     (thd, cnt)
 }
 
@@ -820,7 +862,13 @@ fn seeded<D>(th: &[f64], c0: usize, cnt: usize, constant: impl Fn(f64) -> D, see
 /// plus the heating terms `sizes[j] * heat[j][m]`. The one place [`run_model`] and
 /// [`OutputError::re_track`] take `Re(t)` from.
 #[inline]
-pub(crate) fn re_at<D: DualNum<Primitive = f64> + Copy>(knots: &[D], knot_dt: f64, t: f64, m: usize, (sizes, heat): (&[D], &[Vec<f64>])) -> D {
+pub(crate) fn re_at<D: DualNum<Primitive = f64> + Copy>(
+    knots: &[D],
+    knot_dt: f64,
+    t: f64,
+    m: usize,
+    (sizes, heat): (&[D], &[Vec<f64>]),
+) -> D {
     let (k, w) = knot_at(knots.len(), knot_dt, t);
     let mut re = if knots.len() == 1 { knots[0] } else { knots[k] * (1.0 - w) + knots[k + 1] * w };
     for (a, h) in sizes.iter().zip(heat) {
@@ -922,14 +970,50 @@ fn run_layout<D: DualNum<Primitive = f64> + Copy + FlushTiny>(
 ) -> Result<(), usize> {
     if !layout.effects.needs_ext_states() {
         let (mut model, knots) = layout.model(th);
-        run_model(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, stepper, len, x_limit, stop, observe)
+        run_model(
+            &mut model,
+            &knots,
+            layout.knot_dt,
+            (&layout.heat_sizes(th), heat),
+            u,
+            fs,
+            stepper,
+            len,
+            x_limit,
+            stop,
+            observe,
+        )
     } else if !layout.effects.creep {
         // LR-3 without creep: the seven states of `ExtModel::deriv_n`.
         let (mut model, knots) = layout.ext_model(th);
-        run_model::<D, NLR3>(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, stepper, len, x_limit, stop, observe)
+        run_model::<D, NLR3>(
+            &mut model,
+            &knots,
+            layout.knot_dt,
+            (&layout.heat_sizes(th), heat),
+            u,
+            fs,
+            stepper,
+            len,
+            x_limit,
+            stop,
+            observe,
+        )
     } else {
         let (mut model, knots) = layout.ext_model(th);
-        run_model::<D, NEXT>(&mut model, &knots, layout.knot_dt, (&layout.heat_sizes(th), heat), u, fs, stepper, len, x_limit, stop, observe)
+        run_model::<D, NEXT>(
+            &mut model,
+            &knots,
+            layout.knot_dt,
+            (&layout.heat_sizes(th), heat),
+            u,
+            fs,
+            stepper,
+            len,
+            x_limit,
+            stop,
+            observe,
+        )
     }
 }
 
@@ -955,7 +1039,8 @@ fn run_layout<D: DualNum<Primitive = f64> + Copy + FlushTiny>(
 /// ([`ChainSetup::dc_u_free`]). There it becomes a constant plus a ramp
 /// (`hp_inverse(1)[n] = 1/g + 2 K n`): a drive that moves the coil's rest position through the
 /// record, which the nonlinearities see, so the data fix it. Held instead at the offset that
-/// leaves the voltage least along that shape ([`voltage_behind`](coilscope_core::chain::voltage_behind)), it also took the driver's
+/// leaves the voltage least along that shape
+/// ([`voltage_behind`](coilscope_core::chain::voltage_behind)), it also took the driver's
 /// own low-frequency content: on SB17's `-real-chain` record (no offset on the voltage) it gave
 /// -9e-5 V, Kms(x) came out tilted by +-0.2 % and the truth lay 13 sd outside its band (through
 /// the harsh world's 1-5 Hz couplings: Kms 0.16-0.36 % off, the large coil 4.4 sd outside,
@@ -1015,14 +1100,27 @@ impl ChainSetup {
         // In units of the current's RMS, so that the unknowns are of order one as the
         // layout's are (and J^T J stays well conditioned).
         let a = coilscope_core::simulate::rms(i_rec).max(1e-12);
-        let mut basis = vec![("dc".to_string(), vec![a; n]), ("ramp".to_string(), (0..n).map(|m| a * m as f64 / n as f64).collect())];
+        let mut basis = vec![
+            ("dc".to_string(), vec![a; n]),
+            ("ramp".to_string(), (0..n).map(|m| a * m as f64 / n as f64).collect()),
+        ];
         for f in crate::linear::mains_lines().into_iter().filter(|&f| f < 0.45 * fs) {
             let w = 2.0 * std::f64::consts::PI * f / fs;
             basis.push((format!("cos {f}"), (0..n).map(|m| a * (w * m as f64).cos()).collect()));
             basis.push((format!("sin {f}"), (0..n).map(|m| a * (w * m as f64).sin()).collect()));
         }
         let u_unit = 1e-5 * coilscope_core::simulate::rms(u_rec).max(1e-12);
-        ChainSetup { u_rec: u_rec.to_vec(), i_rec: i_rec.to_vec(), terms, basis, basis_spectra: Default::default(), whiten_hz: 0.0, dc_u_free: false, u_unit, targets: coilscope_core::recent::Recent::new(KEPT_TARGETS) }
+        ChainSetup {
+            u_rec: u_rec.to_vec(),
+            i_rec: i_rec.to_vec(),
+            terms,
+            basis,
+            basis_spectra: Default::default(),
+            whiten_hz: 0.0,
+            dc_u_free: false,
+            u_unit,
+            targets: coilscope_core::recent::Recent::new(KEPT_TARGETS),
+        }
     }
     /// `v` (a residual or a Jacobian column over the fitted samples) through the whitening
     /// high-pass ([`ChainSetup::whiten_hz`]).
@@ -1090,7 +1188,8 @@ impl ChainSetup {
     }
     /// The drive: the voltage behind the channel (coupling `hp_u` of `th_c`), less the offset
     /// `dc_u` (V); and `dc_u`. A free `dc_u` is theta's; a held one is the one that leaves the
-    /// drive least along the offset's shape ([`voltage_behind`](coilscope_core::chain::voltage_behind): on a DC-coupled channel,
+    /// drive least along the offset's shape
+    /// ([`voltage_behind`](coilscope_core::chain::voltage_behind): on a DC-coupled channel,
     /// without a mean).
     pub fn voltage(&self, th_c: &[f64]) -> (Vec<f64>, f64) {
         let fu = self.values(th_c)[1];
@@ -1137,7 +1236,10 @@ impl ChainSetup {
     pub fn target(&self, th_c: &[f64]) -> Vec<f64> {
         let key = th_c.iter().map(|v| v.to_bits()).collect();
         let tau = self.values(th_c)[0];
-        self.targets.get_or_compute(key, || self.targets_delayed(th_c, &[tau]).pop().expect("one delay, one target")).as_ref().clone()
+        self.targets
+            .get_or_compute(key, || self.targets_delayed(th_c, &[tau]).pop().expect("one delay, one target"))
+            .as_ref()
+            .clone()
     }
     /// [`ChainSetup::target`] at `th_c` with the delay (samples) taken as each of `taus`
     /// instead (the delay's Jacobian column): the current behind the coupling, less the
@@ -1162,7 +1264,9 @@ impl ChainSetup {
         let pad = coilscope_core::chain::delay_pad(samples);
         let mut kept = self.basis_spectra.lock().expect("basis spectra");
         if kept.as_ref().is_none_or(|v| v.first().is_some_and(|s| s.pad != pad)) {
-            *kept = Some(std::sync::Arc::new(parallel_map(self.basis.len(), threads, |k| coilscope_core::chain::DelaySpectrum::new(&self.basis[k].1, pad))));
+            *kept = Some(std::sync::Arc::new(parallel_map(self.basis.len(), threads, |k| {
+                coilscope_core::chain::DelaySpectrum::new(&self.basis[k].1, pad)
+            })));
         }
         kept.clone().expect("just computed")
     }
@@ -1236,7 +1340,14 @@ fn column_map(from: &Layout, to: &Layout, n_chain: usize) -> Option<Vec<Option<u
     range(&a.kms, &b.kms);
     let one = |k: Option<usize>| k.map_or(0..0, |k| k..k + 1);
     let two = |k: Option<usize>| k.map_or(0..0, |k| k..k + 2);
-    for (x, y) in [(one(a.l2), one(b.l2)), (one(a.r2), one(b.r2)), (one(Some(a.rms)), one(Some(b.rms))), (one(a.lambda), one(b.lambda)), (two(a.le_i), two(b.le_i)), (one(a.rms_v), one(b.rms_v))] {
+    for (x, y) in [
+        (one(a.l2), one(b.l2)),
+        (one(a.r2), one(b.r2)),
+        (one(Some(a.rms)), one(Some(b.rms))),
+        (one(a.lambda), one(b.lambda)),
+        (two(a.le_i), two(b.le_i)),
+        (one(a.rms_v), one(b.rms_v)),
+    ] {
         range(&x, &y);
     }
     // LR-3's columns in other coordinates ([`Layout::lr3_tau`]) are new columns: L3's at a
@@ -1318,7 +1429,16 @@ pub struct OutputError<'a> {
 impl<'a> OutputError<'a> {
     /// `rates`: the start model's electrical rates ([`Parameters::rates`]), which choose the
     /// integration steps.
-    pub fn new(layout: Layout, u: &'a [f64], i: &'a [f64], fs: f64, fit: Range<usize>, rates: Rates, x_limit: f64, threads: usize) -> Self {
+    pub fn new(
+        layout: Layout,
+        u: &'a [f64],
+        i: &'a [f64],
+        fs: f64,
+        fit: Range<usize>,
+        rates: Rates,
+        x_limit: f64,
+        threads: usize,
+    ) -> Self {
         let heat = heat_shapes(i, fs, &layout.heat_taus);
         let (stepper, stepper_jac) = Stepper::for_fit(rates, fs);
         OutputError {
@@ -1390,7 +1510,13 @@ impl<'a> OutputError<'a> {
     pub(crate) fn seed_first(&self, theta: &[f64], kept: &KeptJacobian, map: &[Option<usize>]) -> bool {
         let (rows, nl) = (self.fit.len(), self.n_layout());
         let fresh: Vec<usize> = (0..map.len()).filter(|&c| map[c].is_none()).collect();
-        let fits = map.len() == theta.len() && kept.j.nrows() == rows && map.iter().flatten().all(|&b| b < kept.j.ncols()) && fresh.iter().all(|&c| c < nl) && fresh.len() <= CHUNK_WIDE && self.spare.is_none() && self.layout.physical(theta);
+        let fits = map.len() == theta.len()
+            && kept.j.nrows() == rows
+            && map.iter().flatten().all(|&b| b < kept.j.ncols())
+            && fresh.iter().all(|&c| c < nl)
+            && fresh.len() <= CHUNK_WIDE
+            && self.spare.is_none()
+            && self.layout.physical(theta);
         if !fits {
             return false;
         }
@@ -1572,20 +1698,36 @@ impl<'a> OutputError<'a> {
     /// [`OutputError::residual_with`] that returns the run's trace (displacement and
     /// current; with [`OutputError::keeping_last`]) instead of keeping it.
     #[allow(clippy::type_complexity)]
-    fn residual_traced(&self, th: &[f64], u: &[f64], i: &[f64]) -> Option<(DVector<f64>, Option<(Vec<f64>, Vec<f64>)>)> {
+    fn residual_traced(
+        &self,
+        th: &[f64],
+        u: &[f64],
+        i: &[f64],
+    ) -> Option<(DVector<f64>, Option<(Vec<f64>, Vec<f64>)>)> {
         let start = self.fit.start;
         let mut r = DVector::zeros(self.fit.len());
         let cap = if self.keep_last { self.fit.end } else { 0 };
         let (mut xs, mut is) = (Vec::with_capacity(cap), Vec::with_capacity(cap));
-        run_layout(&self.layout, th, &self.heat, u, self.fs, &self.stepper, self.fit.end, self.x_limit, None, |m, s| {
-            if m >= start {
-                r[m - start] = s[idx::I] - i[m];
-            }
-            if cap > 0 {
-                xs.push(s[idx::X]);
-                is.push(s[idx::I]);
-            }
-        })
+        run_layout(
+            &self.layout,
+            th,
+            &self.heat,
+            u,
+            self.fs,
+            &self.stepper,
+            self.fit.end,
+            self.x_limit,
+            None,
+            |m, s| {
+                if m >= start {
+                    r[m - start] = s[idx::I] - i[m];
+                }
+                if cap > 0 {
+                    xs.push(s[idx::X]);
+                    is.push(s[idx::I]);
+                }
+            },
+        )
         .ok()?;
         Some((r, (cap > 0).then_some((xs, is))))
     }
@@ -1675,7 +1817,10 @@ impl<'a> OutputError<'a> {
                 // The delay's two targets share the current behind the coupling, less the
                 // basis (the same values as two calls of `target`).
                 let (ta, tb) = if delay_at == Some(k) {
-                    let [ta, tb]: [Vec<f64>; 2] = c.targets_delayed(&th[nl..], &[c.values(&a[nl..])[0], c.values(&b[nl..])[0]]).try_into().unwrap_or_else(|_| unreachable!("two delays, two targets"));
+                    let [ta, tb]: [Vec<f64>; 2] = c
+                        .targets_delayed(&th[nl..], &[c.values(&a[nl..])[0], c.values(&b[nl..])[0]])
+                        .try_into()
+                        .unwrap_or_else(|_| unreachable!("two delays, two targets"));
                     (ta, tb)
                 } else {
                     (c.target(&a[nl..]), c.target(&b[nl..]))
@@ -1691,7 +1836,15 @@ impl<'a> OutputError<'a> {
 
     /// Jacobian columns `c0 .. c0 + cnt` of the current w.r.t. theta: one run of the model on
     /// dual numbers of one of [`PASS_COSTS`]'s widths (the narrowest that holds `cnt`).
-    fn jacobian_pass(&self, th: &[f64], c0: usize, cnt: usize, u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
+    fn jacobian_pass(
+        &self,
+        th: &[f64],
+        c0: usize,
+        cnt: usize,
+        u: &[f64],
+        stop: Option<&AtomicBool>,
+        block: &mut [f64],
+    ) {
         let cols: Vec<usize> = (c0..c0 + cnt).collect();
         self.jacobian_columns(th, &cols, u, stop, block)
     }
@@ -1710,18 +1863,43 @@ impl<'a> OutputError<'a> {
             None => (&self.layout, &self.heat),
         };
         if crate::sensitivity::applies(layout, &self.stepper_jac) {
-            let th: std::borrow::Cow<[f64]> = if self.spare.is_some() { [th, &[0.0; HEAT_TAUS.len()]].concat().into() } else { th.into() };
-            crate::sensitivity::pass(layout, heat, &th, cols, u, self.fs, &self.stepper_jac, self.fit.clone(), stop, block);
+            let th: std::borrow::Cow<[f64]> =
+                if self.spare.is_some() { [th, &[0.0; HEAT_TAUS.len()]].concat().into() } else { th.into() };
+            crate::sensitivity::pass(
+                layout,
+                heat,
+                &th,
+                cols,
+                u,
+                self.fs,
+                &self.stepper_jac,
+                self.fit.clone(),
+                stop,
+                block,
+            );
             return;
         }
-        fn lanes<const N: usize>(p: &OutputError, th: &[f64], cols: &[usize], u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
+        fn lanes<const N: usize>(
+            p: &OutputError,
+            th: &[f64],
+            cols: &[usize],
+            u: &[f64],
+            stop: Option<&AtomicBool>,
+            block: &mut [f64],
+        ) {
             // With spare heating columns: the heated layout, its heating terms at zero (the
             // same run: Re + 0 h is Re) after the layout's entries.
             let (layout, heat, th) = match &p.spare {
                 Some((l, h)) => (l, h, std::borrow::Cow::Owned([th, &[0.0; HEAT_TAUS.len()]].concat())),
                 None => (&p.layout, &p.heat, std::borrow::Cow::Borrowed(th)),
             };
-            let thd: Vec<Jet<N>> = th.iter().enumerate().map(|(j, &t)| cols.iter().position(|&c| c == j).map_or(Jet::constant(t), |k| Jet::constant(t).derivative(k))).collect();
+            let thd: Vec<Jet<N>> = th
+                .iter()
+                .enumerate()
+                .map(|(j, &t)| {
+                    cols.iter().position(|&c| c == j).map_or(Jet::constant(t), |k| Jet::constant(t).derivative(k))
+                })
+                .collect();
             p.jacobian_run(layout, heat, &thd, cols.len(), u, stop, block);
         }
         match cols.len() {
@@ -1736,17 +1914,27 @@ impl<'a> OutputError<'a> {
     /// One run of `layout` on the seeded `thd`: the first `cnt` lanes of the current's
     /// derivative over the fitted samples, lane `k` at `block[k * rows ..]`.
     #[allow(clippy::too_many_arguments)]
-    fn jacobian_run<const N: usize>(&self, layout: &Layout, heat: &[Vec<f64>], thd: &[Jet<N>], cnt: usize, u: &[f64], stop: Option<&AtomicBool>, block: &mut [f64]) {
+    fn jacobian_run<const N: usize>(
+        &self,
+        layout: &Layout,
+        heat: &[Vec<f64>],
+        thd: &[Jet<N>],
+        cnt: usize,
+        u: &[f64],
+        stop: Option<&AtomicBool>,
+        block: &mut [f64],
+    ) {
         let (start, rows) = (self.fit.start, self.fit.len());
         // A run that fails here ran away at a theta whose f64 run did not: leave zeros.
-        let _ = run_layout(layout, thd, heat, u, self.fs, &self.stepper_jac, self.fit.end, f64::INFINITY, stop, |m, s| {
-            if m >= start {
-                let e = &s[idx::I].eps;
-                for k in 0..cnt {
-                    block[k * rows + m - start] = e[k];
+        let _ =
+            run_layout(layout, thd, heat, u, self.fs, &self.stepper_jac, self.fit.end, f64::INFINITY, stop, |m, s| {
+                if m >= start {
+                    let e = &s[idx::I].eps;
+                    for k in 0..cnt {
+                        block[k * rows + m - start] = e[k];
+                    }
                 }
-            }
-        });
+            });
     }
 
     /// All Jacobian columns, passes spread over `threads` workers.
@@ -1758,7 +1946,8 @@ impl<'a> OutputError<'a> {
     /// ([`OutputError::with_spare_heat`]).
     fn jacobian_and_spare(&self, th: &[f64]) -> (DMatrix<f64>, Option<DMatrix<f64>>) {
         let (u, _) = self.signals(th);
-        self.jacobian_with_spare(th, &u, &self.pass_widths(0), &[], &AtomicBool::new(false)).expect("nothing stops these passes")
+        self.jacobian_with_spare(th, &u, &self.pass_widths(0), &[], &AtomicBool::new(false))
+            .expect("nothing stops these passes")
     }
 
     /// The widths of the Jacobian's passes beside `leads` model runs ([`passes_for`]), over
@@ -1778,9 +1967,18 @@ impl<'a> OutputError<'a> {
     /// [`jacobian_passes`] with the `lead` tasks before the passes, `None` when one of them
     /// stops them) and, with spare heating columns, those columns (whitened as the Jacobian
     /// is).
-    fn jacobian_with_spare(&self, th: &[f64], u: &[f64], widths: &[usize], lead: &[&(dyn Fn() -> bool + Sync)], stop: &AtomicBool) -> Option<(DMatrix<f64>, Option<DMatrix<f64>>)> {
+    fn jacobian_with_spare(
+        &self,
+        th: &[f64],
+        u: &[f64],
+        widths: &[usize],
+        lead: &[&(dyn Fn() -> bool + Sync)],
+        stop: &AtomicBool,
+    ) -> Option<(DMatrix<f64>, Option<DMatrix<f64>>)> {
         let (nl, rows) = (self.n_layout(), self.fit.len());
-        let jl = jacobian_passes(rows, widths, self.threads, lead, stop, |c0, w, block| self.jacobian_pass(&th[..nl], c0, w, u, Some(stop), block))?;
+        let jl = jacobian_passes(rows, widths, self.threads, lead, stop, |c0, w, block| {
+            self.jacobian_pass(&th[..nl], c0, w, u, Some(stop), block)
+        })?;
         self.jacobians.fetch_add(1, Ordering::Relaxed);
         let (jl, spare) = if self.spare.is_some() {
             // The spare columns are the passes' last: the layout's are the storage's start.
@@ -1834,7 +2032,12 @@ impl<'a> OutputError<'a> {
         let j_from = from.last_jacobian.lock().expect("jacobian cache").clone()?;
         let at = from.last_jacobian_at.lock().expect("jacobian cache");
         let JacobianAt { theta: at, residual, spare: Some(spare) } = at.as_ref()? else { return None };
-        if nh != (nf..nl) || self.layout.heat_taus != HEAT_TAUS || at.len() != j_from.ncols() || spare.nrows() != j_from.nrows() || j_from.nrows() != self.fit.len() {
+        if nh != (nf..nl)
+            || self.layout.heat_taus != HEAT_TAUS
+            || at.len() != j_from.ncols()
+            || spare.nrows() != j_from.nrows()
+            || j_from.nrows() != self.fit.len()
+        {
             return None;
         }
         let theta = heat_at_zero(at, nf, nl);
@@ -1883,7 +2086,14 @@ pub(crate) fn parallel_map<T: Send>(n: usize, threads: usize, f: impl Fn(usize) 
 /// [`Problem::residual_ahead`] and the work alongside it): the passes take the workers they
 /// leave idle. When one returns false, `stop` is set, the passes stop (a pass polls
 /// `stop`) and `None` is returned; the lead tasks always run.
-pub(crate) fn jacobian_passes(rows: usize, widths: &[usize], threads: usize, lead: &[&(dyn Fn() -> bool + Sync)], stop: &AtomicBool, pass: impl Fn(usize, usize, &mut [f64]) + Sync) -> Option<DMatrix<f64>> {
+pub(crate) fn jacobian_passes(
+    rows: usize,
+    widths: &[usize],
+    threads: usize,
+    lead: &[&(dyn Fn() -> bool + Sync)],
+    stop: &AtomicBool,
+    pass: impl Fn(usize, usize, &mut [f64]) + Sync,
+) -> Option<DMatrix<f64>> {
     let n: usize = widths.iter().sum();
     let mut storage = jacobian_storage(rows * n);
     {
@@ -1981,7 +2191,8 @@ impl Problem for OutputError<'_> {
             let mut copy = jacobian_storage(j.len());
             copy.copy_from_slice(j.as_slice());
             self.keep_jacobian(DMatrix::from_vec(j.nrows(), j.ncols(), copy));
-            *self.last_jacobian_at.lock().expect("jacobian cache") = Some(JacobianAt { theta: theta.to_vec(), residual: r.clone(), spare });
+            *self.last_jacobian_at.lock().expect("jacobian cache") =
+                Some(JacobianAt { theta: theta.to_vec(), residual: r.clone(), spare });
         }
         (r, j)
     }
@@ -2014,8 +2225,14 @@ impl Problem for OutputError<'_> {
     /// Jacobian is not wanted (a rejected trial, a stage that ends), the passes stop (within
     /// `STOP_POLL` samples) and nothing is kept. The Jacobian is the one
     /// [`OutputError::jacobian`] computes (the same passes).
-    fn residual_ahead(&self, theta: &[f64], wanted: &(dyn Fn(&DVector<f64>) -> bool + Sync), alongside: Option<&(dyn Fn() + Sync)>) -> DVector<f64> {
-        let cached = self.last_residual.lock().expect("residual cache").as_ref().is_some_and(|(th, _)| th.as_slice() == theta);
+    fn residual_ahead(
+        &self,
+        theta: &[f64],
+        wanted: &(dyn Fn(&DVector<f64>) -> bool + Sync),
+        alongside: Option<&(dyn Fn() + Sync)>,
+    ) -> DVector<f64> {
+        let cached =
+            self.last_residual.lock().expect("residual cache").as_ref().is_some_and(|(th, _)| th.as_slice() == theta);
         if self.threads < 2 || cached || !self.layout.physical(theta) {
             if let Some(f) = alongside {
                 f();
@@ -2026,7 +2243,9 @@ impl Problem for OutputError<'_> {
         let stop = AtomicBool::new(false);
         let r = std::sync::Mutex::new(None);
         let first = || {
-            let res = self.residual_whitened(theta, &u, &i).unwrap_or_else(|| DVector::from_element(self.fit.len(), f64::INFINITY));
+            let res = self
+                .residual_whitened(theta, &u, &i)
+                .unwrap_or_else(|| DVector::from_element(self.fit.len(), f64::INFINITY));
             let go = wanted(&res);
             *r.lock().expect("residual") = Some(res);
             go
@@ -2037,7 +2256,8 @@ impl Problem for OutputError<'_> {
             }
             true
         };
-        let lead: Vec<&(dyn Fn() -> bool + Sync)> = if alongside.is_some() { vec![&first, &side] } else { vec![&first] };
+        let lead: Vec<&(dyn Fn() -> bool + Sync)> =
+            if alongside.is_some() { vec![&first, &side] } else { vec![&first] };
         let j = self.jacobian_with_spare(theta, &u, &self.pass_widths(lead.len()), &lead, &stop);
         let r = r.into_inner().expect("residual").expect("the first task is the residual");
         *self.last_residual.lock().expect("residual cache") = Some((theta.to_vec(), r.clone()));
@@ -2172,7 +2392,19 @@ pub struct IdentifyOptions {
 
 impl Default for IdentifyOptions {
     fn default() -> Self {
-        IdentifyOptions { mms: f64::NAN, order: None, init: None, knot_seconds: 2.0, estimation_share: 0.7, search_seconds: 5.0, max_iterations: 40, threads: 0, effects: EffectsChoice::Auto, chain: false, detect_chain: false }
+        IdentifyOptions {
+            mms: f64::NAN,
+            order: None,
+            init: None,
+            knot_seconds: 2.0,
+            estimation_share: 0.7,
+            search_seconds: 5.0,
+            max_iterations: 40,
+            threads: 0,
+            effects: EffectsChoice::Auto,
+            chain: false,
+            detect_chain: false,
+        }
     }
 }
 
@@ -2287,12 +2519,19 @@ impl Truncation {
 }
 
 /// The chain of a final theta (`nl` layout unknowns) with its sds from `cov`.
-fn chain_of(c: &ChainSetup, th: &[f64], nl: usize, cov: Option<&DMatrix<f64>>, dc_u_sd: f64) -> coilscope_core::chain::Chain {
+fn chain_of(
+    c: &ChainSetup,
+    th: &[f64],
+    nl: usize,
+    cov: Option<&DMatrix<f64>>,
+    dc_u_sd: f64,
+) -> coilscope_core::chain::Chain {
     let fs = c.terms.fs;
     let tc = &th[nl..];
     let sd = |k: usize| cov.map_or(f64::NAN, |m| crate::lm::sd_from_variance(m[(nl + k, nl + k)]));
     let [_, _, fi] = c.values(tc);
-    let mut out = crate::linear::ChainEstimate { values: c.values(tc), sd: c.terms.sds(cov, nl), on: c.terms.on(), fs }.to_chain();
+    let mut out = crate::linear::ChainEstimate { values: c.values(tc), sd: c.terms.sds(cov, nl), on: c.terms.on(), fs }
+        .to_chain();
     out.dc_u = c.voltage(tc).1;
     let sd_dc = match c.dc_u_index() {
         Some(km) => sd(km) * c.u_unit,
@@ -2317,7 +2556,11 @@ fn chain_of(c: &ChainSetup, th: &[f64], nl: usize, cov: Option<&DMatrix<f64>>, d
     let kk = (std::f64::consts::PI * fi / fs).tan();
     let a = c.basis[0].1[0];
     let n = c.basis[0].1.len() as f64;
-    let (dc_i, sd_i) = if 2.0 * kk * n >= 1.0 { (a * tc[k + 1] / (2.0 * kk * n), a * sd(k + 1) / (2.0 * kk * n)) } else { (a * tc[k] / (1.0 + kk), a * sd(k) / (1.0 + kk)) };
+    let (dc_i, sd_i) = if 2.0 * kk * n >= 1.0 {
+        (a * tc[k + 1] / (2.0 * kk * n), a * sd(k + 1) / (2.0 * kk * n))
+    } else {
+        (a * tc[k] / (1.0 + kk), a * sd(k) / (1.0 + kk))
+    };
     out.dc_i = dc_i;
     out.sd.insert("dc_i".into(), sd_i);
     out.fitted.push("dc_i".into());
@@ -2390,7 +2633,10 @@ pub const SEARCH_SETTLED_LAMBDA: f64 = 1e-2;
 /// 1.97e-3, with 41 %), where the fit goes on to 6.6e-4; the stages that settle where the
 /// error converges quadratically leave 1e-6 to 2.5e-2 (18WU, PTT4).
 fn settled(s: &LmState) -> bool {
-    s.last_decrease < SEARCH_SETTLED_DECREASE && (s.gain_ratio - 1.0).abs() < SEARCH_SETTLED_GAIN && s.step_lambda <= SEARCH_SETTLED_LAMBDA && s.gn_left < SEARCH_SETTLED_DECREASE
+    s.last_decrease < SEARCH_SETTLED_DECREASE
+        && (s.gain_ratio - 1.0).abs() < SEARCH_SETTLED_GAIN
+        && s.step_lambda <= SEARCH_SETTLED_LAMBDA
+        && s.gn_left < SEARCH_SETTLED_DECREASE
 }
 
 /// LM's next step from `theta` on the linearised model of the last Jacobian `j` (computed one
@@ -2400,7 +2646,13 @@ fn settled(s: &LmState) -> bool {
 /// singular. (Undamped, `A` is singular in a search stage: the Re(t) knots past its
 /// estimation part have no rows.)
 #[cfg(test)]
-fn chord_step(prob: &OutputError, j: &DMatrix<f64>, a: &DMatrix<f64>, theta: &[f64], lambda: f64) -> Option<(Vec<f64>, f64)> {
+fn chord_step(
+    prob: &OutputError,
+    j: &DMatrix<f64>,
+    a: &DMatrix<f64>,
+    theta: &[f64],
+    lambda: f64,
+) -> Option<(Vec<f64>, f64)> {
     damped_from(a, &j.tr_mul(&prob.residual(theta)), theta, lambda)
 }
 
@@ -2453,7 +2705,14 @@ fn damped_from(a: &DMatrix<f64>, g: &DVector<f64>, theta: &[f64], lambda: f64) -
 /// 1.6e-6: 0.7 sd). The search stages keep their full iterations: with chord steps there,
 /// the order search's truncation term (the difference of two search fits) moved and 18WU's
 /// `-real-all` bands went from 2.89 to 3.03 sd.
-fn chords(prob: &OutputError, s: LmState, tol: f64, max_it: usize, early: Option<&dyn Fn(&LmState) -> bool>, report: &mut dyn FnMut(&LmState)) -> Chords {
+fn chords(
+    prob: &OutputError,
+    s: LmState,
+    tol: f64,
+    max_it: usize,
+    early: Option<&dyn Fn(&LmState) -> bool>,
+    report: &mut dyn FnMut(&LmState),
+) -> Chords {
     if !may_settle(&s, FINAL_SETTLED_GAIN) {
         return Chords::Go(s);
     }
@@ -2521,7 +2780,17 @@ fn chords(prob: &OutputError, s: LmState, tol: f64, max_it: usize, early: Option
         let (dec, gain) = ((s.cost - cost) / s.cost, (s.cost - cost) / predicted);
         let trusted = (gain - 1.0).abs() < FINAL_FAST_GAIN;
         let lambda = (lambda_taken / if trusted { FINAL_FAST_DIVISOR } else { 3.0 }).max(1e-12);
-        s = LmState { theta, cost, lambda, iteration: s.iteration + 1, last_decrease: dec, gain_ratio: gain, step_lambda: lambda_taken, gn_left: f64::NAN, converged: dec < tol };
+        s = LmState {
+            theta,
+            cost,
+            lambda,
+            iteration: s.iteration + 1,
+            last_decrease: dec,
+            gain_ratio: gain,
+            step_lambda: lambda_taken,
+            gn_left: f64::NAN,
+            converged: dec < tol,
+        };
         taken += 1;
         report(&s);
         if s.converged {
@@ -2580,7 +2849,8 @@ pub const LR3_SCREEN: f64 = 1e-6;
 /// Creep factor of the vanishing creep the effects search also starts from (a typical
 /// driver's is 0.03-0.1): on records without creep the linear fit's creep start missed
 /// 5-8e-3 of the current (PTT4, 18WU, SB17) against this one's 4-8e-4, and the creep trial
-/// took 3-4 iterations instead of 2 (0.35-0.45 s of the effects search). Creep acts in proportion to lambda, so the trial grows it from here when the
+/// took 3-4 iterations instead of 2 (0.35-0.45 s of the effects search). Creep acts in proportion
+/// to lambda, so the trial grows it from here when the
 /// record holds it; where it does, the linear fit's start misses less and is taken. The
 /// screen (`screen_effects`) scores creep from zero instead.
 pub const CREEP_VANISHING: f64 = 1e-3;
@@ -2610,7 +2880,16 @@ pub const ORDER0_FINISH_BELOW_GAIN: f64 = 0.25;
 /// `early` (final fit): a test of a state within [`EARLY_TEST_BELOW`] of the end; when it
 /// says yes the fit returns that state unconverged (the caller may resume it).
 #[allow(clippy::too_many_arguments)]
-fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: usize, at_last: Option<&AtLastTrial>, early: Option<&dyn Fn(&LmState) -> bool>, observe: &mut dyn FnMut(&Progress)) -> LmState {
+fn solve(
+    prob: &OutputError,
+    theta: Vec<f64>,
+    stage: &Stage,
+    tol: f64,
+    max_it: usize,
+    at_last: Option<&AtLastTrial>,
+    early: Option<&dyn Fn(&LmState) -> bool>,
+    observe: &mut dyn FnMut(&Progress),
+) -> LmState {
     solve_following(prob, theta, stage, tol, max_it, at_last, early, false, observe)
 }
 
@@ -2620,7 +2899,17 @@ fn solve(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: u
 /// or at `max_it`. For the model taken so far when it goes on alone before a trial is
 /// compared with it (the effects search in [`identify`]).
 #[allow(clippy::too_many_arguments)]
-fn solve_following(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64, max_it: usize, at_last: Option<&AtLastTrial>, early: Option<&dyn Fn(&LmState) -> bool>, follow: bool, observe: &mut dyn FnMut(&Progress)) -> LmState {
+fn solve_following(
+    prob: &OutputError,
+    theta: Vec<f64>,
+    stage: &Stage,
+    tol: f64,
+    max_it: usize,
+    at_last: Option<&AtLastTrial>,
+    early: Option<&dyn Fn(&LmState) -> bool>,
+    follow: bool,
+    observe: &mut dyn FnMut(&Progress),
+) -> LmState {
     let norm_i = prob.i[prob.fit.clone()].iter().map(|v| v * v).sum::<f64>().sqrt();
     let report = |s: &LmState, observe: &mut dyn FnMut(&Progress)| {
         observe(&Progress { stage: stage.clone(), state: s, residual_rel: (2.0 * s.cost).sqrt() / norm_i });
@@ -2650,7 +2939,9 @@ fn solve_following(prob: &OutputError, theta: Vec<f64>, stage: &Stage, tol: f64,
         // with it (final fit 12.8 -> 7.5 s). The search stages keep their straight steps:
         // where they stop moves the order search's truncation term (see chords), and 18WU's
         // `-real-all` effect trials did not gain (51 against 53 iterations, same time).
-        let accelerate = (follow || matches!(stage, Stage::Final { .. })) && s.iteration > 0 && !((s.gain_ratio - 1.0).abs() < FINAL_FAST_GAIN);
+        let accelerate = (follow || matches!(stage, Stage::Final { .. }))
+            && s.iteration > 0
+            && !((s.gain_ratio - 1.0).abs() < FINAL_FAST_GAIN);
         let mut next = lm_step_accelerated(prob, &s, &goes_on, at_last, tol, accelerate);
         if matches!(stage, Stage::Final { .. }) && (next.gain_ratio - 1.0).abs() < FINAL_FAST_GAIN {
             next.lambda = (next.step_lambda / FINAL_FAST_DIVISOR).max(1e-12);
@@ -2706,7 +2997,8 @@ pub const FINAL_FAST_DIVISOR: f64 = 10.0;
 pub const FINAL_FAST_GAIN: f64 = 0.05;
 
 /// What the effects search (its trial taken, or its base gone on alone) and the order
-/// raising after it take over from a search stage they adopt: the parameters (with the given mass) and Re(t) track scored on the held-out
+/// raising after it take over from a search stage they adopt: the parameters (with the given mass)
+/// and Re(t) track scored on the held-out
 /// part, the stage's own track (the next stage's start), the chain's unknowns, and the
 /// stage's last Jacobian with its layout (the next stage's seed).
 struct Taken {
@@ -2721,7 +3013,13 @@ impl Taken {
     /// The stage of layout `lay` that ended at `theta` (its estimation part), `th_val`
     /// (that with the Re(t) track continued over the held-out part) and `kept`.
     fn of(lay: Layout, mms: f64, theta: &[f64], th_val: &[f64], kept: Option<std::sync::Arc<KeptJacobian>>) -> Self {
-        Taken { current: Parameters { mms, ..lay.parameters(th_val) }, re_track: Some(lay.re_track(th_val)), search_track: Some(lay.re_track(theta)), cth: th_val[lay.slots().n..].to_vec(), at_kept: kept.map(|k| (lay, k)) }
+        Taken {
+            current: Parameters { mms, ..lay.parameters(th_val) },
+            re_track: Some(lay.re_track(th_val)),
+            search_track: Some(lay.re_track(theta)),
+            cth: th_val[lay.slots().n..].to_vec(),
+            at_kept: kept.map(|k| (lay, k)),
+        }
     }
 }
 
@@ -2742,7 +3040,14 @@ fn kept_if_converged(prob: &OutputError, s: &LmState) -> Option<std::sync::Arc<K
 
 /// The linear fit with the small-signal `effects` that starts a candidate of the effects
 /// search ([`LinearOptions::LARGE_SIGNAL_START`] otherwise); `None` when it fails.
-fn linear_start_fit(u: &[f64], i: &[f64], fs: f64, origin: &str, effects: Effects, lr2: Option<&crate::linear::Lr2Fit>) -> Option<LinearFit> {
+fn linear_start_fit(
+    u: &[f64],
+    i: &[f64],
+    fs: f64,
+    origin: &str,
+    effects: Effects,
+    lr2: Option<&crate::linear::Lr2Fit>,
+) -> Option<LinearFit> {
     let lin_opts = LinearOptions { effects: EffectsChoice::Fixed(effects), ..LinearOptions::LARGE_SIGNAL_START };
     crate::linear::fit_linear_record_from(u, i, fs, origin, &lin_opts, lr2, |_| {}).ok()
 }
@@ -2802,7 +3107,8 @@ fn gauss_newton_decrease(gram: &DMatrix<f64>, grad: &DVector<f64>, cols: &[usize
 /// network), creep's on the base with the creep bank, Le(i)'s and Rms(v)'s on the base's
 /// own model, and the residual run on the base's model, these four runs on the cores in
 /// turn. With one model with every effect (17 states and the 3 x 3 network) running all the
-/// columns in one pass, the 0.1 g microspeaker's screen took 0.95 s instead of 0.47, the same gains within 5e-7 (the test below compares the two at every
+/// columns in one pass, the 0.1 g microspeaker's screen took 0.95 s instead of 0.47, the same gains
+/// within 5e-7 (the test below compares the two at every
 /// candidate). Their unknowns act nearly linearly from there: Le(i)'s and Rms(v)'s
 /// coefficients, creep's lambda, and a branch's L3 at a given corner (its impedance
 /// `j w L3 / (1 + j w tau3)`), with tau3's column moving the corner to first order. `None`
@@ -2818,7 +3124,15 @@ fn gauss_newton_decrease(gram: &DMatrix<f64>, grad: &DVector<f64>, cols: &[usize
 /// (1.8-2.8e-3): two trials fitted and dropped on every record without the effects
 /// (`the_effects_screen_scores_from_the_base_model_itself`).
 #[allow(clippy::too_many_arguments)]
-fn screen_effects<'a>(base: &(Layout, std::sync::Arc<KeptJacobian>), screened: &[Effects], at: Effects, current: &Parameters, track: Option<&[f64]>, cth: &[f64], prob_for: &dyn Fn(Layout) -> OutputError<'a>) -> Vec<Option<f64>> {
+fn screen_effects<'a>(
+    base: &(Layout, std::sync::Arc<KeptJacobian>),
+    screened: &[Effects],
+    at: Effects,
+    current: &Parameters,
+    track: Option<&[f64]>,
+    cth: &[f64],
+    prob_for: &dyn Fn(Layout) -> OutputError<'a>,
+) -> Vec<Option<f64>> {
     let none = vec![None; screened.len()];
     let all = screened.iter().fold(at, |a, &e| a.union(e));
     let lr3_new = all.lr3 && !at.lr3;
@@ -2832,7 +3146,11 @@ fn screen_effects<'a>(base: &(Layout, std::sync::Arc<KeptJacobian>), screened: &
         }
     };
     let lay = layout_with(all);
-    let mut from = if all.creep && current.creep.is_none() { Parameters { creep: Some(coilscope_core::params::Creep { lambda: 0.0, f_ref: None }), ..current.clone() } } else { current.clone() };
+    let mut from = if all.creep && current.creep.is_none() {
+        Parameters { creep: Some(coilscope_core::params::Creep { lambda: 0.0, f_ref: None }), ..current.clone() }
+    } else {
+        current.clone()
+    };
     if lr3_new {
         let (l2, r2) = current.l2r2.as_ref().map_or((0.0, 0.0), |(l, r)| (l.eval(0.0), r.eval(0.0)));
         if !(l2 > 0.0 && r2 > 0.0) {
@@ -2874,7 +3192,11 @@ fn screen_effects<'a>(base: &(Layout, std::sync::Arc<KeptJacobian>), screened: &
     // 1e-6 of a branch). One model with every effect (17 states, the 3 x 3 network) ran
     // all the columns in one pass.
     let plain = screened.iter().filter(|e| !e.needs_ext_states()).fold(Effects::NONE, |a, &e| a.union(e));
-    let groups: Vec<Effects> = [Effects { lr3: lr3_new, ..Effects::NONE }, Effects { creep: all.creep && !at.creep, ..Effects::NONE }, plain].into_iter().filter(|&g| g != Effects::NONE).collect();
+    let groups: Vec<Effects> =
+        [Effects { lr3: lr3_new, ..Effects::NONE }, Effects { creep: all.creep && !at.creep, ..Effects::NONE }, plain]
+            .into_iter()
+            .filter(|&g| g != Effects::NONE)
+            .collect();
     let fresh: Vec<usize> = (0..map.len()).filter(|&c| map[c].is_none()).collect();
     let mut parts: Vec<(OutputError, Vec<f64>, Vec<usize>, Vec<usize>)> = Vec::new();
     for &g in &groups {
@@ -2937,7 +3259,14 @@ fn screen_effects<'a>(base: &(Layout, std::sync::Arc<KeptJacobian>), screened: &
 
 /// Identify the large-signal parameters from voltage `u` (V) and current `i` (A) sampled at
 /// `fs`. `origin` names the recording in messages.
-pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &IdentifyOptions, mut observe: impl FnMut(&Progress)) -> Result<LargeFit, IdentifyError> {
+pub fn identify(
+    u_rec: &[f64],
+    i_rec: &[f64],
+    fs: f64,
+    origin: &str,
+    opts: &IdentifyOptions,
+    mut observe: impl FnMut(&Progress),
+) -> Result<LargeFit, IdentifyError> {
     let fit = identify_record(u_rec, i_rec, fs, origin, opts, &mut observe);
     // The fit's spare Jacobians (up to 2 x 90 MB) are not kept past it.
     release_spare_jacobians();
@@ -2945,11 +3274,22 @@ pub fn identify(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &Iden
 }
 
 /// [`identify`]'s work.
-fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &IdentifyOptions, observe: &mut dyn FnMut(&Progress)) -> Result<LargeFit, IdentifyError> {
+fn identify_record(
+    u_rec: &[f64],
+    i_rec: &[f64],
+    fs: f64,
+    origin: &str,
+    opts: &IdentifyOptions,
+    observe: &mut dyn FnMut(&Progress),
+) -> Result<LargeFit, IdentifyError> {
     use IdentifyError::*;
     let (u, i) = (u_rec, i_rec);
     if u.len() != i.len() {
-        return Err(Input(format!("{origin}: voltage and current have different lengths ({} and {})", u.len(), i.len())));
+        return Err(Input(format!(
+            "{origin}: voltage and current have different lengths ({} and {})",
+            u.len(),
+            i.len()
+        )));
     }
     check_channels(u, i, fs, opts.chain || opts.detect_chain, origin).map_err(Input)?;
     if let Some(o) = opts.order {
@@ -3013,7 +3353,11 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             if seen.is_empty() {
                 None
             } else {
-                chain_detected = Some(format!("the small-signal fit of the first {:.1} s found {}", m_start as f64 / fs, seen.join(", ")));
+                chain_detected = Some(format!(
+                    "the small-signal fit of the first {:.1} s found {}",
+                    m_start as f64 / fs,
+                    seen.join(", ")
+                ));
                 Some(Ok(lin))
             }
         }
@@ -3026,7 +3370,8 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         if opts.init.is_none() {
             chain_start = scale_by_mms(&lin_chain, opts.mms).ok().map(|p| (split_vanished_le(p), lin_chain.clone()));
         }
-        let mut setup = ChainSetup::new(u_rec, i_rec, crate::linear::ChainTerms { fs, delay: true, hp_u: true, hp_i: true });
+        let mut setup =
+            ChainSetup::new(u_rec, i_rec, crate::linear::ChainTerms { fs, delay: true, hp_u: true, hp_i: true });
         let values = est.map_or([0.0; 3], |c| c.values);
         // Whiten at the start's current corner (at most 10 Hz, the excitation's lower end).
         setup.whiten_hz = values[2].clamp(0.0, 10.0);
@@ -3046,7 +3391,11 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         th.extend_from_slice(cth);
         th
     };
-    let threads = if opts.threads == 0 { std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) } else { opts.threads };
+    let threads = if opts.threads == 0 {
+        std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
+    } else {
+        opts.threads
+    };
     let n_re = ((seconds / opts.knot_seconds).ceil() as usize + 1).max(2);
     let knot_dt = seconds / (n_re - 1) as f64;
     // Settling: the unknown initial state decays with the mechanical time constant.
@@ -3099,8 +3448,12 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     // was.
     // The start's values, for the messages below.
     let start_values = |p: &Parameters| {
-        let l2r2 = p.l2r2.as_ref().map_or(String::new(), |(l2, r2)| format!(", L2 {:.3e} H, R2 {:.3e} ohm", l2.c[0], r2.c[0]));
-        format!("Re {:.3e} ohm, Le {:.3e} H{l2r2}, Bl {:.3e} T m, Kms {:.3e} N/m, Rms {:.3e} kg/s", p.re, p.le.c[0], p.bl.c[0], p.kms.c[0], p.rms)
+        let l2r2 =
+            p.l2r2.as_ref().map_or(String::new(), |(l2, r2)| format!(", L2 {:.3e} H, R2 {:.3e} ohm", l2.c[0], r2.c[0]));
+        format!(
+            "Re {:.3e} ohm, Le {:.3e} H{l2r2}, Bl {:.3e} T m, Kms {:.3e} N/m, Rms {:.3e} kg/s",
+            p.re, p.le.c[0], p.bl.c[0], p.kms.c[0], p.rms
+        )
     };
     let start_origin = if opts.init.is_some() { "the one given" } else { "the impedance fit of the record" };
     let l2r2_ok = start.l2r2.as_ref().is_none_or(|(l2, r2)| l2.c[0] > 0.0 && r2.c[0] > 0.0);
@@ -3129,7 +3482,12 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     let has_l2r2 = start.l2r2.is_some();
     let (x0, start_miss) = started.map_err(|m| {
         let stepper = Stepper::for_fit(rates, fs).0;
-        Input(format!("{origin}: the start model diverged at sample {m} (small-signal start: {}, {} {} steps per sample)", start_values(&start), stepper.n(), stepper.scheme.name()))
+        Input(format!(
+            "{origin}: the start model diverged at sample {m} (small-signal start: {}, {} {} steps per sample)",
+            start_values(&start),
+            stepper.n(),
+            stepper.scheme.name()
+        ))
     })?;
     // A start that misses most of the current is no start: the large-signal fit cannot
     // recover from it, and what it ends on says nothing about the record (the first second of
@@ -3180,7 +3538,10 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         // whether the excitation is too small.
         let lay = layout_for(0);
         let th = join(lay.theta_from(&current, None), &cth);
-        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching().keeping_search();
+        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads)
+            .with_chain(setup)
+            .searching()
+            .keeping_search();
         let s = solve(&prob, th, &Stage::Estimate { order: 0 }, 1e-3, ORDER0_FIRST_ITERATIONS, None, None, observe);
         cth = s.theta[lay.slots().n..].to_vec();
         linear_rel = Some((2.0 * s.cost).sqrt() / norm_est);
@@ -3195,9 +3556,19 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     // error, the stage's last Jacobian). `seed`: a stage whose model this one's holds, and its
     // last Jacobian, on which the first iteration starts (with this layout's new columns).
     // `follow`: the stage follows a curved valley (`solve_following`), to ALONE_TOL.
-    let estimate_validate_for = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], seed: Option<&(Layout, std::sync::Arc<KeptJacobian>)>, max_it: usize, follow: bool, observe: &mut dyn FnMut(&Progress)| {
+    let estimate_validate_for = |lay: &Layout,
+                                 from: &Parameters,
+                                 track: Option<&[f64]>,
+                                 cth: &[f64],
+                                 seed: Option<&(Layout, std::sync::Arc<KeptJacobian>)>,
+                                 max_it: usize,
+                                 follow: bool,
+                                 observe: &mut dyn FnMut(&Progress)| {
         let th = join(lay.theta_from(from, track), cth);
-        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching().keeping_search();
+        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads)
+            .with_chain(setup)
+            .searching()
+            .keeping_search();
         if let Some((base, kept)) = seed {
             if let Some(map) = column_map(base, lay, cth.len()) {
                 prob.seed_first(&th, kept, &map);
@@ -3223,8 +3594,10 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             }
             th_val
         };
-        let full = OutputError::new(lay.clone(), u, i, fs, split..search_end, rates, x_limit, threads).with_chain(setup);
-        let validate = |th_val: &[f64]| full.residual_vec(th_val).map(|r| rel(&r, &i[split..search_end])).unwrap_or(f64::INFINITY);
+        let full =
+            OutputError::new(lay.clone(), u, i, fs, split..search_end, rates, x_limit, threads).with_chain(setup);
+        let validate =
+            |th_val: &[f64]| full.residual_vec(th_val).map(|r| rel(&r, &i[split..search_end])).unwrap_or(f64::INFINITY);
         // The validation run of a trial likely to end the stage runs beside the trial's own
         // residual run (on the core that run leaves idle): (trial theta, validation error).
         let early = std::sync::Mutex::new(None::<(Vec<f64>, f64)>);
@@ -3232,8 +3605,21 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             let val = validate(&held_out(theta));
             *early.lock().expect("validation") = Some((theta.to_vec(), val));
         };
-        let at_last = AtLastTrial { likely: &|predicted, lambda| predicted < SEARCH_SETTLED_DECREASE && lambda <= SEARCH_SETTLED_LAMBDA, work: &work };
-        let s = solve_following(&prob, th, &Stage::Estimate { order: lay.order }, if follow { ALONE_TOL } else { 1e-3 }, max_it, Some(&at_last), None, follow, observe);
+        let at_last = AtLastTrial {
+            likely: &|predicted, lambda| predicted < SEARCH_SETTLED_DECREASE && lambda <= SEARCH_SETTLED_LAMBDA,
+            work: &work,
+        };
+        let s = solve_following(
+            &prob,
+            th,
+            &Stage::Estimate { order: lay.order },
+            if follow { ALONE_TOL } else { 1e-3 },
+            max_it,
+            Some(&at_last),
+            None,
+            follow,
+            observe,
+        );
         let est = (2.0 * s.cost).sqrt() / i[settle..split].iter().map(|v| v * v).sum::<f64>().sqrt();
         let th_val = held_out(&s.theta);
         let val = match early.into_inner().expect("validation") {
@@ -3243,12 +3629,18 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         let kept = kept_if_converged(&prob, &s);
         (s, est, th_val, val, kept)
     };
-    let estimate_validate = |lay: &Layout, from: &Parameters, track: Option<&[f64]>, cth: &[f64], seed: Option<&(Layout, std::sync::Arc<KeptJacobian>)>, observe: &mut dyn FnMut(&Progress)| {
+    let estimate_validate = |lay: &Layout,
+                             from: &Parameters,
+                             track: Option<&[f64]>,
+                             cth: &[f64],
+                             seed: Option<&(Layout, std::sync::Arc<KeptJacobian>)>,
+                             observe: &mut dyn FnMut(&Progress)| {
         estimate_validate_for(lay, from, track, cth, seed, SEARCH_MAX_ITERATIONS, false, observe)
     };
     for &order in &orders {
         let lay = layout_for(order);
-        let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, prev_kept.as_ref(), observe);
+        let (s, est, th_val, val, kept) =
+            estimate_validate(&lay, &current, search_track.as_deref(), &cth, prev_kept.as_ref(), observe);
         cth = th_val[lay.slots().n..].to_vec();
         trials.push(OrderTrial { order, estimation_rel: est, validation_rel: val, iterations: s.iteration });
         current = Parameters { mms: opts.mms, ..lay.parameters(&s.theta) };
@@ -3266,7 +3658,10 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             // An order-0 stage stopped by its iteration cap is finished when the decision is
             // near (its error can only fall, and the gain with it).
             if let (Some(lin), Some((prob0, s0))) = (linear_rel, order0.take()) {
-                if !s0.converged && s0.iteration >= ORDER0_FIRST_ITERATIONS && 1.0 - est / lin < ORDER0_FINISH_BELOW_GAIN {
+                if !s0.converged
+                    && s0.iteration >= ORDER0_FIRST_ITERATIONS
+                    && 1.0 - est / lin < ORDER0_FINISH_BELOW_GAIN
+                {
                     let s = solve(&prob0, s0.theta, &Stage::Estimate { order: 0 }, 1e-3, 10, None, None, observe);
                     linear_rel = Some(lin.min((2.0 * s.cost).sqrt() / norm_est));
                 }
@@ -3346,7 +3741,8 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                 Some(v) => v,
                 None => {
                     let lay = layout_for(order);
-                    let (s, _, _, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, None, observe);
+                    let (s, _, _, val, kept) =
+                        estimate_validate(&lay, &current, search_track.as_deref(), &cth, None, observe);
                     search_track = Some(lay.re_track(&s.theta));
                     at_kept = kept.map(|k| (lay, k));
                     (at_left, at_converged) = (s.gn_left, s.converged);
@@ -3361,8 +3757,14 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             // fits in each of its three rounds, 0.6 s a round).
             let mut lin_fits: Vec<(Effects, Option<LinearFit>)> = Vec::new();
             loop {
-                let singles = [Effects { creep: true, ..Effects::NONE }, Effects { lr3: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }];
-                let cands: Vec<(Effects, Effects)> = singles.iter().filter(|&&one| at.union(one) != at).map(|&one| (one, at.union(one))).collect();
+                let singles = [
+                    Effects { creep: true, ..Effects::NONE },
+                    Effects { lr3: true, ..Effects::NONE },
+                    Effects { le_i: true, ..Effects::NONE },
+                    Effects { rms_v: true, ..Effects::NONE },
+                ];
+                let cands: Vec<(Effects, Effects)> =
+                    singles.iter().filter(|&&one| at.union(one) != at).map(|&one| (one, at.union(one))).collect();
                 // The screen: every candidate is scored on one pass at the present estimate
                 // (creep from a vanishing one, LR-3 from a vanishing branch in L3 and tau3,
                 // Le(i) and Rms(v) from zero), and not fitted (nor its linear start) when it
@@ -3372,17 +3774,33 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                 let screened: Vec<Effects> = cands.iter().map(|c| c.0).collect();
                 let gains = match at_kept.as_ref() {
                     Some(base) if !screened.is_empty() => {
-                        let prob_for = |lay: Layout| OutputError::new(lay, u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching();
+                        let prob_for = |lay: Layout| {
+                            OutputError::new(lay, u, i, fs, settle..split, rates, x_limit, threads)
+                                .with_chain(setup)
+                                .searching()
+                        };
                         screen_effects(base, &screened, at, &current, search_track.as_deref(), &cth, &prob_for)
                     }
                     _ => vec![None; screened.len()],
                 };
-                let mut round: Vec<EffectScreen> = screened.iter().zip(gains).filter_map(|(&one, g)| g.map(|gain| EffectScreen { model: at.union(one), added: one, gain, outscored_by: None })).collect();
-                let gain_in = |round: &[EffectScreen], one: Effects| round.iter().find(|s| s.added == one).map(|s| s.gain);
-                let mut cands: Vec<(Effects, Effects)> = cands.into_iter().filter(|c| !round.iter().any(|s| s.added == c.0 && s.screened_out())).collect();
+                let mut round: Vec<EffectScreen> = screened
+                    .iter()
+                    .zip(gains)
+                    .filter_map(|(&one, g)| {
+                        g.map(|gain| EffectScreen { model: at.union(one), added: one, gain, outscored_by: None })
+                    })
+                    .collect();
+                let gain_in =
+                    |round: &[EffectScreen], one: Effects| round.iter().find(|s| s.added == one).map(|s| s.gain);
+                let mut cands: Vec<(Effects, Effects)> =
+                    cands.into_iter().filter(|c| !round.iter().any(|s| s.added == c.0 && s.screened_out())).collect();
                 // The highest screen gain first (a candidate the screen could not score first
                 // of all: it is always fitted).
-                cands.sort_by(|a, b| gain_in(&round, b.0).unwrap_or(f64::INFINITY).total_cmp(&gain_in(&round, a.0).unwrap_or(f64::INFINITY)));
+                cands.sort_by(|a, b| {
+                    gain_in(&round, b.0)
+                        .unwrap_or(f64::INFINITY)
+                        .total_cmp(&gain_in(&round, a.0).unwrap_or(f64::INFINITY))
+                });
                 // (effects, validation error, what taking it takes over, its stage's
                 // `gn_left` and whether it converged, its iterations).
                 let mut best: Option<(Effects, f64, Taken, (f64, bool), usize)> = None;
@@ -3407,16 +3825,28 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                     _ => true,
                 };
                 let lin_fit_for = |lin_fits: &mut Vec<(Effects, Option<LinearFit>)>, wanted: &[Effects]| {
-                    let missing: Vec<Effects> = wanted.iter().copied().filter(|key| lin_fits.iter().all(|(k, _)| k != key)).collect();
-                    let fitted = parallel_map(missing.len(), missing.len(), |k| linear_start_fit(&u[..m_start], &i[..m_start], fs, origin, missing[k], lr2));
+                    let missing: Vec<Effects> =
+                        wanted.iter().copied().filter(|key| lin_fits.iter().all(|(k, _)| k != key)).collect();
+                    let fitted = parallel_map(missing.len(), missing.len(), |k| {
+                        linear_start_fit(&u[..m_start], &i[..m_start], fs, origin, missing[k], lr2)
+                    });
                     lin_fits.extend(missing.into_iter().zip(fitted));
                 };
-                lin_fit_for(&mut lin_fits, &cands.iter().filter(|c| needs_fit(c) && contender(c)).map(|&(_, e)| e.small_signal()).collect::<Vec<_>>());
+                lin_fit_for(
+                    &mut lin_fits,
+                    &cands
+                        .iter()
+                        .filter(|c| needs_fit(c) && contender(c))
+                        .map(|&(_, e)| e.small_signal())
+                        .collect::<Vec<_>>(),
+                );
                 for (one, e) in cands {
                     // Outscored by the candidate that passed the held-out bar
                     // (EFFECT_RIVAL_RATIO): not fitted in this round.
                     if let Some((taken, ..)) = &best {
-                        if let (Some(g), Some(gt)) = (gain_in(&round, one), round.iter().find(|s| s.model == *taken).map(|s| s.gain)) {
+                        if let (Some(g), Some(gt)) =
+                            (gain_in(&round, one), round.iter().find(|s| s.model == *taken).map(|s| s.gain))
+                        {
                             if g * EFFECT_RIVAL_RATIO < gt {
                                 if let Some(s) = round.iter_mut().find(|s| s.added == one) {
                                     s.outscored_by = Some(*taken);
@@ -3439,7 +3869,10 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                             from.l3r3 = lin.lr3.map(|(v, _)| (v[0], v[1]));
                         }
                         if e.creep && current.creep.is_none() {
-                            from.creep = lin.creep.filter(|c| c.0 > 0.0).map(|(lambda, _)| coilscope_core::params::Creep { lambda, f_ref: None });
+                            from.creep = lin
+                                .creep
+                                .filter(|c| c.0 > 0.0)
+                                .map(|(lambda, _)| coilscope_core::params::Creep { lambda, f_ref: None });
                         }
                     }
                     // A second start for LR-3 and creep: the present estimate with a vanishing
@@ -3450,9 +3883,15 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                     // less on the estimation part is taken.
                     let vanishing = if one.lr3 {
                         let (l2, r2) = current.l2r2.as_ref().map_or((0.0, 0.0), |(l, r)| (l.eval(0.0), r.eval(0.0)));
-                        (l2 > 0.0).then(|| Parameters { l3r3: Some((LR3_VANISHING * 0.5 * l2, LR3_VANISHING * 3.0 * r2)), ..current.clone() })
+                        (l2 > 0.0).then(|| Parameters {
+                            l3r3: Some((LR3_VANISHING * 0.5 * l2, LR3_VANISHING * 3.0 * r2)),
+                            ..current.clone()
+                        })
                     } else if one.creep && current.creep.is_none() {
-                        Some(Parameters { creep: Some(coilscope_core::params::Creep { lambda: CREEP_VANISHING, f_ref: None }), ..current.clone() })
+                        Some(Parameters {
+                            creep: Some(coilscope_core::params::Creep { lambda: CREEP_VANISHING, f_ref: None }),
+                            ..current.clone()
+                        })
                     } else {
                         None
                     };
@@ -3460,8 +3899,12 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                     // branch or creep) starts on the chosen stage's last Jacobian.
                     let mut nested = !(one.creep || one.lr3);
                     if let Some(vanishing) = vanishing {
-                        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads).with_chain(setup).searching();
-                        let miss = |p: &Parameters| prob.residual(&join(lay.theta_from(p, search_track.as_deref()), &cth)).norm_squared();
+                        let prob = OutputError::new(lay.clone(), u, i, fs, settle..split, rates, x_limit, threads)
+                            .with_chain(setup)
+                            .searching();
+                        let miss = |p: &Parameters| {
+                            prob.residual(&join(lay.theta_from(p, search_track.as_deref()), &cth)).norm_squared()
+                        };
                         // The two runs side by side (each takes one core).
                         let (a, b) = std::thread::scope(|scope| {
                             let h = scope.spawn(|| miss(&vanishing));
@@ -3480,20 +3923,40 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                     }
                     let seed = at_kept.as_ref().filter(|_| nested);
                     let max_it = if lay.lr3_tau { LR3_TAU_ITERATIONS } else { SEARCH_MAX_ITERATIONS };
-                    let (mut s, _, mut th_val, mut val, mut kept) = estimate_validate_for(&lay, &from, search_track.as_deref(), &cth, seed, max_it, false, observe);
+                    let (mut s, _, mut th_val, mut val, mut kept) =
+                        estimate_validate_for(&lay, &from, search_track.as_deref(), &cth, seed, max_it, false, observe);
                     // A branch the record holds: the trial goes on in L3 and R3 (Slots::r3).
                     if lay.lr3_tau && !s.converged {
                         let n = lay.slots().n;
-                        let (p, track) = (Parameters { mms: opts.mms, ..lay.parameters(&s.theta) }, lay.re_track(&s.theta));
+                        let (p, track) =
+                            (Parameters { mms: opts.mms, ..lay.parameters(&s.theta) }, lay.re_track(&s.theta));
                         lay.lr3_tau = false;
                         let done = s.iteration;
-                        (s, _, th_val, val, kept) = estimate_validate_for(&lay, &p, Some(&track), &s.theta[n..], None, SEARCH_MAX_ITERATIONS - done, false, observe);
+                        (s, _, th_val, val, kept) = estimate_validate_for(
+                            &lay,
+                            &p,
+                            Some(&track),
+                            &s.theta[n..],
+                            None,
+                            SEARCH_MAX_ITERATIONS - done,
+                            false,
+                            observe,
+                        );
                         s.iteration += done;
                     }
                     effect_trials.push((e.model_name(), val));
                     let lambda_ok = lay.slots().lambda.is_none_or(|k| s.theta[k] > 0.0);
-                    if lambda_ok && val < (1.0 - EFFECT_MIN_GAIN_HELD_OUT) * at_val && best.as_ref().is_none_or(|b| val < b.1) {
-                        best = Some((e, val, Taken::of(lay, opts.mms, &s.theta, &th_val, kept), (s.gn_left, s.converged), s.iteration));
+                    if lambda_ok
+                        && val < (1.0 - EFFECT_MIN_GAIN_HELD_OUT) * at_val
+                        && best.as_ref().is_none_or(|b| val < b.1)
+                    {
+                        best = Some((
+                            e,
+                            val,
+                            Taken::of(lay, opts.mms, &s.theta, &th_val, kept),
+                            (s.gn_left, s.converged),
+                            s.iteration,
+                        ));
                     }
                 }
                 // A trial goes on from where the model taken so far stopped, so its held-out
@@ -3505,14 +3968,25 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
                 // there is taken and the search ends.
                 if let Some(b) = &best {
                     if let Some(budget) = base_goes_on_alone(b.1, b.4, at_val, at_left, at_converged) {
-                        let lay = at_kept.as_ref().map_or_else(|| layout_for(order).with_effects(at), |(l, _)| l.clone());
-                        let (s, _, th_val, val, kept) = estimate_validate_for(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), budget, true, observe);
+                        let lay =
+                            at_kept.as_ref().map_or_else(|| layout_for(order).with_effects(at), |(l, _)| l.clone());
+                        let (s, _, th_val, val, kept) = estimate_validate_for(
+                            &lay,
+                            &current,
+                            search_track.as_deref(),
+                            &cth,
+                            at_kept.as_ref(),
+                            budget,
+                            true,
+                            observe,
+                        );
                         if !(b.1 < (1.0 - EFFECT_MIN_GAIN_HELD_OUT) * val) {
                             if let Some(t) = effect_trials.iter_mut().rev().find(|t| t.0 == at.model_name()) {
                                 effect_went_on.push((t.0.clone(), t.1));
                                 t.1 = val;
                             }
-                            Taken { current, re_track, search_track, cth, at_kept } = Taken::of(lay, opts.mms, &s.theta, &th_val, kept);
+                            Taken { current, re_track, search_track, cth, at_kept } =
+                                Taken::of(lay, opts.mms, &s.theta, &th_val, kept);
                             best = None;
                         }
                     }
@@ -3549,7 +4023,8 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         let mut next = order;
         while next <= MAX_ORDER {
             let lay = layout_for(next).with_effects(effects);
-            let (s, est, th_val, val, kept) = estimate_validate(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), observe);
+            let (s, est, th_val, val, kept) =
+                estimate_validate(&lay, &current, search_track.as_deref(), &cth, at_kept.as_ref(), observe);
             if next > order {
                 trials.push(OrderTrial { order: next, estimation_rel: est, validation_rel: val, iterations: 0 });
                 if !(val < 0.98 * cur) {
@@ -3597,7 +4072,8 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     // them then starts on its last Jacobian. The woofers' tracks bend by 1-3e-5, the
     // microspeakers' by 1.5e-2 and 6.5e-2.
     let heat_likely = track_bend(&lay.re_track(&th)) > KNOT_BEND;
-    let prob = OutputError::new(lay.clone(), u, i, fs, settle..n, rates, x_limit, threads).with_chain(setup).keeping_last();
+    let prob =
+        OutputError::new(lay.clone(), u, i, fs, settle..n, rates, x_limit, threads).with_chain(setup).keeping_last();
     let prob = if heat_likely { prob.with_spare_heat() } else { prob };
     // Heating faster than the knots can follow (see HEAT_TAUS): the knots bend by more than
     // KNOT_BEND between neighbours and the residual is above its floor. Then the heating
@@ -3640,7 +4116,11 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     });
     let s = match at_start {
         Some((start, Some(test))) if test.0 => {
-            observe(&Progress { stage: Stage::Final { order }, state: &start, residual_rel: rel(&prob.residual(&start.theta), &i[settle..n]) });
+            observe(&Progress {
+                stage: Stage::Final { order },
+                state: &start,
+                residual_rel: rel(&prob.residual(&start.theta), &i[settle..n]),
+            });
             stopped_early.set(Some(test));
             start
         }
@@ -3652,7 +4132,9 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     let (lay, prob, s, r, residual_rel, excess) = {
         let heated = try_heat.then(|| {
             let lay_h = lay.clone().with_heat(&HEAT_TAUS);
-            let prob_h = OutputError::new(lay_h.clone(), u, i, fs, settle..n, rates, x_limit, threads).with_chain(setup).keeping_last();
+            let prob_h = OutputError::new(lay_h.clone(), u, i, fs, settle..n, rates, x_limit, threads)
+                .with_chain(setup)
+                .keeping_last();
             // Where the fit's last Jacobian was computed, on it and its spare heating
             // columns (OutputError::extending); else where the fit stopped.
             let th = prob_h.extending(&prob).unwrap_or_else(|| heat_at_zero(&s.theta, lay.slots().n, lay_h.slots().n));
@@ -3676,7 +4158,8 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
             None => (lay, prob, s, r, residual_rel, excess),
         }
     };
-    let (x_model, i_model) = prob.trace(&s.theta, n).map_err(|m| Input(format!("{origin}: the fitted model diverged at sample {m}")))?;
+    let (x_model, i_model) =
+        prob.trace(&s.theta, n).map_err(|m| Input(format!("{origin}: the fitted model diverged at sample {m}")))?;
     // Covariance from the Jacobian of LM's last iteration (the accepted step after it is
     // below the convergence tolerance) and the final residual: the cluster-robust sandwich
     // over blocks of COVARIANCE_BLOCK_S, which holds when the residual is coloured (the
@@ -3684,7 +4167,9 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     // over its noise floor (see MODEL_ERROR_RATIO).
     let jac = prob.last_jacobian.lock().expect("jacobian cache").take();
     let cov = match &jac {
-        Some(j) if r.len() > j.ncols() => crate::lm::sandwich_covariance(j, &r, ((COVARIANCE_BLOCK_S * fs) as usize).max(1)),
+        Some(j) if r.len() > j.ncols() => {
+            crate::lm::sandwich_covariance(j, &r, ((COVARIANCE_BLOCK_S * fs) as usize).max(1))
+        }
         _ => crate::lm::covariance(&prob, &s.theta),
     };
     let cov = cov.map(|c| if excess > MODEL_ERROR_RATIO { c * (excess * excess) } else { c });
@@ -3727,7 +4212,10 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
     let stop_reason = if s.converged {
         format!("converged: cost decrease below 1e-4 after {} iterations", s.iteration)
     } else if s.iteration >= opts.max_iterations {
-        format!("stopped at the iteration limit ({}), last relative cost decrease {:.2e}", opts.max_iterations, s.last_decrease)
+        format!(
+            "stopped at the iteration limit ({}), last relative cost decrease {:.2e}",
+            opts.max_iterations, s.last_decrease
+        )
     } else {
         "no step lowered the cost any further".to_string()
     };
@@ -3768,7 +4256,12 @@ fn identify_record(u_rec: &[f64], i_rec: &[f64], fs: f64, origin: &str, opts: &I
         truncation,
     };
     if !converged {
-        return Err(NotConverged { message: format!("{origin}: the large-signal fit did not converge ({stop_reason}); the best estimate is kept"), best: Box::new(fit) });
+        return Err(NotConverged {
+            message: format!(
+                "{origin}: the large-signal fit did not converge ({stop_reason}); the best estimate is kept"
+            ),
+            best: Box::new(fit),
+        });
     }
     Ok(fit)
 }
@@ -3874,8 +4367,19 @@ impl LargeFit {
     pub fn models_tried(&self) -> Vec<ModelTrial> {
         let screen = |m: &str| self.effect_screens.iter().find(|s| s.model.model_name() == m).map(|s| s.gain);
         let before = |m: &str| self.effect_went_on.iter().find(|(w, _)| w == m).map(|(_, v)| *v);
-        let fitted = self.effect_trials.iter().map(|(m, v)| ModelTrial { model: m.clone(), validation_rel: Some(*v), screen_gain: screen(m), validation_rel_before: before(m), ..Default::default() });
-        let skipped = self.effect_screens.iter().filter(|s| s.not_fitted()).map(|s| ModelTrial { model: s.model.model_name(), screen_gain: Some(s.gain), outscored_by: s.outscored_by.map(|e| e.model_name()), ..Default::default() });
+        let fitted = self.effect_trials.iter().map(|(m, v)| ModelTrial {
+            model: m.clone(),
+            validation_rel: Some(*v),
+            screen_gain: screen(m),
+            validation_rel_before: before(m),
+            ..Default::default()
+        });
+        let skipped = self.effect_screens.iter().filter(|s| s.not_fitted()).map(|s| ModelTrial {
+            model: s.model.model_name(),
+            screen_gain: Some(s.gain),
+            outscored_by: s.outscored_by.map(|e| e.model_name()),
+            ..Default::default()
+        });
         fitted.chain(skipped).collect()
     }
 
@@ -3949,7 +4453,15 @@ mod tests {
     fn chord_case() -> (Parameters, Vec<f64>, Vec<f64>, Layout, Vec<f64>) {
         let p = embedded_driver("sb17cac35-4").unwrap();
         let (u, i) = chord_record(&p, "large-test/chord");
-        let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
+        let sc = Scales {
+            re: p.re,
+            le: p.le.eval(0.0),
+            l2: 5e-4,
+            r2: 0.3,
+            bl: p.bl.eval(0.0),
+            kms: p.kms.eval(0.0),
+            rms: p.rms,
+        };
         let lay = Layout::new(4, 2, 1.0, 0.004, sc, true, p.mms);
         let mut th = lay.theta_from(&p, None);
         let s = lay.slots();
@@ -3964,7 +4476,11 @@ mod tests {
     fn chord_record(p: &Parameters, noise: &str) -> (Vec<f64>, Vec<f64>) {
         let fs = 48000.0;
         let [lo, hi] = p.x_range.unwrap();
-        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 1.5, rms: 1.0, fade: 0.05, seed: 3 }).unwrap();
+        let unit = generate(
+            &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+            &SignalSpec { fs, seconds: 1.5, rms: 1.0, fade: 0.05, seed: 3 },
+        )
+        .unwrap();
         let (_, tr) = gain_for_peak(p, fs, &unit, 0.85 * hi.min(-lo), &SimOptions::default()).unwrap();
         let (u, mut i) = (tr.u, tr.i);
         add_sensor_noise(&mut i, 70.0, 3, noise);
@@ -3984,9 +4500,18 @@ mod tests {
         let (_, u_drv, i_drv, _, _) = chord_case();
         let fs = 48000.0;
         let peak = |v: &[f64]| v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
-        let card = Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, dc_u: 5e-3 * peak(&u_drv), dc_i: 5e-3 * peak(&i_drv), hum: Some(Hum { f: 50.0, u: vec![[1e-3 * peak(&u_drv), 0.3]], i: vec![[1e-3 * peak(&i_drv), 1.1]] }), ..Default::default() };
+        let card = Chain {
+            delay_i: 0.3 / fs,
+            hp_u: 2.0,
+            hp_i: 4.0,
+            dc_u: 5e-3 * peak(&u_drv),
+            dc_i: 5e-3 * peak(&i_drv),
+            hum: Some(Hum { f: 50.0, u: vec![[1e-3 * peak(&u_drv), 0.3]], i: vec![[1e-3 * peak(&i_drv), 1.1]] }),
+            ..Default::default()
+        };
         let (u_rec, i_rec) = card.apply(&u_drv, &i_drv, fs);
-        let mut setup = ChainSetup::new(&u_rec, &i_rec, crate::linear::ChainTerms { fs, delay: true, hp_u: true, hp_i: true });
+        let mut setup =
+            ChainSetup::new(&u_rec, &i_rec, crate::linear::ChainTerms { fs, delay: true, hp_u: true, hp_i: true });
         setup.whiten_hz = 4.0;
         let base = setup.theta0(&[0.3, 2.0, 4.0]);
         // The plain target: the inverse coupling, the basis off, chain::delay.
@@ -4051,36 +4576,69 @@ mod tests {
     fn the_effects_screen_scores_from_the_base_model_itself() {
         let (p, u, i, lay, _) = chord_case();
         let fs = 48000.0;
-        let singles = [Effects { creep: true, ..Effects::NONE }, Effects { lr3: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }];
+        let singles = [
+            Effects { creep: true, ..Effects::NONE },
+            Effects { lr3: true, ..Effects::NONE },
+            Effects { le_i: true, ..Effects::NONE },
+            Effects { rms_v: true, ..Effects::NONE },
+        ];
         let screen = |u: &[f64], i: &[f64]| -> Vec<f64> {
             let prob_for = |l: Layout| OutputError::new(l, u, i, fs, 2400..u.len(), p.rates(), 0.05, 2).searching();
             let th = lay.theta_from(&p, None);
             let kept = KeptJacobian { j: prob_for(lay.clone()).jacobian(&th) };
-            let gains: Vec<f64> = screen_effects(&(lay.clone(), std::sync::Arc::new(kept)), &singles, Effects::NONE, &p, None, &[], &prob_for).into_iter().map(|g| g.expect("every candidate scored")).collect();
+            let gains: Vec<f64> = screen_effects(
+                &(lay.clone(), std::sync::Arc::new(kept)),
+                &singles,
+                Effects::NONE,
+                &p,
+                None,
+                &[],
+                &prob_for,
+            )
+            .into_iter()
+            .map(|g| g.expect("every candidate scored"))
+            .collect();
             // The slow reference: one model with every effect (17 states, the 3 x 3
             // network), its whole Jacobian and residual at the screen's start.
             let all = singles.iter().fold(Effects::NONE, |a, &e| a.union(e));
             let lay_all = lay.clone().with_effects(all).with_lr3_tau();
             let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.eval(0.0), r.eval(0.0))).unwrap();
-            let from = Parameters { creep: Some(coilscope_core::params::Creep { lambda: 0.0, f_ref: None }), l3r3: Some((LR3_SCREEN * 0.5 * l2, LR3_SCREEN * 3.0 * r2)), ..p.clone() };
+            let from = Parameters {
+                creep: Some(coilscope_core::params::Creep { lambda: 0.0, f_ref: None }),
+                l3r3: Some((LR3_SCREEN * 0.5 * l2, LR3_SCREEN * 3.0 * r2)),
+                ..p.clone()
+            };
             let th_all = lay_all.theta_from(&from, None);
             let prob = prob_for(lay_all.clone());
             let (j, r) = (prob.jacobian(&th_all), prob.residual(&th_all));
             let (gram, grad, cost) = (crate::lm::gram(&j), j.tr_mul(&r), 0.5 * r.norm_squared());
             let sl = lay_all.slots();
-            let own = [vec![sl.lambda.unwrap()], vec![sl.l3.unwrap(), sl.r3.unwrap()], vec![sl.le_i.unwrap(), sl.le_i.unwrap() + 1], vec![sl.rms_v.unwrap()]];
-            let base: Vec<usize> = (0..th_all.len()).filter(|c| !own.iter().flatten().any(|o| o == c) && gram[(*c, *c)] > 0.0).collect();
+            let own = [
+                vec![sl.lambda.unwrap()],
+                vec![sl.l3.unwrap(), sl.r3.unwrap()],
+                vec![sl.le_i.unwrap(), sl.le_i.unwrap() + 1],
+                vec![sl.rms_v.unwrap()],
+            ];
+            let base: Vec<usize> =
+                (0..th_all.len()).filter(|c| !own.iter().flatten().any(|o| o == c) && gram[(*c, *c)] > 0.0).collect();
             let d0 = gauss_newton_decrease(&gram, &grad, &base).unwrap();
             for ((g, e), o) in gains.iter().zip(&singles).zip(&own) {
                 let d = gauss_newton_decrease(&gram, &grad, &[base.clone(), o.clone()].concat()).unwrap();
                 let reference = 1.0 - (1.0 - ((d - d0) / cost).clamp(0.0, 1.0)).sqrt();
                 println!("{}: {g:.6e}, one model {reference:.6e}", e.model_name());
-                assert!((g - reference).abs() <= 1e-3 * reference.max(EFFECT_SCREEN_GAIN), "{}: the screen's {g:.6e} against one model's {reference:.6e}", e.model_name());
+                assert!(
+                    (g - reference).abs() <= 1e-3 * reference.max(EFFECT_SCREEN_GAIN),
+                    "{}: the screen's {g:.6e} against one model's {reference:.6e}",
+                    e.model_name()
+                );
             }
             gains
         };
         let clean = screen(&u, &i);
-        println!("without creep: creep {:.3e}, LR-3 {:.3e}, Le(i) {:.3e}, Rms(v) {:.3e}", clean[0], clean[1], clean[2], clean[3]);
+        println!(
+            "without creep: creep {:.3e}, LR-3 {:.3e}, Le(i) {:.3e}, Rms(v) {:.3e}",
+            clean[0], clean[1], clean[2], clean[3]
+        );
         for (g, e) in clean.iter().zip(&singles) {
             assert!(*g < EFFECT_SCREEN_GAIN, "{}: {g:.3e} on a record without it", e.model_name());
         }
@@ -4117,7 +4675,9 @@ mod tests {
         let r = -y.clone();
         let (gram, grad) = (crate::lm::gram(&j), j.tr_mul(&r));
         let cost = 0.5 * r.norm_squared();
-        for cols in [vec![0, 1, 2], vec![3, 7, 11], vec![0, 1, 2, 3, 4, 5], (0..n).collect::<Vec<_>>(), vec![6, 8, 10], vec![5]] {
+        for cols in
+            [vec![0, 1, 2], vec![3, 7, 11], vec![0, 1, 2, 3, 4, 5], (0..n).collect::<Vec<_>>(), vec![6, 8, 10], vec![5]]
+        {
             let sub = DMatrix::from_fn(m, cols.len(), |a, b| j[(a, cols[b])]);
             let x = sub.clone().svd(true, true).solve(&y, 1e-300).unwrap();
             let exact = cost - 0.5 * (&y - &sub * x).norm_squared();
@@ -4148,9 +4708,19 @@ mod tests {
         let chord_cost = 0.5 * prob.residual(&th_chord).norm_squared();
         let s2 = lm_step(&prob, &s1);
         let full = s1.cost - s2.cost;
-        println!("first step {:.3e}; next: chord predicted {:.4e}, got {:.4e}, full iteration {:.4e}", s1.last_decrease, predicted / s1.cost, (s1.cost - chord_cost) / s1.cost, full / s1.cost);
+        println!(
+            "first step {:.3e}; next: chord predicted {:.4e}, got {:.4e}, full iteration {:.4e}",
+            s1.last_decrease,
+            predicted / s1.cost,
+            (s1.cost - chord_cost) / s1.cost,
+            full / s1.cost
+        );
         assert!((predicted / full - 1.0).abs() < 0.02, "predicted {predicted:.4e}, full iteration {full:.4e}");
-        assert!(((s1.cost - chord_cost) / full - 1.0).abs() < 0.02, "chord {:.4e}, full iteration {full:.4e}", s1.cost - chord_cost);
+        assert!(
+            ((s1.cost - chord_cost) / full - 1.0).abs() < 0.02,
+            "chord {:.4e}, full iteration {full:.4e}",
+            s1.cost - chord_cost
+        );
     }
 
     /// [`chords`] reach the optimum full LM iterations reach, on fewer Jacobians, and leave
@@ -4164,7 +4734,9 @@ mod tests {
         let tol = 1e-4;
         let prob = OutputError::new(lay.clone(), &u, &i, fs, 2400..u.len(), p.rates(), 0.05, 2).keeping_last();
         let mut costs = vec![];
-        let s = solve(&prob, th.clone(), &Stage::Final { order: 4 }, tol, 30, None, None, &mut |pr| costs.push(pr.state.cost));
+        let s = solve(&prob, th.clone(), &Stage::Final { order: 4 }, tol, 30, None, None, &mut |pr| {
+            costs.push(pr.state.cost)
+        });
         let full_prob = OutputError::new(lay, &u, &i, fs, 2400..u.len(), p.rates(), 0.05, 2);
         let mut f = LmState::new(&full_prob, th);
         while f.iteration < 30 {
@@ -4176,7 +4748,12 @@ mod tests {
         let (chord_j, full_j) = (prob.jacobians.load(Ordering::Relaxed), full_prob.jacobians.load(Ordering::Relaxed));
         println!("chords: {} iterations, {chord_j} Jacobians, cost {:.6e} ({costs:?}); full: {} iterations, {full_j} Jacobians, cost {:.6e}", s.iteration, s.cost, f.iteration, f.cost);
         assert!(s.converged, "the chord fit converged");
-        assert!((s.cost / f.cost - 1.0).abs() < 2.0 * tol, "the same optimum: chords {:.6e}, full {:.6e}", s.cost, f.cost);
+        assert!(
+            (s.cost / f.cost - 1.0).abs() < 2.0 * tol,
+            "the same optimum: chords {:.6e}, full {:.6e}",
+            s.cost,
+            f.cost
+        );
         assert!(chord_j < full_j, "chords {chord_j} Jacobians, full {full_j}");
         // More than one chord step (the iterations beyond the Jacobians, less the first
         // step's): then the last Jacobian is the one at the end.
@@ -4197,12 +4774,14 @@ mod tests {
         let good = lay.theta_from(&p, None);
         let mut bad = good.clone();
         bad[lay.slots().bl.start] *= 1.03;
-        let reference = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 1).keeping_last();
+        let reference =
+            OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 1).keeping_last();
         let (r_good, r_bad) = (reference.residual(&good), reference.residual(&bad));
         let trace_good = reference.trace(&good, tr.u.len()).unwrap();
         assert!(r_good.norm_squared() < 0.5 * r_bad.norm_squared(), "the truth fits better");
         for (pair, want) in [([&bad, &good], 1), ([&good, &bad], 0)] {
-            let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).keeping_last();
+            let prob =
+                OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).keeping_last();
             let (rs, k) = prob.better_of_two([pair[0].as_slice(), pair[1].as_slice()]);
             assert_eq!(k, want, "the lower cost is picked");
             assert_eq!(rs[want], r_good, "the truth's residual, as a run of its own");
@@ -4210,7 +4789,11 @@ mod tests {
             let cached = prob.last_residual.lock().unwrap().clone().unwrap();
             assert!(cached.0 == good && cached.1 == r_good, "the residual cache holds the picked one");
             let traced = prob.last_trace.lock().unwrap().clone().unwrap();
-            assert!(traced.0 == good && (traced.1.as_slice(), traced.2.as_slice()) == (trace_good.0.as_slice(), trace_good.1.as_slice()), "the trace cache holds the picked one's trace");
+            assert!(
+                traced.0 == good
+                    && (traced.1.as_slice(), traced.2.as_slice()) == (trace_good.0.as_slice(), trace_good.1.as_slice()),
+                "the trace cache holds the picked one's trace"
+            );
         }
     }
 
@@ -4263,12 +4846,17 @@ mod tests {
         th[lay.slots().bl.start] *= 1.03;
         let lay_h = lay.clone().with_heat(&HEAT_TAUS);
         for threads in [2, 1] {
-            let new = |l: &Layout| OutputError::new(l.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, threads);
+            let new =
+                |l: &Layout| OutputError::new(l.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, threads);
             let plain = new(&lay);
             let prob = new(&lay).keeping_last().with_spare_heat();
             prob.residual_ahead(&th, &|_| true, None);
             let (r, j) = prob.residual_jacobian(&th);
-            assert_eq!((r, j), (plain.residual(&th), plain.jacobian(&th)), "{threads} workers: the spare columns change no column");
+            assert_eq!(
+                (r, j),
+                (plain.residual(&th), plain.jacobian(&th)),
+                "{threads} workers: the spare columns change no column"
+            );
             let heated = new(&lay_h);
             let th_h = heated.extending(&prob).expect("the spare columns were kept");
             assert_eq!(th_h.len(), th.len() + HEAT_TAUS.len());
@@ -4278,7 +4866,11 @@ mod tests {
             let (r_h, j_h) = heated.residual_jacobian(&th_h);
             assert_eq!(r_h, fresh.residual(&th_h), "{threads} workers: the residual");
             assert_eq!(j_h, fresh.jacobian(&th_h), "{threads} workers: the Jacobian");
-            assert_eq!(heated.jacobians.load(Ordering::Relaxed), 0, "{threads} workers: no Jacobian computed for the start");
+            assert_eq!(
+                heated.jacobians.load(Ordering::Relaxed),
+                0,
+                "{threads} workers: no Jacobian computed for the start"
+            );
             // Computed alone (no residual run beside it) the same.
             let prob = new(&lay).keeping_last().with_spare_heat();
             prob.residual_jacobian(&th);
@@ -4287,7 +4879,9 @@ mod tests {
         // A problem without spare columns gives none to extend.
         let prob = OutputError::new(lay.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).keeping_last();
         prob.residual_jacobian(&th);
-        assert!(OutputError::new(lay_h, &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).extending(&prob).is_none());
+        assert!(OutputError::new(lay_h, &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2)
+            .extending(&prob)
+            .is_none());
     }
 
     /// The Jacobian's passes run on [`Jet`]s (plain lanes, no
@@ -4336,16 +4930,31 @@ mod tests {
                 // num-dual's, eight columns a pass, through the same run.
                 for c0 in (0..th.len()).step_by(8) {
                     let (thd, _) = seed_duals::<8>(&th, c0);
-                    run_layout(&prob.layout, &thd, &prob.heat, u, fs, &prob.stepper_jac, u.len(), f64::INFINITY, None, |m, s| {
-                        if m >= 480 {
-                            let e = s[idx::I].eps.0.as_ref().map_or([0.0; 8], |e| std::array::from_fn(|k| e[k]));
-                            for k in 0..8.min(th.len() - c0) {
-                                let (got, c) = (j[(m - 480, c0 + k)], c0 + k);
-                                let same = if sensitivities { (got - e[k]).abs() <= 1e-13 * largest[c] } else { got == e[k] };
-                                assert!(same, "{name}, {threads} workers: row {m}, column {c}: {got} vs {}", e[k]);
+                    run_layout(
+                        &prob.layout,
+                        &thd,
+                        &prob.heat,
+                        u,
+                        fs,
+                        &prob.stepper_jac,
+                        u.len(),
+                        f64::INFINITY,
+                        None,
+                        |m, s| {
+                            if m >= 480 {
+                                let e = s[idx::I].eps.0.as_ref().map_or([0.0; 8], |e| std::array::from_fn(|k| e[k]));
+                                for k in 0..8.min(th.len() - c0) {
+                                    let (got, c) = (j[(m - 480, c0 + k)], c0 + k);
+                                    let same = if sensitivities {
+                                        (got - e[k]).abs() <= 1e-13 * largest[c]
+                                    } else {
+                                        got == e[k]
+                                    };
+                                    assert!(same, "{name}, {threads} workers: row {m}, column {c}: {got} vs {}", e[k]);
+                                }
                             }
-                        }
-                    })
+                        },
+                    )
                     .unwrap();
                 }
                 assert!(j.iter().any(|v| *v != 0.0));
@@ -4362,7 +4971,13 @@ mod tests {
         let (p, tr, lay) = sb17_case(0.3, 7, 4, 3, 0.1);
         let lay_h = lay.clone().with_heat(&HEAT_TAUS);
         let lay_e = lay.clone().with_effects(Effects { le_i: true, rms_v: true, ..Effects::NONE });
-        for (name, lay, search) in [("plain", lay.clone(), false), ("heating terms", lay_h, false), ("Le(i), Rms(v)", lay_e.clone(), false), ("search", lay, true), ("Le(i), Rms(v), search", lay_e, true)] {
+        for (name, lay, search) in [
+            ("plain", lay.clone(), false),
+            ("heating terms", lay_h, false),
+            ("Le(i), Rms(v)", lay_e.clone(), false),
+            ("search", lay, true),
+            ("Le(i), Rms(v), search", lay_e, true),
+        ] {
             let mut th = lay.theta_from(&p, None);
             for (k, t) in th.iter_mut().enumerate() {
                 *t *= 1.0 + 0.01 * ((k % 5) as f64 - 2.0);
@@ -4377,8 +4992,32 @@ mod tests {
             let (n, rows) = (lay.slots().n, prob.fit.len());
             for cols in [(0..n / 2).collect::<Vec<_>>(), (n / 2..n).collect()] {
                 let (mut a, mut b) = (vec![0.0; rows * cols.len()], vec![0.0; rows * cols.len()]);
-                crate::sensitivity::pass_on(&prob.layout, &prob.heat, &th, &cols, &tr.u, fs, &prob.stepper_jac, prob.fit.clone(), None, &mut a, true);
-                crate::sensitivity::pass_on(&prob.layout, &prob.heat, &th, &cols, &tr.u, fs, &prob.stepper_jac, prob.fit.clone(), None, &mut b, false);
+                crate::sensitivity::pass_on(
+                    &prob.layout,
+                    &prob.heat,
+                    &th,
+                    &cols,
+                    &tr.u,
+                    fs,
+                    &prob.stepper_jac,
+                    prob.fit.clone(),
+                    None,
+                    &mut a,
+                    true,
+                );
+                crate::sensitivity::pass_on(
+                    &prob.layout,
+                    &prob.heat,
+                    &th,
+                    &cols,
+                    &tr.u,
+                    fs,
+                    &prob.stepper_jac,
+                    prob.fit.clone(),
+                    None,
+                    &mut b,
+                    false,
+                );
                 assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()), "{name}: columns {cols:?}");
                 assert!(a.iter().any(|v| *v != 0.0), "{name}");
             }
@@ -4387,11 +5026,29 @@ mod tests {
 
     /// SB17 driven by `seconds` of pink noise (seed `seed`, 48 kHz) to a 4 mm peak, and a
     /// layout of power-series order `order` with `n_re` Re(t) knots `knot_dt` s apart.
-    fn sb17_case(seconds: f64, seed: u64, order: usize, n_re: usize, knot_dt: f64) -> (Parameters, coilscope_core::simulate::Trace, Layout) {
+    fn sb17_case(
+        seconds: f64,
+        seed: u64,
+        order: usize,
+        n_re: usize,
+        knot_dt: f64,
+    ) -> (Parameters, coilscope_core::simulate::Trace, Layout) {
         let p = embedded_driver("sb17cac35-4").unwrap();
-        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs: 48000.0, seconds, rms: 1.0, fade: 0.05, seed }).unwrap();
+        let unit = generate(
+            &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+            &SignalSpec { fs: 48000.0, seconds, rms: 1.0, fade: 0.05, seed },
+        )
+        .unwrap();
         let (_, tr) = gain_for_peak(&p, 48000.0, &unit, 0.004, &SimOptions::default()).unwrap();
-        let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
+        let sc = Scales {
+            re: p.re,
+            le: p.le.eval(0.0),
+            l2: 5e-4,
+            r2: 0.3,
+            bl: p.bl.eval(0.0),
+            kms: p.kms.eval(0.0),
+            rms: p.rms,
+        };
         let lay = Layout::new(order, n_re, knot_dt, 0.004, sc, true, p.mms);
         (p, tr, lay)
     }
@@ -4412,13 +5069,33 @@ mod tests {
         let fs = 48000.0;
         let (p, tr, lay) = sb17_case(0.4, 7, 4, 3, 0.2);
         let woofer = ColumnBounds { fin: 0.011, le: 0.16, re: 0.035, mechanical: 0.012, other: 0.035 };
-        check_search_jacobian("SB17", lay, &tr.u, &tr.i, 2400, &p, (Scheme::Rk4, Scheme::Midpoint), Stepper::new(Scheme::Rk4, 8), woofer);
+        check_search_jacobian(
+            "SB17",
+            lay,
+            &tr.u,
+            &tr.i,
+            2400,
+            &p,
+            (Scheme::Rk4, Scheme::Midpoint),
+            Stepper::new(Scheme::Rk4, 8),
+            woofer,
+        );
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../testdata/drivers/microspeaker-0g1.json");
         let p = Parameters::from_json_str(&std::fs::read_to_string(path).unwrap(), "microspeaker").unwrap();
         let (_, tr) = gain_for_peak(&p, fs, &tr.u[..4800], 0.0004, &SimOptions::default()).unwrap();
         let lay = Layout::new(2, 3, 0.05, 0.0004, Scales::of(&p), true, p.mms);
         let micro = ColumnBounds { fin: 0.025, le: 0.045, re: 0.01, mechanical: 0.055, other: 0.025 };
-        check_search_jacobian("microspeaker", lay, &tr.u, &tr.i, 480, &p, (Scheme::Exponential, Scheme::ExpMidpoint), Stepper::new(Scheme::Exponential, 8), micro);
+        check_search_jacobian(
+            "microspeaker",
+            lay,
+            &tr.u,
+            &tr.i,
+            480,
+            &p,
+            (Scheme::Exponential, Scheme::ExpMidpoint),
+            Stepper::new(Scheme::Exponential, 8),
+            micro,
+        );
     }
 
     /// Relative column errors allowed against the reference: the final fit's, and the
@@ -4434,7 +5111,17 @@ mod tests {
     /// The final fit's and a search stage's Jacobians of `lay` (at `p`, on the record from
     /// `skip` on) take `schemes`, and their columns stay within `b` of `reference`'s.
     #[allow(clippy::too_many_arguments)]
-    fn check_search_jacobian(name: &str, lay: Layout, u: &[f64], i: &[f64], skip: usize, p: &Parameters, schemes: (Scheme, Scheme), reference: Stepper, b: ColumnBounds) {
+    fn check_search_jacobian(
+        name: &str,
+        lay: Layout,
+        u: &[f64],
+        i: &[f64],
+        skip: usize,
+        p: &Parameters,
+        schemes: (Scheme, Scheme),
+        reference: Stepper,
+        b: ColumnBounds,
+    ) {
         let fs = 48000.0;
         let th = lay.theta_from(p, None);
         let sl = lay.slots();
@@ -4478,7 +5165,10 @@ mod tests {
         for n in 1..60 {
             for (threads, wide) in [(1, true), (2, true), (3, true), (2, false)] {
                 let w = pass_widths(n, threads, wide);
-                assert!(w.iter().sum::<usize>() == n && w.iter().all(|&k| (1..=CHUNK_WIDE).contains(&k)), "{n} columns, {threads} workers: {w:?}");
+                assert!(
+                    w.iter().sum::<usize>() == n && w.iter().all(|&k| (1..=CHUNK_WIDE).contains(&k)),
+                    "{n} columns, {threads} workers: {w:?}"
+                );
             }
         }
         let (p, tr, lay) = sb17_case(0.4, 5, 2, 5, 0.1);
@@ -4508,7 +5198,9 @@ mod tests {
             let mut th = from.theta_from(&p, None);
             th[from.slots().kms.start] *= 0.97;
             th[from.slots().bl.start + 1] += 0.01;
-            let base = OutputError::new(from.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2).searching().keeping_search();
+            let base = OutputError::new(from.clone(), &tr.u, &tr.i, fs, 2400..tr.u.len(), p.rates(), 0.05, 2)
+                .searching()
+                .keeping_search();
             let (_, j) = base.residual_jacobian(&th);
             base.recycle(j);
             (th, base.take_kept().expect("a search stage keeps its last Jacobian"))
@@ -4545,12 +5237,26 @@ mod tests {
         }
         // Not nested: a lower order, other knots.
         assert!(column_map(&higher_of(&lay), &lay, 0).is_none());
-        let other_knots = Layout::new(2, lay.n_re + 1, lay.knot_dt, lay.x_ref, lay.scales.clone(), lay.has_l2r2, lay.mms);
+        let other_knots =
+            Layout::new(2, lay.n_re + 1, lay.knot_dt, lay.x_ref, lay.scales.clone(), lay.has_l2r2, lay.mms);
         assert!(column_map(&lay, &other_knots, 0).is_none());
         // Other scales; an effect the target lacks.
-        let other_scales = Layout::new(2, lay.n_re, lay.knot_dt, lay.x_ref, Scales { kms: 2.0 * lay.scales.kms, ..lay.scales.clone() }, lay.has_l2r2, lay.mms);
+        let other_scales = Layout::new(
+            2,
+            lay.n_re,
+            lay.knot_dt,
+            lay.x_ref,
+            Scales { kms: 2.0 * lay.scales.kms, ..lay.scales.clone() },
+            lay.has_l2r2,
+            lay.mms,
+        );
         assert!(column_map(&lay, &other_scales, 0).is_none());
-        assert!(column_map(&lay.clone().with_effects(le_i), &lay.clone().with_effects(Effects { rms_v: true, ..Effects::NONE }), 0).is_none());
+        assert!(column_map(
+            &lay.clone().with_effects(le_i),
+            &lay.clone().with_effects(Effects { rms_v: true, ..Effects::NONE }),
+            0
+        )
+        .is_none());
         // The chain's unknowns follow the layout's in both.
         let map = column_map(&lay, &lay.clone().with_effects(le_i), 3).unwrap();
         let n = lay.slots().n;
@@ -4587,8 +5293,18 @@ mod tests {
     /// layout, theta).
     fn lr3_case() -> (Scales, Layout, Vec<f64>) {
         let p = Parameters { l3r3: Some((2.1e-4, 3.7)), ..embedded_driver("ptt4.0w04-01a").unwrap() };
-        let sc = Scales { re: p.re, le: p.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: p.bl.eval(0.0), kms: p.kms.eval(0.0), rms: p.rms };
-        let lay = Layout::new(4, 2, 1.0, 0.004, sc.clone(), true, p.mms).with_effects(Effects { lr3: true, ..Effects::NONE }).with_lr3_tau();
+        let sc = Scales {
+            re: p.re,
+            le: p.le.eval(0.0),
+            l2: 5e-4,
+            r2: 0.3,
+            bl: p.bl.eval(0.0),
+            kms: p.kms.eval(0.0),
+            rms: p.rms,
+        };
+        let lay = Layout::new(4, 2, 1.0, 0.004, sc.clone(), true, p.mms)
+            .with_effects(Effects { lr3: true, ..Effects::NONE })
+            .with_lr3_tau();
         let th = lay.theta_from(&p, None);
         (sc, lay, th)
     }
@@ -4614,7 +5330,11 @@ mod tests {
                 let mut ts = th.clone();
                 ts[a] *= scale;
                 let (z1, zs) = (z(&th, f), z(&ts, f));
-                assert!((zs - z1 * scale).norm() < 1e-12 * (z1 * scale).norm(), "{f} Hz, scale {scale}: {zs} against {}", z1 * scale);
+                assert!(
+                    (zs - z1 * scale).norm() < 1e-12 * (z1 * scale).norm(),
+                    "{f} Hz, scale {scale}: {zs} against {}",
+                    z1 * scale
+                );
             }
         }
     }
@@ -4658,15 +5378,32 @@ mod tests {
         let (l2, r2) = base.l2r2.as_ref().map(|(l, r)| (l.eval(0.0), r.eval(0.0))).unwrap();
         let (l3, r3) = (2.0 * l2, 8.0 * r2);
         let p = Parameters { l3r3: Some((l3, r3)), ..base.clone() };
-        let q = Parameters { l2r2: Some((Poly::constant(l3), Poly::constant(r3))), l3r3: Some((l2, r2)), ..base.clone() };
+        let q =
+            Parameters { l2r2: Some((Poly::constant(l3), Poly::constant(r3))), l3r3: Some((l2, r2)), ..base.clone() };
         let fs = 48000.0;
-        let u = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 0.5, rms: 1.0, fade: 0.05, seed: 7 }).unwrap();
-        let (a, b) = (coilscope_core::simulate::simulate(&p, fs, &u, &SimOptions::default()).unwrap(), coilscope_core::simulate::simulate(&q, fs, &u, &SimOptions::default()).unwrap());
+        let u = generate(
+            &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+            &SignalSpec { fs, seconds: 0.5, rms: 1.0, fade: 0.05, seed: 7 },
+        )
+        .unwrap();
+        let (a, b) = (
+            coilscope_core::simulate::simulate(&p, fs, &u, &SimOptions::default()).unwrap(),
+            coilscope_core::simulate::simulate(&q, fs, &u, &SimOptions::default()).unwrap(),
+        );
         let rms = coilscope_core::simulate::rms(&a.i);
         let worst = a.i.iter().zip(&b.i).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
         assert!(worst < 1e-9 * rms, "currents differ by {worst:e} A (rms {rms:e} A)");
-        let sc = Scales { re: base.re, le: base.le.eval(0.0), l2: 5e-4, r2: 0.3, bl: base.bl.eval(0.0), kms: base.kms.eval(0.0), rms: base.rms };
-        let lay = Layout::new(4, 2, 1.0, 0.004, sc, true, base.mms).with_effects(Effects { lr3: true, ..Effects::NONE });
+        let sc = Scales {
+            re: base.re,
+            le: base.le.eval(0.0),
+            l2: 5e-4,
+            r2: 0.3,
+            bl: base.bl.eval(0.0),
+            kms: base.kms.eval(0.0),
+            rms: base.rms,
+        };
+        let lay =
+            Layout::new(4, 2, 1.0, 0.004, sc, true, base.mms).with_effects(Effects { lr3: true, ..Effects::NONE });
         let mut th = lay.theta_from(&p, None);
         let pairs = branch_swap(&lay, &th).expect("L3 > L2: exchanged");
         for (a, b) in pairs {

@@ -8,7 +8,8 @@
 //!   error on the current* over the whole record's DFT: `min sum_k |I_k - U_k / Z(f_k)|^2`.
 //!   No window: the leakage of a record that does not start and end at rest is a rational
 //!   term with the system's own poles, fitted with the rest ([`Ends`]); bins without
-//!   excitation carry no weight, so noise, sweeps, multitones and music all work. Parameters are fitted as logarithms (positive, well scaled), with the
+//!   excitation carry no weight, so noise, sweeps, multitones and music all work. Parameters are
+//!   fitted as logarithms (positive, well scaled), with the
 //!   exact analytic Jacobian.
 //! * [`scale_by_mms`], [`added_mass_mms`], [`scale_by_displacement`]: absolute scale.
 //!
@@ -65,7 +66,9 @@ pub fn check_channels(u: &[f64], i: &[f64], fs: f64, offsets_estimated: bool, or
     for (name, x, unit) in [("voltage (channel 1)", u, "V"), ("current (channel 2)", i, "A")] {
         let r = rms(x);
         if r < 1e-9 {
-            return Err(format!("{origin}: {name} is silent (RMS {r:.3e} {unit}); check the wiring and the input gain"));
+            return Err(format!(
+                "{origin}: {name} is silent (RMS {r:.3e} {unit}); check the wiring and the input gain"
+            ));
         }
         let mean = x.iter().sum::<f64>() / x.len() as f64;
         if !offsets_estimated && mean.abs() > 0.05 * r {
@@ -77,7 +80,12 @@ pub fn check_channels(u: &[f64], i: &[f64], fs: f64, offsets_estimated: bool, or
         // Clipping shows as flat runs at the extremes: three or more consecutive samples
         // equal (to 1e-6 of the peak) at 99.9 % of the peak or more.
         let peak = x.iter().fold(0.0f64, |a, v| a.max(v.abs()));
-        let flat = x.windows(3).filter(|w| w[1].abs() >= 0.999 * peak && (w[0] - w[1]).abs() <= 1e-6 * peak && (w[2] - w[1]).abs() <= 1e-6 * peak).count();
+        let flat = x
+            .windows(3)
+            .filter(|w| {
+                w[1].abs() >= 0.999 * peak && (w[0] - w[1]).abs() <= 1e-6 * peak && (w[2] - w[1]).abs() <= 1e-6 * peak
+            })
+            .count();
         if flat > 8 {
             return Err(format!("{origin}: {name} is clipped: {flat} samples sit flat at its peak {peak:.4} {unit}; lower the level or the input gain"));
         }
@@ -120,13 +128,22 @@ impl ImpedanceEstimate {
     /// The coherent bins (coherence >= the fit's minimum) as frequencies and impedances: what
     /// `linear` writes as `.zma`.
     pub fn coherent(&self) -> (Vec<f64>, Vec<Complex64>) {
-        (0..self.f.len()).filter(|&k| self.f[k] > 0.0 && self.usable(k, MIN_COHERENCE)).map(|k| (self.f[k], self.z[k])).unzip()
+        (0..self.f.len())
+            .filter(|&k| self.f[k] > 0.0 && self.usable(k, MIN_COHERENCE))
+            .map(|k| (self.f[k], self.z[k]))
+            .unzip()
     }
 
     /// A measured impedance curve (a file's) as an estimate: every point coherent and
     /// excited.
     pub fn from_curve(f: &[f64], z: &[Complex64]) -> ImpedanceEstimate {
-        ImpedanceEstimate { f: f.to_vec(), z: z.to_vec(), coherence: vec![1.0; f.len()], suu: vec![1.0; f.len()], suu_max: 1.0 }
+        ImpedanceEstimate {
+            f: f.to_vec(),
+            z: z.to_vec(),
+            coherence: vec![1.0; f.len()],
+            suu: vec![1.0; f.len()],
+            suu_max: 1.0,
+        }
     }
 }
 
@@ -171,7 +188,9 @@ pub fn h1_impedance(u: &[f64], i: &[f64], fs: f64, seg: usize) -> ImpedanceEstim
     let norm = 1.0 / (count.max(1) as f64 * win.iter().map(|w| w * w).sum::<f64>());
     let f = (0..nb).map(|k| k as f64 * fs / seg as f64).collect();
     let z = (0..nb).map(|k| if sii[k] > 0.0 { siu[k] / sii[k] } else { Complex64::new(0.0, 0.0) }).collect();
-    let coherence = (0..nb).map(|k| if suu[k] > 0.0 && sii[k] > 0.0 { siu[k].norm_sqr() / (suu[k] * sii[k]) } else { 0.0 }).collect();
+    let coherence = (0..nb)
+        .map(|k| if suu[k] > 0.0 && sii[k] > 0.0 { siu[k].norm_sqr() / (suu[k] * sii[k]) } else { 0.0 })
+        .collect();
     let suu: Vec<f64> = suu.iter().map(|s| s * norm).collect();
     let suu_max = suu.iter().cloned().fold(0.0, f64::max);
     ImpedanceEstimate { f, z, coherence, suu, suu_max }
@@ -239,7 +258,8 @@ pub fn effect_pays(r_cur: f64, r_new: f64, floor: f64, bins: usize, unknowns: us
     let gain = r_cur * r_cur - r_new * r_new;
     let excess = (r_cur * r_cur - floor * floor).max(0.0);
     let noise_per_bin = floor * floor / bins.max(1) as f64;
-    gain >= EFFECT_MIN_SHARE * excess && (noise_per_bin == 0.0 || gain >= EFFECT_MIN_CHI2 * unknowns as f64 * noise_per_bin)
+    gain >= EFFECT_MIN_SHARE * excess
+        && (noise_per_bin == 0.0 || gain >= EFFECT_MIN_CHI2 * unknowns as f64 * noise_per_bin)
 }
 
 /// Values of the extra effects at one point: creep's lambda with the bank at its reference,
@@ -264,7 +284,11 @@ impl Ext {
     fn new(p: &[f64; 7], lambda: Option<f64>, lr3: Option<(f64, f64)>) -> Ext {
         let creep = lambda.map(|lambda| {
             let ws = 1.0 / (p[6] * p[5]).sqrt();
-            CreepAt { lambda, b_ref: coilscope_core::creep::bank(ws).re, slope_ref: coilscope_core::creep::bank_re_slope(ws) }
+            CreepAt {
+                lambda,
+                b_ref: coilscope_core::creep::bank(ws).re,
+                slope_ref: coilscope_core::creep::bank_re_slope(ws),
+            }
         });
         Ext { creep, lr3 }
     }
@@ -305,7 +329,15 @@ fn impedance_ext(p: &[f64; 7], e: &Ext, f: f64) -> Impedance {
     let zm = y.inv();
     let mut z = re + jw * le + z2 + zm;
     let zm2 = zm * zm;
-    let g = [Complex64::new(re, 0.0), jw * le, jw * r2 * r2 * inv_d22 * l2, zl2 * zl2 * inv_d22 * r2, zm2 * (1.0 / res), -zm2 * (jw * cmes + dkappa_half * inv_jwl), zm2 * (kappa - dkappa_half) * inv_jwl];
+    let g = [
+        Complex64::new(re, 0.0),
+        jw * le,
+        jw * r2 * r2 * inv_d22 * l2,
+        zl2 * zl2 * inv_d22 * r2,
+        zm2 * (1.0 / res),
+        -zm2 * (jw * cmes + dkappa_half * inv_jwl),
+        zm2 * (kappa - dkappa_half) * inv_jwl,
+    ];
     let mut gx = [zero; 3];
     if e.creep.is_some() {
         gx[0] = -zm2 * bank_rel * inv_jwl;
@@ -472,7 +504,8 @@ pub fn mains_hum(u: &[f64], i: &[f64], fs: f64) -> Option<(f64, f64, f64)> {
             // The line's power over +-2 bins (a line between bins leaks into its neighbours).
             let (k0, k1) = (bin(f).saturating_sub(2), bin(f) + 2);
             let p_line: f64 = (k0..=k1).map(e).sum();
-            let neigh: Vec<f64> = (bin(f - 10.0)..=bin(f + 10.0)).filter(|&k| (k as f64 * df - f).abs() >= 2.0).map(e).collect();
+            let neigh: Vec<f64> =
+                (bin(f - 10.0)..=bin(f + 10.0)).filter(|&k| (k as f64 * df - f).abs() >= 2.0).map(e).collect();
             let floor = crate::checks::median(neigh).max(1e-300) * 5.0;
             let db = 10.0 * (p_line / floor).log10();
             let rel = if db > 10.0 { ((p_line - floor) / total).sqrt() } else { 0.0 };
@@ -496,14 +529,20 @@ pub fn chain_signs(u: &[f64], i: &[f64], fs: f64) -> Vec<String> {
     let mut signs = vec![];
     if let Some((f, rel, db)) = mains_hum(u, i, fs) {
         if rel > 0.0 {
-            signs.push(format!("mains hum at {f:.0} Hz ({:.2} % of the current's RMS, {db:.0} dB above the noise next to it)", 100.0 * rel));
+            signs.push(format!(
+                "mains hum at {f:.0} Hz ({:.2} % of the current's RMS, {db:.0} dB above the noise next to it)",
+                100.0 * rel
+            ));
         }
     }
     for (name, x, unit) in [("voltage", u, "V"), ("current", i, "A")] {
         let r = rms(x);
         let mean = x.iter().sum::<f64>() / x.len().max(1) as f64;
         if r > 0.0 && mean.abs() > OFFSET_SIGN * r {
-            signs.push(format!("an offset of {mean:.3e} {unit} on the {name} channel ({:.2} % of its RMS)", 100.0 * mean.abs() / r));
+            signs.push(format!(
+                "an offset of {mean:.3e} {unit} on the {name} channel ({:.2} % of its RMS)",
+                100.0 * mean.abs() / r
+            ));
         }
     }
     signs
@@ -516,7 +555,14 @@ pub fn chain_signs(u: &[f64], i: &[f64], fs: f64) -> Vec<String> {
 /// record as it is, with the chain estimated, in which the shunt is simply part of Re (the
 /// delay, the corners and the gain do not depend on it). A `terminals` wiring is returned as
 /// it is.
-pub fn remove_shunt_drop(u_rec: &[f64], i_rec: &[f64], fs: f64, wiring: coilscope_core::chain::SenseWiring, chain: Option<&coilscope_core::chain::Chain>, origin: &str) -> Result<Vec<f64>, String> {
+pub fn remove_shunt_drop(
+    u_rec: &[f64],
+    i_rec: &[f64],
+    fs: f64,
+    wiring: coilscope_core::chain::SenseWiring,
+    chain: Option<&coilscope_core::chain::Chain>,
+    origin: &str,
+) -> Result<Vec<f64>, String> {
     let rs = wiring.series_ohm();
     if rs == 0.0 {
         return Ok(u_rec.to_vec());
@@ -753,7 +799,8 @@ impl ChainTerms {
 ///
 /// The whole-record DFT relation `I = U / Z` is exact only for a record that starts and ends
 /// at rest. A record cut from a running signal (a replay), or one whose excitation fades
-/// out while the cone still moves, adds the difference of its initial and final states, whose DFT is a rational function with
+/// out while the cone still moves, adds the difference of its initial and final states, whose DFT
+/// is a rational function with
 /// the system's own poles: `T(s) = Q(s) / (Z(s) D_Z(s))`, `Q` a polynomial of degree 3 (the
 /// system has four states: i, i2, x, v), `D_Z` the denominator of `Z` (frequency-domain
 /// identification, Pintelon and Schoukens). `Q` is fitted with the rest, linear in its
@@ -799,7 +846,13 @@ impl ParamMap {
     }
 
     fn q(&self, theta: &[f64]) -> [f64; 7] {
-        std::array::from_fn(|k| if self.lo[k].is_finite() { self.lo[k] + (self.hi[k] - self.lo[k]) * logistic(theta[k]) } else { theta[k] })
+        std::array::from_fn(|k| {
+            if self.lo[k].is_finite() {
+                self.lo[k] + (self.hi[k] - self.lo[k]) * logistic(theta[k])
+            } else {
+                theta[k]
+            }
+        })
     }
     /// `dq_k / dtheta_k`.
     fn dq(&self, theta: &[f64]) -> [f64; 7] {
@@ -814,7 +867,9 @@ impl ParamMap {
     }
     /// `theta` of natural coordinates `q` (bounded ones pulled 1 % inside their bounds).
     fn theta(&self, q: &[f64; 7]) -> Vec<f64> {
-        (0..7).map(|k| if self.lo[k].is_finite() { bounded_theta(q[k], self.lo[k], self.hi[k], 0.01) } else { q[k] }).collect()
+        (0..7)
+            .map(|k| if self.lo[k].is_finite() { bounded_theta(q[k], self.lo[k], self.hi[k], 0.01) } else { q[k] })
+            .collect()
     }
     /// Impedance-model parameters `[Re, Le, L2, R2, Res, Cmes, Lces]` (SI).
     fn params(&self, theta: &[f64]) -> [f64; 7] {
@@ -831,7 +886,10 @@ impl ParamMap {
     }
     /// Names of the bounded coordinates whose logistic sits within 1e-3 of a bound.
     fn at_bound(&self, theta: &[f64]) -> Vec<&'static str> {
-        (0..7).filter(|&k| self.lo[k].is_finite() && !(1e-3..=1.0 - 1e-3).contains(&logistic(theta[k]))).map(|k| if k == 2 { "L2/R2 corner" } else { NAMES[k] }).collect()
+        (0..7)
+            .filter(|&k| self.lo[k].is_finite() && !(1e-3..=1.0 - 1e-3).contains(&logistic(theta[k])))
+            .map(|k| if k == 2 { "L2/R2 corner" } else { NAMES[k] })
+            .collect()
     }
 }
 
@@ -894,7 +952,13 @@ impl CurrentError {
     /// ([`Ends::AssumedAtRest`], the large-signal start): there the term is zero and its
     /// derivatives enter times it, so a fit's residuals and Jacobian are the same to the
     /// last bit (the term took a fifth of a linear fit with the chain).
-    fn transient_at(&self, p: &[f64; 7], imp: &Impedance, theta: &[f64], k: usize) -> (Complex64, [Complex64; 7], [Complex64; 3], [Complex64; N_TRANSIENT]) {
+    fn transient_at(
+        &self,
+        p: &[f64; 7],
+        imp: &Impedance,
+        theta: &[f64],
+        k: usize,
+    ) -> (Complex64, [Complex64; 7], [Complex64; 3], [Complex64; N_TRANSIENT]) {
         if self.n_transient == 0 {
             let z = Complex64::new(0.0, 0.0);
             return (z, [z; 7], [z; 3], [z; N_TRANSIENT]);
@@ -957,7 +1021,13 @@ impl CurrentError {
 /// the basis `(s / omega0)^j / P` (= `dT / dc_j`).
 #[allow(clippy::type_complexity)]
 #[inline]
-fn transient_term(p: &[f64; 7], imp: &Impedance, c: &[f64], omega0: f64, f: f64) -> (Complex64, [Complex64; 7], [Complex64; 3], [Complex64; N_TRANSIENT]) {
+fn transient_term(
+    p: &[f64; 7],
+    imp: &Impedance,
+    c: &[f64],
+    omega0: f64,
+    f: f64,
+) -> (Complex64, [Complex64; 7], [Complex64; 3], [Complex64; N_TRANSIENT]) {
     let [_, _, l2, r2, res, cmes, lces] = *p;
     let s = Complex64::new(0.0, 2.0 * PI * f);
     let (z, g, gx) = *imp;
@@ -1062,7 +1132,9 @@ impl Problem for CurrentError {
             (0..self.f.len()).flat_map(|k| {
                 let imp = impedance_ext(&p, &ext, self.f[k]);
                 let tr = self.transient_at(&p, &imp, theta, k).0;
-                let e = (self.i[k] - self.u_at(k, imp.0) * self.shift_d(chain.as_ref(), k, false).0 / imp.0) / self.norm - self.w[k] / self.norm * tr;
+                let e = (self.i[k] - self.u_at(k, imp.0) * self.shift_d(chain.as_ref(), k, false).0 / imp.0)
+                    / self.norm
+                    - self.w[k] / self.norm * tr;
                 [e.re, if self.magnitude_only { 0.0 } else { e.im }]
             }),
         )
@@ -1072,7 +1144,8 @@ impl Problem for CurrentError {
 /// Start values from the H1 estimate (motional peak, half-power bandwidth, high-frequency
 /// inductance).
 fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<[f64; 7], String> {
-    let ok: Vec<usize> = (0..h1.f.len()).filter(|&k| h1.f[k] >= lo && h1.f[k] <= hi && h1.usable(k, MIN_COHERENCE)).collect();
+    let ok: Vec<usize> =
+        (0..h1.f.len()).filter(|&k| h1.f[k] >= lo && h1.f[k] <= hi && h1.usable(k, MIN_COHERENCE)).collect();
     if ok.len() < 20 {
         return Err(format!("only {} usable frequency bins between {lo:.0} and {hi:.0} Hz", ok.len()));
     }
@@ -1084,7 +1157,10 @@ fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<[f64; 7], S
     // 2 kHz above a resonance that the nonlinearity smears (a 2.9 mH / 6.7 mH coil at 85 %
     // of its range gave 1.9 kHz for 35 Hz).
     let held = 3;
-    let crossing = (held..low.len().saturating_sub(held)).filter(|&j| (j - held..j).all(|a| h1.z[low[a]].im > 0.0) && (j..j + held).all(|a| h1.z[low[a]].im <= 0.0)).map(|j| low[j]).max_by(|&a, &b| h1.z[a].re.total_cmp(&h1.z[b].re));
+    let crossing = (held..low.len().saturating_sub(held))
+        .filter(|&j| (j - held..j).all(|a| h1.z[low[a]].im > 0.0) && (j..j + held).all(|a| h1.z[low[a]].im <= 0.0))
+        .map(|j| low[j])
+        .max_by(|&a, &b| h1.z[a].re.total_cmp(&h1.z[b].re));
     let kpk = match crossing {
         Some(k) => k,
         None => *low.iter().max_by(|&&a, &&b| h1.z[a].re.total_cmp(&h1.z[b].re)).ok_or("no usable bins below 2 kHz")?,
@@ -1108,7 +1184,11 @@ fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<[f64; 7], S
     // LR-2's resistance: what the branch adds to the real part at the top of the band (the
     // median over its top quarter, in log frequency, less the motional part).
     let f_top = hi * (lo / hi).powf(0.25);
-    let top: Vec<f64> = ok.iter().filter(|&&k| h1.f[k] >= f_top).map(|&k| (h1.z[k] - model_impedance(&[0.0, 0.0, 1e-12, 1e-12, res, cmes, lces], h1.f[k])).re - re).collect();
+    let top: Vec<f64> = ok
+        .iter()
+        .filter(|&&k| h1.f[k] >= f_top)
+        .map(|&k| (h1.z[k] - model_impedance(&[0.0, 0.0, 1e-12, 1e-12, res, cmes, lces], h1.f[k])).re - re)
+        .collect();
     let r2 = if top.is_empty() { (zh.re - re) * 2.0 } else { crate::checks::median(top) }.max(0.05 * re);
     Ok([re, le, le * 2.0, r2, res, cmes, lces])
 }
@@ -1116,7 +1196,13 @@ fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<[f64; 7], S
 /// Fit the linear model to a small-signal recording of voltage `u` and current `i` at rate
 /// `fs`, its ends free ([`Ends::Fitted`]), the effects chosen by the data
 /// ([`EffectsChoice::Auto`]). `observe` sees every LM state (progress, logs).
-pub fn fit_linear(u: &[f64], i: &[f64], fs: f64, origin: &str, observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+pub fn fit_linear(
+    u: &[f64],
+    i: &[f64],
+    fs: f64,
+    origin: &str,
+    observe: impl FnMut(&LmState),
+) -> Result<LinearFit, String> {
     fit_linear_record(u, i, fs, origin, &LinearOptions::default(), observe)
 }
 
@@ -1134,7 +1220,8 @@ pub struct LinearOptions {
 impl LinearOptions {
     /// The linear start of a large-signal fit: ends at rest, the LR-2 model alone (callers
     /// that want the effects chosen set `effects`).
-    pub const LARGE_SIGNAL_START: LinearOptions = LinearOptions { ends: Ends::AssumedAtRest, effects: EffectsChoice::Fixed(Effects::NONE), chain: false };
+    pub const LARGE_SIGNAL_START: LinearOptions =
+        LinearOptions { ends: Ends::AssumedAtRest, effects: EffectsChoice::Fixed(Effects::NONE), chain: false };
 }
 
 /// What the impedance fit assumes of a record's ends (see `CurrentError`'s transient term).
@@ -1196,7 +1283,14 @@ fn refuse_large_signal_effects(opts: &LinearOptions, origin: &str) -> Result<(),
 
 /// [`fit_linear`] with [`LinearOptions`]: what to assume of the record's [`Ends`], and
 /// which effects to fit.
-pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+pub fn fit_linear_record(
+    u: &[f64],
+    i: &[f64],
+    fs: f64,
+    origin: &str,
+    opts: &LinearOptions,
+    observe: impl FnMut(&LmState),
+) -> Result<LinearFit, String> {
     fit_linear_record_from(u, i, fs, origin, opts, None, observe)
 }
 
@@ -1204,12 +1298,28 @@ pub fn fit_linear_record(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Lin
 /// fit of the same record with the same options but for `effects`) instead of fitting it
 /// again: the same result, bit for bit (`lr2_fit_reused_is_the_fit`), the observer seeing the
 /// LM states of the models with effects only.
-pub fn fit_linear_record_from(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, lr2: Option<&Lr2Fit>, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+pub fn fit_linear_record_from(
+    u: &[f64],
+    i: &[f64],
+    fs: f64,
+    origin: &str,
+    opts: &LinearOptions,
+    lr2: Option<&Lr2Fit>,
+    mut observe: impl FnMut(&LmState),
+) -> Result<LinearFit, String> {
     linear_record_from(u, i, fs, origin, opts, lr2, &mut observe)
 }
 
 /// [`fit_linear_record_from`]'s work, compiled once (not for each caller's observer).
-fn linear_record_from(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &LinearOptions, lr2: Option<&Lr2Fit>, observe: &mut dyn FnMut(&LmState)) -> Result<LinearFit, String> {
+fn linear_record_from(
+    u: &[f64],
+    i: &[f64],
+    fs: f64,
+    origin: &str,
+    opts: &LinearOptions,
+    lr2: Option<&Lr2Fit>,
+    observe: &mut dyn FnMut(&LmState),
+) -> Result<LinearFit, String> {
     refuse_large_signal_effects(opts, origin)?;
     check_channels(u, i, fs, opts.chain, origin)?;
     let h1 = h1_impedance(u, i, fs, segment_length(u.len(), fs));
@@ -1311,7 +1421,14 @@ fn linear_record_from(u: &[f64], i: &[f64], fs: f64, origin: &str, opts: &Linear
 /// impedance error. A curve is the average of a measurement, with no record ends
 /// ([`Ends::AssumedAtRest`]) and no measurement chain (a `.zma` is taken as calibrated; the
 /// option `chain` is refused).
-pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, origin: &str, opts: &LinearOptions, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+pub fn fit_impedance_curve(
+    f: &[f64],
+    z: &[Complex64],
+    band: Option<[f64; 2]>,
+    origin: &str,
+    opts: &LinearOptions,
+    mut observe: impl FnMut(&LmState),
+) -> Result<LinearFit, String> {
     impedance_curve(f, z, band, origin, opts, false, &mut observe)
 }
 
@@ -1321,7 +1438,14 @@ pub fn fit_impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, o
 /// so the magnitude holds what the phase would tell, and the fit needs no phase of its own.
 /// The start values take the curve's minimum phase ([`crate::min_phase`]), which is also
 /// what `h1` holds. The sds are those of the magnitude alone.
-pub fn fit_impedance_magnitude(f: &[f64], mag: &[f64], band: Option<[f64; 2]>, origin: &str, opts: &LinearOptions, mut observe: impl FnMut(&LmState)) -> Result<LinearFit, String> {
+pub fn fit_impedance_magnitude(
+    f: &[f64],
+    mag: &[f64],
+    band: Option<[f64; 2]>,
+    origin: &str,
+    opts: &LinearOptions,
+    mut observe: impl FnMut(&LmState),
+) -> Result<LinearFit, String> {
     check_curve(f, &mag.iter().map(|&m| Complex64::new(m, 0.0)).collect::<Vec<_>>(), origin)?;
     check_magnitude_span(f, origin)?;
     let z = magnitude_curve(f, mag);
@@ -1349,7 +1473,8 @@ pub const MAGNITUDE_MIN_DECADES: f64 = 2.0;
 
 /// Refuse a curve without phase that is too narrow for its phase to follow from |Z|.
 fn check_magnitude_span(f: &[f64], origin: &str) -> Result<(), String> {
-    let (lo, hi) = (f.iter().copied().filter(|&f| f > 0.0).fold(f64::INFINITY, f64::min), f.iter().copied().fold(0.0, f64::max));
+    let (lo, hi) =
+        (f.iter().copied().filter(|&f| f > 0.0).fold(f64::INFINITY, f64::min), f.iter().copied().fold(0.0, f64::max));
     if !(hi / lo >= 10f64.powf(MAGNITUDE_MIN_DECADES)) {
         return Err(format!(
             "{origin}: the file has no phase, and its {lo:.1} .. {hi:.1} Hz spans {:.1} decades: a curve of |Z| alone must span at least {MAGNITUDE_MIN_DECADES} (from below the resonance into the voice coil's rise), or export the phase too",
@@ -1362,7 +1487,11 @@ fn check_magnitude_span(f: &[f64], origin: &str) -> Result<(), String> {
 /// A magnitude-only curve with its minimum phase.
 fn magnitude_curve(f: &[f64], mag: &[f64]) -> Vec<Complex64> {
     let n = f.len().min(mag.len());
-    crate::min_phase::min_phase(&f[..n], &mag[..n]).into_iter().zip(mag).map(|(ph, &m)| Complex64::from_polar(m, ph)).collect()
+    crate::min_phase::min_phase(&f[..n], &mag[..n])
+        .into_iter()
+        .zip(mag)
+        .map(|(ph, &m)| Complex64::from_polar(m, ph))
+        .collect()
 }
 
 /// The band of an impedance curve where the lumped model holds, found by [`lumped_band`].
@@ -1405,7 +1534,13 @@ pub const LUMPED_PART_BOUND: f64 = 2.0;
 /// `magnitude_only`: the curve has no measured phase (only `|z|` counts). It is searched
 /// with its minimum phase ([`crate::min_phase`]), as a curve with its phase: break-up shows
 /// in the phase as much as in |Z|, where a fit of |Z| alone could bend through it.
-pub fn lumped_band(f: &[f64], z: &[Complex64], magnitude_only: bool, origin: &str, opts: &LinearOptions) -> Result<LumpedBand, String> {
+pub fn lumped_band(
+    f: &[f64],
+    z: &[Complex64],
+    magnitude_only: bool,
+    origin: &str,
+    opts: &LinearOptions,
+) -> Result<LumpedBand, String> {
     check_curve(f, z, origin)?;
     let rebuilt;
     let z = if magnitude_only {
@@ -1415,7 +1550,8 @@ pub fn lumped_band(f: &[f64], z: &[Complex64], magnitude_only: bool, origin: &st
     } else {
         z
     };
-    let pts: Vec<usize> = (0..f.len().min(z.len())).filter(|&k| f[k] > 0.0 && f[k] <= 20000.0 && z[k].norm().is_finite()).collect();
+    let pts: Vec<usize> =
+        (0..f.len().min(z.len())).filter(|&k| f[k] > 0.0 && f[k] <= 20000.0 && z[k].norm().is_finite()).collect();
     let (Some(&first), Some(&last)) = (pts.first(), pts.last()) else {
         return Err(format!("{origin}: no points between 0 and 20 kHz"));
     };
@@ -1448,7 +1584,11 @@ pub fn lumped_band(f: &[f64], z: &[Complex64], magnitude_only: bool, origin: &st
     let by_points = f[pts[pts.len().min(40) - 1]];
     let start = (LUMPED_START_OVER_FS * full.fs()).max(lo * LUMPED_STEP * LUMPED_STEP).max(by_points);
     if start >= top / LUMPED_STEP {
-        let why = if by_points >= top / LUMPED_STEP { format!("it has too few points ({}) to fit a part of it", pts.len()) } else { format!("it ends below {LUMPED_START_OVER_FS} times the resonance ({:.0} Hz)", full.fs()) };
+        let why = if by_points >= top / LUMPED_STEP {
+            format!("it has too few points ({}) to fit a part of it", pts.len())
+        } else {
+            format!("it ends below {LUMPED_START_OVER_FS} times the resonance ({:.0} Hz)", full.fs())
+        };
         return Ok(LumpedBand { band: whole, note: format!("the whole curve ({lo:.0} .. {top:.0} Hz): {why}") });
     }
     // Every top, half an octave apart from the first: whether the fit to it holds, over its
@@ -1496,7 +1636,15 @@ pub fn lumped_band(f: &[f64], z: &[Complex64], magnitude_only: bool, origin: &st
 }
 
 /// [`fit_impedance_curve`]'s work, compiled once (not for each caller's observer).
-fn impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, origin: &str, opts: &LinearOptions, magnitude_only: bool, observe: &mut dyn FnMut(&LmState)) -> Result<LinearFit, String> {
+fn impedance_curve(
+    f: &[f64],
+    z: &[Complex64],
+    band: Option<[f64; 2]>,
+    origin: &str,
+    opts: &LinearOptions,
+    magnitude_only: bool,
+    observe: &mut dyn FnMut(&LmState),
+) -> Result<LinearFit, String> {
     if opts.chain {
         return Err(format!("{origin}: an impedance curve has no measurement chain to estimate (its tool calibrated it); --chain applies to records"));
     }
@@ -1510,7 +1658,10 @@ fn impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, origin: &
     if keep.len() < 20 {
         return Err(format!("{origin}: {} points between {lo:.0} and {hi:.0} Hz; at least 20 are needed", keep.len()));
     }
-    let h1 = ImpedanceEstimate::from_curve(&keep.iter().map(|&k| f[k]).collect::<Vec<_>>(), &keep.iter().map(|&k| z[k]).collect::<Vec<_>>());
+    let h1 = ImpedanceEstimate::from_curve(
+        &keep.iter().map(|&k| f[k]).collect::<Vec<_>>(),
+        &keep.iter().map(|&k| z[k]).collect::<Vec<_>>(),
+    );
     let band = [h1.f[0], *h1.f.last().expect("20 points")];
     let zmed = crate::checks::median(h1.z.iter().map(|z| z.norm()).collect());
     if zmed < 0.5 {
@@ -1545,7 +1696,17 @@ fn impedance_curve(f: &[f64], z: &[Complex64], band: Option<[f64; 2]>, origin: &
 /// curve: no chain, no skew check); `lr2`: the LR-2 model's fit on these bins, taken instead
 /// of fitting it ([`fit_linear_record_from`]).
 #[allow(clippy::too_many_arguments)]
-fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64; 7], opts: &LinearOptions, fs: Option<f64>, lr2: Option<&Lr2Fit>, origin: &str, observe: &mut dyn FnMut(&LmState)) -> Result<LinearFit, String> {
+fn fit_bins(
+    prob: CurrentError,
+    h1: ImpedanceEstimate,
+    band: [f64; 2],
+    p0: [f64; 7],
+    opts: &LinearOptions,
+    fs: Option<f64>,
+    lr2: Option<&Lr2Fit>,
+    origin: &str,
+    observe: &mut dyn FnMut(&LmState),
+) -> Result<LinearFit, String> {
     let map = prob.map.clone();
     let n_chain = prob.chain.map_or(0, |c| c.count());
     // LM to convergence, or to a plateau: the cost lowered by less than PLATEAU_REL over
@@ -1574,7 +1735,8 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         }
         s
     };
-    let better = |s: &LmState, b: &LmState| (s.converged && !b.converged) || (s.converged == b.converged && s.cost < b.cost);
+    let better =
+        |s: &LmState, b: &LmState| (s.converged && !b.converged) || (s.converged == b.converged && s.cost < b.cost);
     // Fit one model (the LR-2 quantities plus `effects`) from several starts: each start is
     // scouted on every k-th bin (at most SCOUT_BINS), the best is polished on all of them,
     // so the answer is the full-data optimum at a fraction of the cost.
@@ -1583,16 +1745,31 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     // the problem, the state, the scout's residual and whether it was polished.
     // The problem of a model with `effects` on these bins.
     let with_effects = |effects: Effects| {
-        let mut pr = CurrentError { f: prob.f.clone(), u: prob.u.clone(), i: prob.i.clone(), w: prob.w.clone(), map: prob.map.clone(), effects, chain: prob.chain, ..prob };
+        let mut pr = CurrentError {
+            f: prob.f.clone(),
+            u: prob.u.clone(),
+            i: prob.i.clone(),
+            w: prob.w.clone(),
+            map: prob.map.clone(),
+            effects,
+            chain: prob.chain,
+            ..prob
+        };
         pr.norm = prob.norm;
         pr
     };
     // `min_ln_le`: a start whose run ends with ln Le below it traded the voice coil's
     // inductance for an added branch ([`LE_COLLAPSE`]): it is taken only if every start did.
-    let solve = |effects: Effects, starts: &[Vec<f64>], gate: f64, min_ln_le: f64, observe: &mut dyn FnMut(&LmState)| -> (CurrentError, LmState, f64, bool) {
+    let solve = |effects: Effects,
+                 starts: &[Vec<f64>],
+                 gate: f64,
+                 min_ln_le: f64,
+                 observe: &mut dyn FnMut(&LmState)|
+     -> (CurrentError, LmState, f64, bool) {
         let pr = with_effects(effects);
         let scout = (pr.f.len() > 2 * SCOUT_BINS).then(|| thin(&pr, SCOUT_BINS));
-        let scout_iterations = if gate.is_finite() && scout.is_some() { CANDIDATE_SCOUT_ITERATIONS } else { MAX_ITERATIONS };
+        let scout_iterations =
+            if gate.is_finite() && scout.is_some() { CANDIDATE_SCOUT_ITERATIONS } else { MAX_ITERATIONS };
         // The starts are independent: they run on all cores, each keeping its LM states,
         // which the observer then sees start by start, as if they had run in turn.
         let on = scout.as_ref().unwrap_or(&pr);
@@ -1635,7 +1812,8 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     let q0 = ParamMap::q_of(&p0);
     // ln tau of corners at a quarter, a half and three quarters of the band (log scale): the
     // branches' starts spread over it.
-    let spread_ln_tau = [0.25, 0.5, 0.75].map(|frac: f64| (1.0 / (2.0 * PI * (band[0] * (band[1] / band[0]).powf(frac)))).ln());
+    let spread_ln_tau =
+        [0.25, 0.5, 0.75].map(|frac: f64| (1.0 / (2.0 * PI * (band[0] * (band[1] / band[0]).powf(frac)))).ln());
     let mut starts = vec![q0];
     for ln_tau in spread_ln_tau {
         for r2f in [0.25, 1.0, 4.0] {
@@ -1657,7 +1835,11 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     // Each fitted model with its current residual (on all bins; a candidate left unpolished
     // keeps its scout's, and cannot be chosen), and its scout residual.
     let (mut scout_r, mut polished): (Vec<f64>, Vec<bool>) = (vec![], vec![]);
-    fn with_residual(scout_r: &mut Vec<f64>, polished: &mut Vec<bool>, (pr, s, sr, done): (CurrentError, LmState, f64, bool)) -> (CurrentError, LmState, f64) {
+    fn with_residual(
+        scout_r: &mut Vec<f64>,
+        polished: &mut Vec<bool>,
+        (pr, s, sr, done): (CurrentError, LmState, f64, bool),
+    ) -> (CurrentError, LmState, f64) {
         let r = if done { pr.residual_rel(&s.theta) } else { sr };
         scout_r.push(sr);
         polished.push(done);
@@ -1724,7 +1906,13 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
             // noise gives) and creep's lambda is physical. The floor of a record is the
             // lowest any fitted model shows (a model's misfit can only raise it); an averaged
             // curve has none.
-            let floor_of = |f: &(CurrentError, LmState, f64)| if fs.is_some() { f.0.residual_and_floor(&f.1.theta).1 } else { 0.0 };
+            let floor_of = |f: &(CurrentError, LmState, f64)| {
+                if fs.is_some() {
+                    f.0.residual_and_floor(&f.1.theta).1
+                } else {
+                    0.0
+                }
+            };
             let mut floor = floor_of(&fitted[0]);
             let bins = prob.f.len();
             let mut at = 0;
@@ -1740,7 +1928,8 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
                 // A candidate is polished on every bin when its scout gains the share of the
                 // excess (the relative floor is the same on the scout's thinned bins).
                 let r_cur = fitted[at].2;
-                let gate = (scout_r[at].powi(2) - EFFECT_MIN_SHARE * (scout_r[at].powi(2) - floor * floor).max(0.0)).sqrt();
+                let gate =
+                    (scout_r[at].powi(2) - EFFECT_MIN_SHARE * (scout_r[at].powi(2) - floor * floor).max(0.0)).sqrt();
                 let first = fitted.len();
                 for e in cands {
                     let st = grow(&fitted[at], e);
@@ -1755,7 +1944,12 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
                     let (pr, s, r) = &fitted[k];
                     let lambda_ok = pr.idx_lambda().is_none_or(|j| s.theta[j] > 0.0);
                     let unknowns = n_extra(pr.effects) - n_extra(cur);
-                    if polished[k] && lambda_ok && s.theta[1] >= min_ln_le && effect_pays(r_cur, *r, floor, bins, unknowns) && best.is_none_or(|(_, rb)| *r < rb) {
+                    if polished[k]
+                        && lambda_ok
+                        && s.theta[1] >= min_ln_le
+                        && effect_pays(r_cur, *r, floor, bins, unknowns)
+                        && best.is_none_or(|(_, rb)| *r < rb)
+                    {
                         best = Some((k, *r));
                     }
                 }
@@ -1776,7 +1970,9 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         let floor = if fs.is_some() { fitted[chosen].0.residual_and_floor(&fitted[chosen].1.theta).1 } else { 0.0 };
         let d = (0..fitted.len())
             .filter(|&k| k != chosen && fitted[k].0.effects.union(ce) == fitted[k].0.effects)
-            .filter(|&k| !effect_pays(scout_r[k], scout_r[chosen], floor, scout_bins, n_extra(fitted[k].0.effects) - n_extra(ce)))
+            .filter(|&k| {
+                !effect_pays(scout_r[k], scout_r[chosen], floor, scout_bins, n_extra(fitted[k].0.effects) - n_extra(ce))
+            })
             .map(|k| (fitted[k].1.theta[1] - lc).abs())
             .fold(0.0, f64::max);
         (d.exp() - 1.0).min(1.0)
@@ -1800,7 +1996,9 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     }
     let free_of = |prob: &CurrentError, th: &[f64]| -> Vec<usize> {
         let inside = |t: f64| (1e-3..=1.0 - 1e-3).contains(&logistic(t));
-        (0..th.len()).filter(|&k| (k >= 7 && Some(k) != prob.idx_lr3()) || (k < 7 && !map.lo[k].is_finite()) || inside(th[k])).collect()
+        (0..th.len())
+            .filter(|&k| (k >= 7 && Some(k) != prob.idx_lr3()) || (k < 7 && !map.lo[k].is_finite()) || inside(th[k]))
+            .collect()
     };
     // The chain: keep the quantities whose estimates stand out of their sds (a corner also
     // positive), hold the others at 0 and fit again.
@@ -1810,13 +2008,26 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         let vals = terms.values(&s.theta[ci..]);
         let sds = terms.sds(cov.as_ref(), ci);
         // (NaN sds, those off or without a covariance, compare false: not significant.)
-        let significant = |n: usize| terms.on()[n] && vals[n].abs() > CHAIN_SIGNIFICANCE * sds[n] && vals[n].abs() >= CHAIN_MIN[n] && (n == 0 || vals[n] > 0.0);
+        let significant = |n: usize| {
+            terms.on()[n]
+                && vals[n].abs() > CHAIN_SIGNIFICANCE * sds[n]
+                && vals[n].abs() >= CHAIN_MIN[n]
+                && (n == 0 || vals[n] > 0.0)
+        };
         let keep = ChainTerms { delay: significant(0), hp_u: significant(1), hp_i: significant(2), ..terms };
         if keep != terms {
             let mut th = s.theta[..ci].to_vec();
             let kv = keep.on();
             th.extend((0..3).filter(|&n| kv[n]).map(|n| vals[n]));
-            let pr = CurrentError { f: prob.f.clone(), u: prob.u.clone(), i: prob.i.clone(), w: prob.w.clone(), map: prob.map.clone(), chain: (keep.count() > 0).then_some(keep), ..prob };
+            let pr = CurrentError {
+                f: prob.f.clone(),
+                u: prob.u.clone(),
+                i: prob.i.clone(),
+                w: prob.w.clone(),
+                map: prob.map.clone(),
+                chain: (keep.count() > 0).then_some(keep),
+                ..prob
+            };
             s = run(&pr, th, MAX_ITERATIONS, observe);
             prob = pr;
         }
@@ -1833,7 +2044,9 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     let mut sigma_rel: [f64; 7] = match &cov {
         Some(c) => {
             let cq = |a: usize, b: usize| c[(a, b)] * dq[a] * dq[b];
-            std::array::from_fn(|k| sd_from_variance(if k == 2 { cq(2, 2) + cq(3, 3) + 2.0 * cq(2, 3) } else { cq(k, k) }))
+            std::array::from_fn(|k| {
+                sd_from_variance(if k == 2 { cq(2, 2) + cq(3, 3) + 2.0 * cq(2, 3) } else { cq(k, k) })
+            })
         }
         None => [f64::NAN; 7],
     };
@@ -1850,7 +2063,10 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     sigma_rel[1] = sigma_rel[1].hypot(le_model_rel);
     let residual_rel = prob.residual_rel(&s.theta);
     if !s.converged {
-        return Err(format!("{origin}: the impedance fit did not converge in {} iterations (residual {residual_rel:.3e})", s.iteration));
+        return Err(format!(
+            "{origin}: the impedance fit did not converge in {} iterations (residual {residual_rel:.3e})",
+            s.iteration
+        ));
     }
     let mut at_bound = map.at_bound(&s.theta);
     if let Some(k) = prob.idx_lr3() {
@@ -1866,7 +2082,12 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
         let ci = prob.chain_index();
         let on = terms.on();
         let sds = terms.sds(cov.as_ref(), ci);
-        ChainEstimate { values: terms.values(&s.theta[ci..]), sd: std::array::from_fn(|n| if on[n] { sds[n] } else { 0.0 }), on, fs }
+        ChainEstimate {
+            values: terms.values(&s.theta[ci..]),
+            sd: std::array::from_fn(|n| if on[n] { sds[n] } else { 0.0 }),
+            on,
+            fs,
+        }
     });
     // Skewed channels: a current recorded late by tau samples multiplies U/I by
     // e^{j 2 pi f tau / fs}, which no passive circuit does. Let the same fit shift the current
@@ -1874,14 +2095,18 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
     // estimated, its delay is in the model (and reported there).
     let current_delay = match fs {
         Some(fs) if !opts.chain => {
-            let mut check = CurrentError { chain: Some(ChainTerms { fs, delay: true, hp_u: false, hp_i: false }), ..thin(&prob, SCOUT_BINS) };
+            let mut check = CurrentError {
+                chain: Some(ChainTerms { fs, delay: true, hp_u: false, hp_i: false }),
+                ..thin(&prob, SCOUT_BINS)
+            };
             check.norm = prob_norm(&check);
             let mut th = s.theta.clone();
             th.push(0.0);
             let base = LmState::new(&check, th.clone()).cost;
             let d = run(&check, th, MAX_ITERATIONS, &mut |_| {});
             let at = check.chain_index();
-            (d.converged && d.cost < 0.25 * base && d.theta[at].abs() >= 0.05).then(|| (d.theta[at], 1.0 - (d.cost / base).sqrt()))
+            (d.converged && d.cost < 0.25 * base && d.theta[at].abs() >= 0.05)
+                .then(|| (d.theta[at], 1.0 - (d.cost / base).sqrt()))
         }
         _ => None,
     };
@@ -1895,7 +2120,26 @@ fn fit_bins(prob: CurrentError, h1: ImpedanceEstimate, band: [f64; 2], p0: [f64;
             };
         }
     }
-    Ok(LinearFit { p, sigma_rel, residual_rel, band, bins: prob.f.len(), iterations: s.iteration, h1, at_bound, current_delay, transient, effects: prob.effects, creep, lr3, tried, le_model_rel, chain, lr2, magnitude_only: prob.magnitude_only })
+    Ok(LinearFit {
+        p,
+        sigma_rel,
+        residual_rel,
+        band,
+        bins: prob.f.len(),
+        iterations: s.iteration,
+        h1,
+        at_bound,
+        current_delay,
+        transient,
+        effects: prob.effects,
+        creep,
+        lr3,
+        tried,
+        le_model_rel,
+        chain,
+        lr2,
+        magnitude_only: prob.magnitude_only,
+    })
 }
 
 /// Bins per cluster of the linear fit's robust covariance (see [`covariance_of`]).
@@ -1976,7 +2220,11 @@ pub fn added_mass_scale(fit: &LinearFit, with_mass: &LinearFit, added: f64) -> R
     });
     let ratio = c * (fit.fs() / with_mass.fs()).powi(2);
     if !(ratio > 1.02) {
-        return Err(format!("the added mass moved the resonance only from {:.2} Hz to {:.2} Hz; add more mass (about Mms/2 or more)", fit.fs(), with_mass.fs()));
+        return Err(format!(
+            "the added mass moved the resonance only from {:.2} Hz to {:.2} Hz; add more mass (about Mms/2 or more)",
+            fit.fs(),
+            with_mass.fs()
+        ));
     }
     let r_rel = (fs_rel_sd(fit).powi(2) + fs_rel_sd(with_mass).powi(2)).sqrt();
     let mms_sd_rel = 2.0 * ratio / (ratio - 1.0) * r_rel;
@@ -2005,7 +2253,9 @@ pub fn scale_by_displacement(fit: &LinearFit, i: &[f64], x: &[f64], fs: f64, ori
         return Err(format!("{origin}: displacement (channel 3) does not follow the current"));
     }
     if c < 0.0 {
-        return Err(format!("{origin}: displacement (channel 3) has inverted polarity (x > 0 must be coil out for positive current)"));
+        return Err(format!(
+            "{origin}: displacement (channel 3) has inverted polarity (x > 0 must be coil out for positive current)"
+        ));
     }
     let bl = fit.p[6] / c;
     Ok(bl * bl * fit.p[5])
@@ -2026,7 +2276,13 @@ fn filter_record(s: &[f64], fs: f64, h: impl Fn(usize, f64) -> Complex64) -> Vec
 
 /// Displacement predicted from the current by the linear model (for the reached range).
 pub fn predicted_displacement(p: &Parameters, i: &[f64], fs: f64) -> Vec<f64> {
-    filter_record(i, fs, |k, f| if k == 0 { Complex64::new(0.0, 0.0) } else { coilscope_core::small_signal::displacement_per_current(p, f) })
+    filter_record(i, fs, |k, f| {
+        if k == 0 {
+            Complex64::new(0.0, 0.0)
+        } else {
+            coilscope_core::small_signal::displacement_per_current(p, f)
+        }
+    })
 }
 
 /// The linear model's current for the measured voltage (A), with the fitted transient
@@ -2058,12 +2314,20 @@ const NONLINEAR_SHARE_WARN: f64 = 0.3;
 /// What makes a linear fit of this record doubtful, named: skewed channels, a fit on a
 /// bound, a residual far above the noise floor, a record that drove the nonlinearities
 /// (use `identify`). `p` is the scaled parameter set of `fit`.
-pub fn linear_warnings(fit: &LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> (crate::checks::NoiseFloor, Vec<crate::checks::Warning>) {
+pub fn linear_warnings(
+    fit: &LinearFit,
+    p: &Parameters,
+    u: &[f64],
+    i: &[f64],
+    fs: f64,
+) -> (crate::checks::NoiseFloor, Vec<crate::checks::Warning>) {
     use crate::checks::{residual_warnings, Warning};
     // The current error over the fitted band only (outside it nothing was fitted, and
     // above fs/3 a simulator's or a converter's band-limiting is not the driver's).
     let i_model = model_current(fit, u, fs);
-    let r = filter_record(&i.iter().zip(&i_model).map(|(a, b)| a - b).collect::<Vec<_>>(), fs, |_, f| Complex64::new(if f >= fit.band[0] && f <= fit.band[1] { 1.0 } else { 0.0 }, 0.0));
+    let r = filter_record(&i.iter().zip(&i_model).map(|(a, b)| a - b).collect::<Vec<_>>(), fs, |_, f| {
+        Complex64::new(if f >= fit.band[0] && f <= fit.band[1] { 1.0 } else { 0.0 }, 0.0)
+    });
     let (nf, mut w) = residual_warnings(&r, fs, "linear (small-signal) fit", rms(i), LINEAR_MATERIAL_EXCESS);
     if let Some((tau, share)) = fit.current_delay {
         w.push(Warning::new(
@@ -2100,7 +2364,16 @@ pub fn linear_warnings(fit: &LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs
     // explained too little of it to call it a large-signal record).
     if !w.iter().any(|w| w.code == "residual-above-noise" || w.code == "large-signal-record") {
         let x = predicted_displacement(p, i, fs);
-        w.extend(crate::checks::drive_warning(&r, u, &i_model, &x, fs, "linear (small-signal) fit", rms(i), LINEAR_MATERIAL_EXCESS));
+        w.extend(crate::checks::drive_warning(
+            &r,
+            u,
+            &i_model,
+            &x,
+            fs,
+            "linear (small-signal) fit",
+            rms(i),
+            LINEAR_MATERIAL_EXCESS,
+        ));
     }
     (nf, w)
 }
@@ -2149,7 +2422,11 @@ pub fn curve_warnings(fit: &LinearFit) -> Vec<crate::checks::Warning> {
     let mut w = bound_warnings(fit);
     // The figures of the resonance (Re, Res, Cmes, Lces: Qms, Qts, fs, Bl) must come out
     // determined; a NaN sd counts as undetermined.
-    let loose: Vec<String> = [0, 4, 5, 6].iter().filter(|&&k| !(fit.sigma_rel[k] <= FIGURE_SD_WARN)).map(|&k| format!("{} ({:.2e})", NAMES[k], fit.sigma_rel[k])).collect();
+    let loose: Vec<String> = [0, 4, 5, 6]
+        .iter()
+        .filter(|&&k| !(fit.sigma_rel[k] <= FIGURE_SD_WARN))
+        .map(|&k| format!("{} ({:.2e})", NAMES[k], fit.sigma_rel[k]))
+        .collect();
     if !loose.is_empty() {
         w.push(crate::checks::Warning::new(
             "not-identified",
@@ -2163,7 +2440,9 @@ pub fn curve_warnings(fit: &LinearFit) -> Vec<crate::checks::Warning> {
     if fit.residual_rel > CURVE_RESIDUAL_WARN {
         let h = &fit.h1;
         let err = |k: usize| fit.point_error(h.f[k], h.z[k]);
-        let worst = (0..h.f.len()).filter(|&k| h.f[k] >= fit.band[0] && h.f[k] <= fit.band[1]).max_by(|&a, &b| err(a).total_cmp(&err(b)));
+        let worst = (0..h.f.len())
+            .filter(|&k| h.f[k] >= fit.band[0] && h.f[k] <= fit.band[1])
+            .max_by(|&a, &b| err(a).total_cmp(&err(b)));
         let at = worst.map(|k| format!(" (worst {:.1} % at {:.0} Hz)", 100.0 * err(k), h.f[k])).unwrap_or_default();
         w.push(crate::checks::Warning::new(
             "model-misses-curve",
@@ -2183,7 +2462,9 @@ fn large_signal_share(p: &Parameters, r: &[f64], i: &[f64], x: &[f64], fs: f64) 
     use crate::checks::explained_share;
     let n = r.len();
     // Central differences (d/dt).
-    let d = |s: &[f64]| -> Vec<f64> { (0..n).map(|k| (s[(k + 1).min(n - 1)] - s[k.saturating_sub(1)]) * fs / 2.0).collect() };
+    let d = |s: &[f64]| -> Vec<f64> {
+        (0..n).map(|k| (s[(k + 1).min(n - 1)] - s[k.saturating_sub(1)]) * fs / 2.0).collect()
+    };
     let v = d(x);
     let (bl, kms, le) = (p.bl.eval(0.0), p.kms.eval(0.0), p.le.eval(0.0));
     let filter = |s: &[f64], voltage: bool| -> Vec<f64> {
@@ -2192,7 +2473,11 @@ fn large_signal_share(p: &Parameters, r: &[f64], i: &[f64], x: &[f64], fs: f64) 
                 return Complex64::new(0.0, 0.0);
             }
             let jw = Complex64::new(0.0, 2.0 * PI * f);
-            let ze = p.re + jw * le + p.l2r2.as_ref().map_or(Complex64::new(0.0, 0.0), |(l2, r2)| jw * l2.eval(0.0) * r2.eval(0.0) / (jw * l2.eval(0.0) + r2.eval(0.0)));
+            let ze = p.re
+                + jw * le
+                + p.l2r2.as_ref().map_or(Complex64::new(0.0, 0.0), |(l2, r2)| {
+                    jw * l2.eval(0.0) * r2.eval(0.0) / (jw * l2.eval(0.0) + r2.eval(0.0))
+                });
             let zm = jw * p.mms + p.rms + kms / jw;
             if voltage {
                 -1.0 / (ze + bl * bl / zm)
@@ -2244,7 +2529,12 @@ pub fn result(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f
     };
     let scale = match method {
         ScaleMethod::Mms => Scale { method: "mms".into(), mms: Some(p.mms), ..Default::default() },
-        ScaleMethod::AddedMass { added, fs_with, .. } => Scale { method: "added-mass".into(), added_mass: Some(*added), fs_with_mass: Some(*fs_with), ..Default::default() },
+        ScaleMethod::AddedMass { added, fs_with, .. } => Scale {
+            method: "added-mass".into(),
+            added_mass: Some(*added),
+            fs_with_mass: Some(*fs_with),
+            ..Default::default()
+        },
         ScaleMethod::Displacement => Scale { method: "displacement".into(), ..Default::default() },
     };
     let mut unc = Uncertainty::new("standard deviations: cluster-robust sandwich covariance over groups of 16 neighbouring bins (holds when the residual is not white: distortion, model error); the scale input, e.g. Mms, is taken as exact");
@@ -2281,9 +2571,19 @@ pub fn result(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f
         bins: Some(fit.bins),
         iterations: Some(fit.iterations),
         scale: Some(scale),
-        motional: Some([("Res", fit.p[4]), ("Cmes", fit.p[5]), ("Lces", fit.p[6])].iter().map(|(k, v)| (k.to_string(), *v)).collect()),
+        motional: Some(
+            [("Res", fit.p[4]), ("Cmes", fit.p[5]), ("Lces", fit.p[6])]
+                .iter()
+                .map(|(k, v)| (k.to_string(), *v))
+                .collect(),
+        ),
         model: fit.effects.model_name(),
-        models_tried: Some(fit.tried.iter().map(|(m, r)| ModelTrial { model: m.clone(), residual_rel: Some(*r), ..Default::default() }).collect()),
+        models_tried: Some(
+            fit.tried
+                .iter()
+                .map(|(m, r)| ModelTrial { model: m.clone(), residual_rel: Some(*r), ..Default::default() })
+                .collect(),
+        ),
         ..Default::default()
     };
     let mut r = ResultFile::new("linear", recording, p.clone(), fit_record, unc, None);
@@ -2295,7 +2595,13 @@ impl ChainEstimate {
     /// As a result's `chain` (the delay in s at sample rate `fs`).
     pub fn to_chain(&self) -> coilscope_core::chain::Chain {
         let fs = self.fs;
-        let mut c = coilscope_core::chain::Chain { source: Some("estimated".into()), delay_i: self.values[0] / fs, hp_u: self.values[1], hp_i: self.values[2], ..Default::default() };
+        let mut c = coilscope_core::chain::Chain {
+            source: Some("estimated".into()),
+            delay_i: self.values[0] / fs,
+            hp_u: self.values[1],
+            hp_i: self.values[2],
+            ..Default::default()
+        };
         for (n, key) in ChainTerms::NAMES.iter().enumerate() {
             if self.on[n] {
                 c.sd.insert(key.to_string(), if n == 0 { self.sd[0] / fs } else { self.sd[n] });
@@ -2308,12 +2614,24 @@ impl ChainEstimate {
 
 /// The H1 impedance as CSV with the model and the coherence.
 pub fn impedance_csv(h1: &ImpedanceEstimate, fit: &LinearFit) -> String {
-    let mut out = String::from("frequency_hz,magnitude_ohm,phase_deg,real_ohm,imag_ohm,coherence,model_magnitude_ohm,model_phase_deg\n");
+    let mut out = String::from(
+        "frequency_hz,magnitude_ohm,phase_deg,real_ohm,imag_ohm,coherence,model_magnitude_ohm,model_phase_deg\n",
+    );
     for k in 0..h1.f.len() {
         if h1.f[k] > 0.0 && h1.usable(k, 0.0) {
             let m = fit.impedance(h1.f[k]);
             let z = h1.z[k];
-            out.push_str(&format!("{:.4},{:.6},{:.4},{:.6},{:.6},{:.5},{:.6},{:.4}\n", h1.f[k], z.norm(), z.arg().to_degrees(), z.re, z.im, h1.coherence[k], m.norm(), m.arg().to_degrees()));
+            out.push_str(&format!(
+                "{:.4},{:.6},{:.4},{:.6},{:.6},{:.5},{:.6},{:.4}\n",
+                h1.f[k],
+                z.norm(),
+                z.arg().to_degrees(),
+                z.re,
+                z.im,
+                h1.coherence[k],
+                m.norm(),
+                m.arg().to_degrees()
+            ));
         }
     }
     out
@@ -2349,9 +2667,16 @@ mod tests {
         for case in 0..64 {
             let fs = [44100.0, 48000.0, 96000.0][case % 3];
             let terms = ChainTerms { fs, delay: case & 4 == 0, hp_u: case & 8 == 0, hp_i: case & 16 == 0 };
-            let th: Vec<f64> = [rng.random_range(-0.6..0.6), rng.random_range(0.0..6.0), rng.random_range(0.0..6.0)].into_iter().zip(terms.on()).filter(|(_, on)| *on).map(|(v, _)| v).collect();
+            let th: Vec<f64> = [rng.random_range(-0.6..0.6), rng.random_range(0.0..6.0), rng.random_range(0.0..6.0)]
+                .into_iter()
+                .zip(terms.on())
+                .filter(|(_, on)| *on)
+                .map(|(v, _)| v)
+                .collect();
             let [tau, fu, fi] = terms.values(&th);
-            let c = |tau: f64, fu: f64, fi: f64, f: f64| Complex64::from_polar(1.0, -2.0 * PI * f * tau / fs) * hp_response(fi, f, fs) / hp_response(fu, f, fs);
+            let c = |tau: f64, fu: f64, fi: f64, f: f64| {
+                Complex64::from_polar(1.0, -2.0 * PI * f * tau / fs) * hp_response(fi, f, fs) / hp_response(fu, f, fs)
+            };
             let prepared = terms.factor_at(&th);
             for _ in 0..50 {
                 let f = rng.random_range(1.0..0.45 * fs);
@@ -2400,7 +2725,11 @@ mod tests {
         // residual, for each set of effects.
         let p = [3.4, 1.1e-4, 5.4e-4, 0.29, 72.0, 3.8e-4, 6.3e-2];
         let freqs: Vec<f64> = (1..60).map(|k| 3.0 * 1.12f64.powi(k)).collect();
-        let u: Vec<Complex64> = freqs.iter().enumerate().map(|(k, _)| Complex64::from_polar(1.0 + 0.1 * k as f64, 0.7 * k as f64)).collect();
+        let u: Vec<Complex64> = freqs
+            .iter()
+            .enumerate()
+            .map(|(k, _)| Complex64::from_polar(1.0 + 0.1 * k as f64, 0.7 * k as f64))
+            .collect();
         let i: Vec<Complex64> = freqs.iter().zip(&u).map(|(&f, u)| u / model_impedance(&p, f) * 1.01).collect();
         let w: Vec<f64> = freqs.iter().map(|f| 1.0 / (1.0 + f / 1000.0)).collect();
         let (mut lo, mut hi) = ([f64::NEG_INFINITY; 7], [f64::INFINITY; 7]);
@@ -2409,10 +2738,29 @@ mod tests {
         let map = ParamMap { lo, hi };
         // A curve without phase is a curve's problem: unit current and weights, no transient
         // term, no chain.
-        for (creep, lr3, magnitude_only) in [(false, false, false), (true, false, false), (false, true, false), (true, true, false), (false, false, true), (true, true, true)] {
+        for (creep, lr3, magnitude_only) in [
+            (false, false, false),
+            (true, false, false),
+            (false, true, false),
+            (true, true, false),
+            (false, false, true),
+            (true, true, true),
+        ] {
             let effects = Effects { creep, lr3, ..Effects::NONE };
             let prob = if magnitude_only {
-                CurrentError { f: freqs.clone(), u: u.clone(), i: vec![Complex64::new(1.0, 0.0); freqs.len()], w: vec![1.0; freqs.len()], norm: 3.0, map: map.clone(), omega0: 2.0 * PI * 250.0, n_transient: 0, effects, chain: None, magnitude_only }
+                CurrentError {
+                    f: freqs.clone(),
+                    u: u.clone(),
+                    i: vec![Complex64::new(1.0, 0.0); freqs.len()],
+                    w: vec![1.0; freqs.len()],
+                    norm: 3.0,
+                    map: map.clone(),
+                    omega0: 2.0 * PI * 250.0,
+                    n_transient: 0,
+                    effects,
+                    chain: None,
+                    magnitude_only,
+                }
             } else {
                 CurrentError {
                     f: freqs.clone(),
@@ -2446,7 +2794,11 @@ mod tests {
                 b[c] -= h;
                 let fd = (prob.residual(&a) - prob.residual(&b)) / (2.0 * h);
                 let err = (&fd - jac.column(c)).amax();
-                assert!(err <= 1e-6 * fd.amax().max(1e-9), "{effects:?}, magnitude only {magnitude_only}: column {c}: {err} of {}", fd.amax());
+                assert!(
+                    err <= 1e-6 * fd.amax().max(1e-9),
+                    "{effects:?}, magnitude only {magnitude_only}: column {c}: {err} of {}",
+                    fd.amax()
+                );
             }
         }
     }

@@ -23,7 +23,12 @@ pub trait Problem {
     ///
     /// `alongside`, when given, is work of the caller's to do at theta (it may run beside the
     /// residual run, on another core); it is done before this returns.
-    fn residual_ahead(&self, theta: &[f64], wanted: &(dyn Fn(&DVector<f64>) -> bool + Sync), alongside: Option<&(dyn Fn() + Sync)>) -> DVector<f64> {
+    fn residual_ahead(
+        &self,
+        theta: &[f64],
+        wanted: &(dyn Fn(&DVector<f64>) -> bool + Sync),
+        alongside: Option<&(dyn Fn() + Sync)>,
+    ) -> DVector<f64> {
         let _ = wanted;
         if let Some(f) = alongside {
             f();
@@ -54,7 +59,8 @@ pub fn gram(j: &DMatrix<f64>) -> DMatrix<f64> {
     let dots: Vec<f64> = if threads > 1 && m * pairs.len() > 1 << 16 {
         let per = pairs.len().div_ceil(threads);
         std::thread::scope(|scope| {
-            let parts: Vec<_> = pairs.chunks(per).map(|part| scope.spawn(move || column_dots(j.as_slice(), m, part))).collect();
+            let parts: Vec<_> =
+                pairs.chunks(per).map(|part| scope.spawn(move || column_dots(j.as_slice(), m, part))).collect();
             parts.into_iter().flat_map(|h| h.join().expect("J^T J worker panicked")).collect()
         })
     } else {
@@ -197,7 +203,17 @@ pub struct LmState {
 impl LmState {
     pub fn new<P: Problem>(p: &P, theta: Vec<f64>) -> Self {
         let cost = 0.5 * p.residual(&theta).norm_squared();
-        LmState { theta, cost, lambda: 1e-3, iteration: 0, last_decrease: f64::INFINITY, gain_ratio: f64::NAN, step_lambda: f64::NAN, gn_left: f64::INFINITY, converged: false }
+        LmState {
+            theta,
+            cost,
+            lambda: 1e-3,
+            iteration: 0,
+            last_decrease: f64::INFINITY,
+            gain_ratio: f64::NAN,
+            step_lambda: f64::NAN,
+            gn_left: f64::INFINITY,
+            converged: false,
+        }
     }
 }
 
@@ -261,7 +277,13 @@ pub struct AtLastTrial<'a> {
 /// the caller's iterations anyway (its tolerance); such a trial fails when the Jacobian is
 /// less exact than the residual near the optimum (`identify`'s, from fewer sub-steps: one
 /// final fit ran 20 trials of a 0.4 s residual, each rejected).
-pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState) -> bool + Sync), at_last: Option<&AtLastTrial>, settle_below: f64) -> LmState {
+pub fn lm_step_ahead<P: Problem>(
+    p: &P,
+    s: &LmState,
+    goes_on: &(dyn Fn(&LmState) -> bool + Sync),
+    at_last: Option<&AtLastTrial>,
+    settle_below: f64,
+) -> LmState {
     lm_step_accelerated(p, s, goes_on, at_last, settle_below, false)
 }
 
@@ -270,7 +292,14 @@ pub fn lm_step_ahead<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState)
 /// one of the velocity, the damped Gauss-Newton step `v`: the actual decrease over the
 /// decrease the linearised model predicts for `v` (above 1 when the acceleration gained
 /// more than the straight step was predicted to).
-pub fn lm_step_accelerated<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&LmState) -> bool + Sync), at_last: Option<&AtLastTrial>, settle_below: f64, accelerate: bool) -> LmState {
+pub fn lm_step_accelerated<P: Problem>(
+    p: &P,
+    s: &LmState,
+    goes_on: &(dyn Fn(&LmState) -> bool + Sync),
+    at_last: Option<&AtLastTrial>,
+    settle_below: f64,
+    accelerate: bool,
+) -> LmState {
     let (r, j) = p.residual_jacobian(&s.theta);
     let a = gram(&j);
     let g = j.tr_mul(&r);
@@ -305,14 +334,25 @@ pub fn lm_step_accelerated<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&Lm
                     converged: dec < 1e-12 || step < 1e-10,
                 })
             };
-            let job = at_last.filter(|a| (a.likely)(predicted / s.cost.max(1e-300), lambda)).map(|a| || (a.work)(&theta));
-            let r = p.residual_ahead(&theta, &|r| accepted(0.5 * r.norm_squared()).is_some_and(|next| goes_on(&next)), job.as_ref().map(|f| f as &(dyn Fn() + Sync)));
+            let job =
+                at_last.filter(|a| (a.likely)(predicted / s.cost.max(1e-300), lambda)).map(|a| || (a.work)(&theta));
+            let r = p.residual_ahead(
+                &theta,
+                &|r| accepted(0.5 * r.norm_squared()).is_some_and(|next| goes_on(&next)),
+                job.as_ref().map(|f| f as &(dyn Fn() + Sync)),
+            );
             if let Some(n) = accepted(0.5 * r.norm_squared()) {
                 next = Some(n);
                 break;
             }
             if predicted < settle_below * s.cost {
-                next = Some(LmState { lambda, iteration: s.iteration + 1, converged: true, last_decrease: 0.0, ..s.clone() });
+                next = Some(LmState {
+                    lambda,
+                    iteration: s.iteration + 1,
+                    converged: true,
+                    last_decrease: 0.0,
+                    ..s.clone()
+                });
                 break;
             }
         }
@@ -321,7 +361,13 @@ pub fn lm_step_accelerated<P: Problem>(p: &P, s: &LmState, goes_on: &(dyn Fn(&Lm
     if let Some(j) = j {
         p.recycle(j);
     }
-    next.unwrap_or_else(|| LmState { lambda, iteration: s.iteration + 1, converged: true, last_decrease: 0.0, ..s.clone() })
+    next.unwrap_or_else(|| LmState {
+        lambda,
+        iteration: s.iteration + 1,
+        converged: true,
+        last_decrease: 0.0,
+        ..s.clone()
+    })
 }
 
 /// Finite-difference step of [`geodesic_step`]'s second directional derivative, as a
@@ -343,7 +389,15 @@ pub const GEODESIC_MAX_RATIO: f64 = 0.75;
 /// the valley turns away from the linearised model, while the acceleration follows it.
 /// `None` (the velocity alone) when the probe's residual is not finite or the acceleration
 /// is larger than [`GEODESIC_MAX_RATIO`] of the velocity.
-pub fn geodesic_step<P: Problem>(p: &P, j: &DMatrix<f64>, a: &DMatrix<f64>, r: &DVector<f64>, theta: &[f64], v: &DVector<f64>, lambda: f64) -> Option<DVector<f64>> {
+pub fn geodesic_step<P: Problem>(
+    p: &P,
+    j: &DMatrix<f64>,
+    a: &DMatrix<f64>,
+    r: &DVector<f64>,
+    theta: &[f64],
+    v: &DVector<f64>,
+    lambda: f64,
+) -> Option<DVector<f64>> {
     let h = GEODESIC_PROBE;
     let probe: Vec<f64> = theta.iter().zip(v.iter()).map(|(t, d)| t + h * d).collect();
     let r_probe = p.residual(&probe);
@@ -497,7 +551,9 @@ mod tests {
         }
         let mut rng = coilscope_core::excitation::named_rng(7, "lm-test/linear");
         let (m, n) = (60, 4);
-        let j = DMatrix::from_fn(m, n, |_, c| Distribution::<f64>::sample(&StandardNormal, &mut rng) * 10f64.powi(c as i32 - 2));
+        let j = DMatrix::from_fn(m, n, |_, c| {
+            Distribution::<f64>::sample(&StandardNormal, &mut rng) * 10f64.powi(c as i32 - 2)
+        });
         let y = DVector::from_fn(m, |_, _| Distribution::<f64>::sample(&StandardNormal, &mut rng));
         let best = j.clone().svd(true, true).solve(&y, 1e-14).unwrap();
         let min = 0.5 * (&j * &best - &y).norm_squared();
@@ -507,7 +563,11 @@ mod tests {
             let next = lm_step(&p, &s);
             let left = (next.cost - min) / next.cost;
             println!("damping {lambda:.0e}: left {left:.3e}, gn_left {:.3e}", next.gn_left);
-            assert!((next.gn_left - left).abs() < 1e-6 * left.max(1e-3), "damping {lambda}: gn_left {} for {left}", next.gn_left);
+            assert!(
+                (next.gn_left - left).abs() < 1e-6 * left.max(1e-3),
+                "damping {lambda}: gn_left {} for {left}",
+                next.gn_left
+            );
         }
     }
 
@@ -611,7 +671,12 @@ mod tests {
             fn residual_jacobian(&self, th: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
                 let m = self.c.len();
                 let qth = |k: usize, i: usize| self.q[k][i][0] * th[0] + self.q[k][i][1] * th[1];
-                let r = DVector::from_fn(m, |k, _| self.c[k] + self.b[k][0] * th[0] + self.b[k][1] * th[1] + 0.5 * (th[0] * qth(k, 0) + th[1] * qth(k, 1)));
+                let r = DVector::from_fn(m, |k, _| {
+                    self.c[k]
+                        + self.b[k][0] * th[0]
+                        + self.b[k][1] * th[1]
+                        + 0.5 * (th[0] * qth(k, 0) + th[1] * qth(k, 1))
+                });
                 let j = DMatrix::from_fn(m, 2, |k, i| self.b[k][i] + qth(k, i));
                 (r, j)
             }
@@ -633,7 +698,9 @@ mod tests {
         let a = gram(&j);
         let lambda = 1e-2;
         let (v, _) = damped_step(&a, &j.tr_mul(&r), lambda).unwrap();
-        let r_vv = DVector::from_fn(m, |k, _| (0..2).map(|i| (0..2).map(|l| v[i] * p.q[k][i][l] * v[l]).sum::<f64>()).sum::<f64>());
+        let r_vv = DVector::from_fn(m, |k, _| {
+            (0..2).map(|i| (0..2).map(|l| v[i] * p.q[k][i][l] * v[l]).sum::<f64>()).sum::<f64>()
+        });
         let (acc, _) = damped_step(&a, &j.tr_mul(&r_vv), lambda).unwrap();
         let want = &v + &acc * 0.5;
         let got = geodesic_step(&p, &j, &a, &r, &theta, &v, lambda).expect("a small acceleration is taken");
@@ -672,7 +739,12 @@ mod tests {
         }
         let t: Vec<f64> = (0..200).map(|k| k as f64 * 0.025).collect();
         let mut rng = coilscope_core::excitation::named_rng(1, "lm-test/two-decays");
-        let y = t.iter().map(|t| (-t).exp() + 0.5 * (-1.8 * t).exp() + 1e-3 * Distribution::<f64>::sample(&StandardNormal, &mut rng)).collect();
+        let y = t
+            .iter()
+            .map(|t| {
+                (-t).exp() + 0.5 * (-1.8 * t).exp() + 1e-3 * Distribution::<f64>::sample(&StandardNormal, &mut rng)
+            })
+            .collect();
         let p = TwoDecays { t, y };
         let run = |start: &[f64; 4], accelerate: bool| {
             let mut s = LmState::new(&p, start.to_vec());
@@ -681,17 +753,32 @@ mod tests {
                 s = lm_step_accelerated(&p, &s, &|_| true, None, 0.0, go);
             }
             // The slower decay first.
-            let th = if s.theta[1] <= s.theta[3] { s.theta.clone() } else { vec![s.theta[2], s.theta[3], s.theta[0], s.theta[1]] };
+            let th = if s.theta[1] <= s.theta[3] {
+                s.theta.clone()
+            } else {
+                vec![s.theta[2], s.theta[3], s.theta[0], s.theta[1]]
+            };
             (th, s.cost, s.iteration)
         };
         let (mut straight_its, mut accelerated_its) = (0, 0);
-        for start in [[1.2, 1.5, 0.4, 2.0], [0.5, 0.3, 0.5, 10.0], [1.4, 2.0, 0.1, 2.1], [0.1, 0.5, 0.1, 0.6], [1.0, 3.0, 0.5, 0.5], [1.3, 1.1, 0.2, 3.0], [0.8, 0.7, 0.7, 2.5]] {
+        for start in [
+            [1.2, 1.5, 0.4, 2.0],
+            [0.5, 0.3, 0.5, 10.0],
+            [1.4, 2.0, 0.1, 2.1],
+            [0.1, 0.5, 0.1, 0.6],
+            [1.0, 3.0, 0.5, 0.5],
+            [1.3, 1.1, 0.2, 3.0],
+            [0.8, 0.7, 0.7, 2.5],
+        ] {
             let (th0, c0, n0) = run(&start, false);
             let (th1, c1, n1) = run(&start, true);
             println!("{start:?}: straight {n0} iterations, accelerated {n1}");
             (straight_its, accelerated_its) = (straight_its + n0, accelerated_its + n1);
             assert!((c1 / c0 - 1.0).abs() < 1e-12, "{start:?}: cost {c1:.12e} accelerated against {c0:.12e}");
-            assert!(th0.iter().zip(&th1).all(|(a, b)| (a - b).abs() < 1e-6), "{start:?}: {th1:?} accelerated against {th0:?}");
+            assert!(
+                th0.iter().zip(&th1).all(|(a, b)| (a - b).abs() < 1e-6),
+                "{start:?}: {th1:?} accelerated against {th0:?}"
+            );
         }
         println!("straight {straight_its} iterations, accelerated {accelerated_its}");
     }

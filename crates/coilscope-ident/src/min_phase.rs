@@ -69,7 +69,8 @@ pub fn min_phase(f: &[f64], mag: &[f64]) -> Vec<f64> {
     if n < 2 {
         return vec![0.0; n];
     }
-    let (u_all, a_all): (Vec<f64>, Vec<f64>) = (f[..n].iter().map(|f| f.ln()).collect(), mag[..n].iter().map(|m| m.ln()).collect());
+    let (u_all, a_all): (Vec<f64>, Vec<f64>) =
+        (f[..n].iter().map(|f| f.ln()).collect(), mag[..n].iter().map(|m| m.ln()).collect());
     // The grid the integral runs on: the points, or log-spaced points interpolated.
     let (u, a) = if n <= MAX_POINTS {
         (u_all.clone(), a_all.clone())
@@ -86,7 +87,11 @@ pub fn min_phase(f: &[f64], mag: &[f64]) -> Vec<f64> {
     let u_first = u[0] + 0.1 * (u[u.len() - 1] - u[0]);
     let j_lo = (1..u.len()).find(|&j| u[j] >= u_first).unwrap_or(u.len() - 1);
     let s_below = ((a[j_lo] - a[0]) / (u[j_lo] - u[0])).max(0.0);
-    let (u, a): (Vec<f64>, Vec<f64>) = (1..=60).rev().map(|k| (u[0] - 0.1 * k as f64, a[0] + s_below / 2.0 * ((-0.2 * k as f64).exp() - 1.0))).chain(u.iter().copied().zip(a.iter().copied())).unzip();
+    let (u, a): (Vec<f64>, Vec<f64>) = (1..=60)
+        .rev()
+        .map(|k| (u[0] - 0.1 * k as f64, a[0] + s_below / 2.0 * ((-0.2 * k as f64).exp() - 1.0)))
+        .chain(u.iter().copied().zip(a.iter().copied()))
+        .unzip();
     // Above the band: `|R + jwL|` through the top point with the slope of the band's top
     // tenth (in ln f), `w^2 L^2 = s |Z|^2`, `R^2 = (1 - s) |Z|^2`, on points 0.1 apart in ln f
     // over 8; from there the slope is 1 for ever.
@@ -177,7 +182,13 @@ mod tests {
         let f: Vec<f64> = (0..400).map(|k| 10.0 * 2000f64.powf(k as f64 / 399.0)).collect();
         let z: Vec<_> = f.iter().map(|&f| impedance(&p, f)).collect();
         let ph = min_phase(&f, &z.iter().map(|z| z.norm()).collect::<Vec<_>>());
-        let (worst, at) = f.iter().zip(&ph).zip(&z).filter(|((f, _), _)| **f >= 20.0 && **f <= 10000.0).map(|((f, p), z)| ((p - z.arg()).abs().to_degrees(), *f)).fold((0.0, 0.0), |a, b| if b.0 > a.0 { b } else { a });
+        let (worst, at) = f
+            .iter()
+            .zip(&ph)
+            .zip(&z)
+            .filter(|((f, _), _)| **f >= 20.0 && **f <= 10000.0)
+            .map(|((f, p), z)| ((p - z.arg()).abs().to_degrees(), *f))
+            .fold((0.0, 0.0), |a, b| if b.0 > a.0 { b } else { a });
         assert!(worst < 5.0, "worst {worst:.2} deg over 20 Hz - 10 kHz, at {at:.0} Hz");
     }
 }

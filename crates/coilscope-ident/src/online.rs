@@ -30,7 +30,8 @@ use nalgebra::{DMatrix, DVector};
 use num_dual::{Dual64, DualNum, DualSVec64};
 
 /// The model the estimator runs: [`Model`] (six states, the fast path; Le(i) and Rms(v) are
-/// in it), or [`ExtModel`] when the layout has creep or LR-3. States are always the extended vector (the plain model uses its
+/// in it), or [`ExtModel`] when the layout has creep or LR-3. States are always the extended vector
+/// (the plain model uses its
 /// first six entries and leaves the rest at zero).
 enum OnlineModel<D> {
     Plain(Model<D>),
@@ -293,12 +294,23 @@ impl Online {
             return Err(OnlineError(format!("reference displacement {} m is not valid (> 0)", opts.x_ref)));
         }
         if !(crate::large::MIN_ORDER..=crate::large::MAX_ORDER).contains(&opts.order) {
-            return Err(OnlineError(format!("power-series order {} is not valid ({} ..= {})", opts.order, crate::large::MIN_ORDER, crate::large::MAX_ORDER)));
+            return Err(OnlineError(format!(
+                "power-series order {} is not valid ({} ..= {})",
+                opts.order,
+                crate::large::MIN_ORDER,
+                crate::large::MAX_ORDER
+            )));
         }
         let scales = Scales::of(start);
         let o = opts.effects;
-        let effects = Effects { creep: start.creep.is_some() || o.creep, lr3: start.l3r3.is_some() || o.lr3, le_i: start.le_i.is_some() || o.le_i, rms_v: start.rms_v.is_some() || o.rms_v };
-        let layout = Layout::new(opts.order, 1, 1.0, opts.x_ref, scales, start.l2r2.is_some(), start.mms).with_effects(effects);
+        let effects = Effects {
+            creep: start.creep.is_some() || o.creep,
+            lr3: start.l3r3.is_some() || o.lr3,
+            le_i: start.le_i.is_some() || o.le_i,
+            rms_v: start.rms_v.is_some() || o.rms_v,
+        };
+        let layout =
+            Layout::new(opts.order, 1, 1.0, opts.x_ref, scales, start.l2r2.is_some(), start.mms).with_effects(effects);
         let mut theta = layout.theta_from(start, None);
         // Offered creep starts at none, as the large-signal effects do.
         let creep_offered = start.creep.is_none() && effects.creep;
@@ -497,7 +509,10 @@ impl Online {
         }
         let tm = self.re_hist.iter().map(|&(k, _)| k as f64).sum::<f64>() / n as f64;
         let rm = self.re_hist.iter().map(|&(_, r)| r).sum::<f64>() / n as f64;
-        let (num, den) = self.re_hist.iter().fold((0.0, 0.0), |(a, b), &(k, r)| (a + (k as f64 - tm) * (r - rm), b + (k as f64 - tm).powi(2)));
+        let (num, den) = self
+            .re_hist
+            .iter()
+            .fold((0.0, 0.0), |(a, b), &(k, r)| (a + (k as f64 - tm) * (r - rm), b + (k as f64 - tm).powi(2)));
         let slope = num / den * self.fs;
         // Coils heat by at most a few percent per second.
         let cap = 0.05 * self.re();
@@ -521,7 +536,15 @@ impl Online {
     /// Run the f64 model `theta` from `y0` over history samples `a..b` (absolute). Returns
     /// the current error `i - i_model` after `skip` samples and the end state; `None` if the
     /// model ran away.
-    fn run_window(&self, theta: &[f64], y0: ExtState<f64>, a: usize, b: usize, skip: usize, re_slope: f64) -> Option<(DVector<f64>, ExtState<f64>)> {
+    fn run_window(
+        &self,
+        theta: &[f64],
+        y0: ExtState<f64>,
+        a: usize,
+        b: usize,
+        skip: usize,
+        re_slope: f64,
+    ) -> Option<(DVector<f64>, ExtState<f64>)> {
         let mut model = OnlineModel::of(&self.layout, theta);
         // Re drifts along the tracked trend; theta's Re is the value now (the live model's position).
         let re_end = model.base().re;
@@ -554,14 +577,40 @@ impl Online {
     /// The plain model at one RK4 step per sample (a woofer's) takes the columns by the
     /// sensitivity equation in `f64` instead (`crate::sensitivity`).
     #[allow(clippy::too_many_arguments)]
-    fn jacobian_chunk(&self, y0: &ExtState<f64>, a: usize, b: usize, skip: usize, c0: usize, w: usize, re_slope: f64, block: &mut [f64]) {
+    fn jacobian_chunk(
+        &self,
+        y0: &ExtState<f64>,
+        a: usize,
+        b: usize,
+        skip: usize,
+        c0: usize,
+        w: usize,
+        re_slope: f64,
+        block: &mut [f64],
+    ) {
         let dt = 1.0 / self.fs;
         if crate::sensitivity::applies(&self.layout, &self.stepper_jac) {
             let re_end = self.layout.model(&self.theta).0.re;
             let cols: Vec<usize> = (c0..c0 + w).collect();
-            let run = crate::sensitivity::Run { u: &self.u, steps: a - self.base..b - self.base, first_row: a + skip - self.base, y0: std::array::from_fn(|k| y0[k]) };
+            let run = crate::sensitivity::Run {
+                u: &self.u,
+                steps: a - self.base..b - self.base,
+                first_row: a + skip - self.base,
+                y0: std::array::from_fn(|k| y0[k]),
+            };
             let re = |m: usize| (re_end + re_slope * ((m + self.base) as f64 - self.pos as f64) * dt, 0, 0.0);
-            crate::sensitivity::pass_from(&self.layout, &[], &self.theta, &cols, self.fs, &self.stepper_jac, &run, re, None, block);
+            crate::sensitivity::pass_from(
+                &self.layout,
+                &[],
+                &self.theta,
+                &cols,
+                self.fs,
+                &self.stepper_jac,
+                &run,
+                re,
+                None,
+                block,
+            );
         } else {
             self.jacobian_chunk_duals(y0, a, b, skip, c0, re_slope, block);
         }
@@ -569,7 +618,16 @@ impl Online {
 
     /// [`Online::jacobian_chunk`] on num-dual's dual numbers.
     #[allow(clippy::too_many_arguments)]
-    fn jacobian_chunk_duals(&self, y0: &ExtState<f64>, a: usize, b: usize, skip: usize, c0: usize, re_slope: f64, block: &mut [f64]) {
+    fn jacobian_chunk_duals(
+        &self,
+        y0: &ExtState<f64>,
+        a: usize,
+        b: usize,
+        skip: usize,
+        c0: usize,
+        re_slope: f64,
+        block: &mut [f64],
+    ) {
         let dt = 1.0 / self.fs;
         let (thd, cnt) = seed_duals::<CHUNK>(&self.theta, c0);
         let mut model = OnlineModel::of(&self.layout, &thd);
@@ -595,18 +653,25 @@ impl Online {
         }
     }
 
-    /// Bl, Kms and Le positive over 1.6 times the reach so far (a ramp of 3 dB/s grows it by 1.41 per second) (at most `1.5 x_ref`): an
+    /// Bl, Kms and Le positive over 1.6 times the reach so far (a ramp of 3 dB/s grows it by 1.41
+    /// per second) (at most `1.5 x_ref`): an
     /// estimate that is not can run away as soon as the level rises past what was reached.
     fn physical(&self, theta: &[f64]) -> bool {
         let p = self.layout.parameters(theta);
         let r = (1.6 * self.reach).clamp(0.05 * self.layout.x_ref, 1.5 * self.layout.x_ref);
-        let curves = (0..=30).map(|k| -r + 2.0 * r * k as f64 / 30.0).all(|x| p.bl.eval(x) > 0.0 && p.kms.eval(x) > 0.0 && p.le.eval(x) > 0.0) && p.rms > 0.0 && p.re > 0.0;
+        let curves = (0..=30)
+            .map(|k| -r + 2.0 * r * k as f64 / 30.0)
+            .all(|x| p.bl.eval(x) > 0.0 && p.kms.eval(x) > 0.0 && p.le.eval(x) > 0.0)
+            && p.rms > 0.0
+            && p.re > 0.0;
         // Le(i) keeps the incremental inductance above half of Le(x), and Rms(v) stays >= 0,
         // over 1.5 times the current and velocity seen.
         let (ir, vr) = (1.5 * self.i_reach, 1.5 * self.v_reach);
         let flux = p.le_i.is_none() || {
             let m = Model::new(&p);
-            (0..=20).all(|k| m.le_i_incremental(-ir + 2.0 * ir * k as f64 / 20.0) >= coilscope_core::simulate::MIN_INCREMENTAL_LE)
+            (0..=20).all(|k| {
+                m.le_i_incremental(-ir + 2.0 * ir * k as f64 / 20.0) >= coilscope_core::simulate::MIN_INCREMENTAL_LE
+            })
         };
         let loss = p.rms_v.as_ref().is_none_or(|rv| (0..=10).all(|k| rv.eval(vr * k as f64 / 10.0) >= 0.0));
         curves && flux && loss
@@ -634,7 +699,8 @@ impl Online {
         let end = self.pos;
         let latest = end.checked_sub(w)?;
         let lo = self.last_update.max(self.base + HALF_TAPS);
-        let want = if self.peak_since.1 >= lo { self.peak_since.1.saturating_sub(w / 2).clamp(lo, latest) } else { latest };
+        let want =
+            if self.peak_since.1 >= lo { self.peak_since.1.saturating_sub(w / 2).clamp(lo, latest) } else { latest };
         // The window starts at a stored live state (the present model's: after the last update).
         let &(a, y0) = self.snaps.iter().rev().find(|s| s.0 <= want && s.0 >= self.base + HALF_TAPS)?;
         let b = (want + w).min(end);
@@ -647,7 +713,8 @@ impl Online {
         let run = std::sync::Mutex::new(None);
         let first = || {
             let out = self.run_window(&self.theta, y0, a, b, skip, slope);
-            let go = out.as_ref().is_some_and(|(r, _)| !((r.norm_squared() / q.max(1e-300)).sqrt() > self.opts.max_before));
+            let go =
+                out.as_ref().is_some_and(|(r, _)| !((r.norm_squared() / q.max(1e-300)).sqrt() > self.opts.max_before));
             *run.lock().expect("window run") = Some(out);
             go
         };
@@ -657,7 +724,9 @@ impl Online {
         let stop = std::sync::atomic::AtomicBool::new(false);
         // Beside the window's run (the one lead task); the dual numbers' passes 8-wide.
         let widths = passes_for(&self.layout, &self.stepper_jac, np, self.threads, 1, false);
-        let jac = jacobian_passes(rows, &widths, self.threads, &[&first], &stop, |c0, w, block| self.jacobian_chunk(&y0, a, b, skip, c0, w, slope, block));
+        let jac = jacobian_passes(rows, &widths, self.threads, &[&first], &stop, |c0, w, block| {
+            self.jacobian_chunk(&y0, a, b, skip, c0, w, slope, block)
+        });
         let (r, _) = run.into_inner().expect("window run").expect("the first task is the run")?;
         let floor_ratio = crate::checks::noise_floor(r.as_slice(), self.fs).ratio;
         let e0 = r.norm_squared();
@@ -705,7 +774,11 @@ impl Online {
                 let e1 = r1.norm_squared();
                 // The live model goes on from the window's end to the present: a step that
                 // runs away there (the data after the window) is no step.
-                let y_now = if b < end { self.run_window(&trial, y_end, b, end, 0, slope).map(|(_, y)| y) } else { Some(y_end) };
+                let y_now = if b < end {
+                    self.run_window(&trial, y_end, b, end, 0, slope).map(|(_, y)| y)
+                } else {
+                    Some(y_end)
+                };
                 if let (true, Some(y_now)) = (e1 <= e0 * 1.02, y_now) {
                     step = 1.0 / (1.0 + lambda);
                     accepted = Some((trial, e1, y_now, full));
@@ -761,18 +834,29 @@ impl Online {
     pub fn insignificant_effects(&self) -> Effects {
         let s = self.layout.slots();
         let small = |k: usize| self.theta[k].abs() < INSIGNIFICANT_SD * self.sd_theta(k);
-        Effects { creep: self.creep_offered && s.lambda.is_some_and(small), le_i: s.le_i.is_some_and(|k| small(k) && small(k + 1)), rms_v: s.rms_v.is_some_and(small), ..Effects::NONE }
+        Effects {
+            creep: self.creep_offered && s.lambda.is_some_and(small),
+            le_i: s.le_i.is_some_and(|k| small(k) && small(k + 1)),
+            rms_v: s.rms_v.is_some_and(small),
+            ..Effects::NONE
+        }
     }
 
     /// Stop estimating the offered effects in `drop` (creep where the start had none, Le(i),
-    /// Rms(v); others are ignored): the estimate and its covariance are conditioned on their coefficients being zero (the
+    /// Rms(v); others are ignored): the estimate and its covariance are conditioned on their
+    /// coefficients being zero (the
     /// Gaussian conditional: `theta_K -= P_KD P_DD^-1 theta_D`, `P_KK -= P_KD P_DD^-1 P_DK`),
     /// and the live model continues without them. Each costs a fifth of an update (three more
     /// Jacobian columns, a slower model): the measurement drops what the data at full level
     /// did not show ([`Online::insignificant_effects`]). Returns the effects dropped.
     pub fn drop_effects(&mut self, drop: Effects) -> Effects {
         let e = self.layout.effects;
-        let dropped = Effects { creep: drop.creep && e.creep && self.creep_offered, le_i: drop.le_i && e.le_i, rms_v: drop.rms_v && e.rms_v, ..Effects::NONE };
+        let dropped = Effects {
+            creep: drop.creep && e.creep && self.creep_offered,
+            le_i: drop.le_i && e.le_i,
+            rms_v: drop.rms_v && e.rms_v,
+            ..Effects::NONE
+        };
         if dropped == Effects::NONE {
             return dropped;
         }
@@ -788,7 +872,9 @@ impl Online {
             gone.push(k);
         }
         let keep: Vec<usize> = (0..s.n).filter(|k| !gone.contains(k)).collect();
-        let sub = |rows: &[usize], cols: &[usize]| DMatrix::from_fn(rows.len(), cols.len(), |r, c| self.cov[(rows[r], cols[c])]);
+        let sub = |rows: &[usize], cols: &[usize]| {
+            DMatrix::from_fn(rows.len(), cols.len(), |r, c| self.cov[(rows[r], cols[c])])
+        };
         let (p_kd, p_dd) = (sub(&keep, &gone), sub(&gone, &gone));
         let Some(p_dd_inv) = p_dd.try_inverse() else {
             return Effects::NONE;
@@ -901,7 +987,11 @@ mod tests {
         use coilscope_core::simulate::{gain_for_peak, SimOptions};
         let p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
         let fs = 48000.0;
-        let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 0.6, rms: 1.0, fade: 0.05, seed: 3 }).unwrap();
+        let unit = generate(
+            &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+            &SignalSpec { fs, seconds: 0.6, rms: 1.0, fade: 0.05, seed: 3 },
+        )
+        .unwrap();
         let (_, tr) = gain_for_peak(&p, fs, &unit, 0.003, &SimOptions::default()).unwrap();
         // The large-signal effects offered, not creep (whose states the sensitivity path
         // does not carry).
@@ -911,7 +1001,13 @@ mod tests {
         for (k, t) in o.theta.iter_mut().enumerate() {
             *t *= 1.0 + 0.01 * ((k % 5) as f64 - 2.0);
         }
-        assert!(crate::sensitivity::applies(&o.layout, &o.stepper_jac), "the plain model at one RK4 step: {:?}, {:?} {}", o.layout.effects, o.stepper_jac.scheme, o.stepper_jac.points());
+        assert!(
+            crate::sensitivity::applies(&o.layout, &o.stepper_jac),
+            "the plain model at one RK4 step: {:?}, {:?} {}",
+            o.layout.effects,
+            o.stepper_jac.scheme,
+            o.stepper_jac.points()
+        );
         let &(a, y0) = o.snaps.iter().find(|s| s.0 >= o.base + 9600).expect("a live state mid-record");
         assert!(y0[idx::X].abs() > 0.0 && y0[idx::I].abs() > 0.0);
         let (b, skip, slope) = (a + 12000, 480, 0.05);
@@ -945,7 +1041,10 @@ mod tests {
             for (name, k) in [("L2", s.l2), ("R2", s.r2), ("L3", s.l3), ("R3", s.r3)] {
                 let k = k.expect("the start has both branches");
                 let rel = o.cov[(k, k)].sqrt() / o.theta[k];
-                assert!((rel - 0.1).abs() < 1e-12, "{name} (L3 {l3:.2e} H, R3 {r3:.2e} ohm): prior sd {rel:.3} of its start, not 0.1");
+                assert!(
+                    (rel - 0.1).abs() < 1e-12,
+                    "{name} (L3 {l3:.2e} H, R3 {r3:.2e} ohm): prior sd {rel:.3} of its start, not 0.1"
+                );
             }
         }
     }

@@ -51,14 +51,23 @@ fn solve(cols: Vec<Vec<f64>>, rhs: Vec<f64>) -> Result<Vec<f64>, String> {
         a.column_mut(c).scale_mut(1.0 / s);
     }
     let b = DVector::from_vec(rhs);
-    let sol = a.tr_mul(&a).cholesky().ok_or("the equation-error system is singular (does x move?)")?.solve(&a.tr_mul(&b));
+    let sol =
+        a.tr_mul(&a).cholesky().ok_or("the equation-error system is singular (does x move?)")?.solve(&a.tr_mul(&b));
     Ok(sol.iter().zip(&norms).map(|(v, s)| v / s).collect())
 }
 
 /// Equation-error estimate of order `order` from `u` (V), `i` (A), `x` (m) at `fs`, with the
 /// LR-2 branch `(L2, R2)` (H, ohm) from the linear fit. The result's `x_range` is the measured
 /// range of x.
-pub fn post_inverse(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, l2r2: Option<(f64, f64)>, origin: &str) -> Result<Parameters, String> {
+pub fn post_inverse(
+    u: &[f64],
+    i: &[f64],
+    x: &[f64],
+    fs: f64,
+    order: usize,
+    l2r2: Option<(f64, f64)>,
+    origin: &str,
+) -> Result<Parameters, String> {
     equation_error(u, i, x, fs, order, l2r2, None, origin)
 }
 
@@ -66,7 +75,16 @@ pub fn post_inverse(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, l2r2
 /// Mms given, `Mms a` moves to the right side of the mechanical equation. With `x` taken
 /// from the model itself this is the pseudo-linear regression step of the online estimator.
 #[allow(clippy::too_many_arguments)]
-pub fn equation_error(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, l2r2: Option<(f64, f64)>, mms: Option<f64>, origin: &str) -> Result<Parameters, String> {
+pub fn equation_error(
+    u: &[f64],
+    i: &[f64],
+    x: &[f64],
+    fs: f64,
+    order: usize,
+    l2r2: Option<(f64, f64)>,
+    mms: Option<f64>,
+    origin: &str,
+) -> Result<Parameters, String> {
     let n = u.len();
     if i.len() != n || x.len() != n {
         return Err(format!("{origin}: channels have different lengths"));
@@ -93,7 +111,11 @@ pub fn equation_error(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, l2
     };
     let mut cols = vec![lp(i, fe)];
     for j in 0..=order {
-        let c: Vec<f64> = (0..n).map(|m| x[m].powi(j as i32) * di[m] + if j > 0 { j as f64 * x[m].powi(j as i32 - 1) * v[m] * i[m] } else { 0.0 }).collect();
+        let c: Vec<f64> = (0..n)
+            .map(|m| {
+                x[m].powi(j as i32) * di[m] + if j > 0 { j as f64 * x[m].powi(j as i32 - 1) * v[m] * i[m] } else { 0.0 }
+            })
+            .collect();
         cols.push(lp(&c, fe));
     }
     for j in 0..=order {
@@ -131,7 +153,8 @@ pub fn equation_error(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, l2
     if !(mms > 0.0 && rms > 0.0 && re > 0.0 && bl.eval(0.0) > 0.0) {
         return Err(format!("{origin}: the equation-error estimate is not physical (Mms {mms:.4e} kg, Rms {rms:.4e} kg/s, Re {re:.4e} ohm); check the displacement channel's scale and polarity"));
     }
-    let x_range = [x.iter().cloned().fold(f64::INFINITY, f64::min), x.iter().cloned().fold(f64::NEG_INFINITY, f64::max)];
+    let x_range =
+        [x.iter().cloned().fold(f64::INFINITY, f64::min), x.iter().cloned().fold(f64::NEG_INFINITY, f64::max)];
     Ok(Parameters {
         name: None,
         source: Some("coilscope post-inverse (equation error with measured displacement)".into()),

@@ -86,15 +86,35 @@ fn with_theta(p: &Parameters, th: &[f64], order: usize) -> Parameters {
 /// Adapt the controller from `start` so that `play` (the transducer: a drive in volts, the
 /// measured displacement in metres back, from rest) follows `reference` driven by `input`,
 /// one update per block. `observe` sees each block.
-pub fn adapt(start: &Parameters, reference: &Parameters, input: &[f64], fs: f64, mut play: impl FnMut(&[f64]) -> Result<Vec<f64>, String>, opts: &PreInverseOptions, mut observe: impl FnMut(&Update)) -> Result<PreInverseFit, String> {
+pub fn adapt(
+    start: &Parameters,
+    reference: &Parameters,
+    input: &[f64],
+    fs: f64,
+    mut play: impl FnMut(&[f64]) -> Result<Vec<f64>, String>,
+    opts: &PreInverseOptions,
+    mut observe: impl FnMut(&Update),
+) -> Result<PreInverseFit, String> {
     adapt_blocks(start, reference, input, fs, &mut play, opts, &mut observe)
 }
 
 /// [`adapt`]'s work, compiled once (not for each caller's `play` and `observe`).
-fn adapt_blocks(start: &Parameters, reference: &Parameters, input: &[f64], fs: f64, play: &mut dyn FnMut(&[f64]) -> Result<Vec<f64>, String>, opts: &PreInverseOptions, observe: &mut dyn FnMut(&Update)) -> Result<PreInverseFit, String> {
+fn adapt_blocks(
+    start: &Parameters,
+    reference: &Parameters,
+    input: &[f64],
+    fs: f64,
+    play: &mut dyn FnMut(&[f64]) -> Result<Vec<f64>, String>,
+    opts: &PreInverseOptions,
+    observe: &mut dyn FnMut(&Update),
+) -> Result<PreInverseFit, String> {
     let order = opts.order;
     let x_ref = simulate(reference, fs, input, &SimOptions::default()).map_err(|e| format!("the reference: {e}"))?.x;
-    let drive_of = |th: &[f64]| compensate_to(&with_theta(start, th, order), reference, fs, input, &opts.limits).map(|c| c.drive).map_err(|e| format!("the controller: {e}"));
+    let drive_of = |th: &[f64]| {
+        compensate_to(&with_theta(start, th, order), reference, fs, input, &opts.limits)
+            .map(|c| c.drive)
+            .map_err(|e| format!("the controller: {e}"))
+    };
     let mut th = theta_of(start, order);
     let mut best: Option<(f64, Vec<f64>)> = None;
     let mut damping: f64 = 1e-3;
@@ -136,12 +156,15 @@ fn adapt_blocks(start: &Parameters, reference: &Parameters, input: &[f64], fs: f
         let mut j = DMatrix::zeros(e0.len(), th.len());
         for k in 0..th.len() {
             let scale = if k <= order { th[0].abs() } else { th[order + 1].abs() };
-            let h = 1e-4 * scale / start.x_range.map_or(1.0, |[lo, hi]| hi.min(-lo)).powi(((k % (order + 1)) as i32).max(0));
+            let h = 1e-4 * scale
+                / start.x_range.map_or(1.0, |[lo, hi]| hi.min(-lo)).powi(((k % (order + 1)) as i32).max(0));
             let mut tk = th.clone();
             tk[k] += h;
             let dk = drive_of(&tk)?;
             let dd: Vec<f64> = dk.iter().zip(&drive0).map(|(a, b)| a - b).collect();
-            let xk = simulate(reference, fs, &dd, &SimOptions { range_margin: f64::INFINITY, ..Default::default() }).map_err(|e| format!("the gradient filter: {e}"))?.x;
+            let xk = simulate(reference, fs, &dd, &SimOptions { range_margin: f64::INFINITY, ..Default::default() })
+                .map_err(|e| format!("the gradient filter: {e}"))?
+                .x;
             for (r, v) in xk.iter().enumerate() {
                 j[(r, k)] = v / h;
             }

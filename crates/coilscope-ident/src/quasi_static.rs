@@ -209,7 +209,13 @@ pub fn fit_series(x: &[f64], y: &[f64], order: usize) -> Poly {
 /// points' sds, `B A' diag(sd^2) A B` with `B = (A'A)^-1`, scaled up by the points' chi^2
 /// per degree of freedom about the series where above 1 (what the order leaves between
 /// them). A point without a usable sd takes the smallest of the others.
-pub fn fit_series_band(x: &[f64], y: &[f64], sd: &[f64], order: usize, grid: &[f64]) -> (Poly, coilscope_core::result::Band) {
+pub fn fit_series_band(
+    x: &[f64],
+    y: &[f64],
+    sd: &[f64],
+    order: usize,
+    grid: &[f64],
+) -> (Poly, coilscope_core::result::Band) {
     let poly = fit_series(x, y, order);
     let n = poly.c.len() - 1;
     let scale = x.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-9);
@@ -230,7 +236,10 @@ pub fn fit_series_band(x: &[f64], y: &[f64], sd: &[f64], order: usize, grid: &[f
     let chi2: f64 = x.iter().zip(y).zip(&sd).map(|((&xv, &yv), s)| ((yv - poly.eval(xv)) / s).powi(2)).sum();
     let s2 = (chi2 / (x.len() as f64 - (n + 1) as f64).max(1.0)).max(1.0);
     let meat = a.transpose() * DMatrix::from_diagonal(&DVector::from_iterator(sd.len(), sd.iter().map(|s| s * s))) * &a;
-    let cov = (a.transpose() * &a).try_inverse().map(|b| &b * meat * &b * s2).unwrap_or_else(|| DMatrix::from_element(n + 1, n + 1, f64::NAN));
+    let cov = (a.transpose() * &a)
+        .try_inverse()
+        .map(|b| &b * meat * &b * s2)
+        .unwrap_or_else(|| DMatrix::from_element(n + 1, n + 1, f64::NAN));
     let value = grid.iter().map(|&v| poly.eval(v)).collect();
     let sdv = grid
         .iter()
@@ -249,7 +258,11 @@ fn drive(u_dc: f64, hold: f64, ac: &[f64], fs: f64) -> Vec<f64> {
     let held = (hold * fs) as usize;
     (0..ramp + held + ac.len())
         .map(|k| {
-            let dc = if k < ramp { u_dc * 0.5 * (1.0 - (std::f64::consts::PI * k as f64 / ramp as f64).cos()) } else { u_dc };
+            let dc = if k < ramp {
+                u_dc * 0.5 * (1.0 - (std::f64::consts::PI * k as f64 / ramp as f64).cos())
+            } else {
+                u_dc
+            };
             dc + if k >= ramp + held { ac[k - ramp - held] } else { 0.0 }
         })
         .collect()
@@ -262,12 +275,20 @@ fn mean(v: &[f64]) -> f64 {
 /// Run the point-by-point measurement on `play` (`(drive, push) -> (u, i, x)`, from rest
 /// each time, the push's force and added mass held from the start), with `ac` the small
 /// signal (unit RMS noise of at least `record_s`).
-pub fn quasi_static(mut play: impl FnMut(&[f64], Push) -> Result<Played, String>, ac: &[f64], opts: &QuasiStaticOptions) -> Result<QuasiStatic, String> {
+pub fn quasi_static(
+    mut play: impl FnMut(&[f64], Push) -> Result<Played, String>,
+    ac: &[f64],
+    opts: &QuasiStaticOptions,
+) -> Result<QuasiStatic, String> {
     point_by_point(&mut play, ac, opts)
 }
 
 /// [`quasi_static`]'s work, compiled once (not for each caller's `play`).
-fn point_by_point(play: &mut dyn FnMut(&[f64], Push) -> Result<Played, String>, ac: &[f64], opts: &QuasiStaticOptions) -> Result<QuasiStatic, String> {
+fn point_by_point(
+    play: &mut dyn FnMut(&[f64], Push) -> Result<Played, String>,
+    ac: &[f64],
+    opts: &QuasiStaticOptions,
+) -> Result<QuasiStatic, String> {
     if opts.points < 3 || opts.points.is_multiple_of(2) {
         return Err(format!("{} working points: give an odd number, at least 3", opts.points));
     }
@@ -280,22 +301,41 @@ fn point_by_point(play: &mut dyn FnMut(&[f64], Push) -> Result<Played, String>, 
     let settle = (0.25 * fs) as usize;
     if let Offset::Pressure { sd } = opts.offset {
         if !(sd.is_finite() && sd > 0.0 && sd < 2.0) {
-            return Err(format!("the pressure offset needs the diaphragm's area Sd (m^2, e.g. 0.0133); {sd} is not valid"));
+            return Err(format!(
+                "the pressure offset needs the diaphragm's area Sd (m^2, e.g. 0.0133); {sd} is not valid"
+            ));
         }
     }
-    let point = |play: &mut dyn FnMut(&[f64], Push) -> Result<Played, String>, u_dc: f64, push: Push| -> Result<(WorkingPoint, Parameters), String> {
+    let point = |play: &mut dyn FnMut(&[f64], Push) -> Result<Played, String>,
+                 u_dc: f64,
+                 push: Push|
+     -> Result<(WorkingPoint, Parameters), String> {
         let d = drive(u_dc, opts.hold_s, &ac, fs);
         let Played { u, i, x, applied } = play(&d, push)?;
         let push = applied.unwrap_or(push);
         if u.len() < d.len() || i.len() < d.len() || x.len() < d.len() {
-            return Err(format!("working point {u_dc:.3} V, {:.3} N: {} / {} / {} samples of u / i / x for a drive of {}", push.force, u.len(), i.len(), x.len(), d.len()));
+            return Err(format!(
+                "working point {u_dc:.3} V, {:.3} N: {} / {} / {} samples of u / i / x for a drive of {}",
+                push.force,
+                u.len(),
+                i.len(),
+                x.len(),
+                d.len()
+            ));
         }
         let from = d.len() - nrec + settle;
         let (u, i, x) = (&u[from..], &i[from..], &x[from..]);
         let (um, im, xm) = (mean(u), mean(i), mean(x));
         let uac: Vec<f64> = u.iter().map(|v| v - um).collect();
         let iac: Vec<f64> = i.iter().map(|v| v - im).collect();
-        let fit = fit_linear_record(&uac, &iac, fs, &format!("working point {:.3} V, {:.3} N", u_dc, push.force), &LinearOptions::default(), |_| {})?;
+        let fit = fit_linear_record(
+            &uac,
+            &iac,
+            fs,
+            &format!("working point {:.3} V, {:.3} N", u_dc, push.force),
+            &LinearOptions::default(),
+            |_| {},
+        )?;
         // An added mass moves with the cone: the small-signal fit's absolute scale.
         let mut p = scale_by_mms(&fit, opts.mms + push.added_mass)?;
         p.mms = opts.mms;
@@ -303,7 +343,10 @@ fn point_by_point(play: &mut dyn FnMut(&[f64], Push) -> Result<Played, String>, 
         let re_dc = if u_dc != 0.0 { um / im } else { p.re };
         // The fit's own sds, with a floor of POINT_SD_FLOOR for what a linear fit of a small
         // signal on a nonlinear driver leaves (see the constant).
-        let (bl_sd, le_sd) = ((0.5 * fit.sigma_rel[5]).max(POINT_SD_FLOOR) * p.bl.c[0], fit.sigma_rel[1].max(POINT_SD_FLOOR) * p.le.c[0]);
+        let (bl_sd, le_sd) = (
+            (0.5 * fit.sigma_rel[5]).max(POINT_SD_FLOOR) * p.bl.c[0],
+            fit.sigma_rel[1].max(POINT_SD_FLOOR) * p.le.c[0],
+        );
         let wp = WorkingPoint {
             u_dc,
             i_dc: im,
@@ -406,14 +449,20 @@ fn point_by_point(play: &mut dyn FnMut(&[f64], Push) -> Result<Played, String>, 
             p.kms_static = (p.force + bl.eval(x) * i + 0.5 * dle.eval(x) * i * i) / x;
             // Through Bl when the current holds the point; a force is known (a mass, a
             // pressure): its own share, taken as the floor.
-            p.kms_sd = if p.force != 0.0 { (p.kms_static * POINT_SD_FLOOR).abs() } else { (p.kms_static * p.bl_sd / p.bl_eff).abs() };
+            p.kms_sd = if p.force != 0.0 {
+                (p.kms_static * POINT_SD_FLOOR).abs()
+            } else {
+                (p.kms_static * p.bl_sd / p.bl_eff).abs()
+            };
         }
     }
     // Kms: the static secants only (at rest the secant is 0/0; the small signal's stiffness
     // there is the dynamic one, which a creeping suspension holds above the static).
-    let (kx, ky): (Vec<f64>, Vec<f64>) = pts.iter().filter(|p| p.kms_static.is_finite()).map(|p| (p.x_dc, p.kms_static)).unzip();
+    let (kx, ky): (Vec<f64>, Vec<f64>) =
+        pts.iter().filter(|p| p.kms_static.is_finite()).map(|p| (p.x_dc, p.kms_static)).unzip();
     if kx.len() < 2 {
-        let seen: Vec<String> = pts.iter().map(|p| format!("{:.3} V: x {:.4} mm, Bl_eff {:.4}", p.u_dc, p.x_dc * 1e3, p.bl_eff)).collect();
+        let seen: Vec<String> =
+            pts.iter().map(|p| format!("{:.3} V: x {:.4} mm, Bl_eff {:.4}", p.u_dc, p.x_dc * 1e3, p.bl_eff)).collect();
         return Err(format!("only {} working point(s) gave a static stiffness, at least 2 are needed: the coil did not move off rest, or the small-signal fits at the points failed (raise the small signal's level) ({})", kx.len(), seen.join(", ")));
     }
     let ks: Vec<f64> = pts.iter().filter(|p| p.kms_static.is_finite()).map(|p| p.kms_sd).collect();
@@ -440,6 +489,14 @@ fn point_by_point(play: &mut dyn FnMut(&[f64], Push) -> Result<Played, String>, 
             opts.order + 4 + (opts.order % 2)
         ));
     }
-    let params = Parameters { re: p0.re, bl, kms, le, x_range: Some([lo, hi]), source: Some(format!("coilscope quasistatic (point by point, offset by {})", opts.offset.name())), ..p0 };
+    let params = Parameters {
+        re: p0.re,
+        bl,
+        kms,
+        le,
+        x_range: Some([lo, hi]),
+        source: Some(format!("coilscope quasistatic (point by point, offset by {})", opts.offset.name())),
+        ..p0
+    };
     Ok(QuasiStatic { points: pts, params, rest_drift, k_dynamic_rest, warnings, bands: [bl_band, kms_band, le_band] })
 }

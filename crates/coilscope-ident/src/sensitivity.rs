@@ -106,7 +106,9 @@ fn columns(layout: &Layout) -> Option<Vec<Column>> {
 /// per sample (a woofer's final fit) or one step of the midpoint rule (a woofer's search
 /// stages, [`crate::large::OutputError::searching`]).
 pub(crate) fn applies(layout: &Layout, stepper: &Stepper) -> bool {
-    !layout.effects.needs_ext_states() && matches!(stepper.scheme, Scheme::Rk4 | Scheme::Midpoint) && stepper.points() == 3
+    !layout.effects.needs_ext_states()
+        && matches!(stepper.scheme, Scheme::Rk4 | Scheme::Midpoint)
+        && stepper.points() == 3
 }
 
 /// What a model run beside a Jacobian's passes (the residual's, with all its sub-steps)
@@ -183,7 +185,14 @@ impl Dynamics<f64, NSTATE> for Linear<'_> {
         self.stage.set(k + 1);
         let (p, g) = (&self.partials[k], &self.g[k]);
         let (x, v, i, i2) = (s[idx::X], s[idx::V], s[idx::I], s[idx::I2]);
-        [v, p.v_state[0] * x + p.v_state[1] * v + p.v_state[2] * i + g[0], p.i_state[0] * x + p.i_state[1] * v + p.i_state[2] * i + p.i_state[3] * i2 + g[1], p.i2_state[0] * i + p.i2_state[1] * i2 + g[2], 0.0, 0.0]
+        [
+            v,
+            p.v_state[0] * x + p.v_state[1] * v + p.v_state[2] * i + g[0],
+            p.i_state[0] * x + p.i_state[1] * v + p.i_state[2] * i + p.i_state[3] * i2 + g[1],
+            p.i2_state[0] * i + p.i2_state[1] * i2 + g[2],
+            0.0,
+            0.0,
+        ]
     }
 }
 
@@ -195,14 +204,37 @@ impl Dynamics<f64, NSTATE> for Linear<'_> {
 /// the input points from `stepper`, `y = 0` at the start. A run that leaves the finite
 /// numbers or is stopped (`stop`, looked at every 4096 samples) leaves the rest at zero.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn pass(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], u: &[f64], fs: f64, stepper: &Stepper, fit: std::ops::Range<usize>, stop: Option<&AtomicBool>, block: &mut [f64]) {
+pub(crate) fn pass(
+    layout: &Layout,
+    heat: &[Vec<f64>],
+    th: &[f64],
+    cols: &[usize],
+    u: &[f64],
+    fs: f64,
+    stepper: &Stepper,
+    fit: std::ops::Range<usize>,
+    stop: Option<&AtomicBool>,
+    block: &mut [f64],
+) {
     pass_on(layout, heat, th, cols, u, fs, stepper, fit, stop, block, true);
 }
 
 /// [`pass`], compiled for AVX when `avx` and the CPU has it, for the baseline otherwise (the
 /// test that the two give the same bits).
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn pass_on(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], u: &[f64], fs: f64, stepper: &Stepper, fit: std::ops::Range<usize>, stop: Option<&AtomicBool>, block: &mut [f64], avx: bool) {
+pub(crate) fn pass_on(
+    layout: &Layout,
+    heat: &[Vec<f64>],
+    th: &[f64],
+    cols: &[usize],
+    u: &[f64],
+    fs: f64,
+    stepper: &Stepper,
+    fit: std::ops::Range<usize>,
+    stop: Option<&AtomicBool>,
+    block: &mut [f64],
+    avx: bool,
+) {
     let (knots, sizes, dt) = (layout.model(th).1, layout.heat_sizes(th), 1.0 / fs);
     // Re(t) as the model's runs take it, and its weights on the knots.
     let re = |m: usize| {
@@ -234,13 +266,36 @@ pub(crate) struct Run<'a> {
 /// nothing is contracted into a fused multiply-add
 /// (`the_avx_pass_is_the_baseline_pass_to_the_last_bit`).
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn pass_from(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], fs: f64, stepper: &Stepper, run: &Run, re: impl Fn(usize) -> (f64, usize, f64), stop: Option<&AtomicBool>, block: &mut [f64]) {
+pub(crate) fn pass_from(
+    layout: &Layout,
+    heat: &[Vec<f64>],
+    th: &[f64],
+    cols: &[usize],
+    fs: f64,
+    stepper: &Stepper,
+    run: &Run,
+    re: impl Fn(usize) -> (f64, usize, f64),
+    stop: Option<&AtomicBool>,
+    block: &mut [f64],
+) {
     pass_from_on(layout, heat, th, cols, fs, stepper, run, re, stop, block, true);
 }
 
 /// [`pass_from`] compiled for AVX when `avx` and the CPU has it, for the baseline otherwise.
 #[allow(clippy::too_many_arguments)]
-fn pass_from_on(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], fs: f64, stepper: &Stepper, run: &Run, re: impl Fn(usize) -> (f64, usize, f64), stop: Option<&AtomicBool>, block: &mut [f64], avx: bool) {
+fn pass_from_on(
+    layout: &Layout,
+    heat: &[Vec<f64>],
+    th: &[f64],
+    cols: &[usize],
+    fs: f64,
+    stepper: &Stepper,
+    run: &Run,
+    re: impl Fn(usize) -> (f64, usize, f64),
+    stop: Option<&AtomicBool>,
+    block: &mut [f64],
+    avx: bool,
+) {
     #[cfg(target_arch = "x86_64")]
     if avx && std::arch::is_x86_feature_detected!("avx") {
         // SAFETY: the CPU has AVX (checked just above).
@@ -254,14 +309,36 @@ fn pass_from_on(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx")]
 #[allow(clippy::too_many_arguments)]
-fn pass_from_avx(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], fs: f64, stepper: &Stepper, run: &Run, re: impl Fn(usize) -> (f64, usize, f64), stop: Option<&AtomicBool>, block: &mut [f64]) {
+fn pass_from_avx(
+    layout: &Layout,
+    heat: &[Vec<f64>],
+    th: &[f64],
+    cols: &[usize],
+    fs: f64,
+    stepper: &Stepper,
+    run: &Run,
+    re: impl Fn(usize) -> (f64, usize, f64),
+    stop: Option<&AtomicBool>,
+    block: &mut [f64],
+) {
     pass_from_body(layout, heat, th, cols, fs, stepper, run, re, stop, block);
 }
 
 /// [`pass_from`]'s work, inlined into each of its two callers (the baseline's and AVX's).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn pass_from_body(layout: &Layout, heat: &[Vec<f64>], th: &[f64], cols: &[usize], fs: f64, stepper: &Stepper, run: &Run, re: impl Fn(usize) -> (f64, usize, f64), stop: Option<&AtomicBool>, block: &mut [f64]) {
+fn pass_from_body(
+    layout: &Layout,
+    heat: &[Vec<f64>],
+    th: &[f64],
+    cols: &[usize],
+    fs: f64,
+    stepper: &Stepper,
+    run: &Run,
+    re: impl Fn(usize) -> (f64, usize, f64),
+    stop: Option<&AtomicBool>,
+    block: &mut [f64],
+) {
     let all = columns(layout).expect("a layout without creep or LR-3 (applies)");
     let kinds: Vec<Column> = cols.iter().map(|&c| all[c]).collect();
     let mut model = layout.model(th).0;
@@ -428,12 +505,26 @@ impl Columns {
         let [ax, av, ai, ai2] = &mut self.sum;
         let (ax, av, ai, ai2) = (&mut ax[..n], &mut av[..n], &mut ai[..n], &mut ai2[..n]);
         for c in 0..n {
-            let (x, v, i, i2) = if ST == 0 { (sx[c], sv[c], si[c], si2[c]) } else { (sx[c] + kx[c] * a, sv[c] + kv[c] * a, si[c] + ki[c] * a, si2[c] + ki2[c] * a) };
-            let k = [v, pv[0] * x + pv[1] * v + pv[2] * i + g0[c], pi[0] * x + pi[1] * v + pi[2] * i + pi[3] * i2 + g1[c], p2[0] * i + p2[1] * i2 + g2[c]];
+            let (x, v, i, i2) = if ST == 0 {
+                (sx[c], sv[c], si[c], si2[c])
+            } else {
+                (sx[c] + kx[c] * a, sv[c] + kv[c] * a, si[c] + ki[c] * a, si2[c] + ki2[c] * a)
+            };
+            let k = [
+                v,
+                pv[0] * x + pv[1] * v + pv[2] * i + g0[c],
+                pi[0] * x + pi[1] * v + pi[2] * i + pi[3] * i2 + g1[c],
+                p2[0] * i + p2[1] * i2 + g2[c],
+            ];
             if ST == 0 {
                 [ax[c], av[c], ai[c], ai2[c]] = k;
             } else if ST == 2 {
-                [ax[c], av[c], ai[c], ai2[c]] = [ax[c] + (kx[c] + k[0]) * 2.0, av[c] + (kv[c] + k[1]) * 2.0, ai[c] + (ki[c] + k[2]) * 2.0, ai2[c] + (ki2[c] + k[3]) * 2.0];
+                [ax[c], av[c], ai[c], ai2[c]] = [
+                    ax[c] + (kx[c] + k[0]) * 2.0,
+                    av[c] + (kv[c] + k[1]) * 2.0,
+                    ai[c] + (ki[c] + k[2]) * 2.0,
+                    ai2[c] + (ki2[c] + k[3]) * 2.0,
+                ];
             } else if ST == 3 {
                 [ax[c], av[c], ai[c], ai2[c]] = [ax[c] + k[0], av[c] + k[1], ai[c] + k[2], ai2[c] + k[3]];
             }
@@ -466,9 +557,18 @@ mod tests {
                     assert_eq!(w.iter().sum::<usize>(), n, "{n} columns, {t} workers, {leads} runs: {w:?}");
                     assert!(!w.is_empty() && w.len() <= k, "{n}, {t}, {leads}: {w:?}");
                     // Each worker's load in columns (a run RUN_COLUMNS), the runs' workers last.
-                    let loads: Vec<usize> = if leads == 0 || k <= leads { w.clone() } else { (0..k).map(|j| if j < k - leads { w[j] } else { RUN_COLUMNS + w.get(j).copied().unwrap_or(0) }).collect() };
+                    let loads: Vec<usize> = if leads == 0 || k <= leads {
+                        w.clone()
+                    } else {
+                        (0..k)
+                            .map(|j| if j < k - leads { w[j] } else { RUN_COLUMNS + w.get(j).copied().unwrap_or(0) })
+                            .collect()
+                    };
                     let spread = loads.iter().max().unwrap() - loads.iter().min().unwrap();
-                    assert!(spread <= if leads == 0 || k <= leads { 1 } else { RUN_COLUMNS }, "{n}, {t}, {leads}: {w:?}, loads {loads:?}");
+                    assert!(
+                        spread <= if leads == 0 || k <= leads { 1 } else { RUN_COLUMNS },
+                        "{n}, {t}, {leads}: {w:?}, loads {loads:?}"
+                    );
                 }
             }
         }
@@ -481,7 +581,12 @@ mod tests {
     #[test]
     fn an_undriven_column_decays_to_zero_not_into_subnormals() {
         let h = 1.0 / 48000.0;
-        let p = DerivPartials { v_state: [-4e6, -4e3, 0.0], i_state: [0.0, 0.0, -5e3, 0.0], i2_state: [0.0, -5e3], ..Default::default() };
+        let p = DerivPartials {
+            v_state: [-4e6, -4e3, 0.0],
+            i_state: [0.0, 0.0, -5e3, 0.0],
+            i2_state: [0.0, -5e3],
+            ..Default::default()
+        };
         let partials = [p; STAGES];
         let (mut flushed, mut plain) = (Columns::new(3), Columns::new(3));
         for cols in [&mut flushed, &mut plain] {
@@ -514,10 +619,16 @@ mod tests {
             for s in cols.s.iter_mut() {
                 s.iter_mut().for_each(|v| *v = r(1e-3));
             }
-            let mut plain: Vec<State<f64>> = (0..n).map(|c| [cols.s[0][c], cols.s[1][c], cols.s[2][c], cols.s[3][c], 0.0, 0.0]).collect();
+            let mut plain: Vec<State<f64>> =
+                (0..n).map(|c| [cols.s[0][c], cols.s[1][c], cols.s[2][c], cols.s[3][c], 0.0, 0.0]).collect();
             for _ in 0..200 {
                 // Rates like a woofer's: the mechanical mode ~1e3-1e4 /s, the electrical ~1e4.
-                let partials: [DerivPartials; STAGES] = std::array::from_fn(|_| DerivPartials { v_state: [r(1e7), r(1e2), r(1e3)], i_state: [r(1e5), r(1e4), r(2e4), r(1e4)], i2_state: [r(1e4), r(1e4)], ..Default::default() });
+                let partials: [DerivPartials; STAGES] = std::array::from_fn(|_| DerivPartials {
+                    v_state: [r(1e7), r(1e2), r(1e3)],
+                    i_state: [r(1e5), r(1e4), r(2e4), r(1e4)],
+                    i2_state: [r(1e4), r(1e4)],
+                    ..Default::default()
+                });
                 let mut g = [[[0.0; 3]; STAGES]; 0].to_vec();
                 g.resize(n, [[0.0; 3]; STAGES]);
                 for (c, gc) in g.iter_mut().enumerate() {
@@ -535,7 +646,13 @@ mod tests {
             }
             for c in 0..n {
                 for k in 0..4 {
-                    assert_eq!(cols.s[k][c].to_bits(), plain[c][k].to_bits(), "{n} columns: column {c}, state {k}: {} vs {}", cols.s[k][c], plain[c][k]);
+                    assert_eq!(
+                        cols.s[k][c].to_bits(),
+                        plain[c][k].to_bits(),
+                        "{n} columns: column {c}, state {k}: {} vs {}",
+                        cols.s[k][c],
+                        plain[c][k]
+                    );
                 }
                 assert!(plain[c].iter().all(|v| v.is_finite()) && plain[c][2] != 0.0);
             }

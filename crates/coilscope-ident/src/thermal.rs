@@ -166,12 +166,19 @@ impl Problem for Fit<'_> {
 /// a track without heat (the coil rose by less than 1 K), or of fewer than 100 blocks.
 pub fn fit_thermal(track: &ThermalTrack, start: [f64; 4], offset_sd: f64) -> Result<ThermalFit, String> {
     let n = track.t.len();
-    if n < 100 || track.dtv.len() != n || track.pv.len() != n || track.pm.len() != n || !(track.speed.is_empty() || track.speed.len() == n) {
+    if n < 100
+        || track.dtv.len() != n
+        || track.pv.len() != n
+        || track.pm.len() != n
+        || !(track.speed.is_empty() || track.speed.len() == n)
+    {
         return Err(format!("the thermal track has {n} blocks (at least 100, with rise and powers for each)"));
     }
     let peak = track.dtv.iter().fold(0.0f64, |a, v| a.max(*v));
     if !(peak >= 1.0) {
-        return Err(format!("the voice coil rose by only {peak:.2} K: too little heat to fit the thermal model (play louder or longer)"));
+        return Err(format!(
+            "the voice coil rose by only {peak:.2} K: too little heat to fit the thermal model (play louder or longer)"
+        ));
     }
     if start.iter().any(|v| !(*v > 0.0 && v.is_finite())) {
         return Err(format!("thermal start values {start:?} must be positive"));
@@ -186,8 +193,11 @@ pub fn fit_thermal(track: &ThermalTrack, start: [f64; 4], offset_sd: f64) -> Res
     let (lo, hi) = speeds.iter().fold((f64::INFINITY, 0.0f64), |a, &v| (a.0.min(v), a.1.max(v)));
     if speeds.len() < n || !(hi > 0.0) || hi < 1.5 * lo {
         let mut f = plain;
-        f.convection_note =
-            if speeds.is_empty() { "convection not tested: no speed track".into() } else { format!("convection not tested: the coil's mean speed stayed within {:.3} .. {:.3} m/s (a level schedule with a cooling phase tells it)", lo, hi) };
+        f.convection_note = if speeds.is_empty() {
+            "convection not tested: no speed track".into()
+        } else {
+            format!("convection not tested: the coil's mean speed stayed within {:.3} .. {:.3} m/s (a level schedule with a cooling phase tells it)", lo, hi)
+        };
         return Ok(f);
     }
     // A convection fit the track cannot support (a singular covariance) leaves the plain fit.
@@ -203,7 +213,11 @@ pub fn fit_thermal(track: &ThermalTrack, start: [f64; 4], offset_sd: f64) -> Res
     let supported = rv > 3.0 * sd && with.residual_k < 0.95 * plain.residual_k;
     let note = format!(
         "convection {}: rv {rv:.4} +- {sd:.4} s/m; the tracked rise's residual {:.4} K with it, {:.4} K without",
-        if supported { "kept (rv above 3 sd, the residual 5 % or more lower)" } else { "not supported by the data (left out)" },
+        if supported {
+            "kept (rv above 3 sd, the residual 5 % or more lower)"
+        } else {
+            "not supported by the data (left out)"
+        },
         with.residual_k,
         plain.residual_k
     );
@@ -214,7 +228,12 @@ pub fn fit_thermal(track: &ThermalTrack, start: [f64; 4], offset_sd: f64) -> Res
 
 /// One fit of [`fit_thermal`]: without convection (`from` `None`, multi-start), or with it
 /// from the plain fit `from`.
-fn fit_variant(track: &ThermalTrack, start: [f64; 4], offset_sd: f64, from: Option<&ThermalFit>) -> Result<ThermalFit, String> {
+fn fit_variant(
+    track: &ThermalTrack,
+    start: [f64; 4],
+    offset_sd: f64,
+    from: Option<&ThermalFit>,
+) -> Result<ThermalFit, String> {
     let n = track.t.len();
     let peak = track.dtv.iter().fold(0.0f64, |a, v| a.max(*v));
     let prob = Fit { tr: track, convection: from.is_some() };
@@ -267,14 +286,28 @@ fn fit_variant(track: &ThermalTrack, start: [f64; 4], offset_sd: f64, from: Opti
     let (r, j) = prob.residual_jacobian(&s.theta);
     let dt = (track.t[n - 1] - track.t[0]) / (n - 1) as f64;
     let cluster = ((COVARIANCE_BLOCK_S / dt.max(1e-9)) as usize).max(1);
-    let cov = crate::lm::sandwich_covariance(&j, &r, cluster).ok_or("the thermal fit's covariance is singular: the track does not tell the parameters apart")?;
+    let cov = crate::lm::sandwich_covariance(&j, &r, cluster)
+        .ok_or("the thermal fit's covariance is singular: the track does not tell the parameters apart")?;
     // An offset of the tracked rise adds to it: the residual moves by -1 per kelvin.
-    let cov = if offset_sd > 0.0 { crate::large::with_nuisance(cov, &j, &DVector::from_element(n, -1.0), offset_sd) } else { cov };
+    let cov = if offset_sd > 0.0 {
+        crate::large::with_nuisance(cov, &j, &DVector::from_element(n, -1.0), offset_sd)
+    } else {
+        cov
+    };
     let values: [f64; 4] = std::array::from_fn(|k| s.theta[k].exp());
     // sd of exp(theta) to first order.
     let sd: [f64; 4] = std::array::from_fn(|k| values[k] * crate::lm::sd_from_variance(cov[(k, k)]));
     let rv = prob.convection.then(|| (s.theta[5], crate::lm::sd_from_variance(cov[(5, 5)])));
-    Ok(ThermalFit { values, sd, lag_s: s.theta[4], lag_sd: crate::lm::sd_from_variance(cov[(4, 4)]), residual_k: (r.norm_squared() / n as f64).sqrt(), peak_k: peak, rv, convection_note: String::new() })
+    Ok(ThermalFit {
+        values,
+        sd,
+        lag_s: s.theta[4],
+        lag_sd: crate::lm::sd_from_variance(cov[(4, 4)]),
+        residual_k: (r.norm_squared() / n as f64).sqrt(),
+        peak_k: peak,
+        rv,
+        convection_note: String::new(),
+    })
 }
 
 #[cfg(test)]
@@ -311,8 +344,27 @@ mod tests {
         assert!((fit.lag_s - 0.3).abs() < 0.05, "lag {} +- {}", fit.lag_s, fit.lag_sd);
         for k in 0..4 {
             let z = (fit.values[k] - truth[k]).abs() / fit.sd[k];
-            assert!((fit.values[k] / truth[k] - 1.0).abs() < 0.05 && z < 4.0, "{}: {} +- {} (true {})", ThermalFit::NAMES[k], fit.values[k], fit.sd[k], truth[k]);
+            assert!(
+                (fit.values[k] / truth[k] - 1.0).abs() < 0.05 && z < 4.0,
+                "{}: {} +- {} (true {})",
+                ThermalFit::NAMES[k],
+                fit.values[k],
+                fit.sd[k],
+                truth[k]
+            );
         }
-        assert!(fit_thermal(&ThermalTrack { dtv: vec![0.1; 200], t: (0..200).map(|k| k as f64).collect(), pv: vec![0.0; 200], pm: vec![0.0; 200], speed: vec![] }, truth, 0.0).unwrap_err().contains("too little heat"));
+        assert!(fit_thermal(
+            &ThermalTrack {
+                dtv: vec![0.1; 200],
+                t: (0..200).map(|k| k as f64).collect(),
+                pv: vec![0.0; 200],
+                pm: vec![0.0; 200],
+                speed: vec![]
+            },
+            truth,
+            0.0
+        )
+        .unwrap_err()
+        .contains("too little heat"));
     }
 }

@@ -57,14 +57,17 @@ impl VolterraFit {
             _ => (&self.params.le, 4),
         };
         let c0 = f.c[0];
-        let x: Vec<f64> = (0..points).map(|j| range[0] + (range[1] - range[0]) * j as f64 / (points - 1).max(1) as f64).collect();
+        let x: Vec<f64> =
+            (0..points).map(|j| range[0] + (range[1] - range[0]) * j as f64 / (points - 1).max(1) as f64).collect();
         let value = x.iter().map(|&v| f.eval(v)).collect();
         let sd = x
             .iter()
             .map(|&v| {
                 let g = [c0 * v / self.xs, c0 * (v / self.xs).powi(2)];
                 let c = &self.cov;
-                (g[0] * g[0] * c[(k, k)] + 2.0 * g[0] * g[1] * c[(k, k + 1)] + g[1] * g[1] * c[(k + 1, k + 1)]).max(0.0).sqrt()
+                (g[0] * g[0] * c[(k, k)] + 2.0 * g[0] * g[1] * c[(k, k + 1)] + g[1] * g[1] * c[(k + 1, k + 1)])
+                    .max(0.0)
+                    .sqrt()
             })
             .collect();
         coilscope_core::result::Band { x, value, sd }
@@ -84,7 +87,12 @@ impl Kernels<'_> {
     fn params(&self, th: &[f64]) -> Parameters {
         let s = self.start;
         let series = |c0: f64, a: f64, b: f64| Poly { c: vec![c0, c0 * a / self.xs, c0 * b / (self.xs * self.xs)] };
-        Parameters { bl: series(s.bl.c[0], th[0], th[1]), kms: series(s.kms.c[0], th[2], th[3]), le: series(s.le.c[0], th[4], th[5]), ..s.clone() }
+        Parameters {
+            bl: series(s.bl.c[0], th[0], th[1]),
+            kms: series(s.kms.c[0], th[2], th[3]),
+            le: series(s.le.c[0], th[4], th[5]),
+            ..s.clone()
+        }
     }
 }
 
@@ -122,14 +130,28 @@ pub use coilscope_core::excitation::{is_readable_multitone, readable_multitone};
 /// steady-state response, as [`Harmonics`] for [`identify_volterra`]: the line at `2 f_k`
 /// and `3 f_k` over the fundamental, each rotated back by the tone's phase (`a_k = A e^{j
 /// phi}` turns `H2 a^2 / (H1 a)` by `phi` and `H3 a^3 / (H1 a)` by `2 phi`).
-pub fn multitone_harmonics(r: &coilscope_analysis::distortion::Response, tones: &[coilscope_analysis::distortion::Tone]) -> Vec<Harmonics> {
+pub fn multitone_harmonics(
+    r: &coilscope_analysis::distortion::Response,
+    tones: &[coilscope_analysis::distortion::Tone],
+) -> Vec<Harmonics> {
     tones
         .iter()
         .map(|t| {
             let f1 = r.line(Output::Current, t.bin);
             let rot = |k: i32| C::from_polar(1.0, -(k as f64) * t.phase);
-            let lines = vec![(2usize, r.line(Output::Current, 2 * t.bin) / f1 * rot(1)), (3usize, r.line(Output::Current, 3 * t.bin) / f1 * rot(2))];
-            Harmonics { freq: r.freq(t.bin), volts: t.amplitude / std::f64::consts::SQRT_2, output: Output::Current, fundamental: f1, lines, x_dc: r.x_dc(), x_peak: r.x_peak }
+            let lines = vec![
+                (2usize, r.line(Output::Current, 2 * t.bin) / f1 * rot(1)),
+                (3usize, r.line(Output::Current, 3 * t.bin) / f1 * rot(2)),
+            ];
+            Harmonics {
+                freq: r.freq(t.bin),
+                volts: t.amplitude / std::f64::consts::SQRT_2,
+                output: Output::Current,
+                fundamental: f1,
+                lines,
+                x_dc: r.x_dc(),
+                x_peak: r.x_peak,
+            }
         })
         .collect()
 }
@@ -152,12 +174,22 @@ fn line_sd(noise: f64, size: f64) -> f64 {
 /// of the imaginary) part of tone `k`'s 2nd and 3rd harmonic ratio. The residual is weighted
 /// by it (with a floor of 1e-3 of the tone's distortion, so that a noise-free line does not
 /// take all the weight), and the fit reports its `chi2_dof`.
-pub fn identify_volterra_weighted(start: &Parameters, measured: &[Harmonics], noise: Option<&[[f64; 2]]>) -> Result<VolterraFit, String> {
+pub fn identify_volterra_weighted(
+    start: &Parameters,
+    measured: &[Harmonics],
+    noise: Option<&[[f64; 2]]>,
+) -> Result<VolterraFit, String> {
     if measured.len() < 2 {
-        return Err(format!("{} tone(s): the Volterra fit needs the harmonics of at least two frequencies", measured.len()));
+        return Err(format!(
+            "{} tone(s): the Volterra fit needs the harmonics of at least two frequencies",
+            measured.len()
+        ));
     }
     if let Some(h) = measured.iter().find(|h| h.output != Output::Current) {
-        return Err(format!("the tone at {} Hz gives {:?}; the Volterra fit reads the current's harmonics", h.freq, h.output));
+        return Err(format!(
+            "the tone at {} Hz gives {:?}; the Volterra fit reads the current's harmonics",
+            h.freq, h.output
+        ));
     }
     let xs = start.x_range.map_or(1e-3, |[lo, hi]| 0.5 * hi.min(-lo));
     if let Some(n) = noise {
@@ -178,7 +210,8 @@ pub fn identify_volterra_weighted(start: &Parameters, measured: &[Harmonics], no
         .collect();
     let prob = Kernels { start, measured, xs, weight };
     let c = |f: &Poly, j: usize| f.c.get(j).copied().unwrap_or(0.0) * xs.powi(j as i32) / f.c[0];
-    let th0 = vec![c(&start.bl, 1), c(&start.bl, 2), c(&start.kms, 1), c(&start.kms, 2), c(&start.le, 1), c(&start.le, 2)];
+    let th0 =
+        vec![c(&start.bl, 1), c(&start.bl, 2), c(&start.kms, 1), c(&start.kms, 2), c(&start.le, 1), c(&start.le, 2)];
     let mut s = LmState::new(&prob, th0);
     for _ in 0..200 {
         s = lm_step(&prob, &s);
@@ -191,11 +224,20 @@ pub fn identify_volterra_weighted(start: &Parameters, measured: &[Harmonics], no
     let var = r.norm_squared() / dof;
     let chi2_dof = noise.map(|_| var);
     let scale = if noise.is_some() { var.max(1.0) } else { var };
-    let cov = (j.transpose() * &j).try_inverse().map(|m| m * scale).unwrap_or_else(|| DMatrix::from_element(6, 6, f64::NAN));
+    let cov =
+        (j.transpose() * &j).try_inverse().map(|m| m * scale).unwrap_or_else(|| DMatrix::from_element(6, 6, f64::NAN));
     // The misfit relative to the measured lines (the unweighted ratios).
-    let unweighted = Kernels { weight: measured.iter().map(|h| [1.0 / (h.hd(2) + h.hd(3)).max(1e-12); 2]).collect(), ..prob };
+    let unweighted =
+        Kernels { weight: measured.iter().map(|h| [1.0 / (h.hd(2) + h.hd(3)).max(1e-12); 2]).collect(), ..prob };
     let ru = unweighted.residual(&s.theta);
-    Ok(VolterraFit { params: unweighted.params(&s.theta), misfit: (ru.norm_squared() / (ru.len() as f64 / 2.0)).sqrt() / 2f64.sqrt(), theta: s.theta, cov, xs, chi2_dof })
+    Ok(VolterraFit {
+        params: unweighted.params(&s.theta),
+        misfit: (ru.norm_squared() / (ru.len() as f64 / 2.0)).sqrt() / 2f64.sqrt(),
+        theta: s.theta,
+        cov,
+        xs,
+        chi2_dof,
+    })
 }
 
 /// The tone lines of a recorded [`coilscope_core::excitation::Excitation::Readable`]
@@ -230,7 +272,10 @@ impl RecordLines {
                 .map(|p| {
                     let (u, i) = (self.u[p][k], self.i[p][k]);
                     let phi = u[0].arg();
-                    [(i[1] - u[1] * y[0]) / i[0] * C::from_polar(1.0, -phi), (i[2] - u[2] * y[1]) / i[0] * C::from_polar(1.0, -2.0 * phi)]
+                    [
+                        (i[1] - u[1] * y[0]) / i[0] * C::from_polar(1.0, -phi),
+                        (i[2] - u[2] * y[1]) / i[0] * C::from_polar(1.0, -2.0 * phi),
+                    ]
                 })
                 .collect();
             let mean = [0, 1].map(|o| per.iter().map(|r| r[o]).sum::<C>() / np as f64);
@@ -243,7 +288,15 @@ impl RecordLines {
             });
             let u1 = self.u.iter().map(|u| u[k][0].norm()).sum::<f64>() / np as f64;
             let i1 = self.i.iter().map(|i| i[k][0]).sum::<C>() / np as f64;
-            out.push(Harmonics { freq: f, volts: u1 / std::f64::consts::SQRT_2, output: Output::Current, fundamental: i1, lines: vec![(2, mean[0]), (3, mean[1])], x_dc: f64::NAN, x_peak: [f64::NAN; 2] });
+            out.push(Harmonics {
+                freq: f,
+                volts: u1 / std::f64::consts::SQRT_2,
+                output: Output::Current,
+                fundamental: i1,
+                lines: vec![(2, mean[0]), (3, mean[1])],
+                x_dc: f64::NAN,
+                x_peak: [f64::NAN; 2],
+            });
             noise.push(sd);
         }
         (out, noise)
@@ -265,7 +318,8 @@ pub fn record_lines(u: &[f64], i: &[f64], fs: f64, origin: &str) -> Result<Recor
     let levels: Vec<f64> = (0..periods).map(rms).collect();
     let med = crate::checks::median(levels.clone());
     // Steady: the level of the middle periods (the fades change it), after the first such.
-    let steady: Vec<usize> = (0..periods).filter(|&k| med > 0.0 && (levels[k] / med - 1.0).abs() < 1e-3).skip(1).collect();
+    let steady: Vec<usize> =
+        (0..periods).filter(|&k| med > 0.0 && (levels[k] / med - 1.0).abs() < 1e-3).skip(1).collect();
     if steady.len() < 3 && periods >= 5 {
         return Err(format!(
             "{origin}: the voltage's level changes from one {READABLE_PERIOD} s period to the next ({} of {periods} periods at the median level): not a periodic multitone. The Volterra method reads the lines of `--excitation readable` (noise and music are for the full identification, `--method full`)",
@@ -286,7 +340,8 @@ pub fn record_lines(u: &[f64], i: &[f64], fs: f64, origin: &str) -> Result<Recor
     let top = mean_mag.iter().skip(1).cloned().fold(0.0, f64::max);
     let bins: Vec<usize> = (1..nb).filter(|&b| mean_mag[b] > 1e-3 * top).collect();
     // The voltage must repeat: the periods' spectra agree on the tones.
-    let spread = us.iter().map(|s| bins.iter().map(|&b| (s[b] - us[0][b]).norm()).fold(0.0, f64::max)).fold(0.0, f64::max);
+    let spread =
+        us.iter().map(|s| bins.iter().map(|&b| (s[b] - us[0][b]).norm()).fold(0.0, f64::max)).fold(0.0, f64::max);
     if spread > 1e-2 * top {
         return Err(format!("{origin}: the voltage is not periodic in {READABLE_PERIOD} s (the tones change by {:.1} % between periods): the Volterra method needs `--excitation readable`", 100.0 * spread / top));
     }
@@ -294,7 +349,10 @@ pub fn record_lines(u: &[f64], i: &[f64], fs: f64, origin: &str) -> Result<Recor
         return Err(format!("{origin}: {} tone(s) in the voltage; the Volterra fit needs at least two", bins.len()));
     }
     if 3 * bins[bins.len() - 1] >= (0.45 * fs * READABLE_PERIOD) as usize {
-        return Err(format!("{origin}: the highest tone ({} Hz) has its 3rd harmonic above 0.45 of the rate {fs} Hz", bins[bins.len() - 1]));
+        return Err(format!(
+            "{origin}: the highest tone ({} Hz) has its 3rd harmonic above 0.45 of the rate {fs} Hz",
+            bins[bins.len() - 1]
+        ));
     }
     if !coilscope_core::excitation::is_readable_multitone(&bins) {
         return Err(format!(
@@ -304,7 +362,9 @@ pub fn record_lines(u: &[f64], i: &[f64], fs: f64, origin: &str) -> Result<Recor
             bins[bins.len() - 1]
         ));
     }
-    let take = |s: &Vec<Vec<C>>| -> Vec<Vec<[C; 3]>> { s.iter().map(|sp| bins.iter().map(|&b| [sp[b], sp[2 * b], sp[3 * b]]).collect()).collect() };
+    let take = |s: &Vec<Vec<C>>| -> Vec<Vec<[C; 3]>> {
+        s.iter().map(|sp| bins.iter().map(|&b| [sp[b], sp[2 * b], sp[3 * b]]).collect()).collect()
+    };
     Ok(RecordLines { u: take(&us), i: take(&is), bins, starts: steady.iter().map(|&k| k * np).collect() })
 }
 
@@ -316,7 +376,12 @@ pub fn record_lines(u: &[f64], i: &[f64], fs: f64, origin: &str) -> Result<Recor
 /// this level; above 1 the truncation moves the lines by more than the noise, and the fit
 /// has taken that into its coefficients (biased, however well the kernels fit the lines:
 /// the paper's feed-back of the distortion).
-pub fn truncation_check(fit: &VolterraFit, lines: &RecordLines, measured: &[Harmonics], noise: &[[f64; 2]]) -> Result<f64, String> {
+pub fn truncation_check(
+    fit: &VolterraFit,
+    lines: &RecordLines,
+    measured: &[Harmonics],
+    noise: &[[f64; 2]],
+) -> Result<f64, String> {
     use coilscope_analysis::distortion::{steady_state, Periodic, SteadyOptions, Tone};
     let np = lines.u.len() as f64;
     let tones: Vec<Tone> = lines
@@ -331,7 +396,8 @@ pub fn truncation_check(fit: &VolterraFit, lines: &RecordLines, measured: &[Harm
     let period = coilscope_core::excitation::READABLE_PERIOD;
     // The series are fitted for the record's small reach, not for the start's range.
     let q = Parameters { x_range: None, ..fit.params.clone() };
-    let r = steady_state(&q, &Periodic { period, tones: tones.clone() }, &SteadyOptions::default()).map_err(|e| format!("the truncation check's steady state: {e}"))?;
+    let r = steady_state(&q, &Periodic { period, tones: tones.clone() }, &SteadyOptions::default())
+        .map_err(|e| format!("the truncation check's steady state: {e}"))?;
     let full = multitone_harmonics(&r, &tones);
     let mut sum = 0.0;
     let mut count = 0usize;
@@ -390,9 +456,14 @@ pub fn level_study(p: &Parameters, fracs: &[f64]) -> Result<Vec<LevelRow>, Strin
     start.bl = Poly::constant(p.bl.c[0]);
     start.kms = Poly::constant(p.kms.c[0]);
     start.le = Poly::constant(p.le.c[0]);
-    let tones = |g: f64| -> Vec<Tone> { bins.iter().enumerate().map(|(k, &bin)| Tone { bin, amplitude: g, phase: 1.7 * k as f64 }).collect() };
+    let tones = |g: f64| -> Vec<Tone> {
+        bins.iter().enumerate().map(|(k, &bin)| Tone { bin, amplitude: g, phase: 1.7 * k as f64 }).collect()
+    };
     let opts = SteadyOptions::default();
-    let run = |g: f64| steady_state(p, &Periodic { period: coilscope_core::excitation::READABLE_PERIOD, tones: tones(g) }, &opts).map_err(|e| e.to_string());
+    let run = |g: f64| {
+        steady_state(p, &Periodic { period: coilscope_core::excitation::READABLE_PERIOD, tones: tones(g) }, &opts)
+            .map_err(|e| e.to_string())
+    };
     let mut rows = vec![];
     let mut g = 0.1;
     for &frac in fracs {

@@ -34,7 +34,13 @@ fn slow_branch_sb17() -> (coilscope_core::Parameters, [f64; 4]) {
 }
 
 /// `identify` (the effects chosen) of a trace with 70 dB of sensor noise on both channels.
-fn identify_noisy(mut u: Vec<f64>, mut i: Vec<f64>, fs: f64, truth: &coilscope_core::Parameters, origin: &str) -> coilscope_ident::large::LargeFit {
+fn identify_noisy(
+    mut u: Vec<f64>,
+    mut i: Vec<f64>,
+    fs: f64,
+    truth: &coilscope_core::Parameters,
+    origin: &str,
+) -> coilscope_ident::large::LargeFit {
     add_sensor_noise(&mut u, 70.0, 1, "sensor-noise/voltage");
     add_sensor_noise(&mut i, 70.0, 1, "sensor-noise/current");
     identify(&u, &i, fs, origin, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}).unwrap()
@@ -46,7 +52,11 @@ fn a_slow_second_branch_is_named_lr3() {
     let (truth, [l2, r2, l3, r3]) = slow_branch_sb17();
     let fs = 48000.0;
     let [lo, hi] = truth.x_range.unwrap();
-    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.05, seed: 1 }).unwrap();
+    let unit = generate(
+        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+        &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.05, seed: 1 },
+    )
+    .unwrap();
     let (_, tr) = gain_for_peak(&truth, fs, &unit, 0.85 * hi.min(-lo), &SimOptions::default()).unwrap();
     let fit = identify_noisy(tr.u, tr.i, fs, &truth, "sb17 slow LR-3");
     let q = &fit.params;
@@ -87,7 +97,10 @@ fn a_slow_second_branch_is_named_lr3() {
     // turns); with geodesic acceleration after a step the linearised model missed
     // (`lm_step_accelerated`) it takes 10 (an iteration count, not a time).
     if fit.iterations > 12 {
-        bad.push(format!("the final fit took {} iterations (10 with geodesic acceleration, 16 without)", fit.iterations));
+        bad.push(format!(
+            "the final fit took {} iterations (10 with geodesic acceleration, 16 without)",
+            fit.iterations
+        ));
     }
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
@@ -104,13 +117,25 @@ fn a_slow_second_branch_is_named_lr3() {
 fn a_slow_second_branch_at_3_v_takes_no_other_effect() {
     let (truth, _) = slow_branch_sb17();
     let fs = 48000.0;
-    let u = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: None }, &SignalSpec { fs, seconds: 8.0, rms: 3.0, fade: 0.05, seed: 1 }).unwrap();
+    let u = generate(
+        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: None },
+        &SignalSpec { fs, seconds: 8.0, rms: 3.0, fade: 0.05, seed: 1 },
+    )
+    .unwrap();
     let tr = simulate(&truth, fs, &u, &SimOptions::default()).unwrap();
     let fit = identify_noisy(tr.u, tr.i, fs, &truth, "sb17 slow LR-3 at 3 V");
     let e = Errors::of(&fit.params, &truth, fit.x_range);
-    let tried: Vec<String> = fit.models_tried().iter().map(|t| format!("{} {:?} (before {:?})", t.model, t.validation_rel, t.validation_rel_before)).collect();
+    let tried: Vec<String> = fit
+        .models_tried()
+        .iter()
+        .map(|t| format!("{} {:?} (before {:?})", t.model, t.validation_rel, t.validation_rel_before))
+        .collect();
     println!("{}: {e}; tried {tried:?}", fit.layout.effects.model_name());
     let chosen = fit.layout.effects;
-    assert!(chosen.lr3 && !chosen.creep && !chosen.le_i && !chosen.rms_v, "{} taken (the record has LR-2 and LR-3 only); tried {tried:?}", chosen.model_name());
+    assert!(
+        chosen.lr3 && !chosen.creep && !chosen.le_i && !chosen.rms_v,
+        "{} taken (the record has LR-2 and LR-3 only); tried {tried:?}",
+        chosen.model_name()
+    );
     assert!(e.bl <= 2e-4 && e.kms <= 2e-4, "{e}");
 }

@@ -21,7 +21,11 @@ struct Case {
 
 /// A resistor record through `c`'s chain: 40 s of pink noise from 0.3 Hz, 1 V RMS.
 fn record(c: &Case) -> (Vec<f64>, Vec<f64>, Chain) {
-    let u = generate(&Excitation::Pink { f_lo: 0.3, f_hi: 0.45 * c.fs, crest: None }, &SignalSpec { fs: c.fs, seconds: 40.0, rms: 1.0, fade: 0.0, seed: c.seed }).unwrap();
+    let u = generate(
+        &Excitation::Pink { f_lo: 0.3, f_hi: 0.45 * c.fs, crest: None },
+        &SignalSpec { fs: c.fs, seconds: 40.0, rms: 1.0, fade: 0.0, seed: c.seed },
+    )
+    .unwrap();
     let i: Vec<f64> = u.iter().map(|v| v / c.resistor).collect();
     let peak_i = i.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     let chain = Chain {
@@ -31,7 +35,11 @@ fn record(c: &Case) -> (Vec<f64>, Vec<f64>, Chain) {
         gain_i: Some(c.gain),
         dc_u: 0.004,
         dc_i: -0.01 * peak_i,
-        hum: Some(Hum { f: 50.0, u: vec![[1e-3, 0.3]], i: vec![[1e-3 * peak_i, 1.0], [0.0, 0.0], [3e-4 * peak_i, -0.5]] }),
+        hum: Some(Hum {
+            f: 50.0,
+            u: vec![[1e-3, 0.3]],
+            i: vec![[1e-3 * peak_i, 1.0], [0.0, 0.0], [3e-4 * peak_i, -0.5]],
+        }),
         ..Default::default()
     };
     let (mut ur, mut ir) = chain.apply(&u, &i, c.fs);
@@ -60,7 +68,8 @@ fn calibrate_recovers_delay_corners_and_gain_over_a_sweep() {
             assert!(got.other["note"].as_str().unwrap().contains("only their difference"));
         }
         let sd = |k: &str| got.sd[k];
-        let label = format!("{} Hz, delay {} sample, corners {} / {} Hz, gain {}", c.fs, c.delay, c.hp_u, c.hp_i, c.gain);
+        let label =
+            format!("{} Hz, delay {} sample, corners {} / {} Hz, gain {}", c.fs, c.delay, c.hp_u, c.hp_i, c.gain);
         println!(
             "{label}: delay {:.4} +- {:.4} sample, hp_u {:.3} +- {:.3}, hp_i {:.3} +- {:.3} Hz, gain {:.5} +- {:.1e}, residual {:.2}x noise, {} bins",
             got.delay_i * c.fs,
@@ -75,7 +84,11 @@ fn calibrate_recovers_delay_corners_and_gain_over_a_sweep() {
             cal.bins
         );
         assert!((got.delay_i - truth.delay_i).abs() * c.fs < 0.01, "{label}: delay {} sample", got.delay_i * c.fs);
-        let resolved = if c.hp_u == c.hp_i { vec![] } else { vec![("hp_u", got.hp_u, truth.hp_u), ("hp_i", got.hp_i, truth.hp_i)] };
+        let resolved = if c.hp_u == c.hp_i {
+            vec![]
+        } else {
+            vec![("hp_u", got.hp_u, truth.hp_u), ("hp_i", got.hp_i, truth.hp_i)]
+        };
         for (k, g, t) in resolved {
             // 5 %, or 0.05 Hz for a DC-coupled channel.
             assert!((g - t).abs() <= (0.05 * t).max(0.05), "{label}: {k} {g:.3} Hz");
@@ -84,7 +97,12 @@ fn calibrate_recovers_delay_corners_and_gain_over_a_sweep() {
         let g = got.gain_i.unwrap();
         assert!((g / c.gain - 1.0).abs() < 1e-3, "{label}: gain {g}");
         assert!((g - c.gain).abs() <= 3.0 * sd("gain_i"), "{label}: gain {g} +- {:.2e}", sd("gain_i"));
-        assert!((got.delay_i - truth.delay_i).abs() <= 3.0 * sd("delay_i"), "{label}: delay {} +- {} sample", got.delay_i * c.fs, sd("delay_i") * c.fs);
+        assert!(
+            (got.delay_i - truth.delay_i).abs() <= 3.0 * sd("delay_i"),
+            "{label}: delay {} +- {} sample",
+            got.delay_i * c.fs,
+            sd("delay_i") * c.fs
+        );
     }
 }
 
@@ -99,7 +117,11 @@ fn calibrate_refuses_a_driver_an_inverted_current_and_a_short_record() {
     assert!(e.contains("too short"), "{e}");
     // A driver instead of a resistor.
     let p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
-    let uu = generate(&Excitation::Pink { f_lo: 0.3, f_hi: 20000.0, crest: None }, &SignalSpec { fs: 48000.0, seconds: 40.0, rms: 0.3, fade: 0.05, seed: 8 }).unwrap();
+    let uu = generate(
+        &Excitation::Pink { f_lo: 0.3, f_hi: 20000.0, crest: None },
+        &SignalSpec { fs: 48000.0, seconds: 40.0, rms: 0.3, fade: 0.05, seed: 8 },
+    )
+    .unwrap();
     let tr = coilscope_core::simulate(&p, 48000.0, &uu, &coilscope_core::SimOptions::default()).unwrap();
     let e = calibrate(&tr.u, &tr.i, 48000.0, 3.37, "driver.wav").unwrap_err();
     assert!(e.contains("does not look like a resistor"), "{e}");

@@ -70,7 +70,11 @@ fn identify_estimates_the_chain_and_every_effect_of_18wu_real_all() {
     let (mut bad, fit) = run_fit("18wu-4741t-00", "18wu-4741t-00-real-all.wav", Sds { bands: true, chain: true });
     let tried = fit.models_tried();
     let fitted = tried.iter().filter(|t| t.validation_rel.is_some()).count() - 1;
-    let outscored: Vec<String> = tried.iter().filter(|t| t.outscored_by.is_some()).map(|t| format!("{} (by {})", t.model, t.outscored_by.as_deref().unwrap_or_default())).collect();
+    let outscored: Vec<String> = tried
+        .iter()
+        .filter(|t| t.outscored_by.is_some())
+        .map(|t| format!("{} (by {})", t.model, t.outscored_by.as_deref().unwrap_or_default()))
+        .collect();
     println!("effect trials fitted: {fitted}; outscored, not fitted: {outscored:?}");
     if fitted > 6 {
         bad.push(format!("the effects search fitted {fitted} trials, more than 6"));
@@ -103,10 +107,24 @@ fn run_fit(driver: &str, file: &str, sds: Sds) -> (Vec<String>, coilscope_ident:
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings");
     let rec = coilscope_io::read_recording(&dir.join(file), None).unwrap();
     let fs = rec.fs as f64;
-    let fit = identify(&rec.u, &rec.i, fs, file, &IdentifyOptions { mms: truth.mms, chain: true, ..Default::default() }, |_| {}).unwrap_or_else(|e| panic!("{file}: {e}"));
+    let fit = identify(
+        &rec.u,
+        &rec.i,
+        fs,
+        file,
+        &IdentifyOptions { mms: truth.mms, chain: true, ..Default::default() },
+        |_| {},
+    )
+    .unwrap_or_else(|e| panic!("{file}: {e}"));
     let e = Errors::of(&fit.params, &truth, fit.x_range);
     let r: Vec<f64> = fit.i_phys[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect();
-    let (floor, _) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", coilscope_core::simulate::rms(&fit.i_phys), 0.0);
+    let (floor, _) = coilscope_ident::checks::residual_warnings(
+        &r,
+        fs,
+        "large-signal fit",
+        coilscope_core::simulate::rms(&fit.i_phys),
+        0.0,
+    );
     let c = fit.chain.clone().expect("chain estimated");
     println!("{file}: {e}, residual {:.2e} ({:.2}x floor), chain {c:?}", fit.residual_rel, floor.rms / floor.floor_rms);
     let mut bad = vec![];
@@ -116,7 +134,9 @@ fn run_fit(driver: &str, file: &str, sds: Sds) -> (Vec<String>, coilscope_ident:
     if file.ends_with("-real-all.wav") {
         // The world of these records (recordings README): LOG creep 0.07, L3 = 0.6 L2, R3 =
         // 2.5 R2, Le(i) and Rms(v).
-        let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join(file.replace(".wav", ".info.json"))).unwrap()).unwrap();
+        let info: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join(file.replace(".wav", ".info.json"))).unwrap())
+                .unwrap();
         let w = &info["world"];
         let q = &fit.params;
         let all = coilscope_ident::linear::Effects { creep: true, lr3: true, le_i: true, rms_v: true };
@@ -142,14 +162,23 @@ fn run_fit(driver: &str, file: &str, sds: Sds) -> (Vec<String>, coilscope_ident:
         bad.push(format!("{file}: the truth lies {zmax:.1} sd outside the bands"));
     }
     // The chain against the world of the record.
-    for (key, got, want, tol) in [("delay_i", c.delay_i, 0.3 / fs, 0.01 / fs), ("hp_u", c.hp_u, 2.0, 0.1), ("hp_i", c.hp_i, 4.0, 0.2), ("dc_i", c.dc_i, 1e-3, 5e-5), ("dc_u", c.dc_u, 0.0, 1e-3 * rms(&rec.u))] {
+    for (key, got, want, tol) in [
+        ("delay_i", c.delay_i, 0.3 / fs, 0.01 / fs),
+        ("hp_u", c.hp_u, 2.0, 0.1),
+        ("hp_i", c.hp_i, 4.0, 0.2),
+        ("dc_i", c.dc_i, 1e-3, 5e-5),
+        ("dc_u", c.dc_u, 0.0, 1e-3 * rms(&rec.u)),
+    ] {
         let sd = c.sd[key];
         println!("{key}: {got:.6e} +- {sd:.2e} (true {want:.6e})");
         if (got - want).abs() > tol {
             bad.push(format!("{file}: {key} {got:.4e}, true {want:.4e} (tolerance {tol:.1e})"));
         }
         if sds.chain && (got - want).abs() > 3.0 * sd {
-            bad.push(format!("{file}: {key} {got:.4e} +- {sd:.2e}: the truth {want:.4e} is {:.1} sd away", (got - want).abs() / sd));
+            bad.push(format!(
+                "{file}: {key} {got:.4e} +- {sd:.2e}: the truth {want:.4e} is {:.1} sd away",
+                (got - want).abs() / sd
+            ));
         }
     }
     // Hum: 50 Hz, the 150 Hz line half of it (the current channel's own hum; what the voltage's

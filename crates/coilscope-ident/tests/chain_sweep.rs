@@ -39,10 +39,20 @@ fn case(name: &str, seed: u64, card: Card, effects: Effects) -> Vec<String> {
     let trace = std::env::var_os("COILSCOPE_SWEEP_TRACE").is_some();
     let observe = |pr: &coilscope_ident::large::Progress| {
         if trace {
-            println!("  {:?} it {} error {:.3e} decrease {:.2e}", pr.stage, pr.state.iteration, pr.residual_rel, pr.state.last_decrease);
+            println!(
+                "  {:?} it {} error {:.3e} decrease {:.2e}",
+                pr.stage, pr.state.iteration, pr.residual_rel, pr.state.last_decrease
+            );
         }
     };
-    let fit = match identify(&rec.u, &rec.i, fs, &label, &IdentifyOptions { mms: rec.truth.mms, chain: true, ..Default::default() }, observe) {
+    let fit = match identify(
+        &rec.u,
+        &rec.i,
+        fs,
+        &label,
+        &IdentifyOptions { mms: rec.truth.mms, chain: true, ..Default::default() },
+        observe,
+    ) {
         Ok(f) => f,
         Err(e) => return vec![format!("{label}: {e}")],
     };
@@ -50,13 +60,25 @@ fn case(name: &str, seed: u64, card: Card, effects: Effects) -> Vec<String> {
     let mut bad = vec![];
     let e = Errors::of(&fit.params, &rec.truth, [rec.summary.x_min, rec.summary.x_max]);
     let r: Vec<f64> = fit.i_phys[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect();
-    let (floor, _) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", coilscope_core::simulate::rms(&fit.i_phys), 0.0);
+    let (floor, _) = coilscope_ident::checks::residual_warnings(
+        &r,
+        fs,
+        "large-signal fit",
+        coilscope_core::simulate::rms(&fit.i_phys),
+        0.0,
+    );
     let excess = floor.rms / floor.floor_rms;
     let zmax = common::band_z(&fit, &rec.truth, &["Bl", "Kms", "Le"]);
     let c = fit.chain.clone().expect("the chain is estimated");
     let truth = &rec.chain;
     let mut chain_z = vec![];
-    for (key, got, want) in [("delay_i", c.delay_i * fs, truth.delay_i * fs), ("hp_u", c.hp_u, truth.hp_u), ("hp_i", c.hp_i, truth.hp_i), ("dc_u", c.dc_u, truth.dc_u), ("dc_i", c.dc_i, truth.dc_i)] {
+    for (key, got, want) in [
+        ("delay_i", c.delay_i * fs, truth.delay_i * fs),
+        ("hp_u", c.hp_u, truth.hp_u),
+        ("hp_i", c.hp_i, truth.hp_i),
+        ("dc_u", c.dc_u, truth.dc_u),
+        ("dc_i", c.dc_i, truth.dc_i),
+    ] {
         let sd = c.sd.get(key).copied().unwrap_or(f64::NAN) * if key == "delay_i" { fs } else { 1.0 };
         let z = (got - want).abs() / sd;
         chain_z.push(format!("{key} {got:.4e} ({want:.4e}, {z:.1} sd)"));

@@ -34,7 +34,8 @@ fn harsh(name: &str, seed: u64, effects: Effects) -> Vec<String> {
 /// [`harsh`] at sample rate `fs` (Hz).
 fn harsh_at(name: &str, seed: u64, effects: Effects, fs: f64) -> Vec<String> {
     let rec = record(name, seed, effects, fs, 8.0, |_, _| Chain::default());
-    let (truth, s, (u, i), (lambda, g2, c2)) = (&rec.truth, &rec.summary, (&rec.u, &rec.i), (rec.lambda, rec.g2, rec.c2));
+    let (truth, s, (u, i), (lambda, g2, c2)) =
+        (&rec.truth, &rec.summary, (&rec.u, &rec.i), (rec.lambda, rec.g2, rec.c2));
     let (l2, r2) = truth.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
     let label = format!("{name} ({}, seed {seed}, {} Hz)", effects.model_name(), fs);
     let fit = match identify(u, i, fs, &label, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}) {
@@ -45,7 +46,8 @@ fn harsh_at(name: &str, seed: u64, effects: Effects, fs: f64) -> Vec<String> {
     let q = &fit.params;
     let e = Errors::of(q, truth, [s.x_min, s.x_max]);
     let r: Vec<f64> = i[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect();
-    let (floor, _) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", coilscope_core::simulate::rms(i), 0.0);
+    let (floor, _) =
+        coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", coilscope_core::simulate::rms(i), 0.0);
     let zmax = common::band_z(&fit, truth, &["Bl", "Kms", "Le"]);
     let got_lambda = q.creep.as_ref().map_or(0.0, |c| c.lambda);
     let got_g2 = q.le_i.as_ref().map_or(0.0, |g| g.c[2]);
@@ -71,7 +73,11 @@ fn harsh_at(name: &str, seed: u64, effects: Effects, fs: f64) -> Vec<String> {
     if !(e.bl <= 0.02 && e.kms <= 0.03 && e.re <= 0.005 && e.le <= 0.05) {
         bad.push(format!("{label}: {e}"));
     }
-    for (n, got, want, on) in [("lambda", got_lambda, lambda, effects.creep), ("g2", got_g2, g2, effects.le_i), ("c2", got_c2, c2, effects.rms_v)] {
+    for (n, got, want, on) in [
+        ("lambda", got_lambda, lambda, effects.creep),
+        ("g2", got_g2, g2, effects.le_i),
+        ("c2", got_c2, c2, effects.rms_v),
+    ] {
         if on && (got / want - 1.0).abs() > 0.2 {
             bad.push(format!("{label}: {n} {got:.4e} vs {want:.4e}"));
         }
@@ -123,7 +129,8 @@ fn le_i_alone_and_rms_v_alone_on_the_bundled_drivers_and_a_large_coil() {
 #[ignore = "release-profile: cargo test --release -p coilscope-ident --test harsh_world -- --ignored"]
 fn every_effect_at_once_at_other_rates() {
     let all = Effects { creep: true, lr3: true, le_i: true, rms_v: true };
-    let cases = common::slice::in_slice("harsh_world", vec![("sb17cac35-4", 33, 44100.0), ("ptt4.0w04-01a", 34, 96000.0)]);
+    let cases =
+        common::slice::in_slice("harsh_world", vec![("sb17cac35-4", 33, 44100.0), ("ptt4.0w04-01a", 34, 96000.0)]);
     let bad: Vec<String> = std::thread::scope(|sc| {
         let hs: Vec<_> = cases.iter().map(|&(n, seed, fs)| sc.spawn(move || harsh_at(n, seed, all, fs))).collect();
         hs.into_iter().flat_map(|h| h.join().unwrap()).collect()

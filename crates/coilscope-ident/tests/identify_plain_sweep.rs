@@ -37,7 +37,11 @@ const FS: f64 = 48000.0;
 /// noise. Returns (u, i, the true trace's summary).
 fn record(p: &Parameters, fs: f64, seconds: f64, share: f64, seed: u64) -> (Vec<f64>, Vec<f64>, Summary) {
     let [lo, hi] = p.x_range.unwrap();
-    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed }).unwrap();
+    let unit = generate(
+        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+        &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed },
+    )
+    .unwrap();
     let (_, tr) = gain_for_peak(p, fs, &unit, share * hi.min(-lo), &SimOptions::default()).unwrap();
     let s = tr.summary();
     let (mut u, mut i) = (tr.u, tr.i);
@@ -53,11 +57,21 @@ fn sweep(name: &str) {
     for seed in common::slice::in_slice(name, (1..=8u64).collect()) {
         let (u, i, s) = record(&p, fs, 6.0, 0.7, seed);
         let label = format!("{name} seed {seed}");
-        match identify(&u, &i, fs, &label, &IdentifyOptions { mms: p.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() }, |_| {}) {
+        match identify(
+            &u,
+            &i,
+            fs,
+            &label,
+            &IdentifyOptions { mms: p.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() },
+            |_| {},
+        ) {
             Ok(fit) => {
                 let e = Errors::of(&fit.params, &p, [s.x_min, s.x_max]);
                 let z = common::band_z(&fit, &p, &["Bl", "Kms", "Le"]);
-                let line = format!("{label}: order {}, residual {:.2e}, {e}, the truth within {z:.2} sd of the bands", fit.order, fit.residual_rel);
+                let line = format!(
+                    "{label}: order {}, residual {:.2e}, {e}, the truth within {z:.2} sd of the bands",
+                    fit.order, fit.residual_rel
+                );
                 println!("{line}");
                 if !(e.bl <= 1e-3 && e.kms <= 1e-3 && e.le <= 1e-3 && e.re <= 4e-4 && e.rms <= 4e-4) {
                     failures.push(format!("{line}: beyond 5x the published figures"));
@@ -119,7 +133,12 @@ fn identify_never_fails_on_a_large_semi_inductive_coil() {
 #[test]
 #[ignore = "release-profile sweep: cargo test --release -p coilscope-ident --test identify_plain_sweep -- --ignored"]
 fn identify_follows_the_fast_heating_of_microspeakers() {
-    let cases = vec![("microspeaker-0g1", 0.85, 1, FS), ("microspeaker-2g7", 0.4, 1, FS), ("microspeaker-2g7", 0.4, 2, FS), ("microspeaker-0g1", 0.85, 2, FS)];
+    let cases = vec![
+        ("microspeaker-0g1", 0.85, 1, FS),
+        ("microspeaker-2g7", 0.4, 1, FS),
+        ("microspeaker-2g7", 0.4, 2, FS),
+        ("microspeaker-0g1", 0.85, 2, FS),
+    ];
     fast_heating(common::slice::in_slice("microspeakers", cases));
 }
 
@@ -128,7 +147,8 @@ fn fast_heating(cases: Vec<(&str, f64, u64, f64)>) {
     for (name, share, seed, fs) in cases {
         let p = driver(name);
         let (u, i, s) = record(&p, fs, 8.0, share, seed);
-        let label = format!("{name} at {:.0} % seed {seed}, {:.0} kHz (heats {:.0} K)", 100.0 * share, fs / 1e3, s.dt_max);
+        let label =
+            format!("{name} at {:.0} % seed {seed}, {:.0} kHz (heats {:.0} K)", 100.0 * share, fs / 1e3, s.dt_max);
         // (unknowns, iteration) of the final fit's states.
         let mut finals: Vec<(usize, usize)> = Vec::new();
         let observe = |pr: &Progress| {
@@ -136,7 +156,14 @@ fn fast_heating(cases: Vec<(&str, f64, u64, f64)>) {
                 finals.push((pr.state.theta.len(), pr.state.iteration));
             }
         };
-        match identify(&u, &i, fs, &label, &IdentifyOptions { mms: p.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() }, observe) {
+        match identify(
+            &u,
+            &i,
+            fs,
+            &label,
+            &IdentifyOptions { mms: p.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() },
+            observe,
+        ) {
             Ok(fit) => {
                 // The heating test is made on the first Jacobian's
                 // linearised step, and the fit with the heating terms starts from there
@@ -144,12 +171,17 @@ fn fast_heating(cases: Vec<(&str, f64, u64, f64)>) {
                 let most = finals.iter().map(|f| f.0).max().unwrap_or(0);
                 let unheated_steps = finals.iter().filter(|f| f.0 < most && f.1 > 0).count();
                 if !fit.layout.heat_taus.is_empty() && unheated_steps > 0 {
-                    failures.push(format!("{label}: {unheated_steps} steps without the heating terms before they were tried"));
+                    failures.push(format!(
+                        "{label}: {unheated_steps} steps without the heating terms before they were tried"
+                    ));
                 }
                 let e = Errors::of(&fit.params, &p, [s.x_min, s.x_max]);
                 let r: Vec<f64> = fit.i_model.iter().zip(&i).skip(fit.settle).map(|(a, b)| a - b).collect();
                 let floor = coilscope_ident::checks::noise_floor(&r, fs).ratio;
-                let line = format!("{label}: order {}, residual {:.2e} ({floor:.2}x its floor), heating terms {:?}, {e}", fit.order, fit.residual_rel, fit.layout.heat_taus);
+                let line = format!(
+                    "{label}: order {}, residual {:.2e} ({floor:.2}x its floor), heating terms {:?}, {e}",
+                    fit.order, fit.residual_rel, fit.layout.heat_taus
+                );
                 println!("{line}");
                 if !(e.bl <= 1e-3 && e.kms <= 1e-3 && e.le <= 2e-3 && e.re <= 1e-3) {
                     failures.push(format!("{line}: beyond the test's bounds"));

@@ -9,7 +9,10 @@
 
 use coilscope_core::small_signal::{impedance, thiele_small};
 use coilscope_core::{embedded_driver, embedded_driver_names, Complex64, Parameters};
-use coilscope_ident::linear::{added_mass_scale, fit_impedance_curve, fit_impedance_magnitude, lumped_band, scale_by_mms, Effects, EffectsChoice, LinearFit, LinearOptions, ScaleMethod};
+use coilscope_ident::linear::{
+    added_mass_scale, fit_impedance_curve, fit_impedance_magnitude, lumped_band, scale_by_mms, Effects, EffectsChoice,
+    LinearFit, LinearOptions, ScaleMethod,
+};
 use coilscope_io::impedance::{read_impedance, write_zma, ImpedanceCurve};
 use std::path::{Path, PathBuf};
 
@@ -21,7 +24,12 @@ fn rel(a: f64, b: f64) -> f64 {
 fn model_curve(p: &Parameters, lo: f64, hi: f64, n: usize) -> ImpedanceCurve {
     let f: Vec<f64> = (0..n).map(|k| lo * (hi / lo).powf(k as f64 / (n - 1) as f64)).collect();
     let z = f.iter().map(|&f| impedance(p, f)).collect();
-    ImpedanceCurve { f, z, magnitude_only: false, comments: vec![format!("model impedance of {}", p.name.clone().unwrap_or_default())] }
+    ImpedanceCurve {
+        f,
+        z,
+        magnitude_only: false,
+        comments: vec![format!("model impedance of {}", p.name.clone().unwrap_or_default())],
+    }
 }
 
 /// Write `curve` with coilscope's writer, read it back with its reader.
@@ -32,7 +40,8 @@ fn round_trip(curve: &ImpedanceCurve, dir: &Path, name: &str) -> ImpedanceCurve 
 }
 
 fn fit_curve(c: &ImpedanceCurve, band: Option<[f64; 2]>, effects: EffectsChoice) -> LinearFit {
-    fit_impedance_curve(&c.f, &c.z, band, "test curve", &LinearOptions { effects, ..Default::default() }, |_| {}).unwrap()
+    fit_impedance_curve(&c.f, &c.z, band, "test curve", &LinearOptions { effects, ..Default::default() }, |_| {})
+        .unwrap()
 }
 
 /// The quantities compared, at x = 0: name, got, truth.
@@ -83,7 +92,10 @@ fn zma_written_read_and_fitted_gives_the_model_it_was_written_from() {
         if let (Some(c), Some((l3, r3))) = (&got.creep, truth.l3r3) {
             assert!((c.lambda - 0.08).abs() < 1e-4, "{label}: lambda {}", c.lambda);
             let (gl3, gr3) = got.l3r3.unwrap();
-            assert!(rel(gl3, l3) < 1e-3 && rel(gr3, r3) < 1e-3, "{label}: L3/R3 {gl3:.4e}/{gr3:.4e} vs {l3:.4e}/{r3:.4e}");
+            assert!(
+                rel(gl3, l3) < 1e-3 && rel(gr3, r3) < 1e-3,
+                "{label}: L3/R3 {gl3:.4e}/{gr3:.4e} vs {l3:.4e}/{r3:.4e}"
+            );
         }
 
         // Added mass (about Mms / 2), from a second file: the loaded driver has the same
@@ -134,12 +146,30 @@ fn seas_l16rnx_measured_zma_gives_its_published_ts_values() {
         let r = coilscope_ident::linear::result(&p, &fit, &method, [0.0, 0.0], file);
         let sd = |k: &str| r.uncertainty.value(k).unwrap();
         let bl = p.bl.c[0];
-        println!("{file}: Bl {bl:.4} +- {:.4} T m, Mms {:.3} +- {:.3} g, Kms {:.1} N/m, Re {:.4}, fs {:.3} -> {:.3} Hz", sd("Bl"), mms * 1e3, sd("Mms") * 1e3, p.kms.c[0], p.re, fit.fs(), fit2.fs());
+        println!(
+            "{file}: Bl {bl:.4} +- {:.4} T m, Mms {:.3} +- {:.3} g, Kms {:.1} N/m, Re {:.4}, fs {:.3} -> {:.3} Hz",
+            sd("Bl"),
+            mms * 1e3,
+            sd("Mms") * 1e3,
+            p.kms.c[0],
+            p.re,
+            fit.fs(),
+            fit2.fs()
+        );
         assert!((6.99..=7.08).contains(&bl), "{file}: Bl {bl:.4} T m outside the published 6.99 .. 7.08");
-        assert!((14.9e-3..=15.3e-3).contains(&mms), "{file}: Mms {:.3} g outside the published 14.9 .. 15.3", mms * 1e3);
+        assert!(
+            (14.9e-3..=15.3e-3).contains(&mms),
+            "{file}: Mms {:.3} g outside the published 14.9 .. 15.3",
+            mms * 1e3
+        );
         // The stated uncertainty covers the published means.
         assert!((bl - 7.034).abs() < 3.0 * sd("Bl"), "{file}: Bl {bl:.4} +- {:.4} vs the mean 7.034", sd("Bl"));
-        assert!((mms - 15.13e-3).abs() < 3.0 * sd("Mms"), "{file}: Mms {:.3} +- {:.3} g vs the mean 15.13", mms * 1e3, sd("Mms") * 1e3);
+        assert!(
+            (mms - 15.13e-3).abs() < 3.0 * sd("Mms"),
+            "{file}: Mms {:.3} +- {:.3} g vs the mean 15.13",
+            mms * 1e3,
+            sd("Mms") * 1e3
+        );
     }
 }
 
@@ -162,12 +192,27 @@ fn seas_l16rnx_in_its_own_band_gives_speakerbenchs_figures() {
     let opts = LinearOptions::default();
     let band = lumped_band(&free.f, &free.z, false, "free", &opts).unwrap();
     println!("band: {}", band.note);
-    assert!(band.band[1] > 1000.0 && band.band[1] < 5206.0, "the cone breaks up at 5.2 kHz: {:?} ({})", band.band, band.note);
+    assert!(
+        band.band[1] > 1000.0 && band.band[1] < 5206.0,
+        "the cone breaks up at 5.2 kHz: {:?} ({})",
+        band.band,
+        band.note
+    );
     let fit = fit_curve(&free, Some(band.band), EffectsChoice::Auto);
-    assert!(coilscope_ident::linear::curve_warnings(&fit).is_empty(), "{:?}", coilscope_ident::linear::curve_warnings(&fit));
+    assert!(
+        coilscope_ident::linear::curve_warnings(&fit).is_empty(),
+        "{:?}",
+        coilscope_ident::linear::curve_warnings(&fit)
+    );
     let got = scale_by_mms(&fit, 0.0149).unwrap();
     let ts = thiele_small(&got);
-    for (k, g, t, bound) in [("Re", got.re, re, 0.01), ("Bl", got.bl.c[0], bl, 0.02), ("fs", ts.fs, fs, 0.01), ("Qms", ts.qms, qms, 0.05), ("Qts", ts.qts, qts, 0.03)] {
+    for (k, g, t, bound) in [
+        ("Re", got.re, re, 0.01),
+        ("Bl", got.bl.c[0], bl, 0.02),
+        ("fs", ts.fs, fs, 0.01),
+        ("Qms", ts.qms, qms, 0.05),
+        ("Qts", ts.qts, qts, 0.03),
+    ] {
         println!("{k}: {g:.4} vs Speakerbench {t:.4} ({:+.2} %)", 100.0 * (g / t - 1.0));
         assert!(rel(g, t) <= bound, "{k}: {g:.4} vs Speakerbench's {t:.4}, bound {:.0} %", 100.0 * bound);
     }
@@ -182,7 +227,14 @@ fn seas_l16rnx_in_its_own_band_gives_speakerbenchs_figures() {
         by_mass.push((m, m * mms_sd_rel));
     }
     let ((a, sa), (b, sb)) = (by_mass[0], by_mass[1]);
-    assert!((a - b).abs() <= (sa * sa + sb * sb).sqrt(), "the two added masses: {:.3} +- {:.3} and {:.3} +- {:.3} g", a * 1e3, sa * 1e3, b * 1e3, sb * 1e3);
+    assert!(
+        (a - b).abs() <= (sa * sa + sb * sb).sqrt(),
+        "the two added masses: {:.3} +- {:.3} and {:.3} +- {:.3} g",
+        a * 1e3,
+        sa * 1e3,
+        b * 1e3,
+        sb * 1e3
+    );
 }
 
 /// The SEAS file with its phase column removed, as REW or LPM export |Z|: fitted to the
@@ -197,13 +249,31 @@ fn seas_l16rnx_without_its_phase_gives_the_same_figures() {
     let mag: Vec<f64> = free.z.iter().map(|z| z.norm()).collect();
     let band = lumped_band(&free.f, &free.z, true, "free |Z|", &LinearOptions::default()).unwrap().band;
     let with = fit_curve(&free, Some(band), EffectsChoice::Auto);
-    let without = fit_impedance_magnitude(&free.f, &mag, Some(band), "free |Z|", &LinearOptions::default(), |_| {}).unwrap();
+    let without =
+        fit_impedance_magnitude(&free.f, &mag, Some(band), "free |Z|", &LinearOptions::default(), |_| {}).unwrap();
     assert!(without.magnitude_only);
-    assert!(coilscope_ident::linear::curve_warnings(&without).is_empty(), "{:?}", coilscope_ident::linear::curve_warnings(&without));
-    assert_eq!(without.effects, with.effects, "the model: {} with the phase, {} without", with.effects.model_name(), without.effects.model_name());
+    assert!(
+        coilscope_ident::linear::curve_warnings(&without).is_empty(),
+        "{:?}",
+        coilscope_ident::linear::curve_warnings(&without)
+    );
+    assert_eq!(
+        without.effects,
+        with.effects,
+        "the model: {} with the phase, {} without",
+        with.effects.model_name(),
+        without.effects.model_name()
+    );
     let (a, b) = (scale_by_mms(&with, 0.0149).unwrap(), scale_by_mms(&without, 0.0149).unwrap());
     let (ta, tb) = (thiele_small(&a), thiele_small(&b));
-    let rows = [("Re", a.re, b.re), ("Bl", a.bl.c[0], b.bl.c[0]), ("Kms", a.kms.c[0], b.kms.c[0]), ("fs", ta.fs, tb.fs), ("Qms", ta.qms, tb.qms), ("Qts", ta.qts, tb.qts)];
+    let rows = [
+        ("Re", a.re, b.re),
+        ("Bl", a.bl.c[0], b.bl.c[0]),
+        ("Kms", a.kms.c[0], b.kms.c[0]),
+        ("fs", ta.fs, tb.fs),
+        ("Qms", ta.qms, tb.qms),
+        ("Qts", ta.qts, tb.qts),
+    ];
     let mut off = vec![];
     for (k, x, y) in rows {
         println!("{k}: {x:.5} with the phase, {y:.5} without ({:+.3} %)", 100.0 * (y / x - 1.0));
@@ -212,7 +282,11 @@ fn seas_l16rnx_without_its_phase_gives_the_same_figures() {
         }
     }
     let sds = |s: &[f64; 7]| s.iter().map(|v| format!("{v:.2e}")).collect::<Vec<_>>().join(", ");
-    println!("relative sds [Re, Le, L2, R2, Res, Cmes, Lces] with the phase [{}], without [{}]", sds(&with.sigma_rel), sds(&without.sigma_rel));
+    println!(
+        "relative sds [Re, Le, L2, R2, Res, Cmes, Lces] with the phase [{}], without [{}]",
+        sds(&with.sigma_rel),
+        sds(&without.sigma_rel)
+    );
     let lambda = |p: &Parameters| p.creep.as_ref().map_or(0.0, |c| c.lambda);
     println!("not pinned down by |Z| alone: Le {:.4} / {:.4} mH, Rms {:.4} / {:.4} kg/s, lambda {:.4} / {:.4} (with / without the phase)", a.le.c[0] * 1e3, b.le.c[0] * 1e3, a.rms, b.rms, lambda(&a), lambda(&b));
     assert!(off.is_empty(), "{off:#?}");

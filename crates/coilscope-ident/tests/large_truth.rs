@@ -36,7 +36,11 @@ struct Rec {
 fn record(p: &Parameters, fs: f64, seconds: f64, share: f64, snr_db: f64, seed: u64) -> Rec {
     let [lo, hi] = p.x_range.unwrap();
     let target = share * hi.min(-lo);
-    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed }).unwrap();
+    let unit = generate(
+        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+        &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed },
+    )
+    .unwrap();
     let (_, tr) = gain_for_peak(p, fs, &unit, target, &SimOptions::default()).unwrap();
     let s = tr.summary();
     if seconds >= 8.0 {
@@ -66,7 +70,15 @@ const INDEPENDENT: Tol = Tol { bl_kms: 5e-4, le: 5e-4, re_rms: 4e-4 };
 fn assert_truth(label: &str, fit: &LargeFit, truth: &Parameters, range: [f64; 2], tol: &Tol) {
     let q = &fit.params;
     let e = Errors::of(q, truth, range);
-    println!("{label}: order {}, residual {:.2e}, errors {e}, x {:.2}..{:.2} mm (truth {:.2}..{:.2})", fit.order, fit.residual_rel, fit.x_range[0] * 1e3, fit.x_range[1] * 1e3, range[0] * 1e3, range[1] * 1e3);
+    println!(
+        "{label}: order {}, residual {:.2e}, errors {e}, x {:.2}..{:.2} mm (truth {:.2}..{:.2})",
+        fit.order,
+        fit.residual_rel,
+        fit.x_range[0] * 1e3,
+        fit.x_range[1] * 1e3,
+        range[0] * 1e3,
+        range[1] * 1e3
+    );
     assert!(e.bl <= tol.bl_kms, "{label}: Bl off by {:.3} %", 100.0 * e.bl);
     assert!(e.kms <= tol.bl_kms, "{label}: Kms off by {:.3} %", 100.0 * e.kms);
     assert!(e.le <= tol.le, "{label}: Le off by {:.3} %", 100.0 * e.le);
@@ -123,8 +135,19 @@ fn start_with_kms_twice_too_high() {
     let p = embedded_driver("sb17cac35-4").unwrap();
     let rec = record(&p, 48000.0, 8.0, 0.85, 70.0, 14);
     let c0 = |f: &Poly| Poly::constant(f.eval(0.0));
-    let start = Parameters { le: c0(&p.le), bl: c0(&p.bl), kms: Poly::constant(2.0 * p.kms.eval(0.0)), l2r2: p.l2r2.clone(), thermal: None, x_range: None, ..p.clone() };
-    let fit = run(&rec, IdentifyOptions { mms: p.mms, effects: LR2, init: Some(start), order: Some(4), ..Default::default() });
+    let start = Parameters {
+        le: c0(&p.le),
+        bl: c0(&p.bl),
+        kms: Poly::constant(2.0 * p.kms.eval(0.0)),
+        l2r2: p.l2r2.clone(),
+        thermal: None,
+        x_range: None,
+        ..p.clone()
+    };
+    let fit = run(
+        &rec,
+        IdentifyOptions { mms: p.mms, effects: LR2, init: Some(start), order: Some(4), ..Default::default() },
+    );
     assert_eq!(fit.order, 4);
     assert_truth("sb17 from Kms x2", &fit, &p, rec.x_range, &AT_70_DB);
 }
@@ -161,7 +184,10 @@ fn uncertainty_bands_cover_the_truth_and_shrink_with_noise() {
 /// `COILSCOPE_NO_SHARED=1` such tests are compiled as ignored: reported as skipped).
 fn shared() -> &'static Path {
     let p = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared"));
-    assert!(p.exists(), "../shared is missing; set COILSCOPE_NO_SHARED=1 to skip the reference tests (reported as ignored)");
+    assert!(
+        p.exists(),
+        "../shared is missing; set COILSCOPE_NO_SHARED=1 to skip the reference tests (reported as ignored)"
+    );
     p
 }
 
@@ -173,7 +199,10 @@ fn independent_reference_recordings() {
         let p = embedded_driver(name).unwrap();
         let path = dir.join(format!("recordings/{name}-large.wav"));
         let rec = coilscope_io::read_recording(&path, None).unwrap();
-        let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join(format!("recordings/{name}-large.info.json"))).unwrap()).unwrap();
+        let info: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(dir.join(format!("recordings/{name}-large.info.json"))).unwrap(),
+        )
+        .unwrap();
         let range = [info["x_min"].as_f64().unwrap(), info["x_max"].as_f64().unwrap()];
         let r = Rec { fs: rec.fs as f64, u: rec.u, i: rec.i, x_range: range };
         let fit = run(&r, IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() });
@@ -194,7 +223,9 @@ fn independent_small_signal_record_gives_curves_over_its_small_range() {
     let dir = shared();
     let p = embedded_driver("sb17cac35-4").unwrap();
     let rec = coilscope_io::read_recording(&dir.join("recordings/sb17cac35-4-small.wav"), None).unwrap();
-    let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("recordings/sb17cac35-4-small.info.json")).unwrap()).unwrap();
+    let info: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("recordings/sb17cac35-4-small.info.json")).unwrap())
+            .unwrap();
     let range = [info["x_min"].as_f64().unwrap(), info["x_max"].as_f64().unwrap()];
     let r = Rec { fs: rec.fs as f64, u: rec.u, i: rec.i, x_range: range };
     let fit = run(&r, IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() });
@@ -207,7 +238,14 @@ fn excitation_too_small_is_refused_with_the_reached_range() {
     // About 0.03 mm at 60 dB: the nonlinear terms are buried in the noise.
     let p = embedded_driver("sb17cac35-4").unwrap();
     let rec = record(&p, 48000.0, 3.0, 0.005, 60.0, 19);
-    match identify(&rec.u, &rec.i, rec.fs, "small.wav", &IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() }, |_| {}) {
+    match identify(
+        &rec.u,
+        &rec.i,
+        rec.fs,
+        "small.wav",
+        &IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() },
+        |_| {},
+    ) {
         Err(IdentifyError::TooSmall(m)) => {
             println!("{m}");
             assert!(m.contains("small.wav") && m.contains("mm") && m.contains("too small"), "{m}");
@@ -222,7 +260,15 @@ fn clipped_input_is_refused() {
     let mut rec = record(&p, 48000.0, 3.0, 0.5, 70.0, 16);
     let peak = rec.u.iter().fold(0.0f64, |a, v| a.max(v.abs()));
     rec.u.iter_mut().for_each(|v| *v = v.clamp(-0.6 * peak, 0.6 * peak));
-    let err = identify(&rec.u, &rec.i, rec.fs, "clip.wav", &IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() }, |_| {}).unwrap_err();
+    let err = identify(
+        &rec.u,
+        &rec.i,
+        rec.fs,
+        "clip.wav",
+        &IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() },
+        |_| {},
+    )
+    .unwrap_err();
     let m = err.to_string();
     assert!(m.contains("clip.wav") && m.contains("clipped") && m.contains("voltage"), "{m}");
 }
@@ -232,8 +278,22 @@ fn a_fit_stopped_early_says_why_and_keeps_its_best_estimate() {
     let p = embedded_driver("sb17cac35-4").unwrap();
     let rec = record(&p, 48000.0, 3.0, 0.85, 70.0, 17);
     let c0 = |f: &Poly| Poly::constant(f.eval(0.0));
-    let start = Parameters { le: c0(&p.le), bl: c0(&p.bl), kms: Poly::constant(2.0 * p.kms.eval(0.0)), thermal: None, x_range: None, ..p.clone() };
-    let opts = IdentifyOptions { mms: p.mms, effects: LR2, init: Some(start), order: Some(4), max_iterations: 1, ..Default::default() };
+    let start = Parameters {
+        le: c0(&p.le),
+        bl: c0(&p.bl),
+        kms: Poly::constant(2.0 * p.kms.eval(0.0)),
+        thermal: None,
+        x_range: None,
+        ..p.clone()
+    };
+    let opts = IdentifyOptions {
+        mms: p.mms,
+        effects: LR2,
+        init: Some(start),
+        order: Some(4),
+        max_iterations: 1,
+        ..Default::default()
+    };
     match identify(&rec.u, &rec.i, rec.fs, "early.wav", &opts, |_| {}) {
         Err(IdentifyError::NotConverged { message, best }) => {
             assert!(message.contains("did not converge") && message.contains("iteration limit"), "{message}");
@@ -248,17 +308,52 @@ fn a_fit_stopped_early_says_why_and_keeps_its_best_estimate() {
 fn bad_options_are_named() {
     let p = embedded_driver("sb17cac35-4").unwrap();
     let rec = record(&p, 48000.0, 3.0, 0.5, 70.0, 18);
-    let e = identify(&rec.u, &rec.i, rec.fs, "a.wav", &IdentifyOptions { mms: 15.0, ..Default::default() }, |_| {}).unwrap_err().to_string();
+    let e = identify(&rec.u, &rec.i, rec.fs, "a.wav", &IdentifyOptions { mms: 15.0, ..Default::default() }, |_| {})
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("moving mass 15") && e.contains("kg"), "{e}");
-    let e = identify(&rec.u, &rec.i, rec.fs, "a.wav", &IdentifyOptions { mms: p.mms, effects: LR2, order: Some(12), ..Default::default() }, |_| {}).unwrap_err().to_string();
+    let e = identify(
+        &rec.u,
+        &rec.i,
+        rec.fs,
+        "a.wav",
+        &IdentifyOptions { mms: p.mms, effects: LR2, order: Some(12), ..Default::default() },
+        |_| {},
+    )
+    .unwrap_err()
+    .to_string();
     assert!(e.contains("order 12") && e.contains("2 ..= 8"), "{e}");
-    let e = identify(&rec.u[..48000], &rec.i[..48000], rec.fs, "a.wav", &IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() }, |_| {}).unwrap_err().to_string();
+    let e = identify(
+        &rec.u[..48000],
+        &rec.i[..48000],
+        rec.fs,
+        "a.wav",
+        &IdentifyOptions { mms: p.mms, effects: LR2, ..Default::default() },
+        |_| {},
+    )
+    .unwrap_err()
+    .to_string();
     assert!(e.contains("a.wav") && e.contains("too short"), "{e}");
     // A start outside physics is named, not run into NaN ("diverged at sample 1").
     let mut bad = p.clone();
     bad.re = 0.0;
-    let e = identify(&rec.u, &rec.i, rec.fs, "a.wav", &IdentifyOptions { mms: p.mms, effects: LR2, init: Some(bad), ..Default::default() }, |_| {}).unwrap_err().to_string();
-    assert!(e.contains("a.wav") && e.contains("not physical") && e.contains("Re 0.000e0 ohm") && e.contains("the one given"), "{e}");
+    let e = identify(
+        &rec.u,
+        &rec.i,
+        rec.fs,
+        "a.wav",
+        &IdentifyOptions { mms: p.mms, effects: LR2, init: Some(bad), ..Default::default() },
+        |_| {},
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("a.wav")
+            && e.contains("not physical")
+            && e.contains("Re 0.000e0 ohm")
+            && e.contains("the one given"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -272,15 +367,34 @@ fn post_inverse_with_measured_displacement_gives_the_whole_set_including_mms() {
     let rec = coilscope_io::read_recording(&dir.join("recordings/sb17cac35-4-large-laser.wav"), None).unwrap();
     let x = rec.x.clone().unwrap();
     let (l2, r2) = p.l2r2.as_ref().map(|(a, b)| (a.c[0], b.c[0])).unwrap();
-    let q = coilscope_ident::post_inverse::post_inverse(&rec.u, &rec.i, &x, rec.fs as f64, 4, Some((l2, r2)), "laser.wav").unwrap();
+    let q =
+        coilscope_ident::post_inverse::post_inverse(&rec.u, &rec.i, &x, rec.fs as f64, 4, Some((l2, r2)), "laser.wav")
+            .unwrap();
     let range = q.x_range.unwrap();
     let (e_bl, e_k, e_le) = (worst(&q.bl, &p.bl, range), worst(&q.kms, &p.kms, range), worst(&q.le, &p.le, range));
     let (e_m, e_r, e_re) = ((q.mms / p.mms - 1.0).abs(), (q.rms / p.rms - 1.0).abs(), (q.re / p.re - 1.0).abs());
-    println!("post-inverse: Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Mms {:.3} %, Rms {:.3} %, Re {:.3} %", 100.0 * e_bl, 100.0 * e_k, 100.0 * e_le, 100.0 * e_m, 100.0 * e_r, 100.0 * e_re);
+    println!(
+        "post-inverse: Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Mms {:.3} %, Rms {:.3} %, Re {:.3} %",
+        100.0 * e_bl,
+        100.0 * e_k,
+        100.0 * e_le,
+        100.0 * e_m,
+        100.0 * e_r,
+        100.0 * e_re
+    );
     assert!(e_bl < 0.02 && e_k < 0.02 && e_le < 0.05);
     assert!(e_m < 0.01 && e_r < 0.01 && e_re < 0.01);
     // A displacement channel of the wrong polarity is named.
     let flipped: Vec<f64> = x.iter().map(|v| -v).collect();
-    let e = coilscope_ident::post_inverse::post_inverse(&rec.u, &rec.i, &flipped, rec.fs as f64, 4, Some((l2, r2)), "laser.wav").unwrap_err();
+    let e = coilscope_ident::post_inverse::post_inverse(
+        &rec.u,
+        &rec.i,
+        &flipped,
+        rec.fs as f64,
+        4,
+        Some((l2, r2)),
+        "laser.wav",
+    )
+    .unwrap_err();
     assert!(e.contains("laser.wav") && e.contains("polarity"), "{e}");
 }

@@ -21,7 +21,9 @@ use coilscope_core::fft::{irfft, rfft};
 use coilscope_core::params::Creep;
 use coilscope_core::small_signal::{displacement_per_current, impedance};
 use coilscope_core::{embedded_driver, Parameters};
-use coilscope_ident::linear::{fit_linear, fit_linear_record, fit_linear_record_from, scale_by_mms, Effects, EffectsChoice, LinearOptions};
+use coilscope_ident::linear::{
+    fit_linear, fit_linear_record, fit_linear_record_from, scale_by_mms, Effects, EffectsChoice, LinearOptions,
+};
 use rand::Rng;
 
 fn driver(name: &str) -> Parameters {
@@ -54,7 +56,11 @@ fn record(p: &Parameters, seed: u64) -> (Vec<f64>, Vec<f64>) {
 
 fn with(p: &Parameters, lambda: Option<f64>, lr3: bool) -> Parameters {
     let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
-    Parameters { creep: lambda.map(|lambda| Creep { lambda, f_ref: None }), l3r3: lr3.then_some((0.5 * l2, 3.0 * r2)), ..p.clone() }
+    Parameters {
+        creep: lambda.map(|lambda| Creep { lambda, f_ref: None }),
+        l3r3: lr3.then_some((0.5 * l2, 3.0 * r2)),
+        ..p.clone()
+    }
 }
 
 fn rel(a: f64, b: f64) -> f64 {
@@ -68,7 +74,12 @@ fn check(name: &str, truth: &Parameters, seed: u64, bad: &mut Vec<String>, zs: &
     let got = scale_by_mms(&fit, truth.mms).unwrap();
     let want = Effects { creep: truth.creep.is_some(), lr3: truth.l3r3.is_some(), ..Effects::NONE };
     let label = format!("{name} {} seed {seed}", want.model_name());
-    let mut line = format!("{label}: chose {} (tried {}), residual {:.2e}", fit.effects.model_name(), fit.tried.iter().map(|(m, r)| format!("{m} {r:.2e}")).collect::<Vec<_>>().join(", "), fit.residual_rel);
+    let mut line = format!(
+        "{label}: chose {} (tried {}), residual {:.2e}",
+        fit.effects.model_name(),
+        fit.tried.iter().map(|(m, r)| format!("{m} {r:.2e}")).collect::<Vec<_>>().join(", "),
+        fit.residual_rel
+    );
     if fit.effects != want {
         bad.push(format!("{label}: chose {}", fit.effects.model_name()));
         return line;
@@ -92,7 +103,11 @@ fn check(name: &str, truth: &Parameters, seed: u64, bad: &mut Vec<String>, zs: &
         bad.push(format!("{label}: Re {:+.3} %", 100.0 * rel(got.re, truth.re)));
     }
     if rel(got.bl.c[0], truth.bl.c[0]).abs() > 0.02 || rel(got.kms.c[0], truth.kms.c[0]).abs() > 0.03 {
-        bad.push(format!("{label}: Bl {:+.3} %, Kms {:+.3} %", 100.0 * rel(got.bl.c[0], truth.bl.c[0]), 100.0 * rel(got.kms.c[0], truth.kms.c[0])));
+        bad.push(format!(
+            "{label}: Bl {:+.3} %, Kms {:+.3} %",
+            100.0 * rel(got.bl.c[0], truth.bl.c[0]),
+            100.0 * rel(got.kms.c[0], truth.kms.c[0])
+        ));
     }
     if let (Some(c), Some((lambda, sd))) = (&truth.creep, fit.creep) {
         let z = (lambda - c.lambda).abs() / sd;
@@ -130,7 +145,14 @@ fn sweep(names: &[&str], seeds: std::ops::Range<u64>) {
                     let p = driver(name);
                     for seed in seeds.map(|s| s + 10 * d as u64) {
                         let mut rng = named_rng(seed, "linear_effects/lambda");
-                        for (lambda, lr3) in [(None, false), (Some(0.02), false), (Some(0.05), false), (Some(0.1), false), (None, true), (Some(0.02 + 0.08 * rng.random::<f64>()), true)] {
+                        for (lambda, lr3) in [
+                            (None, false),
+                            (Some(0.02), false),
+                            (Some(0.05), false),
+                            (Some(0.1), false),
+                            (None, true),
+                            (Some(0.02 + 0.08 * rng.random::<f64>()), true),
+                        ] {
                             lines.push(check(name, &with(&p, lambda, lr3), seed, &mut bad, &mut zs));
                         }
                     }
@@ -152,7 +174,12 @@ fn sweep(names: &[&str], seeds: std::ops::Range<u64>) {
     println!("{} of {n} records within the figures", n - bad.len());
     let share = |k: f64| zs.iter().filter(|&&z| z <= k).count() as f64 / zs.len() as f64;
     let worst = zs.iter().cloned().fold(0.0, coilscope_testkit::check::nan_max);
-    let coverage = format!("{} values: {:.1} % within 2 sd, {:.1} % within 3 sd, the largest {worst:.1} sd", zs.len(), 100.0 * share(2.0), 100.0 * share(3.0));
+    let coverage = format!(
+        "{} values: {:.1} % within 2 sd, {:.1} % within 3 sd, the largest {worst:.1} sd",
+        zs.len(),
+        100.0 * share(2.0),
+        100.0 * share(3.0)
+    );
     println!("{coverage}");
     if (several && share(2.0) < 0.9) || share(3.0) < 0.97 || worst > 4.5 {
         bad.push(format!("the sds do not cover the truth: {coverage}"));
@@ -181,18 +208,38 @@ fn creep_and_lr3_over_drivers_and_seeds() {
 fn lr2_fit_reused_is_the_fit() {
     let truth = with(&driver("sb17cac35-4"), Some(0.05), true);
     let (u, i) = record(&truth, 3);
-    let start = fit_linear_record(&u, &i, 48000.0, "sb17", &LinearOptions { effects: EffectsChoice::Auto, ..LinearOptions::LARGE_SIGNAL_START }, |_| {}).unwrap();
-    for e in [Effects { creep: true, ..Effects::NONE }, Effects { lr3: true, ..Effects::NONE }, Effects { creep: true, lr3: true, ..Effects::NONE }] {
+    let start = fit_linear_record(
+        &u,
+        &i,
+        48000.0,
+        "sb17",
+        &LinearOptions { effects: EffectsChoice::Auto, ..LinearOptions::LARGE_SIGNAL_START },
+        |_| {},
+    )
+    .unwrap();
+    for e in [
+        Effects { creep: true, ..Effects::NONE },
+        Effects { lr3: true, ..Effects::NONE },
+        Effects { creep: true, lr3: true, ..Effects::NONE },
+    ] {
         let opts = LinearOptions { effects: EffectsChoice::Fixed(e), ..LinearOptions::LARGE_SIGNAL_START };
         let (mut fresh_states, mut reused_states) = (0, 0);
         let fresh = fit_linear_record(&u, &i, 48000.0, "sb17", &opts, |_| fresh_states += 1).unwrap();
-        let reused = fit_linear_record_from(&u, &i, 48000.0, "sb17", &opts, Some(&start.lr2), |_| reused_states += 1).unwrap();
+        let reused =
+            fit_linear_record_from(&u, &i, 48000.0, "sb17", &opts, Some(&start.lr2), |_| reused_states += 1).unwrap();
         let m = e.model_name();
-        assert_eq!((fresh.p, fresh.sigma_rel, fresh.residual_rel), (reused.p, reused.sigma_rel, reused.residual_rel), "{m}");
+        assert_eq!(
+            (fresh.p, fresh.sigma_rel, fresh.residual_rel),
+            (reused.p, reused.sigma_rel, reused.residual_rel),
+            "{m}"
+        );
         assert_eq!((fresh.creep, fresh.lr3, fresh.effects), (reused.creep, reused.lr3, reused.effects), "{m}");
         assert_eq!(fresh.tried, reused.tried, "{m}");
         // The LR-2 model's LM states are not run again.
-        assert!(reused_states < fresh_states, "{m}: {reused_states} LM states with the LR-2 fit given, {fresh_states} without");
+        assert!(
+            reused_states < fresh_states,
+            "{m}: {reused_states} LM states with the LR-2 fit given, {fresh_states} without"
+        );
     }
 }
 
@@ -201,7 +248,8 @@ fn lr2_fit_reused_is_the_fit() {
 fn forced_creep_on_a_record_without_it_finds_none() {
     let p = driver("ptt4.0w04-01a");
     let (u, i) = record(&p, 5);
-    let opts = LinearOptions { effects: EffectsChoice::Fixed(Effects { creep: true, ..Effects::NONE }), ..Default::default() };
+    let opts =
+        LinearOptions { effects: EffectsChoice::Fixed(Effects { creep: true, ..Effects::NONE }), ..Default::default() };
     let fit = fit_linear_record(&u, &i, 48000.0, "ptt4", &opts, |_| {}).unwrap();
     let (lambda, sd) = fit.creep.unwrap();
     println!("lambda {lambda:.5} +- {sd:.5}");
@@ -217,9 +265,12 @@ fn forced_creep_on_a_record_without_it_finds_none() {
 fn time_domain_records_give_the_same_answer() {
     use coilscope_core::simulate::{gain_for_peak, SimOptions};
     let mut bad = vec![];
-    for (name, lambda, lr3) in [("sb17cac35-4", Some(0.05), false), ("ptt4.0w04-01a", None, true), ("18wu-4741t-00", Some(0.07), true)] {
+    for (name, lambda, lr3) in
+        [("sb17cac35-4", Some(0.05), false), ("ptt4.0w04-01a", None, true), ("18wu-4741t-00", Some(0.07), true)]
+    {
         let truth = with(&driver(name), lambda, lr3);
-        let unit = generate(&Excitation::Iec, &SignalSpec { fs: 48000.0, seconds: 4.0, rms: 1.0, fade: 0.05, seed: 3 }).unwrap();
+        let unit = generate(&Excitation::Iec, &SignalSpec { fs: 48000.0, seconds: 4.0, rms: 1.0, fade: 0.05, seed: 3 })
+            .unwrap();
         let (_, tr) = gain_for_peak(&truth, 48000.0, &unit, 1e-4, &SimOptions::default()).unwrap();
         let (mut u, mut i) = (tr.u, tr.i);
         add_sensor_noise(&mut u, 70.0, 3, "sensor-noise/voltage");
@@ -245,7 +296,10 @@ fn time_domain_records_give_the_same_answer() {
                 bad.push(format!("{name}: lambda {g} vs {l}"));
             }
         }
-        if rel(got.re, truth.re).abs() > 0.005 || rel(got.bl.c[0], truth.bl.c[0]).abs() > 0.02 || rel(got.kms.c[0], truth.kms.c[0]).abs() > 0.03 {
+        if rel(got.re, truth.re).abs() > 0.005
+            || rel(got.bl.c[0], truth.bl.c[0]).abs() > 0.02
+            || rel(got.kms.c[0], truth.kms.c[0]).abs() > 0.03
+        {
             bad.push(format!("{name}: Re, Bl or Kms off"));
         }
     }

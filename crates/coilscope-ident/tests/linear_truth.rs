@@ -70,7 +70,11 @@ fn assert_close_except(label: &str, got: &Parameters, truth: &Parameters, tol: f
         ("Mms", got.mms, truth.mms),
     ];
     let e_re = rel(got.re, truth.re);
-    eprintln!("{label}: Re {:.3} %, {}", 100.0 * e_re, rows.iter().map(|(n, a, b)| format!("{n} {:.3} %", 100.0 * rel(*a, *b))).collect::<Vec<_>>().join(", "));
+    eprintln!(
+        "{label}: Re {:.3} %, {}",
+        100.0 * e_re,
+        rows.iter().map(|(n, a, b)| format!("{n} {:.3} %", 100.0 * rel(*a, *b))).collect::<Vec<_>>().join(", ")
+    );
     assert!(e_re < 0.005, "{label}: Re {} vs {}", got.re, truth.re);
     for (n, a, b) in rows.into_iter().filter(|(n, _, _)| !except.contains(n)) {
         assert!(rel(a, b) < tol, "{label}: {n} = {a} vs truth {b} ({:.2} %)", 100.0 * rel(a, b));
@@ -206,7 +210,8 @@ mod bad_input {
         let e = err(&r.u, &off);
         assert!(e.contains("--chain auto"), "{e}");
         let opts = coilscope_ident::linear::LinearOptions { chain: true, ..Default::default() };
-        let fit = coilscope_ident::linear::fit_linear_record(&r.u, &off, 48000.0, "rec.wav", &opts, |_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let fit = coilscope_ident::linear::fit_linear_record(&r.u, &off, 48000.0, "rec.wav", &opts, |_| {})
+            .unwrap_or_else(|e| panic!("{e}"));
         let p = embedded_driver("sb17cac35-4").unwrap();
         assert!((fit.p[0] / p.re - 1.0).abs() < 0.005, "Re {} vs {}", fit.p[0], p.re);
     }
@@ -251,7 +256,19 @@ fn linear_sigmas_cover_the_truth_over_seeds() {
             let r = record_at(&p, &Excitation::Iec, 48000.0, 4.0, 100 + seed, 0.05e-3);
             let f = fit(&r, name);
             let z: Vec<f64> = (0..7).map(|k| (f.p[k] / truth[k] - 1.0).abs() / f.sigma_rel[k]).collect();
-            println!("{name} seed {seed}: {}", (0..7).map(|k| format!("{} {:.1} ({:+.1e}/{:.1e})", names[k], z[k], f.p[k] / truth[k] - 1.0, f.sigma_rel[k])).collect::<Vec<_>>().join(", "));
+            println!(
+                "{name} seed {seed}: {}",
+                (0..7)
+                    .map(|k| format!(
+                        "{} {:.1} ({:+.1e}/{:.1e})",
+                        names[k],
+                        z[k],
+                        f.p[k] / truth[k] - 1.0,
+                        f.sigma_rel[k]
+                    ))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
             z_all.extend(z);
         }
     }
@@ -271,12 +288,15 @@ fn the_small_signal_fit_never_trades_le_for_an_added_branch() {
     use coilscope_ident::linear::{fit_linear_record, EffectsChoice, Ends, LinearOptions};
     let opts = LinearOptions { ends: Ends::Fitted, effects: EffectsChoice::Auto, chain: false };
     let mut bad = vec![];
-    let kept = coilscope_testkit::population::regressions("measure").into_iter().chain(coilscope_testkit::population::open_regressions("measure"));
+    let kept = coilscope_testkit::population::regressions("measure")
+        .into_iter()
+        .chain(coilscope_testkit::population::open_regressions("measure"));
     for r in kept {
         // `measure`'s small-signal stage: 2 s of IEC noise at 0.2 V rms, 0.1 mV and 0.1 mA
         // of sensor noise.
         let fs = 48000.0;
-        let u = generate(&Excitation::Iec, &SignalSpec { fs, seconds: 2.0, rms: 0.2, fade: 0.05, seed: r.seed }).unwrap();
+        let u =
+            generate(&Excitation::Iec, &SignalSpec { fs, seconds: 2.0, rms: 0.2, fade: 0.05, seed: r.seed }).unwrap();
         let tr = simulate(&r.params, fs, &u, &SimOptions::default()).unwrap();
         let (mut u, mut i) = (tr.u, tr.i);
         let snr = |v: &[f64]| 20.0 * ((v.iter().map(|a| a * a).sum::<f64>() / v.len() as f64).sqrt() / 1e-4).log10();
@@ -285,7 +305,14 @@ fn the_small_signal_fit_never_trades_le_for_an_added_branch() {
         add_sensor_noise(&mut i, si, r.seed, "sensor-noise/current");
         let fit = fit_linear_record(&u, &i, fs, &r.name, &opts, |_| {}).unwrap();
         let (le, truth) = (fit.p[1], r.params.le.c[0]);
-        println!("{}: {} Le {:.3e} H (truth {truth:.3e}), on bound {:?}; tried {:?}", r.name, fit.effects.model_name(), le, fit.at_bound, fit.tried);
+        println!(
+            "{}: {} Le {:.3e} H (truth {truth:.3e}), on bound {:?}; tried {:?}",
+            r.name,
+            fit.effects.model_name(),
+            le,
+            fit.at_bound,
+            fit.tried
+        );
         if !(le > 0.5 * truth || fit.at_bound.contains(&"Le")) {
             bad.push(format!("{}: Le {le:.3e} H against {truth:.3e}, not named on a bound", r.name));
         }

@@ -17,7 +17,9 @@
 
 use coilscope_core::small_signal::{dynamic_stiffness, impedance, thiele_small};
 use coilscope_core::{Complex64, Parameters, Poly};
-use coilscope_ident::linear::{curve_warnings, fit_impedance_curve, fit_impedance_magnitude, lumped_band, scale_by_mms, LinearOptions};
+use coilscope_ident::linear::{
+    curve_warnings, fit_impedance_curve, fit_impedance_magnitude, lumped_band, scale_by_mms, LinearOptions,
+};
 use coilscope_testkit::population::{cases, draws, keep_failure};
 use rand::{Rng, SeedableRng};
 use std::f64::consts::PI;
@@ -54,7 +56,8 @@ fn impedance_with_modes(p: &Parameters, modes: &[ConeMode], f: f64) -> Complex64
     let jw = Complex64::new(0.0, w);
     let blocked = impedance(&Parameters { bl: Poly::constant(1e-12), ..p.clone() }, f);
     let moving = p.mms - modes.iter().map(|m| m.m).sum::<f64>();
-    let zm = p.rms + jw * moving + dynamic_stiffness(p, w) / jw + modes.iter().map(|m| m.impedance(w)).sum::<Complex64>();
+    let zm =
+        p.rms + jw * moving + dynamic_stiffness(p, w) / jw + modes.iter().map(|m| m.impedance(w)).sum::<Complex64>();
     blocked + p.bl.c[0].powi(2) / zm
 }
 
@@ -65,8 +68,15 @@ fn curve(p: &Parameters, modes: &[ConeMode], noise: f64, seed: u64) -> (Vec<f64>
     let n = 600;
     let f: Vec<f64> = (0..n).map(|k| lo * (20000.0 / lo).powf(k as f64 / (n - 1) as f64)).collect();
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    let mut gauss = || -> f64 { (-2.0 * rng.random::<f64>().max(1e-300).ln()).sqrt() * (2.0 * PI * rng.random::<f64>()).cos() };
-    let z = f.iter().map(|&f| impedance_with_modes(p, modes, f) * Complex64::new(1.0 + noise / 2f64.sqrt() * gauss(), noise / 2f64.sqrt() * gauss())).collect();
+    let mut gauss =
+        || -> f64 { (-2.0 * rng.random::<f64>().max(1e-300).ln()).sqrt() * (2.0 * PI * rng.random::<f64>()).cos() };
+    let z = f
+        .iter()
+        .map(|&f| {
+            impedance_with_modes(p, modes, f)
+                * Complex64::new(1.0 + noise / 2f64.sqrt() * gauss(), noise / 2f64.sqrt() * gauss())
+        })
+        .collect();
     (f, z)
 }
 
@@ -77,11 +87,28 @@ fn rel(a: f64, b: f64) -> f64 {
 /// The figures a fit in the found band gives, against the truth's, each with its bound: the
 /// failures named, what the fit did in words, the top of the band found, and whether the fit
 /// warned (was loud: `linear` exits 3 on it).
-fn figures_off(p: &Parameters, f: &[f64], z: &[Complex64], magnitude_only: bool, label: &str) -> (Vec<String>, String, f64, bool) {
+fn figures_off(
+    p: &Parameters,
+    f: &[f64],
+    z: &[Complex64],
+    magnitude_only: bool,
+    label: &str,
+) -> (Vec<String>, String, f64, bool) {
     let opts = LinearOptions::default();
     let band = lumped_band(f, z, magnitude_only, label, &opts).unwrap_or_else(|e| panic!("{label}: {e}"));
-    let fit = if magnitude_only { fit_impedance_magnitude(f, &z.iter().map(|z| z.norm()).collect::<Vec<_>>(), Some(band.band), label, &opts, |_| {}) } else { fit_impedance_curve(f, z, Some(band.band), label, &opts, |_| {}) }
-        .unwrap_or_else(|e| panic!("{label}: {e}"));
+    let fit = if magnitude_only {
+        fit_impedance_magnitude(
+            f,
+            &z.iter().map(|z| z.norm()).collect::<Vec<_>>(),
+            Some(band.band),
+            label,
+            &opts,
+            |_| {},
+        )
+    } else {
+        fit_impedance_curve(f, z, Some(band.band), label, &opts, |_| {})
+    }
+    .unwrap_or_else(|e| panic!("{label}: {e}"));
     let got = scale_by_mms(&fit, p.mms).unwrap();
     let (tg, tt) = (thiele_small(&got), thiele_small(p));
     // |Z| alone leaves Re less certain where the coil's branches and creep share its slopes
@@ -97,9 +124,19 @@ fn figures_off(p: &Parameters, f: &[f64], z: &[Complex64], magnitude_only: bool,
     } else {
         0.01
     };
-    let rows = [("Re", got.re, p.re, re_bound), ("Bl", got.bl.c[0], p.bl.c[0], 0.02), ("fs", tg.fs, tt.fs, 0.01), ("Qms", tg.qms, tt.qms, 0.05), ("Qts", tg.qts, tt.qts, 0.03)];
+    let rows = [
+        ("Re", got.re, p.re, re_bound),
+        ("Bl", got.bl.c[0], p.bl.c[0], 0.02),
+        ("fs", tg.fs, tt.fs, 0.01),
+        ("Qms", tg.qms, tt.qms, 0.05),
+        ("Qts", tg.qts, tt.qts, 0.03),
+    ];
     // `!(e <= bound)`: a NaN fails.
-    let off = rows.iter().filter(|(_, g, t, b)| !(rel(*g, *t) <= *b)).map(|(k, g, t, b)| format!("{k} {g:.5} vs {t:.5} ({:+.2} %, bound {:.0} %)", 100.0 * (g / t - 1.0), 100.0 * b)).collect();
+    let off = rows
+        .iter()
+        .filter(|(_, g, t, b)| !(rel(*g, *t) <= *b))
+        .map(|(k, g, t, b)| format!("{k} {g:.5} vs {t:.5} ({:+.2} %, bound {:.0} %)", 100.0 * (g / t - 1.0), 100.0 * b))
+        .collect();
     let warned: Vec<String> = curve_warnings(&fit).iter().map(|w| w.code.to_string()).collect();
     let text = format!(
         "band {:.0} .. {:.0} Hz ({}), model {} (truth {}), residual {:.2e}, Re sd {:.2e} (relative), warnings {warned:?} (on the bound of {:?}) tried {:?} corners fit {:.0} {:?} truth {:?} {:?}",
@@ -139,7 +176,12 @@ fn truth_model(p: &Parameters) -> String {
 /// is kept. At most a quarter may be loud: over 128 drivers of two seeds 3-12 % were (each
 /// on a bound of the L2/R2 branch in a band cut below break-up, or the search finding none),
 /// and 16 draws keep a chance failure of that bound near 1 %.
-fn over_drivers(test: &str, magnitude_only: bool, make: impl Fn(&Parameters, u64) -> (String, Vec<f64>, Vec<Complex64>), top_ok: impl Fn(&Parameters, &[f64], f64) -> bool) {
+fn over_drivers(
+    test: &str,
+    magnitude_only: bool,
+    make: impl Fn(&Parameters, u64) -> (String, Vec<f64>, Vec<Complex64>),
+    top_ok: impl Fn(&Parameters, &[f64], f64) -> bool,
+) {
     let mut failures = vec![];
     let (mut loud, mut n) = (0, 0);
     for d in draws(test, cases(16)) {
@@ -155,7 +197,8 @@ fn over_drivers(test: &str, magnitude_only: bool, make: impl Fn(&Parameters, u64
         // curve and must say so, loudly.
         let nothing_held = warned && text.contains("no part of it holds");
         if !(top_ok(&p, &f, top) || nothing_held) || (!off.is_empty() && !warned) {
-            failures.push(format!("{label}: {what}: {text}; off: {off:?}; kept as {}", keep_failure(&label, &p).display()));
+            failures
+                .push(format!("{label}: {what}: {text}; off: {off:?}; kept as {}", keep_failure(&label, &p).display()));
         }
     }
     assert!(failures.is_empty(), "{failures:#?}");
@@ -164,7 +207,8 @@ fn over_drivers(test: &str, magnitude_only: bool, make: impl Fn(&Parameters, u64
 
 #[test]
 fn a_lumped_drivers_curve_is_fitted_whole() {
-    let whole = |_: &Parameters, f: &[f64], top: f64| top == f.iter().copied().filter(|&f| f <= 20000.0).fold(0.0, f64::max);
+    let whole =
+        |_: &Parameters, f: &[f64], top: f64| top == f.iter().copied().filter(|&f| f <= 20000.0).fold(0.0, f64::max);
     over_drivers(
         "a_lumped_drivers_curve_is_fitted_whole",
         false,
@@ -254,7 +298,8 @@ const KEPT: [(&str, bool, u64, bool); 4] = [
 fn kept_curves_give_the_drivers_figures() {
     let mut failures = vec![];
     for (name, magnitude_only, seed, open) in KEPT {
-        let p = coilscope_core::population::parse_name(name).expect("a population name").expect("a valid name").natural();
+        let p =
+            coilscope_core::population::parse_name(name).expect("a population name").expect("a valid name").natural();
         let (f, z) = curve(&p, &[], 0.003, seed);
         let (off, text, _, warned) = figures_off(&p, &f, &z, magnitude_only, name);
         println!("{name} (|Z| alone: {magnitude_only}, open: {open}): {text}; off {off:?}");

@@ -21,7 +21,10 @@ use coilscope_ident::pre_inverse::{adapt, PreInverseOptions};
 fn the_pre_inverse_converges_from_the_small_signal_set() {
     for name in ["sb17cac35-4", "ptt4.0w04-01a"] {
         let (first, last, eb, ek) = run(name, None);
-        assert!(first > 0.01, "{name}: the small-signal controller is already within {first:.2e}: the test does not test");
+        assert!(
+            first > 0.01,
+            "{name}: the small-signal controller is already within {first:.2e}: the test does not test"
+        );
         assert!(last < 3e-4, "{name}: the block error ended at {last:.2e}");
         assert!(eb < 1e-3 && ek < 1e-3, "{name}: Bl {eb:.5}, Kms {ek:.5}");
     }
@@ -52,7 +55,10 @@ fn run(name: &str, snr: Option<f64>) -> (f64, f64, f64, f64) {
             .map(|k| {
                 let t = k as f64 / fs;
                 let env = if t < 0.1 { 0.5 - 0.5 * (std::f64::consts::PI * t / 0.1).cos() } else { 1.0 };
-                env * [(31.0, 0.0), (47.0, 1.1), (73.0, 2.3)].iter().map(|&(f, ph): &(f64, f64)| (2.0 * std::f64::consts::PI * f * t + ph).sin()).sum::<f64>()
+                env * [(31.0, 0.0), (47.0, 1.1), (73.0, 2.3)]
+                    .iter()
+                    .map(|&(f, ph): &(f64, f64)| (2.0 * std::f64::consts::PI * f * t + ph).sin())
+                    .sum::<f64>()
             })
             .collect();
         let [lo, hi] = truth.x_range.unwrap();
@@ -70,14 +76,25 @@ fn run(name: &str, snr: Option<f64>) -> (f64, f64, f64, f64) {
         };
         let opts = PreInverseOptions { max_updates: if snr.is_some() { 8 } else { 20 }, ..Default::default() };
         let fit = adapt(&start, &reference, &input, fs, play, &opts, |u| {
-            println!("{name} block {}: error {:.3e} ({}), damping {:.1e}", u.block, u.error_rel, if u.accepted { "accepted" } else { "taken back" }, u.damping);
+            println!(
+                "{name} block {}: error {:.3e} ({}), damping {:.1e}",
+                u.block,
+                u.error_rel,
+                if u.accepted { "accepted" } else { "taken back" },
+                u.damping
+            );
         })
         .unwrap();
         let accepted: Vec<f64> = fit.updates.iter().filter(|u| u.accepted).map(|u| u.error_rel).collect();
         let first = fit.updates[0].error_rel;
         let last = *accepted.last().unwrap();
         let range = [0.7 * lo, 0.7 * hi];
-        let worst = |f: &Poly, g: &Poly| (0..=100).map(|k| range[0] + (range[1] - range[0]) * k as f64 / 100.0).map(|x| (f.eval(x) / g.eval(x) - 1.0).abs()).fold(0.0, coilscope_testkit::check::nan_max);
+        let worst = |f: &Poly, g: &Poly| {
+            (0..=100)
+                .map(|k| range[0] + (range[1] - range[0]) * k as f64 / 100.0)
+                .map(|x| (f.eval(x) / g.eval(x) - 1.0).abs())
+                .fold(0.0, coilscope_testkit::check::nan_max)
+        };
         let (eb, ek) = (worst(&fit.params.bl, &truth.bl), worst(&fit.params.kms, &truth.kms));
         println!("{name} (snr {snr:?}): error {first:.3e} -> {last:.3e} in {} blocks; Bl {:.3} %, Kms {:.3} % over +-70 % of the range", fit.updates.len(), 100.0 * eb, 100.0 * ek);
         let falls = accepted.windows(2).all(|w| w[1] < w[0]);

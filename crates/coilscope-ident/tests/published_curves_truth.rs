@@ -31,7 +31,12 @@ fn series_through(points: &[(f64, f64)], [lo, hi]: [f64; 2]) -> Poly {
 }
 
 fn curve(p: &Parameters, which: &str) -> Vec<(f64, f64)> {
-    p.extra["published_curves"][which].as_array().unwrap().iter().map(|v| (v[0].as_f64().unwrap(), v[1].as_f64().unwrap())).collect()
+    p.extra["published_curves"][which]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| (v[0].as_f64().unwrap(), v[1].as_f64().unwrap()))
+        .collect()
 }
 
 /// One driver per test, so the test harness runs them side by side.
@@ -49,16 +54,27 @@ fn identify_recovers_published_curves_outside_its_model_class(name: &str) {
         assert!(off < 0.02, "{name} {which}: the order-{ORDER} series is {off:.3} off the published points");
     }
     let fs = 48000.0;
-    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.05, seed: 21 }).unwrap();
+    let unit = generate(
+        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+        &SignalSpec { fs, seconds: 8.0, rms: 1.0, fade: 0.05, seed: 21 },
+    )
+    .unwrap();
     let (_, tr) = gain_for_peak(&truth, fs, &unit, 0.85 * range[1].min(-range[0]), &SimOptions::default()).unwrap();
     let s = tr.summary();
     let (mut u, mut i) = (tr.u, tr.i);
     add_sensor_noise(&mut u, 70.0, 21, "sensor-noise/voltage");
     add_sensor_noise(&mut i, 70.0, 21, "sensor-noise/current");
-    let fit = identify(&u, &i, fs, name, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}).unwrap_or_else(|e| panic!("{name}: {e}"));
+    let fit = identify(&u, &i, fs, name, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {})
+        .unwrap_or_else(|e| panic!("{name}: {e}"));
     let r = [s.x_min, s.x_max];
     let e = Errors::of(&fit.params, &truth, r);
-    println!("{name} (published curves, order {ORDER}): fit order {}, residual {:.2e}, {e} over {:.2}..{:.2} mm", fit.order, fit.residual_rel, r[0] * 1e3, r[1] * 1e3);
+    println!(
+        "{name} (published curves, order {ORDER}): fit order {}, residual {:.2e}, {e} over {:.2}..{:.2} mm",
+        fit.order,
+        fit.residual_rel,
+        r[0] * 1e3,
+        r[1] * 1e3
+    );
     // Measured: Bl <= 0.45 %, Kms <= 0.24 %, Le <= 0.71 % (the README's figures); the test
     // fails at about 3.5x.
     assert!(e.bl <= 0.015 && e.kms <= 0.015 && e.le <= 0.025, "{name}: Bl {}, Kms {}, Le {}", e.bl, e.kms, e.le);

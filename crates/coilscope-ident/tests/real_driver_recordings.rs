@@ -28,7 +28,8 @@ fn run(file: &str, truth: &Parameters) -> (LargeFit, Vec<f64>) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings");
     let rec = coilscope_io::read_recording(&dir.join(file), None).unwrap();
     let fs = rec.fs as f64;
-    let fit = identify(&rec.u, &rec.i, fs, file, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {}).unwrap_or_else(|e| panic!("{file}: {e}"));
+    let fit = identify(&rec.u, &rec.i, fs, file, &IdentifyOptions { mms: truth.mms, ..Default::default() }, |_| {})
+        .unwrap_or_else(|e| panic!("{file}: {e}"));
     (fit, rec.i)
 }
 
@@ -38,7 +39,13 @@ fn check(file: &str, fit: &LargeFit, i: &[f64], truth: &Parameters, want: Effect
     let q = &fit.params;
     let e = Errors::of(q, truth, fit.x_range);
     let r: Vec<f64> = i[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect();
-    let (floor, warnings) = coilscope_ident::checks::residual_warnings(&r, fit.fs, "large-signal fit", coilscope_core::simulate::rms(i), 0.0);
+    let (floor, warnings) = coilscope_ident::checks::residual_warnings(
+        &r,
+        fit.fs,
+        "large-signal fit",
+        coilscope_core::simulate::rms(i),
+        0.0,
+    );
     println!(
         "{file}: model {} ({:?}), order {}, {e}, residual {:.2e} ({:.1}x floor), lambda {:?}, L3/R3 {:?}",
         fit.layout.effects.model_name(),
@@ -164,10 +171,24 @@ fn a_forced_model_without_the_effect_widens_its_bands_to_the_error() {
     for file in ["sb17cac35-4-real-creep.wav", "sb17cac35-4-real-lr3.wav"] {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/recordings");
         let rec = coilscope_io::read_recording(&dir.join(file), None).unwrap();
-        let fit = identify(&rec.u, &rec.i, rec.fs as f64, file, &IdentifyOptions { mms: truth.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() }, |_| {}).unwrap();
+        let fit = identify(
+            &rec.u,
+            &rec.i,
+            rec.fs as f64,
+            file,
+            &IdentifyOptions { mms: truth.mms, effects: EffectsChoice::Fixed(Effects::NONE), ..Default::default() },
+            |_| {},
+        )
+        .unwrap();
         let e = Errors::of(&fit.params, &truth, fit.x_range);
         let r: Vec<f64> = rec.i[fit.settle..].iter().zip(&fit.i_model[fit.settle..]).map(|(a, b)| a - b).collect();
-        let (_, warnings) = coilscope_ident::checks::residual_warnings(&r, fit.fs, "large-signal fit", coilscope_core::simulate::rms(&rec.i), 0.0);
+        let (_, warnings) = coilscope_ident::checks::residual_warnings(
+            &r,
+            fit.fs,
+            "large-signal fit",
+            coilscope_core::simulate::rms(&rec.i),
+            0.0,
+        );
         let z = common::band_z(&fit, &truth, &["Bl", "Kms"]);
         let z_re = (fit.params.re - truth.re).abs() / fit.sd()[0].1;
         println!("{file}, LR-2 forced: {e}, residual {:.2e}, truth within {z:.2} sd (Bl, Kms), Re {z_re:.2} sd, warnings {:?}", fit.residual_rel, warnings.iter().map(|w| w.code.as_ref()).collect::<Vec<_>>());

@@ -17,7 +17,11 @@ use common::{band_z, Errors};
 
 /// `seconds` of pink noise at `fs` taking `p` to a peak of `peak` (m), 70 dB sensor noise.
 fn record(p: &Parameters, fs: f64, seconds: f64, peak: f64, seed: u64) -> (Vec<f64>, Vec<f64>, [f64; 2]) {
-    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds, rms: 1.0, fade: 0.02, seed }).unwrap();
+    let unit = generate(
+        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+        &SignalSpec { fs, seconds, rms: 1.0, fade: 0.02, seed },
+    )
+    .unwrap();
     let (_, tr) = gain_for_peak(p, fs, &unit, peak, &SimOptions::default()).unwrap();
     let s = tr.summary();
     let (mut u, mut i) = (tr.u, tr.i);
@@ -35,7 +39,10 @@ fn half_a_second_at_96_khz_reaching_2_mm_is_identified() {
         let fit = identify(&u, &i, 96000.0, "0.5 s", &opts, |_| {}).unwrap_or_else(|e| panic!("{name}: {e}"));
         let e = Errors::of(&fit.params, &p, range);
         let z = band_z(&fit, &p, &["Bl", "Kms", "Le"]);
-        println!("{name} seed {seed}: order {}, {e}, truth within {z:.2} sd, residual {:.2e}", fit.order, fit.residual_rel);
+        println!(
+            "{name} seed {seed}: order {}, {e}, truth within {z:.2} sd, residual {:.2e}",
+            fit.order, fit.residual_rel
+        );
         assert!(e.bl <= 4e-3 && e.kms <= 4e-3 && e.le <= 5e-3, "{name}: {e}");
         assert!(z <= 3.0, "{name}: the truth is {z:.2} sd outside the bands");
         assert!(fit.residual_rel < 5e-4, "{name}: residual {}", fit.residual_rel);
@@ -54,7 +61,12 @@ fn a_record_without_enough_resonance_periods_is_refused_for_that() {
     match identify(&u, &i, 96000.0, "0.5 s", &opts, |_| {}) {
         Err(IdentifyError::Input(m)) => {
             println!("{m}");
-            assert!(m.contains("periods of the resonance") && m.contains(&format!("at least {MIN_RESONANCE_PERIODS}")) && m.contains("record at least"), "{m}");
+            assert!(
+                m.contains("periods of the resonance")
+                    && m.contains(&format!("at least {MIN_RESONANCE_PERIODS}"))
+                    && m.contains("record at least"),
+                "{m}"
+            );
         }
         Err(e) => panic!("refused for another reason: {e}"),
         Ok(f) => panic!("fitted (order {}, residual {:.2e})", f.order, f.residual_rel),

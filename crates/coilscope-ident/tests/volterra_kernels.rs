@@ -29,12 +29,18 @@ fn run(name: &str, fracs: &[f64]) -> Vec<(f64, f64, [f64; 3], f64)> {
     for &frac in fracs {
         // The level whose largest peak over the tones is `frac` of the range.
         let probe_v = 1.0;
-        let peak1 = freqs.iter().map(|&f| harmonics(&truth, f, probe_v, Output::Current, &opts).unwrap().x_peak).map(|[a, b]| b.max(-a)).fold(0.0, coilscope_testkit::check::nan_max);
+        let peak1 = freqs
+            .iter()
+            .map(|&f| harmonics(&truth, f, probe_v, Output::Current, &opts).unwrap().x_peak)
+            .map(|[a, b]| b.max(-a))
+            .fold(0.0, coilscope_testkit::check::nan_max);
         let mut volts = probe_v * frac * range / peak1;
         let mut measured = vec![];
         for _ in 0..3 {
-            measured = freqs.iter().map(|&f| harmonics(&truth, f, volts, Output::Current, &opts).unwrap()).collect::<Vec<_>>();
-            let peak = measured.iter().map(|h| h.x_peak[1].max(-h.x_peak[0])).fold(0.0, coilscope_testkit::check::nan_max);
+            measured =
+                freqs.iter().map(|&f| harmonics(&truth, f, volts, Output::Current, &opts).unwrap()).collect::<Vec<_>>();
+            let peak =
+                measured.iter().map(|h| h.x_peak[1].max(-h.x_peak[0])).fold(0.0, coilscope_testkit::check::nan_max);
             if (peak / (frac * range) - 1.0).abs() < 0.03 {
                 break;
             }

@@ -63,7 +63,12 @@ fn run(c: &Case) -> ([f64; 3], [f64; 3], f64, f64) {
             _ => &truth.le,
         };
         let t2 = Poly { c: t.c.iter().take(3).copied().collect() };
-        b.x.iter().zip(&b.value).zip(&b.sd).filter(|(_, s)| **s > 0.0).map(|((x, v), s)| (v - t2.eval(*x)).abs() / s).fold(0.0, coilscope_testkit::check::nan_max)
+        b.x.iter()
+            .zip(&b.value)
+            .zip(&b.sd)
+            .filter(|(_, s)| **s > 0.0)
+            .map(|((x, v), s)| (v - t2.eval(*x)).abs() / s)
+            .fold(0.0, coilscope_testkit::check::nan_max)
     });
     println!(
         "{} seed {} at {:.1} % of the range ({volts:.3} V, {} tones, {} periods): Bl {:.2} %, Kms {:.2} %, Le {:.2} %; z {:.2} {:.2} {:.2}; chi2/dof {:.2}, truncation {trunc:.2}, misfit {:.2e}",

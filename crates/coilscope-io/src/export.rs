@@ -40,7 +40,20 @@ pub struct SafetydOptions {
 
 impl Default for SafetydOptions {
     fn default() -> Self {
-        SafetydOptions { name: "Speaker".into(), t_limit: 120.0, t_ambient: 35.0, t_headroom: 10.0, t_window: 20.0, t_hysteresis: 5.0, group: 0, channels: 2, is_chan: 0, vs_chan: 1, is_scale: 3.75, vs_scale: 14.0 }
+        SafetydOptions {
+            name: "Speaker".into(),
+            t_limit: 120.0,
+            t_ambient: 35.0,
+            t_headroom: 10.0,
+            t_window: 20.0,
+            t_hysteresis: 5.0,
+            group: 0,
+            channels: 2,
+            is_chan: 0,
+            vs_chan: 1,
+            is_scale: 3.75,
+            vs_scale: 14.0,
+        }
     }
 }
 
@@ -64,7 +77,10 @@ pub fn thermal_time_constants(rtv: f64, ctv: f64, rtm: f64, ctm: f64) -> (f64, f
 pub fn speakersafetyd(p: &Parameters, o: &SafetydOptions) -> Result<String, String> {
     let t = p.thermal.as_ref().ok_or("the result has no thermal parameters (parameters.thermal): measure them with a long-term test, `coilscope measure ... --duration 600 --volts V`")?;
     if !(o.t_limit - o.t_window > o.t_ambient) {
-        return Err(format!("--t-limit {} C must be above the ambient {} C plus the daemon's window {} C (speakersafetyd refuses it)", o.t_limit, o.t_ambient, o.t_window));
+        return Err(format!(
+            "--t-limit {} C must be above the ambient {} C plus the daemon's window {} C (speakersafetyd refuses it)",
+            o.t_limit, o.t_ambient, o.t_window
+        ));
     }
     if o.is_chan >= o.channels || o.vs_chan >= o.channels {
         return Err(format!("is_chan {} / vs_chan {} must be below channels {}", o.is_chan, o.vs_chan, o.channels));
@@ -101,7 +117,8 @@ pub fn speakersafetyd(p: &Parameters, o: &SafetydOptions) -> Result<String, Stri
 /// coefficients in millimetres (`Bl` in N/A/mm^n, `Kms` in N/mm/mm^n, `Le`, `L2` in
 /// mH/mm^n, `R2` in ohm/mm^n), `c0` the value at rest.
 pub fn power_series_csv(p: &Parameters) -> String {
-    let mut rows: Vec<(&str, &str, &coilscope_core::Poly, f64)> = vec![("Bl", "N/A/mm^n", &p.bl, 1.0), ("Kms", "N/mm/mm^n", &p.kms, 1e-3), ("Le", "mH/mm^n", &p.le, 1e3)];
+    let mut rows: Vec<(&str, &str, &coilscope_core::Poly, f64)> =
+        vec![("Bl", "N/A/mm^n", &p.bl, 1.0), ("Kms", "N/mm/mm^n", &p.kms, 1e-3), ("Le", "mH/mm^n", &p.le, 1e3)];
     if let Some((l2, r2)) = &p.l2r2 {
         rows.push(("L2", "mH/mm^n", l2, 1e3));
         rows.push(("R2", "ohm/mm^n", r2, 1.0));
@@ -130,7 +147,15 @@ pub fn power_series_csv(p: &Parameters) -> String {
 pub fn impedance_curve(p: &Parameters, f_lo: f64, f_hi: f64, points: usize) -> crate::impedance::ImpedanceCurve {
     let f: Vec<f64> = (0..points).map(|k| f_lo * (f_hi / f_lo).powf(k as f64 / (points - 1).max(1) as f64)).collect();
     let z = f.iter().map(|&v| coilscope_core::small_signal::impedance(p, v)).collect();
-    crate::impedance::ImpedanceCurve { f, z, magnitude_only: false, comments: vec![format!("coilscope: small-signal impedance of {} at rest", p.name.clone().unwrap_or_else(|| "the driver".into()))] }
+    crate::impedance::ImpedanceCurve {
+        f,
+        z,
+        magnitude_only: false,
+        comments: vec![format!(
+            "coilscope: small-signal impedance of {} at rest",
+            p.name.clone().unwrap_or_else(|| "the driver".into())
+        )],
+    }
 }
 
 /// `.frd` text of an impedance (frequency Hz, magnitude ohm, phase degrees; `*` comments),
@@ -164,11 +189,27 @@ mod tests {
     fn power_series_in_millimetres() {
         let p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
         let t = power_series_csv(&p);
-        let bl: Vec<f64> = t.lines().find(|l| l.starts_with("Bl,")).unwrap().split(',').skip(2).filter(|v| !v.is_empty()).map(|v| v.parse().unwrap()).collect();
+        let bl: Vec<f64> = t
+            .lines()
+            .find(|l| l.starts_with("Bl,"))
+            .unwrap()
+            .split(',')
+            .skip(2)
+            .filter(|v| !v.is_empty())
+            .map(|v| v.parse().unwrap())
+            .collect();
         // Bl(1 mm) from the table in mm equals Bl(1e-3 m) from the set in SI.
         let at_mm: f64 = bl.iter().enumerate().map(|(j, c)| c * 1f64.powi(j as i32)).sum();
         assert!((at_mm / p.bl.eval(1e-3) - 1.0).abs() < 1e-6);
-        let kms: Vec<f64> = t.lines().find(|l| l.starts_with("Kms,")).unwrap().split(',').skip(2).filter(|v| !v.is_empty()).map(|v| v.parse().unwrap()).collect();
+        let kms: Vec<f64> = t
+            .lines()
+            .find(|l| l.starts_with("Kms,"))
+            .unwrap()
+            .split(',')
+            .skip(2)
+            .filter(|v| !v.is_empty())
+            .map(|v| v.parse().unwrap())
+            .collect();
         let k_mm: f64 = kms.iter().enumerate().map(|(j, c)| c * 2f64.powi(j as i32)).sum();
         assert!((k_mm * 1e3 / p.kms.eval(2e-3) - 1.0).abs() < 1e-6, "Kms in N/mm at 2 mm");
     }

@@ -147,14 +147,20 @@ pub fn parse_impedance(text: &str, name: &str) -> Result<ImpedanceCurve, IoError
             continue;
         }
         // Without names, a .zma line: `frequency magnitude phase`, or `frequency magnitude`.
-        let (fc, parts) = *layout.get_or_insert((0, if nums.len() == 2 { Parts::Mag(1) } else { Parts::MagPhase(1, 2, false) }));
+        let (fc, parts) =
+            *layout.get_or_insert((0, if nums.len() == 2 { Parts::Mag(1) } else { Parts::MagPhase(1, 2, false) }));
         let need = match parts {
             Parts::MagPhase(m, p, _) => fc.max(m).max(p),
             Parts::ReIm(a, b) => fc.max(a).max(b),
             Parts::Mag(m) => fc.max(m),
         };
         if nums.len() <= need {
-            return Err(IoError(format!("{name}, line {line_no}: {} columns, expected at least {} (frequency Hz, magnitude ohm{})", nums.len(), need + 1, if matches!(parts, Parts::Mag(_)) { "" } else { ", phase deg" })));
+            return Err(IoError(format!(
+                "{name}, line {line_no}: {} columns, expected at least {} (frequency Hz, magnitude ohm{})",
+                nums.len(),
+                need + 1,
+                if matches!(parts, Parts::Mag(_)) { "" } else { ", phase deg" }
+            )));
         }
         let v = |k: usize| nums[k].expect("checked numeric");
         let fk = v(fc);
@@ -170,25 +176,36 @@ pub fn parse_impedance(text: &str, name: &str) -> Result<ImpedanceCurve, IoError
             Parts::Mag(m) => {
                 let mag = v(m);
                 if !(mag.is_finite() && mag > 0.0) {
-                    return Err(IoError(format!("{name}, line {line_no}: magnitude {mag} ohm at {fk} Hz is not positive and finite")));
+                    return Err(IoError(format!(
+                        "{name}, line {line_no}: magnitude {mag} ohm at {fk} Hz is not positive and finite"
+                    )));
                 }
                 Complex64::new(mag, 0.0)
             }
             Parts::MagPhase(m, p, rad) => {
                 let (mag, ph) = (v(m), v(p));
                 if !(mag.is_finite() && mag > 0.0) {
-                    return Err(IoError(format!("{name}, line {line_no}: magnitude {mag} ohm at {fk} Hz is not positive and finite")));
+                    return Err(IoError(format!(
+                        "{name}, line {line_no}: magnitude {mag} ohm at {fk} Hz is not positive and finite"
+                    )));
                 }
                 let limit = if rad { std::f64::consts::PI * 1.001 } else { 180.5 };
                 if !(ph.is_finite() && ph.abs() <= limit) {
-                    return Err(IoError(format!("{name}, line {line_no}: phase {ph} {} at {fk} Hz is outside +-{}", if rad { "rad" } else { "deg" }, if rad { "pi" } else { "180 (a .zma phase is in degrees)" })));
+                    return Err(IoError(format!(
+                        "{name}, line {line_no}: phase {ph} {} at {fk} Hz is outside +-{}",
+                        if rad { "rad" } else { "deg" },
+                        if rad { "pi" } else { "180 (a .zma phase is in degrees)" }
+                    )));
                 }
                 Complex64::from_polar(mag, if rad { ph } else { ph.to_radians() })
             }
             Parts::ReIm(a, b) => {
                 let c = Complex64::new(v(a), v(b));
                 if !(c.re.is_finite() && c.im.is_finite() && c.norm() > 0.0) {
-                    return Err(IoError(format!("{name}, line {line_no}: impedance {} {:+}j ohm at {fk} Hz is not finite and non-zero", c.re, c.im)));
+                    return Err(IoError(format!(
+                        "{name}, line {line_no}: impedance {} {:+}j ohm at {fk} Hz is not finite and non-zero",
+                        c.re, c.im
+                    )));
                 }
                 c
             }
@@ -207,7 +224,11 @@ pub fn parse_impedance(text: &str, name: &str) -> Result<ImpedanceCurve, IoError
 pub fn read_impedance(path: &Path) -> Result<ImpedanceCurve, IoError> {
     let name = path.display().to_string();
     let bytes = std::fs::read(path).map_err(|e| IoError(format!("{name}: cannot read the impedance file ({e})")))?;
-    let text = String::from_utf8(bytes).map_err(|_| IoError(format!("{name}: not a text file (an impedance file is text: frequency Hz, magnitude ohm, phase deg per line)")))?;
+    let text = String::from_utf8(bytes).map_err(|_| {
+        IoError(format!(
+            "{name}: not a text file (an impedance file is text: frequency Hz, magnitude ohm, phase deg per line)"
+        ))
+    })?;
     parse_impedance(&text, &name)
 }
 
@@ -261,7 +282,10 @@ mod tests {
 
     #[test]
     fn reads_zma_with_comments_and_signs() {
-        let text = format!("****\n* FILE: x.zma\n* Data: Impedance (ohms), Phase (degrees)\n****\n{}", curve_text(30, |f, z| format!("   {f:.3}    +{:.4}   {:+.4}", z.norm(), z.arg().to_degrees())));
+        let text = format!(
+            "****\n* FILE: x.zma\n* Data: Impedance (ohms), Phase (degrees)\n****\n{}",
+            curve_text(30, |f, z| format!("   {f:.3}    +{:.4}   {:+.4}", z.norm(), z.arg().to_degrees()))
+        );
         let c = parse_impedance(&text, "x.zma").unwrap();
         assert_eq!(c.f.len(), 30);
         assert_eq!(c.comments, vec!["FILE: x.zma", "Data: Impedance (ohms), Phase (degrees)"]);
@@ -270,10 +294,14 @@ mod tests {
 
     #[test]
     fn reads_named_csv_columns_in_any_order_and_real_imag() {
-        let text = format!("Phase (deg);Freq (Hz);Impedance (Ohm);Coherence\n{}", curve_text(25, |f, z| format!("{};{f};{};0.99", z.arg().to_degrees(), z.norm())));
+        let text = format!(
+            "Phase (deg);Freq (Hz);Impedance (Ohm);Coherence\n{}",
+            curve_text(25, |f, z| format!("{};{f};{};0.99", z.arg().to_degrees(), z.norm()))
+        );
         let c = parse_impedance(&text, "a.csv").unwrap();
         assert!((c.z[3].re - (6.0 + c.f[3] * 1e-3)).abs() < 1e-9 && (c.z[3].im - c.f[3] * 2e-3).abs() < 1e-9);
-        let text = format!("frequency_hz,real_ohm,imag_ohm\n{}", curve_text(25, |f, z| format!("{f},{},{}", z.re, z.im)));
+        let text =
+            format!("frequency_hz,real_ohm,imag_ohm\n{}", curve_text(25, |f, z| format!("{f},{},{}", z.re, z.im)));
         let c = parse_impedance(&text, "b.csv").unwrap();
         assert!((c.z[24].im - c.f[24] * 2e-3).abs() < 1e-12);
         let text = format!("f\tmag\tphase (rad)\n{}", curve_text(25, |f, z| format!("{f}\t{}\t{}", z.norm(), z.arg())));
@@ -286,20 +314,34 @@ mod tests {
     #[test]
     fn reads_magnitude_only_files() {
         let c = parse_impedance(&curve_text(25, |f, z| format!("{f} {}", z.norm())), "rew.txt").unwrap();
-        assert!(c.magnitude_only && (c.z[4].re - (6.0 + c.f[4] * 1e-3).hypot(c.f[4] * 2e-3)).abs() < 1e-9 && c.z[4].im == 0.0);
+        assert!(
+            c.magnitude_only
+                && (c.z[4].re - (6.0 + c.f[4] * 1e-3).hypot(c.f[4] * 2e-3)).abs() < 1e-9
+                && c.z[4].im == 0.0
+        );
         let text = format!("\"LPM Linear Parameter Measurement\"\n\"Driver: woofer 5.25\"\n\"Frequency [Hz]\"\t\"Impedance measured [Ohm]\"\t\"Impedance fitted [Ohm]\"\n{}", curve_text(25, |f, z| format!("{f}\t{}\t{}", z.norm(), z.norm() * 1.05)));
         let c = parse_impedance(&text, "lpm.txt").unwrap();
         assert!(c.magnitude_only);
         assert_eq!(c.comments, vec!["LPM Linear Parameter Measurement", "Driver: woofer 5.25"]);
-        assert!((c.z[7].re - (6.0 + c.f[7] * 1e-3).hypot(c.f[7] * 2e-3)).abs() < 1e-9, "the measured column, not the fitted one");
-        let c = parse_impedance(&curve_text(25, |f, z| format!("{f} {} {}", z.norm(), z.arg().to_degrees())), "full.zma").unwrap();
+        assert!(
+            (c.z[7].re - (6.0 + c.f[7] * 1e-3).hypot(c.f[7] * 2e-3)).abs() < 1e-9,
+            "the measured column, not the fitted one"
+        );
+        let c =
+            parse_impedance(&curve_text(25, |f, z| format!("{f} {} {}", z.norm(), z.arg().to_degrees())), "full.zma")
+                .unwrap();
         assert!(!c.magnitude_only);
     }
 
     #[test]
     fn zma_round_trip_is_exact_to_1e8() {
-        let c = parse_impedance(&curve_text(40, |f, z| format!("{f} {} {}", z.norm(), z.arg().to_degrees())), "x").unwrap();
-        let back = parse_impedance(&zma_text(&ImpedanceCurve { comments: vec!["written by a test".into()], ..c.clone() }), "y").unwrap();
+        let c =
+            parse_impedance(&curve_text(40, |f, z| format!("{f} {} {}", z.norm(), z.arg().to_degrees())), "x").unwrap();
+        let back = parse_impedance(
+            &zma_text(&ImpedanceCurve { comments: vec!["written by a test".into()], ..c.clone() }),
+            "y",
+        )
+        .unwrap();
         assert_eq!(back.comments, vec!["written by a test", "Freq(Hz) Magnitude(Ohm) Phase(Deg)"]);
         for k in 0..c.f.len() {
             assert!((back.f[k] / c.f[k] - 1.0).abs() < 1e-8 && (back.z[k] - c.z[k]).norm() < 1e-8 * c.z[k].norm());

@@ -54,7 +54,8 @@ pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     for _ in 0..40 {
         match std::fs::symlink_metadata(&target) {
             Ok(m) if m.file_type().is_symlink() => {
-                let link = std::fs::read_link(&target).map_err(|e| IoError(format!("{}: cannot read the symlink ({e})", target.display())))?;
+                let link = std::fs::read_link(&target)
+                    .map_err(|e| IoError(format!("{}: cannot read the symlink ({e})", target.display())))?;
                 target = if link.is_absolute() { link } else { target.parent().unwrap_or(Path::new(".")).join(link) };
             }
             _ => break,
@@ -63,7 +64,11 @@ pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     if let Ok(m) = std::fs::metadata(&target) {
         let t = m.file_type();
         if t.is_fifo() || t.is_char_device() {
-            return std::fs::OpenOptions::new().write(true).open(&target).and_then(|mut f| f.write_all(bytes)).map_err(|e| IoError(format!("{}: cannot write ({e})", path.display())));
+            return std::fs::OpenOptions::new()
+                .write(true)
+                .open(&target)
+                .and_then(|mut f| f.write_all(bytes))
+                .map_err(|e| IoError(format!("{}: cannot write ({e})", path.display())));
         }
         if !t.is_file() {
             let what = if t.is_dir() {
@@ -96,7 +101,11 @@ pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     // owner-only ones.
     let result = (|| {
         use std::os::unix::fs::PermissionsExt;
-        let mut f = tempfile::Builder::new().prefix(&format!(".{name}.")).suffix(".tmp").permissions(std::fs::Permissions::from_mode(0o666)).tempfile_in(&dir)?;
+        let mut f = tempfile::Builder::new()
+            .prefix(&format!(".{name}."))
+            .suffix(".tmp")
+            .permissions(std::fs::Permissions::from_mode(0o666))
+            .tempfile_in(&dir)?;
         f.write_all(bytes)?;
         f.as_file().sync_all()?;
         f.persist(path).map(|_| ()).map_err(|e| e.error)
@@ -150,19 +159,34 @@ pub fn read_sidecar_scale(path: &Path) -> Result<Option<Vec<f64>>, IoError> {
         return Ok(None);
     }
     let text = std::fs::read_to_string(&side).map_err(|e| IoError(format!("{}: cannot read ({e})", side.display())))?;
-    let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| IoError(format!("{}: not valid JSON ({e}); expected {{\"scale\": [V, A, m per unit]}}", side.display())))?;
+    let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| {
+        IoError(format!("{}: not valid JSON ({e}); expected {{\"scale\": [V, A, m per unit]}}", side.display()))
+    })?;
     let Some(arr) = v.get("scale").and_then(|s| s.as_array()) else {
-        return err(format!("{}: key `scale`: missing or not an array; expected {{\"scale\": [V, A, m per unit]}}", side.display()));
+        return err(format!(
+            "{}: key `scale`: missing or not an array; expected {{\"scale\": [V, A, m per unit]}}",
+            side.display()
+        ));
     };
     let mut out = Vec::new();
     for (k, item) in arr.iter().enumerate() {
         match item.as_f64() {
             Some(f) if f.is_finite() && f != 0.0 => out.push(f),
-            _ => return err(format!("{}: key `scale`: entry {} is {item}; expected a finite, non-zero number", side.display(), k + 1)),
+            _ => {
+                return err(format!(
+                    "{}: key `scale`: entry {} is {item}; expected a finite, non-zero number",
+                    side.display(),
+                    k + 1
+                ))
+            }
         }
     }
     if out.is_empty() || out.len() > 3 {
-        return err(format!("{}: key `scale`: {} entries; expected 1 to 3 (V, A, m per unit)", side.display(), out.len()));
+        return err(format!(
+            "{}: key `scale`: {} entries; expected 1 to 3 (V, A, m per unit)",
+            side.display(),
+            out.len()
+        ));
     }
     Ok(Some(out))
 }
@@ -172,7 +196,8 @@ fn read_channels(path: &Path, scale: Option<&[f64]>, max_channels: usize) -> Res
     if !path.exists() {
         return err(format!("{shown}: no such file"));
     }
-    let reader = hound::WavReader::open(path).map_err(|e| IoError(format!("{shown}: not a readable WAV file ({e})")))?;
+    let reader =
+        hound::WavReader::open(path).map_err(|e| IoError(format!("{shown}: not a readable WAV file ({e})")))?;
     let sidecar = read_sidecar_scale(path)?;
     let file_len = std::fs::metadata(path).map(|m| m.len()).unwrap_or(u64::MAX);
     channels_from(reader, &shown.to_string(), scale.map(|s| s.to_vec()).or(sidecar), max_channels, file_len)
@@ -182,16 +207,25 @@ fn read_channels(path: &Path, scale: Option<&[f64]>, max_channels: usize) -> Res
 /// messages, `scale` gives the physical units of integer PCM. Never panics, whatever the
 /// bytes (a fuzz target).
 pub fn read_recording_bytes(bytes: &[u8], name: &str, scale: Option<&[f64]>) -> Result<Recording, IoError> {
-    let reader = hound::WavReader::new(std::io::Cursor::new(bytes)).map_err(|e| IoError(format!("{name}: not a readable WAV file ({e})")))?;
+    let reader = hound::WavReader::new(std::io::Cursor::new(bytes))
+        .map_err(|e| IoError(format!("{name}: not a readable WAV file ({e})")))?;
     let ch = channels_from(reader, name, scale.map(|s| s.to_vec()), 3, bytes.len() as u64)?;
     recording_of(ch, name)
 }
 
-fn channels_from<R: std::io::Read>(mut reader: hound::WavReader<R>, shown: &str, scale: Option<Vec<f64>>, max_channels: usize, file_len: u64) -> Result<Channels, IoError> {
+fn channels_from<R: std::io::Read>(
+    mut reader: hound::WavReader<R>,
+    shown: &str,
+    scale: Option<Vec<f64>>,
+    max_channels: usize,
+    file_len: u64,
+) -> Result<Channels, IoError> {
     let spec = reader.spec();
     let nch = spec.channels as usize;
     if nch == 0 || nch > max_channels {
-        return err(format!("{shown}: {nch} channels; expected 1 to {max_channels} (1 voltage V, 2 current A, 3 displacement m)"));
+        return err(format!(
+            "{shown}: {nch} channels; expected 1 to {max_channels} (1 voltage V, 2 current A, 3 displacement m)"
+        ));
     }
     if !(1000..=1_000_000).contains(&spec.sample_rate) {
         return err(format!("{shown}: sample rate {} Hz is not valid (1 kHz .. 1 MHz)", spec.sample_rate));
@@ -199,19 +233,27 @@ fn channels_from<R: std::io::Read>(mut reader: hound::WavReader<R>, shown: &str,
     let is_float = spec.sample_format == hound::SampleFormat::Float;
     if let Some(s) = &scale {
         if s.len() < nch {
-            return err(format!("{shown}: {} scale factors for {nch} channels; give one per channel (V, A, m per unit)", s.len()));
+            return err(format!(
+                "{shown}: {} scale factors for {nch} channels; give one per channel (V, A, m per unit)",
+                s.len()
+            ));
         }
     } else if !is_float {
         return err(format!("{shown}: {}-bit integer PCM needs scale factors: a sidecar {} with {{\"scale\": [V, A, m per count]}}, or --scale", spec.bits_per_sample, sidecar_name(shown)));
     }
     // The header's length is a claim: never reserve more than the file can hold.
-    let frames = (reader.duration() as u64).min(file_len / (nch as u64 * (spec.bits_per_sample as u64).div_ceil(8).max(1))) as usize;
+    let frames = (reader.duration() as u64)
+        .min(file_len / (nch as u64 * (spec.bits_per_sample as u64).div_ceil(8).max(1))) as usize;
     let mut data: Vec<Vec<f64>> = (0..nch).map(|_| Vec::with_capacity(frames)).collect();
     let mut push = |k: usize, v: f64| -> Result<(), IoError> {
         let ch = k % nch;
         if !v.is_finite() {
             let n = k / nch;
-            return err(format!("{shown}: {} sample {n} (t = {:.6} s) is {v}; samples must be finite", CHANNEL_NAMES[ch], n as f64 / spec.sample_rate as f64));
+            return err(format!(
+                "{shown}: {} sample {n} (t = {:.6} s) is {v}; samples must be finite",
+                CHANNEL_NAMES[ch],
+                n as f64 / spec.sample_rate as f64
+            ));
         }
         data[ch].push(v);
         Ok(())
@@ -277,7 +319,12 @@ pub fn read_voltage(path: &Path, scale: Option<&[f64]>) -> Result<(u32, Vec<f64>
 /// Write channels of equal length as an interleaved 32-bit float WAV (atomically).
 fn write_float_wav(path: &Path, fs: u32, channels: &[&[f64]]) -> Result<(), IoError> {
     let n = channels.first().map_or(0, |c| c.len());
-    let spec = hound::WavSpec { channels: channels.len() as u16, sample_rate: fs, bits_per_sample: 32, sample_format: hound::SampleFormat::Float };
+    let spec = hound::WavSpec {
+        channels: channels.len() as u16,
+        sample_rate: fs,
+        bits_per_sample: 32,
+        sample_format: hound::SampleFormat::Float,
+    };
     let mut buf = std::io::Cursor::new(Vec::with_capacity(n * channels.len() * 4 + 64));
     {
         let mut w = hound::WavWriter::new(&mut buf, spec).map_err(|e| IoError(format!("{}: {e}", path.display())))?;
@@ -327,7 +374,12 @@ mod tests {
     use super::*;
 
     fn write_wav_f32(path: &Path, ch: u16, frames: &[Vec<f32>]) {
-        let spec = hound::WavSpec { channels: ch, sample_rate: 48000, bits_per_sample: 32, sample_format: hound::SampleFormat::Float };
+        let spec = hound::WavSpec {
+            channels: ch,
+            sample_rate: 48000,
+            bits_per_sample: 32,
+            sample_format: hound::SampleFormat::Float,
+        };
         let mut w = hound::WavWriter::create(path, spec).unwrap();
         for f in frames {
             for s in f {
@@ -341,7 +393,8 @@ mod tests {
     fn recordings_round_trip_in_physical_units() {
         let d = tempfile::tempdir().unwrap();
         let p = d.path().join("r.wav");
-        let rec = Recording { fs: 48000, u: vec![0.0, 1.5, -2.25], i: vec![0.1, 0.2, -0.3], x: Some(vec![1e-3, -2e-3, 0.0]) };
+        let rec =
+            Recording { fs: 48000, u: vec![0.0, 1.5, -2.25], i: vec![0.1, 0.2, -0.3], x: Some(vec![1e-3, -2e-3, 0.0]) };
         write_recording(&p, &rec).unwrap();
         let back = read_recording(&p, None).unwrap();
         assert_eq!(back.fs, 48000);
@@ -357,7 +410,12 @@ mod tests {
     fn integer_pcm_needs_and_uses_scale_factors() {
         let d = tempfile::tempdir().unwrap();
         let p = d.path().join("int.wav");
-        let spec = hound::WavSpec { channels: 2, sample_rate: 44100, bits_per_sample: 16, sample_format: hound::SampleFormat::Int };
+        let spec = hound::WavSpec {
+            channels: 2,
+            sample_rate: 44100,
+            bits_per_sample: 16,
+            sample_format: hound::SampleFormat::Int,
+        };
         let mut w = hound::WavWriter::create(&p, spec).unwrap();
         for s in [1000i16, 200, -1000, -200] {
             w.write_sample(s).unwrap();
@@ -434,9 +492,17 @@ mod tests {
                 }
             });
             let got = std::fs::read(&path).unwrap();
-            assert!(texts.contains(&got), "the file mixes writes: {} bytes, starting {:?}", got.len(), &got[..4.min(got.len())]);
+            assert!(
+                texts.contains(&got),
+                "the file mixes writes: {} bytes, starting {:?}",
+                got.len(),
+                &got[..4.min(got.len())]
+            );
         }
-        let names: Vec<String> = std::fs::read_dir(d.path()).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        let names: Vec<String> = std::fs::read_dir(d.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
         assert_eq!(names, ["result.json"], "temporary files left behind");
     }
 

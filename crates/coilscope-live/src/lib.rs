@@ -17,8 +17,12 @@
 //! | kind | fields |
 //! |---|---|
 //! | `info` | `device`, `excitation`, `controllable` (false for a replay), `fs` (Hz) |
-//! | `block` | `t` (s, end of the block), `stage`, `volts` (V rms), `f_hp` (Hz), `x` (`[min, max]`, m), `x_limit` (m or null), `dtv` (K), `re` (ohm), `residual`, `limited_by`, `update` (the window residual of an update after this block, or null), `change` (`[Bl/Kms, Le]` relative change since the previous update, or null), `distortion` (`{x, i, p}`: `[Bl, Kms, Le]` factors, or null) |
-//! | `trace` | `t` (s, end of the block), `dt` (s per bin), `u` (V), `i` (A), `x` (m), `v` (m/s): each a list of `[min, max]` per bin |
+//! | `block` | `t` (s, end of the block), `stage`, `volts` (V rms), `f_hp` (Hz), `x` (`[min, max]`,
+//! m), `x_limit` (m or null), `dtv` (K), `re` (ohm), `residual`, `limited_by`, `update` (the window
+//! residual of an update after this block, or null), `change` (`[Bl/Kms, Le]` relative change since
+//! the previous update, or null), `distortion` (`{x, i, p}`: `[Bl, Kms, Le]` factors, or null) |
+//! | `trace` | `t` (s, end of the block), `dt` (s per bin), `u` (V), `i` (A), `x` (m), `v` (m/s):
+//! each a list of `[min, max]` per bin |
 //! | `estimate` | `t`, `bands`: `{Bl, Kms, Le}`, each `{x, value, sd}` over the estimator's reach |
 //! | `done` | `status`, `message`, `report` (the report's address on this server, or null) |
 //!
@@ -87,7 +91,8 @@ impl Hub {
     fn subscribe(&self) -> (Vec<Arc<str>>, broadcast::Receiver<Arc<str>>) {
         let h = self.lock();
         let rx = self.tx.subscribe();
-        let mut all: Vec<Arc<str>> = h.info.iter().chain(&h.blocks).chain(&h.traces).chain(&h.estimate).chain(&h.done).cloned().collect();
+        let mut all: Vec<Arc<str>> =
+            h.info.iter().chain(&h.blocks).chain(&h.traces).chain(&h.estimate).chain(&h.done).cloned().collect();
         all.sort_by_key(|e| seq_of(e));
         (all, rx)
     }
@@ -111,18 +116,30 @@ impl LiveServer {
     /// `public` (the page shows the measurement to anyone who can reach the port). Port 0
     /// picks a free port: [`LiveServer::url`] says which.
     pub fn start(addr: &str, public: bool) -> Result<Self, String> {
-        let parsed: SocketAddr = addr.parse().map_err(|_| format!("--serve {addr}: not an address; give IP:PORT, for example {DEFAULT_ADDR}"))?;
+        let parsed: SocketAddr = addr
+            .parse()
+            .map_err(|_| format!("--serve {addr}: not an address; give IP:PORT, for example {DEFAULT_ADDR}"))?;
         if !parsed.ip().is_loopback() && !public {
             return Err(format!("--serve {addr}: {} is not a loopback address; the live page shows the measurement to anyone who can reach it. Add --serve-public to serve it there, or use 127.0.0.1", parsed.ip()));
         }
-        let listener = std::net::TcpListener::bind(parsed).map_err(|e| format!("--serve {addr}: cannot listen there ({e}); choose another port, or 0 for a free one"))?;
+        let listener = std::net::TcpListener::bind(parsed).map_err(|e| {
+            format!("--serve {addr}: cannot listen there ({e}); choose another port, or 0 for a free one")
+        })?;
         listener.set_nonblocking(true).map_err(|e| format!("--serve {addr}: {e}"))?;
         let bound = listener.local_addr().map_err(|e| format!("--serve {addr}: {e}"))?;
         let (tx, _) = broadcast::channel(1024);
         let hub = Arc::new(Hub { history: Mutex::new(History::default()), tx });
-        let app = Router::new().route("/", get(|| async { Html(PAGE) })).route("/events", get(events)).route("/report/{*file}", get(report_file)).with_state(hub.clone());
+        let app = Router::new()
+            .route("/", get(|| async { Html(PAGE) }))
+            .route("/events", get(events))
+            .route("/report/{*file}", get(report_file))
+            .with_state(hub.clone());
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
-        let rt = tokio::runtime::Builder::new_current_thread().enable_io().enable_time().build().map_err(|e| format!("--serve: cannot start the server's runtime: {e}"))?;
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_io()
+            .enable_time()
+            .build()
+            .map_err(|e| format!("--serve: cannot start the server's runtime: {e}"))?;
         let thread = std::thread::Builder::new()
             .name("coilscope-live".into())
             .spawn(move || {
@@ -156,7 +173,10 @@ impl LiveServer {
 
     /// What is measured, before the first block.
     pub fn info(&self, device: &str, excitation: &str, controllable: bool, fs: f64) {
-        self.hub.publish(json!({"kind": "info", "device": device, "excitation": excitation, "controllable": controllable, "fs": fs}), |h, e| h.info = Some(e));
+        self.hub.publish(
+            json!({"kind": "info", "device": device, "excitation": excitation, "controllable": controllable, "fs": fs}),
+            |h, e| h.info = Some(e),
+        );
     }
 
     /// One block of the measurement (call it from the engine's observer).
@@ -171,7 +191,8 @@ impl LiveServer {
             });
         }
         if !l.bands.is_empty() {
-            let bands: serde_json::Map<String, Value> = l.bands.iter().map(|(k, b)| (k.to_string(), json!({"x": b.x, "value": b.value, "sd": b.sd}))).collect();
+            let bands: serde_json::Map<String, Value> =
+                l.bands.iter().map(|(k, b)| (k.to_string(), json!({"x": b.x, "value": b.value, "sd": b.sd}))).collect();
             self.hub.publish(json!({"kind": "estimate", "t": l.t, "bands": bands}), |h, e| h.estimate = Some(e));
         }
     }
@@ -182,7 +203,9 @@ impl LiveServer {
         let report = report_dir.filter(|d| d.join("report.html").is_file());
         self.hub.lock().report_dir = report.map(Path::to_path_buf);
         let link = report.map(|_| "/report/report.html");
-        self.hub.publish(json!({"kind": "done", "status": status, "message": message, "report": link}), |h, e| h.done = Some(e));
+        self.hub.publish(json!({"kind": "done", "status": status, "message": message, "report": link}), |h, e| {
+            h.done = Some(e)
+        });
     }
 
     /// Stop serving (also on drop).

@@ -22,7 +22,12 @@ fn measure_20s(name: &str) -> f64 {
     let [lo, hi] = p.x_range.unwrap();
     let mut dev = VirtualDevice::new(&p, 48000.0, (1e-4, 1e-4), 1).unwrap();
     let mut src = Source::noise(&Excitation::Iec, 48000.0, 2).unwrap();
-    let opts = MeasureOptions { mms: p.mms, target_x: Some(0.85 * hi.min(-lo)), duration: Some(SECONDS), ..Default::default() };
+    let opts = MeasureOptions {
+        mms: p.mms,
+        target_x: Some(0.85 * hi.min(-lo)),
+        duration: Some(SECONDS),
+        ..Default::default()
+    };
     measure(&mut dev, &mut src, &opts, None, |_| {}).unwrap().seconds
 }
 

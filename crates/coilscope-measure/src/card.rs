@@ -123,7 +123,14 @@ pub struct ChainCorrector {
 impl ChainCorrector {
     pub fn new(chain: &Chain, wiring: SenseWiring, fs: f64) -> Result<Self, String> {
         let tau = streamed_delay(chain, fs)?;
-        Ok(ChainCorrector { u: Uncouple::new(chain.hp_u, fs), i: Uncouple::new(chain.hp_i, fs), delay_u: FracDelay::new(tau), delay_i: FracDelay::new(0.0), gain_i: chain.gain_i.unwrap_or(1.0), rs: wiring.series_ohm() })
+        Ok(ChainCorrector {
+            u: Uncouple::new(chain.hp_u, fs),
+            i: Uncouple::new(chain.hp_i, fs),
+            delay_u: FracDelay::new(tau),
+            delay_i: FracDelay::new(0.0),
+            gain_i: chain.gain_i.unwrap_or(1.0),
+            rs: wiring.series_ohm(),
+        })
     }
 
     /// Samples of silence to record before the measurement, for the offsets (0.5 s: a whole
@@ -180,7 +187,14 @@ impl<D: Device> Corrected<D> {
 
     pub fn new(inner: D, chain: &Chain, wiring: SenseWiring) -> Result<Self, String> {
         let corrector = ChainCorrector::new(chain, wiring, inner.fs())?;
-        let what = format!("corrected for its chain (current {:.3} samples late, AC coupling {:.2} / {:.2} Hz, gain {:.4}; {} wiring)", chain.delay_i * inner.fs(), chain.hp_u, chain.hp_i, chain.gain_i.unwrap_or(1.0), wiring.name());
+        let what = format!(
+            "corrected for its chain (current {:.3} samples late, AC coupling {:.2} / {:.2} Hz, gain {:.4}; {} wiring)",
+            chain.delay_i * inner.fs(),
+            chain.hp_u,
+            chain.hp_i,
+            chain.gain_i.unwrap_or(1.0),
+            wiring.name()
+        );
         Ok(Corrected { inner, corrector, what, led_in: false, offsets: (0.0, 0.0) })
     }
 }
@@ -229,7 +243,15 @@ pub struct ChainStream {
 impl ChainStream {
     pub fn new(chain: &Chain, fs: f64) -> Result<Self, String> {
         let tau = streamed_delay(chain, fs)?;
-        Ok(ChainStream { hp_u: HighPass::new(chain.hp_u, fs), hp_i: HighPass::new(chain.hp_i, fs), delay_u: FracDelay::new(0.0), delay_i: FracDelay::new(tau), chain: chain.clone(), fs, n: 0 })
+        Ok(ChainStream {
+            hp_u: HighPass::new(chain.hp_u, fs),
+            hp_i: HighPass::new(chain.hp_i, fs),
+            delay_u: FracDelay::new(0.0),
+            delay_i: FracDelay::new(tau),
+            chain: chain.clone(),
+            fs,
+            n: 0,
+        })
     }
 
     /// The recorded `(u, i)` of one physical sample pair at the channels' inputs.
@@ -294,7 +316,8 @@ impl<D: Device> Device for SimulatedCard<D> {
         self.clipped += cu + ci;
         // A clipped sample is a wrong sample: refused, as the sound card refuses it.
         if cu + ci > 0 {
-            let (what, n, fsv, unit) = if cu > 0 { ("voltage", cu, self.full_scale.0, "V") } else { ("current", ci, self.full_scale.1, "A") };
+            let (what, n, fsv, unit) =
+                if cu > 0 { ("voltage", cu, self.full_scale.0, "V") } else { ("current", ci, self.full_scale.1, "A") };
             return Err(format!("the simulated card's {what} channel clipped ({n} samples at its full scale of {fsv} {unit}): raise its full scale (measure: --u-volts-fs, --i-volts-fs) or lower --max-volts"));
         }
         Ok(Some(out))
@@ -343,7 +366,12 @@ mod tests {
             let worst = (1..=80)
                 .map(|k| {
                     let w = 2.0 * PI * 0.4 * k as f64 / 80.0;
-                    let h: coilscope_core::Complex64 = d.taps.iter().enumerate().map(|(m, t)| coilscope_core::Complex64::from_polar(*t, -w * m as f64)).sum();
+                    let h: coilscope_core::Complex64 = d
+                        .taps
+                        .iter()
+                        .enumerate()
+                        .map(|(m, t)| coilscope_core::Complex64::from_polar(*t, -w * m as f64))
+                        .sum();
                     (h - coilscope_core::Complex64::from_polar(1.0, -w * (LATENCY as f64 + frac))).norm()
                 })
                 .fold(0.0, f64::max);
@@ -358,7 +386,16 @@ mod tests {
         let fs = 48000.0;
         let n = 48000;
         let (u, i) = (noise(1, n), noise(2, n));
-        let c = Chain { delay_i: 0.37 / fs, hp_u: 1.5, hp_i: 4.5, gain_i: Some(1.02), dc_u: 0.01, dc_i: -0.003, hum: Some(Hum { f: 50.0, u: vec![[1e-3, 0.3]], i: vec![[2e-4, -1.0], [0.0, 0.0], [1e-4, 0.5]] }), ..Default::default() };
+        let c = Chain {
+            delay_i: 0.37 / fs,
+            hp_u: 1.5,
+            hp_i: 4.5,
+            gain_i: Some(1.02),
+            dc_u: 0.01,
+            dc_i: -0.003,
+            hum: Some(Hum { f: 50.0, u: vec![[1e-3, 0.3]], i: vec![[2e-4, -1.0], [0.0, 0.0], [1e-4, 0.5]] }),
+            ..Default::default()
+        };
         let (ua, ia) = c.apply(&u, &i, fs);
         let mut s = ChainStream::new(&c, fs).unwrap();
         let (us, is): (Vec<f64>, Vec<f64>) = u.iter().zip(&i).map(|(&a, &b)| s.push(a, b)).unzip();
@@ -380,16 +417,27 @@ mod tests {
         let (u, i) = (noise(3, n), noise(4, n));
         let rs = 0.1;
         let w = SenseWiring::DriverPlusShunt { ohm: rs };
-        for c in
-            [Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, gain_i: Some(0.985), dc_u: 0.01 * 4.0, dc_i: 0.01 * 4.0, ..Default::default() }, Chain { delay_i: -0.45 / fs, hp_u: 5.0, hp_i: 1.0, dc_u: -0.02, ..Default::default() }, Chain::default()]
-        {
+        for c in [
+            Chain {
+                delay_i: 0.3 / fs,
+                hp_u: 2.0,
+                hp_i: 4.0,
+                gain_i: Some(0.985),
+                dc_u: 0.01 * 4.0,
+                dc_i: 0.01 * 4.0,
+                ..Default::default()
+            },
+            Chain { delay_i: -0.45 / fs, hp_u: 5.0, hp_i: 1.0, dc_u: -0.02, ..Default::default() },
+            Chain::default(),
+        ] {
             let mut card = ChainStream::new(&c, fs).unwrap();
             let mut fix = ChainCorrector::new(&c, w, fs).unwrap();
             // The lead-in: silence through the card, with sensor noise.
             let lead = ChainCorrector::lead_in(fs);
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
             let mut sensor = move || 1e-4 * <StandardNormal as Distribution<f64>>::sample(&StandardNormal, &mut rng);
-            let (lu, li): (Vec<f64>, Vec<f64>) = (0..lead).map(|_| card.push(0.0, 0.0)).map(|(a, b)| (a + sensor(), b + sensor())).unzip();
+            let (lu, li): (Vec<f64>, Vec<f64>) =
+                (0..lead).map(|_| card.push(0.0, 0.0)).map(|(a, b)| (a + sensor(), b + sensor())).unzip();
             let (dc_u, dc_i) = fix.offsets_from_silence(&lu, &li);
             assert!((dc_u - c.dc_u).abs() < 1e-5 && (dc_i - c.dc_i).abs() < 1e-5, "{dc_u} {dc_i}");
             let mut card = ChainStream::new(&c, fs).unwrap();
@@ -406,7 +454,10 @@ mod tests {
             // delay on the voltage).
             let (ut, it) = (hp(&u, RESIDUAL_HP, fs), hp(&i, RESIDUAL_HP, fs));
             let tau = c.delay_i * fs;
-            let (ud, id) = (coilscope_core::chain::delay(&ut, 2.0 * LATENCY as f64 + tau), coilscope_core::chain::delay(&it, 2.0 * LATENCY as f64 + tau));
+            let (ud, id) = (
+                coilscope_core::chain::delay(&ut, 2.0 * LATENCY as f64 + tau),
+                coilscope_core::chain::delay(&it, 2.0 * LATENCY as f64 + tau),
+            );
             // What the lead-in leaves of the offset (1e-4 noise over its 12 000 samples: about
             // 1e-6) is integrated into a ramp that the residual high-pass bends into a constant
             // of fc / RESIDUAL_HP times it (over its 16 s time constant); besides that, from
@@ -414,7 +465,11 @@ mod tests {
             let check = |a: &[f64], b: &[f64], fc: f64, what: &str| {
                 let worst = (2000..n - 2000).map(|m| (a[m] - b[m]).abs()).fold(0.0, f64::max);
                 let bound = 3.0 * 1e-4 / (lead as f64 / 2.0).sqrt() * fc.max(RESIDUAL_HP) / RESIDUAL_HP;
-                assert!(worst < bound + 1e-4 * rms(b), "{c:?} {what}: {worst:.2e} (offset bound {bound:.1e}, rms {:.2e})", rms(b));
+                assert!(
+                    worst < bound + 1e-4 * rms(b),
+                    "{c:?} {what}: {worst:.2e} (offset bound {bound:.1e}, rms {:.2e})",
+                    rms(b)
+                );
             };
             check(&uc, &ud, c.hp_u, "u");
             check(&ic, &id, c.hp_i, "i");

@@ -181,7 +181,10 @@ impl Device for VirtualDevice {
                     }
                 }
                 if let Some(why) = self.plant.invalid_at(&s) {
-                    return Err(format!("the virtual driver left its model at t = {:.3} s: {why} (the protection failed)", (self.pos - HALF_TAPS) as f64 / self.fs));
+                    return Err(format!(
+                        "the virtual driver left its model at t = {:.3} s: {why} (the protection failed)",
+                        (self.pos - HALF_TAPS) as f64 / self.fs
+                    ));
                 }
                 self.truth.x_peak = self.truth.x_peak.max(x.abs());
                 self.truth.x_min = self.truth.x_min.min(x);

@@ -202,28 +202,67 @@ impl MeasureOptions {
     /// Check the limits; the message names the option and what is valid.
     pub fn validate(&self) -> Result<(), String> {
         let check = |ok: bool, msg: String| if ok { Ok(()) } else { Err(msg) };
-        check(self.mms.is_finite() && self.mms > 0.0 && self.mms < 2.0, format!("--mms {} kg is not valid (0 .. 2 kg; give kg, not g)", self.mms))?;
+        check(
+            self.mms.is_finite() && self.mms > 0.0 && self.mms < 2.0,
+            format!("--mms {} kg is not valid (0 .. 2 kg; give kg, not g)", self.mms),
+        )?;
         if let Some(x) = self.target_x {
-            check(x.is_finite() && x > 0.0 && x < 0.1, format!("--target-x {} mm is not valid (0 .. 100 mm)", x * 1e3))?;
+            check(
+                x.is_finite() && x > 0.0 && x < 0.1,
+                format!("--target-x {} mm is not valid (0 .. 100 mm)", x * 1e3),
+            )?;
         }
-        check(self.max_dt.is_finite() && self.max_dt > 0.0 && self.max_dt <= 300.0, format!("--max-dt {} K is not valid (0 .. 300 K)", self.max_dt))?;
-        check(self.kms_limit.is_finite() && self.kms_limit > 1.0, format!("--kms-limit {} is not valid (> 1, e.g. 2)", self.kms_limit))?;
-        check(self.max_volts.is_finite() && self.max_volts > 0.0 && self.max_volts <= 1000.0, format!("--max-volts {} V is not valid (0 .. 1000 V rms)", self.max_volts))?;
-        check(self.start_volts > 0.0 && self.start_volts <= self.max_volts, format!("--start-volts {} V is not valid (0 .. max-volts {} V)", self.start_volts, self.max_volts))?;
+        check(
+            self.max_dt.is_finite() && self.max_dt > 0.0 && self.max_dt <= 300.0,
+            format!("--max-dt {} K is not valid (0 .. 300 K)", self.max_dt),
+        )?;
+        check(
+            self.kms_limit.is_finite() && self.kms_limit > 1.0,
+            format!("--kms-limit {} is not valid (> 1, e.g. 2)", self.kms_limit),
+        )?;
+        check(
+            self.max_volts.is_finite() && self.max_volts > 0.0 && self.max_volts <= 1000.0,
+            format!("--max-volts {} V is not valid (0 .. 1000 V rms)", self.max_volts),
+        )?;
+        check(
+            self.start_volts > 0.0 && self.start_volts <= self.max_volts,
+            format!("--start-volts {} V is not valid (0 .. max-volts {} V)", self.start_volts, self.max_volts),
+        )?;
         if let Some(d) = self.duration {
-            check(d.is_finite() && d >= self.small_seconds + 1.0, format!("--duration {d} s is not valid (at least {} s)", self.small_seconds + 1.0))?;
+            check(
+                d.is_finite() && d >= self.small_seconds + 1.0,
+                format!("--duration {d} s is not valid (at least {} s)", self.small_seconds + 1.0),
+            )?;
         }
         if let Some(v) = self.hold_volts {
-            check(v > 0.0 && v <= self.max_volts, format!("--volts {v} V is not valid (0 .. max-volts {} V)", self.max_volts))?;
+            check(
+                v > 0.0 && v <= self.max_volts,
+                format!("--volts {v} V is not valid (0 .. max-volts {} V)", self.max_volts),
+            )?;
         }
         if let Some((after, v)) = self.cool {
             let (d, hold) = (self.duration.unwrap_or(0.0), self.hold_volts.unwrap_or(0.0));
-            check(self.duration.is_some() && self.hold_volts.is_some(), "--cool-after/--cool-volts need a long-term test at a fixed level (--duration S --volts V)".to_string())?;
-            check(after.is_finite() && after > self.small_seconds && after < d, format!("--cool-after {after} s is not valid (between the small-signal stage, {} s, and --duration {d} s)", self.small_seconds))?;
-            check(v.is_finite() && v > 0.0 && v < hold, format!("--cool-volts {v} V is not valid (0 .. --volts {hold} V: the cooling level is the lower one)"))?;
+            check(
+                self.duration.is_some() && self.hold_volts.is_some(),
+                "--cool-after/--cool-volts need a long-term test at a fixed level (--duration S --volts V)".to_string(),
+            )?;
+            check(
+                after.is_finite() && after > self.small_seconds && after < d,
+                format!(
+                    "--cool-after {after} s is not valid (between the small-signal stage, {} s, and --duration {d} s)",
+                    self.small_seconds
+                ),
+            )?;
+            check(
+                v.is_finite() && v > 0.0 && v < hold,
+                format!("--cool-volts {v} V is not valid (0 .. --volts {hold} V: the cooling level is the lower one)"),
+            )?;
         }
         check((2..=8).contains(&self.order), format!("--order {} is not valid (2 ..= 8)", self.order))?;
-        check(self.max_seconds >= self.small_seconds + 2.0, format!("--max-seconds {} s is not valid (at least {} s)", self.max_seconds, self.small_seconds + 2.0))?;
+        check(
+            self.max_seconds >= self.small_seconds + 2.0,
+            format!("--max-seconds {} s is not valid (at least {} s)", self.max_seconds, self.small_seconds + 2.0),
+        )?;
         Ok(())
     }
 }
@@ -528,7 +567,9 @@ fn small_stage_envelope(drive: &mut [f64], start: usize, fs: f64, small_seconds:
 /// is explained by the large-signal terms (`coilscope_ident::linear::linear_warnings`).
 fn loud_start(lin: &coilscope_ident::linear::LinearFit, p: &Parameters, u: &[f64], i: &[f64], fs: f64) -> Option<f64> {
     let (_, w) = coilscope_ident::linear::linear_warnings(lin, p, u, i, fs);
-    w.iter().any(|w| w.code == "large-signal-record").then(|| coilscope_ident::linear::predicted_displacement(p, i, fs).iter().fold(0.0f64, |a, v| a.max(v.abs())))
+    w.iter()
+        .any(|w| w.code == "large-signal-record")
+        .then(|| coilscope_ident::linear::predicted_displacement(p, i, fs).iter().fold(0.0f64, |a, v| a.max(v.abs())))
 }
 
 /// The batch large-signal fit (`coilscope identify`, order 4) of a record's first seconds, as
@@ -537,7 +578,13 @@ fn loud_start(lin: &coilscope_ident::linear::LinearFit, p: &Parameters, u: &[f64
 fn batch_start(u: &[f64], i: &[f64], fs: f64, mms: f64) -> Option<(Parameters, f64, f64)> {
     use coilscope_ident::large::{identify, IdentifyError, IdentifyOptions};
     // The LR-2 model: the online estimator has no creep or LR-3 yet.
-    let opts = IdentifyOptions { mms, order: Some(4), effects: EffectsChoice::Fixed(Effects::NONE), chain: false, ..Default::default() };
+    let opts = IdentifyOptions {
+        mms,
+        order: Some(4),
+        effects: EffectsChoice::Fixed(Effects::NONE),
+        chain: false,
+        ..Default::default()
+    };
     let fit = match identify(u, i, fs, "replay start", &opts, |_| {}) {
         Ok(f) => f,
         Err(IdentifyError::NotConverged { best, .. }) => *best,
@@ -609,7 +656,8 @@ pub struct ControlDecision {
 /// 6. **`max_volts`**.
 pub fn control(opts: &MeasureOptions, c: &ControlInput) -> ControlDecision {
     let gain = c.gain;
-    let (peak, per_volt, kms_ratio, checked_reach, dtv, dtv_ahead) = (c.peak, c.per_volt, c.kms_ratio, c.checked_reach, c.dtv, c.dtv_ahead);
+    let (peak, per_volt, kms_ratio, checked_reach, dtv, dtv_ahead) =
+        (c.peak, c.per_volt, c.kms_ratio, c.checked_reach, c.dtv, c.dtv_ahead);
     let mut events = Vec::new();
     let mut hp_fc = None;
     let mut temp_cut = c.temp_cut;
@@ -623,7 +671,11 @@ pub fn control(opts: &MeasureOptions, c: &ControlInput) -> ControlDecision {
             // Fixed level: the high-pass keeps x in range.
             if peak > 0.97 * xl {
                 let fc = (c.hp_fc.max(5.0) * 1.25).min(2000.0);
-                events.push(format!("excursion {:.2} mm near the limit {:.2} mm: high-pass raised to {fc:.1} Hz", peak * 1e3, xl * 1e3));
+                events.push(format!(
+                    "excursion {:.2} mm near the limit {:.2} mm: high-pass raised to {fc:.1} Hz",
+                    peak * 1e3,
+                    xl * 1e3
+                ));
                 hp_fc = Some(fc);
                 why = LimitedBy::ExcursionHighPass;
             } else if gain * per_volt < 0.8 * xl && c.hp_fc > opts.hp_hz {
@@ -631,7 +683,11 @@ pub fn control(opts: &MeasureOptions, c: &ControlInput) -> ControlDecision {
             }
         } else if peak > 0.98 * xl {
             g = gain * 0.9 * xl / peak;
-            events.push(format!("excursion {:.2} mm above 98 % of the limit {:.2} mm: gain cut to {g:.3} V", peak * 1e3, xl * 1e3));
+            events.push(format!(
+                "excursion {:.2} mm above 98 % of the limit {:.2} mm: gain cut to {g:.3} V",
+                peak * 1e3,
+                xl * 1e3
+            ));
             why = LimitedBy::Excursion;
         } else if g * per_volt > X_AIM * xl {
             g = X_AIM * xl / per_volt.max(1e-12);
@@ -651,7 +707,10 @@ pub fn control(opts: &MeasureOptions, c: &ControlInput) -> ControlDecision {
             why = LimitedBy::Exploration;
         }
     }
-    if opts.hold_volts.is_none() && g > gain && (c.last_change.is_some_and(|b| b > RAMP_SETTLE) || c.last_excess > RAMP_EXCESS) {
+    if opts.hold_volts.is_none()
+        && g > gain
+        && (c.last_change.is_some_and(|b| b > RAMP_SETTLE) || c.last_excess > RAMP_EXCESS)
+    {
         g = gain;
         why = LimitedBy::Settling;
     }
@@ -670,7 +729,10 @@ pub fn control(opts: &MeasureOptions, c: &ControlInput) -> ControlDecision {
         let cut = gain * (0.85 * opts.max_dt / dtv_ahead).sqrt();
         if cut < g {
             g = cut;
-            events.push(format!("voice-coil rise {dtv:.2} K (heading for {dtv_ahead:.2} K) above 92 % of {} K: gain cut to {g:.3} V", opts.max_dt));
+            events.push(format!(
+                "voice-coil rise {dtv:.2} K (heading for {dtv_ahead:.2} K) above 92 % of {} K: gain cut to {g:.3} V",
+                opts.max_dt
+            ));
             why = LimitedBy::Temperature;
         }
     } else if (dtv_ahead > 0.85 * opts.max_dt || (temp_cut && dtv_ahead > 0.75 * opts.max_dt)) && g > gain {
@@ -699,7 +761,14 @@ fn online_options(opts: &MeasureOptions, x_ref: f64, controllable: bool) -> Onli
     // A long-term test lets the values at rest follow the suspension and the magnet as they
     // warm over minutes.
     let drift = if opts.duration.is_some() { LONG_TERM_DRIFT } else { 0.0 };
-    OnlineOptions { order: opts.order, x_ref, window: ONLINE_WINDOW_S, max_before: if controllable { f64::INFINITY } else { RESTART_RESIDUAL }, drift, ..Default::default() }
+    OnlineOptions {
+        order: opts.order,
+        x_ref,
+        window: ONLINE_WINDOW_S,
+        max_before: if controllable { f64::INFINITY } else { RESTART_RESIDUAL },
+        drift,
+        ..Default::default()
+    }
 }
 
 /// The eddy-current branch an estimate drove to nothing: L2 and R2 both a hair from zero (the
@@ -982,7 +1051,12 @@ impl<'a> Engine<'a> {
             estimate: None,
             change: None,
             distortion: None,
-            trace: Trace { dt: n as f64 / self.fs / TRACE_BINS.min(n) as f64, u: envelope(blk.u.iter().copied(), TRACE_BINS), i: envelope(blk.i.iter().copied(), TRACE_BINS), ..Default::default() },
+            trace: Trace {
+                dt: n as f64 / self.fs / TRACE_BINS.min(n) as f64,
+                u: envelope(blk.u.iter().copied(), TRACE_BINS),
+                i: envelope(blk.i.iter().copied(), TRACE_BINS),
+                ..Default::default()
+            },
             bands: vec![],
         };
         match self.online.as_mut() {
@@ -1006,7 +1080,8 @@ impl<'a> Engine<'a> {
                     if self.controllable {
                         let quiet_from = ((self.opts.small_seconds - SMALL_REST_S - SMALL_FADE_S) * self.fs) as usize;
                         for b in x_lin[..quiet_from.min(x_lin.len())].chunks(self.nb).filter(|b| b.len() == self.nb) {
-                            self.recent_peaks.push(b.iter().fold(0.0f64, |a, v| a.max(v.abs())) / self.opts.start_volts);
+                            self.recent_peaks
+                                .push(b.iter().fold(0.0f64, |a, v| a.max(v.abs())) / self.opts.start_volts);
                         }
                     }
                     // Basis scale: the expected reach, never more than X_REF_SMALL times the
@@ -1015,7 +1090,11 @@ impl<'a> Engine<'a> {
                     // linear response at X_REF_VOLTS, whatever the start level (from 1 V, 20
                     // small reaches put SB17's x_ref at 14 mm, and the series' prior held
                     // Kms(x) at 1.5 where the driver reached 2.2 at 5.5 mm).
-                    let x_expect = if self.controllable { x_small * X_REF_VOLTS / self.opts.start_volts } else { X_REF_SMALL * x_small };
+                    let x_expect = if self.controllable {
+                        x_small * X_REF_VOLTS / self.opts.start_volts
+                    } else {
+                        X_REF_SMALL * x_small
+                    };
                     let mut x_ref = self.opts.target_x.map_or(x_expect, |t| t.min(x_expect)).max(2.0 * x_small);
                     // A replay that starts loud (no quiet lead-in) has no small-signal stage: a
                     // linear fit of large-signal data is a biased start (Kms 20-45 % off), from
@@ -1037,7 +1116,8 @@ impl<'a> Engine<'a> {
                         }
                         _ => p,
                     };
-                    let mut on = Online::new(&p, self.fs, online_options(&self.opts, x_ref, self.controllable)).map_err(|e| e.0)?;
+                    let mut on = Online::new(&p, self.fs, online_options(&self.opts, x_ref, self.controllable))
+                        .map_err(|e| e.0)?;
                     on.push(&self.u_small, &self.i_small).map_err(|e| e.0)?;
                     self.online = Some(on);
                     self.meter = Some(coilscope_analysis::live_distortion::DistortionMeter::new(&p, self.fs));
@@ -1076,7 +1156,8 @@ impl<'a> Engine<'a> {
                 }
                 // The Re tracking lags the coil by about a second: protect on the estimate
                 // carried forward along its trend over the last second.
-                let slope = (self.dtv_recent.last().unwrap() - self.dtv_recent[0]) / ((self.dtv_recent.len() - 1).max(1) as f64 * self.opts.block);
+                let slope = (self.dtv_recent.last().unwrap() - self.dtv_recent[0])
+                    / ((self.dtv_recent.len() - 1).max(1) as f64 * self.opts.block);
                 let dtv_ahead = dtv + THERMAL_LAG_S * slope.max(0.0);
                 if let Some(c) = self.meter.as_mut().and_then(|m| m.process(&st.traj)) {
                     use coilscope_analysis::live_distortion::Contributions;
@@ -1093,7 +1174,14 @@ impl<'a> Engine<'a> {
                         // RMS over the second's blocks.
                         let n = self.dist_sum.1 as f64;
                         let m = Contributions::from_flat(&self.dist_sum.0.map(|a| (a / n).sqrt()));
-                        self.distortion.push(coilscope_core::result::DistortionPoint { t, x: m.x, i: m.i, p: m.p, dominant_x: Contributions::dominant(&m.x).into(), dominant_p: Contributions::dominant(&m.p).into() });
+                        self.distortion.push(coilscope_core::result::DistortionPoint {
+                            t,
+                            x: m.x,
+                            i: m.i,
+                            p: m.p,
+                            dominant_x: Contributions::dominant(&m.x).into(),
+                            dominant_p: Contributions::dominant(&m.p).into(),
+                        });
                         self.dist_sum = ([0.0; 9], 0);
                     }
                 }
@@ -1104,7 +1192,11 @@ impl<'a> Engine<'a> {
                     tt.pv.push(on.re() * st.i_sq / st.samples as f64);
                     tt.pm.push(st.pm_sum / st.samples as f64);
                     // The live model's mean coil speed (the convection cooling's input).
-                    tt.speed.push(if st.traj.is_empty() { f64::NAN } else { st.traj.iter().map(|s| s[1].abs()).sum::<f64>() / st.traj.len() as f64 });
+                    tt.speed.push(if st.traj.is_empty() {
+                        f64::NAN
+                    } else {
+                        st.traj.iter().map(|s| s[1].abs()).sum::<f64>() / st.traj.len() as f64
+                    });
                 }
                 live.x_min = st.x_min;
                 live.x_max = st.x_max;
@@ -1123,7 +1215,11 @@ impl<'a> Engine<'a> {
                 }
                 // Recursive update. A replay is not real time: it updates once per window, so
                 // every recorded sample is used.
-                let every = if self.controllable { self.opts.update_seconds } else { self.opts.update_seconds.min(ONLINE_WINDOW_S) };
+                let every = if self.controllable {
+                    self.opts.update_seconds
+                } else {
+                    self.opts.update_seconds.min(ONLINE_WINDOW_S)
+                };
                 if on.since_update() >= every {
                     if let Some(up) = on.update() {
                         self.updates += 1;
@@ -1136,9 +1232,20 @@ impl<'a> Engine<'a> {
                         // knows (a quiet lead-in, then the loud part), and the online update
                         // from a model that misses 10 % of the current runs away. Restart it
                         // from a batch large-signal fit of the last seconds instead.
-                        if !self.controllable && up.before > RESTART_RESIDUAL && self.restarts < MAX_RESTARTS && self.recent_u.len() as f64 >= RESTART_S * self.fs - 1.0 {
-                            if let Some((b, _, reach)) = batch_start(&self.recent_u, &self.recent_i, self.fs, self.opts.mms) {
-                                let fresh = Online::new(&b, self.fs, online_options(&self.opts, 1.5 * reach.max(1e-6), self.controllable)).and_then(|mut f| f.push(&self.recent_u, &self.recent_i).map(|_| f));
+                        if !self.controllable
+                            && up.before > RESTART_RESIDUAL
+                            && self.restarts < MAX_RESTARTS
+                            && self.recent_u.len() as f64 >= RESTART_S * self.fs - 1.0
+                        {
+                            if let Some((b, _, reach)) =
+                                batch_start(&self.recent_u, &self.recent_i, self.fs, self.opts.mms)
+                            {
+                                let fresh = Online::new(
+                                    &b,
+                                    self.fs,
+                                    online_options(&self.opts, 1.5 * reach.max(1e-6), self.controllable),
+                                )
+                                .and_then(|mut f| f.push(&self.recent_u, &self.recent_i).map(|_| f));
                                 if let Ok(f) = fresh {
                                     *on = f;
                                     self.restarts += 1;
@@ -1155,7 +1262,11 @@ impl<'a> Engine<'a> {
                         self.last_excess = up.before * (1.0 - 1.0 / up.floor_ratio.max(1.0).powi(2)).sqrt();
                         // At full level for a while, the large-signal effects the data did not
                         // show stop being estimated (each made every update a fifth dearer).
-                        if self.controllable && !self.pruned && self.stage == Stage::Hold && t - self.hold_since >= PRUNE_AFTER_HOLD_S {
+                        if self.controllable
+                            && !self.pruned
+                            && self.stage == Stage::Hold
+                            && t - self.hold_since >= PRUNE_AFTER_HOLD_S
+                        {
                             self.pruned = true;
                             let d = on.drop_effects(on.insignificant_effects());
                             if d != Effects::NONE {
@@ -1208,9 +1319,14 @@ impl<'a> Engine<'a> {
                             s.push_estimate(t, up.before, &pj.to_json_value());
                         }
                         let k0 = est.kms.eval(0.0);
-                        self.kms_ratio = (0..=20).map(|k| 1.3 * reach * k as f64 / 20.0).map(|x| est.kms.eval(x).max(est.kms.eval(-x)) / k0).fold(0.0, f64::max);
+                        self.kms_ratio = (0..=20)
+                            .map(|k| 1.3 * reach * k as f64 / 20.0)
+                            .map(|x| est.kms.eval(x).max(est.kms.eval(-x)) / k0)
+                            .fold(0.0, f64::max);
                         self.checked_reach = reach;
-                        let xs: Vec<f64> = (0..LIVE_BAND_POINTS).map(|k| reach * (2.0 * k as f64 / (LIVE_BAND_POINTS - 1) as f64 - 1.0)).collect();
+                        let xs: Vec<f64> = (0..LIVE_BAND_POINTS)
+                            .map(|k| reach * (2.0 * k as f64 / (LIVE_BAND_POINTS - 1) as f64 - 1.0))
+                            .collect();
                         let bands = curve_bands(&est, on, &xs, self.le_model_rel);
                         // The widest band over the reach, relative to the curve at rest (NaN
                         // when the covariance gave none: not precise).
@@ -1265,7 +1381,11 @@ impl<'a> Engine<'a> {
                     }
                     let per_volt = self.recent_peaks.iter().cloned().fold(0.0, f64::max);
                     // The cooling phase of a long-term test: the held level drops.
-                    let cooling = self.opts.cool.filter(|&(after, _)| t >= after).map(|(_, v)| MeasureOptions { hold_volts: Some(v), interrupt: None, ..self.opts.clone() });
+                    let cooling = self.opts.cool.filter(|&(after, _)| t >= after).map(|(_, v)| MeasureOptions {
+                        hold_volts: Some(v),
+                        interrupt: None,
+                        ..self.opts.clone()
+                    });
                     let d = control(
                         cooling.as_ref().unwrap_or(&self.opts),
                         &ControlInput {
@@ -1361,7 +1481,10 @@ impl<'a> Engine<'a> {
     pub fn finish(self) -> Result<Measurement, String> {
         let seconds = self.samples as f64 / self.fs;
         let Some(on) = self.online else {
-            return Err(format!("the measurement ended after {seconds:.2} s, before the small-signal stage ({} s) was complete", self.opts.small_seconds));
+            return Err(format!(
+                "the measurement ended after {seconds:.2} s, before the small-signal stage ({} s) was complete",
+                self.opts.small_seconds
+            ));
         };
         // `Re` of a parameter set is the value at ambient temperature (formats.md): the cold
         // estimate. The hot value at the end lives under `thermal` (`Measurement::re_end`).
@@ -1390,7 +1513,9 @@ impl<'a> Engine<'a> {
         // stage's distortion as resistance.
         if self.controllable && self.converged {
             let start = Parameters { re: re_cold, ..params.clone() };
-            if let Some((re, sd)) = coilscope_ident::online::fit_re(&start, &self.u_small, &self.i_small, self.fs).filter(|&(re, _)| (re / re_cold - 1.0).abs() < 0.01) {
+            if let Some((re, sd)) = coilscope_ident::online::fit_re(&start, &self.u_small, &self.i_small, self.fs)
+                .filter(|&(re, _)| (re / re_cold - 1.0).abs() < 0.01)
+            {
                 re_cold = re;
                 re_cold_sd = sd;
             }
@@ -1399,10 +1524,18 @@ impl<'a> Engine<'a> {
         // The track is referred to the small-signal fit's Re (`small.re`): its sd, as a
         // temperature, is an offset the fit cannot see.
         let offset_sd = self.re_cold_sd / small.re / self.opts.alpha;
-        let thermal_fit = (seconds >= THERMAL_FIT_MIN_S).then(|| fit_thermal_track(&self.thermal_track, if offset_sd.is_finite() { offset_sd } else { 0.0 }));
+        let thermal_fit = (seconds >= THERMAL_FIT_MIN_S)
+            .then(|| fit_thermal_track(&self.thermal_track, if offset_sd.is_finite() { offset_sd } else { 0.0 }));
         if let Some(Ok(f)) = &thermal_fit {
             let [rtv, ctv, rtm, ctm] = f.values;
-            params.thermal = Some(coilscope_core::params::Thermal { alpha: self.opts.alpha, rtv, ctv, rtm, ctm, rv: f.rv.map_or(0.0, |r| r.0) });
+            params.thermal = Some(coilscope_core::params::Thermal {
+                alpha: self.opts.alpha,
+                rtv,
+                ctv,
+                rtm,
+                ctm,
+                rv: f.rv.map_or(0.0, |r| r.0),
+            });
         }
         Ok(Measurement {
             params,
@@ -1445,7 +1578,10 @@ pub const THERMAL_FIT_MIN_S: f64 = 120.0;
 /// The thermal fit of a run's track, from start values read off the track itself: the
 /// total resistance from the last rise over the mean coil power, split 60/40 between coil
 /// and magnet, a coil time constant of 10 s and a magnet one of 10 minutes.
-fn fit_thermal_track(tr: &coilscope_ident::thermal::ThermalTrack, offset_sd: f64) -> Result<coilscope_ident::thermal::ThermalFit, String> {
+fn fit_thermal_track(
+    tr: &coilscope_ident::thermal::ThermalTrack,
+    offset_sd: f64,
+) -> Result<coilscope_ident::thermal::ThermalFit, String> {
     let n = tr.t.len();
     if n == 0 {
         return Err("no blocks were tracked".into());
@@ -1461,7 +1597,13 @@ fn fit_thermal_track(tr: &coilscope_ident::thermal::ThermalTrack, offset_sd: f64
 /// Run a measurement: [`Engine::step`] until it stops, then [`Engine::finish`]. `observe`
 /// sees every block; `store` (if any) gets the decimated states (one per block) and every
 /// estimate.
-pub fn measure(device: &mut dyn Device, source: &mut Source, opts: &MeasureOptions, mut store: Option<&mut Store>, mut observe: impl FnMut(&Live)) -> Result<Measurement, String> {
+pub fn measure(
+    device: &mut dyn Device,
+    source: &mut Source,
+    opts: &MeasureOptions,
+    mut store: Option<&mut Store>,
+    mut observe: impl FnMut(&Live),
+) -> Result<Measurement, String> {
     let mut engine = Engine::new(device, source, opts)?;
     while let Some(live) = engine.step(store.as_deref_mut())? {
         observe(&live);
@@ -1475,7 +1617,11 @@ impl Measurement {
     pub fn models_note(&self) -> String {
         let mut notes = vec![];
         if self.dropped != Effects::NONE {
-            notes.push(format!("estimated with {} as well; within {} sd of none, not reported", self.dropped.in_words(), coilscope_ident::online::INSIGNIFICANT_SD));
+            notes.push(format!(
+                "estimated with {} as well; within {} sd of none, not reported",
+                self.dropped.in_words(),
+                coilscope_ident::online::INSIGNIFICANT_SD
+            ));
         }
         if notes.is_empty() {
             "every effect estimated is reported".to_string()
@@ -1508,7 +1654,8 @@ impl Measurement {
     pub fn result(&self) -> ResultFile {
         let mut unc = Uncertainty::new("standard deviations from the online estimator's covariance (information from every window; sensor noise and the residual's level; Mms taken as exact). Bands: value and sd on a grid over fit.x_range");
         let [lo, hi] = self.x_range;
-        let xs: Vec<f64> = (0..LIVE_BAND_POINTS).map(|k| lo + (hi - lo) * k as f64 / (LIVE_BAND_POINTS - 1) as f64).collect();
+        let xs: Vec<f64> =
+            (0..LIVE_BAND_POINTS).map(|k| lo + (hi - lo) * k as f64 / (LIVE_BAND_POINTS - 1) as f64).collect();
         for (which, band) in curve_bands(&self.params, &self.online, &xs, self.le_model_rel) {
             unc.set_band(which, band);
         }
@@ -1524,7 +1671,12 @@ impl Measurement {
             }
         }
         let kept = self.effects.keys();
-        self.online.layout.uncertainties(&self.online.theta, &|j, k| self.online.cov[(j, k)], &|e| kept.contains(&e.key), &mut unc);
+        self.online.layout.uncertainties(
+            &self.online.theta,
+            &|j, k| self.online.cov[(j, k)],
+            &|e| kept.contains(&e.key),
+            &mut unc,
+        );
         let warnings = self.warnings();
         let fit = Fit {
             method: Some("online recursive output error (parallel model, exact Jacobians on sliding windows, Kalman update of the parameters)".into()),
@@ -1570,7 +1722,10 @@ impl Measurement {
             seconds: self.seconds,
             device: self.device.clone(),
             excitation: self.excitation.clone(),
-            small_signal: SmallSignalStage { parameters: self.small.clone(), thiele_small: coilscope_core::small_signal::thiele_small(&self.small) },
+            small_signal: SmallSignalStage {
+                parameters: self.small.clone(),
+                thiele_small: coilscope_core::small_signal::thiele_small(&self.small),
+            },
             protection_events: self.events.clone(),
             live_model_resets: self.online.resets,
             distortion: self.distortion.clone(),
@@ -1671,7 +1826,8 @@ mod control_tests {
         let d = control(&opts(), &ControlInput { last_change: Some(0.01), last_excess: 0.002, ..quiet() });
         assert_eq!(d.why, LimitedBy::Ramp);
         // Waiting never undoes a cut.
-        let d = control(&opts(), &ControlInput { last_change: Some(0.05), x_limit: Some(4e-3), peak: 4.2e-3, ..quiet() });
+        let d =
+            control(&opts(), &ControlInput { last_change: Some(0.05), x_limit: Some(4e-3), peak: 4.2e-3, ..quiet() });
         assert_eq!(d.why, LimitedBy::Excursion);
         assert!(d.gain < 1.0);
     }
@@ -1688,7 +1844,10 @@ mod control_tests {
         // heads past the limit itself.
         let d = control(&o, &ControlInput { dtv: hot, dtv_ahead: hot, since_temp_cut: 0.5, temp_cut: true, ..quiet() });
         assert_eq!((d.gain, d.why), (1.0, LimitedBy::Temperature));
-        let d = control(&o, &ControlInput { dtv: hot, dtv_ahead: 1.1 * o.max_dt, since_temp_cut: 0.5, temp_cut: true, ..quiet() });
+        let d = control(
+            &o,
+            &ControlInput { dtv: hot, dtv_ahead: 1.1 * o.max_dt, since_temp_cut: 0.5, temp_cut: true, ..quiet() },
+        );
         assert!(d.gain < 1.0 && d.why == LimitedBy::Temperature);
         let d = control(&o, &ControlInput { dtv_ahead: 0.88 * o.max_dt, ..quiet() });
         assert_eq!((d.gain, d.why, d.temp_cut), (1.0, LimitedBy::Temperature, false));
@@ -1707,7 +1866,10 @@ mod control_tests {
     #[test]
     fn a_long_term_test_at_a_fixed_level_raises_the_high_pass_instead_of_cutting() {
         let o = MeasureOptions { hold_volts: Some(1.0), ..opts() };
-        let d = control(&o, &ControlInput { x_limit: Some(4e-3), peak: 3.95e-3, per_volt: 3.95e-3, hp_fc: 20.0, ..quiet() });
+        let d = control(
+            &o,
+            &ControlInput { x_limit: Some(4e-3), peak: 3.95e-3, per_volt: 3.95e-3, hp_fc: 20.0, ..quiet() },
+        );
         assert_eq!(d.why, LimitedBy::ExcursionHighPass);
         assert_eq!(d.gain, 1.0);
         assert_eq!(d.hp_fc, Some(25.0));
@@ -1726,7 +1888,11 @@ mod branch_tests {
         let base = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
         let range = [-4.19e-3, 4.65e-3];
         // The replay's estimate: L2 -4e-14 H, R2 -2e-11 ohm.
-        let mut p = Parameters { l2r2: Some((Poly::constant(-4.4e-14), Poly::constant(-2.4e-11))), x_range: Some(range), ..base.clone() };
+        let mut p = Parameters {
+            l2r2: Some((Poly::constant(-4.4e-14), Poly::constant(-2.4e-11))),
+            x_range: Some(range),
+            ..base.clone()
+        };
         assert!(p.validate("vanished").is_err());
         assert!(drop_vanished_branch(&mut p, range));
         assert!(p.l2r2.is_none());

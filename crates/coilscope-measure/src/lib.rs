@@ -25,4 +25,7 @@ pub mod signal;
 pub mod soundcard;
 pub mod store;
 
-pub use engine::{control, measure, ControlDecision, ControlInput, Engine, LimitedBy, Live, MeasureOptions, Measurement, Stage, StopReason, Trace};
+pub use engine::{
+    control, measure, ControlDecision, ControlInput, Engine, LimitedBy, Live, MeasureOptions, Measurement, Stage,
+    StopReason, Trace,
+};

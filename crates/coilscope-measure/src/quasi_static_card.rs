@@ -33,7 +33,12 @@ pub trait Operator {
 /// point the operator applies the push, the device plays the drive in blocks of `block`
 /// samples (silence while the suspension settles, then the small signal), and the operator
 /// reads the gauge; its reading is the point's displacement over the whole record.
-pub fn card_play<'a>(device: &'a mut dyn Device, operator: &'a mut dyn Operator, offset: Offset, block: usize) -> impl FnMut(&[f64], Push) -> Result<Played, String> + 'a {
+pub fn card_play<'a>(
+    device: &'a mut dyn Device,
+    operator: &'a mut dyn Operator,
+    offset: Offset,
+    block: usize,
+) -> impl FnMut(&[f64], Push) -> Result<Played, String> + 'a {
     let mut point = 0;
     move |drive: &[f64], push: Push| {
         point += 1;
@@ -43,9 +48,17 @@ pub fn card_play<'a>(device: &'a mut dyn Device, operator: &'a mut dyn Operator,
         let applied = operator.apply(point, push, offset)?;
         let (mut u, mut i) = (Vec::with_capacity(drive.len()), Vec::with_capacity(drive.len()));
         for chunk in drive.chunks(block.max(1)) {
-            let b = device.play(chunk)?.ok_or_else(|| format!("{}: the device stopped at working point {point}", device.describe()))?;
+            let b = device
+                .play(chunk)?
+                .ok_or_else(|| format!("{}: the device stopped at working point {point}", device.describe()))?;
             if b.u.len() != chunk.len() || b.i.len() != chunk.len() {
-                return Err(format!("{}: a block of {} samples came back as {} / {} (voltage / current) at working point {point}", device.describe(), chunk.len(), b.u.len(), b.i.len()));
+                return Err(format!(
+                    "{}: a block of {} samples came back as {} / {} (voltage / current) at working point {point}",
+                    device.describe(),
+                    chunk.len(),
+                    b.u.len(),
+                    b.i.len()
+                ));
             }
             u.extend(b.u);
             i.extend(b.i);
@@ -54,7 +67,9 @@ pub fn card_play<'a>(device: &'a mut dyn Device, operator: &'a mut dyn Operator,
         // during the noise, it is off by the noise's own excursion: 3 % of SB17's first point).
         let settle = vec![0.0; (SETTLE_S * device.fs()) as usize];
         for chunk in settle.chunks(block.max(1)) {
-            device.play(chunk)?.ok_or_else(|| format!("{}: the device stopped at working point {point}", device.describe()))?;
+            device
+                .play(chunk)?
+                .ok_or_else(|| format!("{}: the device stopped at working point {point}", device.describe()))?;
         }
         let x = operator.read_x(point)?;
         if !x.is_finite() {
@@ -77,7 +92,9 @@ impl<R: BufRead, W: Write> PromptOperator<R, W> {
 
     /// Ask, and read one answer (`None`: an empty line); `q` stops the measurement.
     fn ask(&mut self, point: usize, question: &str) -> Result<Option<String>, String> {
-        write!(self.output, "{question} ").and_then(|_| self.output.flush()).map_err(|e| format!("cannot write the prompt: {e}"))?;
+        write!(self.output, "{question} ")
+            .and_then(|_| self.output.flush())
+            .map_err(|e| format!("cannot write the prompt: {e}"))?;
         let mut line = String::new();
         let n = self.input.read_line(&mut line).map_err(|e| format!("cannot read the answer: {e}"))?;
         if n == 0 {
@@ -112,7 +129,11 @@ impl<R: BufRead, W: Write> Operator for PromptOperator<R, W> {
         let side = if push.force > 0.0 { "coil out" } else { "coil in" };
         match offset {
             _ if push.force == 0.0 => {
-                let what = if matches!(offset, Offset::Pressure { .. }) { "vent the box" } else { "take every mass off the cone" };
+                let what = if matches!(offset, Offset::Pressure { .. }) {
+                    "vent the box"
+                } else {
+                    "take every mass off the cone"
+                };
                 self.ask(point, &format!("point {point} (rest): {what}; press Enter when the cone has settled"))?;
                 Ok(None)
             }
@@ -174,7 +195,11 @@ mod tests {
         let e = o.read_x(6).unwrap_err();
         assert!(e.contains("input ended"), "{e}");
         let text = String::from_utf8(o.output).unwrap();
-        assert!(text.contains("place about 12.2 g on the cone, the driver facing up (coil in)") && text.contains("'abc' is not a mass in grams"), "{text}");
+        assert!(
+            text.contains("place about 12.2 g on the cone, the driver facing up (coil in)")
+                && text.contains("'abc' is not a mass in grams"),
+            "{text}"
+        );
         assert!(text.contains("+30.1 Pa (coil out;"), "{text}");
     }
 

@@ -26,11 +26,18 @@ impl Source {
         let mut reader = hound_reader(path)?;
         let spec = reader.spec();
         if spec.sample_rate as f64 != fs {
-            return Err(format!("{}: sample rate {} Hz; the measurement runs at {fs} Hz (resample the file, or pass --rate {})", path.display(), spec.sample_rate, spec.sample_rate));
+            return Err(format!(
+                "{}: sample rate {} Hz; the measurement runs at {fs} Hz (resample the file, or pass --rate {})",
+                path.display(),
+                spec.sample_rate,
+                spec.sample_rate
+            ));
         }
         let ch = spec.channels as usize;
         let samples: Vec<f64> = match spec.sample_format {
-            hound::SampleFormat::Float => reader.samples::<f32>().step_by(ch).map(|s| s.map(|v| v as f64)).collect::<Result<_, _>>(),
+            hound::SampleFormat::Float => {
+                reader.samples::<f32>().step_by(ch).map(|s| s.map(|v| v as f64)).collect::<Result<_, _>>()
+            }
             hound::SampleFormat::Int => {
                 let full = (1u64 << (spec.bits_per_sample - 1)) as f64;
                 reader.samples::<i32>().step_by(ch).map(|s| s.map(|v| v as f64 / full)).collect::<Result<_, _>>()
@@ -39,9 +46,18 @@ impl Source {
         .map_err(|e| format!("{}: cannot read the samples: {e}", path.display()))?;
         let rms = coilscope_core::simulate::rms(&samples);
         if !(samples.len() as f64 >= fs && rms > 1e-6) {
-            return Err(format!("{}: the music file must hold at least 1 s of sound ({} samples, rms {rms:.2e})", path.display(), samples.len()));
+            return Err(format!(
+                "{}: the music file must hold at least 1 s of sound ({} samples, rms {rms:.2e})",
+                path.display(),
+                samples.len()
+            ));
         }
-        Ok(Source { name: path.display().to_string(), persistent: false, x: samples.iter().map(|v| v / rms).collect(), pos: 0 })
+        Ok(Source {
+            name: path.display().to_string(),
+            persistent: false,
+            x: samples.iter().map(|v| v / rms).collect(),
+            pos: 0,
+        })
     }
 
     pub fn name(&self) -> &str {

@@ -51,31 +51,66 @@ pub struct SoundCardOptions {
 
 impl Default for SoundCardOptions {
     fn default() -> Self {
-        SoundCardOptions { output: None, input: None, fs: 48000.0, out_channels: 2, drive_channel: 0, in_channels: 2, u_channel: 0, i_channel: 1, out_volts_fs: 10.0, u_volts_fs: 10.0, i_volts_fs: 1.0, sense_ohm: 0.1, timeout: Duration::from_secs(2) }
+        SoundCardOptions {
+            output: None,
+            input: None,
+            fs: 48000.0,
+            out_channels: 2,
+            drive_channel: 0,
+            in_channels: 2,
+            u_channel: 0,
+            i_channel: 1,
+            out_volts_fs: 10.0,
+            u_volts_fs: 10.0,
+            i_volts_fs: 1.0,
+            sense_ohm: 0.1,
+            timeout: Duration::from_secs(2),
+        }
     }
 }
 
 impl SoundCardOptions {
     /// Check the settings; the message names the option and what is valid.
     pub fn validate(&self) -> Result<(), String> {
-        let pos = |v: f64, name: &str, unit: &str| if v.is_finite() && v > 0.0 { Ok(()) } else { Err(format!("{name} {v} {unit} is not valid (> 0)")) };
+        let pos = |v: f64, name: &str, unit: &str| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(format!("{name} {v} {unit} is not valid (> 0)"))
+            }
+        };
         if !(self.fs.is_finite() && (8000.0..=384000.0).contains(&self.fs) && self.fs.fract() == 0.0) {
-            return Err(format!("--fs {} Hz is not valid for a sound card (a whole number of Hz, 8000 .. 384000)", self.fs));
+            return Err(format!(
+                "--fs {} Hz is not valid for a sound card (a whole number of Hz, 8000 .. 384000)",
+                self.fs
+            ));
         }
         pos(self.out_volts_fs, "--out-volts-fs", "V")?;
         pos(self.u_volts_fs, "--u-volts-fs", "V")?;
         pos(self.i_volts_fs, "--i-volts-fs", "V")?;
         pos(self.sense_ohm, "--sense-ohm", "ohm")?;
         if self.drive_channel >= self.out_channels as usize {
-            return Err(format!("--drive-channel {} is not valid: the output has {} channels (0 .. {})", self.drive_channel, self.out_channels, self.out_channels.saturating_sub(1)));
+            return Err(format!(
+                "--drive-channel {} is not valid: the output has {} channels (0 .. {})",
+                self.drive_channel,
+                self.out_channels,
+                self.out_channels.saturating_sub(1)
+            ));
         }
         for (name, ch) in [("--u-channel", self.u_channel), ("--i-channel", self.i_channel)] {
             if ch >= self.in_channels as usize {
-                return Err(format!("{name} {ch} is not valid: the input has {} channels (0 .. {})", self.in_channels, self.in_channels.saturating_sub(1)));
+                return Err(format!(
+                    "{name} {ch} is not valid: the input has {} channels (0 .. {})",
+                    self.in_channels,
+                    self.in_channels.saturating_sub(1)
+                ));
             }
         }
         if self.u_channel == self.i_channel {
-            return Err(format!("--u-channel and --i-channel are both {}: voltage and current need two input channels", self.u_channel));
+            return Err(format!(
+                "--u-channel and --i-channel are both {}: voltage and current need two input channels",
+                self.u_channel
+            ));
         }
         Ok(())
     }
@@ -91,14 +126,17 @@ pub fn list_devices() -> Result<(Vec<String>, Vec<String>), String> {
 /// The input (or output) devices with their names.
 fn devices(host: &cpal::Host, input: bool) -> Result<Vec<(String, cpal::Device)>, String> {
     let what = if input { "input" } else { "output" };
-    let list: Vec<cpal::Device> = if input { host.input_devices().map(|d| d.collect()) } else { host.output_devices().map(|d| d.collect()) }.map_err(|e| format!("cannot list the {what} sound devices ({:?} host): {e}", host.id()))?;
+    let list: Vec<cpal::Device> =
+        if input { host.input_devices().map(|d| d.collect()) } else { host.output_devices().map(|d| d.collect()) }
+            .map_err(|e| format!("cannot list the {what} sound devices ({:?} host): {e}", host.id()))?;
     Ok(list.into_iter().filter_map(|d| d.name().ok().map(|n| (n, d))).collect())
 }
 
 fn find(host: &cpal::Host, name: Option<&str>, input: bool) -> Result<cpal::Device, String> {
     let what = if input { "input" } else { "output" };
     match name {
-        None => (if input { host.default_input_device() } else { host.default_output_device() }).ok_or_else(|| format!("there is no default {what} sound device; name one (coilscope devices lists them)")),
+        None => (if input { host.default_input_device() } else { host.default_output_device() })
+            .ok_or_else(|| format!("there is no default {what} sound device; name one (coilscope devices lists them)")),
         Some(n) => {
             let list = devices(host, input)?;
             let names: Vec<&str> = list.iter().map(|(m, _)| m.as_str()).collect();
@@ -163,7 +201,12 @@ impl SoundCardDevice {
         let names = (in_dev.name().unwrap_or_default(), out_dev.name().unwrap_or_default());
         let rate = cpal::SampleRate(opts.fs as u32);
         let shared: Arc<(Mutex<Shared>, Condvar)> = Arc::default();
-        shared.0.lock().map_err(|_| "sound card state poisoned".to_string())?.out.extend(std::iter::repeat_n(0.0f32, (PRIME_SECONDS * opts.fs) as usize));
+        shared
+            .0
+            .lock()
+            .map_err(|_| "sound card state poisoned".to_string())?
+            .out
+            .extend(std::iter::repeat_n(0.0f32, (PRIME_SECONDS * opts.fs) as usize));
         let err_cb = |which: &'static str, sh: Arc<(Mutex<Shared>, Condvar)>| {
             move |e: cpal::StreamError| {
                 if let Ok(mut s) = sh.0.lock() {
@@ -172,7 +215,11 @@ impl SoundCardDevice {
                 sh.1.notify_all();
             }
         };
-        let out_cfg = cpal::StreamConfig { channels: opts.out_channels, sample_rate: rate, buffer_size: cpal::BufferSize::Default };
+        let out_cfg = cpal::StreamConfig {
+            channels: opts.out_channels,
+            sample_rate: rate,
+            buffer_size: cpal::BufferSize::Default,
+        };
         let (och, dch) = (opts.out_channels as usize, opts.drive_channel);
         let sh = shared.clone();
         let mut started = false;
@@ -199,8 +246,17 @@ impl SoundCardDevice {
                 err_cb("output", shared.clone()),
                 None,
             )
-            .map_err(|e| format!("cannot open the output '{}' at {} Hz with {} channels of f32: {e}", names.1, opts.fs, opts.out_channels))?;
-        let in_cfg = cpal::StreamConfig { channels: opts.in_channels, sample_rate: rate, buffer_size: cpal::BufferSize::Default };
+            .map_err(|e| {
+                format!(
+                    "cannot open the output '{}' at {} Hz with {} channels of f32: {e}",
+                    names.1, opts.fs, opts.out_channels
+                )
+            })?;
+        let in_cfg = cpal::StreamConfig {
+            channels: opts.in_channels,
+            sample_rate: rate,
+            buffer_size: cpal::BufferSize::Default,
+        };
         let ich = opts.in_channels as usize;
         let cal = Calibration::of(opts);
         let sh = shared.clone();
@@ -216,7 +272,12 @@ impl SoundCardDevice {
                 err_cb("input", shared.clone()),
                 None,
             )
-            .map_err(|e| format!("cannot open the input '{}' at {} Hz with {} channels of f32: {e}", names.0, opts.fs, opts.in_channels))?;
+            .map_err(|e| {
+                format!(
+                    "cannot open the input '{}' at {} Hz with {} channels of f32: {e}",
+                    names.0, opts.fs, opts.in_channels
+                )
+            })?;
         out_stream.play().map_err(|e| format!("cannot start the output '{}': {e}", names.1))?;
         in_stream.play().map_err(|e| format!("cannot start the input '{}': {e}", names.0))?;
         Ok(SoundCardDevice { opts: opts.clone(), names, shared, _streams: (out_stream, in_stream) })
@@ -280,7 +341,14 @@ mod tests {
     fn calibration_turns_full_scale_into_volts_and_amperes() {
         // 10 V full scale on the voltage channel (1), 1 V full scale across 0.1 ohm on the
         // current channel (0): a half-scale frame is 5 V and 5 A.
-        let o = SoundCardOptions { u_channel: 1, i_channel: 0, u_volts_fs: 10.0, i_volts_fs: 1.0, sense_ohm: 0.1, ..Default::default() };
+        let o = SoundCardOptions {
+            u_channel: 1,
+            i_channel: 0,
+            u_volts_fs: 10.0,
+            i_volts_fs: 1.0,
+            sense_ohm: 0.1,
+            ..Default::default()
+        };
         let (u, i) = Calibration::of(&o).ui(&[0.5, -0.5]);
         assert!((u + 5.0).abs() < 1e-12 && (i - 5.0).abs() < 1e-12, "{u} V, {i} A");
     }

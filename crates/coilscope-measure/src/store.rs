@@ -70,9 +70,20 @@ impl Store {
     pub fn create(path: &Path, device: &str, options: &serde_json::Value) -> Result<Self, String> {
         let conn = open(path)?;
         let t = now();
-        conn.execute("INSERT INTO runs(started, device, options, status, heartbeat) VALUES (?1, ?2, ?3, 'running', ?1)", params![t, device, options.to_string()]).map_err(|e| format!("{}: cannot start a run: {e}", path.display()))?;
+        conn.execute(
+            "INSERT INTO runs(started, device, options, status, heartbeat) VALUES (?1, ?2, ?3, 'running', ?1)",
+            params![t, device, options.to_string()],
+        )
+        .map_err(|e| format!("{}: cannot start a run: {e}", path.display()))?;
         let run = conn.last_insert_rowid();
-        Ok(Store { conn, run, path: path.display().to_string(), pending: Vec::new(), pending_est: Vec::new(), pending_dist: Vec::new() })
+        Ok(Store {
+            conn,
+            run,
+            path: path.display().to_string(),
+            pending: Vec::new(),
+            pending_est: Vec::new(),
+            pending_dist: Vec::new(),
+        })
     }
 
     pub fn push_state(&mut self, row: StateRow) {
@@ -96,17 +107,24 @@ impl Store {
         {
             let mut st = tx.prepare_cached("INSERT INTO states(run, t, stage, u_rms, i_rms, gain, f_hp, x_min, x_max, dtv, re, residual) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12)").map_err(err)?;
             for r in &self.pending {
-                st.execute(params![self.run, r.t, r.stage, r.u_rms, r.i_rms, r.gain, r.f_hp, r.x_min, r.x_max, r.dtv, r.re, r.residual]).map_err(err)?;
+                st.execute(params![
+                    self.run, r.t, r.stage, r.u_rms, r.i_rms, r.gain, r.f_hp, r.x_min, r.x_max, r.dtv, r.re, r.residual
+                ])
+                .map_err(err)?;
             }
-            let mut se = tx.prepare_cached("INSERT INTO estimates(run, t, residual, parameters) VALUES (?1, ?2, ?3, ?4)").map_err(err)?;
+            let mut se = tx
+                .prepare_cached("INSERT INTO estimates(run, t, residual, parameters) VALUES (?1, ?2, ?3, ?4)")
+                .map_err(err)?;
             for (t, r, p) in &self.pending_est {
                 se.execute(params![self.run, t, r, p]).map_err(err)?;
             }
             let mut sd = tx.prepare_cached("INSERT INTO distortion(run, t, bl_x, kms_x, le_x, bl_i, kms_i, le_i, bl_p, kms_p, le_p, dominant_x, dominant_p) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13)").map_err(err)?;
             for (t, f, dx, dp) in &self.pending_dist {
-                sd.execute(params![self.run, t, f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7], f[8], dx, dp]).map_err(err)?;
+                sd.execute(params![self.run, t, f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7], f[8], dx, dp])
+                    .map_err(err)?;
             }
-            tx.execute("UPDATE runs SET seconds = ?1, heartbeat = ?2 WHERE id = ?3", params![seconds, now(), self.run]).map_err(err)?;
+            tx.execute("UPDATE runs SET seconds = ?1, heartbeat = ?2 WHERE id = ?3", params![seconds, now(), self.run])
+                .map_err(err)?;
         }
         tx.commit().map_err(err)?;
         self.pending.clear();
@@ -116,10 +134,20 @@ impl Store {
     }
 
     /// Close the run with its status (`converged`, `stopped`, `failed: ...`) and result.
-    pub fn finish<R: serde::Serialize>(&mut self, seconds: f64, status: &str, result: Option<&R>) -> Result<(), String> {
+    pub fn finish<R: serde::Serialize>(
+        &mut self,
+        seconds: f64,
+        status: &str,
+        result: Option<&R>,
+    ) -> Result<(), String> {
         self.commit(seconds)?;
         let text = result.map(|r| serde_json::to_string(r).expect("maps with string keys always serialise"));
-        self.conn.execute("UPDATE runs SET status = ?1, result = ?2, heartbeat = ?3 WHERE id = ?4", params![status, text, now(), self.run]).map_err(|e| format!("{}: cannot close the run: {e}", self.path))?;
+        self.conn
+            .execute(
+                "UPDATE runs SET status = ?1, result = ?2, heartbeat = ?3 WHERE id = ?4",
+                params![status, text, now(), self.run],
+            )
+            .map_err(|e| format!("{}: cannot close the run: {e}", self.path))?;
         Ok(())
     }
 }
@@ -144,7 +172,19 @@ const STATE_COLUMNS: &str = "t, stage, u_rms, i_rms, gain, f_hp, x_min, x_max, d
 fn state_row(r: &rusqlite::Row) -> rusqlite::Result<StateRow> {
     // Numeric columns may be NULL (a value not known yet at that state): read as NaN.
     let num = |k: usize| r.get::<_, Option<f64>>(k).map(|v| v.unwrap_or(f64::NAN));
-    Ok(StateRow { t: r.get(0)?, stage: r.get(1)?, u_rms: num(2)?, i_rms: num(3)?, gain: num(4)?, f_hp: num(5)?, x_min: num(6)?, x_max: num(7)?, dtv: num(8)?, re: num(9)?, residual: num(10)? })
+    Ok(StateRow {
+        t: r.get(0)?,
+        stage: r.get(1)?,
+        u_rms: num(2)?,
+        i_rms: num(3)?,
+        gain: num(4)?,
+        f_hp: num(5)?,
+        x_min: num(6)?,
+        x_max: num(7)?,
+        dtv: num(8)?,
+        re: num(9)?,
+        residual: num(10)?,
+    })
 }
 
 /// Every stored state of run `run` (the last run when `None`), in time order.
@@ -156,7 +196,10 @@ fn open_run(path: &Path, run: Option<i64>) -> Result<(Connection, i64), String> 
     let conn = open(path)?;
     let run = match run {
         Some(r) => r,
-        None => conn.query_row("SELECT MAX(id) FROM runs", [], |r| r.get::<_, Option<i64>>(0)).map_err(|e| format!("{}: cannot read the runs: {e}", path.display()))?.ok_or_else(|| format!("{}: the database has no runs", path.display()))?,
+        None => conn
+            .query_row("SELECT MAX(id) FROM runs", [], |r| r.get::<_, Option<i64>>(0))
+            .map_err(|e| format!("{}: cannot read the runs: {e}", path.display()))?
+            .ok_or_else(|| format!("{}: the database has no runs", path.display()))?,
     };
     Ok((conn, run))
 }
@@ -196,14 +239,28 @@ pub fn list_runs(path: &Path) -> Result<Vec<RunInfo>, String> {
     }
     let conn = open(path)?;
     let err = |e: rusqlite::Error| format!("{}: cannot read the runs: {e}", path.display());
-    let mut st = conn.prepare("SELECT id, started, device, status, seconds, heartbeat FROM runs ORDER BY id").map_err(err)?;
-    let rows: Vec<(i64, f64, String, String, f64, f64)> = st.query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?, r.get(4)?, r.get(5)?))).map_err(err)?.collect::<Result<_, _>>().map_err(err)?;
+    let mut st =
+        conn.prepare("SELECT id, started, device, status, seconds, heartbeat FROM runs ORDER BY id").map_err(err)?;
+    let rows: Vec<(i64, f64, String, String, f64, f64)> = st
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?, r.get(4)?, r.get(5)?)))
+        .map_err(err)?
+        .collect::<Result<_, _>>()
+        .map_err(err)?;
     let t_now = now();
     let mut out = Vec::new();
     for (id, started, device, status, seconds, heartbeat) in rows {
-        let states: i64 = conn.query_row("SELECT COUNT(*) FROM states WHERE run = ?1", [id], |r| r.get(0)).map_err(err)?;
-        let estimates: i64 = conn.query_row("SELECT COUNT(*) FROM estimates WHERE run = ?1", [id], |r| r.get(0)).map_err(err)?;
-        let last = conn.query_row(&format!("SELECT {STATE_COLUMNS} FROM states WHERE run = ?1 ORDER BY t DESC LIMIT 1"), [id], state_row).optional().map_err(err)?;
+        let states: i64 =
+            conn.query_row("SELECT COUNT(*) FROM states WHERE run = ?1", [id], |r| r.get(0)).map_err(err)?;
+        let estimates: i64 =
+            conn.query_row("SELECT COUNT(*) FROM estimates WHERE run = ?1", [id], |r| r.get(0)).map_err(err)?;
+        let last = conn
+            .query_row(
+                &format!("SELECT {STATE_COLUMNS} FROM states WHERE run = ?1 ORDER BY t DESC LIMIT 1"),
+                [id],
+                state_row,
+            )
+            .optional()
+            .map_err(err)?;
         // A run whose process died (killed, power lost) never closed its row: no heartbeat
         // for 10 s. A run stopped by Ctrl-C closed it as `interrupted`.
         let status = if status == "running" && t_now - heartbeat > 10.0 { "killed".to_string() } else { status };

@@ -26,11 +26,24 @@ use std::path::Path;
 use coilscope_testkit::slice;
 
 fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
-    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, coilscope_testkit::check::nan_max) / g.eval(0.0).abs()
+    (0..=400)
+        .map(|k| lo + (hi - lo) * k as f64 / 400.0)
+        .map(|x| (f.eval(x) - g.eval(x)).abs())
+        .fold(0.0, coilscope_testkit::check::nan_max)
+        / g.eval(0.0).abs()
 }
 
 fn card(fs: f64) -> Chain {
-    Chain { delay_i: 0.3 / fs, hp_u: 2.0, hp_i: 4.0, gain_i: Some(1.015), dc_u: 0.05, dc_i: 0.01, hum: Some(Hum { f: 50.0, u: vec![[3e-4, 0.4]], i: vec![[5e-5, -1.2], [0.0, 0.0], [2e-5, 0.3]] }), ..Default::default() }
+    Chain {
+        delay_i: 0.3 / fs,
+        hp_u: 2.0,
+        hp_i: 4.0,
+        gain_i: Some(1.015),
+        dc_u: 0.05,
+        dc_i: 0.01,
+        hum: Some(Hum { f: 50.0, u: vec![[3e-4, 0.4]], i: vec![[5e-5, -1.2], [0.0, 0.0], [2e-5, 0.3]] }),
+        ..Default::default()
+    }
 }
 
 const WIRING: SenseWiring = SenseWiring::DriverPlusShunt { ohm: 0.1 };
@@ -45,7 +58,13 @@ fn run(p: &Parameters, device: &mut dyn Device) -> Measurement {
 /// `(Bl, Kms, Le, Re cold, Rms)` relative errors.
 fn errors(m: &Measurement, p: &Parameters) -> [f64; 5] {
     let (q, r) = (&m.params, m.x_range);
-    [worst(&q.bl, &p.bl, r), worst(&q.kms, &p.kms, r), worst(&q.le, &p.le, r), (m.re_cold / p.re - 1.0).abs(), (q.rms / p.rms - 1.0).abs()]
+    [
+        worst(&q.bl, &p.bl, r),
+        worst(&q.kms, &p.kms, r),
+        worst(&q.le, &p.le, r),
+        (m.re_cold / p.re - 1.0).abs(),
+        (q.rms / p.rms - 1.0).abs(),
+    ]
 }
 
 #[test]
@@ -79,7 +98,10 @@ fn measure_through_a_calibrated_card_gives_the_driver() {
             bad.push(format!("{name}: {}", m.stop_reason));
         }
         if !(e[0] <= 0.02 && e[1] <= 0.02 && e[2] <= 0.05 && e[3] <= 0.01 && e[4] <= 0.01) {
-            bad.push(format!("{name}: Bl {:.4}, Kms {:.4}, Le {:.4}, Re {:.4}, Rms {:.4}", e[0], e[1], e[2], e[3], e[4]));
+            bad.push(format!(
+                "{name}: Bl {:.4}, Kms {:.4}, Le {:.4}, Re {:.4}, Rms {:.4}",
+                e[0], e[1], e[2], e[3], e[4]
+            ));
         }
         if (dc_u - 0.05).abs() > 1e-3 || (dc_i - 0.01).abs() > 1e-4 {
             bad.push(format!("{name}: offsets {dc_u} V, {dc_i} A (true 0.05, 0.01)"));
@@ -99,7 +121,14 @@ fn the_same_card_without_its_calibration_is_off() {
     let mut dev = SimulatedCard::new(virt, &c, WIRING, (100.0, 30.0)).unwrap();
     let m = run(&p, &mut dev);
     let e = errors(&m, &p);
-    println!("uncorrected: Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re(cold) {:.3} %, Rms {:.3} %", 100.0 * e[0], 100.0 * e[1], 100.0 * e[2], 100.0 * e[3], 100.0 * e[4]);
+    println!(
+        "uncorrected: Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re(cold) {:.3} %, Rms {:.3} %",
+        100.0 * e[0],
+        100.0 * e[1],
+        100.0 * e[2],
+        100.0 * e[3],
+        100.0 * e[4]
+    );
     // Off: at least two of them more than twice the calibrated path's bounds (Bl, Kms 2 %,
     // Le 5 %, Re, Rms 1 %). (Through the IEC Table II signal: Le 19.7 %, Rms 17.8 %, Re
     // 1.13 %; through the signal before it, Re was 2 % off too.)
@@ -116,14 +145,73 @@ fn the_same_card_without_its_calibration_is_off() {
 #[test]
 #[ignore = "release-profile sweep: cargo test --release -p coilscope-measure --test card_path -- --ignored"]
 fn cards_drivers_rates_and_seeds() {
-    let micro = coilscope_io::load_parameters(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../testdata/drivers/microspeaker-0g1.json").to_str().unwrap()).unwrap();
+    let micro = coilscope_io::load_parameters(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../testdata/drivers/microspeaker-0g1.json").to_str().unwrap(),
+    )
+    .unwrap();
     let cases: Vec<(Parameters, f64, u64, Chain, SenseWiring)> = slice::in_slice(
         "card_path sweep",
         vec![
-            (embedded_driver("18wu-4741t-00").unwrap(), 48000.0, 3, Chain { delay_i: -0.4 / 48000.0, hp_u: 5.0, hp_i: 1.0, gain_i: Some(0.98), dc_u: -0.1, dc_i: 0.02, ..Default::default() }, WIRING),
-            (embedded_driver("ptt4.0w04-01a").unwrap(), 44100.0, 4, Chain { delay_i: 0.5 / 44100.0, hp_u: 1.0, hp_i: 3.0, gain_i: Some(1.02), dc_u: 0.02, dc_i: -0.005, ..Default::default() }, SenseWiring::Terminals),
-            (embedded_driver("sb17cac35-4").unwrap(), 96000.0, 5, Chain { delay_i: 0.1 / 96000.0, hp_u: 3.0, hp_i: 5.0, gain_i: Some(1.01), dc_u: 0.01, dc_i: 0.01, ..Default::default() }, SenseWiring::DriverPlusShunt { ohm: 0.22 }),
-            (micro, 48000.0, 6, Chain { delay_i: 0.3 / 48000.0, hp_u: 2.0, hp_i: 4.0, gain_i: Some(1.015), dc_u: 0.005, dc_i: 0.001, ..Default::default() }, SenseWiring::DriverPlusShunt { ohm: 0.5 }),
+            (
+                embedded_driver("18wu-4741t-00").unwrap(),
+                48000.0,
+                3,
+                Chain {
+                    delay_i: -0.4 / 48000.0,
+                    hp_u: 5.0,
+                    hp_i: 1.0,
+                    gain_i: Some(0.98),
+                    dc_u: -0.1,
+                    dc_i: 0.02,
+                    ..Default::default()
+                },
+                WIRING,
+            ),
+            (
+                embedded_driver("ptt4.0w04-01a").unwrap(),
+                44100.0,
+                4,
+                Chain {
+                    delay_i: 0.5 / 44100.0,
+                    hp_u: 1.0,
+                    hp_i: 3.0,
+                    gain_i: Some(1.02),
+                    dc_u: 0.02,
+                    dc_i: -0.005,
+                    ..Default::default()
+                },
+                SenseWiring::Terminals,
+            ),
+            (
+                embedded_driver("sb17cac35-4").unwrap(),
+                96000.0,
+                5,
+                Chain {
+                    delay_i: 0.1 / 96000.0,
+                    hp_u: 3.0,
+                    hp_i: 5.0,
+                    gain_i: Some(1.01),
+                    dc_u: 0.01,
+                    dc_i: 0.01,
+                    ..Default::default()
+                },
+                SenseWiring::DriverPlusShunt { ohm: 0.22 },
+            ),
+            (
+                micro,
+                48000.0,
+                6,
+                Chain {
+                    delay_i: 0.3 / 48000.0,
+                    hp_u: 2.0,
+                    hp_i: 4.0,
+                    gain_i: Some(1.015),
+                    dc_u: 0.005,
+                    dc_i: 0.001,
+                    ..Default::default()
+                },
+                SenseWiring::DriverPlusShunt { ohm: 0.5 },
+            ),
         ],
     );
     let mut bad = vec![];

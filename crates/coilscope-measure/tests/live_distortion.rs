@@ -39,7 +39,15 @@ fn live_distortion_is_stored_and_names_the_dominant_nonlinearity() {
     let d = &m.distortion;
     assert!(d.len() >= 5, "{} points", d.len());
     let last = d.last().unwrap();
-    println!("{} points; the last: x {:?}, i {:?}, p {:?}, dominant {} / {}", d.len(), last.x, last.i, last.p, last.dominant_x, last.dominant_p);
+    println!(
+        "{} points; the last: x {:?}, i {:?}, p {:?}, dominant {} / {}",
+        d.len(),
+        last.x,
+        last.i,
+        last.p,
+        last.dominant_x,
+        last.dominant_p
+    );
     assert_eq!(last.dominant_x, "Kms");
     // The meter on the true driver's trajectory, driven by the same noise at the final level.
     let mut src = Source::noise(&Excitation::Iec, 48000.0, 1).unwrap();

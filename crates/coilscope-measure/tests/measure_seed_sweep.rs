@@ -24,11 +24,17 @@ use coilscope_measure::{measure, MeasureOptions};
 use coilscope_testkit::slice;
 
 fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
-    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, coilscope_testkit::check::nan_max) / g.eval(0.0).abs()
+    (0..=400)
+        .map(|k| lo + (hi - lo) * k as f64 / 400.0)
+        .map(|x| (f.eval(x) - g.eval(x)).abs())
+        .fold(0.0, coilscope_testkit::check::nan_max)
+        / g.eval(0.0).abs()
 }
 
 fn driver(name: &str) -> Parameters {
-    embedded_driver(name).unwrap_or_else(|| load_parameters(&format!("{}/../../testdata/drivers/{name}.json", env!("CARGO_MANIFEST_DIR"))).unwrap())
+    embedded_driver(name).unwrap_or_else(|| {
+        load_parameters(&format!("{}/../../testdata/drivers/{name}.json", env!("CARGO_MANIFEST_DIR"))).unwrap()
+    })
 }
 
 struct Case {
@@ -44,7 +50,16 @@ struct Case {
 }
 
 fn case(name: &str, seed: u64) -> Case {
-    Case { label: format!("{name} seed {seed}"), p: driver(name), fs: 48000.0, seed, noise: (1e-4, 1e-4), start_volts: 0.2, music: false, re_cold: !name.starts_with("micro") }
+    Case {
+        label: format!("{name} seed {seed}"),
+        p: driver(name),
+        fs: 48000.0,
+        seed,
+        noise: (1e-4, 1e-4),
+        start_volts: 0.2,
+        music: false,
+        re_cold: !name.starts_with("micro"),
+    }
 }
 
 /// Synthetic music: bass notes, chords and a hat (as in `measure_truth`), at `fs`.
@@ -52,13 +67,20 @@ fn music_file(dir: &std::path::Path, fs: f64) -> std::path::PathBuf {
     let n = (12.0 * fs) as usize;
     let notes = [41.2, 55.0, 49.0, 65.4];
     let path = dir.join("music.wav");
-    let spec = hound::WavSpec { channels: 1, sample_rate: fs as u32, bits_per_sample: 16, sample_format: hound::SampleFormat::Int };
+    let spec = hound::WavSpec {
+        channels: 1,
+        sample_rate: fs as u32,
+        bits_per_sample: 16,
+        sample_format: hound::SampleFormat::Int,
+    };
     let mut w = hound::WavWriter::create(&path, spec).unwrap();
     for k in 0..n {
         let t = k as f64 / fs;
         let f = notes[(t / 1.5) as usize % 4];
         let beat = (-((t % 0.5) * 12.0)).exp();
-        let s = (2.0 * std::f64::consts::PI * f * t).sin() + 0.5 * (2.0 * std::f64::consts::PI * 2.0 * f * t).sin() + 0.3 * (2.0 * std::f64::consts::PI * 5.04 * f * t).sin();
+        let s = (2.0 * std::f64::consts::PI * f * t).sin()
+            + 0.5 * (2.0 * std::f64::consts::PI * 2.0 * f * t).sin()
+            + 0.3 * (2.0 * std::f64::consts::PI * 5.04 * f * t).sin();
         let hat = if (t % 0.25) < 0.02 { ((k * 7919) % 1000) as f64 / 500.0 - 1.0 } else { 0.0 };
         w.write_sample((0.25 * (s * (0.6 + 0.4 * beat) + 0.5 * hat) * 32767.0) as i16).unwrap();
     }
@@ -70,7 +92,9 @@ fn music_file(dir: &std::path::Path, fs: f64) -> std::path::PathBuf {
 fn band_z(m: &coilscope_measure::Measurement, truth: &Parameters) -> Vec<f64> {
     let [lo, hi] = m.x_range;
     let mut z = Vec::new();
-    for (which, f, g) in [("Bl", &m.params.bl, &truth.bl), ("Kms", &m.params.kms, &truth.kms), ("Le", &m.params.le, &truth.le)] {
+    for (which, f, g) in
+        [("Bl", &m.params.bl, &truth.bl), ("Kms", &m.params.kms, &truth.kms), ("Le", &m.params.le, &truth.le)]
+    {
         for k in 0..=20 {
             let x = lo + (hi - lo) * k as f64 / 20.0;
             z.push((f.eval(x) - g.eval(x)).abs() / m.online.curve_sd(which, x));
@@ -90,7 +114,11 @@ fn sweep(cases: Vec<Case>) -> (usize, Vec<String>) {
         let [lo, hi] = c.p.x_range.unwrap();
         let range = hi.min(-lo);
         let mut dev = VirtualDevice::new(&c.p, c.fs, c.noise, c.seed).unwrap();
-        let mut src = if c.music { Source::music(&music_file(dir.path(), c.fs), c.fs).unwrap() } else { Source::noise(&Excitation::Iec, c.fs, c.seed).unwrap() };
+        let mut src = if c.music {
+            Source::music(&music_file(dir.path(), c.fs), c.fs).unwrap()
+        } else {
+            Source::noise(&Excitation::Iec, c.fs, c.seed).unwrap()
+        };
         let opts = MeasureOptions { mms: c.p.mms, start_volts: c.start_volts, ..Default::default() };
         let m = match measure(&mut dev, &mut src, &opts, None, |_| {}) {
             Ok(m) => m,
@@ -180,7 +208,11 @@ fn sweep(cases: Vec<Case>) -> (usize, Vec<String>) {
         // The published bands are claims: they must hold the truth (counted over every point
         // of every converged run of the sweep).
         if z2 < 0.9 {
-            failures.push(format!("the bands hold the truth within 2 sd on only {:.1} % of {} points", 100.0 * z2, zs.len()));
+            failures.push(format!(
+                "the bands hold the truth within 2 sd on only {:.1} % of {} points",
+                100.0 * z2,
+                zs.len()
+            ));
         }
     }
     (passed, failures)

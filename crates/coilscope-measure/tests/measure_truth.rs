@@ -14,7 +14,11 @@ use coilscope_measure::signal::Source;
 use coilscope_measure::{measure, MeasureOptions, Measurement};
 
 fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
-    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, coilscope_testkit::check::nan_max) / g.eval(0.0).abs()
+    (0..=400)
+        .map(|k| lo + (hi - lo) * k as f64 / 400.0)
+        .map(|x| (f.eval(x) - g.eval(x)).abs())
+        .fold(0.0, coilscope_testkit::check::nan_max)
+        / g.eval(0.0).abs()
 }
 
 fn run(p: &Parameters, source: &mut Source, opts: MeasureOptions, seed: u64) -> Measurement {
@@ -68,7 +72,12 @@ fn converges_from_silence(names: &[&str]) {
         let m = run(&p, &mut src, MeasureOptions { mms: p.mms, target_x: Some(target), ..Default::default() }, 1);
         assert_truth(name, &m, &p);
         let truth = m.truth.unwrap();
-        assert!(truth.x_peak <= 1.05 * target, "{name}: true peak {} mm over the target {} mm", truth.x_peak * 1e3, target * 1e3);
+        assert!(
+            truth.x_peak <= 1.05 * target,
+            "{name}: true peak {} mm over the target {} mm",
+            truth.x_peak * 1e3,
+            target * 1e3
+        );
         // The result carries the measurement keys.
         let j = m.result().to_json_value();
         for k in ["x_peak_max", "dTv_max", "seconds"] {
@@ -95,10 +104,20 @@ fn a_target_beyond_the_range_is_held_at_the_safe_stiffness_limit() {
         let [lo, hi] = p.x_range.unwrap();
         let safe = kms_limit_crossing(&p.kms, hi.max(-lo) * 1.5, 2.0).unwrap();
         let mut src = Source::noise(&Excitation::Iec, 48000.0, 3).unwrap();
-        let m = run(&p, &mut src, MeasureOptions { mms: p.mms, target_x: Some(2.0 * hi.max(-lo)), max_seconds: 30.0, ..Default::default() }, 2);
+        let m = run(
+            &p,
+            &mut src,
+            MeasureOptions { mms: p.mms, target_x: Some(2.0 * hi.max(-lo)), max_seconds: 30.0, ..Default::default() },
+            2,
+        );
         let t = m.truth.unwrap();
         println!("{name}: true safe limit {:.2} mm, true peak {:.2} mm, {}", safe * 1e3, t.x_peak * 1e3, m.stop_reason);
-        assert!(t.x_peak <= 1.05 * safe, "{name}: true peak {} mm beyond the safe limit {} mm", t.x_peak * 1e3, safe * 1e3);
+        assert!(
+            t.x_peak <= 1.05 * safe,
+            "{name}: true peak {} mm beyond the safe limit {} mm",
+            t.x_peak * 1e3,
+            safe * 1e3
+        );
     }
 }
 
@@ -110,13 +129,33 @@ fn a_low_temperature_limit_holds() {
         let [lo, hi] = p.x_range.unwrap();
         let mut src = Source::noise(&Excitation::Iec, 48000.0, 4).unwrap();
         let max_dt = 3.0;
-        let m = run(&p, &mut src, MeasureOptions { mms: p.mms, target_x: Some(0.85 * hi.min(-lo)), max_dt, duration: Some(30.0), ..Default::default() }, seed);
+        let m = run(
+            &p,
+            &mut src,
+            MeasureOptions {
+                mms: p.mms,
+                target_x: Some(0.85 * hi.min(-lo)),
+                max_dt,
+                duration: Some(30.0),
+                ..Default::default()
+            },
+            seed,
+        );
         let t = m.truth.unwrap();
         println!("{name}: true dT max {:.2} K (limit {max_dt} K), estimated {:.2} K", t.dtv_max, m.dtv_max);
         assert!(t.dtv_max <= 1.05 * max_dt, "{name}: true voice-coil rise {} K", t.dtv_max);
-        assert!(t.dtv_max >= 0.6 * max_dt, "{name}: the level must have been raised toward the limit ({} K)", t.dtv_max);
+        assert!(
+            t.dtv_max >= 0.6 * max_dt,
+            "{name}: the level must have been raised toward the limit ({} K)",
+            t.dtv_max
+        );
         // The estimate follows the truth (it is what the protection acts on).
-        assert!((m.dtv_max - t.dtv_max).abs() <= 0.1 * max_dt, "{name}: estimated {} K, true {} K", m.dtv_max, t.dtv_max);
+        assert!(
+            (m.dtv_max - t.dtv_max).abs() <= 0.1 * max_dt,
+            "{name}: estimated {} K, true {} K",
+            m.dtv_max,
+            t.dtv_max
+        );
     }
 }
 
@@ -133,14 +172,25 @@ fn music_excitation_converges() {
             let bar = (t / 1.5) as usize % 4;
             let f = notes[bar];
             let beat = (-((t % 0.5) * 12.0)).exp();
-            let s = (2.0 * std::f64::consts::PI * f * t).sin() + 0.5 * (2.0 * std::f64::consts::PI * 2.0 * f * t).sin() + 0.3 * (2.0 * std::f64::consts::PI * 5.04 * f * t).sin();
+            let s = (2.0 * std::f64::consts::PI * f * t).sin()
+                + 0.5 * (2.0 * std::f64::consts::PI * 2.0 * f * t).sin()
+                + 0.3 * (2.0 * std::f64::consts::PI * 5.04 * f * t).sin();
             let hat = if (t % 0.25) < 0.02 { ((k * 7919) % 1000) as f64 / 500.0 - 1.0 } else { 0.0 };
-            0.25 * (s * (0.6 + 0.4 * beat) + 0.5 * hat + 0.2 * (2.0 * std::f64::consts::PI * 880.0 * t).sin() * (2.0 * std::f64::consts::PI * 0.7 * t).sin().abs())
+            0.25 * (s * (0.6 + 0.4 * beat)
+                + 0.5 * hat
+                + 0.2
+                    * (2.0 * std::f64::consts::PI * 880.0 * t).sin()
+                    * (2.0 * std::f64::consts::PI * 0.7 * t).sin().abs())
         })
         .collect();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("music.wav");
-    let spec = hound::WavSpec { channels: 1, sample_rate: 48000, bits_per_sample: 16, sample_format: hound::SampleFormat::Int };
+    let spec = hound::WavSpec {
+        channels: 1,
+        sample_rate: 48000,
+        bits_per_sample: 16,
+        sample_format: hound::SampleFormat::Int,
+    };
     let mut w = hound::WavWriter::create(&path, spec).unwrap();
     for v in &x {
         w.write_sample((v * 32767.0) as i16).unwrap();
@@ -149,7 +199,8 @@ fn music_excitation_converges() {
     let p = embedded_driver("sb17cac35-4").unwrap();
     let [lo, hi] = p.x_range.unwrap();
     let mut src = Source::music(&path, fs).unwrap();
-    let m = run(&p, &mut src, MeasureOptions { mms: p.mms, target_x: Some(0.85 * hi.min(-lo)), ..Default::default() }, 5);
+    let m =
+        run(&p, &mut src, MeasureOptions { mms: p.mms, target_x: Some(0.85 * hi.min(-lo)), ..Default::default() }, 5);
     assert_truth("sb17 music", &m, &p);
     // A music file at another rate is refused with the fix named.
     let e = Source::music(&path, 44100.0).err().unwrap();
@@ -183,7 +234,14 @@ fn other_sample_rates_converge() {
         let target = 0.85 * hi.min(-lo);
         let mut dev = VirtualDevice::new(&p, fs, (1e-4, 1e-4), 6).unwrap();
         let mut src = Source::noise(&Excitation::Iec, fs, 2).unwrap();
-        let m = measure(&mut dev, &mut src, &MeasureOptions { mms: p.mms, target_x: Some(target), ..Default::default() }, None, |_| {}).unwrap();
+        let m = measure(
+            &mut dev,
+            &mut src,
+            &MeasureOptions { mms: p.mms, target_x: Some(target), ..Default::default() },
+            None,
+            |_| {},
+        )
+        .unwrap();
         assert_truth(&format!("ptt4 at {fs} Hz"), &m, &p);
         assert!(m.truth.unwrap().x_peak <= 1.05 * target);
     }

@@ -15,7 +15,8 @@
 //! The default test draws a few drivers (CI: seeded from the commit) and asserts all of it
 //! but the 3 sd, which it prints; the `--ignored` sweep draws `COILSCOPE_POPULATION_CASES`
 //! (default 200) and asserts all of it, that at least 95 % converge right, that the bands are
-//! honest from both sides, and the measurement time (median at most 25 s, none over 60 s). A failing driver is written out as a parameter file
+//! honest from both sides, and the measurement time (median at most 25 s, none over 60 s). A
+//! failing driver is written out as a parameter file
 //! and named, to be kept as a regression case in `testdata/population/`.
 
 use coilscope_core::excitation::Excitation;
@@ -62,13 +63,22 @@ fn run(label: &str, truth: &Parameters, seed: u64) -> Outcome {
             let t = dev_truth(&dev);
             let mut bad = Vec::new();
             protection(&mut bad, truth, &t, &opts);
-            return Outcome { line: format!("{label}: error before an estimate: {e}"), bad, outside_3sd: false, converged: false, no_estimate: true, seconds: 0.0, z: vec![] };
+            return Outcome {
+                line: format!("{label}: error before an estimate: {e}"),
+                bad,
+                outside_3sd: false,
+                converged: false,
+                no_estimate: true,
+                seconds: 0.0,
+                z: vec![],
+            };
         }
     };
     let t = m.truth.expect("a virtual device knows its truth");
     let q = &m.params;
     let reached = [t.x_min, t.x_max];
-    let (e_bl, e_k, e_le) = (worst(&q.bl, &truth.bl, reached), worst(&q.kms, &truth.kms, reached), worst(&q.le, &truth.le, reached));
+    let (e_bl, e_k, e_le) =
+        (worst(&q.bl, &truth.bl, reached), worst(&q.kms, &truth.kms, reached), worst(&q.le, &truth.le, reached));
     let e_re = m.re_cold / truth.re - 1.0;
     let lam_true = truth.creep.as_ref().map_or(0.0, |c| c.lambda);
     let lam = q.creep.as_ref().map_or(0.0, |c| c.lambda);
@@ -88,7 +98,17 @@ fn run(label: &str, truth: &Parameters, seed: u64) -> Outcome {
     if std::env::var("COILSCOPE_BAND_TRACE").is_ok() {
         for (which, g) in [("Bl", &truth.bl), ("Kms", &truth.kms), ("Le", &truth.le)] {
             if let Some(b) = result.uncertainty.band(which) {
-                let zs: Vec<String> = (0..b.x.len()).step_by(5).map(|k| format!("{:+.2}@{:.2}mm sd {:.3}%", (b.value[k] - g.eval(b.x[k])) / b.sd[k], b.x[k] * 1e3, 100.0 * b.sd[k] / g.eval(0.0))).collect();
+                let zs: Vec<String> = (0..b.x.len())
+                    .step_by(5)
+                    .map(|k| {
+                        format!(
+                            "{:+.2}@{:.2}mm sd {:.3}%",
+                            (b.value[k] - g.eval(b.x[k])) / b.sd[k],
+                            b.x[k] * 1e3,
+                            100.0 * b.sd[k] / g.eval(0.0)
+                        )
+                    })
+                    .collect();
                 println!("  {which}: {}", zs.join(" "));
             }
         }
@@ -143,7 +163,15 @@ fn run(label: &str, truth: &Parameters, seed: u64) -> Outcome {
         // Loud, but a failure of the tool: counted against the 95 %.
         println!("{label}: failed: {message}");
     }
-    Outcome { line, bad, outside_3sd, converged: m.converged, no_estimate: false, seconds: m.seconds, z: if m.converged { z } else { vec![] } }
+    Outcome {
+        line,
+        bad,
+        outside_3sd,
+        converged: m.converged,
+        no_estimate: false,
+        seconds: m.seconds,
+        z: if m.converged { z } else { vec![] },
+    }
 }
 
 fn dev_truth(dev: &VirtualDevice) -> coilscope_measure::device::Truth {
@@ -154,7 +182,13 @@ fn dev_truth(dev: &VirtualDevice) -> coilscope_measure::device::Truth {
 fn protection(bad: &mut Vec<String>, truth: &Parameters, t: &coilscope_measure::device::Truth, opts: &MeasureOptions) {
     let [lo, hi] = truth.x_range.unwrap();
     if !(t.x_max <= hi * (1.0 + BREAK_MARGIN) && t.x_min >= lo * (1.0 + BREAK_MARGIN)) {
-        bad.push(format!("protection: the true excursion {:.2}..{:.2} mm passed the range {:.2}..{:.2} mm + 10 %", t.x_min * 1e3, t.x_max * 1e3, lo * 1e3, hi * 1e3));
+        bad.push(format!(
+            "protection: the true excursion {:.2}..{:.2} mm passed the range {:.2}..{:.2} mm + 10 %",
+            t.x_min * 1e3,
+            t.x_max * 1e3,
+            lo * 1e3,
+            hi * 1e3
+        ));
     }
     if !(t.dtv_max <= 1.1 * opts.max_dt) {
         bad.push(format!("protection: the true coil rise {:.1} K passed {:.0} K + 10 %", t.dtv_max, opts.max_dt));
@@ -182,7 +216,17 @@ struct Sweep {
 }
 
 fn sweep(cases: Vec<(String, Parameters, u64)>) -> Sweep {
-    let mut s = Sweep { lines: vec![], failures: vec![], outside_3sd: vec![], no_estimate: vec![], converged: 0, runs: 0, seconds: vec![], coverage: Coverage::new(), by_class: Default::default() };
+    let mut s = Sweep {
+        lines: vec![],
+        failures: vec![],
+        outside_3sd: vec![],
+        no_estimate: vec![],
+        converged: 0,
+        runs: 0,
+        seconds: vec![],
+        coverage: Coverage::new(),
+        by_class: Default::default(),
+    };
     for (label, p, seed) in cases {
         let o = run(&label, &p, seed);
         println!("{}", o.line);
@@ -197,7 +241,11 @@ fn sweep(cases: Vec<(String, Parameters, u64)>) -> Sweep {
         }
         if o.outside_3sd {
             let file = population::keep_failure(&label, &p);
-            s.outside_3sd.push(format!("{}: converged with the truth outside 3 sd (driver written to {})", o.line, file.display()));
+            s.outside_3sd.push(format!(
+                "{}: converged with the truth outside 3 sd (driver written to {})",
+                o.line,
+                file.display()
+            ));
         }
         if o.no_estimate {
             let file = population::keep_failure(&label, &p);
@@ -220,7 +268,10 @@ fn population_cases(test: &str, n: usize) -> Vec<(String, Parameters, u64)> {
 /// The drivers kept in `testdata/population/open/` (failures not yet fixed), with the seed
 /// each failed with.
 fn open_cases() -> Vec<(String, Parameters, u64)> {
-    population::open_regressions("measure").into_iter().map(|r| (format!("open:{}", r.name), r.params, r.seed)).collect()
+    population::open_regressions("measure")
+        .into_iter()
+        .map(|r| (format!("open:{}", r.name), r.params, r.seed))
+        .collect()
 }
 
 /// Every CI run: a few fresh drivers; none may pass its protection, end in a NaN, or
@@ -229,7 +280,13 @@ fn open_cases() -> Vec<(String, Parameters, u64)> {
 #[test]
 fn fresh_population_drivers_are_measured_right_or_loudly() {
     let s = sweep(population_cases("fresh_population_drivers_are_measured_right_or_loudly", population::cases(6)));
-    println!("{} of {} converged right; {} converged with the truth outside 3 sd:\n{}", s.converged, s.runs, s.outside_3sd.len(), s.outside_3sd.join("\n"));
+    println!(
+        "{} of {} converged right; {} converged with the truth outside 3 sd:\n{}",
+        s.converged,
+        s.runs,
+        s.outside_3sd.len(),
+        s.outside_3sd.join("\n")
+    );
     assert!(s.failures.is_empty(), "{}", s.failures.join("\n"));
 }
 
@@ -238,7 +295,10 @@ fn fresh_population_drivers_are_measured_right_or_loudly() {
 #[test]
 #[ignore = "release-profile sweep: cargo test --release -p coilscope-measure --test population_measure -- --ignored"]
 fn kept_regression_drivers_are_measured_right_or_loudly() {
-    let cases = population::regression_runs("measure").into_iter().map(|(r, seed)| (format!("regression:{} seed {seed}", r.name), r.params, seed)).collect();
+    let cases = population::regression_runs("measure")
+        .into_iter()
+        .map(|(r, seed)| (format!("regression:{} seed {seed}", r.name), r.params, seed))
+        .collect();
     let cases = coilscope_testkit::slice::in_slice("kept_regression_drivers", cases);
     let s = sweep(cases);
     let mut bad = s.failures.clone();
@@ -261,7 +321,10 @@ fn population_sweep() {
     let median = secs.get(secs.len() / 2).copied().unwrap_or(f64::NAN);
     let longest = secs.last().copied().unwrap_or(f64::NAN);
     println!("by class (converged right / runs): {:?}", s.by_class);
-    println!("{} of {} converged right; measurement time of those: median {median:.1} s, longest {longest:.1} s", s.converged, s.runs);
+    println!(
+        "{} of {} converged right; measurement time of those: median {median:.1} s, longest {longest:.1} s",
+        s.converged, s.runs
+    );
     println!("{}", s.coverage.summary("bands of converged runs"));
     let mut bad = s.failures.clone();
     bad.extend(s.outside_3sd.iter().cloned());
@@ -269,7 +332,9 @@ fn population_sweep() {
         bad.push(format!("only {} of {} runs converged right (at least 95 % asked)", s.converged, s.runs));
     }
     if !(median <= 25.0 && longest <= 60.0) {
-        bad.push(format!("measurement time: median {median:.1} s (at most 25 s), longest {longest:.1} s (at most 60 s)"));
+        bad.push(format!(
+            "measurement time: median {median:.1} s (at most 25 s), longest {longest:.1} s (at most 60 s)"
+        ));
     }
     bad.extend(s.coverage.problems("bands of converged runs", 0.9, 0.3));
     assert!(bad.is_empty(), "{}", bad.join("\n"));

@@ -65,12 +65,24 @@ impl Operator for Bench {
 }
 
 fn card() -> Chain {
-    Chain { delay_i: 0.3 / FS, hp_u: 2.0, hp_i: 4.0, gain_i: Some(1.015), dc_u: 0.05, dc_i: 0.01, hum: Some(Hum { f: 50.0, u: vec![[3e-4, 0.4]], i: vec![[5e-5, -1.2]] }), ..Default::default() }
+    Chain {
+        delay_i: 0.3 / FS,
+        hp_u: 2.0,
+        hp_i: 4.0,
+        gain_i: Some(1.015),
+        dc_u: 0.05,
+        dc_i: 0.01,
+        hum: Some(Hum { f: 50.0, u: vec![[3e-4, 0.4]], i: vec![[5e-5, -1.2]] }),
+        ..Default::default()
+    }
 }
 
 /// Largest `|f / g - 1|` over `[lo, hi]`.
 fn worst(f: &Poly, g: &Poly, lo: f64, hi: f64) -> f64 {
-    (0..=100).map(|k| lo + (hi - lo) * k as f64 / 100.0).map(|x| (f.eval(x) / g.eval(x) - 1.0).abs()).fold(0.0, coilscope_testkit::check::nan_max)
+    (0..=100)
+        .map(|k| lo + (hi - lo) * k as f64 / 100.0)
+        .map(|x| (f.eval(x) / g.eval(x) - 1.0).abs())
+        .fold(0.0, coilscope_testkit::check::nan_max)
 }
 
 fn run(p: &Parameters, offset: Offset) -> (f64, f64, usize, coilscope_ident::quasi_static::QuasiStatic) {
@@ -79,8 +91,23 @@ fn run(p: &Parameters, offset: Offset) -> (f64, f64, usize, coilscope_ident::qua
     let cal = Chain { dc_u: 0.0, dc_i: 0.0, hum: None, ..card() };
     let mut dev = Corrected::new(sim, &cal, WIRING).unwrap();
     let mut bench = Bench { dev: virt, asked: vec![] };
-    let ac = generate(&Excitation::Pink { f_lo: 5.0, f_hi: 16000.0, crest: None }, &SignalSpec { fs: FS, seconds: 2.0, rms: 1.0, fade: 0.0, seed: 7 }).unwrap();
-    let opts = QuasiStaticOptions { mms: p.mms, points: 9, reach: 0.8, range: p.x_range.unwrap(), hold_s: 2.0, record_s: 2.0, ac_volts: 0.1, order: 4, fs: FS, offset };
+    let ac = generate(
+        &Excitation::Pink { f_lo: 5.0, f_hi: 16000.0, crest: None },
+        &SignalSpec { fs: FS, seconds: 2.0, rms: 1.0, fade: 0.0, seed: 7 },
+    )
+    .unwrap();
+    let opts = QuasiStaticOptions {
+        mms: p.mms,
+        points: 9,
+        reach: 0.8,
+        range: p.x_range.unwrap(),
+        hold_s: 2.0,
+        record_s: 2.0,
+        ac_volts: 0.1,
+        order: 4,
+        fs: FS,
+        offset,
+    };
     let q = quasi_static(card_play(&mut dev, &mut bench, offset, 4800), &ac, &opts).unwrap_or_else(|e| panic!("{e}"));
     let [lo, hi] = q.params.x_range.unwrap();
     let (bl, kms) = (worst(&q.params.bl, &p.bl, lo, hi), worst(&q.params.kms, &p.kms, lo, hi));
@@ -95,9 +122,25 @@ fn quasi_static_through_a_calibrated_card_with_masses_and_a_pressure() {
         let (bl, kms, asked, q) = run(&p, offset);
         let [lo, hi] = q.params.x_range.unwrap();
         let [rlo, rhi] = p.x_range.unwrap();
-        println!("{name} by {offset:?}: Bl {:.3} %, Kms {:.3} % over {:.2}..{:.2} mm ({asked} points asked); warnings {:?}", 100.0 * bl, 100.0 * kms, lo * 1e3, hi * 1e3, q.warnings);
+        println!(
+            "{name} by {offset:?}: Bl {:.3} %, Kms {:.3} % over {:.2}..{:.2} mm ({asked} points asked); warnings {:?}",
+            100.0 * bl,
+            100.0 * kms,
+            lo * 1e3,
+            hi * 1e3,
+            q.warnings
+        );
         for w in &q.points {
-            println!("  force {:+.4} N, mass {:.2} g: x {:+.3} mm, Bl {:.4} (true {:.4}), Kms {:.1} (true {:.1})", w.force, w.push.added_mass * 1e3, w.x_dc * 1e3, w.bl, p.bl.eval(w.x_dc), w.kms_static, p.kms.eval(w.x_dc));
+            println!(
+                "  force {:+.4} N, mass {:.2} g: x {:+.3} mm, Bl {:.4} (true {:.4}), Kms {:.1} (true {:.1})",
+                w.force,
+                w.push.added_mass * 1e3,
+                w.x_dc * 1e3,
+                w.bl,
+                p.bl.eval(w.x_dc),
+                w.kms_static,
+                p.kms.eval(w.x_dc)
+            );
         }
         // Every point was asked of the operator (the rest point too), and what they applied,
         // not what was asked, is in the result.

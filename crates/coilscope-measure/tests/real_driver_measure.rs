@@ -18,14 +18,23 @@ use coilscope_measure::signal::Source;
 use coilscope_measure::{measure, MeasureOptions, Measurement};
 
 fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
-    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) / g.eval(x) - 1.0).abs()).fold(0.0, coilscope_testkit::check::nan_max)
+    (0..=400)
+        .map(|k| lo + (hi - lo) * k as f64 / 400.0)
+        .map(|x| (f.eval(x) / g.eval(x) - 1.0).abs())
+        .fold(0.0, coilscope_testkit::check::nan_max)
 }
 
 /// The driver with every effect (Le(i) and Rms(v) scaled to 4 A and 0.5 m/s, about the peaks
 /// of SB17 and PTT4 at 85 % of their range).
 fn real(p: &Parameters) -> Parameters {
     let (l2, r2) = p.l2r2.as_ref().map(|(l, r)| (l.c[0], r.c[0])).unwrap();
-    Parameters { creep: Some(Creep { lambda: 0.05, f_ref: None }), l3r3: Some((0.5 * l2, 3.0 * r2)), le_i: Some(Poly { c: vec![1.0, 0.0, -0.03 / 16.0] }), rms_v: Some(Poly { c: vec![p.rms, 0.0, 0.35 * p.rms / 0.25] }), ..p.clone() }
+    Parameters {
+        creep: Some(Creep { lambda: 0.05, f_ref: None }),
+        l3r3: Some((0.5 * l2, 3.0 * r2)),
+        le_i: Some(Poly { c: vec![1.0, 0.0, -0.03 / 16.0] }),
+        rms_v: Some(Poly { c: vec![p.rms, 0.0, 0.35 * p.rms / 0.25] }),
+        ..p.clone()
+    }
 }
 
 fn run(p: &Parameters, seed: u64) -> Measurement {
@@ -40,7 +49,12 @@ fn run(p: &Parameters, seed: u64) -> Measurement {
 fn check(label: &str, m: &Measurement, truth: &Parameters) -> Vec<String> {
     let q = &m.params;
     let r = m.x_range;
-    let (e_bl, e_k, e_le, e_re) = (worst(&q.bl, &truth.bl, r), worst(&q.kms, &truth.kms, r), worst(&q.le, &truth.le, r), (m.re_cold / truth.re - 1.0).abs());
+    let (e_bl, e_k, e_le, e_re) = (
+        worst(&q.bl, &truth.bl, r),
+        worst(&q.kms, &truth.kms, r),
+        worst(&q.le, &truth.le, r),
+        (m.re_cold / truth.re - 1.0).abs(),
+    );
     let j = m.result().to_json_value();
     let mut zmax: f64 = 0.0;
     for (which, f) in [("Bl", &truth.bl), ("Kms", &truth.kms), ("Le", &truth.le)] {
@@ -77,7 +91,12 @@ fn check(label: &str, m: &Measurement, truth: &Parameters) -> Vec<String> {
     if zmax > 3.0 {
         bad.push(format!("{label}: the truth lies {zmax:.1} sd outside the bands"));
     }
-    let want = Effects { creep: truth.creep.is_some(), lr3: truth.l3r3.is_some(), le_i: truth.le_i.is_some(), rms_v: truth.rms_v.is_some() };
+    let want = Effects {
+        creep: truth.creep.is_some(),
+        lr3: truth.l3r3.is_some(),
+        le_i: truth.le_i.is_some(),
+        rms_v: truth.rms_v.is_some(),
+    };
     if m.effects != want {
         bad.push(format!("{label}: model {} (want {})", m.effects.model_name(), want.model_name()));
     }

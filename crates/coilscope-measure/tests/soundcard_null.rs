@@ -30,7 +30,10 @@ fn null() -> SoundCardOptions {
 fn the_null_default_device_is_listed() {
     null();
     let (inputs, outputs) = list_devices().unwrap();
-    assert!(inputs.iter().any(|n| n == "default") && outputs.iter().any(|n| n == "default"), "inputs {inputs:?}, outputs {outputs:?}");
+    assert!(
+        inputs.iter().any(|n| n == "default") && outputs.iter().any(|n| n == "default"),
+        "inputs {inputs:?}, outputs {outputs:?}"
+    );
 }
 
 #[test]

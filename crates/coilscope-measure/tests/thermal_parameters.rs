@@ -35,12 +35,19 @@ fn a_ten_minute_run_at_a_fixed_level_gives_the_thermal_parameters() {
         Some(Ok(f)) => f.clone(),
         other => panic!("no thermal fit: {other:?}"),
     };
-    println!("true dT max {:.1} K (estimated {:.1}), residual {:.3} K, tracking lag {:.3} +- {:.3} s", t.dtv_max, fit.peak_k, fit.residual_k, fit.lag_s, fit.lag_sd);
+    println!(
+        "true dT max {:.1} K (estimated {:.1}), residual {:.3} K, tracking lag {:.3} +- {:.3} s",
+        t.dtv_max, fit.peak_k, fit.residual_k, fit.lag_s, fit.lag_sd
+    );
     let mut bad = vec![];
     for k in 0..4 {
         let (v, sd, want) = (fit.values[k], fit.sd[k], truth[k]);
         let z = (v - want).abs() / sd;
-        println!("{}: {v:.4} +- {sd:.4} (true {want}): {:.1} %, {z:.2} sd", ThermalFit::NAMES[k], 100.0 * (v / want - 1.0));
+        println!(
+            "{}: {v:.4} +- {sd:.4} (true {want}): {:.1} %, {z:.2} sd",
+            ThermalFit::NAMES[k],
+            100.0 * (v / want - 1.0)
+        );
         if (v / want - 1.0).abs() > 0.01 {
             bad.push(format!("{} {v:.4} is more than 1 % off {want}", ThermalFit::NAMES[k]));
         }
@@ -53,7 +60,11 @@ fn a_ten_minute_run_at_a_fixed_level_gives_the_thermal_parameters() {
     // No convection in this driver: the test for it runs (the speed changes from the
     // small-signal stage to the held level) and leaves it out.
     println!("{}", fit.convection_note);
-    assert!(fit.rv.is_none() && th.rv == 0.0 && fit.convection_note.contains("not supported"), "{}", fit.convection_note);
+    assert!(
+        fit.rv.is_none() && th.rv == 0.0 && fit.convection_note.contains("not supported"),
+        "{}",
+        fit.convection_note
+    );
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
 
@@ -70,7 +81,13 @@ fn heating_and_cooling_phases_give_the_convection_cooling() {
     let truth = [3.2, 9.0, 1.1, 700.0];
     let mut dev = VirtualDevice::new(&p, 48000.0, (1e-4, 1e-4), 6).unwrap();
     let mut src = Source::noise(&Excitation::Iec, 48000.0, 6).unwrap();
-    let opts = MeasureOptions { mms: p.mms, duration: Some(600.0), hold_volts: Some(4.0), cool: Some((300.0, 1.0)), ..Default::default() };
+    let opts = MeasureOptions {
+        mms: p.mms,
+        duration: Some(600.0),
+        hold_volts: Some(4.0),
+        cool: Some((300.0, 1.0)),
+        ..Default::default()
+    };
     let m = measure(&mut dev, &mut src, &opts, None, |_| {}).unwrap();
     let tr = &m.thermal_track;
     for k in (0..tr.t.len()).step_by(tr.t.len() / 12) {
@@ -89,7 +106,11 @@ fn heating_and_cooling_phases_give_the_convection_cooling() {
     for k in 0..4 {
         let (v, sd, want) = (fit.values[k], fit.sd[k], truth[k]);
         let z = (v - want).abs() / sd;
-        println!("{}: {v:.4} +- {sd:.4} (true {want}): {:.1} %, {z:.2} sd", ThermalFit::NAMES[k], 100.0 * (v / want - 1.0));
+        println!(
+            "{}: {v:.4} +- {sd:.4} (true {want}): {:.1} %, {z:.2} sd",
+            ThermalFit::NAMES[k],
+            100.0 * (v / want - 1.0)
+        );
         if k < 3 && (v / want - 1.0).abs() > 0.15 {
             bad.push(format!("{} {v:.4} is more than 15 % off {want}", ThermalFit::NAMES[k]));
         }

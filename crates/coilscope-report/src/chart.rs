@@ -21,7 +21,14 @@ fn ensure_font() {
 }
 
 /// Colours of the series, in order.
-pub const PALETTE: [RGBColor; 6] = [RGBColor(0x1f, 0x5f, 0xbf), RGBColor(0xd6, 0x27, 0x28), RGBColor(0x2c, 0xa0, 0x2c), RGBColor(0xff, 0x7f, 0x0e), RGBColor(0x94, 0x67, 0xbd), RGBColor(0x17, 0x17, 0x17)];
+pub const PALETTE: [RGBColor; 6] = [
+    RGBColor(0x1f, 0x5f, 0xbf),
+    RGBColor(0xd6, 0x27, 0x28),
+    RGBColor(0x2c, 0xa0, 0x2c),
+    RGBColor(0xff, 0x7f, 0x0e),
+    RGBColor(0x94, 0x67, 0xbd),
+    RGBColor(0x17, 0x17, 0x17),
+];
 
 /// One curve.
 #[derive(Clone, Debug)]
@@ -60,7 +67,17 @@ pub struct Chart {
 
 impl Chart {
     pub fn new(id: &str, title: &str, x_label: &str, y_label: &str) -> Self {
-        Chart { id: id.into(), title: title.into(), x_label: x_label.into(), y_label: y_label.into(), log_x: false, series: vec![], bands: vec![], markers: vec![], y_floor: None }
+        Chart {
+            id: id.into(),
+            title: title.into(),
+            x_label: x_label.into(),
+            y_label: y_label.into(),
+            log_x: false,
+            series: vec![],
+            bands: vec![],
+            markers: vec![],
+            y_floor: None,
+        }
     }
     pub fn log_x(mut self) -> Self {
         self.log_x = true;
@@ -100,7 +117,10 @@ impl Chart {
     /// Points with finite coordinates (and positive x on a log axis), axis-transformed.
     fn clean(&self, pts: &[(f64, f64)]) -> Vec<(f64, f64)> {
         let floor = self.y_floor.unwrap_or(f64::NEG_INFINITY);
-        pts.iter().filter(|(x, y)| x.is_finite() && y.is_finite() && (!self.log_x || *x > 0.0)).map(|&(x, y)| (self.tx(x), y.max(floor))).collect()
+        pts.iter()
+            .filter(|(x, y)| x.is_finite() && y.is_finite() && (!self.log_x || *x > 0.0))
+            .map(|&(x, y)| (self.tx(x), y.max(floor)))
+            .collect()
     }
 
     /// Whether a series or band has a point with finite coordinates ([`Chart::svg`] fails
@@ -110,18 +130,26 @@ impl Chart {
     }
 
     fn bounds(&self) -> Option<((f64, f64), (f64, f64))> {
-        let all: Vec<(f64, f64)> = self.series.iter().flat_map(|s| self.clean(&s.points)).chain(self.bands.iter().flat_map(|b| self.clean(&b.lo).into_iter().chain(self.clean(&b.hi)))).collect();
+        let all: Vec<(f64, f64)> = self
+            .series
+            .iter()
+            .flat_map(|s| self.clean(&s.points))
+            .chain(self.bands.iter().flat_map(|b| self.clean(&b.lo).into_iter().chain(self.clean(&b.hi))))
+            .collect();
         if all.is_empty() {
             return None;
         }
-        let fold = |f: fn(&(f64, f64)) -> f64| all.iter().map(f).fold((f64::INFINITY, f64::NEG_INFINITY), |a, v| (a.0.min(v), a.1.max(v)));
+        let fold = |f: fn(&(f64, f64)) -> f64| {
+            all.iter().map(f).fold((f64::INFINITY, f64::NEG_INFINITY), |a, v| (a.0.min(v), a.1.max(v)))
+        };
         let (mut x, mut y) = (fold(|p| p.0), fold(|p| p.1));
         if x.1 - x.0 <= 0.0 {
             x = (x.0 - 0.5, x.1 + 0.5);
         }
         let pad = if y.1 > y.0 { 0.06 * (y.1 - y.0) } else { 0.5 * y.0.abs().max(1e-12) };
         // Room above the data for the legend (upper right): a line per series.
-        let legend = if self.series.len() > 1 { 0.075 * self.series.len() as f64 * (y.1 - y.0 + 2.0 * pad) } else { 0.0 };
+        let legend =
+            if self.series.len() > 1 { 0.075 * self.series.len() as f64 * (y.1 - y.0 + 2.0 * pad) } else { 0.0 };
         y = (y.0 - pad, y.1 + pad + legend);
         Some((x, y))
     }
@@ -165,13 +193,23 @@ impl Chart {
     }
 
     /// Draw, with or without the legend (the legend test compares the two).
-    fn draw_with<DB: DrawingBackend>(&self, root: DrawingArea<DB, plotters::coord::Shift>, legend: bool) -> Result<(), String> {
+    fn draw_with<DB: DrawingBackend>(
+        &self,
+        root: DrawingArea<DB, plotters::coord::Shift>,
+        legend: bool,
+    ) -> Result<(), String> {
         ensure_font();
         let e = |err: DrawingAreaErrorKind<DB::ErrorType>| format!("chart {}: {err}", self.id);
         root.fill(&WHITE).map_err(e)?;
         let ((x0, x1), (y0, y1)) = self.bounds().ok_or_else(|| format!("chart {}: no finite data to draw", self.id))?;
         let log = self.log_x;
-        let mut chart = ChartBuilder::on(&root).caption(&self.title, ("sans-serif", 18)).margin(12).x_label_area_size(40).y_label_area_size(70).build_cartesian_2d(x0..x1, y0..y1).map_err(e)?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(&self.title, ("sans-serif", 18))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(e)?;
         let fmt_x = move |v: &f64| {
             if log {
                 let f = 10f64.powf(*v);
@@ -198,11 +236,23 @@ impl Chart {
         };
         // The x ticks are ours (x_keys: 1-2-5 per decade on a log axis): the mesh draws the
         // y axis, and the x grid lines and labels are drawn below at the keys.
-        chart.configure_mesh().x_desc(&self.x_label).y_desc(&self.y_label).x_labels(0).disable_x_mesh().y_label_formatter(&fmt_y).label_style(("sans-serif", 13)).light_line_style(RGBColor(235, 235, 235)).draw().map_err(e)?;
+        chart
+            .configure_mesh()
+            .x_desc(&self.x_label)
+            .y_desc(&self.y_label)
+            .x_labels(0)
+            .disable_x_mesh()
+            .y_label_formatter(&fmt_y)
+            .label_style(("sans-serif", 13))
+            .light_line_style(RGBColor(235, 235, 235))
+            .draw()
+            .map_err(e)?;
         let keys = self.x_keys(x0, x1);
         let grid = RGBColor(225, 225, 225);
         for &k in &keys {
-            chart.draw_series(std::iter::once(PathElement::new(vec![(k, y0), (k, y1)], grid.stroke_width(1)))).map_err(e)?;
+            chart
+                .draw_series(std::iter::once(PathElement::new(vec![(k, y0), (k, y1)], grid.stroke_width(1))))
+                .map_err(e)?;
             let (px, py) = chart.backend_coord(&(k, y0));
             let text = fmt_x(&k);
             let w = 7 * text.chars().count() as i32 / 2;
@@ -222,24 +272,47 @@ impl Chart {
                 continue;
             }
             // A label near one already placed goes a line lower, so that none covers another.
-            let near = placed.iter().filter(|(px, _)| (px - tx).abs() < 0.0125 * (x1 - x0) * label.chars().count().max(6) as f64).count();
+            let near = placed
+                .iter()
+                .filter(|(px, _)| (px - tx).abs() < 0.0125 * (x1 - x0) * label.chars().count().max(6) as f64)
+                .count();
             placed.push((tx, 0.0));
             let grey = RGBColor(110, 110, 110);
-            chart.draw_series(DashedLineSeries::new(vec![(tx, y0), (tx, y1)], 6, 4, grey.stroke_width(1))).map_err(e)?;
+            chart
+                .draw_series(DashedLineSeries::new(vec![(tx, y0), (tx, y1)], 6, 4, grey.stroke_width(1)))
+                .map_err(e)?;
             // Labels right of the middle are written to the left of their line, so they stay inside.
             let width = 0.0125 * (x1 - x0) * label.chars().count() as f64;
             let lx = if tx > 0.5 * (x0 + x1) { tx - width - 0.005 * (x1 - x0) } else { tx + 0.005 * (x1 - x0) };
-            chart.draw_series(std::iter::once(Text::new(label.clone(), (lx, y1 - (0.04 + 0.05 * near as f64) * (y1 - y0)), ("sans-serif", 12).into_font().color(&grey)))).map_err(e)?;
+            chart
+                .draw_series(std::iter::once(Text::new(
+                    label.clone(),
+                    (lx, y1 - (0.04 + 0.05 * near as f64) * (y1 - y0)),
+                    ("sans-serif", 12).into_font().color(&grey),
+                )))
+                .map_err(e)?;
         }
         for (k, s) in self.series.iter().enumerate() {
             let c = PALETTE[k % PALETTE.len()];
             let pts = self.clean(&s.points);
             let style = c.stroke_width(2);
-            let anno = if s.dashed { chart.draw_series(DashedLineSeries::new(pts, 8, 5, style)).map_err(e)? } else { chart.draw_series(LineSeries::new(pts, style)).map_err(e)? };
-            anno.label(s.name.clone()).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2)));
+            let anno = if s.dashed {
+                chart.draw_series(DashedLineSeries::new(pts, 8, 5, style)).map_err(e)?
+            } else {
+                chart.draw_series(LineSeries::new(pts, style)).map_err(e)?
+            };
+            anno.label(s.name.clone())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2)));
         }
         if legend && self.series.len() > 1 {
-            chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(RGBColor(200, 200, 200)).label_font(("sans-serif", 13)).position(SeriesLabelPosition::UpperRight).draw().map_err(e)?;
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.85))
+                .border_style(RGBColor(200, 200, 200))
+                .label_font(("sans-serif", 13))
+                .position(SeriesLabelPosition::UpperRight)
+                .draw()
+                .map_err(e)?;
         }
         root.present().map_err(e)?;
         Ok(())
@@ -265,11 +338,17 @@ impl Chart {
     /// without it.
     pub fn legend_covers_data(&self, size: (u32, u32)) -> Result<usize, String> {
         let (with, without) = (self.rgb(size, true)?, self.rgb(size, false)?);
-        let diff: Vec<(u32, u32)> = with.pixels().filter(|&(x, y, p)| without.get(x, y) != p).map(|(x, y, _)| (x, y)).collect();
-        let (Some(x0), Some(x1)) = (diff.iter().map(|p| p.0).min(), diff.iter().map(|p| p.0).max()) else { return Ok(0) };
+        let diff: Vec<(u32, u32)> =
+            with.pixels().filter(|&(x, y, p)| without.get(x, y) != p).map(|(x, y, _)| (x, y)).collect();
+        let (Some(x0), Some(x1)) = (diff.iter().map(|p| p.0).min(), diff.iter().map(|p| p.0).max()) else {
+            return Ok(0);
+        };
         let (y0, y1) = (diff.iter().map(|p| p.1).min().unwrap_or(0), diff.iter().map(|p| p.1).max().unwrap_or(0));
         let colours: Vec<[u8; 3]> = (0..self.series.len()).map(|k| PALETTE[k % PALETTE.len()].rgb().into()).collect();
-        Ok(without.pixels().filter(|(x, y, p)| (x0..=x1).contains(x) && (y0..=y1).contains(y) && colours.contains(p)).count())
+        Ok(without
+            .pixels()
+            .filter(|(x, y, p)| (x0..=x1).contains(x) && (y0..=y1).contains(y) && colours.contains(p))
+            .count())
     }
 
     /// The chart as PNG bytes.
@@ -279,7 +358,9 @@ impl Chart {
         let mut enc = png::Encoder::new(&mut bytes, img.width, img.height);
         enc.set_color(png::ColorType::Rgb);
         enc.set_depth(png::BitDepth::Eight);
-        enc.write_header().and_then(|mut w| w.write_image_data(&img.px)).map_err(|e| format!("chart {}: PNG encoding failed: {e}", self.id))?;
+        enc.write_header()
+            .and_then(|mut w| w.write_image_data(&img.px))
+            .map_err(|e| format!("chart {}: PNG encoding failed: {e}", self.id))?;
         Ok(bytes)
     }
 }
@@ -333,7 +414,10 @@ mod tests {
     fn sample() -> Chart {
         Chart::new("t", "Test", "x (mm)", "Bl (T m)")
             .line("Bl", (0..50).map(|k| (k as f64 * 0.1, 5.0 - 0.01 * (k * k) as f64)).collect())
-            .band((0..50).map(|k| (k as f64 * 0.1, 4.9 - 0.01 * (k * k) as f64)).collect(), (0..50).map(|k| (k as f64 * 0.1, 5.1 - 0.01 * (k * k) as f64)).collect())
+            .band(
+                (0..50).map(|k| (k as f64 * 0.1, 4.9 - 0.01 * (k * k) as f64)).collect(),
+                (0..50).map(|k| (k as f64 * 0.1, 5.1 - 0.01 * (k * k) as f64)).collect(),
+            )
             .dashed("published", vec![(0.0, 5.0), (4.9, 0.0)])
             .marker(2.0, "x_max")
     }
@@ -372,7 +456,10 @@ mod axis_tests {
     /// rather than 158, 251, 398), and a decibel axis stops at its floor.
     #[test]
     fn log_ticks_are_round_and_the_floor_clips() {
-        let c = Chart::new("f", "F", "frequency (Hz)", "dB").log_x().line("a", vec![(20.0, -30.0), (5000.0, -200.0)]).floor(-100.0);
+        let c = Chart::new("f", "F", "frequency (Hz)", "dB")
+            .log_x()
+            .line("a", vec![(20.0, -30.0), (5000.0, -200.0)])
+            .floor(-100.0);
         let keys = c.x_keys(20f64.log10(), 5000f64.log10());
         let hz: Vec<f64> = keys.iter().map(|k| 10f64.powf(*k)).collect();
         for want in [20.0, 50.0, 100.0, 200.0, 500.0, 1000.0, 2000.0, 5000.0] {
@@ -399,12 +486,18 @@ mod legend_tests {
     #[test]
     fn the_legend_check_catches_a_legend_over_data() {
         // The negative control: a line through the upper right corner, where the legend sits.
-        let c = Chart::new("t", "T", "x", "y").line("a", (0..=100).map(|k| (k as f64, if k > 60 { 10.0 } else { 0.0 })).collect()).line("b", vec![(0.0, 0.0), (100.0, 10.0)]);
+        let c = Chart::new("t", "T", "x", "y")
+            .line("a", (0..=100).map(|k| (k as f64, if k > 60 { 10.0 } else { 0.0 })).collect())
+            .line("b", vec![(0.0, 0.0), (100.0, 10.0)]);
         // Its room above the data is kept: a legend there covers nothing...
         assert_eq!(c.legend_covers_data((960, 560)).unwrap(), 0);
         // ... and one drawn with no room is caught.
         let mut tight = c.clone();
-        tight.series.extend((0..6).map(|k| Series { name: format!("s{k}"), points: vec![(0.0, 0.0), (100.0, 10.0)], dashed: false }));
+        tight.series.extend((0..6).map(|k| Series {
+            name: format!("s{k}"),
+            points: vec![(0.0, 0.0), (100.0, 10.0)],
+            dashed: false,
+        }));
         assert!(tight.legend_covers_data((960, 300)).unwrap() > 0);
     }
 }

@@ -15,7 +15,10 @@ pub mod chart;
 
 use chart::Chart;
 use coilscope_analysis::diagnosis::diagnose;
-use coilscope_analysis::distortion::{self, analyse, divergence_level, intermod, level_for_excursion, level_sweep, log_frequencies, multitone, Analysis, Nonlinearity, Output, SteadyOptions};
+use coilscope_analysis::distortion::{
+    self, analyse, divergence_level, intermod, level_for_excursion, level_sweep, log_frequencies, multitone, Analysis,
+    Nonlinearity, Output, SteadyOptions,
+};
 use coilscope_analysis::{db, volterra};
 use coilscope_core::limits::Thresholds;
 use coilscope_core::result::ResultFile;
@@ -118,7 +121,14 @@ fn mm(v: Option<f64>) -> String {
 /// `(x, value, sd)` of a band from the result's `uncertainty.<key>_band` (finite points only).
 fn band_of(result: Option<&ResultFile>, key: &str) -> Option<Vec<(f64, f64, f64)>> {
     let b = result?.uncertainty.band(key)?;
-    (b.x.len() == b.value.len() && b.value.len() == b.sd.len()).then(|| b.x.iter().zip(&b.value).zip(&b.sd).map(|((&x, &v), &s)| (x, v, s)).filter(|(x, v, s)| x.is_finite() && v.is_finite() && s.is_finite()).collect())
+    (b.x.len() == b.value.len() && b.value.len() == b.sd.len()).then(|| {
+        b.x.iter()
+            .zip(&b.value)
+            .zip(&b.sd)
+            .map(|((&x, &v), &s)| (x, v, s))
+            .filter(|(x, v, s)| x.is_finite() && v.is_finite() && s.is_finite())
+            .collect()
+    })
 }
 
 /// dB for plots, floored at -160 dB (a linear set has no distortion at all: -inf).
@@ -152,7 +162,8 @@ impl Builder {
     /// rest of the report is still written.
     fn chart(&mut self, c: Chart, caption: &str) -> Result<(), String> {
         if !c.has_finite_data() {
-            let why = format!("chart {}: no finite value to draw (the result is degenerate there: see its warnings)", c.id);
+            let why =
+                format!("chart {}: no finite value to draw (the result is degenerate there: see its warnings)", c.id);
             let _ = write!(self.html, "<figure class=\"plot\" id=\"plot-{id}\" data-series=\"0\"><p class=\"note\">{t}: {w}</p><figcaption>{cap}</figcaption></figure>", id = esc(&c.id), t = esc(&c.title), w = esc(&why), cap = esc(caption));
             self.warnings.push(why);
             return Ok(());
@@ -181,11 +192,24 @@ impl Builder {
 }
 
 /// The curve chart of one x-dependent parameter: value over the range, with +-2 sd band.
-fn curve_chart(id: &str, title: &str, unit: &str, f: &dyn Fn(f64) -> f64, band: Option<Vec<(f64, f64, f64)>>, range: [f64; 2], limit: Option<(f64, &str)>, overlay: Option<(&str, Vec<(f64, f64)>)>) -> Chart {
+fn curve_chart(
+    id: &str,
+    title: &str,
+    unit: &str,
+    f: &dyn Fn(f64) -> f64,
+    band: Option<Vec<(f64, f64, f64)>>,
+    range: [f64; 2],
+    limit: Option<(f64, &str)>,
+    overlay: Option<(&str, Vec<(f64, f64)>)>,
+) -> Chart {
     let xs = grid(range, 120);
-    let mut c = Chart::new(id, title, "x (mm), + = coil out", unit).line(title, xs.iter().map(|&x| (x * 1e3, f(x))).collect());
+    let mut c =
+        Chart::new(id, title, "x (mm), + = coil out", unit).line(title, xs.iter().map(|&x| (x * 1e3, f(x))).collect());
     if let Some(b) = band {
-        c = c.band(b.iter().map(|(x, v, s)| (x * 1e3, v - 2.0 * s)).collect(), b.iter().map(|(x, v, s)| (x * 1e3, v + 2.0 * s)).collect());
+        c = c.band(
+            b.iter().map(|(x, v, s)| (x * 1e3, v - 2.0 * s)).collect(),
+            b.iter().map(|(x, v, s)| (x * 1e3, v + 2.0 * s)).collect(),
+        );
     }
     if let Some((name, pts)) = overlay {
         c = c.dashed(name, pts);
@@ -209,9 +233,20 @@ fn compare_section(b: &mut Builder, csv: &mut Vec<(String, String)>, a: &ReportI
     let mut rows = vec![];
     let mut text = String::from("curve,max_difference_rel,at_x_mm,value_at_rest,other_at_rest\n");
     if hi > lo {
-        for (name, f, g) in [("Bl", &a.params.bl, &c.params.bl), ("Kms", &a.params.kms, &c.params.kms), ("Le", &a.params.le, &c.params.le)] {
-            let (worst, at) = grid([lo, hi], 200).into_iter().map(|x| ((f.eval(x) - g.eval(x)).abs() / f.eval(0.0).abs(), x)).fold((0.0, 0.0), |m, v| if v.0 > m.0 { v } else { m });
-            rows.push(vec![name.to_string(), format!("{:.2} % at {:+.2} mm", 100.0 * worst, at * 1e3), format!("{:.4} / {:.4}", f.eval(0.0), g.eval(0.0))]);
+        for (name, f, g) in [
+            ("Bl", &a.params.bl, &c.params.bl),
+            ("Kms", &a.params.kms, &c.params.kms),
+            ("Le", &a.params.le, &c.params.le),
+        ] {
+            let (worst, at) = grid([lo, hi], 200)
+                .into_iter()
+                .map(|x| ((f.eval(x) - g.eval(x)).abs() / f.eval(0.0).abs(), x))
+                .fold((0.0, 0.0), |m, v| if v.0 > m.0 { v } else { m });
+            rows.push(vec![
+                name.to_string(),
+                format!("{:.2} % at {:+.2} mm", 100.0 * worst, at * 1e3),
+                format!("{:.4} / {:.4}", f.eval(0.0), g.eval(0.0)),
+            ]);
             let _ = writeln!(text, "{name},{worst:.6},{:.4},{},{}", at * 1e3, f.eval(0.0), g.eval(0.0));
         }
     }
@@ -219,20 +254,32 @@ fn compare_section(b: &mut Builder, csv: &mut Vec<(String, String)>, a: &ReportI
     csv.push(("compare.csv".to_string(), text));
     // The quasi-static result's own record of the paper's two caveats.
     for (q, other) in [(a, c), (c, a)] {
-        let Some(qs) = q.result.as_ref().filter(|r| r.kind == "quasi-static").and_then(|r| r.other.get("quasi_static")) else { continue };
+        let Some(qs) = q.result.as_ref().filter(|r| r.kind == "quasi-static").and_then(|r| r.other.get("quasi_static"))
+        else {
+            continue;
+        };
         let mut notes = vec![];
         let k_static = q.params.kms.eval(0.0);
         let k_other = other.params.kms.eval(0.0);
         if let Some(kd) = qs.get("k_dynamic_rest").and_then(|v| v.as_f64()) {
             notes.push(vec!["stiffness at rest: static (quasi-static fit)".into(), format!("{k_static:.1} N/m")]);
-            notes.push(vec!["stiffness at rest: small signal at the rest point (dynamic, at the resonance)".into(), format!("{kd:.1} N/m ({:+.1} %)", 100.0 * (kd / k_static - 1.0))]);
+            notes.push(vec![
+                "stiffness at rest: small signal at the rest point (dynamic, at the resonance)".into(),
+                format!("{kd:.1} N/m ({:+.1} %)", 100.0 * (kd / k_static - 1.0)),
+            ]);
         }
-        notes.push(vec![format!("stiffness at rest: the {} result", method_label(other)), format!("{k_other:.1} N/m ({:+.1} %)", 100.0 * (k_other / k_static - 1.0))]);
+        notes.push(vec![
+            format!("stiffness at rest: the {} result", method_label(other)),
+            format!("{k_other:.1} N/m ({:+.1} %)", 100.0 * (k_other / k_static - 1.0)),
+        ]);
         if let Some(d) = qs.get("rest_drift_m").and_then(|v| v.as_f64()).filter(|d| d.is_finite()) {
             notes.push(vec!["rest position 1.5 s after the largest offset".into(), format!("{:+.4} mm", d * 1e3)]);
         }
         if let Some(l) = other.params.creep.as_ref().map(|c| c.lambda) {
-            notes.push(vec![format!("creep of the {} result", method_label(other)), format!("LOG lambda {l:.3}: the static stiffness is expected below the dynamic one")]);
+            notes.push(vec![
+                format!("creep of the {} result", method_label(other)),
+                format!("LOG lambda {l:.3}: the static stiffness is expected below the dynamic one"),
+            ]);
         }
         b.html.push_str("<p>A suspension that creeps gives a static stiffness below the dynamic one (the stiffness relaxes under a held offset), and the rest position drifts after a large offset (seed paper 3.2.1): both measured here.</p>");
         b.table(&["quasi-static caveat", "value"], &notes);
@@ -245,7 +292,11 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     let p = &input.params;
     let range = input.range;
     if !(range[0] < 0.0 && range[1] > 0.0) {
-        return Err(format!("the reached range [{:.3}, {:.3}] mm must contain the rest position x = 0", range[0] * 1e3, range[1] * 1e3));
+        return Err(format!(
+            "the reached range [{:.3}, {:.3}] mm must contain the rest position x = 0",
+            range[0] * 1e3,
+            range[1] * 1e3
+        ));
     }
     let result = input.result.as_ref();
     let diag = diagnose(p, range, opts.thresholds, opts.dt_max);
@@ -265,8 +316,13 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
             Some(b.sd[k]).filter(|s| s.is_finite())
         })
     };
-    let pm = |sd: Option<f64>, factor: f64| sd.filter(|s| *s > 0.0).map(|s| format!("± {}", sig(s * factor))).unwrap_or_default();
-    let mut rows: Vec<Vec<String>> = p.values_at_rest().map(|(e, v)| vec![e.label(), sig(v * e.display.1), pm(sd_of(e.key), e.display.1), e.display.0.to_string()]).collect();
+    let pm = |sd: Option<f64>, factor: f64| {
+        sd.filter(|s| *s > 0.0).map(|s| format!("± {}", sig(s * factor))).unwrap_or_default()
+    };
+    let mut rows: Vec<Vec<String>> = p
+        .values_at_rest()
+        .map(|(e, v)| vec![e.label(), sig(v * e.display.1), pm(sd_of(e.key), e.display.1), e.display.0.to_string()])
+        .collect();
     // Thiele/Small and the derived figures (no sd of their own), at fs with creep's loss as
     // LPM and Speakerbench give them (`ThieleSmall`); the table's Rms above is the viscous one.
     let bl0 = p.bl.c[0];
@@ -303,7 +359,9 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     let funcs: Vec<(String, &coilscope_core::Poly)> = coilscope_core::schema::ENTRIES
         .iter()
         .filter_map(|e| match (p.get(e.key), e.variable()) {
-            (Some(coilscope_core::schema::Value::Series(f)), Some((var, var_unit))) => Some((format!("{} ({}/{var_unit}^j, {var})", e.key, e.unit), f)),
+            (Some(coilscope_core::schema::Value::Series(f)), Some((var, var_unit))) => {
+                Some((format!("{} ({}/{var_unit}^j, {var})", e.key, e.unit), f))
+            }
             _ => None,
         })
         .collect();
@@ -313,7 +371,8 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         r.extend((0..order).map(|j| f.c.get(j).map(|&c| fmt(c)).unwrap_or_default()));
         series_rows.push(r);
     }
-    let heads: Vec<String> = std::iter::once("power series".to_string()).chain((0..order).map(|j| format!("c{j}"))).collect();
+    let heads: Vec<String> =
+        std::iter::once("power series".to_string()).chain((0..order).map(|j| format!("c{j}"))).collect();
     b.table(&heads.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &series_rows);
 
     // A small-signal result (constant curves) gets no nonlinear sections: nothing in it
@@ -332,10 +391,43 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         let xc_label = format!("XC ({:.0} %)", th.cms * 100.0);
         let xl_label = format!("XL ({:.0} %)", th.le * 100.0);
         let cmp = input.compare.as_deref();
-        let cmp_name = cmp.map(|c| format!("{} ({})", method_label(c), c.result.as_ref().map_or(c.title.as_str(), |r| r.recording.as_str())));
-        let over = |g: &dyn Fn(&Parameters, f64) -> f64| -> Option<(&str, Vec<(f64, f64)>)> { cmp.map(|c| (cmp_name.as_deref().unwrap_or_default(), grid(c.range, 120).into_iter().map(|x| (x * 1e3, g(&c.params, x))).collect())) };
-        b.chart(curve_chart("bl", "Bl(x)", "Bl (T m)", &|x| p.bl.eval(x), bl_band, range, lim.xbl.map(|v| (v, xbl_label.as_str())), over(&|q, x| q.bl.eval(x))), "Force factor.")?;
-        b.chart(curve_chart("kms", "Kms(x)", "Kms (N/m)", &|x| p.kms.eval(x), kms_band, range, None, over(&|q, x| q.kms.eval(x))), "Secant stiffness of the suspension.")?;
+        let cmp_name = cmp.map(|c| {
+            format!("{} ({})", method_label(c), c.result.as_ref().map_or(c.title.as_str(), |r| r.recording.as_str()))
+        });
+        let over = |g: &dyn Fn(&Parameters, f64) -> f64| -> Option<(&str, Vec<(f64, f64)>)> {
+            cmp.map(|c| {
+                (
+                    cmp_name.as_deref().unwrap_or_default(),
+                    grid(c.range, 120).into_iter().map(|x| (x * 1e3, g(&c.params, x))).collect(),
+                )
+            })
+        };
+        b.chart(
+            curve_chart(
+                "bl",
+                "Bl(x)",
+                "Bl (T m)",
+                &|x| p.bl.eval(x),
+                bl_band,
+                range,
+                lim.xbl.map(|v| (v, xbl_label.as_str())),
+                over(&|q, x| q.bl.eval(x)),
+            ),
+            "Force factor.",
+        )?;
+        b.chart(
+            curve_chart(
+                "kms",
+                "Kms(x)",
+                "Kms (N/m)",
+                &|x| p.kms.eval(x),
+                kms_band,
+                range,
+                None,
+                over(&|q, x| q.kms.eval(x)),
+            ),
+            "Secant stiffness of the suspension.",
+        )?;
         b.chart(
             curve_chart(
                 "cms",
@@ -350,15 +442,33 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
             "Compliance 1/Kms(x).",
         )?;
         b.chart(
-            curve_chart("le", "Le(x)", "Le (mH)", &|x| 1e3 * p.le.eval(x), le_band.map(|v| v.into_iter().map(|(x, l, s)| (x, l * 1e3, s * 1e3)).collect()), range, lim.xl.map(|v| (v, xl_label.as_str())), over(&|q, x| 1e3 * q.le.eval(x))),
+            curve_chart(
+                "le",
+                "Le(x)",
+                "Le (mH)",
+                &|x| 1e3 * p.le.eval(x),
+                le_band.map(|v| v.into_iter().map(|(x, l, s)| (x, l * 1e3, s * 1e3)).collect()),
+                range,
+                lim.xl.map(|v| (v, xl_label.as_str())),
+                over(&|q, x| 1e3 * q.le.eval(x)),
+            ),
             "Voice-coil inductance; it should rise toward the back plate (x < 0).",
         )?;
         // Symmetry against amplitude (as LSI plots it): the offset that makes Bl(x) and Kms(x)
         // symmetric over +-x_peak, and the stiffness asymmetry Ak(x_peak).
         let a = (-range[0]).min(range[1]);
         let amps: Vec<f64> = (1..=19).map(|k| 0.05 * k as f64 * a).collect();
-        let sym = |f: &coilscope_core::Poly| amps.iter().filter_map(|&amp| coilscope_core::limits::symmetry_point(f, amp, range).map(|s| (amp * 1e3, s * 1e3))).collect::<Vec<_>>();
-        let ak: Vec<(f64, f64)> = amps.iter().map(|&amp| (amp * 1e3, 100.0 * (p.kms.eval(amp) - p.kms.eval(-amp)) / p.kms.eval(amp).max(p.kms.eval(-amp)))).collect();
+        let sym = |f: &coilscope_core::Poly| {
+            amps.iter()
+                .filter_map(|&amp| coilscope_core::limits::symmetry_point(f, amp, range).map(|s| (amp * 1e3, s * 1e3)))
+                .collect::<Vec<_>>()
+        };
+        let ak: Vec<(f64, f64)> = amps
+            .iter()
+            .map(|&amp| {
+                (amp * 1e3, 100.0 * (p.kms.eval(amp) - p.kms.eval(-amp)) / p.kms.eval(amp).max(p.kms.eval(-amp)))
+            })
+            .collect();
         let (bl_sym, kms_sym) = (sym(&p.bl), sym(&p.kms));
         if !bl_sym.is_empty() {
             b.chart(
@@ -378,7 +488,9 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         )?;
         let mut sc = String::from("x_peak_mm,Xsym_Bl_mm,Xsym_Kms_mm,Ak_percent\n");
         for (k, &amp) in amps.iter().enumerate() {
-            let find = |v: &[(f64, f64)]| v.iter().find(|(x, _)| (x - amp * 1e3).abs() < 1e-12).map_or(String::new(), |(_, s)| format!("{s:.5}"));
+            let find = |v: &[(f64, f64)]| {
+                v.iter().find(|(x, _)| (x - amp * 1e3).abs() < 1e-12).map_or(String::new(), |(_, s)| format!("{s:.5}"))
+            };
             let _ = writeln!(sc, "{:.5},{},{},{:.4}", amp * 1e3, find(&bl_sym), find(&kms_sym), ak[k].1);
         }
         csv.push(("symmetry.csv".to_string(), sc));
@@ -387,7 +499,15 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         }
         let mut c = String::from("x_mm,Bl_Tm,Kms_N_per_m,Cms_mm_per_N,Le_mH\n");
         for x in grid(range, 100) {
-            let _ = writeln!(c, "{:.5},{:.6},{:.4},{:.6},{:.6}", x * 1e3, p.bl.eval(x), p.kms.eval(x), 1e3 / p.kms.eval(x), 1e3 * p.le.eval(x));
+            let _ = writeln!(
+                c,
+                "{:.5},{:.6},{:.4},{:.6},{:.6}",
+                x * 1e3,
+                p.bl.eval(x),
+                p.kms.eval(x),
+                1e3 / p.kms.eval(x),
+                1e3 * p.le.eval(x)
+            );
         }
         csv.push(("curves.csv".to_string(), c));
     } else {
@@ -396,22 +516,40 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
 
     // --- Limits and diagnosis -------------------------------------------------------------
     b.section("Limits and diagnosis", "IEC 62458 / Klippel displacement limits over the reached range (thresholds as given), the Bl symmetry point, the polarity check and the thermal power handling.");
-    let xmax = [(lim.xbl, "XBl"), (lim.xc, "XC"), (lim.xl, "XL")].into_iter().filter_map(|(v, n)| v.map(|v| (v, n))).min_by(|a, b| a.0.total_cmp(&b.0));
+    let xmax = [(lim.xbl, "XBl"), (lim.xc, "XC"), (lim.xl, "XL")]
+        .into_iter()
+        .filter_map(|(v, n)| v.map(|v| (v, n)))
+        .min_by(|a, b| a.0.total_cmp(&b.0));
     let mut rows = vec![
         vec![
             "Xmax = min(XBl, XC, XL)".into(),
             match xmax {
                 Some((v, n)) => format!("{:.2} mm (limited by {n})", v * 1e3),
-                None => format!("beyond the reached range (+-{:.2} mm): no limit reached", (-range[0]).min(range[1]) * 1e3),
+                None => {
+                    format!("beyond the reached range (+-{:.2} mm): no limit reached", (-range[0]).min(range[1]) * 1e3)
+                }
             },
         ],
         vec![format!("XBl (Bl {:.0} %)", th.bl * 100.0), mm(lim.xbl)],
         vec![format!("XC (Cms {:.0} %)", th.cms * 100.0), mm(lim.xc)],
         vec![format!("XL (Le {:.0} %)", th.le * 100.0), mm(lim.xl)],
-        vec!["Xsym (Bl symmetry point)".into(), format!("{} at amplitude {:.2} mm", mm(lim.xsym), lim.xsym_amplitude * 1e3)],
+        vec![
+            "Xsym (Bl symmetry point)".into(),
+            format!("{} at amplitude {:.2} mm", mm(lim.xsym), lim.xsym_amplitude * 1e3),
+        ],
         vec!["Ak (stiffness asymmetry)".into(), format!("{:.1} %", lim.ak)],
         vec!["Bl rest-position shift".into(), diag.bl_shift_advice()],
-        vec!["Polarity (Le asymmetry)".into(), format!("{}: Le(-{:.2} mm) = {:.4} mH, Le(+{:.2} mm) = {:.4} mH", diag.polarity.verdict, diag.polarity.at * 1e3, diag.polarity.le_minus * 1e3, diag.polarity.at * 1e3, diag.polarity.le_plus * 1e3)],
+        vec![
+            "Polarity (Le asymmetry)".into(),
+            format!(
+                "{}: Le(-{:.2} mm) = {:.4} mH, Le(+{:.2} mm) = {:.4} mH",
+                diag.polarity.verdict,
+                diag.polarity.at * 1e3,
+                diag.polarity.le_minus * 1e3,
+                diag.polarity.at * 1e3,
+                diag.polarity.le_plus * 1e3
+            ),
+        ],
     ];
     if !nonlinear {
         rows.clear();
@@ -420,13 +558,28 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         // A measured thermal model (a long `measure` run fits it): its values with their sds.
         let sd = |k: &str| unc.value(&format!("thermal.{k}"));
         if let (Some(a), Some(b), Some(c), Some(d)) = (sd("Rtv"), sd("Ctv"), sd("Rtm"), sd("Ctm")) {
-            rows.push(vec!["Thermal model (fitted to this run's rise)".into(), format!("Rtv {:.3} ± {a:.3} K/W, Ctv {:.2} ± {b:.2} J/K, Rtm {:.3} ± {c:.3} K/W, Ctm {:.0} ± {d:.0} J/K", th.rtv, th.ctv, th.rtm, th.ctm)]);
+            rows.push(vec![
+                "Thermal model (fitted to this run's rise)".into(),
+                format!(
+                    "Rtv {:.3} ± {a:.3} K/W, Ctv {:.2} ± {b:.2} J/K, Rtm {:.3} ± {c:.3} K/W, Ctm {:.0} ± {d:.0} J/K",
+                    th.rtv, th.ctv, th.rtm, th.ctm
+                ),
+            ]);
         }
     }
     if let Some(t) = &diag.thermal {
-        rows.push(vec![format!("Continuous power in Re for +{:.0} K", t.dt_max), format!("{:.1} W (tau_v {:.1} s, tau_m {:.0} s)", t.p_max, t.tau_v, t.tau_m)]);
-        rows.push(vec!["Voltage at that limit, worst sine".into(), format!("{:.2} V RMS at {:.0} Hz", t.volts_sine, t.f_sine)]);
-        rows.push(vec!["Voltage at that limit, IEC 60268-1 noise".into(), format!("{:.2} V RMS ({:.1} W nominal U^2/Re)", t.volts_iec, t.p_nominal_iec)]);
+        rows.push(vec![
+            format!("Continuous power in Re for +{:.0} K", t.dt_max),
+            format!("{:.1} W (tau_v {:.1} s, tau_m {:.0} s)", t.p_max, t.tau_v, t.tau_m),
+        ]);
+        rows.push(vec![
+            "Voltage at that limit, worst sine".into(),
+            format!("{:.2} V RMS at {:.0} Hz", t.volts_sine, t.f_sine),
+        ]);
+        rows.push(vec![
+            "Voltage at that limit, IEC 60268-1 noise".into(),
+            format!("{:.2} V RMS ({:.1} W nominal U^2/Re)", t.volts_iec, t.p_nominal_iec),
+        ]);
     }
 
     // --- Distortion -----------------------------------------------------------------------
@@ -460,7 +613,16 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         Nonlinearity::ALL[k]
     };
     if nonlinear {
-        rows.push(vec!["Dominant nonlinearity".into(), format!("{} (largest harmonic distortion alone, summed over {:.0} .. {:.0} Hz at {:.2} V)", dominant.name(), f_lo, f_hi, volts)]);
+        rows.push(vec![
+            "Dominant nonlinearity".into(),
+            format!(
+                "{} (largest harmonic distortion alone, summed over {:.0} .. {:.0} Hz at {:.2} V)",
+                dominant.name(),
+                f_lo,
+                f_hi,
+                volts
+            ),
+        ]);
     }
     if !rows.is_empty() {
         b.table(&["limit", "value"], &rows);
@@ -474,11 +636,25 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     );
         let line = |f: &dyn Fn(&Analysis) -> f64| sweep.iter().map(|a| (a.total.freq, dbp(f(a)))).collect::<Vec<_>>();
         b.chart(
-            Chart::new("hd", "Harmonic distortion", "frequency (Hz)", "dB re fundamental").log_x().floor(DB_FLOOR).line("HD2", line(&|a| a.total.hd(2))).line("HD3", line(&|a| a.total.hd(3))).line("THD", line(&|a| a.total.thd())).marker(ts.fs, "fs"),
+            Chart::new("hd", "Harmonic distortion", "frequency (Hz)", "dB re fundamental")
+                .log_x()
+                .floor(DB_FLOOR)
+                .line("HD2", line(&|a| a.total.hd(2)))
+                .line("HD3", line(&|a| a.total.hd(3)))
+                .line("THD", line(&|a| a.total.thd()))
+                .marker(ts.fs, "fs"),
             "HD2, HD3 and THD of the sound pressure over frequency.",
         )?;
         for order in [2usize, 3] {
-            let mut c = Chart::new(&format!("contrib-hd{order}"), &format!("HD{order}: each nonlinearity alone"), "frequency (Hz)", "dB re fundamental").log_x().floor(DB_FLOOR).line("total", line(&|a| a.total.hd(order)));
+            let mut c = Chart::new(
+                &format!("contrib-hd{order}"),
+                &format!("HD{order}: each nonlinearity alone"),
+                "frequency (Hz)",
+                "dB re fundamental",
+            )
+            .log_x()
+            .floor(DB_FLOOR)
+            .line("total", line(&|a| a.total.hd(order)));
             for (k, nl) in Nonlinearity::ALL.iter().enumerate() {
                 c = c.dashed(nl.name(), sweep.iter().map(|a| (a.total.freq, dbp(a.parts[k].1.hd(order)))).collect());
             }
@@ -486,7 +662,14 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         }
         let mut c = String::from("f_Hz,HD2_dB,HD3_dB,THD_dB,HD2_Bl_dB,HD2_Kms_dB,HD2_Le_dB,HD3_Bl_dB,HD3_Kms_dB,HD3_Le_dB,x_dc_mm,dominant\n");
         for a in &sweep {
-            let _ = write!(c, "{:.3},{:.3},{:.3},{:.3}", a.total.freq, db(a.total.hd(2)), db(a.total.hd(3)), db(a.total.thd()));
+            let _ = write!(
+                c,
+                "{:.3},{:.3},{:.3},{:.3}",
+                a.total.freq,
+                db(a.total.hd(2)),
+                db(a.total.hd(3)),
+                db(a.total.thd())
+            );
             for order in [2, 3] {
                 for (_, h) in &a.parts {
                     let _ = write!(c, ",{:.3}", db(h.hd(order)));
@@ -507,13 +690,18 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
             }
         }
         divergence = divergence_level(&rows_v, 1.0);
-        let mut c = Chart::new("volterra", &format!("Volterra series vs full model at {:.1} Hz", f_v), "level (V RMS)", "dB re fundamental")
-            .floor(DB_FLOOR)
-            .log_x()
-            .line("HD2 full", rows_v.iter().map(|r| (r.volts, dbp(r.full.hd(2)))).collect())
-            .line("HD3 full", rows_v.iter().map(|r| (r.volts, dbp(r.full.hd(3)))).collect())
-            .dashed("HD2 Volterra", rows_v.iter().map(|r| (r.volts, dbp(r.volterra.0))).collect())
-            .dashed("HD3 Volterra", rows_v.iter().map(|r| (r.volts, dbp(r.volterra.1))).collect());
+        let mut c = Chart::new(
+            "volterra",
+            &format!("Volterra series vs full model at {:.1} Hz", f_v),
+            "level (V RMS)",
+            "dB re fundamental",
+        )
+        .floor(DB_FLOOR)
+        .log_x()
+        .line("HD2 full", rows_v.iter().map(|r| (r.volts, dbp(r.full.hd(2)))).collect())
+        .line("HD3 full", rows_v.iter().map(|r| (r.volts, dbp(r.full.hd(3)))).collect())
+        .dashed("HD2 Volterra", rows_v.iter().map(|r| (r.volts, dbp(r.volterra.0))).collect())
+        .dashed("HD3 Volterra", rows_v.iter().map(|r| (r.volts, dbp(r.volterra.1))).collect());
         if let Some(v) = divergence {
             c = c.marker(v, "Volterra off by 1 dB");
         }
@@ -526,14 +714,24 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         )?;
         let mut c = String::from("volts_rms,HD2_full_dB,HD3_full_dB,HD2_volterra_dB,HD3_volterra_dB\n");
         for r in &rows_v {
-            let _ = writeln!(c, "{:.5},{:.3},{:.3},{:.3},{:.3}", r.volts, db(r.full.hd(2)), db(r.full.hd(3)), db(r.volterra.0), db(r.volterra.1));
+            let _ = writeln!(
+                c,
+                "{:.5},{:.3},{:.3},{:.3},{:.3}",
+                r.volts,
+                db(r.full.hd(2)),
+                db(r.full.hd(3)),
+                db(r.volterra.0),
+                db(r.volterra.1)
+            );
         }
         csv.push(("volterra.csv".to_string(), c));
         // The Volterra identification (seed paper 3.2.2.1) against level, on this model. Its
         // error is relative to the size of the nonlinearity: a model whose curves vary by
         // less than a millionth over the range (a degenerate fit's 1e-14 coefficients) has
         // none to identify, and 0/0 to draw.
-        let varies = |f: &coilscope_core::poly::Poly| grid(range, 40).iter().any(|&x| (f.eval(x) - f.eval(0.0)).abs() > 1e-6 * f.eval(0.0).abs());
+        let varies = |f: &coilscope_core::poly::Poly| {
+            grid(range, 40).iter().any(|&x| (f.eval(x) - f.eval(0.0)).abs() > 1e-6 * f.eval(0.0).abs())
+        };
         let nonlinear = [&p.bl, &p.kms, &p.le].iter().any(|f| varies(f));
         if nonlinear {
             let model = Parameters { x_range: Some(range), ..p.clone() };
@@ -550,12 +748,19 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
             )?;
                 let mut c = String::from("x_peak_over_range,volts_rms,Bl_error,Kms_error,Le_error,kernel_misfit\n");
                 for r in &rows {
-                    let _ = writeln!(c, "{:.4},{:.5},{:.5},{:.5},{:.5},{:.4e}", r.frac, r.volts, r.err[0], r.err[1], r.err[2], r.misfit);
+                    let _ = writeln!(
+                        c,
+                        "{:.4},{:.5},{:.5},{:.5},{:.5},{:.4e}",
+                        r.frac, r.volts, r.err[0], r.err[1], r.err[2], r.misfit
+                    );
                 }
                 csv.push(("volterra_identification.csv".to_string(), c));
             }
         }
-        let kern: Vec<(f64, [realfft::num_complex::Complex64; 3])> = freqs.iter().map(|&f| (f, volterra::probe(&distortion::with_only(p, &Nonlinearity::ALL, 0.0), f).kernels())).collect();
+        let kern: Vec<(f64, [realfft::num_complex::Complex64; 3])> = freqs
+            .iter()
+            .map(|&f| (f, volterra::probe(&distortion::with_only(p, &Nonlinearity::ALL, 0.0), f).kernels()))
+            .collect();
         b.chart(
             Chart::new("kernels", "Volterra kernels on the diagonal (displacement)", "frequency (Hz)", "dB re 1 m/V^n")
                 .log_x()
@@ -569,12 +774,26 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         let mut drows = Vec::new();
         for f in [ts.fs / 2.0, ts.fs, 3.0 * ts.fs] {
             if let Ok(a) = sweep_point(p, f, volts, &sopts) {
-                drows.push(vec![format!("sine {f:.1} Hz"), format!("{:.1} dB", db(a.total.hd(2))), format!("{:.1} dB", db(a.total.hd(3))), format!("{:.1} dB", db(a.total.thd())), format!("{:+.3} mm", a.total.x_dc * 1e3), a.dominant().name().into()]);
+                drows.push(vec![
+                    format!("sine {f:.1} Hz"),
+                    format!("{:.1} dB", db(a.total.hd(2))),
+                    format!("{:.1} dB", db(a.total.hd(3))),
+                    format!("{:.1} dB", db(a.total.thd())),
+                    format!("{:+.3} mm", a.total.x_dc * 1e3),
+                    a.dominant().name().into(),
+                ]);
             }
         }
         let (f1, f2) = (ts.fs.max(10.0), (ts.fs * 20.0).clamp(700.0, 4000.0) + 0.37 * ts.fs);
         if let Ok(im) = intermod(p, f1, f2, volts, 1.0, Output::Pressure, &sopts) {
-            drows.push(vec![format!("two-tone {:.1} + {:.1} Hz", im.f1, im.f2), format!("d2 {:.1} dB", db(im.d2)), format!("d3 {:.1} dB", db(im.d3)), String::new(), format!("{:+.3} mm", im.x_dc * 1e3), String::new()]);
+            drows.push(vec![
+                format!("two-tone {:.1} + {:.1} Hz", im.f1, im.f2),
+                format!("d2 {:.1} dB", db(im.d2)),
+                format!("d3 {:.1} dB", db(im.d3)),
+                String::new(),
+                format!("{:+.3} mm", im.x_dc * 1e3),
+                String::new(),
+            ]);
         }
         b.table(&["excitation", "HD2 / d2", "HD3 / d3", "THD", "DC displacement", "dominant"], &drows);
         if let Ok(mt) = multitone(p, f_lo, 10_000.0, 30, volts, Output::Pressure, 1, &sopts) {
@@ -583,16 +802,22 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
             let dist: Vec<(f64, f64)> = bands
                 .windows(2)
                 .filter_map(|w| {
-                    let pw: f64 = mt.distortion.iter().filter(|(f, _)| *f >= w[0] && *f < w[1]).map(|(_, a)| a * a).sum();
+                    let pw: f64 =
+                        mt.distortion.iter().filter(|(f, _)| *f >= w[0] && *f < w[1]).map(|(_, a)| a * a).sum();
                     (pw > 0.0).then(|| ((w[0] * w[1]).sqrt(), db(pw.sqrt() / ref_level)))
                 })
                 .collect();
             b.chart(
-                Chart::new("multitone", &format!("Multitone distortion (30 tones, MTD {:.1} dB)", db(mt.mtd)), "frequency (Hz)", "dB re mean tone")
-                    .floor(DB_FLOOR)
-                    .log_x()
-                    .line("tones", mt.tones.iter().map(|(f, a)| (*f, dbp(a / ref_level))).collect())
-                    .line("distortion per 1/3 octave", dist),
+                Chart::new(
+                    "multitone",
+                    &format!("Multitone distortion (30 tones, MTD {:.1} dB)", db(mt.mtd)),
+                    "frequency (Hz)",
+                    "dB re mean tone",
+                )
+                .floor(DB_FLOOR)
+                .log_x()
+                .line("tones", mt.tones.iter().map(|(f, a)| (*f, dbp(a / ref_level))).collect())
+                .line("distortion per 1/3 octave", dist),
                 "Sound-pressure spectrum of a 30-tone multitone: the tones and the distortion that falls between them.",
             )?;
         }
@@ -602,11 +827,21 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     b.section("Impedance", "Small-signal electrical impedance of the linearised model at rest.");
     let fz = log_frequencies(5.0, 20_000.0, 12);
     let small: Option<Parameters> = result.and_then(|r| Some(r.measurement.as_ref()?.small_signal.parameters.clone()));
-    let mut cz = Chart::new("impedance", "Impedance magnitude", "frequency (Hz)", "|Z| (ohm)").log_x().line("large-signal set at x = 0", fz.iter().map(|&f| (f, impedance(p, f).norm())).collect());
-    let mut cp = Chart::new("impedance-phase", "Impedance phase", "frequency (Hz)", "phase (deg)").log_x().line("large-signal set at x = 0", fz.iter().map(|&f| (f, impedance(p, f).arg().to_degrees())).collect());
+    let mut cz = Chart::new("impedance", "Impedance magnitude", "frequency (Hz)", "|Z| (ohm)")
+        .log_x()
+        .line("large-signal set at x = 0", fz.iter().map(|&f| (f, impedance(p, f).norm())).collect());
+    let mut cp = Chart::new("impedance-phase", "Impedance phase", "frequency (Hz)", "phase (deg)")
+        .log_x()
+        .line("large-signal set at x = 0", fz.iter().map(|&f| (f, impedance(p, f).arg().to_degrees())).collect());
     if let Some(s) = &small {
-        cz = cz.dashed("small-signal set (start of measurement)", fz.iter().map(|&f| (f, impedance(s, f).norm())).collect());
-        cp = cp.dashed("small-signal set (start of measurement)", fz.iter().map(|&f| (f, impedance(s, f).arg().to_degrees())).collect());
+        cz = cz.dashed(
+            "small-signal set (start of measurement)",
+            fz.iter().map(|&f| (f, impedance(s, f).norm())).collect(),
+        );
+        cp = cp.dashed(
+            "small-signal set (start of measurement)",
+            fz.iter().map(|&f| (f, impedance(s, f).arg().to_degrees())).collect(),
+        );
     }
     b.chart(cz, "Magnitude.")?;
     b.chart(cp, "Phase.")?;
@@ -636,13 +871,15 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
             b.table(&["quantity", "value"], &rows);
         }
     }
-    let dt_track: Option<Vec<(f64, f64)>> = result.and_then(|r| Some(r.thermal.as_ref()?.dt_track.clone())).filter(|t| !t.is_empty());
+    let dt_track: Option<Vec<(f64, f64)>> =
+        result.and_then(|r| Some(r.thermal.as_ref()?.dt_track.clone())).filter(|t| !t.is_empty());
     if let Some(s) = &input.states {
         let c = Chart::new("x-time", "Excursion during the measurement", "time (s)", "x (mm)")
             .line("largest x per block", s.t.iter().zip(&s.x_max).map(|(t, x)| (*t, x * 1e3)).collect())
             .line("smallest x per block", s.t.iter().zip(&s.x_min).map(|(t, x)| (*t, x * 1e3)).collect());
         b.chart(c, "Live displacement from the model (no sensor): extremes of each block.")?;
-        let mut c = Chart::new("temperature-time", "Voice-coil temperature rise", "time (s)", "dT (K)").line("from the tracked Re", s.t.iter().zip(&s.dtv).map(|(t, v)| (*t, *v)).collect());
+        let mut c = Chart::new("temperature-time", "Voice-coil temperature rise", "time (s)", "dT (K)")
+            .line("from the tracked Re", s.t.iter().zip(&s.dtv).map(|(t, v)| (*t, *v)).collect());
         if let Some(track) = &dt_track {
             c = c.dashed("at the parameter updates", track.clone());
         }
@@ -653,22 +890,38 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         }
         csv.push(("time_series.csv".to_string(), c));
     } else if let Some(track) = dt_track.filter(|t| t.len() >= 2) {
-        b.chart(Chart::new("temperature-time", "Voice-coil temperature rise", "time (s)", "dT (K)").line("from the tracked Re", track), "Voice-coil temperature rise from the fitted Re(t).")?;
+        b.chart(
+            Chart::new("temperature-time", "Voice-coil temperature rise", "time (s)", "dT (K)")
+                .line("from the tracked Re", track),
+            "Voice-coil temperature rise from the fitted Re(t).",
+        )?;
     }
 
     // Live distortion (seed paper 4.2): each nonlinearity's contribution over the run.
     if let Some(d) = result.and_then(|r| r.measurement.as_ref()).map(|m| &m.distortion).filter(|d| d.len() >= 2) {
         let names = ["Bl(x)", "Kms(x)", "Le(x)"];
         for (key, title, pick) in [("x", "displacement", 0usize), ("p", "sound pressure (cone acceleration)", 2)] {
-            let mut c = Chart::new(&format!("live-distortion-{key}"), &format!("Live distortion in {title}"), "time (s)", "contribution (% of the signal)");
+            let mut c = Chart::new(
+                &format!("live-distortion-{key}"),
+                &format!("Live distortion in {title}"),
+                "time (s)",
+                "contribution (% of the signal)",
+            );
             for (k, name) in names.iter().enumerate() {
                 c = c.line(name, d.iter().map(|q| (q.t, 100.0 * [q.x, q.i, q.p][pick][k])).collect());
             }
             // The dominant nonlinearity over the run: its share of the seconds, and when it changed.
-            let dom: Vec<&str> = d.iter().map(|q| if pick == 0 { q.dominant_x.as_str() } else { q.dominant_p.as_str() }).collect();
-            let mut counts: Vec<(&str, usize)> = ["Bl", "Kms", "Le"].iter().map(|n| (*n, dom.iter().filter(|d| *d == n).count())).collect();
+            let dom: Vec<&str> =
+                d.iter().map(|q| if pick == 0 { q.dominant_x.as_str() } else { q.dominant_p.as_str() }).collect();
+            let mut counts: Vec<(&str, usize)> =
+                ["Bl", "Kms", "Le"].iter().map(|n| (*n, dom.iter().filter(|d| *d == n).count())).collect();
             counts.sort_by_key(|c| std::cmp::Reverse(c.1));
-            let changes: Vec<String> = dom.windows(2).zip(d.iter().skip(1)).filter(|(w, _)| w[0] != w[1]).map(|(w, q)| format!("{} from {:.0} s", w[1], q.t)).collect();
+            let changes: Vec<String> = dom
+                .windows(2)
+                .zip(d.iter().skip(1))
+                .filter(|(w, _)| w[0] != w[1])
+                .map(|(w, q)| format!("{} from {:.0} s", w[1], q.t))
+                .collect();
             let text = format!(
                 "Each nonlinearity's contribution to the {title}, from the live model (RMS over each second, relative to the signal's RMS). Dominant: {} in {} of {} s{}.",
                 counts[0].0,
@@ -680,7 +933,11 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         }
         let mut c = String::from("t_s,Bl_x,Kms_x,Le_x,Bl_i,Kms_i,Le_i,Bl_p,Kms_p,Le_p,dominant_x,dominant_p\n");
         for q in d {
-            let _ = writeln!(c, "{:.2},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{},{}", q.t, q.x[0], q.x[1], q.x[2], q.i[0], q.i[1], q.i[2], q.p[0], q.p[1], q.p[2], q.dominant_x, q.dominant_p);
+            let _ = writeln!(
+                c,
+                "{:.2},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{},{}",
+                q.t, q.x[0], q.x[1], q.x[2], q.i[0], q.i[1], q.i[2], q.p[0], q.p[1], q.p[2], q.dominant_x, q.dominant_p
+            );
         }
         csv.push(("live_distortion.csv".to_string(), c));
     }
@@ -786,7 +1043,9 @@ pub fn input_from_text(text: &str, spec: &str) -> Result<ReportInput, String> {
 fn input_of(params: Parameters, result: Option<ResultFile>, spec: &str) -> Result<ReportInput, String> {
     // A result without `fit` reads as the range [0, 0]: not a range.
     let fit_range = result.as_ref().map(|r| r.fit.x_range).filter(|[lo, hi]| hi > lo);
-    let range = fit_range.or(params.x_range).ok_or_else(|| format!("{spec}: neither fit.x_range nor the parameters' x_range says where the curves are valid"))?;
+    let range = fit_range.or(params.x_range).ok_or_else(|| {
+        format!("{spec}: neither fit.x_range nor the parameters' x_range says where the curves are valid")
+    })?;
     let recording = result.as_ref().map(|r| r.recording.clone()).filter(|r| !r.is_empty());
     let title = format!("coilscope report: {}", params.name.clone().or(recording).unwrap_or_else(|| spec.to_string()));
     Ok(ReportInput { title, params, range, result, states: None, compare: None })
@@ -818,7 +1077,11 @@ mod legend_overlap {
             for c in report.charts.iter().filter(|c| c.series.len() > 1) {
                 for size in [ReportOptions::default().png_size, SVG_SIZE] {
                     let n = c.legend_covers_data(size).unwrap();
-                    assert_eq!(n, 0, "{driver}: the legend of chart {} covers {n} pixels of its data lines at {size:?}", c.id);
+                    assert_eq!(
+                        n, 0,
+                        "{driver}: the legend of chart {} covers {n} pixels of its data lines at {size:?}",
+                        c.id
+                    );
                     checked += 1;
                 }
             }
@@ -855,7 +1118,8 @@ mod degenerate {
     #[test]
     fn a_chart_without_finite_data_is_a_note_and_a_warning() {
         let mut b = Builder { html: String::new(), charts: vec![], warnings: vec![] };
-        b.chart(Chart::new("empty", "Empty", "x", "y").line("nan", vec![(0.0, f64::NAN), (1.0, f64::NAN)]), "caption").unwrap();
+        b.chart(Chart::new("empty", "Empty", "x", "y").line("nan", vec![(0.0, f64::NAN), (1.0, f64::NAN)]), "caption")
+            .unwrap();
         b.chart(Chart::new("fine", "Fine", "x", "y").line("one", vec![(0.0, 1.0), (1.0, 2.0)]), "caption").unwrap();
         assert_eq!(b.warnings.len(), 1, "{:?}", b.warnings);
         assert!(b.warnings[0].contains("chart empty") && b.warnings[0].contains("no finite value"));

@@ -98,11 +98,19 @@ impl Coverage {
         }
         let nans = self.z.iter().filter(|z| z.is_nan()).count();
         if nans > 0 {
-            bad.push(format!("{what}: {nans} of {} standardised errors are NaN (an sd or an estimate missing)", self.z.len()));
+            bad.push(format!(
+                "{what}: {nans} of {} standardised errors are NaN (an sd or an estimate missing)",
+                self.z.len()
+            ));
         }
         let share = self.share_within(2.0);
         if share < min_within_2sd {
-            bad.push(format!("{what}: the truth lies within 2 sd in only {:.1} % of {} (at least {:.0} % asked)", 100.0 * share, self.z.len(), 100.0 * min_within_2sd));
+            bad.push(format!(
+                "{what}: the truth lies within 2 sd in only {:.1} % of {} (at least {:.0} % asked)",
+                100.0 * share,
+                self.z.len(),
+                100.0 * min_within_2sd
+            ));
         }
         let med = self.median_abs();
         if !(med >= min_median) {

@@ -16,9 +16,13 @@ pub fn base_seed() -> u64 {
     match std::env::var("COILSCOPE_POPULATION_SEED") {
         Ok(s) if !s.trim().is_empty() => {
             let s = s.trim();
-            s.parse::<u64>().ok().or_else(|| u64::from_str_radix(&s[..s.len().min(16)], 16).ok()).unwrap_or_else(|| panic!("COILSCOPE_POPULATION_SEED={s:?}: expected a whole number or a hex commit hash"))
+            s.parse::<u64>().ok().or_else(|| u64::from_str_radix(&s[..s.len().min(16)], 16).ok()).unwrap_or_else(|| {
+                panic!("COILSCOPE_POPULATION_SEED={s:?}: expected a whole number or a hex commit hash")
+            })
         }
-        _ => std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(1),
+        _ => {
+            std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(1)
+        }
     }
 }
 
@@ -42,7 +46,9 @@ pub fn seeds(test: &str, n: usize) -> Vec<u64> {
     let base = base_seed();
     let salt = test.bytes().fold(0xcbf29ce484222325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100000001b3));
     let seeds: Vec<u64> = (0..n as u64).map(|k| mix(base ^ mix(salt.wrapping_add(k))) >> 32).collect();
-    println!("{test}: population base seed {base} (COILSCOPE_POPULATION_SEED={base} draws these again): seeds {seeds:?}");
+    println!(
+        "{test}: population base seed {base} (COILSCOPE_POPULATION_SEED={base} draws these again): seeds {seeds:?}"
+    );
     seeds
 }
 
@@ -57,7 +63,8 @@ pub fn draws(test: &str, n: usize) -> Vec<Draw> {
 pub fn keep_failure(label: &str, p: &Parameters) -> PathBuf {
     let dir = std::env::temp_dir().join("coilscope-population-failures");
     let _ = std::fs::create_dir_all(&dir);
-    let file: String = label.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '.' { c } else { '_' }).collect();
+    let file: String =
+        label.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '.' { c } else { '_' }).collect();
     let path = dir.join(format!("{file}.json"));
     let text = serde_json::to_string_pretty(&p.to_json_value()).unwrap_or_default();
     if std::fs::write(&path, text).is_err() {
@@ -107,13 +114,21 @@ pub fn open_regressions(test: &str) -> Vec<Regression> {
 
 fn regressions_in(sub: &str, test: &str) -> Vec<Regression> {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../testdata/population").join(sub);
-    let mut paths: Vec<PathBuf> = std::fs::read_dir(&dir).map(|d| d.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|e| e == "json")).collect()).unwrap_or_default();
+    let mut paths: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .map(|d| {
+            d.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|e| e == "json")).collect()
+        })
+        .unwrap_or_default();
     paths.sort();
     let mut out = Vec::new();
     for path in paths {
         let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
         let params = Parameters::from_json_str(&text, &path.display().to_string()).unwrap_or_else(|e| panic!("{e}"));
-        let meta = params.extra.get("regression").unwrap_or_else(|| panic!("{}: no `regression` key (test, card, seed, why)", path.display())).clone();
+        let meta = params
+            .extra
+            .get("regression")
+            .unwrap_or_else(|| panic!("{}: no `regression` key (test, card, seed, why)", path.display()))
+            .clone();
         let kind = meta["test"].as_str().unwrap_or_default().to_string();
         if kind != test {
             continue;
@@ -132,7 +147,8 @@ fn regressions_in(sub: &str, test: &str) -> Vec<Regression> {
 
 #[test]
 fn every_kept_regression_driver_reads_and_says_why() {
-    let all: Vec<Regression> = ["measure", "identify"].iter().flat_map(|t| regressions(t).into_iter().chain(open_regressions(t))).collect();
+    let all: Vec<Regression> =
+        ["measure", "identify"].iter().flat_map(|t| regressions(t).into_iter().chain(open_regressions(t))).collect();
     assert!(!all.is_empty());
     for r in all {
         assert!(!r.why.is_empty(), "{}: say why it is kept", r.name);

@@ -12,7 +12,8 @@ pub fn sweep_slice() -> (usize, usize) {
     if s.trim().is_empty() {
         return (0, 1);
     }
-    let parsed = s.split_once('/').and_then(|(k, n)| Some((k.trim().parse::<usize>().ok()?, n.trim().parse::<usize>().ok()?)));
+    let parsed =
+        s.split_once('/').and_then(|(k, n)| Some((k.trim().parse::<usize>().ok()?, n.trim().parse::<usize>().ok()?)));
     match parsed {
         Some((k, n)) if n >= 1 && k < n => (k, n),
         _ => panic!("COILSCOPE_SWEEP_SLICE={s:?}: expected k/n with 0 <= k < n, e.g. 1/4 (unset it to run every case)"),
@@ -35,7 +36,8 @@ pub fn slice_has(i: usize, total: usize, k: usize, n: usize) -> bool {
 pub fn in_slice<T>(test: &str, cases: Vec<T>) -> Vec<T> {
     let (k, n) = sweep_slice();
     let total = cases.len();
-    let kept: Vec<T> = cases.into_iter().enumerate().filter(|(i, _)| slice_has(*i, total, k, n)).map(|(_, c)| c).collect();
+    let kept: Vec<T> =
+        cases.into_iter().enumerate().filter(|(i, _)| slice_has(*i, total, k, n)).map(|(_, c)| c).collect();
     println!("{test}: slice {k}/{n} of the sweep (COILSCOPE_SWEEP_SLICE): {} of {total} cases", kept.len());
     assert!(!kept.is_empty(), "{test}: slice {k}/{n} keeps none of the sweep's {total} cases: a sweep that runs nothing passes nothing (give it at least {n} cases)");
     kept

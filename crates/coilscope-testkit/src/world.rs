@@ -35,12 +35,17 @@ pub fn card_chain(seed: u64, u: &[f64], i: &[f64], fs: f64) -> Chain {
     let mut rng = named_rng(seed, "card");
     let late = 0.2 / fs;
     let (fu, fi) = (rng.random_range(1.0..5.0), rng.random_range(1.0..5.0));
-    let mut offset = |scale: f64| (if rng.random_bool(0.5) { 1.0 } else { -1.0 }) * rng.random_range(0.2..1.0) * 1e-2 * scale;
+    let mut offset =
+        |scale: f64| (if rng.random_bool(0.5) { 1.0 } else { -1.0 }) * rng.random_range(0.2..1.0) * 1e-2 * scale;
     let (du, di) = (offset(peak(u)), offset(peak(i)));
     let mains = if rng.random_bool(0.5) { 50.0 } else { 60.0 };
     let (au, ai) = (1e-3 * rms(u) * 2f64.sqrt() / 1.25f64.sqrt(), 1e-3 * rms(i) * 2f64.sqrt() / 1.25f64.sqrt());
     let ph: [f64; 4] = std::array::from_fn(|_| rng.random_range(0.0..std::f64::consts::TAU));
-    let hum = Hum { f: mains, u: vec![[au, ph[0]], [0.0, 0.0], [0.5 * au, ph[1]]], i: vec![[ai, ph[2]], [0.0, 0.0], [0.5 * ai, ph[3]]] };
+    let hum = Hum {
+        f: mains,
+        u: vec![[au, ph[0]], [0.0, 0.0], [0.5 * au, ph[1]]],
+        i: vec![[ai, ph[2]], [0.0, 0.0], [0.5 * ai, ph[3]]],
+    };
     let delay_i = if rng.random_bool(0.5) { late } else { -late };
     Chain { delay_i, hp_u: fu, hp_i: fi, dc_u: du, dc_i: di, hum: Some(hum), ..Chain::default() }
 }
@@ -48,10 +53,20 @@ pub fn card_chain(seed: u64, u: &[f64], i: &[f64], fs: f64) -> Chain {
 /// `seconds` of pink noise at `fs` driving `truth` to `share` of its range, coil heating on,
 /// through the card `card` makes of the physical channels (`None`: a wire), then 70 dB
 /// sensor noise on each channel.
-pub fn record(truth: &Parameters, seed: u64, fs: f64, seconds: f64, share: f64, card: Option<&dyn Fn(&[f64], &[f64]) -> Chain>) -> Result<Record, String> {
+pub fn record(
+    truth: &Parameters,
+    seed: u64,
+    fs: f64,
+    seconds: f64,
+    share: f64,
+    card: Option<&dyn Fn(&[f64], &[f64]) -> Chain>,
+) -> Result<Record, String> {
     let [lo, hi] = truth.x_range.ok_or("the driver has no x_range")?;
     let target = share * hi.min(-lo);
-    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed })?;
+    let unit = generate(
+        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+        &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed },
+    )?;
     let (_, tr) = gain_for_peak(truth, fs, &unit, target, &SimOptions::default()).map_err(|e| e.to_string())?;
     let s = tr.summary();
     let chain = card.map_or_else(Chain::default, |c| c(&tr.u, &tr.i));

@@ -97,7 +97,8 @@ pub fn load_chain(path: &Path) -> Result<Chain, String> {
     let text = std::fs::read_to_string(path).map_err(|e| format!("{name}: cannot read the chain file ({e})"))?;
     let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| format!("{name}: not JSON ({e})"))?;
     let v = v.get("chain").cloned().unwrap_or(v);
-    let c: Chain = serde_json::from_value(v).map_err(|e| format!("{name}: not a chain ({e}); write one with `coilscope calibrate`"))?;
+    let c: Chain = serde_json::from_value(v)
+        .map_err(|e| format!("{name}: not a chain ({e}); write one with `coilscope calibrate`"))?;
     let bad = |k: &str, val: f64, valid: &str| Err(format!("{name}: {k} = {val} is not valid ({valid})"));
     if !(c.delay_i.is_finite() && c.delay_i.abs() < 0.01) {
         return bad("delay_i", c.delay_i, "seconds, |delay| < 10 ms");

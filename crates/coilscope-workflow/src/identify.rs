@@ -33,7 +33,16 @@ pub struct IdentifyRequest {
 impl IdentifyRequest {
     /// A request with the command line's defaults.
     pub fn new(origin: impl Into<String>, mms: Option<f64>) -> Self {
-        IdentifyRequest { origin: origin.into(), mms, order: None, effects: EffectsChoice::Auto, chain: ChainMode::Detect, wiring: SenseWiring::Terminals, sd: None, threads: 0 }
+        IdentifyRequest {
+            origin: origin.into(),
+            mms,
+            order: None,
+            effects: EffectsChoice::Auto,
+            chain: ChainMode::Detect,
+            wiring: SenseWiring::Terminals,
+            sd: None,
+            threads: 0,
+        }
     }
 }
 
@@ -62,20 +71,42 @@ impl Identified {
 /// The post-inverse (equation-error) estimate of a record with a displacement channel: the
 /// whole parameter set, Mms included. Its L2/R2 come from the linear fit of the same record
 /// (the equation error cannot separate them).
-pub fn post_inverse_of(u: &[f64], i: &[f64], x: &[f64], fs: f64, order: usize, origin: &str) -> Result<Parameters, String> {
-    let lin = coilscope_ident::linear::fit_linear_record(u, i, fs, origin, &coilscope_ident::linear::LinearOptions::LARGE_SIGNAL_START, |_| {})?;
+pub fn post_inverse_of(
+    u: &[f64],
+    i: &[f64],
+    x: &[f64],
+    fs: f64,
+    order: usize,
+    origin: &str,
+) -> Result<Parameters, String> {
+    let lin = coilscope_ident::linear::fit_linear_record(
+        u,
+        i,
+        fs,
+        origin,
+        &coilscope_ident::linear::LinearOptions::LARGE_SIGNAL_START,
+        |_| {},
+    )?;
     coilscope_ident::post_inverse::post_inverse(u, i, x, fs, order, Some((lin.p[2], lin.p[3])), origin)
 }
 
 /// Identify `rec` (changed in place into the driver's terminal signals where a calibrated
 /// chain or a shunt's drop is taken out). `progress` sees the fit's iterations. An `Err` is
 /// a record or request that cannot be fitted, with what would be valid.
-pub fn identify_record(rec: &mut Recording, req: &IdentifyRequest, progress: impl FnMut(&Progress)) -> Result<Identified, String> {
+pub fn identify_record(
+    rec: &mut Recording,
+    req: &IdentifyRequest,
+    progress: impl FnMut(&Progress),
+) -> Result<Identified, String> {
     let mut progress = progress;
     identify_body(rec, req, &mut progress)
 }
 
-fn identify_body(rec: &mut Recording, req: &IdentifyRequest, progress: &mut dyn FnMut(&Progress)) -> Result<Identified, String> {
+fn identify_body(
+    rec: &mut Recording,
+    req: &IdentifyRequest,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<Identified, String> {
     let origin = req.origin.as_str();
     let fs = rec.fs as f64;
     if let Some(o) = req.order {
@@ -100,7 +131,11 @@ fn identify_body(rec: &mut Recording, req: &IdentifyRequest, progress: &mut dyn 
             }
         }
         (Some(m), None) => (m, "given (--mms)".to_string(), None),
-        (None, None) => return Err(format!("{origin}: no absolute scale: give --mms KG (moving mass), or record a displacement channel (3)")),
+        (None, None) => {
+            return Err(format!(
+                "{origin}: no absolute scale: give --mms KG (moving mass), or record a displacement channel (3)"
+            ))
+        }
     };
     // The chain: asked for, or found in the record.
     let detected = match req.chain {
@@ -109,7 +144,16 @@ fn identify_body(rec: &mut Recording, req: &IdentifyRequest, progress: &mut dyn 
     };
     let chain = req.chain.estimate() || !detected.is_empty();
     let init = post.as_ref().map(|p| Parameters { mms, x_range: None, ..p.clone() });
-    let opts = IdentifyOptions { mms, order: req.order, init, effects: req.effects, chain, detect_chain: req.chain == ChainMode::Detect && !chain, threads: req.threads, ..Default::default() };
+    let opts = IdentifyOptions {
+        mms,
+        order: req.order,
+        init,
+        effects: req.effects,
+        chain,
+        detect_chain: req.chain == ChainMode::Detect && !chain,
+        threads: req.threads,
+        ..Default::default()
+    };
     let (fit, failure) = match identify(&rec.u, &rec.i, fs, origin, &opts, &mut *progress) {
         Ok(f) => (f, None),
         Err(IdentifyError::NotConverged { message, best }) => (*best, Some(message)),
@@ -156,7 +200,16 @@ fn checks(fit: &LargeFit, fs: f64, delay_handled: bool) -> (NoiseFloor, Vec<Warn
     let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", i_rms, material);
     // An error that follows the drive is a misfit even when its spectrum looks like a floor.
     if !warnings.iter().any(|w| w.code == "residual-above-noise") {
-        warnings.extend(coilscope_ident::checks::drive_warning(&r, &fit.u_phys[k..], &fit.i_model[k..], &fit.x_model[k..], fs, "large-signal fit", i_rms, material));
+        warnings.extend(coilscope_ident::checks::drive_warning(
+            &r,
+            &fit.u_phys[k..],
+            &fit.i_model[k..],
+            &fit.x_model[k..],
+            fs,
+            "large-signal fit",
+            i_rms,
+            material,
+        ));
     }
     let final_delay = if delay_handled { None } else { coilscope_ident::checks::residual_delay(&r, &fit.i_model[k..]) };
     if let Some((tau, share)) = final_delay {
@@ -188,11 +241,22 @@ fn checks(fit: &LargeFit, fs: f64, delay_handled: bool) -> (NoiseFloor, Vec<Warn
 fn cross_check(fit: &LargeFit, pi: &Parameters) -> coilscope_core::result::CrossCheck {
     let dev = |a: &coilscope_core::Poly, b: &coilscope_core::Poly| {
         let [lo, hi] = fit.x_range;
-        (0..=200).map(|k| lo + (hi - lo) * k as f64 / 200.0).map(|x| (a.eval(x) - b.eval(x)).abs()).fold(0.0, f64::max) / b.eval(0.0).abs()
+        (0..=200).map(|k| lo + (hi - lo) * k as f64 / 200.0).map(|x| (a.eval(x) - b.eval(x)).abs()).fold(0.0, f64::max)
+            / b.eval(0.0).abs()
     };
     let p = &fit.params;
-    let diff = [("Bl", dev(&pi.bl, &p.bl)), ("Kms", dev(&pi.kms, &p.kms)), ("Le", dev(&pi.le, &p.le)), ("Mms", (pi.mms / p.mms - 1.0).abs()), ("Rms", (pi.rms / p.rms - 1.0).abs())];
-    coilscope_core::result::CrossCheck { method: "post-inverse equation error with the measured displacement".into(), parameters: pi.clone(), max_rel_difference: diff.iter().map(|(k, v)| (k.to_string(), *v)).collect() }
+    let diff = [
+        ("Bl", dev(&pi.bl, &p.bl)),
+        ("Kms", dev(&pi.kms, &p.kms)),
+        ("Le", dev(&pi.le, &p.le)),
+        ("Mms", (pi.mms / p.mms - 1.0).abs()),
+        ("Rms", (pi.rms / p.rms - 1.0).abs()),
+    ];
+    coilscope_core::result::CrossCheck {
+        method: "post-inverse equation error with the measured displacement".into(),
+        parameters: pi.clone(),
+        max_rel_difference: diff.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
+    }
 }
 
 /// The chain a fit reports, if any (estimated or calibrated).

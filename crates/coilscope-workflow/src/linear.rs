@@ -8,8 +8,9 @@ use coilscope_core::result::ResultFile;
 use coilscope_core::{Complex64, Parameters};
 use coilscope_ident::checks::{NoiseFloor, Warning};
 use coilscope_ident::linear::{
-    added_mass_scale, curve_warnings, fit_impedance_curve, fit_impedance_magnitude, fit_linear_record, linear_warnings, lumped_band, predicted_displacement, result, scale_by_displacement, scale_by_mms, EffectsChoice, LinearFit, LinearOptions,
-    ScaleMethod,
+    added_mass_scale, curve_warnings, fit_impedance_curve, fit_impedance_magnitude, fit_linear_record, linear_warnings,
+    lumped_band, predicted_displacement, result, scale_by_displacement, scale_by_mms, EffectsChoice, LinearFit,
+    LinearOptions, ScaleMethod,
 };
 use coilscope_ident::lm::LmState;
 use coilscope_io::impedance::ImpedanceCurve;
@@ -62,7 +63,15 @@ pub struct LinearRequest {
 impl LinearRequest {
     /// A request with the command line's defaults.
     pub fn new(origin: impl Into<String>) -> Self {
-        LinearRequest { origin: origin.into(), effects: EffectsChoice::Auto, chain: ChainMode::Detect, wiring: SenseWiring::Terminals, sd: None, band: None, volts: None }
+        LinearRequest {
+            origin: origin.into(),
+            effects: EffectsChoice::Auto,
+            chain: ChainMode::Detect,
+            wiring: SenseWiring::Terminals,
+            sd: None,
+            band: None,
+            volts: None,
+        }
     }
 }
 
@@ -105,7 +114,10 @@ pub fn curve_peak_displacement(p: &Parameters, f: &[f64], z: &[Complex64], volts
 /// Whether a record's fit without the chain shows what a chain does: a skew of the channels
 /// (the fit's own check), or an error far above its floor or following the drive.
 fn shows_chain(fit: &LinearFit, warnings: &[Warning]) -> bool {
-    fit.current_delay.is_some() || warnings.iter().any(|w| matches!(w.code.as_ref(), "residual-above-noise" | "residual-follows-drive" | "current-delay"))
+    fit.current_delay.is_some()
+        || warnings
+            .iter()
+            .any(|w| matches!(w.code.as_ref(), "residual-above-noise" | "residual-follows-drive" | "current-delay"))
 }
 
 /// The checks of a record's fit ([`linear_warnings`]), on the driver's signals: behind the
@@ -123,10 +135,23 @@ fn record_warnings(fit: &LinearFit, params: &Parameters, r: &Recording) -> (Nois
 }
 
 /// Fit one input with `opts`.
-fn fit_input(input: &LinearInput, origin: &str, opts: &LinearOptions, band: Option<[f64; 2]>, progress: &mut dyn FnMut(&LmState)) -> Result<LinearFit, String> {
+fn fit_input(
+    input: &LinearInput,
+    origin: &str,
+    opts: &LinearOptions,
+    band: Option<[f64; 2]>,
+    progress: &mut dyn FnMut(&LmState),
+) -> Result<LinearFit, String> {
     match input {
         LinearInput::Record(r) => fit_linear_record(&r.u, &r.i, r.fs as f64, origin, opts, &mut *progress),
-        LinearInput::Curve(c) if c.magnitude_only => fit_impedance_magnitude(&c.f, &c.z.iter().map(|z| z.norm()).collect::<Vec<_>>(), band, origin, opts, &mut *progress),
+        LinearInput::Curve(c) if c.magnitude_only => fit_impedance_magnitude(
+            &c.f,
+            &c.z.iter().map(|z| z.norm()).collect::<Vec<_>>(),
+            band,
+            origin,
+            opts,
+            &mut *progress,
+        ),
         LinearInput::Curve(c) => fit_impedance_curve(&c.f, &c.z, band, origin, opts, &mut *progress),
     }
 }
@@ -135,7 +160,12 @@ fn fit_input(input: &LinearInput, origin: &str, opts: &LinearOptions, band: Opti
 /// terminal signals (a calibrated chain inverted, a shunt's drop taken out); with
 /// [`ChainMode::Detect`] its chain is estimated when the record shows one: hum or an offset,
 /// or a fit without the chain that misses the record in the ways a chain makes it.
-pub fn linear(input: LinearInput, scale: Scale, req: &LinearRequest, progress: impl FnMut(&LmState)) -> Result<Linear, String> {
+pub fn linear(
+    input: LinearInput,
+    scale: Scale,
+    req: &LinearRequest,
+    progress: impl FnMut(&LmState),
+) -> Result<Linear, String> {
     let mut progress = progress;
     linear_body(input, scale, req, &mut progress)
 }
@@ -148,7 +178,12 @@ fn prepare(input: &mut LinearInput, req: &LinearRequest, origin: &str) -> Result
     }
 }
 
-fn linear_body(mut input: LinearInput, scale: Scale, req: &LinearRequest, progress: &mut dyn FnMut(&LmState)) -> Result<Linear, String> {
+fn linear_body(
+    mut input: LinearInput,
+    scale: Scale,
+    req: &LinearRequest,
+    progress: &mut dyn FnMut(&LmState),
+) -> Result<Linear, String> {
     let origin = req.origin.as_str();
     if let Some(v) = req.volts {
         if !(v.is_finite() && v > 0.0 && v < 1000.0) {
@@ -194,7 +229,10 @@ fn linear_body(mut input: LinearInput, scale: Scale, req: &LinearRequest, progre
         if shows_chain(&fit, &w) {
             let with = fit_input(&input, origin, &opts(true), req.band, progress)?;
             if let Some(c) = with.chain.as_ref().filter(|c| c.on.iter().any(|&on| on)) {
-                detected.push(format!("the fit without a chain missed the record, and the fit with it found {}", coilscope_core::chain::Chain::describe_fitted(&c.to_chain(), r.fs as f64)));
+                detected.push(format!(
+                    "the fit without a chain missed the record, and the fit with it found {}",
+                    coilscope_core::chain::Chain::describe_fitted(&c.to_chain(), r.fs as f64)
+                ));
                 chain = true;
                 fit = with;
                 (mms, method) = scale_mms(&fit, &input, &scale, req, origin, chain)?;
@@ -239,7 +277,14 @@ fn linear_body(mut input: LinearInput, scale: Scale, req: &LinearRequest, progre
 
 /// The moving mass of a fit by `scale` (the added-mass method fits the second measurement
 /// with the first's model, so that the resonance shift compares like with like).
-fn scale_mms(fit: &LinearFit, input: &LinearInput, scale: &Scale, req: &LinearRequest, origin: &str, chain: bool) -> Result<(f64, ScaleMethod), String> {
+fn scale_mms(
+    fit: &LinearFit,
+    input: &LinearInput,
+    scale: &Scale,
+    req: &LinearRequest,
+    origin: &str,
+    chain: bool,
+) -> Result<(f64, ScaleMethod), String> {
     match scale {
         Scale::Mms(m) => Ok((*m, ScaleMethod::Mms)),
         Scale::AddedMass { mass, with, origin: o2 } => {
@@ -256,7 +301,9 @@ fn scale_mms(fit: &LinearFit, input: &LinearInput, scale: &Scale, req: &LinearRe
             added_mass_scale(fit, &fit2, *mass)
         }
         Scale::Displacement => match input {
-            LinearInput::Record(Recording { i, x: Some(x), fs, .. }) => Ok((scale_by_displacement(fit, i, x, *fs as f64, origin)?, ScaleMethod::Displacement)),
+            LinearInput::Record(Recording { i, x: Some(x), fs, .. }) => {
+                Ok((scale_by_displacement(fit, i, x, *fs as f64, origin)?, ScaleMethod::Displacement))
+            }
             _ => Err(format!("{origin}: the displacement scale needs a record with a displacement channel (3)")),
         },
     }

@@ -86,20 +86,46 @@ struct Outcome {
 fn identify_case(label: &str, truth: &Parameters, seed: u64, world: World, mms: f64) -> Outcome {
     let fs = 48000.0;
     let card = |u: &[f64], i: &[f64]| card_chain(seed, u, i, fs);
-    let rec = match record(truth, seed, fs, 8.0, 0.85, world.card().then_some(&card as &dyn Fn(&[f64], &[f64]) -> coilscope_core::chain::Chain)) {
+    let rec = match record(
+        truth,
+        seed,
+        fs,
+        8.0,
+        0.85,
+        world.card().then_some(&card as &dyn Fn(&[f64], &[f64]) -> coilscope_core::chain::Chain),
+    ) {
         Ok(r) => r,
-        Err(e) => return Outcome { line: format!("{label}: the record could not be made: {e}"), right: false, loud: false, accurate: false, z: vec![], params: None },
+        Err(e) => {
+            return Outcome {
+                line: format!("{label}: the record could not be made: {e}"),
+                right: false,
+                loud: false,
+                accurate: false,
+                z: vec![],
+                params: None,
+            }
+        }
     };
     let mut r = Recording { fs: fs as u32, u: rec.u.clone(), i: rec.i.clone(), x: None };
     let req = IdentifyRequest::new(label, Some(mms));
     let done = match identify_record(&mut r, &req, |_| {}) {
         Ok(d) => d,
         // Refused with a message: loud (the command line exits 2).
-        Err(e) => return Outcome { line: format!("{label}: refused: {e}"), right: false, loud: true, accurate: false, z: vec![], params: None },
+        Err(e) => {
+            return Outcome {
+                line: format!("{label}: refused: {e}"),
+                right: false,
+                loud: true,
+                accurate: false,
+                z: vec![],
+                params: None,
+            }
+        }
     };
     let q = &done.fit.params;
     let reached = rec.reached;
-    let (e_bl, e_k, e_le) = (worst(&q.bl, &truth.bl, reached), worst(&q.kms, &truth.kms, reached), worst(&q.le, &truth.le, reached));
+    let (e_bl, e_k, e_le) =
+        (worst(&q.bl, &truth.bl, reached), worst(&q.kms, &truth.kms, reached), worst(&q.le, &truth.le, reached));
     let e_re = q.re / truth.re - 1.0;
     let mut z = Vec::new();
     for (which, g) in [("Bl", &truth.bl), ("Kms", &truth.kms), ("Le", &truth.le)] {
@@ -184,8 +210,18 @@ fn sweep(test: &str, worlds: &[World], per_world: usize) -> Sweep {
 /// asserts it.)
 #[test]
 fn fresh_population_records_are_identified_right_or_loudly() {
-    let s = sweep("fresh_population_records_are_identified_right_or_loudly", &[World::Plain, World::Effects, World::Card, World::All], population::cases(3));
-    println!("{} of {} right; {} trusted with the truth outside 3 sd:\n{}", s.right, s.runs, s.outside_3sd.len(), s.outside_3sd.join("\n"));
+    let s = sweep(
+        "fresh_population_records_are_identified_right_or_loudly",
+        &[World::Plain, World::Effects, World::Card, World::All],
+        population::cases(3),
+    );
+    println!(
+        "{} of {} right; {} trusted with the truth outside 3 sd:\n{}",
+        s.right,
+        s.runs,
+        s.outside_3sd.len(),
+        s.outside_3sd.join("\n")
+    );
     assert!(s.failures.is_empty(), "{}", s.failures.join("\n"));
 }
 
@@ -204,15 +240,27 @@ fn a_moving_mass_off_by_two_percent_scales_the_result_as_the_physics_says() {
             let o = identify_case(&format!("{label} Mms x{s}"), &truth, d.seed, World::Plain, truth.mms * s);
             let Some((q, _)) = o.params else { panic!("{label}: {}", o.line) };
             let k = s.sqrt();
-            let checks =
-                [("Re", q.re / p.re, 1.0), ("Le(0)", q.le.eval(0.0) / p.le.eval(0.0), 1.0), ("Bl(0)", q.bl.eval(0.0) / p.bl.eval(0.0), k), ("Kms(0)", q.kms.eval(0.0) / p.kms.eval(0.0), s), ("Rms", q.rms / p.rms, s), ("Mms", q.mms / p.mms, s)];
+            let checks = [
+                ("Re", q.re / p.re, 1.0),
+                ("Le(0)", q.le.eval(0.0) / p.le.eval(0.0), 1.0),
+                ("Bl(0)", q.bl.eval(0.0) / p.bl.eval(0.0), k),
+                ("Kms(0)", q.kms.eval(0.0) / p.kms.eval(0.0), s),
+                ("Rms", q.rms / p.rms, s),
+                ("Mms", q.mms / p.mms, s),
+            ];
             for (what, got, want) in checks {
-                assert!(within(got / want - 1.0, 2e-3), "{label}, Mms x{s}: {what} moved by {got:.5}, the scale says {want:.5}");
+                assert!(
+                    within(got / want - 1.0, 2e-3),
+                    "{label}, Mms x{s}: {what} moved by {got:.5}, the scale says {want:.5}"
+                );
             }
             // Bl at a displacement: Bl'(x / sqrt(s)) = sqrt(s) Bl(x).
             let x = 0.5 * truth.x_range.unwrap()[1];
             let ratio = q.bl.eval(x / k) / p.bl.eval(x);
-            assert!(within(ratio / k - 1.0, 3e-3), "{label}, Mms x{s}: Bl(x/sqrt(s)) / Bl(x) = {ratio:.5}, the scale says {k:.5}");
+            assert!(
+                within(ratio / k - 1.0, 3e-3),
+                "{label}, Mms x{s}: Bl(x/sqrt(s)) / Bl(x) = {ratio:.5}, the scale says {k:.5}"
+            );
         }
     }
 }
@@ -223,8 +271,11 @@ fn a_moving_mass_off_by_two_percent_scales_the_result_as_the_physics_says() {
 #[ignore = "release-profile sweep: cargo test --release -p coilscope-workflow --test population_identify -- --ignored kept_regression_drivers"]
 fn kept_regression_drivers_are_identified_right_or_loudly() {
     let mut failures = Vec::new();
-    for (r, seed) in coilscope_testkit::slice::in_slice("kept_regression_drivers", population::regression_runs("identify")) {
-        let o = identify_case(&format!("regression:{} seed {seed}", r.name), &r.params, seed, World::of(&r), r.params.mms);
+    for (r, seed) in
+        coilscope_testkit::slice::in_slice("kept_regression_drivers", population::regression_runs("identify"))
+    {
+        let o =
+            identify_case(&format!("regression:{} seed {seed}", r.name), &r.params, seed, World::of(&r), r.params.mms);
         println!("{}", o.line);
         if !o.right && !o.loud {
             failures.push(o.line);

@@ -16,13 +16,27 @@ use coilscope_ident::linear::Effects;
 /// on 18WU with every effect); it is screened again in every round, and the tests assert
 /// the model chosen.
 pub fn screen_problems(label: &str, fit: &LargeFit, want: Effects) -> Vec<String> {
-    println!("{label}: screens {:?}", fit.effect_screens.iter().map(|s| format!("{} {:.2e}", s.model.model_name(), s.gain)).collect::<Vec<_>>());
+    println!(
+        "{label}: screens {:?}",
+        fit.effect_screens.iter().map(|s| format!("{} {:.2e}", s.model.model_name(), s.gain)).collect::<Vec<_>>()
+    );
     let mut bad = vec![];
-    for added in [Effects { creep: true, ..Effects::NONE }, Effects { lr3: true, ..Effects::NONE }, Effects { le_i: true, ..Effects::NONE }, Effects { rms_v: true, ..Effects::NONE }].into_iter().filter(|&e| want.union(e) == want) {
+    for added in [
+        Effects { creep: true, ..Effects::NONE },
+        Effects { lr3: true, ..Effects::NONE },
+        Effects { le_i: true, ..Effects::NONE },
+        Effects { rms_v: true, ..Effects::NONE },
+    ]
+    .into_iter()
+    .filter(|&e| want.union(e) == want)
+    {
         let best = fit.effect_screens.iter().filter(|s| s.added == added).map(|s| s.gain).fold(f64::NAN, f64::max);
         println!("{label}: {} in the record, best screen {best:.2e}", added.model_name());
         if best < 10.0 * EFFECT_SCREEN_GAIN {
-            bad.push(format!("{label}: {} is in the record and scored at best {best:.2e} in the screen", added.model_name()));
+            bad.push(format!(
+                "{label}: {} is in the record and scored at best {best:.2e} in the screen",
+                added.model_name()
+            ));
         }
     }
     bad
@@ -48,14 +62,21 @@ pub fn band_z(fit: &LargeFit, truth: &Parameters, which: &[&str]) -> f64 {
                 b.sd.iter().map(|v| format!("{:.2e}", v)).collect::<Vec<_>>()
             );
         }
-        z = coilscope_testkit::check::nan_max(z, zs.iter().map(|v| v.abs()).fold(0.0, coilscope_testkit::check::nan_max));
+        z = coilscope_testkit::check::nan_max(
+            z,
+            zs.iter().map(|v| v.abs()).fold(0.0, coilscope_testkit::check::nan_max),
+        );
     }
     z
 }
 
 /// Largest |f - g| over [lo, hi], relative to g(0).
 pub fn worst(f: &Poly, g: &Poly, [lo, hi]: [f64; 2]) -> f64 {
-    (0..=400).map(|k| lo + (hi - lo) * k as f64 / 400.0).map(|x| (f.eval(x) - g.eval(x)).abs()).fold(0.0, coilscope_testkit::check::nan_max) / g.eval(0.0).abs()
+    (0..=400)
+        .map(|k| lo + (hi - lo) * k as f64 / 400.0)
+        .map(|x| (f.eval(x) - g.eval(x)).abs())
+        .fold(0.0, coilscope_testkit::check::nan_max)
+        / g.eval(0.0).abs()
 }
 
 /// Errors of an identified set against the truth: Bl(x), Kms(x), Le(x) as the largest error
@@ -70,12 +91,26 @@ pub struct Errors {
 
 impl Errors {
     pub fn of(q: &Parameters, truth: &Parameters, range: [f64; 2]) -> Self {
-        Errors { bl: worst(&q.bl, &truth.bl, range), kms: worst(&q.kms, &truth.kms, range), le: worst(&q.le, &truth.le, range), re: (q.re / truth.re - 1.0).abs(), rms: (q.rms / truth.rms - 1.0).abs() }
+        Errors {
+            bl: worst(&q.bl, &truth.bl, range),
+            kms: worst(&q.kms, &truth.kms, range),
+            le: worst(&q.le, &truth.le, range),
+            re: (q.re / truth.re - 1.0).abs(),
+            rms: (q.rms / truth.rms - 1.0).abs(),
+        }
     }
 }
 
 impl std::fmt::Display for Errors {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.4} %, Rms {:.3} %", 100.0 * self.bl, 100.0 * self.kms, 100.0 * self.le, 100.0 * self.re, 100.0 * self.rms)
+        write!(
+            f,
+            "Bl {:.3} %, Kms {:.3} %, Le {:.3} %, Re {:.4} %, Rms {:.3} %",
+            100.0 * self.bl,
+            100.0 * self.kms,
+            100.0 * self.le,
+            100.0 * self.re,
+            100.0 * self.rms
+        )
     }
 }

@@ -46,11 +46,22 @@ pub struct Record {
 /// 8 s (or `seconds`) of pink noise (10 Hz - 8 kHz, crest factor 3) at `fs` reaching 85 % of
 /// `name`'s x_range, coil heating on, with `effects`, through `card(u, i)` (the physical
 /// channels give the card its scale), then 70 dB sensor noise on each channel.
-pub fn record(name: &str, seed: u64, effects: Effects, fs: f64, seconds: f64, card: impl Fn(&[f64], &[f64]) -> Chain) -> Record {
+pub fn record(
+    name: &str,
+    seed: u64,
+    effects: Effects,
+    fs: f64,
+    seconds: f64,
+    card: impl Fn(&[f64], &[f64]) -> Chain,
+) -> Record {
     let plain = driver(name);
     let [lo, hi] = plain.x_range.unwrap();
     let target = 0.85 * hi.min(-lo);
-    let unit = generate(&Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) }, &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed }).unwrap();
+    let unit = generate(
+        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+        &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed },
+    )
+    .unwrap();
     // The peak current and velocity of the plain driver at this level scale the effects.
     let (_, tr0) = gain_for_peak(&plain, fs, &unit, target, &SimOptions::default()).unwrap();
     let (i_pk, v_pk) = (peak(&tr0.i), peak(&tr0.v));
@@ -101,7 +112,8 @@ impl Card {
         let mut c = Chain::default();
         let late = rng.random_range(0.1..0.5) / fs;
         let (fu, fi) = (rng.random_range(1.0..5.0), rng.random_range(1.0..5.0));
-        let mut offset = |scale: f64| (if rng.random_bool(0.5) { 1.0 } else { -1.0 }) * rng.random_range(0.2..1.0) * 1e-2 * scale;
+        let mut offset =
+            |scale: f64| (if rng.random_bool(0.5) { 1.0 } else { -1.0 }) * rng.random_range(0.2..1.0) * 1e-2 * scale;
         let (du, di) = (offset(peak(u)), offset(peak(i)));
         let mains = if rng.random_bool(0.5) { 50.0 } else { 60.0 };
         // -60 dB of the channel's RMS: a line of peak a has RMS a / sqrt(2); the third harmonic
@@ -112,7 +124,11 @@ impl Card {
         // came from.
         #[allow(clippy::approx_constant)]
         let ph: [f64; 4] = std::array::from_fn(|_| rng.random_range(0.0..6.28));
-        let hum = Hum { f: mains, u: vec![[au, ph[0]], [0.0, 0.0], [0.5 * au, ph[1]]], i: vec![[ai, ph[2]], [0.0, 0.0], [0.5 * ai, ph[3]]] };
+        let hum = Hum {
+            f: mains,
+            u: vec![[au, ph[0]], [0.0, 0.0], [0.5 * au, ph[1]]],
+            i: vec![[ai, ph[2]], [0.0, 0.0], [0.5 * ai, ph[3]]],
+        };
         let voltage_late = rng.random_bool(0.5);
         match self {
             Card::Ideal => {}
