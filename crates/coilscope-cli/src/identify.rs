@@ -1,0 +1,445 @@
+//! `identify`: large-signal parameters from a recording: the full output-error fit, a batch of
+//! recordings, or the Volterra method.
+
+use crate::{parse_effects, print_values, print_warnings, untrusted_if_warned, Failure};
+use coilscope_core::chain::SenseWiring;
+use coilscope_core::result::ResultFile;
+use coilscope_core::simulate::{simulate, SimOptions};
+use coilscope_core::Parameters;
+use coilscope_io::{read_recording, write_json, Recording};
+use coilscope_workflow::chain::ChainMode;
+use serde_json::json;
+use std::path::{Path, PathBuf};
+
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn cmd_identify(
+    path: &Path,
+    mms: Option<f64>,
+    order: Option<usize>,
+    effects: &str,
+    chain: &ChainMode,
+    wiring: SenseWiring,
+    sd: Option<f64>,
+    scale: Option<&[f64]>,
+    out: &Path,
+) -> Result<(), Failure> {
+    use coilscope_ident::large::Stage;
+    use coilscope_workflow::identify::{identify_record, IdentifyRequest};
+    let origin = path.display().to_string();
+    let mut rec = read_recording(path, scale).map_err(|e| e.to_string())?;
+    let live = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let t0 = std::time::Instant::now();
+    let progress = |p: &coilscope_ident::large::Progress| {
+        if live {
+            let stage = match p.stage {
+                Stage::Estimate { order } => format!("order {order} on the estimation part"),
+                Stage::Final { order } => format!("order {order} on the whole record"),
+            };
+            eprint!(
+                "\r  {:5.1} s  fitting {stage}: iteration {:2}, current error {:.3e}        ",
+                t0.elapsed().as_secs_f64(),
+                p.state.iteration,
+                p.residual_rel
+            );
+        }
+    };
+    // A batch's worker runs on one core (`cmd_identify_batch`).
+    let threads = std::env::var(JOB_THREADS).ok().and_then(|v| v.parse().ok()).unwrap_or(0);
+    let req = IdentifyRequest {
+        origin: origin.clone(),
+        mms,
+        order,
+        effects: parse_effects(effects)?,
+        chain: chain.clone(),
+        wiring,
+        sd,
+        threads,
+    };
+    let done = identify_record(&mut rec, &req, progress);
+    if live {
+        eprintln!();
+    }
+    let done = done?;
+    for d in &done.detected {
+        eprintln!("chain: estimated, as the record shows one: {d}");
+    }
+    print_warnings(&done.warnings);
+    write_json(out, &done.result).map_err(|e| e.to_string())?;
+    print_large_summary(path, &rec, &done.fit, &done.result, t0.elapsed().as_secs_f64());
+    match &done.failure {
+        Some(m) => Err(Failure::Untrusted(format!("{m}; written to {}", out.display()))),
+        None => {
+            println!("  result: {}", out.display());
+            untrusted_if_warned(&done.warnings, out)
+        }
+    }
+}
+
+/// The environment variable that sets `identify`'s Jacobian threads (a batch's workers: 1).
+const JOB_THREADS: &str = "COILSCOPE_THREADS";
+
+/// `identify A.wav B.wav ... --out DIR`: each recording identified by a worker process of
+/// this program with the same options (`OUT/NAME.json`), `jobs` at a time, each on one core:
+/// on a production line whole records in parallel keep every core busy, where one record's
+/// fit leaves a second core partly idle. A worker's failure is its recording's, not the
+/// batch's; the exit code is the worst of the workers'.
+pub(crate) fn cmd_identify_batch(recordings: &[PathBuf], jobs: Option<usize>, out: &Path) -> Result<(), Failure> {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let jobs = jobs.unwrap_or(cores);
+    if jobs == 0 {
+        return Err(Failure::from("--jobs 0: give at least 1"));
+    }
+    if out.is_file() || out.extension().is_some_and(|e| e == "json") {
+        return Err(Failure::from(format!(
+            "{}: with {} recordings --out is a directory (each result is OUT/NAME.json)",
+            out.display(),
+            recordings.len()
+        )));
+    }
+    let mut names = std::collections::BTreeMap::new();
+    for r in recordings {
+        let stem = r
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .ok_or_else(|| format!("{}: not a file name", r.display()))?;
+        if let Some(other) = names.insert(stem.clone(), r) {
+            return Err(Failure::from(format!(
+                "{} and {} would both write {}.json: give recordings with different names",
+                other.display(),
+                r.display(),
+                stem
+            )));
+        }
+    }
+    std::fs::create_dir_all(out).map_err(|e| format!("{}: cannot create the output directory: {e}", out.display()))?;
+    let exe = std::env::current_exe().map_err(|e| format!("cannot find this program to start the workers: {e}"))?;
+    // The worker's arguments: this invocation's, less the recordings, --out and --jobs.
+    let given: Vec<std::ffi::OsString> = std::env::args_os().skip(1).collect();
+    let mut options = vec![];
+    let mut k = 0;
+    while k < given.len() {
+        let a = given[k].to_string_lossy();
+        let takes_value = |flag: &str| a == flag;
+        if takes_value("--out") || takes_value("--jobs") {
+            k += 2;
+            continue;
+        }
+        if a.starts_with("--out=") || a.starts_with("--jobs=") || recordings.iter().any(|r| r.as_os_str() == given[k]) {
+            k += 1;
+            continue;
+        }
+        options.push(given[k].clone());
+        k += 1;
+    }
+    let t0 = std::time::Instant::now();
+    let queue = std::sync::Mutex::new(recordings.iter().collect::<std::collections::VecDeque<_>>());
+    let done = std::sync::Mutex::new(vec![]);
+    std::thread::scope(|scope| {
+        for _ in 0..jobs.min(recordings.len()) {
+            scope.spawn(|| loop {
+                let Some(r) = queue.lock().unwrap_or_else(|e| e.into_inner()).pop_front() else { break };
+                let stem = r.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+                let result = out.join(format!("{stem}.json"));
+                let t = std::time::Instant::now();
+                let o = std::process::Command::new(&exe)
+                    .args(&options)
+                    .arg(r)
+                    .arg("--out")
+                    .arg(&result)
+                    .env(JOB_THREADS, "1")
+                    .stdin(std::process::Stdio::null())
+                    .output();
+                let (code, text) = match o {
+                    Ok(o) => (
+                        o.status.code().unwrap_or(2),
+                        format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr)),
+                    ),
+                    Err(e) => (2, format!("cannot start a worker: {e}")),
+                };
+                // Each recording's report whole, as it finishes.
+                let mut stdout = std::io::stdout().lock();
+                use std::io::Write as _;
+                let _ = writeln!(
+                    stdout,
+                    "== {} ({:.1} s, exit {code})
+{}",
+                    r.display(),
+                    t.elapsed().as_secs_f64(),
+                    text.trim_end()
+                );
+                done.lock().unwrap_or_else(|e| e.into_inner()).push((r.clone(), code, result));
+            });
+        }
+    });
+    let mut done = done.into_inner().unwrap_or_else(|e| e.into_inner());
+    done.sort();
+    println!("batch: {} recordings in {:.1} s, {jobs} at a time", done.len(), t0.elapsed().as_secs_f64());
+    for (r, code, result) in &done {
+        let what = match code {
+            0 => format!("ok: {}", result.display()),
+            3 => format!("written but not trustworthy (see its warnings): {}", result.display()),
+            _ => "failed (see its report above)".to_string(),
+        };
+        println!("  {:<40} {what}", r.display().to_string());
+    }
+    let worst = done.iter().map(|d| d.1).max().unwrap_or(0);
+    let bad = done.iter().filter(|d| d.1 != 0).count();
+    match worst {
+        0 => Ok(()),
+        3 => {
+            Err(Failure::Untrusted(format!("{bad} of {} recordings gave results that are not trustworthy", done.len())))
+        }
+        _ => Err(Failure::Error(format!("{bad} of {} recordings failed or are not trustworthy", done.len()))),
+    }
+}
+
+/// `identify --method volterra`: the seed paper's Volterra identification (3.2.2.1) on a
+/// recorded readable multitone. Every number traces to `coilscope_ident::volterra`: the lines
+/// (`record_lines`), the ratios and their noise (`RecordLines::harmonics`), the fit and its
+/// covariance (`identify_volterra_weighted`), the truncation check (`truncation_check`).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn cmd_identify_volterra(
+    path: &Path,
+    start: Option<&str>,
+    mms: Option<f64>,
+    order: Option<usize>,
+    effects: &str,
+    chain_choice: &ChainMode,
+    wiring: SenseWiring,
+    sd: Option<f64>,
+    scale: Option<&[f64]>,
+    out: &Path,
+) -> Result<(), Failure> {
+    use coilscope_ident::checks::Warning;
+    use coilscope_ident::volterra::{identify_volterra_weighted, record_lines, truncation_check};
+    let origin = path.display().to_string();
+    if let Some(o) = order.filter(|&o| o != 2) {
+        return Err(Failure::from(format!("--order {o}: the Volterra method gives the series to second order (the kernels to third order depend on x^0 .. x^2 only); leave --order out")));
+    }
+    if effects != "auto" && effects != "none" {
+        return Err(Failure::from(format!("--effects {effects}: the Volterra method fits Bl, Kms, Le to the kernels of the start's linear model; its effects (creep, LR-3) come from --start")));
+    }
+    if mms.is_some() {
+        return Err(Failure::from(
+            "--mms: the Volterra method takes the moving mass (and the rest of the linear part) from --start",
+        ));
+    }
+    let start_spec = start.ok_or("--method volterra needs --start FILE: the small-signal parameters (run `coilscope linear` on a noise record of the driver, or give a parameter set)")?;
+    let start = coilscope_report::input_from(start_spec)?.params;
+    let start = Parameters {
+        bl: coilscope_core::Poly::constant(start.bl.c[0]),
+        kms: coilscope_core::Poly::constant(start.kms.c[0]),
+        le: coilscope_core::Poly::constant(start.le.c[0]),
+        l2r2: start.l2r2.map(|(l, r)| (coilscope_core::Poly::constant(l.c[0]), coilscope_core::Poly::constant(r.c[0]))),
+        sd: sd.or(start.sd),
+        ..start
+    };
+    let mut rec = read_recording(path, scale).map_err(|e| e.to_string())?;
+    if matches!(chain_choice, ChainMode::Estimate) {
+        return Err(Failure::from("--chain auto: the Volterra method does not estimate a chain (its lines carry no transient to tell it); calibrate the card (`coilscope calibrate`) and give --chain FILE, or --chain none"));
+    }
+    let calibrated = chain_choice.undo(&mut rec, &origin, wiring)?;
+    let fs = rec.fs as f64;
+    let t0 = std::time::Instant::now();
+    let lines = record_lines(&rec.u, &rec.i, fs, &origin)?;
+    let (measured, noise) = lines.harmonics(&start);
+    let fit = identify_volterra_weighted(&start, &measured, Some(&noise))?;
+    let trunc = truncation_check(&fit, &lines, &measured, &noise)?;
+    let chi2 = fit.chi2_dof.unwrap_or(f64::NAN);
+    // The reach: the fitted model driven by the record.
+    let mut q = fit.params.clone();
+    q.x_range = None;
+    let trace = simulate(&q, fs, &rec.u, &SimOptions::default())
+        .map_err(|e| format!("{origin}: the fitted model under the record: {e}"))?;
+    let from = lines.starts[0];
+    let reach = trace.x[from..].iter().fold([0.0f64, 0.0f64], |a, &v| [a[0].min(v), a[1].max(v)]);
+    q.x_range = Some(reach);
+    q.source = Some(format!("coilscope identify --method volterra {origin}"));
+    let mut warnings = vec![];
+    if chi2 > 2.0 || trunc > 1.0 {
+        warnings.push(Warning::new(
+            "volterra-truncation",
+            format!(
+                "the level is too high for the third-order Volterra series: the kernels leave {chi2:.1} times the lines' noise variance unexplained, and the fitted model's own full response differs from its kernels by {trunc:.1} times it. The distortion feeds back into the nonlinearities (seed paper 3.2.2.1) and the fitted coefficients absorb it: lower the level, or use the full identification (`--method full`, on noise at high level)"
+            ),
+        ));
+    }
+    let mut unc = coilscope_core::result::Uncertainty::new(format!(
+        "Volterra method: sd of the second-order series from the kernel fit's covariance, the lines' noise from the scatter of {} periods (scaled up by the fit's chi^2 per degree of freedom where above 1); the values at rest are --start's (sd 0 at x = 0). The truncation of the series is not in the sd: see the warnings",
+        lines.starts.len()
+    ));
+    for which in ["Bl", "Kms", "Le"] {
+        let band = fit.band(which, reach, 21);
+        // A nonlinearity smaller than its sd over the reach is not resolved.
+        let f = match which {
+            "Bl" => &q.bl,
+            "Kms" => &q.kms,
+            _ => &q.le,
+        };
+        let size = band.x.iter().map(|&x| (f.eval(x) - f.c[0]).abs()).fold(0.0, f64::max);
+        let worst_sd = band.sd.iter().cloned().fold(0.0, f64::max);
+        if worst_sd > size {
+            warnings.push(Warning::new(
+                "volterra-unresolved",
+                format!(
+                    "{which}(x): its change over the reach ({:.3} % of its value at rest) is smaller than its sd ({:.3} %): the record does not resolve this nonlinearity (its lines are at the noise; record longer, or at a somewhat higher level)",
+                    100.0 * size / f.c[0].abs(),
+                    100.0 * worst_sd / f.c[0].abs()
+                ),
+            ));
+        }
+        unc.set_band(which, band);
+    }
+    let result_fit = coilscope_core::result::Fit {
+        method: Some(format!(
+            "Volterra (seed paper 3.2.2.1): H2, H3 of a readable multitone ({} tones, {}-{} Hz, {} steady periods averaged); Bl, Kms, Le to second order fitted to the current's 2nd and 3rd harmonic ratios; linear part from {start_spec}",
+            lines.bins.len(),
+            lines.bins[0],
+            lines.bins[lines.bins.len() - 1],
+            lines.starts.len()
+        )),
+        residual_rel: fit.misfit,
+        x_range: reach,
+        order: Some(2),
+        model: "LR-2, Bl/Kms/Le to second order".into(),
+        ..Default::default()
+    };
+    let lim = coilscope_core::limits::limits(&q, reach);
+    let mut result = ResultFile::new("large-signal", &origin, q.clone(), result_fit, unc, Some(&lim));
+    result.chain = calibrated;
+    result.other.insert(
+        "volterra".into(),
+        json!({
+            "tones_hz": lines.bins, "periods": lines.starts.len(), "chi2_dof": chi2, "truncation": trunc,
+            "lines": measured.iter().zip(&noise).map(|(h, n)| json!({"freq": h.freq, "volts_rms": h.volts, "ratio2": [h.ratio(2).re, h.ratio(2).im], "ratio3": [h.ratio(3).re, h.ratio(3).im], "sd2": n[0], "sd3": n[1]})).collect::<Vec<_>>(),
+        }),
+    );
+    coilscope_workflow::attach_warnings(&mut result, None, &warnings);
+    print_warnings(&warnings);
+    write_json(out, &result).map_err(|e| e.to_string())?;
+    let pct = |f: &coilscope_core::Poly, x: f64| 100.0 * (f.eval(x) / f.c[0] - 1.0);
+    println!(
+        "coilscope identify --method volterra: {origin}, {} tones {}-{} Hz, {} periods, {:.2} s",
+        lines.bins.len(),
+        lines.bins[0],
+        lines.bins[lines.bins.len() - 1],
+        lines.starts.len(),
+        t0.elapsed().as_secs_f64()
+    );
+    println!("  reach {:+.3} .. {:+.3} mm; kernel chi^2/dof {chi2:.2}, truncation {trunc:.2} (both about 1 or less where the series holds)", 1e3 * reach[0], 1e3 * reach[1]);
+    for (name, f) in [("Bl", &q.bl), ("Kms", &q.kms), ("Le", &q.le)] {
+        println!(
+            "  {name:>3}(x) at the reach: {:+.2} % / {:+.2} % of its value at rest",
+            pct(f, reach[0]),
+            pct(f, reach[1])
+        );
+    }
+    println!("  result: {}", out.display());
+    untrusted_if_warned(&warnings, out)
+}
+
+fn print_large_summary(
+    path: &Path,
+    rec: &Recording,
+    fit: &coilscope_ident::large::LargeFit,
+    result: &ResultFile,
+    seconds: f64,
+) {
+    let p = &fit.params;
+    let fs = rec.fs as f64;
+    println!(
+        "coilscope identify: {} ({:.2} s at {} Hz), fitted in {:.1} s",
+        path.display(),
+        rec.u.len() as f64 / fs,
+        rec.fs,
+        seconds
+    );
+    println!(
+        "  order {} ({}), {} iterations, current error {:.3e} (relative RMS), x reached {:.3} .. {:.3} mm",
+        fit.order,
+        if fit.trials.is_empty() { "given".to_string() } else { "chosen on held-out data".to_string() },
+        fit.iterations,
+        fit.residual_rel,
+        fit.x_range[0] * 1e3,
+        fit.x_range[1] * 1e3
+    );
+    for t in &fit.trials {
+        println!("    order {}: estimation {:.3e}, validation {:.3e}", t.order, t.estimation_rel, t.validation_rel);
+    }
+    let tried = fit.models_tried();
+    let words = |t: &coilscope_core::result::ModelTrial| {
+        match (t.validation_rel, t.screen_gain) {
+        (Some(v), _) => match t.validation_rel_before {
+            Some(b) => format!("{} validation {v:.3e} (went on alone from {b:.3e}: the next trial's gain was within what its fit had left)", t.model),
+            None => format!("{} validation {v:.3e}", t.model),
+        },
+        (None, Some(g)) if t.outscored_by.is_some() => format!("{} not fitted: {} took its round (could gain {:.2e})", t.model, t.outscored_by.as_deref().unwrap_or_default(), g),
+        (None, Some(g)) => format!("{} screened out (could gain {:.2e})", t.model, g),
+        (None, None) => t.model.clone(),
+    }
+    };
+    println!(
+        "  model {} ({})",
+        fit.layout.effects.model_name(),
+        if tried.is_empty() { "given".to_string() } else { tried.iter().map(words).collect::<Vec<_>>().join(", ") }
+    );
+    if let Some(c) = &fit.chain {
+        println!("  chain: {}", c.describe_fitted(fit.fs));
+    }
+    let u = &result.uncertainty;
+    // Bl, Kms and Le are shown as curves below.
+    print_values(p, u, &["Bl", "Kms", "Le"]);
+    let [lo, hi] = fit.x_range;
+    println!(
+        "  {:<6} {:>14} {:>14} {:>14}",
+        "",
+        format!("x={:.2} mm", lo * 1e3),
+        "x=0",
+        format!("x={:.2} mm", hi * 1e3)
+    );
+    for (name, unit, scale) in [("Bl", "T m", 1.0), ("Kms", "N/m", 1.0), ("Le", "mH", 1e3)] {
+        let b = fit.band(name, 3);
+        let cell = |k: usize| format!("{:.4} +- {:.1e}", b.value[k] * scale, b.sd[k] * scale);
+        let f = match name {
+            "Bl" => &p.bl,
+            "Kms" => &p.kms,
+            _ => &p.le,
+        };
+        println!("  {:<6} {:>14} {:>14} {:>14}  {unit}", name, cell(0), format!("{:.4}", f.eval(0.0) * scale), cell(2));
+    }
+    if let Some(l) = &result.limits {
+        let lim = |v: Option<f64>, beyond: Option<f64>| match v {
+            Some(v) => format!("{:.2} mm", v * 1e3),
+            None => format!("> {:.2} mm", beyond.unwrap_or(0.0) * 1e3),
+        };
+        println!(
+            "  limits: XBl {}, XC {}, XL {}, Xsym {}, Ak {:.1} %",
+            lim(l.xbl, l.xbl_beyond),
+            lim(l.xc, l.xc_beyond),
+            lim(l.xl, l.xl_beyond),
+            l.xsym.map(|v| format!("{:+.2} mm", v * 1e3)).unwrap_or("-".into()),
+            l.ak
+        );
+    }
+    if let Some(d) = &result.cross_check {
+        let pc = |k: &str| 100.0 * d.max_rel_difference.get(k).copied().unwrap_or(f64::NAN);
+        println!(
+            "  cross-check (post-inverse, measured x): Bl {:.2} %, Kms {:.2} %, Le {:.2} %, Mms {:.2} %",
+            pc("Bl"),
+            pc("Kms"),
+            pc("Le"),
+            pc("Mms")
+        );
+    }
+    if let Some(dt) = result.thermal.as_ref().and_then(|t| t.dt_end) {
+        println!(
+            "  voice coil: Re {:.4} -> {:.4} ohm over the record (+{:.2} K)",
+            fit.re_track[0].1,
+            fit.re_track.last().unwrap().1,
+            dt
+        );
+        if !fit.layout.heat_taus.is_empty() {
+            println!("  Re(t): knots every {:.2} s plus heating terms (time constants {:?} s): the coil heated faster than the knots could follow", fit.layout.knot_dt, fit.layout.heat_taus);
+        }
+    }
+}

@@ -1,0 +1,126 @@
+//! `simulate`: a virtual transducer driven by a generated or given signal, written as a recording.
+
+use crate::args::{ExcitationKind, SimulateArgs};
+use crate::iec_noise;
+use coilscope_core::excitation::{add_sensor_noise, crest_factor, generate, Excitation, SignalSpec};
+use coilscope_core::simulate::{simulate, SimOptions};
+use coilscope_io::{load_parameters, read_voltage, write_json, write_recording, Recording};
+use coilscope_workflow::chain::{load_chain, mark_wiring};
+use serde_json::json;
+use std::path::{Path, PathBuf};
+
+/// Where the summary of a recording goes: `NAME.info.json` beside `NAME.wav`.
+fn info_path(out: &Path) -> PathBuf {
+    let stem = out.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "recording".into());
+    out.with_file_name(format!("{stem}.info.json"))
+}
+
+pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
+    let params = a.world.apply(load_parameters(&a.driver).map_err(|e| e.to_string())?);
+    if let Some(db) = a.snr_db {
+        if !(db.is_finite() && db > 0.0) {
+            return Err(format!("--snr-db {db}: give a positive number of dB (e.g. 70)"));
+        }
+    }
+    let (fs, u, what) = match &a.input {
+        Some(path) => {
+            let (fs, mut u) = read_voltage(path, a.scale.map(|s| vec![s]).as_deref()).map_err(|e| e.to_string())?;
+            if let Some(v) = a.volts {
+                let r = coilscope_core::simulate::rms(&u);
+                if r == 0.0 {
+                    return Err(format!(
+                        "{}: the voltage channel is silent; cannot scale it to {v} V RMS",
+                        path.display()
+                    ));
+                }
+                u.iter_mut().for_each(|x| *x *= v / r);
+            }
+            (fs as f64, u, json!({"input": path.display().to_string()}))
+        }
+        None => {
+            let volts = a.volts.ok_or("--volts RMS is required with a generated excitation (e.g. --volts 2)")?;
+            let band = match &a.band {
+                Some(b) => (b[0], b[1]),
+                None => (10.0, (8000.0f64).min(0.45 * a.rate as f64)),
+            };
+            let exc = match a.excitation {
+                ExcitationKind::Noise => iec_noise(a.crest),
+                ExcitationKind::Pink => Excitation::Pink { f_lo: band.0, f_hi: band.1, crest: a.crest },
+                ExcitationKind::Sine => Excitation::Sine { freq: a.freq },
+                ExcitationKind::Multitone => {
+                    Excitation::Multitone { f_lo: band.0, f_hi: band.1, count: a.tones, crest: a.crest }
+                }
+                ExcitationKind::Sweep => Excitation::Sweep { f_lo: band.0, f_hi: band.1 },
+                ExcitationKind::Readable => {
+                    Excitation::Readable { f_lo: band.0, f_hi: band.1, count: a.tones, crest: a.crest }
+                }
+            };
+            let spec = SignalSpec { fs: a.rate as f64, seconds: a.seconds, rms: volts, fade: a.fade, seed: a.seed };
+            let u = generate(&exc, &spec)?;
+            let cf = crest_factor(&u);
+            (
+                a.rate as f64,
+                u,
+                json!({"excitation": format!("{exc:?}"), "rms": volts, "seconds": a.seconds, "crest_factor": cf, "seed": a.seed}),
+            )
+        }
+    };
+    let trace = simulate(&params, fs, &u, &SimOptions::default()).map_err(|e| e.to_string())?;
+    let s = trace.summary();
+    // The channels: the wiring, then the chain (the sensor noise after both).
+    let mut chain = a
+        .chain
+        .as_deref()
+        .map(load_chain)
+        .transpose()?
+        .map(|c| coilscope_core::chain::Chain { source: Some("simulated".into()), ..c });
+    let u_channel = a.wiring.channel_voltage(&trace.u, &trace.i);
+    let (u_rec, i_rec) = match &chain {
+        Some(c) => c.apply(&u_channel, &trace.i, fs),
+        None => (u_channel, trace.i.clone()),
+    };
+    let mut rec = Recording { fs: fs as u32, u: u_rec, i: i_rec, x: a.laser.then(|| trace.x.clone()) };
+    mark_wiring(&mut chain, a.wiring);
+    if let Some(db) = a.snr_db {
+        add_sensor_noise(&mut rec.u, db, a.seed, "sensor-noise/voltage");
+        add_sensor_noise(&mut rec.i, db, a.seed, "sensor-noise/current");
+        if let Some(x) = &mut rec.x {
+            add_sensor_noise(x, db, a.seed, "sensor-noise/displacement");
+        }
+    }
+    write_recording(&a.out, &rec).map_err(|e| e.to_string())?;
+    let info = json!({
+        "x_min": s.x_min, "x_max": s.x_max, "x_p01": s.x_p01, "x_p99": s.x_p99,
+        "u_rms": s.u_rms, "i_rms": s.i_rms, "dT_end": s.dt_end, "dT_max": s.dt_max,
+        "dTm_end": s.dtm_end, "p_mean": s.p_mean,
+        "driver": params.name.clone().unwrap_or_else(|| a.driver.clone()),
+        "fs": fs, "samples": u.len(), "substeps": trace.substeps, "scheme": trace.scheme.name(), "snr_db": a.snr_db, "laser": a.laser,
+        "signal": what,
+        "chain": chain,
+    });
+    let info_file = info_path(&a.out);
+    write_json(&info_file, &info).map_err(|e| e.to_string())?;
+
+    let name = params.name.as_deref().unwrap_or(&a.driver);
+    println!(
+        "coilscope simulate: {name}, {:.2} s at {} Hz ({} scheme, {} step{} per sample)",
+        u.len() as f64 / fs,
+        fs,
+        trace.scheme.name(),
+        trace.substeps,
+        if trace.substeps == 1 { "" } else { "s" }
+    );
+    let range = params
+        .x_range
+        .map(|[lo, hi]| format!(" ({:.0} % / {:.0} % of x_range)", 100.0 * s.x_min / lo, 100.0 * s.x_max / hi))
+        .unwrap_or_default();
+    println!("  peak excursion   {:+.3} mm .. {:+.3} mm{range}", s.x_min * 1e3, s.x_max * 1e3);
+    println!("  voltage, current {:.3} V RMS, {:.3} A RMS", s.u_rms, s.i_rms);
+    println!("  electrical power {:.3} W (mean u i)", s.p_mean);
+    println!("  voice coil       +{:.3} K at the end (max +{:.3} K), magnet +{:.4} K", s.dt_end, s.dt_max, s.dtm_end);
+    if trace.range_excess > 0.0 {
+        println!("  warning: x exceeded x_range by {:.3} mm (parameters extrapolated)", trace.range_excess * 1e3);
+    }
+    println!("  wrote {} and {}", a.out.display(), info_file.display());
+    Ok(())
+}
