@@ -239,6 +239,19 @@ fn departs_at(p: &Parameters) -> f64 {
     (30.0 * thiele_small(p).fs).min(5000.0)
 }
 
+/// A curve that departs from the lumped model at [`departs_at`]: above it a ripple of 8 %
+/// over a third of an octave.
+fn departing_curve(p: &Parameters, seed: u64) -> (Vec<f64>, Vec<Complex64>) {
+    let fb = departs_at(p);
+    let (f, mut z) = curve(p, &[], 0.003, seed);
+    for (f, z) in f.iter().zip(z.iter_mut()) {
+        if *f > fb {
+            *z *= 1.0 + 0.08 * (2.0 * PI * 3.0 * (f / fb).log2()).sin();
+        }
+    }
+    (f, z)
+}
+
 /// Above `fb` the curve has what no lumped element makes (a ripple of 8 % over a third of an
 /// octave, as a real cone's break-up region shows on a measured |Z|): the band ends within
 /// an octave of `fb`, and the figures hold.
@@ -248,14 +261,8 @@ fn the_band_ends_where_the_model_stops_holding() {
         "the_band_ends_where_the_model_stops_holding",
         false,
         |p, seed| {
-            let fb = departs_at(p);
-            let (f, mut z) = curve(p, &[], 0.003, seed);
-            for (f, z) in f.iter().zip(z.iter_mut()) {
-                if *f > fb {
-                    *z *= 1.0 + 0.08 * (2.0 * PI * 3.0 * (f / fb).log2()).sin();
-                }
-            }
-            (format!("departs from {fb:.0} Hz"), f, z)
+            let (f, z) = departing_curve(p, seed);
+            (format!("departs from {:.0} Hz", departs_at(p)), f, z)
         },
         |p, _, top| (departs_at(p) / 2.0..=departs_at(p) * 2.0).contains(&top),
     );
@@ -277,30 +284,37 @@ fn a_magnitude_only_curve_gives_the_drivers_figures() {
 }
 
 /// Drivers a fresh draw failed on, kept: each with whether its curve is |Z| alone, the
-/// curve's seed, and whether it is still open (run and printed, not asserted, until fixed).
-const KEPT: [(&str, bool, u64, bool); 4] = [
+/// curve's seed, whether it is still open (run and printed, not asserted, until fixed), and
+/// whether the curve departs from the lumped model ([`departing_curve`]).
+const KEPT: [(&str, bool, u64, bool, bool); 5] = [
     // |Z| alone: Re 1.3 % high (LR-2+LR-3+creep, 0.3 % noise), 1.65 of its sd (0.8 %).
-    ("population:woofer:3042703063", true, 3042703063, false),
+    ("population:woofer:3042703063", true, 3042703063, false, false),
     // |Z| alone: the LR-2 corner on its bound, Re 1.03 % high: loud (on-bound), so right or
     // loud holds; kept so that it stays loud or becomes right.
-    ("population:fullrange:1444849663", true, 1444849663, false),
+    ("population:fullrange:1444849663", true, 1444849663, false, false),
     // Open: a heavily damped microspeaker (Qms 1.3) with creep (lambda 0.094) and an LR-3
     // branch of 10 Le whose corner (645 Hz) sits at the resonance (565 Hz): the fit takes
     // LR-2+LR-3 without creep, and Bl is 2.3 % low with Mms given.
-    ("population:microspeaker:3590927445", false, 3590927445, true),
+    ("population:microspeaker:3590927445", false, 3590927445, true, false),
     // |Z| alone: LR-2+LR-3 with its second corner at 17 Hz (the truth's at 567 and 1510 Hz)
     // misfit by 1.7 %, under the 2 % of a file's misfit warning, with Re's sd 4e69 and Qts
     // 0: now loud (not-identified).
-    ("population:midwoofer:1257859559", true, 1257859559, false),
+    ("population:midwoofer:1257859559", true, 1257859559, false, false),
+    // Open: a microspeaker resonating at 730 Hz whose curve departs from 5 kHz, below the
+    // band search's first top (10 fs): that top holds by the search's rule (2.0 % RMS, no
+    // half-octave over 4 %) with the ripple from 5.0 to 7.3 kHz in it, which the fit absorbs
+    // (LR-2 alone, corner 2.6 kHz; the truth's at 3.3 and 1.2 kHz, with creep): residual
+    // 1.7 %, Bl 2.4 % high and Qts 3.5 % low, without a warning.
+    ("population:microspeaker:1150845130", false, 1150845130, true, true),
 ];
 
 #[test]
 fn kept_curves_give_the_drivers_figures() {
     let mut failures = vec![];
-    for (name, magnitude_only, seed, open) in KEPT {
+    for (name, magnitude_only, seed, open, departs) in KEPT {
         let p =
             coilscope_core::population::parse_name(name).expect("a population name").expect("a valid name").natural();
-        let (f, z) = curve(&p, &[], 0.003, seed);
+        let (f, z) = if departs { departing_curve(&p, seed) } else { curve(&p, &[], 0.003, seed) };
         let (off, text, _, warned) = figures_off(&p, &f, &z, magnitude_only, name);
         println!("{name} (|Z| alone: {magnitude_only}, open: {open}): {text}; off {off:?}");
         if !off.is_empty() && !warned && !open {
