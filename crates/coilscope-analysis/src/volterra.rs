@@ -177,7 +177,7 @@ pub fn probe(p: &Parameters, freq: f64) -> Probe {
         };
         (e1, e2, e3)
     };
-    let (b0, k0, l0, m, rm, re) = (p.bl.c[0], p.kms.c[0], p.le.c[0], p.mms, p.rms, p.re);
+    let (b0, l0, m, rm, re) = (p.bl.c[0], p.le.c[0], p.mms, p.rms, p.re);
     let r0 = r2.c[0];
     for n in 1..NO {
         let (e1, e2, e3) = residuals(&x, &i, &i2);
@@ -191,12 +191,7 @@ pub fn probe(p: &Parameters, freq: f64) -> Probe {
             // Creep and LR-3 are linear with constant coefficients: they enter the Jacobian
             // only, as creep's dynamic stiffness and LR-3's series impedance at this line
             // (the residuals of order n hold products of lower orders, which they do not make).
-            let k_dyn = match (&p.creep, p.creep_f_ref()) {
-                (Some(c), Some(f_ref)) => {
-                    k0 * coilscope_core::creep::stiffness_factor(c.lambda, k as f64 * w, 2.0 * PI * f_ref)
-                }
-                _ => C::new(k0, 0.0),
-            };
+            let k_dyn = coilscope_core::small_signal::dynamic_stiffness(p, k as f64 * w);
             let z3 = p.l3r3.map_or(C::new(0.0, 0.0), |(l3, r3)| s * l3 * r3 / (s * l3 + r3));
             let j = [
                 [-s * b0, -(s * l0) - re - r0 - z3, C::new(r0, 0.0)],

@@ -173,25 +173,35 @@ fn truth_model(p: &Parameters) -> String {
 /// `top_ok` judges the band's top (Hz) on the curve's frequencies. Each driver is right (every
 /// figure within its bound) or loud (the fit warns, so `linear` exits 3 with the reason); a
 /// driver fails on a figure off its bound without a warning, or a top not as expected, and
-/// is kept. At most a quarter may be loud: over 128 drivers of two seeds 3-12 % were (each
-/// on a bound of the L2/R2 branch in a band cut below break-up, or the search finding none),
-/// and 16 draws keep a chance failure of that bound near 1 %.
+/// is kept. At most a quarter may be loud of the drivers whose branch corners lie below
+/// `reach` (Hz, where the curve stops being lumped): over 128 drivers of two seeds 3-12 %
+/// were (each on a bound of the L2/R2 branch in a band cut below break-up, or the search
+/// finding none), and 16 draws keep a chance failure of that bound near 1 %. A driver with a
+/// corner above it (a microspeaker's branch at 7-13 kHz, its cone breaking up from 5 kHz)
+/// cannot have the branch identified: its fit ends on the corner's bound and says so, which
+/// is right; those are counted apart.
 fn over_drivers(
     test: &str,
     magnitude_only: bool,
     make: impl Fn(&Parameters, u64) -> (String, Vec<f64>, Vec<Complex64>),
     top_ok: impl Fn(&Parameters, &[f64], f64) -> bool,
+    reach: impl Fn(&Parameters) -> f64,
 ) {
     let mut failures = vec![];
-    let (mut loud, mut n) = (0, 0);
+    let (mut loud, mut n, mut beyond, mut loud_beyond) = (0, 0, 0, 0);
     for d in draws(test, cases(16)) {
         let p = d.natural();
         let label = format!("{} ({})", d.name(), p.name.clone().unwrap_or_default());
         let (what, f, z) = make(&p, d.seed);
         let (off, text, top, warned) = figures_off(&p, &f, &z, magnitude_only, &label);
         println!("{label}: {what}: {text}; off {off:?}");
-        n += 1;
-        loud += usize::from(warned);
+        if truth_corners(&p).into_iter().all(|c| c <= reach(&p)) {
+            n += 1;
+            loud += usize::from(warned);
+        } else {
+            beyond += 1;
+            loud_beyond += usize::from(warned);
+        }
         // A search that found no band holding (break-up below its first top, 10 fs: a
         // microspeaker resonating at 930 Hz whose cone breaks up from 5 kHz) fits the whole
         // curve and must say so, loudly.
@@ -201,8 +211,16 @@ fn over_drivers(
                 .push(format!("{label}: {what}: {text}; off: {off:?}; kept as {}", keep_failure(&label, &p).display()));
         }
     }
+    println!("{loud} of {n} fits loud; {loud_beyond} of {beyond} with a branch corner above the curve's lumped part");
     assert!(failures.is_empty(), "{failures:#?}");
     assert!(loud * 4 <= n, "{loud} of {n} fits were loud (warned): more than a quarter");
+}
+
+/// The corners of the truth's branches (Hz).
+fn truth_corners(p: &Parameters) -> Vec<f64> {
+    let mut c: Vec<f64> = p.l2r2.iter().map(|(l, r)| r.eval(0.0) / (2.0 * PI * l.eval(0.0))).collect();
+    c.extend(p.l3r3.map(|(l, r)| r / (2.0 * PI * l)));
+    c
 }
 
 #[test]
@@ -217,6 +235,7 @@ fn a_lumped_drivers_curve_is_fitted_whole() {
             ("lumped".into(), f, z)
         },
         whole,
+        |_| 20000.0,
     );
 }
 
@@ -231,6 +250,7 @@ fn cone_modes_leave_the_figures_within_their_bounds() {
             (format!("first mode {f1:.0} Hz"), f, z)
         },
         |_, _, _| true,
+        |p| (40.0 * thiele_small(p).fs).min(6000.0),
     );
 }
 
@@ -265,6 +285,7 @@ fn the_band_ends_where_the_model_stops_holding() {
             (format!("departs from {:.0} Hz", departs_at(p)), f, z)
         },
         |p, _, top| (departs_at(p) / 2.0..=departs_at(p) * 2.0).contains(&top),
+        departs_at,
     );
 }
 
@@ -280,6 +301,7 @@ fn a_magnitude_only_curve_gives_the_drivers_figures() {
             ("|Z| alone".into(), f, z)
         },
         |_, _, _| true,
+        |_| 20000.0,
     );
 }
 
