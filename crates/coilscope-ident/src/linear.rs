@@ -1501,6 +1501,23 @@ pub struct LumpedBand {
     pub band: [f64; 2],
     /// What the search found, in words (for the result's `fit.band_note`).
     pub note: String,
+    /// No part of the curve held the model, not even the lowest: the whole curve is fitted,
+    /// and the fit is doubtful whatever its own misfit ([`LumpedBand::warning`]).
+    pub none_held: bool,
+}
+
+impl LumpedBand {
+    /// The warning of a search that found no band holding the model: a curve that departs
+    /// from it below the search's first top (ten times the resonance), or a fit of the lowest
+    /// band that ended in a wrong minimum.
+    pub fn warning(&self) -> Option<crate::checks::Warning> {
+        self.none_held.then(|| {
+            crate::checks::Warning::new(
+                "no-lumped-band",
+                format!("{}: the figures are of the whole curve, where the model is not known to hold; fit a band below the break-up (--band LO,HI)", self.note),
+            )
+        })
+    }
 }
 
 /// Half-octave steps of [`lumped_band`]'s search, and where it starts: ten times the
@@ -1577,7 +1594,11 @@ pub fn lumped_band(
     // The resonance from a first fit of the whole curve; a curve with too few points or no
     // fit of its own is left to the caller's fit to report.
     let Ok(full) = fit_to(top) else {
-        return Ok(LumpedBand { band: whole, note: "the whole curve (no fit to search a band with)".into() });
+        return Ok(LumpedBand {
+            band: whole,
+            note: "the whole curve (no fit to search a band with)".into(),
+            none_held: false,
+        });
     };
     // The first top: ten times the resonance, two half-octaves above the bottom, and at least
     // 40 points below it (the fit has up to 10 unknowns); whichever is highest.
@@ -1589,7 +1610,11 @@ pub fn lumped_band(
         } else {
             format!("it ends below {LUMPED_START_OVER_FS} times the resonance ({:.0} Hz)", full.fs())
         };
-        return Ok(LumpedBand { band: whole, note: format!("the whole curve ({lo:.0} .. {top:.0} Hz): {why}") });
+        return Ok(LumpedBand {
+            band: whole,
+            note: format!("the whole curve ({lo:.0} .. {top:.0} Hz): {why}"),
+            none_held: false,
+        });
     }
     // Every top, half an octave apart from the first: whether the fit to it holds, over its
     // whole band and in each half-octave above the first top (a narrow mode is averaged in; a
@@ -1626,12 +1651,12 @@ pub fn lumped_band(
                 band[1],
                 100.0 * e,
             );
-            Ok(LumpedBand { band, note })
+            Ok(LumpedBand { band, note, none_held: false })
         }
-        (Some(_), None) => Ok(LumpedBand { band: whole, note: format!("the whole curve ({lo:.0} .. {top:.0} Hz): the lumped model holds to its end") }),
+        (Some(_), None) => Ok(LumpedBand { band: whole, note: format!("the whole curve ({lo:.0} .. {top:.0} Hz): the lumped model holds to its end"), none_held: false }),
         // Not even the lowest part holds: the whole curve is fitted, and its fit's warnings
         // say how the model misses it.
-        (None, _) => Ok(LumpedBand { band: whole, note: format!("the whole curve ({lo:.0} .. {top:.0} Hz): no part of it holds the lumped model within {:.0} % (from its first {start:.0} Hz on)", 100.0 * CURVE_RESIDUAL_WARN) }),
+        (None, _) => Ok(LumpedBand { band: whole, note: format!("the whole curve ({lo:.0} .. {top:.0} Hz): no part of it holds the lumped model within {:.0} % (from its first {start:.0} Hz on)", 100.0 * CURVE_RESIDUAL_WARN), none_held: true }),
     }
 }
 

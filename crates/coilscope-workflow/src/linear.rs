@@ -208,11 +208,12 @@ fn linear_body(
     let opts = |chain: bool| LinearOptions { effects: req.effects, chain, ..Default::default() };
     // A curve's band: the one given, or where the lumped model holds (below break-up); the
     // measurement with an added mass is fitted in the same band.
-    let mut band_note = None;
+    let (mut band_note, mut band_warning) = (None, None);
     let found;
     let req = match (&input, req.band) {
         (LinearInput::Curve(c), None) => {
             let b = lumped_band(&c.f, &c.z, c.magnitude_only, origin, &opts(false))?;
+            band_warning = b.warning();
             band_note = Some(b.note);
             found = LinearRequest { band: Some(b.band), ..req.clone() };
             &found
@@ -269,7 +270,7 @@ fn linear_body(
             let (floor, w) = record_warnings(&fit, &params, r);
             (Some(floor), w)
         }
-        LinearInput::Curve(_) => (None, curve_warnings(&fit)),
+        LinearInput::Curve(_) => (None, curve_warnings(&fit).into_iter().chain(band_warning).collect()),
     };
     attach_warnings(&mut res, floor.as_ref(), &warnings);
     Ok(Linear { fit, params, method, x_range, result: res, warnings, floor, detected })
