@@ -309,7 +309,7 @@ fn a_magnitude_only_curve_gives_the_drivers_figures() {
 /// Drivers a fresh draw failed on, kept: each with whether its curve is |Z| alone, the
 /// curve's seed, whether it is still open (run and printed, not asserted, until fixed), and
 /// whether the curve departs from the lumped model ([`departing_curve`]).
-const KEPT: [(&str, bool, u64, bool, bool); 8] = [
+const KEPT: [(&str, bool, u64, bool, bool); 9] = [
     // |Z| alone: Re 1.3 % high (LR-2+LR-3+creep, 0.3 % noise), 1.65 of its sd (0.8 %).
     ("population:woofer:3042703063", true, 3042703063, false, false),
     // |Z| alone: the LR-2 corner on its bound, Re 1.03 % high: loud (on-bound), so right or
@@ -339,6 +339,10 @@ const KEPT: [(&str, bool, u64, bool, bool); 8] = [
     // |Z| alone: LR-2+LR-3 without creep, Re 31 % low and Qts 30 % low at a Re sd of 5.2 %,
     // under the first not-identified threshold (10 %): now loud at 2 %.
     ("population:subwoofer:2244346992", true, 2244346992, false, false),
+    // A lumped curve cut at 9.2 kHz: the fit to 13 kHz ended in a wrong minimum (LR-2's
+    // start 21 % off, the model's 0.3 %) and missed by 20.9 %, so the search stopped there;
+    // the figures are right. Kept for its figures; the band's top is the open part.
+    ("population:midwoofer:2837248491", false, 2837248491, false, false),
 ];
 
 #[test]
