@@ -280,9 +280,11 @@ fn linear_sigmas_cover_the_truth_over_seeds() {
 
 /// An LR-3 branch with its corner above the band acts as an inductance with a small loss: a
 /// fit that takes it can slide Le to zero along a flat direction (a drawn microspeaker's
-/// small-signal stage ended at Le = 1.5e-58 H). On the kept regression drivers (fixed and
-/// open), `measure`'s small-signal fit (effects chosen by the data) keeps the voice coil's Le,
-/// or names Le as ended on a bound.
+/// small-signal stage ended at Le = 1.5e-58 H), or make one branch a small resistor at a few
+/// hertz beside Re and give Le the other branch's inductance (another microspeaker's Le came
+/// out 37 % high). On the kept regression drivers (fixed and open), `measure`'s small-signal
+/// fit (effects chosen by the data) keeps the voice coil's Le within 25 %, or names Le as
+/// ended on a bound.
 #[test]
 fn the_small_signal_fit_never_trades_le_for_an_added_branch() {
     use coilscope_ident::linear::{fit_linear_record, EffectsChoice, Ends, LinearOptions};
@@ -313,7 +315,7 @@ fn the_small_signal_fit_never_trades_le_for_an_added_branch() {
             fit.at_bound,
             fit.tried
         );
-        if !(le > 0.5 * truth || fit.at_bound.contains(&"Le")) {
+        if !((le / truth - 1.0).abs() < 0.25 || fit.at_bound.contains(&"Le")) {
             bad.push(format!("{}: Le {le:.3e} H against {truth:.3e}, not named on a bound", r.name));
         }
     }
