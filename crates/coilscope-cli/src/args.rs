@@ -161,9 +161,9 @@ pub(crate) enum Command {
         /// Sine frequency (Hz).
         #[arg(long, default_value_t = 50.0)]
         freq: f64,
-        /// Band of pink noise, multitone or sweep (Hz).
-        #[arg(long, num_args = 2, value_names = ["LO", "HI"])]
-        band: Option<Vec<f64>>,
+        /// Band of pink noise, multitone or sweep (Hz): `LO HI` or `LO,HI`.
+        #[arg(long, num_args = 1..=2, value_names = ["LO", "HI"])]
+        band: Option<Vec<String>>,
         /// Crest-factor target: noise (default 2; inf: not limited, Gaussian as IEC 60268-1
         /// itself), pink noise, multitone.
         #[arg(long)]
@@ -217,10 +217,11 @@ pub(crate) enum Command {
         /// Impedance file of the same driver with the added mass.
         #[arg(long, value_name = "Z2.zma", requires = "impedance")]
         with_mass_impedance: Option<PathBuf>,
-        /// Impedance files: the fitted band `LO,HI` (Hz); default: the band where the lumped
-        /// model holds, found from the file (below the cone's break-up; the output says where).
-        #[arg(long, value_name = "LO,HI", requires = "impedance")]
-        band: Option<String>,
+        /// Impedance files: the fitted band (Hz), `LO HI` or `LO,HI`; default: the band where
+        /// the lumped model holds, found from the file (below the cone's break-up; the output
+        /// says where).
+        #[arg(long, num_args = 1..=2, value_names = ["LO", "HI"], requires = "impedance")]
+        band: Option<Vec<String>>,
         /// Impedance files: the RMS voltage of the measurement, for the displacement it
         /// reached (fit.x_range); without it the level is unknown and x_range is [0, 0].
         #[arg(long, requires = "impedance")]
@@ -540,9 +541,9 @@ pub(crate) enum Command {
         /// A multitone of --tones tones over --band instead of a sine.
         #[arg(long)]
         multitone: bool,
-        /// Multitone band (Hz).
-        #[arg(long, num_args = 2, value_names = ["F_LO", "F_HI"])]
-        band: Option<Vec<f64>>,
+        /// Multitone band (Hz): `LO HI` or `LO,HI`.
+        #[arg(long, num_args = 1..=2, value_names = ["LO", "HI"])]
+        band: Option<Vec<String>>,
         /// Number of multitone tones.
         #[arg(long, default_value_t = 30)]
         tones: usize,
@@ -652,7 +653,7 @@ pub(crate) struct SimulateArgs {
     pub(crate) rate: u32,
     pub(crate) input: Option<PathBuf>,
     pub(crate) freq: f64,
-    pub(crate) band: Option<Vec<f64>>,
+    pub(crate) band: Option<Vec<String>>,
     pub(crate) crest: Option<f64>,
     pub(crate) tones: usize,
     pub(crate) fade: f64,
@@ -669,7 +670,7 @@ pub(crate) struct LinearArgs {
     pub(crate) added_mass: Option<f64>,
     pub(crate) with_mass: Option<PathBuf>,
     pub(crate) with_mass_impedance: Option<PathBuf>,
-    pub(crate) band: Option<String>,
+    pub(crate) band: Option<Vec<String>>,
     pub(crate) volts: Option<f64>,
     pub(crate) effects: String,
     pub(crate) fit: FitArgs,
@@ -810,7 +811,7 @@ pub(crate) struct DistortionArgs {
     pub(crate) volts: Option<f64>,
     pub(crate) output: coilscope_analysis::distortion::Output,
     pub(crate) multitone: bool,
-    pub(crate) band: Option<Vec<f64>>,
+    pub(crate) band: Option<Vec<String>>,
     pub(crate) tones: usize,
     pub(crate) sweep: Option<Vec<f64>>,
     pub(crate) levels: Option<Vec<f64>>,
@@ -838,6 +839,24 @@ pub(crate) struct QuasiArgs {
     pub(crate) card: CardArgs,
 }
 
+/// A `--band` in Hz, given as two values (`LO HI`) or one (`LO,HI`; `LO:HI` too), with
+/// `0 <= LO < HI`.
+pub(crate) fn parse_band(given: &[String]) -> Result<[f64; 2], String> {
+    let text = given.join(",");
+    let bad =
+        || format!("--band {}: give LO HI (or LO,HI) in Hz with 0 <= LO < HI, e.g. --band 10 2000", given.join(" "));
+    let v: Vec<f64> = text
+        .split([',', ':'])
+        .filter(|t| !t.trim().is_empty())
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| bad())?;
+    match v[..] {
+        [lo, hi] if lo >= 0.0 && hi > lo && hi.is_finite() => Ok([lo, hi]),
+        _ => Err(bad()),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -856,5 +875,17 @@ mod tests {
         assert!(parse_length("0.000004").unwrap_err().contains("did you mean"));
         assert!(parse_length("4in").unwrap_err().contains("unknown length unit"));
         assert!(parse_length("mm").is_err());
+    }
+
+    #[test]
+    fn a_band_is_two_values_or_one_with_a_comma() {
+        let band = |v: &[&str]| parse_band(&v.iter().map(|s| s.to_string()).collect::<Vec<_>>());
+        assert_eq!(band(&["10", "2000"]), Ok([10.0, 2000.0]));
+        assert_eq!(band(&["10,2000"]), Ok([10.0, 2000.0]));
+        assert_eq!(band(&["10:2000"]), Ok([10.0, 2000.0]));
+        for bad in [&["10"][..], &["2000", "10"], &["10,20,30"], &["a,b"], &["-5", "10"], &["10", "inf"]] {
+            let e = band(bad).unwrap_err();
+            assert!(e.contains("LO HI (or LO,HI)") && e.contains(&bad.join(" ")), "{bad:?}: {e}");
+        }
     }
 }

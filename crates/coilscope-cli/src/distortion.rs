@@ -17,7 +17,7 @@ pub(crate) fn cmd_distortion(a: DistortionArgs) -> Result<(), String> {
     let out = a.output.name();
     let volts = a.volts.unwrap_or(f64::NAN);
     if a.multitone {
-        let band = a.band.clone().unwrap_or_else(|| vec![20.0, 10_000.0]);
+        let band = a.band.as_deref().map(crate::args::parse_band).transpose()?.unwrap_or([20.0, 10_000.0]);
         let m = d::multitone(p, band[0], band[1], a.tones, volts, a.output, a.seed, &opts).map_err(e)?;
         if a.json {
             print_json(&m.to_json());

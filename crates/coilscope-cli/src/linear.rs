@@ -8,18 +8,6 @@ use coilscope_workflow::chain::ChainMode;
 use std::path::Path;
 
 /// `--band LO,HI` (Hz).
-fn parse_band(text: &str) -> Result<[f64; 2], Failure> {
-    let v: Vec<f64> = text
-        .split([',', ':'])
-        .map(|t| t.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .map_err(|_| format!("--band {text:?}: give LO,HI in Hz, e.g. 10,2000"))?;
-    match v[..] {
-        [lo, hi] if lo >= 0.0 && hi > lo && hi.is_finite() => Ok([lo, hi]),
-        _ => Err(Failure::from(format!("--band {text:?}: give LO,HI in Hz with 0 <= LO < HI, e.g. 10,2000"))),
-    }
-}
-
 pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     use coilscope_ident::linear::ScaleMethod;
     use coilscope_workflow::linear::{linear, LinearInput, LinearRequest, Scale};
@@ -27,7 +15,7 @@ pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     let chain = parse_chain(&a.fit.chain)?;
     let wiring = fit_wiring(&a.fit, &chain)?;
     let effects = parse_effects(&a.effects)?;
-    let band = a.band.as_deref().map(parse_band).transpose()?;
+    let band = a.band.as_deref().map(crate::args::parse_band).transpose()?;
     let (path, is_curve) = match (&a.recording, &a.impedance) {
         (Some(p), None) => (p.clone(), false),
         (None, Some(p)) => (p.clone(), true),

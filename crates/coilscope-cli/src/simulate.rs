@@ -40,7 +40,10 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
         None => {
             let volts = a.volts.ok_or("--volts RMS is required with a generated excitation (e.g. --volts 2)")?;
             let band = match &a.band {
-                Some(b) => (b[0], b[1]),
+                Some(b) => {
+                    let [lo, hi] = crate::args::parse_band(b)?;
+                    (lo, hi)
+                }
                 None => (10.0, (8000.0f64).min(0.45 * a.rate as f64)),
             };
             let exc = match a.excitation {

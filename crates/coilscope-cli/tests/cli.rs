@@ -162,7 +162,7 @@ fn bad_inputs_get_one_clear_line() {
         "--out",
         out,
     ]));
-    assert!(e.contains("band 500 .. 100 Hz is not valid"), "{e}");
+    assert!(e.contains("--band 500 100: give LO HI (or LO,HI) in Hz with 0 <= LO < HI"), "{e}");
 }
 
 #[test]
