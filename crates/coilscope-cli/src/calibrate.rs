@@ -13,6 +13,7 @@ pub(crate) fn cmd_calibrate(
     scale: Option<&[f64]>,
     out: &Path,
 ) -> Result<(), Failure> {
+    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     let origin = path.display().to_string();
     let r = match (resistor, loopback) {
         (Some(r), false) if r.is_finite() && r > 0.0 && r < 1e6 => r,

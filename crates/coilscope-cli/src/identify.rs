@@ -24,6 +24,7 @@ pub(crate) fn cmd_identify(
     out: &Path,
 ) -> Result<(), Failure> {
     use coilscope_ident::large::Stage;
+    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     use coilscope_workflow::identify::{identify_record, IdentifyRequest};
     let origin = path.display().to_string();
     let mut rec = read_recording(path, scale).map_err(|e| e.to_string())?;
@@ -212,6 +213,7 @@ pub(crate) fn cmd_identify_volterra(
 ) -> Result<(), Failure> {
     use coilscope_ident::checks::Warning;
     use coilscope_ident::volterra::{identify_volterra_weighted, record_lines, truncation_check};
+    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     let origin = path.display().to_string();
     if let Some(o) = order.filter(|&o| o != 2) {
         return Err(Failure::from(format!("--order {o}: the Volterra method gives the series to second order (the kernels to third order depend on x^0 .. x^2 only); leave --order out")));

@@ -16,6 +16,15 @@ pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     let wiring = fit_wiring(&a.fit, &chain)?;
     let effects = parse_effects(&a.effects)?;
     let band = a.band.as_deref().map(crate::args::parse_band).transpose()?;
+    // The outputs, before the work: the result, and beside it (unless it goes to a device
+    // such as /dev/null) the measured impedance as .zma and .csv.
+    let beside = !coilscope_io::is_stream(out);
+    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
+    if beside {
+        for ext in ["zma", "csv"] {
+            coilscope_io::check_writable(&out.with_extension(ext)).map_err(|e| e.to_string())?;
+        }
+    }
     let (path, is_curve) = match (&a.recording, &a.impedance) {
         (Some(p), None) => (p.clone(), false),
         (None, Some(p)) => (p.clone(), true),
@@ -84,7 +93,10 @@ pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     write_json(out, result).map_err(|e| e.to_string())?;
     let csv = out.with_extension("csv");
     let mut wrote = vec![out.display().to_string()];
-    if !is_curve {
+    if !beside {
+        eprintln!("note: {} is a device: no .zma or .csv is written beside it", out.display());
+    }
+    if !is_curve && beside {
         let zma = out.with_extension("zma");
         let (f, z) = fit.h1.coherent();
         let comments = vec![
@@ -98,9 +110,11 @@ pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
         .map_err(|e| e.to_string())?;
         wrote.push(zma.display().to_string());
     }
-    coilscope_io::atomic_write(&csv, coilscope_ident::linear::impedance_csv(&fit.h1, fit).as_bytes())
-        .map_err(|e| e.to_string())?;
-    wrote.push(csv.display().to_string());
+    if beside {
+        coilscope_io::atomic_write(&csv, coilscope_ident::linear::impedance_csv(&fit.h1, fit).as_bytes())
+            .map_err(|e| e.to_string())?;
+        wrote.push(csv.display().to_string());
+    }
     let ts = thiele_small(params);
     let u = &result.uncertainty;
     let pm = |k: &str, scale: f64| u.value(k).map(|v| format!("+- {:.2e}", v * scale)).unwrap_or_default();

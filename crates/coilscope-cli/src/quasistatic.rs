@@ -14,6 +14,7 @@ use serde_json::json;
 pub(crate) fn cmd_quasistatic(a: QuasiArgs) -> Result<(), Failure> {
     use coilscope_ident::quasi_static::{quasi_static, Offset, Played, Push, QuasiStaticOptions};
     let (out, points, reach, hold, order) = (a.out.as_path(), a.points, a.reach, a.hold, a.order);
+    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     if !(reach > 0.0 && reach <= 1.0) {
         return Err(format!("--reach {reach} is not valid (0 .. 1 of the range)").into());
     }

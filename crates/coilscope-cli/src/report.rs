@@ -17,6 +17,7 @@ pub(crate) fn cmd_export(
     out: &Path,
     o: &coilscope_io::export::SafetydOptions,
 ) -> Result<(), String> {
+    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     use coilscope_io::export;
     let input = coilscope_report::input_from(spec)?;
     let mut p = input.params;
@@ -53,6 +54,7 @@ pub(crate) fn cmd_compensate(
     min_force_factor: f64,
     scale: Option<f64>,
 ) -> Result<(), String> {
+    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     use coilscope_core::inverse::{compensate, CompensateOptions};
     let p = coilscope_report::input_from(params)?.params;
     let (fs, u) = read_voltage(input, scale.map(|s| vec![s]).as_deref()).map_err(|e| e.to_string())?;
@@ -131,6 +133,7 @@ pub(crate) fn cmd_report(
     compare: Option<&str>,
     l: &LimitArgs,
 ) -> Result<(), String> {
+    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     let th = l.thresholds()?;
     if let Some(v) = volts {
         if !(v.is_finite() && v > 0.0 && v <= 500.0) {

@@ -16,6 +16,13 @@ fn info_path(out: &Path) -> PathBuf {
 }
 
 pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
+    // The outputs, before the work: the recording and, unless it goes to a device such as
+    // /dev/null, its description beside it.
+    coilscope_io::check_writable(&a.out).map_err(|e| e.to_string())?;
+    let info_beside = !coilscope_io::is_stream(&a.out);
+    if info_beside {
+        coilscope_io::check_writable(&info_path(&a.out)).map_err(|e| e.to_string())?;
+    }
     let params = a.world.apply(load_parameters(&a.driver).map_err(|e| e.to_string())?);
     if let Some(db) = a.snr_db {
         if !(db.is_finite() && db > 0.0) {
@@ -102,7 +109,9 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
         "chain": chain,
     });
     let info_file = info_path(&a.out);
-    write_json(&info_file, &info).map_err(|e| e.to_string())?;
+    if info_beside {
+        write_json(&info_file, &info).map_err(|e| e.to_string())?;
+    }
 
     let name = params.name.as_deref().unwrap_or(&a.driver);
     println!(
@@ -124,6 +133,10 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
     if trace.range_excess > 0.0 {
         println!("  warning: x exceeded x_range by {:.3} mm (parameters extrapolated)", trace.range_excess * 1e3);
     }
-    println!("  wrote {} and {}", a.out.display(), info_file.display());
+    if info_beside {
+        println!("  wrote {} and {}", a.out.display(), info_file.display());
+    } else {
+        println!("  wrote {} (a device: no description beside it)", a.out.display());
+    }
     Ok(())
 }

@@ -324,3 +324,35 @@ fn identify_bad_inputs_get_one_clear_line() {
     let e = one_error_line(&coilscope(&["identify", "missing.wav", "--mms", "0.015", "--out", out]));
     assert!(e.contains("missing.wav"), "{e}");
 }
+
+/// Outputs are checked before the work: a result path whose directory is missing, or a new
+/// file among the devices, is refused before the input is even read; a result sent to a
+/// device (`/dev/null`) is written there with nothing created beside it.
+#[test]
+fn outputs_are_checked_before_the_work_and_nothing_lands_beside_a_device() {
+    let d = tempfile::tempdir().unwrap();
+    let missing = d.path().join("missing.wav");
+    let missing = missing.to_str().unwrap();
+    for cmd in [
+        vec!["linear", missing, "--mms", "0.01", "--out", "/nonexistent-dir-xyz/lin.json"],
+        vec!["identify", missing, "--mms", "0.01", "--out", "/nonexistent-dir-xyz/id.json"],
+        vec!["simulate", "sb17cac35-4", "--volts", "1", "--input", missing, "--out", "/nonexistent-dir-xyz/s.wav"],
+        vec!["calibrate", missing, "--resistor", "4", "--out", "/nonexistent-dir-xyz/chain.json"],
+    ] {
+        let e = one_error_line(&coilscope(&cmd));
+        assert!(e.contains("/nonexistent-dir-xyz") && e.contains("does not exist"), "{cmd:?}: {e}");
+    }
+    let e = one_error_line(&coilscope(&["linear", missing, "--mms", "0.01", "--out", "/dev/coilscope-lin.json"]));
+    assert!(e.contains("the devices' directory"), "{e}");
+
+    let rec = d.path().join("small.wav");
+    let o = coilscope(&["simulate", "sb17cac35-4", "--volts", "0.1", "--seconds", "2", "--out", rec.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = coilscope(&["linear", rec.to_str().unwrap(), "--mms", "0.0107", "--out", "/dev/null"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(matches!(o.status.code(), Some(0 | 3)), "{err}");
+    assert!(err.contains("/dev/null is a device: no .zma or .csv is written beside it"), "{err}");
+    let o = coilscope(&["simulate", "sb17cac35-4", "--volts", "0.1", "--seconds", "0.2", "--out", "/dev/null"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("a device: no description beside it"));
+}

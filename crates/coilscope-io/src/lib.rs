@@ -40,14 +40,17 @@ fn err<T>(msg: impl Into<String>) -> Result<T, IoError> {
     Err(IoError(msg.into()))
 }
 
-/// Write `bytes` to `path` atomically: a temporary file beside the target, synced, then
-/// renamed over it, so a reader sees the old file or the new one, never half of one.
-///
-/// * A symlink is followed: its target is replaced atomically, the link stays.
-/// * A FIFO or character device (`/dev/null`, `/dev/stdout`, a pipe) is written straight
-///   (there is nothing to replace atomically, and replacing it would destroy it).
-/// * Any other special file (block device, socket, directory) is refused.
-pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
+/// Where a write to a path goes, symlinks followed.
+enum Target {
+    /// An existing FIFO or character device (`/dev/null`, `/dev/stdout`, a pipe): written
+    /// straight.
+    Stream(PathBuf),
+    /// A regular file, existing or new: replaced atomically from a temporary file in `dir`.
+    File { path: PathBuf, dir: PathBuf, name: String },
+}
+
+/// Resolve `path` for writing, or say why it cannot be written.
+fn write_target(path: &Path) -> Result<Target, IoError> {
     use std::os::unix::fs::FileTypeExt;
     // Follow symlinks (a chain of them) to the file that is really written.
     let mut target = path.to_path_buf();
@@ -64,11 +67,7 @@ pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     if let Ok(m) = std::fs::metadata(&target) {
         let t = m.file_type();
         if t.is_fifo() || t.is_char_device() {
-            return std::fs::OpenOptions::new()
-                .write(true)
-                .open(&target)
-                .and_then(|mut f| f.write_all(bytes))
-                .map_err(|e| IoError(format!("{}: cannot write ({e})", path.display())));
+            return Ok(Target::Stream(target));
         }
         if !t.is_file() {
             let what = if t.is_dir() {
@@ -83,18 +82,61 @@ pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
             return err(format!("{}: is {what}; give the path of a file to write", path.display()));
         }
     }
-    let path = target.as_path();
-    let dir = match path.parent() {
+    let dir = match target.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
     if !dir.is_dir() {
         return err(format!("{}: the directory {} does not exist", path.display(), dir.display()));
     }
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    // The devices' directory holds devices, not results: a regular file there (`/dev/null.zma`
+    // beside `--out /dev/null`) is refused; an existing device is written above.
+    if std::fs::canonicalize(&dir).is_ok_and(|d| d.starts_with("/dev")) {
+        return err(format!(
+            "{}: a regular file in {}, the devices' directory; give a path elsewhere (an existing device such as /dev/null is written straight)",
+            path.display(),
+            dir.display()
+        ));
+    }
+    let name = target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     if name.is_empty() {
         return err(format!("{}: not a file path", path.display()));
     }
+    Ok(Target::File { path: target, dir, name })
+}
+
+/// Check, before the work, that [`atomic_write`] can write `path`: its directory exists, it
+/// is not a directory or another special file, and it is not a regular file among the devices.
+pub fn check_writable(path: &Path) -> Result<(), IoError> {
+    write_target(path).map(|_| ())
+}
+
+/// Whether `path` (symlinks followed) is an existing FIFO or character device (`/dev/null`,
+/// a pipe), which [`atomic_write`] writes straight: files derived from its name (a `.zma`
+/// beside a result) have nowhere to go.
+pub fn is_stream(path: &Path) -> bool {
+    matches!(write_target(path), Ok(Target::Stream(_)))
+}
+
+/// Write `bytes` to `path` atomically: a temporary file beside the target, synced, then
+/// renamed over it, so a reader sees the old file or the new one, never half of one.
+///
+/// * A symlink is followed: its target is replaced atomically, the link stays.
+/// * A FIFO or character device (`/dev/null`, `/dev/stdout`, a pipe) is written straight
+///   (there is nothing to replace atomically, and replacing it would destroy it).
+/// * Any other special file (block device, socket, directory) is refused, and so is a
+///   regular file in `/dev`.
+pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
+    let (target, dir, name) = match write_target(path)? {
+        Target::Stream(target) => {
+            return std::fs::OpenOptions::new()
+                .write(true)
+                .open(&target)
+                .and_then(|mut f| f.write_all(bytes))
+                .map_err(|e| IoError(format!("{}: cannot write ({e})", path.display())));
+        }
+        Target::File { path, dir, name } => (path, dir, name),
+    };
     // A temporary file of its own beside the target (`tempfile`: a new name each time, so
     // that writers in one process never share one; removed if anything fails), with the
     // permissions of a plain create (0666 less the umask) rather than a temporary file's
@@ -108,7 +150,7 @@ pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
             .tempfile_in(&dir)?;
         f.write_all(bytes)?;
         f.as_file().sync_all()?;
-        f.persist(path).map(|_| ()).map_err(|e| e.error)
+        f.persist(&target).map(|_| ()).map_err(|e| e.error)
     })();
     result.map_err(|e| IoError(format!("{}: cannot write ({e})", path.display())))
 }
@@ -542,5 +584,19 @@ mod tests {
         // A directory is refused by name.
         let e = atomic_write(d.path(), b"x").unwrap_err().to_string();
         assert!(e.contains("is a directory"), "{e}");
+    }
+
+    #[test]
+    fn a_device_is_written_but_no_regular_file_appears_among_the_devices() {
+        assert!(check_writable(Path::new("/dev/null")).is_ok() && is_stream(Path::new("/dev/null")));
+        for p in ["/dev/null.zma", "/dev/coilscope-result.json"] {
+            let e = check_writable(Path::new(p)).unwrap_err().0;
+            assert!(e.contains("the devices' directory") && e.contains(p), "{e}");
+            assert!(atomic_write(Path::new(p), b"x").is_err(), "{p} was written");
+        }
+        let d = tempfile::tempdir().unwrap();
+        let file = d.path().join("result.json");
+        assert!(check_writable(&file).is_ok() && !is_stream(&file) && !file.exists(), "a check writes nothing");
+        assert!(check_writable(Path::new("/nonexistent-dir-xyz/out.json")).unwrap_err().0.contains("does not exist"));
     }
 }
