@@ -87,6 +87,33 @@ pub struct Parameters {
     pub extra: Map<String, Value>,
 }
 
+/// Figures other tools write beside a parameter set (the Thiele/Small figures derived from
+/// it): unknown to the contract, kept as every unknown key is, and never taken for a
+/// misspelling of a key they resemble (`Qms` is one edit from `Rms`).
+const DERIVED_FIGURES: &[&str] =
+    &["fs", "Fs", "Qms", "Qes", "Qts", "Vas", "Cms", "Res", "Xmax", "Xlim", "EBP", "Vd", "SPL", "Sens", "Znom"];
+
+impl Parameters {
+    /// The keys of the set that the contract does not define but that lie within one edit of
+    /// one it does (two for keys of five letters or more), each with the known key it likely
+    /// meant: `Bll` beside `Bl`. They are kept, as every unknown key is, but a misspelt key
+    /// leaves the parameter meant absent, so readers warn about each (case-only differences
+    /// are refused outright when the file is read).
+    pub fn near_miss_keys(&self) -> Vec<(String, &'static str)> {
+        let known = crate::schema::file_keys();
+        self.extra
+            .keys()
+            .filter(|k| !DERIVED_FIGURES.contains(&k.as_str()))
+            .filter_map(|k| {
+                let (d, nearest) =
+                    known.iter().map(|kk| (strsim::damerau_levenshtein(k, kk), *kk)).min_by_key(|(d, _)| *d)?;
+                let allowed = if k.chars().count() >= 5 { 2 } else { 1 };
+                (d <= allowed).then(|| (k.clone(), nearest))
+            })
+            .collect()
+    }
+}
+
 /// A parameter-file problem, with where it is and what would be valid.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ParamError {
@@ -754,6 +781,25 @@ mod tests {
         }
         assert!(embedded_driver("SB17CAC35-4").is_some());
         assert!(embedded_driver("nope").is_none());
+    }
+
+    #[test]
+    fn a_misspelt_key_is_named_with_the_key_it_likely_meant() {
+        let mut v = embedded_driver("sb17cac35-4").unwrap().to_json_value();
+        let o = v.as_object_mut().unwrap();
+        o.insert("Bll".into(), serde_json::json!([5.0]));
+        o.insert("thermall".into(), serde_json::json!({}));
+        // Figures other tools write, and keys far from any known one, are not misspellings.
+        o.insert("Qms".into(), serde_json::json!(3.1));
+        o.insert("Vas".into(), serde_json::json!(0.02));
+        o.insert("manufacturer".into(), serde_json::json!("SB Acoustics"));
+        let p = Parameters::from_json_value(&v, "t.json").unwrap();
+        let mut got = p.near_miss_keys();
+        got.sort();
+        assert_eq!(got, vec![("Bll".to_string(), "Bl"), ("thermall".to_string(), "thermal")]);
+        for name in embedded_driver_names() {
+            assert!(embedded_driver(name).unwrap().near_miss_keys().is_empty(), "{name}");
+        }
     }
 
     #[test]

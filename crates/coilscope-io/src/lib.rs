@@ -408,7 +408,14 @@ pub fn load_parameters(spec: &str) -> Result<Parameters, IoError> {
         return err(format!("{spec}: neither an embedded driver ({}) nor an existing parameter file (nor a drawn driver, population:SEED)", embedded_driver_names().join(", ")));
     }
     let text = std::fs::read_to_string(path).map_err(|e| IoError(format!("{spec}: cannot read ({e})")))?;
-    Parameters::from_json_str(&text, spec).map_err(|e| IoError(e.to_string()))
+    let p = Parameters::from_json_str(&text, spec).map_err(|e| IoError(e.to_string()))?;
+    // A file from a user's hands: a misspelt key is said at once (the set still loads).
+    for (key, meant) in p.near_miss_keys() {
+        eprintln!(
+            "warning: {spec}: key `{key}` is not one coilscope reads (kept in the file as is); did you mean `{meant}`?"
+        );
+    }
+    Ok(p)
 }
 
 #[cfg(test)]
