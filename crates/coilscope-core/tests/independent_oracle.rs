@@ -197,7 +197,7 @@ fn hd(x: &[f64], f0: f64, order: usize) -> f64 {
 /// played plain and through the pre-inverse ([`coilscope_core::inverse::compensate`]), each
 /// run through this file's oracle (not the simulator the controller was written against):
 /// the worst of the displacement's HD2 and HD3 falls by at least 20 dB. Measured: see the
-/// README (compensation).
+/// compensation section of docs/accuracy.md.
 #[test]
 fn compensation_lowers_the_displacement_distortion_at_30_hz_in_the_oracle() {
     use coilscope_core::inverse::{compensate, linear_reference, CompensateOptions};
