@@ -141,9 +141,19 @@ pub(crate) fn cmd_report(
         }
     }
     let mut input = coilscope_report::input_from(spec)?;
+    // A run database holds a measurement's states over time: it goes with a measurement's
+    // result only (an identify result or a parameter set beside one is drawn without it).
+    let measured = input.result.as_ref().is_some_and(|r| r.measurement.is_some());
+    if let (Some(path), false) = (db, measured) {
+        return Err(format!(
+            "--db {}: {spec} is not the result of a measurement (it has no `measurement`), so no run's states belong with it; leave --db out",
+            path.display()
+        ));
+    }
     let db_path = db
         .map(Path::to_path_buf)
-        .or_else(|| Path::new(spec).parent().map(|d| d.join("run.sqlite")).filter(|p| p.exists()));
+        .or_else(|| Path::new(spec).parent().map(|d| d.join("run.sqlite")).filter(|p| p.exists()))
+        .filter(|_| measured);
     if let Some(path) = db_path {
         // The database must be this measurement's: its last run's device is the result's.
         if let (Some(m), Some(run)) = (

@@ -138,4 +138,16 @@ fn a_run_database_of_another_measurement_is_refused() {
         out.to_str().unwrap(),
     ]);
     assert!(o.status.success(), "{}", text(&o));
+    // A parameter set (or an identify result) is no measurement: no run's states go with it.
+    let o = coilscope(&[
+        "report",
+        "sb17cac35-4",
+        "--db",
+        a.join("run.sqlite").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("is not the result of a measurement") && e.contains("leave --db out"), "{e}");
 }
