@@ -136,6 +136,22 @@ pub(crate) fn cmd_quasistatic(a: QuasiArgs) -> Result<(), Failure> {
     if q.rest_drift.is_finite() {
         println!("  rest position 1.5 s after the largest offset is released: {:+.4} mm", q.rest_drift * 1e3);
     }
+    // Points short of the reach asked for are not an error (the DC a point needs grows as Bl
+    // falls and Kms rises), but the user is told, and where the curves end.
+    if let Some([lo, hi]) = q.params.x_range {
+        let asked = [reach * opts.range[0], reach * opts.range[1]];
+        let share = (lo / asked[0]).min(hi / asked[1]);
+        if share < 0.95 {
+            println!(
+                "  note: the points reached {:+.2} .. {:+.2} mm, {:.0} % of the {:+.2} .. {:+.2} mm asked (--reach {reach}): the offset a point needs grows as Bl falls and Kms rises; the curves end at the last points (fit.x_range), beyond them they are not measured",
+                lo * 1e3,
+                hi * 1e3,
+                100.0 * share,
+                asked[0] * 1e3,
+                asked[1] * 1e3
+            );
+        }
+    }
     for w in &q.warnings {
         println!("  warning: {w}");
     }

@@ -356,3 +356,23 @@ fn outputs_are_checked_before_the_work_and_nothing_lands_beside_a_device() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(String::from_utf8_lossy(&o.stdout).contains("a device: no description beside it"));
 }
+
+/// A quasi-static run whose points fall short of the reach asked for says so, and its curves
+/// end at the last points (`fit.x_range`): the DC a point needs grows as the suspension
+/// stiffens, so a drawn woofer's points end near three quarters of the way.
+#[test]
+fn a_quasistatic_run_short_of_its_reach_says_so_and_its_curves_end_at_the_last_points() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("qs.json");
+    let o = coilscope(&["quasistatic", "population:woofer:5", "--reach", "0.9", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    let note =
+        text.lines().find(|l| l.contains("note: the points reached")).unwrap_or_else(|| panic!("no note: {text}"));
+    assert!(note.contains("(--reach 0.9)") && note.contains("the curves end at the last points"), "{note}");
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let span = r["fit"]["x_range"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap().abs()).fold(0.0, f64::max);
+    let range =
+        coilscope_core::population::parse_name("population:woofer:5").unwrap().unwrap().natural().x_range.unwrap()[1];
+    assert!(span > 0.0 && span < 0.95 * 0.9 * range, "x_range to {span} m of an asked {} m", 0.9 * range);
+}
