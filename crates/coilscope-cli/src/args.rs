@@ -91,8 +91,9 @@ pub(crate) struct FitArgs {
     /// The sense resistor (ohm) of `--sense-wiring driver+shunt`.
     #[arg(long, value_name = "OHM")]
     pub(crate) sense_ohm: Option<f64>,
-    /// Result file (JSON, coilscope.result/1). `linear` also writes the measured impedance
-    /// beside it as .zma and .csv.
+    /// Result file (JSON, coilscope.result/1). `linear` of a recording also writes the
+    /// measured impedance beside it as .zma and .csv; `identify` of several recordings takes
+    /// a directory here (one OUT/NAME.json each).
     #[arg(long)]
     pub(crate) out: PathBuf,
 }
@@ -720,8 +721,9 @@ pub(crate) struct CardArgs {
     pub(crate) sense_ohm: f64,
     /// The card's calibration (a chain file from `coilscope calibrate`): its delay, AC
     /// coupling and gain are corrected block by block, the offsets found in a 0.5 s silent
-    /// lead-in. With `measure --virtual`: the virtual driver is recorded through a simulated
-    /// card with this chain (its offsets and hum too) and measured through the correction.
+    /// lead-in. With `measure --virtual` the virtual driver is recorded through a simulated
+    /// card with this chain (its offsets and hum too) and measured through the correction;
+    /// `quasistatic` takes it with `--card` only.
     #[arg(long, value_name = "FILE")]
     pub(crate) chain: Option<PathBuf>,
     /// Where the voltage input is connected: `terminals` (across the driver alone: preferred)

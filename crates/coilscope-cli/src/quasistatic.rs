@@ -21,6 +21,9 @@ pub(crate) fn cmd_quasistatic(a: QuasiArgs) -> Result<(), Failure> {
     if !(0.5..=600.0).contains(&hold) {
         return Err(format!("--hold {hold} s is not valid (0.5 .. 600 s)").into());
     }
+    if let (Some(c), false) = (&a.card.chain, a.card.card) {
+        return Err(format!("--chain {}: quasistatic corrects a sound card's chain with --card only; the virtual driver is measured through ideal channels (leave --chain out)", c.display()).into());
+    }
     let fs = if a.card.card { a.rate as f64 } else { 48000.0 };
     let ac = generate(
         &Excitation::Pink { f_lo: 5.0, f_hi: 16000.0, crest: None },

@@ -376,3 +376,22 @@ fn a_quasistatic_run_short_of_its_reach_says_so_and_its_curves_end_at_the_last_p
         coilscope_core::population::parse_name("population:woofer:5").unwrap().unwrap().natural().x_range.unwrap()[1];
     assert!(span > 0.0 && span < 0.95 * 0.9 * range, "x_range to {span} m of an asked {} m", 0.9 * range);
 }
+
+/// `quasistatic` corrects a card's chain only on a card: on the virtual driver a `--chain`
+/// would be ignored, so it is refused by name.
+#[test]
+fn quasistatic_refuses_a_chain_it_would_ignore() {
+    let d = tempfile::tempdir().unwrap();
+    let chain = d.path().join("chain.json");
+    std::fs::write(&chain, r#"{"delay_i": 2e-5}"#).unwrap();
+    let out = d.path().join("qs.json");
+    let e = one_error_line(&coilscope(&[
+        "quasistatic",
+        "sb17cac35-4",
+        "--chain",
+        chain.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]));
+    assert!(e.contains("--chain") && e.contains("with --card only"), "{e}");
+}
