@@ -95,11 +95,14 @@ impl MeasureOptions {
         )?;
         check(
             self.max_volts.is_finite() && self.max_volts > 0.0 && self.max_volts <= 1000.0,
-            format!("--max-volts {} V is not valid (0 .. 1000 V rms)", self.max_volts),
+            format!("--max-volts {} V is not valid (more than 0, at most 1000 V rms)", self.max_volts),
         )?;
         check(
             self.start_volts > 0.0 && self.start_volts <= self.max_volts,
-            format!("--start-volts {} V is not valid (0 .. max-volts {} V)", self.start_volts, self.max_volts),
+            format!(
+                "--start-volts {} V is not valid (more than 0, at most --max-volts {} V)",
+                self.start_volts, self.max_volts
+            ),
         )?;
         if let Some(d) = self.duration {
             check(
@@ -110,7 +113,7 @@ impl MeasureOptions {
         if let Some(v) = self.hold_volts {
             check(
                 v > 0.0 && v <= self.max_volts,
-                format!("--volts {v} V is not valid (0 .. max-volts {} V)", self.max_volts),
+                format!("--volts {v} V is not valid (more than 0, at most --max-volts {} V)", self.max_volts),
             )?;
         }
         if let Some((after, v)) = self.cool {
