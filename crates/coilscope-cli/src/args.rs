@@ -126,6 +126,9 @@ impl LimitArgs {
     }
 }
 
+// One value of it is parsed per run and taken apart at once: its size does not matter, and
+// boxing the card's arguments would only clutter every command that reads them.
+#[allow(clippy::large_enum_variant)]
 #[derive(Subcommand)]
 pub(crate) enum Command {
     /// Simulate a driver (virtual transducer) and write a recording: voltage, current [, displacement].
@@ -329,6 +332,10 @@ pub(crate) enum Command {
         /// Moving mass (kg); for a virtual driver its own Mms is the default.
         #[arg(long)]
         mms: Option<f64>,
+        /// Effective radiating area (m^2), for Vas; for a virtual driver its own Sd is the
+        /// default.
+        #[arg(long, value_name = "M2")]
+        sd: Option<f64>,
         /// Target peak excursion, a length with its unit (4.5mm, 0.0045m, 450um; a bare
         /// number is metres and must be plausible); default: the safe range where
         /// Kms(x)/Kms(0) reaches --kms-limit.
@@ -764,6 +771,7 @@ pub(crate) struct MeasureArgs {
     pub(crate) replay: Option<PathBuf>,
     pub(crate) out: PathBuf,
     pub(crate) mms: Option<f64>,
+    pub(crate) sd: Option<f64>,
     pub(crate) target_x: Option<f64>,
     pub(crate) max_dt: f64,
     pub(crate) kms_limit: f64,

@@ -83,9 +83,19 @@ pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     use coilscope_measure::signal::Source;
     use coilscope_measure::store::Store;
     use std::io::IsTerminal;
+    if let Some(sd) = a.sd {
+        if !(sd.is_finite() && sd > 0.0 && sd < 10.0) {
+            return Err(
+                format!("--sd {sd}: give the effective radiating area in m^2 (e.g. 0.0133 for a 6.5\" cone)").into()
+            );
+        }
+    }
+    // Sd is the driver's geometry, not measured: given (--sd), or a virtual driver's own.
+    let mut sd = a.sd;
     let (mut device, mms, mms_source): (Box<dyn Device>, f64, String) = match (&a.virtual_driver, &a.replay) {
         (Some(d), None) => {
             let given = load_parameters(d).map_err(|e| e.to_string())?;
+            sd = sd.or(given.sd);
             let p = a.world.apply(given.clone());
             if p != given {
                 println!("virtual world: real (LOG creep lambda {} assumed, as real suspensions creep; --world published for the set as given)", coilscope_core::params::TYPICAL_CREEP_LAMBDA);
@@ -280,6 +290,7 @@ pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     };
     m.mms_source = mms_source;
     let mut j = m.result();
+    j.parameters.sd = sd;
     if reported_chain.is_some() {
         j.chain = reported_chain;
     }

@@ -116,6 +116,10 @@ fn a_run_database_of_another_measurement_is_refused() {
         ]);
         assert!(dir.join("result.json").exists(), "{}", text(&o));
     }
+    // Sd is the driver's geometry, not measured: a virtual driver's own is the result's, so
+    // the report can give Vas.
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(b.join("result.json")).unwrap()).unwrap();
+    assert_eq!(r["parameters"]["Sd"].as_f64(), coilscope_core::embedded_driver("sb17cac35-4").unwrap().sd);
     let out = d.path().join("r.html");
     let o = coilscope(&[
         "report",
