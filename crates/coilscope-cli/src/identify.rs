@@ -24,8 +24,8 @@ pub(crate) fn cmd_identify(
     out: &Path,
 ) -> Result<(), Failure> {
     use coilscope_ident::large::Stage;
-    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     use coilscope_workflow::identify::{identify_record, IdentifyRequest};
+    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     let origin = path.display().to_string();
     let mut rec = read_recording(path, scale).map_err(|e| e.to_string())?;
     let live = std::io::IsTerminal::is_terminal(&std::io::stderr());

@@ -7,7 +7,6 @@ use coilscope_io::{read_recording, write_json};
 use coilscope_workflow::chain::ChainMode;
 use std::path::Path;
 
-/// `--band LO,HI` (Hz).
 pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     use coilscope_ident::linear::ScaleMethod;
     use coilscope_workflow::linear::{linear, LinearInput, LinearRequest, Scale};
@@ -18,13 +17,8 @@ pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     let band = a.band.as_deref().map(crate::args::parse_band).transpose()?;
     // The outputs, before the work: the result, and beside it (unless it goes to a device
     // such as /dev/null) the measured impedance as .zma and .csv.
-    let beside = !coilscope_io::is_stream(out);
-    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
-    if beside {
-        for ext in ["zma", "csv"] {
-            coilscope_io::check_writable(&out.with_extension(ext)).map_err(|e| e.to_string())?;
-        }
-    }
+    let beside = coilscope_io::check_outputs(out, &[out.with_extension("zma"), out.with_extension("csv")])
+        .map_err(|e| e.to_string())?;
     let (path, is_curve) = match (&a.recording, &a.impedance) {
         (Some(p), None) => (p.clone(), false),
         (None, Some(p)) => (p.clone(), true),

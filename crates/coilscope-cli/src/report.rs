@@ -17,8 +17,8 @@ pub(crate) fn cmd_export(
     out: &Path,
     o: &coilscope_io::export::SafetydOptions,
 ) -> Result<(), String> {
-    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     use coilscope_io::export;
+    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     let input = coilscope_report::input_from(spec)?;
     let mut p = input.params;
     // A measured set has no name of its own: the result's device or recording names it.
@@ -54,8 +54,8 @@ pub(crate) fn cmd_compensate(
     min_force_factor: f64,
     scale: Option<f64>,
 ) -> Result<(), String> {
-    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     use coilscope_core::inverse::{compensate, CompensateOptions};
+    coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     let p = coilscope_report::input_from(params)?.params;
     let (fs, u) = read_voltage(input, scale.map(|s| vec![s]).as_deref()).map_err(|e| e.to_string())?;
     if u.is_empty() {

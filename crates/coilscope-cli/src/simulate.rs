@@ -18,11 +18,7 @@ fn info_path(out: &Path) -> PathBuf {
 pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
     // The outputs, before the work: the recording and, unless it goes to a device such as
     // /dev/null, its description beside it.
-    coilscope_io::check_writable(&a.out).map_err(|e| e.to_string())?;
-    let info_beside = !coilscope_io::is_stream(&a.out);
-    if info_beside {
-        coilscope_io::check_writable(&info_path(&a.out)).map_err(|e| e.to_string())?;
-    }
+    let info_beside = coilscope_io::check_outputs(&a.out, &[info_path(&a.out)]).map_err(|e| e.to_string())?;
     let params = a.world.apply(load_parameters(&a.driver).map_err(|e| e.to_string())?);
     if let Some(db) = a.snr_db {
         if !(db.is_finite() && db > 0.0) {
@@ -47,10 +43,7 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
         None => {
             let volts = a.volts.ok_or("--volts RMS is required with a generated excitation (e.g. --volts 2)")?;
             let band = match &a.band {
-                Some(b) => {
-                    let [lo, hi] = crate::args::parse_band(b)?;
-                    (lo, hi)
-                }
+                Some(b) => crate::args::parse_band(b).map(|[lo, hi]| (lo, hi))?,
                 None => (10.0, (8000.0f64).min(0.45 * a.rate as f64)),
             };
             let exc = match a.excitation {

@@ -111,11 +111,16 @@ pub fn check_writable(path: &Path) -> Result<(), IoError> {
     write_target(path).map(|_| ())
 }
 
-/// Whether `path` (symlinks followed) is an existing FIFO or character device (`/dev/null`,
-/// a pipe), which [`atomic_write`] writes straight: files derived from its name (a `.zma`
-/// beside a result) have nowhere to go.
-pub fn is_stream(path: &Path) -> bool {
-    matches!(write_target(path), Ok(Target::Stream(_)))
+/// Check, before the work, a command's output `out` and the files it writes beside it
+/// (`beside`, derived from its name: a `.zma`, a description). Returns whether those are to
+/// be written: not beside an existing FIFO or character device (symlinks followed) such as
+/// `/dev/null`, which [`atomic_write`] writes straight and where they have nowhere to go.
+pub fn check_outputs(out: &Path, beside: &[PathBuf]) -> Result<bool, IoError> {
+    if let Target::Stream(_) = write_target(out)? {
+        return Ok(false);
+    }
+    beside.iter().try_for_each(|p| check_writable(p))?;
+    Ok(true)
 }
 
 /// Write `bytes` to `path` atomically: a temporary file beside the target, synced, then
@@ -595,7 +600,9 @@ mod tests {
 
     #[test]
     fn a_device_is_written_but_no_regular_file_appears_among_the_devices() {
-        assert!(check_writable(Path::new("/dev/null")).is_ok() && is_stream(Path::new("/dev/null")));
+        let null = Path::new("/dev/null");
+        assert!(check_writable(null).is_ok());
+        assert_eq!(check_outputs(null, &[PathBuf::from("/dev/null.zma")]), Ok(false), "nothing goes beside a device");
         for p in ["/dev/null.zma", "/dev/coilscope-result.json"] {
             let e = check_writable(Path::new(p)).unwrap_err().0;
             assert!(e.contains("the devices' directory") && e.contains(p), "{e}");
@@ -603,7 +610,10 @@ mod tests {
         }
         let d = tempfile::tempdir().unwrap();
         let file = d.path().join("result.json");
-        assert!(check_writable(&file).is_ok() && !is_stream(&file) && !file.exists(), "a check writes nothing");
+        assert!(check_writable(&file).is_ok() && !file.exists(), "a check writes nothing");
+        assert_eq!(check_outputs(&file, &[file.with_extension("zma")]), Ok(true));
+        let e = check_outputs(&file, &[PathBuf::from("/nonexistent-dir-xyz/result.zma")]).unwrap_err().0;
+        assert!(e.contains("does not exist"), "{e}");
         assert!(check_writable(Path::new("/nonexistent-dir-xyz/out.json")).unwrap_err().0.contains("does not exist"));
     }
 }
