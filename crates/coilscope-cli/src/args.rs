@@ -197,6 +197,11 @@ pub(crate) enum Command {
         /// The sense resistor (ohm) of `--sense-wiring driver+shunt`.
         #[arg(long, value_name = "OHM")]
         sense_ohm: Option<f64>,
+        /// Put the driver in this box: a JSON file with the box (`{"type": "vented", "Vb":
+        /// 0.02, "fb": 38, ...}`, see docs/formats.md `enclosure`), a parameter set with one,
+        /// or a recording's description with `world.enclosure`. The driver needs Sd.
+        #[arg(long, value_name = "BOX.json")]
+        enclosure: Option<PathBuf>,
     },
     /// Small-signal (Thiele/Small) parameters from the impedance of a recording, or of a
     /// measured impedance file (--impedance Z.zma: REW, ARTA, LIMP, DATS, Klippel).
@@ -668,6 +673,7 @@ pub(crate) struct SimulateArgs {
     pub(crate) scale: Option<f64>,
     pub(crate) chain: Option<PathBuf>,
     pub(crate) wiring: SenseWiring,
+    pub(crate) enclosure: Option<PathBuf>,
 }
 
 /// `linear`'s arguments.

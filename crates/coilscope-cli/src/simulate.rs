@@ -19,7 +19,11 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
     // The outputs, before the work: the recording and, unless it goes to a device such as
     // /dev/null, its description beside it.
     let info_beside = coilscope_io::check_outputs(&a.out, &[info_path(&a.out)]).map_err(|e| e.to_string())?;
-    let params = a.world.apply(load_parameters(&a.driver).map_err(|e| e.to_string())?);
+    let mut params = a.world.apply(load_parameters(&a.driver).map_err(|e| e.to_string())?);
+    if let Some(path) = &a.enclosure {
+        params.enclosure = Some(coilscope_io::load_enclosure(path).map_err(|e| e.to_string())?);
+        params.validate(&format!("{} in the box of {}", a.driver, path.display())).map_err(|e| e.to_string())?;
+    }
     if let Some(db) = a.snr_db {
         if !(db.is_finite() && db > 0.0) {
             return Err(format!("--snr-db {db}: give a positive number of dB (e.g. 70)"));
@@ -101,6 +105,14 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
         "signal": what,
         "chain": chain,
     });
+    let mut info = info;
+    let box_peaks = box_peaks(&params, &trace);
+    if let (Some(e), Some(peaks)) = (&params.enclosure, &box_peaks) {
+        info["world"] = json!({"enclosure": e.to_json()});
+        for (k, v) in peaks {
+            info[*k] = json!(v);
+        }
+    }
     let info_file = info_path(&a.out);
     if info_beside {
         write_json(&info_file, &info).map_err(|e| e.to_string())?;
@@ -123,6 +135,17 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
     println!("  voltage, current {:.3} V RMS, {:.3} A RMS", s.u_rms, s.i_rms);
     println!("  electrical power {:.3} W (mean u i)", s.p_mean);
     println!("  voice coil       +{:.3} K at the end (max +{:.3} K), magnet +{:.4} K", s.dt_end, s.dt_max, s.dtm_end);
+    if let (Some(e), Some(peaks)) = (&params.enclosure, &box_peaks) {
+        let shown: Vec<String> = peaks
+            .iter()
+            .map(|(k, v)| match *k {
+                "p_box_peak_Pa" => format!("box pressure {v:.0} Pa"),
+                "port_air_velocity_peak_m_s" => format!("port air {v:.2} m/s"),
+                _ => format!("radiator {:.3} mm", v * 1e3),
+            })
+            .collect();
+        println!("  {:<16} {} ({}: peaks)", "box", shown.join(", "), e.type_name());
+    }
     if trace.range_excess > 0.0 {
         println!("  warning: x exceeded x_range by {:.3} mm (parameters extrapolated)", trace.range_excess * 1e3);
     }
@@ -132,4 +155,21 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
         println!("  wrote {} (a device: no description beside it)", a.out.display());
     }
     Ok(())
+}
+
+/// The box's peaks over a run, under the keys the independent simulator's descriptions use:
+/// the box pressure (Pa), and the port's air velocity (m/s, the port's flow over its area)
+/// or the radiator's excursion (m). `None` in free air.
+fn box_peaks(params: &coilscope_core::Parameters, trace: &coilscope_core::Trace) -> Option<Vec<(&'static str, f64)>> {
+    use coilscope_core::enclosure::BoxKind;
+    let e = params.enclosure.as_ref()?;
+    let peak = |k: usize| trace.boxed.iter().fold(0.0f64, |a, b| a.max(b[k].abs()));
+    let mut out = vec![("p_box_peak_Pa", peak(0))];
+    match &e.kind {
+        BoxKind::Closed => {}
+        BoxKind::Vented { port_area: Some(a), .. } => out.push(("port_air_velocity_peak_m_s", peak(1) / a)),
+        BoxKind::Vented { .. } => {}
+        BoxKind::PassiveRadiator { .. } => out.push(("radiator_x_peak_m", peak(1))),
+    }
+    Some(out)
 }

@@ -73,6 +73,53 @@ fn simulate_matches_independent_simulator_within_1e_3() {
     }
 }
 
+/// The box as the independent simulator realises it (`*-box-*` records: a closed box, a
+/// vented box with port compression, a passive radiator with a nonlinear suspension):
+/// `simulate --enclosure` with the record's own description, driven by its voltage, gives its
+/// current within 1e-3 and its box pressure, port air velocity and radiator excursion peaks
+/// within 0.1 %.
+#[test]
+#[cfg_attr(no_shared, ignore = "../shared is missing (COILSCOPE_NO_SHARED=1): skipped")]
+fn simulate_in_a_box_matches_independent_simulator() {
+    let dir = shared_recordings();
+    let out = tempfile::tempdir().unwrap();
+    for (driver, stem) in [
+        ("sb17cac35-4", "sb17cac35-4-box-closed"),
+        ("sb17cac35-4", "sb17cac35-4-box-vented"),
+        ("ptt4.0w04-01a", "ptt4.0w04-01a-box-pr"),
+    ] {
+        let input = dir.join(format!("{stem}.wav"));
+        let described = dir.join(format!("{stem}.info.json"));
+        let sim = out.path().join(format!("{stem}.wav"));
+        let o = Command::new(env!("CARGO_BIN_EXE_coilscope"))
+            .args(["simulate", driver, "--out"])
+            .arg(&sim)
+            .arg("--input")
+            .arg(&input)
+            .arg("--enclosure")
+            .arg(&described)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{stem}: {}", String::from_utf8_lossy(&o.stderr));
+        let reference = read_recording(&input, None).unwrap();
+        let ours = read_recording(&sim, None).unwrap();
+        let ei = rel_rms(&ours.i, &reference.i);
+        eprintln!("{stem}: current {ei:.2e}");
+        assert!(ei < 1e-3, "{stem}: current differs by {ei:.3e} relative RMS");
+        let (theirs, mine) = (info(&described), info(&out.path().join(format!("{stem}.info.json"))));
+        assert_eq!(mine["world"]["enclosure"]["type"], theirs["world"]["enclosure"]["type"], "{stem}");
+        let mut compared = 0;
+        for key in ["p_box_peak_Pa", "port_air_velocity_peak_m_s", "radiator_x_peak_m"] {
+            let Some(want) = theirs[key].as_f64() else { continue };
+            let got = mine[key].as_f64().unwrap_or(f64::NAN);
+            eprintln!("{stem}: {key} {got:.5} (independent: {want:.5})");
+            assert!((got / want - 1.0).abs() < 1e-3, "{stem}: {key} {got} against the independent simulator's {want}");
+            compared += 1;
+        }
+        assert!(compared >= 1, "{stem}: no box peak to compare");
+    }
+}
+
 // ---------------------------------------------------------------------------------------
 // The measurement pipeline in replay mode on the same recordings: the small-signal record
 // followed by the large-signal record played three times (every record starts and ends at

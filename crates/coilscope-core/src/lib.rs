@@ -21,6 +21,7 @@
 //! * [`simulate`](mod@simulate): the virtual transducer driven by a sampled voltage.
 //! * [`small_signal`]: the linearised model at rest: impedance, Thiele/Small figures.
 //! * [`effects`]: which of a real driver's effects (creep, LR-3, Le(i), Rms(v)) a set has.
+//! * [`enclosure`]: the box the driver works into (closed, vented, passive radiator).
 //! * [`creep`]: LOG creep of the suspension as a bank of Maxwell elements.
 //! * [`population`]: physically plausible drivers drawn from a seed, microspeakers to
 //!   subwoofers, for judging the tool on drivers it was not developed on.
@@ -33,6 +34,7 @@
 pub mod chain;
 pub mod creep;
 pub mod effects;
+pub mod enclosure;
 pub mod excitation;
 pub mod fft;
 pub mod integrate;

@@ -320,6 +320,9 @@ pub struct Powers<D> {
     pub r3_loss: D,
     /// Loss in the creep bank's dampers ([`ExtModel`]; zero in [`Model`]).
     pub creep_loss: D,
+    /// Loss in the box: its leak, the port's losses or the radiator's ([`ExtModel`]; zero in
+    /// [`Model`]).
+    pub box_loss: D,
 }
 
 impl Model<f64> {
@@ -563,6 +566,7 @@ impl<D: DualNum<Primitive = f64> + Copy> Model<D> {
             rms_loss: self.rms_at(v) * v * v,
             r3_loss: D::zero(),
             creep_loss: D::zero(),
+            box_loss: D::zero(),
         }
     }
 }
@@ -576,6 +580,9 @@ pub const NEXT: usize = NSTATE + 1 + NCREEP;
 pub mod ext_idx {
     pub const I3: usize = super::NSTATE;
     pub const Y0: usize = super::NSTATE + 1;
+    /// The box's first state, its gauge pressure `p` (Pa); then the port's flow `U` (m^3/s)
+    /// or the radiator's `xp` (m) and `vp` (m/s).
+    pub const BOX: usize = super::NEXT;
 }
 
 /// States of an extended model without the creep bank (LR-3 only): the six of [`Model`] and
@@ -583,6 +590,10 @@ pub mod ext_idx {
 pub const NLR3: usize = NSTATE + 1;
 /// The extended model's state vector `[x, v, i, i2, Tv, Tm, i3, y_1 .. y_NCREEP]`.
 pub type ExtState<D> = [D; NEXT];
+/// States of an extended model with a box: [`NEXT`] and the box's
+/// ([`crate::enclosure::NBOXSTATE`]: its pressure, then the port's flow or the radiator's
+/// excursion and velocity), from [`ext_idx::BOX`] on.
+pub const NBOX: usize = NEXT + crate::enclosure::NBOXSTATE;
 
 /// The creep bank in the model's scalar type (see [`crate::creep`]).
 #[derive(Clone, Debug)]
@@ -605,12 +616,15 @@ pub struct CreepBank<D> {
 /// ```
 ///
 /// The static spring is `Kms(x) - Kc`: the real part of the dynamic stiffness at `f_ref` is
-/// `Kms(x)`. Without either effect use [`Model`] (six states: the fast path).
+/// `Kms(x)`. A box ([`crate::enclosure`]) adds the force `Sd p` of its air on the cone and
+/// its own states from [`ext_idx::BOX`] on ([`NBOX`] states). Without any of these use
+/// [`Model`] (six states: the fast path).
 #[derive(Clone, Debug)]
 pub struct ExtModel<D> {
     pub base: Model<D>,
     pub lr3: Option<(D, D)>,
     pub creep: Option<CreepBank<D>>,
+    pub enclosure: Option<crate::enclosure::BoxModel<D>>,
 }
 
 impl ExtModel<f64> {
@@ -629,7 +643,13 @@ impl<D: DualNum<Primitive = f64> + Copy> ExtModel<D> {
             }
             None => (None, None),
         };
-        ExtModel::from_parts(Model::lift_from(p), p.l3r3.map(|(l, r)| (D::from(l), D::from(r))), lambda, f_ref)
+        let enclosure = p.enclosure.as_ref().map(|e| {
+            crate::enclosure::BoxModel::new(e, p.kms.c[0], p.mms, p.sd.expect("a set with a box has Sd (validated)"))
+        });
+        ExtModel {
+            enclosure,
+            ..ExtModel::from_parts(Model::lift_from(p), p.l3r3.map(|(l, r)| (D::from(l), D::from(r))), lambda, f_ref)
+        }
     }
 
     /// The extended model of a [`Model`] and the effects' values in scalar type `D` (what a
@@ -651,7 +671,7 @@ impl<D: DualNum<Primitive = f64> + Copy> ExtModel<D> {
                 rate: std::array::from_fn(|k| 1.0 / taus[k]),
             }
         });
-        ExtModel { base, lr3, creep }
+        ExtModel { base, lr3, creep, enclosure: None }
     }
 
     /// Time derivative of the extended state for terminal voltage `u`.
@@ -660,13 +680,18 @@ impl<D: DualNum<Primitive = f64> + Copy> ExtModel<D> {
         self.deriv_n(s, u)
     }
 
-    /// [`ExtModel::deriv`] on the first `M` states: `M` = [`NEXT`], or [`NLR3`] (the six of
-    /// [`Model`] and `i3`) when there is no creep bank. An LR-3 model without creep then
+    /// [`ExtModel::deriv`] on the first `M` states: `M` = [`NBOX`] with a box, [`NEXT`]
+    /// without, or [`NLR3`] (the six of [`Model`] and `i3`) when there is no creep bank either. An LR-3 model without creep then
     /// carries 7 states instead of 17: ten fewer dual numbers through every RK4 stage of a
     /// fit (measured: an LR-3 iteration of `identify` took twice a plain one's time).
     #[inline]
     pub fn deriv_n<const M: usize>(&self, s: &[D; M], u: D) -> [D; M] {
-        debug_assert!(M == NEXT || (M == NLR3 && self.creep.is_none()), "{M} states cannot hold this model");
+        debug_assert!(
+            M == NBOX
+                || (M == NEXT && self.enclosure.is_none())
+                || (M == NLR3 && self.creep.is_none() && self.enclosure.is_none()),
+            "{M} states cannot hold this model"
+        );
         let base: State<D> = std::array::from_fn(|k| s[k]);
         let b = self.base.deriv(&base, u);
         let mut d = [D::zero(); M];
@@ -691,12 +716,18 @@ impl<D: DualNum<Primitive = f64> + Copy> ExtModel<D> {
             }
             d[idx::V] += force / self.base.mms;
         }
+        if let Some(b) = &self.enclosure {
+            let r = b.rates(x, s[idx::V], std::array::from_fn(|k| s[ext_idx::BOX + k]));
+            d[idx::V] += r.force / self.base.mms;
+            d[ext_idx::BOX..ext_idx::BOX + crate::enclosure::NBOXSTATE].copy_from_slice(&r.d);
+        }
         d
     }
 
     /// Stored energy (J): [`Model::stored_energy`] with the static spring `Kms(x) - Kc`, the
-    /// creep springs `1/2 dK (x - y_k)^2` and the LR-3 inductance `1/2 L3 i3^2`.
-    pub fn stored_energy(&self, s: &ExtState<D>) -> D {
+    /// creep springs `1/2 dK (x - y_k)^2`, the LR-3 inductance `1/2 L3 i3^2` and the box's
+    /// ([`crate::enclosure::BoxModel::stored_energy`]), on [`NEXT`] or [`NBOX`] states.
+    pub fn stored_energy<const M: usize>(&self, s: &[D; M]) -> D {
         let base: State<D> = std::array::from_fn(|k| s[k]);
         let mut e = self.base.stored_energy(&base);
         let x = s[idx::X];
@@ -710,11 +741,14 @@ impl<D: DualNum<Primitive = f64> + Copy> ExtModel<D> {
                 e += c.dk * dx * dx * 0.5;
             }
         }
+        if let (Some(b), true) = (&self.enclosure, M == NBOX) {
+            e += b.stored_energy(x, std::array::from_fn(|k| s[ext_idx::BOX + k]));
+        }
         e
     }
 
-    /// Power flows at a state for terminal voltage `u`.
-    pub fn powers(&self, s: &ExtState<D>, u: D) -> Powers<D> {
+    /// Power flows at a state for terminal voltage `u`, on [`NEXT`] or [`NBOX`] states.
+    pub fn powers<const M: usize>(&self, s: &[D; M], u: D) -> Powers<D> {
         let base: State<D> = std::array::from_fn(|k| s[k]);
         let mut p = self.base.powers(&base, u);
         if let Some((_, r3)) = self.lr3 {
@@ -728,6 +762,9 @@ impl<D: DualNum<Primitive = f64> + Copy> ExtModel<D> {
                 let dx = x - s[ext_idx::Y0 + k];
                 p.creep_loss += c.dk * dx * dx * c.rate[k];
             }
+        }
+        if let (Some(b), true) = (&self.enclosure, M == NBOX) {
+            p.box_loss = b.loss(std::array::from_fn(|k| s[ext_idx::BOX + k]));
         }
         p
     }

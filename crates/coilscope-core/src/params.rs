@@ -81,6 +81,8 @@ pub struct Parameters {
     /// modelled).
     pub rms_v: Option<Poly>,
     pub thermal: Option<Thermal>,
+    /// The box the driver works into (absent: free air; see [`crate::enclosure`]).
+    pub enclosure: Option<crate::enclosure::Enclosure>,
     /// Where the x-dependent functions are valid (m).
     pub x_range: Option<[f64; 2]>,
     /// Keys this version does not interpret, kept verbatim (e.g. `published_curves`).
@@ -368,6 +370,10 @@ impl Parameters {
                 return Err(ctx.err("L3", "missing: R3 is given, and the LR-3 branch needs both L3 and R3"))
             }
         };
+        let enclosure = match obj.get("enclosure") {
+            None | Some(Value::Null) => None,
+            Some(v) => Some(crate::enclosure::Enclosure::from_json(v, &|k, m| ctx.err(k, m))?),
+        };
         let le_i = obj.get("Le_i").map(|v| ctx.series("Le_i", v)).transpose()?;
         let rms_v = obj.get("Rms_v").map(|v| ctx.series("Rms_v", v)).transpose()?;
         let extra: Map<String, Value> = obj
@@ -391,6 +397,7 @@ impl Parameters {
             le_i,
             rms_v,
             thermal,
+            enclosure,
             x_range,
             extra,
         };
@@ -460,6 +467,15 @@ impl Parameters {
                     ),
                 ));
             }
+        }
+        if let Some(e) = &self.enclosure {
+            if self.sd.is_none() {
+                return Err(ctx.err(
+                    "Sd",
+                    format!("missing: a driver in a box ({} enclosure) needs its radiating area Sd in m^2, the area the box air pushes on", e.type_name()),
+                ));
+            }
+            e.check(&|k, m| ctx.err(k, m))?;
         }
         if let Some(c) = &self.creep {
             if !(c.lambda >= 0.0 && c.lambda < 0.5) {
@@ -608,6 +624,31 @@ impl Parameters {
             "thermal.Ctm" => thermal(&|t| t.ctm),
             "thermal.rv" => self.thermal.as_ref().filter(|t| t.rv > 0.0).map(|t| V::Number(t.rv)),
             "x_range" => self.x_range.map(V::Range),
+            k if k.starts_with("enclosure.") => self.enclosure_value(&k["enclosure.".len()..]),
+            _ => None,
+        }
+    }
+
+    /// A value of the box (`Vb`, `fb`, ...; [`Parameters::get`] with `enclosure.` taken off).
+    fn enclosure_value(&self, key: &str) -> Option<SchemaValue<'_>> {
+        use crate::enclosure::BoxKind;
+        use SchemaValue as V;
+        let e = self.enclosure.as_ref()?;
+        let num = |v: Option<f64>| v.map(V::Number);
+        match (key, &e.kind) {
+            ("type", _) => Some(V::Text(e.type_name())),
+            ("Vb", _) => Some(V::Number(e.vb)),
+            ("adiabatic", _) => Some(V::Flag(e.adiabatic)),
+            ("QL", _) => num(e.ql),
+            ("fb", BoxKind::Vented { fb, .. }) => Some(V::Number(*fb)),
+            ("Qp", BoxKind::Vented { qp, .. }) => num(*qp),
+            ("port_area", BoxKind::Vented { port_area, .. }) => num(*port_area),
+            ("port_loss", BoxKind::Vented { port_loss, .. }) => num(*port_loss),
+            ("knl", BoxKind::Vented { knl, .. }) => num(*knl),
+            ("Sp", BoxKind::PassiveRadiator { sp, .. }) => Some(V::Number(*sp)),
+            ("Mmp", BoxKind::PassiveRadiator { mmp, .. }) => Some(V::Number(*mmp)),
+            ("Kmp", BoxKind::PassiveRadiator { kmp, .. }) => Some(V::Series(kmp)),
+            ("Rmp", BoxKind::PassiveRadiator { rmp, .. }) => Some(V::Number(*rmp)),
             _ => None,
         }
     }
@@ -618,7 +659,7 @@ impl Parameters {
         use crate::schema::{Kind, ENTRIES};
         ENTRIES
             .iter()
-            .filter(|e| !e.realisation && matches!(e.kind, Kind::Number | Kind::SeriesX))
+            .filter(|e| !e.realisation && matches!(e.kind, Kind::Number | Kind::SeriesX | Kind::SeriesXp))
             .filter_map(|e| self.get(e.key).and_then(|v| v.at_rest()).map(|v| (e, v)))
     }
 
@@ -632,10 +673,15 @@ impl Parameters {
             let Some(v) = self.get(e.key) else { continue };
             let json: Value = match v {
                 SchemaValue::Number(x) => x.into(),
-                SchemaValue::Series(p) if e.kind == crate::schema::Kind::SeriesX => series_json(p),
+                SchemaValue::Series(p)
+                    if matches!(e.kind, crate::schema::Kind::SeriesX | crate::schema::Kind::SeriesXp) =>
+                {
+                    series_json(p)
+                }
                 SchemaValue::Series(p) => Value::Array(p.c.iter().map(|&c| c.into()).collect()),
                 SchemaValue::Range(r) => Value::Array(vec![r[0].into(), r[1].into()]),
                 SchemaValue::Text(t) => t.into(),
+                SchemaValue::Flag(b) => b.into(),
             };
             match e.key.split_once('.') {
                 Some((object, k)) => {
@@ -683,11 +729,11 @@ impl Parameters {
         (self.kms.c[0] / self.mms).sqrt() / (2.0 * std::f64::consts::PI)
     }
 
-    /// Whether the set has an effect with states of its own (creep, LR-3), which needs
+    /// Whether the set has an effect with states of its own (creep, LR-3, a box), which needs
     /// [`crate::model::ExtModel`]; without one, [`crate::model::Model`] is the same model,
     /// faster (it has Le(i) and Rms(v)).
     pub fn needs_ext_states(&self) -> bool {
-        self.creep.is_some() || self.l3r3.is_some()
+        self.creep.is_some() || self.l3r3.is_some() || self.enclosure.is_some()
     }
 
     /// Electrical time constant of the fast mode, min over the valid range of
@@ -826,16 +872,40 @@ mod tests {
         p.rms_v = Some(Poly { c: vec![p.rms, 0.0, 0.3] });
         p.sd = Some(0.0133);
         p.thermal.as_mut().unwrap().rv = 1.5;
-        p.validate("all").unwrap();
+        // The box's keys depend on its type (and a port's quadratic loss is given one of two
+        // ways): three boxes between them have every one.
+        use crate::enclosure::{BoxKind, Enclosure};
+        let port = |port_loss: Option<f64>, knl: Option<f64>| BoxKind::Vented {
+            fb: 38.0,
+            qp: Some(40.0),
+            port_area: Some(0.002),
+            port_loss,
+            knl,
+        };
+        let boxes = [
+            port(Some(1.5), None),
+            port(None, Some(2.0e5)),
+            BoxKind::PassiveRadiator { sp: 0.0095, mmp: 0.05, kmp: Poly { c: vec![900.0, 0.0, 1.5e7] }, rmp: 0.8 },
+        ];
+        let sets: Vec<Parameters> = boxes
+            .into_iter()
+            .map(|kind| Parameters {
+                enclosure: Some(Enclosure { vb: 0.02, ql: Some(8.0), adiabatic: false, kind }),
+                ..p.clone()
+            })
+            .collect();
         for e in crate::schema::ENTRIES {
-            assert!(p.get(e.key).is_some(), "{} unreachable", e.key);
+            assert!(sets.iter().any(|p| p.get(e.key).is_some()), "{} unreachable", e.key);
         }
-        assert!(p.get("nope").is_none());
-        let json = p.to_json_value();
-        for key in crate::schema::file_keys() {
-            assert!(json.get(key).is_some(), "{key} not written");
+        for p in &sets {
+            p.validate("all").unwrap();
+            assert!(p.get("nope").is_none());
+            let json = p.to_json_value();
+            for key in crate::schema::file_keys() {
+                assert!(json.get(key).is_some(), "{key} not written");
+            }
+            assert_eq!(&Parameters::from_json_value(&json, "again").unwrap(), p);
         }
-        assert_eq!(Parameters::from_json_value(&json, "again").unwrap(), p);
         // Absent entries are absent.
         let bare = p.three_state();
         assert!(bare.get("L2").is_none() && bare.get("thermal.Rtv").is_none() && bare.get("Le_i").is_none());

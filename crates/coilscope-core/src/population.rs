@@ -470,6 +470,7 @@ fn try_draw(class: Class, seed: u64, rng: &mut ChaCha8Rng) -> Option<Draw> {
         le_i: None,
         rms_v: None,
         thermal: Some(Thermal { alpha: ALPHA_COPPER, rtv, ctv, rtm, ctm, rv: 0.0 }),
+        enclosure: None,
         x_range: Some([-x, x]),
         extra: Default::default(),
     };

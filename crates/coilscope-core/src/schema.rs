@@ -24,8 +24,12 @@ pub enum Kind {
     SeriesI,
     /// An ascending power series in the speed |v| (m/s).
     SeriesV,
+    /// An ascending power series in a passive radiator's excursion xp (m).
+    SeriesXp,
     /// `[min, max]` (m).
     Range,
+    /// `true` or `false`.
+    Flag,
     /// Text.
     Text,
 }
@@ -45,6 +49,8 @@ pub enum Component {
     Mechanics,
     /// Two-node thermal model.
     Thermal,
+    /// The box the driver works into ([`crate::enclosure`]).
+    Enclosure,
     /// Where the curves hold, what the set is.
     About,
 }
@@ -191,6 +197,51 @@ pub const ENTRIES: &[Entry] = &[
     e("thermal.Rtm", "K/W", K::Number, C::Thermal, false, ("K/W", 1.0), "magnet to ambient thermal resistance"),
     e("thermal.Ctm", "J/K", K::Number, C::Thermal, false, ("J/K", 1.0), "magnet heat capacity"),
     extension("thermal.rv", "s/m", C::Thermal, "convection cooling: Rtv(v) = Rtv / (1 + rv |v|)"),
+    e("enclosure.type", "", K::Text, C::Enclosure, false, ("", 1.0), "the box: closed, vented or passive_radiator"),
+    e("enclosure.Vb", "m^3", K::Number, C::Enclosure, false, ("l", 1e3), "net box volume with the cone at rest"),
+    e(
+        "enclosure.adiabatic",
+        "",
+        K::Flag,
+        C::Enclosure,
+        false,
+        ("", 1.0),
+        "the box air's law: adiabatic (p0 + p) V^gamma = const, or the linear gamma p0 / Vb",
+    ),
+    e("enclosure.QL", "1", K::Number, C::Enclosure, false, ("", 1.0), "the leak's Q at the box's tuning"),
+    e("enclosure.fb", "Hz", K::Number, C::Enclosure, false, ("Hz", 1.0), "the port's Helmholtz tuning on the box air"),
+    e("enclosure.Qp", "1", K::Number, C::Enclosure, false, ("", 1.0), "the port's linear loss as a Q at fb"),
+    e("enclosure.port_area", "m^2", K::Number, C::Enclosure, false, ("cm^2", 1e4), "the port's cross-section"),
+    e(
+        "enclosure.port_loss",
+        "1",
+        K::Number,
+        C::Enclosure,
+        false,
+        ("", 1.0),
+        "the port's quadratic loss k: a pressure drop k rho/2 (U/port_area)^2 (port compression)",
+    ),
+    e(
+        "enclosure.knl",
+        "Pa s^2/m^6",
+        K::Number,
+        C::Enclosure,
+        false,
+        ("Pa s^2/m^6", 1.0),
+        "the port's quadratic loss coefficient where its area is unknown: knl U |U|",
+    ),
+    e("enclosure.Sp", "m^2", K::Number, C::Enclosure, false, ("cm^2", 1e4), "the passive radiator's area"),
+    e("enclosure.Mmp", "kg", K::Number, C::Enclosure, false, ("g", 1e3), "the passive radiator's moving mass"),
+    e(
+        "enclosure.Kmp",
+        "N/m",
+        K::SeriesXp,
+        C::Enclosure,
+        false,
+        ("N/m", 1.0),
+        "the passive radiator's secant stiffness Kmp(xp)",
+    ),
+    e("enclosure.Rmp", "N s/m", K::Number, C::Enclosure, false, ("N s/m", 1.0), "the passive radiator's loss"),
     e(
         "x_range",
         "m",
@@ -231,6 +282,7 @@ pub enum Value<'a> {
     Series(&'a Poly),
     Range([f64; 2]),
     Text(&'a str),
+    Flag(bool),
 }
 
 impl Value<'_> {
@@ -250,7 +302,7 @@ impl Entry {
     pub fn label(&self) -> String {
         let short = self.short();
         match self.kind {
-            Kind::SeriesX | Kind::SeriesI | Kind::SeriesV => format!("{short}(0)"),
+            Kind::SeriesX | Kind::SeriesI | Kind::SeriesV | Kind::SeriesXp => format!("{short}(0)"),
             _ => short.to_string(),
         }
     }
@@ -275,6 +327,7 @@ impl Entry {
             Kind::SeriesX => Some(("x", "m")),
             Kind::SeriesI => Some(("i", "A")),
             Kind::SeriesV => Some(("|v|", "m/s")),
+            Kind::SeriesXp => Some(("xp", "m")),
             _ => None,
         }
     }
@@ -289,7 +342,7 @@ mod tests {
         for (k, a) in ENTRIES.iter().enumerate() {
             assert!(ENTRIES[..k].iter().all(|b| b.key != a.key), "{} twice", a.key);
             if let Some((top, _)) = a.key.split_once('.') {
-                assert!(["thermal", "creep"].contains(&top), "{}", a.key);
+                assert!(["thermal", "creep", "enclosure"].contains(&top), "{}", a.key);
             }
         }
         assert_eq!(required_keys(), "Re, Le, Bl, Kms, Mms, Rms");

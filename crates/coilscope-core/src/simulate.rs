@@ -6,16 +6,17 @@
 //! [`SimError`] that names the time and the state.
 
 use crate::integrate::{exp_steps_for, substeps_for, Electrical, Scheme, Stepper, STIFF_LIMIT};
-use crate::model::{ext_idx, idx, ExtModel, ExtState, Model, State, NCREEP, NEXT, NSTATE};
+use crate::model::{ext_idx, idx, ExtModel, ExtState, Model, State, NBOX, NCREEP, NEXT, NSTATE};
 
 /// The model a simulation integrates, one sample at a time: [`Model`] (six states, the fast
-/// path, with Le(i) and Rms(v)), or [`ExtModel`] when the set has creep or LR-3 (their
-/// states kept here; its first six mirror the caller's state, which stays the one source of
-/// x, v, i, ...).
+/// path, with Le(i) and Rms(v)), or [`ExtModel`] when the set has creep, LR-3 or a box (their
+/// states kept here, [`NBOX`] of them, of which a set without a box integrates the first
+/// [`NEXT`]; the first six mirror the caller's state, which stays the one source of x, v, i,
+/// ...).
 #[derive(Clone, Debug)]
 pub struct Plant {
     model: Model<f64>,
-    ext: Option<(ExtModel<f64>, ExtState<f64>)>,
+    ext: Option<(ExtModel<f64>, [f64; NBOX])>,
     /// A constant external force on the cone over the moving mass (m/s^2; 0: none).
     accel: f64,
 }
@@ -52,7 +53,7 @@ impl Plant {
     pub fn new(params: &Parameters) -> Self {
         Plant {
             model: Model::new(params),
-            ext: params.needs_ext_states().then(|| (ExtModel::new(params), [0.0; NEXT])),
+            ext: params.needs_ext_states().then(|| (ExtModel::new(params), [0.0; NBOX])),
             accel: 0.0,
         }
     }
@@ -92,7 +93,7 @@ impl Plant {
             Some((model, s)) => {
                 let mut full = *s;
                 full[..NSTATE].copy_from_slice(state);
-                let d = model.deriv(&full, u);
+                let d = model.deriv_n(&full, u);
                 std::array::from_fn(|k| d[k])
             }
         };
@@ -103,7 +104,21 @@ impl Plant {
     /// The extended states (LR-3's current, creep's damper positions) the plant carries
     /// beside the six observed ones; `None` for a set without them.
     pub fn ext_state(&self) -> Option<ExtState<f64>> {
-        self.ext.as_ref().map(|(_, s)| *s)
+        self.ext.as_ref().map(|(_, s)| std::array::from_fn(|k| s[k]))
+    }
+
+    /// The box's states ([`crate::enclosure::NBOXSTATE`]: its gauge pressure in Pa, then the
+    /// port's flow in m^3/s or the radiator's excursion in m and velocity in m/s); `None`
+    /// without a box.
+    pub fn box_state(&self) -> Option<[f64; crate::enclosure::NBOXSTATE]> {
+        let (model, s) = self.ext.as_ref()?;
+        model.enclosure.as_ref()?;
+        Some(std::array::from_fn(|k| s[ext_idx::BOX + k]))
+    }
+
+    /// The extended model the plant integrates, where the set needs one.
+    pub fn ext_model(&self) -> Option<&ExtModel<f64>> {
+        self.ext.as_ref().map(|(m, _)| m)
     }
 
     /// Put creep's damper positions on their periodic orbit after a window of `period`
@@ -132,11 +147,22 @@ impl Plant {
             None => *state = stepper.sample(&Pushed { sys: &self.model, accel }, state, dt, u_points),
             Some((model, s)) => {
                 s[..NSTATE].copy_from_slice(state);
-                *s = if accel == 0.0 {
-                    stepper.sample(model, s, dt, u_points)
+                if model.enclosure.is_some() {
+                    *s = if accel == 0.0 {
+                        stepper.sample(model, s, dt, u_points)
+                    } else {
+                        stepper.sample(&Pushed { sys: &*model, accel }, s, dt, u_points)
+                    };
                 } else {
-                    stepper.sample(&Pushed { sys: &*model, accel }, s, dt, u_points)
-                };
+                    // Without a box its states stay at zero: integrate the first NEXT.
+                    let mut e: ExtState<f64> = std::array::from_fn(|k| s[k]);
+                    e = if accel == 0.0 {
+                        stepper.sample(model, &e, dt, u_points)
+                    } else {
+                        stepper.sample(&Pushed { sys: &*model, accel }, &e, dt, u_points)
+                    };
+                    s[..NEXT].copy_from_slice(&e);
+                }
                 state.copy_from_slice(&s[..NSTATE]);
             }
         }
@@ -230,6 +256,10 @@ pub struct Trace {
     pub scheme: Scheme,
     /// Largest excursion past `x_range` (m, 0 if none): extrapolated, within the margin.
     pub range_excess: f64,
+    /// The box's states at the sample instants ([`Plant::box_state`]: gauge pressure in Pa,
+    /// then the port's flow in m^3/s or the radiator's excursion in m and velocity in m/s);
+    /// empty in free air.
+    pub boxed: Vec<[f64; crate::enclosure::NBOXSTATE]>,
 }
 
 /// Summary figures of a trace (the same keys as `shared/recordings/*.info.json`).
@@ -376,13 +406,23 @@ impl Simulator {
     /// Run over a whole voltage record, calling `observe(m, state)` with the state at each
     /// sample instant `m / fs` (before the step to `m + 1`).
     pub fn run(&mut self, u: &[f64], mut observe: impl FnMut(usize, &State<f64>)) -> Result<(), SimError> {
+        self.run_boxed(u, |m, s, _| observe(m, s))
+    }
+
+    /// [`Simulator::run`], observing the box's states too ([`Plant::box_state`]; `None` in
+    /// free air).
+    pub fn run_boxed(
+        &mut self,
+        u: &[f64],
+        mut observe: impl FnMut(usize, &State<f64>, Option<[f64; crate::enclosure::NBOXSTATE]>),
+    ) -> Result<(), SimError> {
         if let Some(k) = u.iter().position(|v| !v.is_finite()) {
             return Err(SimError::Input(format!("input voltage sample {k} is not finite ({})", u[k])));
         }
         let dt = 1.0 / self.fs;
         for m in 0..u.len() {
             self.check(&self.state, m)?;
-            observe(m, &self.state);
+            observe(m, &self.state, self.plant.box_state());
             self.stepper.fill(u, m, &mut self.scratch);
             self.plant.step(&self.stepper, &mut self.state, dt, &self.scratch);
         }
@@ -421,10 +461,14 @@ pub fn simulate(params: &Parameters, fs: f64, u: &[f64], opts: &SimOptions) -> R
         substeps: sim.substeps(),
         scheme: sim.stepper.scheme,
         range_excess: 0.0,
+        boxed: Vec::new(),
     };
     let range = params.x_range;
     let mut excess: f64 = 0.0;
-    sim.run(u, |_, s| {
+    sim.run_boxed(u, |_, s, b| {
+        if let Some(b) = b {
+            tr.boxed.push(b);
+        }
         tr.x.push(s[idx::X]);
         tr.v.push(s[idx::V]);
         tr.i.push(s[idx::I]);

@@ -10,8 +10,9 @@ pub const RHO_AIR: f64 = 1.204;
 pub const C_AIR: f64 = 343.2;
 
 /// Electrical input impedance (ohm) of the linearised model at x = 0 and ambient temperature:
-/// `Re + jw Le + (jw L2 || R2) + (jw L3 || R3) + Bl^2 / (Rms + jw Mms + K(jw) / jw)`, with
-/// `K(jw) = Kms(0)` without creep and the [`crate::creep`] bank's dynamic stiffness with it.
+/// `Re + jw Le + (jw L2 || R2) + (jw L3 || R3) + Bl^2 / (Rms + jw Mms + K(jw) / jw + Zbox)`,
+/// with `K(jw) = Kms(0)` without creep and the [`crate::creep`] bank's dynamic stiffness with
+/// it, and `Zbox` the box's mechanical load ([`box_load`]; zero in free air).
 pub fn impedance(p: &Parameters, f: f64) -> Complex64 {
     let jw = Complex64::new(0.0, 2.0 * PI * f);
     let mut z = p.re + jw * p.le.c[0];
@@ -23,15 +24,26 @@ pub fn impedance(p: &Parameters, f: f64) -> Complex64 {
         z += jw * l3 * r3 / (jw * l3 + r3);
     }
     let k = dynamic_stiffness(p, 2.0 * PI * f);
-    let zm = p.rms + jw * p.mms + k / jw;
+    let zm = p.rms + jw * p.mms + k / jw + box_load(p, 2.0 * PI * f);
     z + p.bl.c[0] * p.bl.c[0] / zm
 }
 
-/// Displacement per current `X / I` (m/A) at x = 0: `Bl / (K(jw) - w^2 Mms + jw Rms)`.
+/// The box's mechanical load on the cone at x = 0 (N s/m, [`crate::enclosure::Enclosure::
+/// mechanical_load`]): `Sd^2` times the acoustic impedance of the box air, its leak and its
+/// port or radiator in parallel; zero in free air.
+pub fn box_load(p: &Parameters, w: f64) -> Complex64 {
+    match (&p.enclosure, p.sd) {
+        (Some(e), Some(sd)) => e.mechanical_load(&e.elements(p.kms.c[0], p.mms, sd), w),
+        _ => Complex64::new(0.0, 0.0),
+    }
+}
+
+/// Displacement per current `X / I` (m/A) at x = 0: `Bl / (K(jw) - w^2 Mms + jw Rms + jw
+/// Zbox)`, with the box's load [`box_load`].
 pub fn displacement_per_current(p: &Parameters, f: f64) -> Complex64 {
     let w = 2.0 * PI * f;
     let k = dynamic_stiffness(p, w);
-    p.bl.c[0] / (k + Complex64::new(-w * w * p.mms, w * p.rms))
+    p.bl.c[0] / (k + Complex64::new(-w * w * p.mms, w * p.rms) + Complex64::new(0.0, w) * box_load(p, w))
 }
 
 /// Thiele/Small figures at x = 0, as KLIPPEL LPM and Speakerbench report them: at the

@@ -171,6 +171,7 @@ pub fn equation_error(
         le_i: None,
         rms_v: None,
         thermal: None,
+        enclosure: None,
         x_range: Some(x_range),
         extra: Default::default(),
     })

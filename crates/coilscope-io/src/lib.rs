@@ -423,6 +423,30 @@ pub fn load_parameters(spec: &str) -> Result<Parameters, IoError> {
     Ok(p)
 }
 
+/// A box (`enclosure`, see `docs/formats.md`) from a JSON file: the box object itself
+/// (`{"type": "vented", "Vb": 0.02, ...}`), an object with an `enclosure` key (a parameter
+/// set), or one with `world.enclosure` (a recording's description). Errors name the file and
+/// the key.
+pub fn load_enclosure(path: &Path) -> Result<coilscope_core::enclosure::Enclosure, IoError> {
+    let shown = path.display();
+    let text = std::fs::read_to_string(path).map_err(|e| IoError(format!("{shown}: cannot read ({e})")))?;
+    let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| {
+        IoError(format!(
+            "{shown}: not valid JSON ({e}); expected a box such as {{\"type\": \"closed\", \"Vb\": 0.012}}"
+        ))
+    })?;
+    let e = if v.get("type").is_some() {
+        &v
+    } else if let Some(e) = v.get("enclosure") {
+        e
+    } else if let Some(e) = v.get("world").and_then(|w| w.get("enclosure")) {
+        e
+    } else {
+        return err(format!("{shown}: no box in it: expected an object with `type` (closed, vented or passive_radiator) and `Vb`, or one with an `enclosure` or `world.enclosure` key"));
+    };
+    coilscope_core::enclosure::Enclosure::from_json(e, &|k, m| IoError(format!("{shown}: key `{k}`: {m}")))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

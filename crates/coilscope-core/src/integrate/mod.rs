@@ -132,19 +132,44 @@ impl<D: DualNum<Primitive = f64> + Copy> Dynamics<D, { crate::model::NSTATE }> f
     }
 }
 
-impl<D: DualNum<Primitive = f64> + Copy> Dynamics<D, { crate::model::NLR3 }> for crate::model::ExtModel<D> {
-    #[inline]
-    fn deriv(&self, y: &[D; crate::model::NLR3], u: D) -> [D; crate::model::NLR3] {
-        crate::model::ExtModel::deriv_n(self, y, u)
-    }
+/// [`crate::model::ExtModel`] on its three state vectors: LR-3 only ([`crate::model::NLR3`]),
+/// with creep ([`crate::model::NEXT`]), and with a box ([`crate::model::NBOX`]).
+macro_rules! ext_model_on {
+    ($($n:path),*) => {$(
+        impl<D: DualNum<Primitive = f64> + Copy> Dynamics<D, { $n }> for crate::model::ExtModel<D> {
+            #[inline]
+            fn deriv(&self, y: &[D; $n], u: D) -> [D; $n] {
+                crate::model::ExtModel::deriv_n(self, y, u)
+            }
+        }
+
+        impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, { $n }> for crate::model::ExtModel<D> {
+            #[inline]
+            fn electrical(&self, y: &[D; $n]) -> [[D; 2]; 2] {
+                self.base.electrical_matrix(y[crate::model::idx::X], y[crate::model::idx::TV])
+            }
+
+            #[inline]
+            fn network3(&self, y: &[D; $n]) -> Option<[[D; 3]; 3]> {
+                self.lr3.map(|(l3, r3)| {
+                    self.base.electrical_matrix3(y[crate::model::idx::X], y[crate::model::idx::TV], l3, r3)
+                })
+            }
+
+            #[inline]
+            fn input(&self, y: &[D; $n]) -> D {
+                self.base.input_gain(y[crate::model::idx::X], y[crate::model::idx::I])
+            }
+
+            #[inline]
+            fn current_rate_and_input(&self, y: &[D; $n]) -> (D, D) {
+                self.base.current_rate_and_gain(y[crate::model::idx::X], y[crate::model::idx::I], y[crate::model::idx::TV])
+            }
+        }
+    )*};
 }
 
-impl<D: DualNum<Primitive = f64> + Copy> Dynamics<D, { crate::model::NEXT }> for crate::model::ExtModel<D> {
-    #[inline]
-    fn deriv(&self, y: &[D; crate::model::NEXT], u: D) -> [D; crate::model::NEXT] {
-        crate::model::ExtModel::deriv(self, y, u)
-    }
-}
+ext_model_on!(crate::model::NLR3, crate::model::NEXT, crate::model::NBOX);
 
 impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, { crate::model::NSTATE }> for crate::model::Model<D> {
     #[inline]
@@ -160,50 +185,6 @@ impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, { crate::model::NSTATE }>
     #[inline]
     fn current_rate_and_input(&self, y: &[D; crate::model::NSTATE]) -> (D, D) {
         self.current_rate_and_gain(y[crate::model::idx::X], y[crate::model::idx::I], y[crate::model::idx::TV])
-    }
-}
-
-impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, { crate::model::NLR3 }> for crate::model::ExtModel<D> {
-    #[inline]
-    fn electrical(&self, y: &[D; crate::model::NLR3]) -> [[D; 2]; 2] {
-        self.base.electrical_matrix(y[crate::model::idx::X], y[crate::model::idx::TV])
-    }
-
-    #[inline]
-    fn network3(&self, y: &[D; crate::model::NLR3]) -> Option<[[D; 3]; 3]> {
-        self.lr3.map(|(l3, r3)| self.base.electrical_matrix3(y[crate::model::idx::X], y[crate::model::idx::TV], l3, r3))
-    }
-
-    #[inline]
-    fn input(&self, y: &[D; crate::model::NLR3]) -> D {
-        self.base.input_gain(y[crate::model::idx::X], y[crate::model::idx::I])
-    }
-
-    #[inline]
-    fn current_rate_and_input(&self, y: &[D; crate::model::NLR3]) -> (D, D) {
-        self.base.current_rate_and_gain(y[crate::model::idx::X], y[crate::model::idx::I], y[crate::model::idx::TV])
-    }
-}
-
-impl<D: DualNum<Primitive = f64> + Copy> Electrical<D, { crate::model::NEXT }> for crate::model::ExtModel<D> {
-    #[inline]
-    fn electrical(&self, y: &[D; crate::model::NEXT]) -> [[D; 2]; 2] {
-        self.base.electrical_matrix(y[crate::model::idx::X], y[crate::model::idx::TV])
-    }
-
-    #[inline]
-    fn network3(&self, y: &[D; crate::model::NEXT]) -> Option<[[D; 3]; 3]> {
-        self.lr3.map(|(l3, r3)| self.base.electrical_matrix3(y[crate::model::idx::X], y[crate::model::idx::TV], l3, r3))
-    }
-
-    #[inline]
-    fn input(&self, y: &[D; crate::model::NEXT]) -> D {
-        self.base.input_gain(y[crate::model::idx::X], y[crate::model::idx::I])
-    }
-
-    #[inline]
-    fn current_rate_and_input(&self, y: &[D; crate::model::NEXT]) -> (D, D) {
-        self.base.current_rate_and_gain(y[crate::model::idx::X], y[crate::model::idx::I], y[crate::model::idx::TV])
     }
 }
 

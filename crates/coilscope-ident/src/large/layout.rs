@@ -534,6 +534,7 @@ impl Layout {
             le_i: m.le_i,
             rms_v: m.rms_v,
             thermal: None,
+            enclosure: None,
             x_range: None,
             extra: Default::default(),
         }

@@ -26,6 +26,7 @@ pub fn scale_by_mms(fit: &LinearFit, mms: f64) -> Result<Parameters, String> {
         le_i: None,
         rms_v: None,
         thermal: None,
+        enclosure: None,
         x_range: None,
         extra: Default::default(),
     })
