@@ -27,7 +27,7 @@ import numpy as np
 
 from . import _coilscope as _c
 
-__all__ = ["NotTrustworthy", "drivers", "parameters", "generate", "simulate", "linear", "linear_impedance", "identify", "measure_virtual", "measure_replay", "distortion", "poly"]
+__all__ = ["NotTrustworthy", "drivers", "parameters", "generate", "simulate", "linear", "linear_impedance", "linear_enclosure", "impedance", "identify", "measure_virtual", "measure_replay", "distortion", "poly"]
 
 
 class NotTrustworthy(UserWarning):
@@ -110,6 +110,27 @@ def linear_impedance(f, z, mms, band=None, magnitude_only=False):
         z = np.abs(z).astype(complex)
     b = None if band is None else (float(band[0]), float(band[1]))
     return _checked(_c.linear_impedance(_floats(f, "f"), _floats(z.real, "z"), _floats(z.imag, "z"), float(mms), b, bool(magnitude_only)), "linear_impedance")
+
+
+def impedance(params, f):
+    """The small-signal impedance (complex, ohm) of a parameter set at ``f`` (Hz): the
+    network of the one model, with the set's box (``enclosure``) where it has one."""
+    re, im = _c.impedance(_spec(params), _floats(f, "f"))
+    return np.asarray(re) + 1j * np.asarray(im)
+
+
+def linear_enclosure(f, z, driver, enclosure="auto", sp=None, magnitude_only=False):
+    """The box a known driver works into, from its impedance in the box (``coilscope linear
+    --enclosure``): ``f`` in Hz, ``z`` complex in ohm, ``driver`` the driver's own set
+    (measured in free air, with Sd), ``enclosure`` one of ``closed``, ``vented``,
+    ``passive_radiator`` or ``auto`` (the type from the data; ``result["fit"]["models_note"]``
+    says why), ``sp`` a passive radiator's area (m^2). The box comes back as
+    ``result["parameters"]["enclosure"]``, its sds under ``uncertainty["enclosure.Vb"]`` and
+    the like. Warns :class:`NotTrustworthy` where the command line exits 3."""
+    z = np.asarray(z, dtype=complex)
+    if magnitude_only:
+        z = np.abs(z).astype(complex)
+    return _checked(_c.linear_enclosure(_floats(f, "f"), _floats(z.real, "z"), _floats(z.imag, "z"), _spec(driver), str(enclosure), None if sp is None else float(sp), bool(magnitude_only)), "linear_enclosure")
 
 
 def identify(u, i, fs, mms, order=None, chain="detect"):

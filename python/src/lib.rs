@@ -179,6 +179,55 @@ fn linear_impedance(
     .map_err(err)
 }
 
+/// The small-signal impedance of a parameter set (ohm, `(re, im)` at each `f` in Hz): the
+/// network of the one model, with the set's box (`enclosure`) where it has one.
+#[pyfunction]
+fn impedance(params: &str, f: Vec<f64>) -> PyResult<(Vec<f64>, Vec<f64>)> {
+    let p = params_from(params)?;
+    if let Some(k) = f.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
+        return Err(err(format!("f[{k}] = {}: frequencies must be positive (Hz)", f[k])));
+    }
+    Ok(f.iter().map(|&f| coilscope_core::small_signal::impedance(&p, f)).map(|z| (z.re, z.im)).unzip())
+}
+
+/// The box a known driver works into from its impedance in the box (`coilscope linear
+/// --enclosure`): `f` (Hz), `z_re`, `z_im` (ohm), the driver's own set, the box's type
+/// (`closed`, `vented`, `passive_radiator`, `auto`) and a radiator's area `sp` (m^2). The
+/// result as JSON text, with its warnings and verdict as the command line gives them.
+#[pyfunction]
+#[pyo3(signature = (f, z_re, z_im, driver, enclosure="auto", sp=None, magnitude_only=false))]
+#[allow(clippy::too_many_arguments)]
+fn linear_enclosure(
+    py: Python<'_>,
+    f: Vec<f64>,
+    z_re: Vec<f64>,
+    z_im: Vec<f64>,
+    driver: &str,
+    enclosure: &str,
+    sp: Option<f64>,
+    magnitude_only: bool,
+) -> PyResult<String> {
+    use coilscope_workflow::enclosure::{fit_enclosure, BoxRequest};
+    use coilscope_workflow::linear::LinearInput;
+    if f.len() != z_re.len() || f.len() != z_im.len() {
+        return Err(err(format!(
+            "f, z_re and z_im have {}, {} and {} points: give one impedance per frequency",
+            f.len(),
+            z_re.len(),
+            z_im.len()
+        )));
+    }
+    let p = params_from(driver)?;
+    let choice = coilscope_ident::box_fit::BoxChoice::parse(enclosure).map_err(err)?;
+    let z = z_re.iter().zip(&z_im).map(|(&re, &im)| coilscope_core::Complex64::new(re, im)).collect();
+    let curve = coilscope_io::impedance::ImpedanceCurve { f, z, comments: vec![], magnitude_only };
+    let req = BoxRequest { origin: "python".into(), choice, sp, band: None };
+    py.allow_threads(|| {
+        fit_enclosure(&LinearInput::Curve(curve), &p, &req).map(|b| b.result.to_json_value().to_string())
+    })
+    .map_err(err)
+}
+
 /// The large-signal identification of a record (`coilscope identify`): the result as JSON
 /// text, with its warnings and verdict (`fit.trustworthy`) as the command line gives them.
 /// `order`: the power series' order (default: chosen on held-out data).
@@ -272,6 +321,8 @@ fn _coilscope(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(simulate, m)?)?;
     m.add_function(wrap_pyfunction!(linear, m)?)?;
     m.add_function(wrap_pyfunction!(linear_impedance, m)?)?;
+    m.add_function(wrap_pyfunction!(linear_enclosure, m)?)?;
+    m.add_function(wrap_pyfunction!(impedance, m)?)?;
     m.add_function(wrap_pyfunction!(identify, m)?)?;
     m.add_function(wrap_pyfunction!(measure_virtual, m)?)?;
     m.add_function(wrap_pyfunction!(measure_replay, m)?)?;

@@ -157,3 +157,24 @@ def test_linear_impedance_keeps_below_the_break_up_as_the_command_line():
     # Frequencies out of order are refused with the reason, not fitted.
     with pytest.raises(ValueError, match="increasing"):
         coilscope.linear_impedance(f[::-1], z[::-1], mms=0.0149)
+
+
+def test_linear_enclosure_finds_the_box_as_the_command_line():
+    import warnings
+
+    driver = coilscope.parameters("sb17cac35-4")
+    boxed = dict(driver, enclosure={"type": "vented", "Vb": 0.02, "fb": 38.0, "QL": 8.0, "Qp": 40.0})
+    f = np.geomspace(5.0, 400.0, 300)
+    z = coilscope.impedance(boxed, f)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", coilscope.NotTrustworthy)
+        r = coilscope.linear_enclosure(f, z, driver)
+    e = r["parameters"]["enclosure"]
+    assert e["type"] == "vented", r["fit"]["models_note"]
+    assert abs(e["Vb"] / 0.02 - 1.0) < 0.02 and abs(e["fb"] / 38.0 - 1.0) < 0.01, e
+    assert r["uncertainty"]["enclosure.Vb"] >= 0.0
+    # The wrong driver's set leaves the impedance unexplained: said, not taken silently.
+    with pytest.warns(coilscope.NotTrustworthy, match="residual-above-noise"):
+        coilscope.linear_enclosure(f, z, "ptt4.0w04-01a")
+    with pytest.raises(ValueError, match="passive_radiator"):
+        coilscope.linear_enclosure(f, z, driver, enclosure="sealed")

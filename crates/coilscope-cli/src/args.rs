@@ -241,6 +241,19 @@ pub(crate) enum Command {
         /// small signal: `identify` fits them.)
         #[arg(long, default_value = "auto")]
         effects: String,
+        /// Fit the box the driver works into instead: `closed`, `vented`, `passive_radiator`
+        /// or `auto` (the type from the data, and which it chose). The input is the driver's
+        /// impedance in the box, at a low level; --driver gives the driver's own set.
+        #[arg(long, value_name = "TYPE", requires = "driver")]
+        enclosure: Option<String>,
+        /// With --enclosure: the driver's parameter set, measured in free air (a parameter
+        /// file, a result of `coilscope linear`, or an embedded driver). It needs Sd (or --sd).
+        #[arg(long, value_name = "DRIVER", requires = "enclosure")]
+        driver: Option<String>,
+        /// With --enclosure: a passive radiator's area (m^2); without it Sd is taken and the
+        /// result says so.
+        #[arg(long, value_name = "M2", requires = "enclosure")]
+        sp: Option<f64>,
         #[command(flatten)]
         fit: FitArgs,
     },
@@ -678,6 +691,9 @@ pub(crate) struct SimulateArgs {
 
 /// `linear`'s arguments.
 pub(crate) struct LinearArgs {
+    pub(crate) enclosure: Option<String>,
+    pub(crate) driver: Option<String>,
+    pub(crate) sp: Option<f64>,
     pub(crate) recording: Option<PathBuf>,
     pub(crate) impedance: Option<PathBuf>,
     pub(crate) mms: Option<f64>,

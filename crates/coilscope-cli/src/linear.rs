@@ -47,6 +47,9 @@ pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
         }
     };
     let input = read_input(&path)?;
+    if let Some(kind) = &a.enclosure {
+        return linear_box(&a, kind, &input, &origin, band, out);
+    }
     let has_x = matches!(&input, LinearInput::Record(r) if r.x.is_some());
     let with_mass = if is_curve { a.with_mass_impedance.as_ref() } else { a.with_mass.as_ref() };
     let with_name = if is_curve { "--with-mass-impedance Z2.zma" } else { "--with-mass REC2.wav" };
@@ -176,4 +179,72 @@ pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     }
     println!("  wrote {}", wrote.join(", "));
     untrusted_if_warned(&done.warnings, out)
+}
+
+/// `linear --enclosure`: the box from the driver's impedance in it, the driver's set held.
+fn linear_box(
+    a: &LinearArgs,
+    kind: &str,
+    input: &coilscope_workflow::linear::LinearInput,
+    origin: &str,
+    band: Option<[f64; 2]>,
+    out: &Path,
+) -> Result<(), Failure> {
+    use coilscope_workflow::enclosure::{fit_enclosure, BoxRequest};
+    if a.mms.is_some() || a.added_mass.is_some() || a.with_mass.is_some() || a.with_mass_impedance.is_some() {
+        return Err(Failure::from(
+            "--enclosure holds the driver's own set (--driver), scale included: --mms and --added-mass do not apply",
+        ));
+    }
+    let choice = coilscope_ident::box_fit::BoxChoice::parse(kind)?;
+    let spec = a.driver.as_deref().ok_or("--enclosure needs --driver: the driver's own parameter set")?;
+    let mut driver = load_driver(spec)?;
+    if let Some(sd) = a.fit.sd {
+        driver.sd = Some(sd);
+    }
+    let req = BoxRequest { origin: origin.to_string(), choice, sp: a.sp, band };
+    let done = fit_enclosure(input, &driver, &req)?;
+    print_warnings(&done.warnings);
+    write_json(out, &done.result).map_err(|e| e.to_string())?;
+    let e = &done.fit.enclosure;
+    println!("coilscope linear: {origin}, the box of {}", driver.name.as_deref().unwrap_or(spec));
+    println!(
+        "  fit {:.1} .. {:.0} Hz, {} points, residual {:.3e} (impedance, relative RMS)",
+        done.band[0], done.band[1], done.points, done.fit.residual
+    );
+    if done.fit.why.is_empty() {
+        println!("  box: {} (as asked)", e.type_name());
+    } else {
+        println!("  box: {} (auto: {})", e.type_name(), done.fit.why);
+    }
+    print_values(&done.params, &done.result.uncertainty, &[]);
+    let p = &done.params;
+    println!(
+        "  {:<6} {:>12} {:<5} (the box's tuning: {})",
+        "f_t",
+        format!("{:.3}", e.tuning_hz(p.kms.c[0], p.mms, p.sd.unwrap_or(f64::NAN))),
+        "Hz",
+        match e.kind {
+            coilscope_core::enclosure::BoxKind::Closed => "the system's resonance",
+            coilscope_core::enclosure::BoxKind::Vented { .. } => "the port's fb",
+            coilscope_core::enclosure::BoxKind::PassiveRadiator { .. } => "the radiator on the box air",
+        }
+    );
+    println!("  wrote {}", out.display());
+    untrusted_if_warned(&done.warnings, out)
+}
+
+/// A driver's own set: an embedded driver, a parameter file, or a result file's `parameters`.
+fn load_driver(spec: &str) -> Result<coilscope_core::Parameters, Failure> {
+    let path = Path::new(spec);
+    if path.is_file() {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("{spec}: cannot read ({e})"))?;
+        if let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) {
+            if v.get("format").and_then(|f| f.as_str()) == Some(coilscope_core::result::RESULT_FORMAT) {
+                let r = coilscope_core::result::ResultFile::from_json_value(v, spec).map_err(|e| e.to_string())?;
+                return Ok(r.parameters);
+            }
+        }
+    }
+    coilscope_io::load_parameters(spec).map_err(|e| Failure::from(e.to_string()))
 }

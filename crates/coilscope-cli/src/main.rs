@@ -128,8 +128,8 @@ fn main() -> ExitCode {
     let result: Result<(), Failure> = match cli.command {
         Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world, chain, sense_wiring, sense_ohm, enclosure } => parse_wiring(&sense_wiring, sense_ohm)
             .and_then(|wiring| cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world, chain, wiring, enclosure }).map_err(Failure::from)),
-        Command::Linear { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit } => {
-            cmd_linear(LinearArgs { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit })
+        Command::Linear { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, enclosure, driver, sp, fit } => {
+            cmd_linear(LinearArgs { enclosure, driver, sp, recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit })
         }
         Command::Identify { recording, jobs, method, start, mms, order, effects, fit } => parse_chain(&fit.chain).and_then(|chain| {
             if recording.len() > 1 {

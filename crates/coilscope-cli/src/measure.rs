@@ -95,6 +95,9 @@ pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     let (mut device, mms, mms_source): (Box<dyn Device>, f64, String) = match (&a.virtual_driver, &a.replay) {
         (Some(d), None) => {
             let given = load_parameters(d).map_err(|e| e.to_string())?;
+            if let Some(e) = &given.enclosure {
+                return Err(Failure::from(format!("{d}: the set puts the driver in a {} box (`enclosure`); the dynamic measurement identifies a driver in free air and does not model a box yet, so it would read the box's air as the suspension. Remove `enclosure` to measure the driver in free air; `coilscope simulate --enclosure` and `coilscope linear --enclosure` handle the box", e.type_name())));
+            }
             sd = sd.or(given.sd);
             let p = a.world.apply(given.clone());
             if p != given {

@@ -75,6 +75,9 @@ pub(crate) fn cmd_quasistatic(a: QuasiArgs) -> Result<(), Failure> {
     } else {
         let driver = a.driver.as_deref().unwrap_or_default();
         let p = a.world.apply(load_parameters(driver).map_err(|e| e.to_string())?);
+        if let Some(e) = &p.enclosure {
+            return Err(format!("{driver}: the set puts the driver in a {} box (`enclosure`); the quasi-static method measures the suspension in free air (in a box it would add the air's stiffness to Kms(x)): remove `enclosure`", e.type_name()).into());
+        }
         let range = p.x_range.ok_or_else(|| {
             format!("{driver}: the set has no x_range: the working points need the range they may go to")
         })?;

@@ -287,11 +287,11 @@ impl Enclosure {
             }
         };
         positive("Vb", self.vb, "m^3")?;
-        if self.vb > 20.0 {
+        if self.vb > 2.0 {
             return Err(err(
                 "enclosure.Vb",
                 format!(
-                    "{} m^3 is not a plausible box (expected < 20 m^3); it looks like litres: {} l = {} m^3",
+                    "{} m^3 is not a plausible box (expected < 2 m^3); it looks like litres: {} l = {} m^3",
                     self.vb,
                     self.vb,
                     self.vb * 1e-3

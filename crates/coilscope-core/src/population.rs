@@ -331,6 +331,58 @@ fn lerp_log((a, b): (f64, f64), s: f64) -> f64 {
     (a.ln() + (b.ln() - a.ln()) * s).exp()
 }
 
+/// A box for the driver `p` (which has `Sd`), drawn from `seed`: `kind` (`closed`, `vented`
+/// or `passive_radiator`), or one of the three at random. Sizes follow the driver's `Vas` and
+/// `fs` as boxes are designed: a closed box of 0.3-3 Vas (a microspeaker's back volume among
+/// them), a vented box of 0.5-3 Vas tuned to 0.6-1.4 fs with a port of 10-30 % of Sd, a
+/// passive radiator of 1-2.5 Sd tuned to 0.6-1.2 fs, its own suspension 10-60 % of its
+/// stiffness on the box air, stiffening by up to 2x at the driver's excursion. Leaks QL 5-20,
+/// port losses Qp 10-80 and `port_loss` 0.5-3, radiator Q 5-20.
+pub fn draw_box(seed: u64, p: &Parameters, kind: Option<&str>) -> crate::enclosure::Enclosure {
+    use crate::enclosure::{BoxKind, Enclosure, GAMMA, P0};
+    let mut rng = named_rng(seed, "population box");
+    let sd = p.sd.expect("a driver in a box has Sd");
+    let ts = crate::small_signal::thiele_small(p);
+    let vas = ts.vas.expect("Sd is known");
+    let kind = kind.unwrap_or(["closed", "vented", "passive_radiator"][rng.random_range(0..3)]);
+    let ql = Some(log_uniform(&mut rng, (5.0, 20.0)));
+    match kind {
+        "closed" => {
+            Enclosure { vb: vas * log_uniform(&mut rng, (0.3, 3.0)), ql, adiabatic: true, kind: BoxKind::Closed }
+        }
+        "vented" => {
+            let vb = vas * log_uniform(&mut rng, (0.5, 3.0));
+            let kind = BoxKind::Vented {
+                fb: ts.fs * uniform(&mut rng, (0.6, 1.4)),
+                qp: Some(log_uniform(&mut rng, (10.0, 80.0))),
+                port_area: Some(sd * uniform(&mut rng, (0.1, 0.3))),
+                port_loss: Some(uniform(&mut rng, (0.5, 3.0))),
+                knl: None,
+            };
+            Enclosure { vb, ql, adiabatic: true, kind }
+        }
+        _ => {
+            let vb = vas * log_uniform(&mut rng, (0.5, 3.0));
+            let sp = sd * uniform(&mut rng, (1.0, 2.5));
+            let ft = ts.fs * uniform(&mut rng, (0.6, 1.2));
+            let air = sp * sp * GAMMA * P0 / vb;
+            let share = uniform(&mut rng, (0.1, 0.6));
+            let kmp0 = share / (1.0 - share) * air;
+            let mmp = (kmp0 + air) / (2.0 * std::f64::consts::PI * ft).powi(2);
+            let rmp = 2.0 * std::f64::consts::PI * ft * mmp / log_uniform(&mut rng, (5.0, 20.0));
+            // Up to twice as stiff where the radiator moves as far as the cone's range.
+            let xp = p.x_range.map_or(0.005, |r| r[1]);
+            let c2 = kmp0 * uniform(&mut rng, (0.0, 1.0)) / (xp * xp);
+            Enclosure {
+                vb,
+                ql,
+                adiabatic: true,
+                kind: BoxKind::PassiveRadiator { sp, mmp, kmp: Poly { c: vec![kmp0, 0.0, c2] }, rmp },
+            }
+        }
+    }
+}
+
 fn uniform(rng: &mut ChaCha8Rng, (a, b): (f64, f64)) -> f64 {
     a + (b - a) * rng.random::<f64>()
 }

@@ -9,6 +9,7 @@
 //! * [`calibrate`]: a measurement chain's delay, corners and gain from a resistor record.
 //! * [`checks`]: the residual against its noise floor, and what a doubtful fit is named.
 
+pub mod box_fit;
 pub mod calibrate;
 pub mod checks;
 pub mod large;

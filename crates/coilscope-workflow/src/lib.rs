@@ -8,6 +8,7 @@
 //!   ideal, or a calibrated card's inverted ([`chain::ChainMode`]).
 //! * [`identify`]: the large-signal identification of a record, with every check the result
 //!   carries.
+//! * [`enclosure`]: the box a known driver works into, from its impedance in the box.
 //! * [`linear`]: the small-signal fit of a record or an impedance curve, scaled by a known
 //!   moving mass, an added mass or a displacement channel.
 //!
@@ -15,6 +16,7 @@
 //! printing is the caller's.
 
 pub mod chain;
+pub mod enclosure;
 pub mod identify;
 pub mod linear;
 
