@@ -41,14 +41,26 @@ fn compare(fit: &BoxFit, truth: &Enclosure) -> Vec<(&'static str, f64, f64)> {
         .collect()
 }
 
-/// The bounds the figures are published with: Vb within 2 %, fb (or the radiator's
-/// mass and stiffness, its tuning) within 1 %, QL within 25 %.
+/// The bounds the figures are published with: Vb within 2 %, fb and a radiator's tuning on
+/// the box air within 1 %, its mass and stiffness (correlated: the tuning is their ratio)
+/// within 3 %, QL, Qp and Rmp within 25 %.
 fn bound(key: &str) -> f64 {
     match key {
         "enclosure.Vb" => 0.02,
-        "enclosure.fb" | "enclosure.Mmp" | "enclosure.Kmp" => 0.01,
+        "enclosure.fb" | "tuning" => 0.01,
+        "enclosure.Mmp" | "enclosure.Kmp" => 0.03,
         _ => 0.25,
     }
+}
+
+/// [`compare`] and, for a radiator, the relative error of its tuning on the box air (no sd).
+fn errors(fit: &BoxFit, truth: &Enclosure, p: &Parameters) -> Vec<(&'static str, f64, f64)> {
+    let mut e = compare(fit, truth);
+    if matches!(truth.kind, BoxKind::PassiveRadiator { .. }) {
+        let tuning = |b: &Enclosure| b.tuning_hz(p.kms.c[0], p.mms, p.sd.unwrap());
+        e.push(("tuning", tuning(&fit.enclosure) / tuning(truth) - 1.0, f64::NAN));
+    }
+    e
 }
 
 /// From the network's own impedance (complex, then the magnitude alone) of fresh drivers in
@@ -77,8 +89,8 @@ fn the_box_of_a_fresh_driver_comes_back_from_its_impedance() {
             } else {
                 // With the radiator's area assumed, its mass, stiffness and loss are over
                 // the wrong area squared: the box's volume and leak are still the truth.
-                for (k, e, _) in compare(&fit, &truth) {
-                    if !(sp_known || matches!(k, "enclosure.Vb" | "enclosure.QL")) {
+                for (k, e, _) in errors(&fit, &truth, &d.plain) {
+                    if !(sp_known || matches!(k, "enclosure.Vb" | "enclosure.QL" | "tuning")) {
                         continue;
                     }
                     if !(e.abs() < bound(k)) {
@@ -117,7 +129,7 @@ fn a_radiators_area_is_named_when_it_is_assumed() {
         let BoxKind::PassiveRadiator { sp, .. } = truth.kind else { unreachable!() };
         let known = fit_box(&f, &z, false, &d.plain, BoxChoice::PassiveRadiator, Some(sp)).unwrap();
         assert!(!known.sp_assumed);
-        for (k, e, _) in compare(&known, &truth) {
+        for (k, e, _) in errors(&known, &truth, &d.plain) {
             assert!(e.abs() < bound(k), "{}: {k} {:+.3} %", d.name(), 100.0 * e);
         }
         let assumed = fit_box(&f, &z, false, &d.plain, BoxChoice::PassiveRadiator, None).unwrap();
@@ -128,13 +140,17 @@ fn a_radiators_area_is_named_when_it_is_assumed() {
     }
 }
 
-/// With 0.3 % of noise on every point, the truth lies within 3 of the reported sds, and the
-/// sds are not inflated: over the drivers the median |z| is above 0.2.
+/// With 0.3 % of noise on every point, the reported sds are honest from both sides over
+/// twelve fresh drivers and boxes (44 values, those of one fit correlated): the truth within
+/// 2 sd in at least 75 % of them (a Gaussian band: 95 %; eight runs gave 82-100 %, the count
+/// scattering as the values of one fit move together), the median
+/// |error| / sd at least 0.3 (Gaussian: 0.67; below, the sds are inflated), and none beyond
+/// 5 sd (a gross miss, not chance).
 #[test]
 fn the_boxs_uncertainty_holds_the_truth_and_is_not_inflated() {
-    let mut zs = Vec::new();
+    let mut coverage = coilscope_testkit::check::Coverage::new();
     let mut failures = Vec::new();
-    for (n, d) in draws("box_fit_noise", 9).into_iter().enumerate() {
+    for (n, d) in draws("box_fit_noise", 12).into_iter().enumerate() {
         let ty = TYPES[n % 3];
         let mut p = d.plain.clone();
         let truth = draw_box(d.seed, &p, Some(ty));
@@ -157,25 +173,25 @@ fn the_boxs_uncertainty_holds_the_truth_and_is_not_inflated() {
         let fit = fit_box(&f, &z, false, &d.plain, choice, sp).unwrap();
         for (k, e, zk) in compare(&fit, &truth) {
             eprintln!("{} {ty}: {k} {:+.3} %, z {zk:+.2}", d.name(), 100.0 * e);
-            zs.push(zk.abs());
-            if !(zk.abs() < 3.0) {
+            coverage.push(zk);
+            if !(zk.abs() < 5.0) {
                 failures.push(format!("{} in a {ty} box: {k} {:+.3} % is {zk:.1} sd off", d.name(), 100.0 * e));
             }
         }
     }
-    zs.sort_by(f64::total_cmp);
-    let median = zs[zs.len() / 2];
-    eprintln!("median |z| {median:.2} over {} values", zs.len());
+    eprintln!("{}", coverage.summary("the box's values"));
+    failures.extend(coverage.problems("the box's values", 0.75, 0.3));
     assert!(failures.is_empty(), "{}", failures.join("\n"));
-    assert!(median > 0.2, "the sds are inflated: median |z| {median:.3}");
 }
 
 /// From a recording rather than the network: fresh drivers in fresh boxes played pink noise
-/// at a low level (the cone to 1 % of its range) through the time-domain model, sensor noise
+/// at a low level (the cone to 0.2 % of its range) through the time-domain model, sensor noise
 /// 60 dB down on both channels; the impedance estimated from the record (U/I where the
 /// coherence is above 0.99) gives the type and the box within the published bounds. (At high
 /// level the box reads small: the independent simulator's records at 85-90 % of the range
-/// give Vb 9 % low. `linear --enclosure` is a small-signal measurement.)
+/// give Vb 9 % low, and the box's own nonlinearities show first: at 1 % of the cone's range a
+/// radiator's stiffening read Kmp 1.2 % high and a high-Q port's quadratic loss Qp 5 % low.
+/// `linear --enclosure` is a small-signal measurement.)
 #[test]
 fn a_quiet_recording_in_the_box_gives_the_box() {
     use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
@@ -194,7 +210,7 @@ fn a_quiet_recording_in_the_box_gives_the_box() {
             &SignalSpec { fs, seconds: 12.0, rms: 1.0, fade: 0.05, seed: d.seed },
         )
         .unwrap();
-        let target = 0.01 * p.x_range.unwrap()[1];
+        let target = 0.002 * p.x_range.unwrap()[1];
         let (_, tr) = gain_for_peak(&p, fs, &unit, target, &SimOptions::default()).unwrap();
         let (mut u, mut i) = (tr.u.clone(), tr.i.clone());
         add_sensor_noise(&mut u, 60.0, d.seed, "box fit voltage");
@@ -218,7 +234,7 @@ fn a_quiet_recording_in_the_box_gives_the_box() {
                 continue;
             }
         };
-        let errs = compare(&fit, &truth);
+        let errs = errors(&fit, &truth, &d.plain);
         eprintln!(
             "{name}: {} points, {} ({}), residual {:.2e}: {}",
             f.len(),
