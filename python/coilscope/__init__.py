@@ -27,7 +27,7 @@ import numpy as np
 
 from . import _coilscope as _c
 
-__all__ = ["NotTrustworthy", "drivers", "parameters", "generate", "simulate", "linear", "linear_impedance", "linear_enclosure", "impedance", "identify", "measure_virtual", "measure_replay", "distortion", "poly"]
+__all__ = ["NotTrustworthy", "MisspeltKey", "drivers", "parameters", "generate", "simulate", "linear", "linear_impedance", "linear_enclosure", "impedance", "identify", "measure_virtual", "measure_replay", "distortion", "poly"]
 
 
 class NotTrustworthy(UserWarning):
@@ -48,10 +48,18 @@ def _checked(text, what):
     return r
 
 
+class MisspeltKey(UserWarning):
+    """A key of a parameter set that coilscope does not read but that is one or two edits from
+    one it does (``Bll`` for ``Bl``): the set loads, without the parameter meant. The command
+    line prints the same warning."""
+
+
 def _spec(p):
-    if isinstance(p, dict):
-        return json.dumps(p)
-    return str(p)
+    s = json.dumps(p) if isinstance(p, dict) else str(p)
+    if isinstance(p, dict) or s.endswith(".json"):
+        for key, meant in _c.near_miss_keys(s):
+            warnings.warn(f"parameters: key `{key}` is not one coilscope reads (kept as is); did you mean `{meant}`?", MisspeltKey, stacklevel=3)
+    return s
 
 
 def _floats(a, name):

@@ -179,6 +179,14 @@ fn linear_impedance(
     .map_err(err)
 }
 
+/// The keys of a parameter set that the contract does not define but that lie within an edit
+/// or two of one it does, each with the key it likely meant (`[("Bll", "Bl")]`): the set
+/// loads, but the parameter meant is absent.
+#[pyfunction]
+fn near_miss_keys(params: &str) -> PyResult<Vec<(String, String)>> {
+    Ok(params_from(params)?.near_miss_keys().into_iter().map(|(k, m)| (k, m.to_string())).collect())
+}
+
 /// The small-signal impedance of a parameter set (ohm, `(re, im)` at each `f` in Hz): the
 /// network of the one model, with the set's box (`enclosure`) where it has one.
 #[pyfunction]
@@ -323,6 +331,7 @@ fn _coilscope(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(linear_impedance, m)?)?;
     m.add_function(wrap_pyfunction!(linear_enclosure, m)?)?;
     m.add_function(wrap_pyfunction!(impedance, m)?)?;
+    m.add_function(wrap_pyfunction!(near_miss_keys, m)?)?;
     m.add_function(wrap_pyfunction!(identify, m)?)?;
     m.add_function(wrap_pyfunction!(measure_virtual, m)?)?;
     m.add_function(wrap_pyfunction!(measure_replay, m)?)?;

@@ -178,3 +178,11 @@ def test_linear_enclosure_finds_the_box_as_the_command_line():
         coilscope.linear_enclosure(f, z, "ptt4.0w04-01a")
     with pytest.raises(ValueError, match="passive_radiator"):
         coilscope.linear_enclosure(f, z, driver, enclosure="sealed")
+
+
+def test_a_misspelt_key_is_a_python_warning():
+    p = coilscope.parameters("sb17cac35-4")
+    p["Rmss"] = 1.0
+    with pytest.warns(coilscope.MisspeltKey, match="`Rmss`.*`Rms`"):
+        back = coilscope.parameters(p)
+    assert back["Rmss"] == 1.0 and back["Rms"] == p["Rms"]

@@ -255,17 +255,22 @@ pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
                 l.x_max * 1e3,
                 l.dtv
             );
+            // The expected time to convergence, and when the run stops at the latest.
+            let eta = match l.eta {
+                Some(e) => format!("ETA ~{e:.0} s (stops by {:.0} s)", l.end),
+                None => format!("ETA -  (stops by {:.0} s)", l.end),
+            };
             // A replay's level was set when it was recorded: no drive level, no controller.
             let line = if controllable {
                 format!(
-                    "t {:6.1} s  {:<12} {:7.3} V  {state}  limited by {}",
+                    "t {:6.1} s  {:<12} {:7.3} V  {state}  limited by {}  {eta}",
                     l.t,
                     l.stage.name(),
                     l.volts,
                     l.limited_by
                 )
             } else {
-                format!("t {:6.1} s  {state}", l.t)
+                format!("t {:6.1} s  {state}  {eta}", l.t)
             };
             if tty {
                 eprint!("\r{line}   ");

@@ -53,20 +53,27 @@ fn damaged(src: &Path, name: &str, f: impl FnOnce(&mut Recording)) -> PathBuf {
 
 const MMS: &str = "0.015367";
 
+/// An inverted current and an inverted voltage give the same U/I: each is refused, naming
+/// both channels as the one to check (never the current alone when the voltage is the one).
 #[test]
-fn an_inverted_current_is_refused_by_name() {
+fn an_inverted_channel_is_refused_naming_the_voltage_and_the_current() {
     let d = tempfile::tempdir().unwrap();
     let src = record(d.path(), "small.wav", "0.15", false);
-    let inv = damaged(&src, "inverted.wav", |r| r.i.iter_mut().for_each(|v| *v = -*v));
+    let inv_i = damaged(&src, "inverted-current.wav", |r| r.i.iter_mut().for_each(|v| *v = -*v));
+    let inv_u = damaged(&src, "inverted-voltage.wav", |r| r.u.iter_mut().for_each(|v| *v = -*v));
     let out = d.path().join("r.json");
-    for cmd in ["linear", "identify"] {
-        let o = coilscope(&[cmd, inv.to_str().unwrap(), "--mms", MMS, "--out", out.to_str().unwrap()]);
-        assert_eq!(o.status.code(), Some(2), "{cmd}: {}", text(&o));
-        assert!(
-            text(&o).contains("current looks inverted") && text(&o).contains("inverted.wav"),
-            "{cmd}: {}",
-            text(&o)
-        );
+    for (rec, name) in [(&inv_i, "inverted-current.wav"), (&inv_u, "inverted-voltage.wav")] {
+        for cmd in ["linear", "identify"] {
+            let o = coilscope(&[cmd, rec.to_str().unwrap(), "--mms", MMS, "--out", out.to_str().unwrap()]);
+            assert_eq!(o.status.code(), Some(2), "{cmd} {name}: {}", text(&o));
+            let t = text(&o);
+            assert!(
+                t.contains("one channel looks inverted, the current or the voltage")
+                    && t.contains("voltage probe")
+                    && t.contains(name),
+                "{cmd} {name}: {t}"
+            );
+        }
     }
 }
 

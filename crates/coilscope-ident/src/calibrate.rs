@@ -213,7 +213,7 @@ pub fn calibrate(u: &[f64], i: &[f64], fs: f64, resistor: f64, origin: &str) -> 
         keep.iter().filter(|&&k| h1.f[k] > 20.0 && h1.f[k] < 2000.0).map(|&k| h1.z[k].re).collect(),
     );
     if low_re < 0.0 {
-        return Err(format!("{origin}: U/I is negative ({low_re:.3} ohm median, 20 Hz .. 2 kHz): the current channel is inverted; swap its leads or invert its scale"));
+        return Err(format!("{origin}: U/I is negative ({low_re:.3} ohm median, 20 Hz .. 2 kHz): one channel is inverted, the current or the voltage (U/I alone cannot tell which); swap the leads of the one wired backwards (the sense resistor's on channel 2, the voltage probe's on channel 1) or negate its scale"));
     }
     // Start: the level from the mid band, the delay from the phase's slope above 1 kHz
     // (unwrapped), both corners near 1 Hz (apart, so neither is favoured).

@@ -18,7 +18,9 @@
 //! |---|---|
 //! | `info` | `device`, `excitation`, `controllable` (false for a replay), `fs` (Hz) |
 //! | `block` | `t` (s, end of the block), `stage`, `volts` (V rms), `f_hp` (Hz), `x` (`[min, max]`,
-//! m), `x_limit` (m or null), `dtv` (K), `re` (ohm), `residual`, `limited_by`, `update` (the window
+//! m), `x_limit` (m or null), `dtv` (K), `re` (ohm), `residual`, `limited_by`, `eta` (s to the
+//! expected convergence, or null while the level moves), `end` (s, when the run stops at the
+//! latest), `update` (the window
 //! residual of an update after this block, or null), `change` (`[Bl/Kms, Le]` relative change since
 //! the previous update, or null), `distortion` (`{x, i, p}`: `[Bl, Kms, Le]` factors, or null) |
 //! | `trace` | `t` (s, end of the block), `dt` (s per bin), `u` (V), `i` (A), `x` (m), `v` (m/s):
@@ -243,6 +245,8 @@ pub fn block_event(l: &Live) -> Value {
         "re": l.re,
         "residual": l.residual,
         "limited_by": l.limited_by.to_string(),
+        "eta": l.eta,
+        "end": l.end,
         "update": l.update,
         "change": l.change.map(|(a, b)| [a, b]),
         "distortion": l.distortion.map(|c| json!({"x": c.x, "i": c.i, "p": c.p})),

@@ -69,8 +69,35 @@ fn converges_from_silence(names: &[&str]) {
         let [lo, hi] = p.x_range.unwrap();
         let target = 0.85 * hi.min(-lo);
         let mut src = Source::noise(&Excitation::Iec, 48000.0, 2).unwrap();
-        let m = run(&p, &mut src, MeasureOptions { mms: p.mms, target_x: Some(target), ..Default::default() }, 1);
+        let mut dev = VirtualDevice::new(&p, 48000.0, (1e-4, 1e-4), 1).unwrap();
+        let mut etas = Vec::new();
+        let opts = MeasureOptions { mms: p.mms, target_x: Some(target), ..Default::default() };
+        let m = match measure(&mut dev, &mut src, &opts, None, |l| etas.push((l.t, l.eta, l.end, l.update.is_some()))) {
+            Ok(m) => m,
+            Err(e) => panic!("{name}: {e}"),
+        };
         assert_truth(name, &m, &p);
+        // The terminal's ETA: given once the level holds, never past the run's end, counting
+        // down between updates, and the one given in the last second before convergence
+        // pointing at it within 1.5 s. (Earlier ones are estimates from the bands' and the
+        // changes' rates, not checked against the end: the level may still move.)
+        let given: Vec<(f64, f64, bool)> = etas.iter().filter_map(|&(t, e, _, up)| e.map(|e| (t, e, up))).collect();
+        let shown: Vec<String> = given.iter().step_by(10).map(|(t, e, _)| format!("{t:.0}:{e:.1}")).collect();
+        println!("{name}: ETA (t: s left) {}, converged at {:.1} s", shown.join(" "), m.seconds);
+        assert!(!given.is_empty(), "{name}: no ETA in a run that converged");
+        assert!(etas.iter().all(|&(t, e, end, _)| e.is_none_or(|e| e >= 0.0 && t + e <= end + 1e-9) && end == 60.0));
+        for pair in given.windows(2) {
+            let ((t0, e0, _), (t1, e1, up)) = (pair[0], pair[1]);
+            let counted = ((t0 + e0) - (t1 + e1)).abs() < 1e-6 || (e1 == 0.0 && e0 <= t1 - t0 + 1e-6);
+            assert!(counted || up || t1 - t0 > 0.11, "{name}: the ETA jumped between updates: {pair:?}");
+        }
+        if let Some(&(t, e, _)) = given.last().filter(|(t, _, _)| *t >= m.seconds - 1.0) {
+            assert!(
+                (t + e - m.seconds).abs() <= 1.5,
+                "{name}: at {t} s the ETA said {e} s, converged at {}",
+                m.seconds
+            );
+        }
         let truth = m.truth.unwrap();
         assert!(
             truth.x_peak <= 1.05 * target,

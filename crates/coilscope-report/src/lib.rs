@@ -305,7 +305,7 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     let mut csv = Vec::new();
 
     // --- Parameters ---------------------------------------------------------------------
-    b.section("Parameters", "Values at rest (x = 0), in the units engineers read them in; ± one standard deviation where the result carries it. Small-signal figures from the linearised model at rest.");
+    b.section("Parameters", "Values at rest (x = 0), in the units engineers read them in; ± one standard deviation where the result carries it. Small-signal figures from the linearised model at rest, their sds propagated from those of the values they come from (Re, Bl, Kms, Mms, Rms, creep's lambda, Sd), taken as independent.");
     // Every constant of the parameter schema the set has, and the functions of x at rest,
     // each in its display unit, with its sd: a number's own, a curve's band at rest.
     let sd_of = |key: &str| -> Option<f64> {
@@ -338,20 +338,21 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
         let qes_p = w * p.mms * ze.re / (bl0 * bl0);
         ts.qms * qes_p / (ts.qms + qes_p)
     };
-    for (k, v, u) in [
-        ("fs", ts.fs, "Hz"),
-        ("Qms", ts.qms, ""),
-        ("Qes", ts.qes, ""),
-        ("Qts", ts.qts, ""),
-        ("Qtp (with the eddy-current losses at fs)", qtp, ""),
-        ("Cms", 1e3 * ts.cms, "mm/N"),
-        ("Rms at fs (with creep's loss)", ts.rms_fs, "kg/s"),
-        ("Res (Bl²/Rms at fs)", bl0 * bl0 / ts.rms_fs, "ohm"),
+    let d = derived_sds(p, &sd_of);
+    for (k, v, sd, u) in [
+        ("fs", ts.fs, d.fs, "Hz"),
+        ("Qms", ts.qms, d.qms, ""),
+        ("Qes", ts.qes, d.qes, ""),
+        ("Qts", ts.qts, d.qts, ""),
+        ("Qtp (with the eddy-current losses at fs)", qtp, None, ""),
+        ("Cms", 1e3 * ts.cms, d.cms.map(|s| 1e3 * s), "mm/N"),
+        ("Rms at fs (with creep's loss)", ts.rms_fs, d.rms_fs, "kg/s"),
+        ("Res (Bl²/Rms at fs)", bl0 * bl0 / ts.rms_fs, d.res, "ohm"),
     ] {
-        rows.push(vec![k.into(), sig(v), String::new(), u.into()]);
+        rows.push(vec![k.into(), sig(v), pm(sd, 1.0), u.into()]);
     }
     match ts.vas {
-        Some(v) => rows.push(vec!["Vas".into(), sig(v * 1e3), String::new(), "l".into()]),
+        Some(v) => rows.push(vec!["Vas".into(), sig(v * 1e3), pm(d.vas, 1e3), "l".into()]),
         None => rows.push(vec!["Vas".into(), "—".into(), String::new(), "(needs Sd)".into()]),
     }
     b.table(&["parameter", "value", "sd", "unit"], &rows);
@@ -1090,6 +1091,86 @@ mod legend_overlap {
     }
 }
 
+/// The sds of the small-signal figures ([`coilscope_core::small_signal::ThieleSmall`]) and of `Res`, propagated from the sds
+/// `sd_of` gives for the values they are computed from: `Re`, `Bl(0)`, `Kms(0)`, `Mms`, `Rms`,
+/// creep's `lambda` and `Sd`. Each figure's derivative by a central difference, the inputs taken
+/// as independent (the result files carry sds, not covariances); `None` for a figure none of
+/// whose inputs has an sd.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct DerivedSds {
+    pub fs: Option<f64>,
+    pub qms: Option<f64>,
+    pub qes: Option<f64>,
+    pub qts: Option<f64>,
+    pub cms: Option<f64>,
+    pub vas: Option<f64>,
+    pub rms_fs: Option<f64>,
+    pub res: Option<f64>,
+}
+
+/// See [`DerivedSds`].
+pub fn derived_sds(p: &Parameters, sd_of: &dyn Fn(&str) -> Option<f64>) -> DerivedSds {
+    let figures = |q: &Parameters| {
+        let t = thiele_small(q);
+        let bl = q.bl.c[0];
+        [t.fs, t.qms, t.qes, t.qts, t.cms, t.vas.unwrap_or(f64::NAN), t.rms_fs, bl * bl / t.rms_fs]
+    };
+    type Set = fn(&mut Parameters, f64);
+    let inputs: [(&str, Set, f64); 7] = [
+        ("Re", |q, d| q.re += d, p.re),
+        ("Bl", |q, d| q.bl.c[0] += d, p.bl.c[0]),
+        ("Kms", |q, d| q.kms.c[0] += d, p.kms.c[0]),
+        ("Mms", |q, d| q.mms += d, p.mms),
+        ("Rms", |q, d| q.rms += d, p.rms),
+        (
+            "creep.lambda",
+            |q, d| {
+                if let Some(c) = q.creep.as_mut() {
+                    c.lambda += d
+                }
+            },
+            p.creep.as_ref().map_or(0.0, |c| c.lambda),
+        ),
+        (
+            "Sd",
+            |q, d| {
+                if let Some(s) = q.sd.as_mut() {
+                    *s += d
+                }
+            },
+            p.sd.unwrap_or(0.0),
+        ),
+    ];
+    let mut var = [0.0f64; 8];
+    let mut any = false;
+    for (key, set, value) in inputs {
+        let Some(sd) = sd_of(key).filter(|s| s.is_finite() && *s > 0.0) else { continue };
+        let h = 1e-6 * value.abs().max(sd);
+        let (mut up, mut down) = (p.clone(), p.clone());
+        set(&mut up, h);
+        set(&mut down, -h);
+        let (a, b) = (figures(&up), figures(&down));
+        for k in 0..8 {
+            let slope = (a[k] - b[k]) / (2.0 * h);
+            if slope.is_finite() {
+                var[k] += (slope * sd).powi(2);
+            }
+        }
+        any = true;
+    }
+    let sd = |k: usize| any.then(|| var[k].sqrt()).filter(|s| *s > 0.0);
+    DerivedSds {
+        fs: sd(0),
+        qms: sd(1),
+        qes: sd(2),
+        qts: sd(3),
+        cms: sd(4),
+        vas: p.sd.and(sd(5)),
+        rms_fs: sd(6),
+        res: sd(7),
+    }
+}
+
 #[cfg(test)]
 mod degenerate {
     use super::*;
@@ -1126,5 +1207,32 @@ mod degenerate {
         assert!(b.html.contains("id=\"plot-empty\"") && b.html.contains("no finite value to draw"));
         assert_eq!(b.charts.len(), 1, "only the drawable chart gets a PNG");
         assert_eq!(b.charts[0].id, "fine");
+    }
+
+    /// The figures' sds are the first-order propagation of the inputs' sds: with Kms and Mms
+    /// alone uncertain, `sd(fs) / fs = 1/2 sqrt((sK / K)^2 + (sM / M)^2)`; with none, none.
+    #[test]
+    fn the_small_signal_figures_carry_the_sds_of_their_inputs() {
+        let p = coilscope_core::embedded_driver("sb17cac35-4").unwrap();
+        let (sk, sm) = (0.01 * p.kms.c[0], 0.02 * p.mms);
+        let sds = |k: &str| match k {
+            "Kms" => Some(sk),
+            "Mms" => Some(sm),
+            _ => None,
+        };
+        let d = derived_sds(&p, &sds);
+        let fs = thiele_small(&p).fs;
+        let want = 0.5 * fs * (0.01f64.powi(2) + 0.02f64.powi(2)).sqrt();
+        let got = d.fs.unwrap();
+        assert!((got / want - 1.0).abs() < 1e-4, "sd(fs) {got}, first order {want}");
+        let cms = thiele_small(&p).cms;
+        assert!((d.cms.unwrap() / (0.01 * cms) - 1.0).abs() < 1e-4);
+        assert!(d.vas.is_some() && d.qms.is_some() && d.qes.is_some() && d.qts.is_some());
+        // Qes = w_s Mms Re / Bl^2 with w_s = sqrt(K / M): d ln Qes = 1/2 d ln K + 1/2 d ln M.
+        let qes = thiele_small(&p).qes;
+        assert!((d.qes.unwrap() / (0.5 * qes * (0.01f64.powi(2) + 0.02f64.powi(2)).sqrt()) - 1.0).abs() < 1e-4);
+        assert_eq!(derived_sds(&p, &|_| None), DerivedSds::default());
+        // A NaN sd is no sd, never a figure's.
+        assert_eq!(derived_sds(&p, &|_| Some(f64::NAN)), DerivedSds::default());
     }
 }

@@ -649,7 +649,7 @@ fn linear_record_from(
     let re_med = crate::checks::median(low.iter().map(|&k| h1.z[k].re).collect());
     if re_med < 0.0 {
         return Err(format!(
-            "{origin}: the current looks inverted: U/I has a negative real part ({re_med:.3} ohm median over {} coherent bins up to {:.0} Hz), which no passive driver has; swap the sense-resistor leads or invert channel 2 (its scale factor)",
+            "{origin}: one channel looks inverted, the current or the voltage: U/I has a negative real part ({re_med:.3} ohm median over {} coherent bins up to {:.0} Hz), which no passive driver has. U/I alone cannot tell which of the two: check the sense resistor's leads (channel 2, the current) and the voltage probe's (channel 1), and invert the one wired backwards (swap its leads, or negate its scale factor)",
             low.len(),
             h1.f[*low.last().expect("not empty")]
         ));

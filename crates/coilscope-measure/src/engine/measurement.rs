@@ -309,6 +309,12 @@ pub struct Live {
     /// After an update: Bl, Kms and Le with their sds on [`LIVE_BAND_POINTS`] points over
     /// the estimator's reach (the bands the result will carry, as they converge).
     pub bands: Vec<(&'static str, coilscope_core::result::Band)>,
+    /// Seconds until the run is expected to converge, from the rate its bands narrow at the
+    /// held level (a run of fixed duration: until its end); `None` while the level still
+    /// moves or before the first bands.
+    pub eta: Option<f64>,
+    /// When the run stops at the latest (s): `--max-seconds`, or the fixed duration.
+    pub end: f64,
 }
 
 /// Bins of a block's [`Trace`].

@@ -208,6 +208,8 @@ pub struct Engine<'a> {
     /// The widest bands over the reach at the last update, relative to the values at rest:
     /// (Bl and Kms, Le).
     widest: Option<(f64, f64)>,
+    /// When the last update expected the run to converge (s; [`Engine::expected_convergence`]).
+    eta_at: Option<f64>,
     updates: usize,
     /// Recent temperature estimates (one per block) for the trend.
     dtv_recent: Vec<f64>,
@@ -282,6 +284,7 @@ impl<'a> Engine<'a> {
             last_residual: f64::NAN,
             last_excess: f64::NAN,
             widest: None,
+            eta_at: None,
             updates: 0,
             dtv_recent: Vec::new(),
             dtv_at_update: 0.0,
@@ -294,6 +297,55 @@ impl<'a> Engine<'a> {
             per_second: (1.0 / opts.block).round().max(1.0) as usize,
             end: opts.duration.unwrap_or(opts.max_seconds),
         })
+    }
+
+    /// When the run is expected to converge (s), judged at an update at `t` from the widest
+    /// bands `w` (Bl and Kms, Le; relative), the update cadence `every` (s) and the `k`
+    /// stable updates convergence asks for. At the held level a recursive estimate's bands
+    /// narrow as one over the square root of the data there and its change per update as one
+    /// over the data: the hold so far times (band / target)^2, and times (change / limit),
+    /// is the hold each needs. Then the 2 s of hold, the `k` stable updates once the changes
+    /// are small, and the update grid (convergence is judged at updates). `None` while the
+    /// level moves (ramp, exploration, settling).
+    fn expected_convergence(&self, t: f64, w: (f64, f64), every: f64, k: usize) -> Option<f64> {
+        if self.opts.duration.is_some()
+            || self.stage != Stage::Hold
+            || matches!(self.last_why, LimitedBy::Exploration | LimitedBy::Settling)
+        {
+            return None;
+        }
+        let held = (t - self.hold_since).max(every);
+        let precise = (w.0 / CONVERGED_SD_BL_KMS).powi(2).max((w.1 / CONVERGED_SD_LE).powi(2));
+        let (c_bk, c_le) = self.changes.last().copied().unwrap_or((f64::INFINITY, f64::INFINITY));
+        let steady = (c_bk / CONVERGED_BL_KMS).max(c_le / CONVERGED_LE);
+        if !(precise.is_finite() && steady.is_finite()) {
+            return None;
+        }
+        // Updates still needed below the change limit after this one.
+        let stable_left =
+            self.changes.iter().rev().take_while(|&&(b, l)| b < CONVERGED_BL_KMS && l < CONVERGED_LE).count();
+        let to_steady = held * (steady - 1.0).max(0.0);
+        let stable = if steady > 1.0 {
+            to_steady + (k - 1) as f64 * every
+        } else {
+            k.saturating_sub(stable_left) as f64 * every
+        };
+        let wait = (held * (precise - 1.0)).max(stable).max(2.0 - held).max(0.0);
+        // The first update at or after that.
+        Some(t + (wait / every).ceil().max(1.0) * every)
+    }
+
+    /// Seconds until the run is expected to converge ([`Live::eta`]): from the last update's
+    /// [`Engine::expected_convergence`], counting down; a run of fixed duration: its end.
+    fn eta(&self, t: f64) -> Option<f64> {
+        let left = (self.end - t).max(0.0);
+        if self.opts.duration.is_some() {
+            return Some(left);
+        }
+        if self.stage != Stage::Hold || matches!(self.last_why, LimitedBy::Exploration | LimitedBy::Settling) {
+            return None;
+        }
+        self.eta_at.map(|at| (at - t).max(0.0).min(left))
     }
 
     /// Why the run stopped, once it has (`None` while it runs).
@@ -383,6 +435,8 @@ impl<'a> Engine<'a> {
                 ..Default::default()
             },
             bands: vec![],
+            eta: None,
+            end: self.end,
         };
         match self.online.as_mut() {
             None => {
@@ -674,6 +728,7 @@ impl<'a> Engine<'a> {
                         // real-time cadence of 1 s, more when a replay updates every window).
                         let n = self.changes.len();
                         let k = ((CONVERGED_SPAN_S / every).round() as usize).max(2);
+                        self.eta_at = self.expected_convergence(t, w, every, k);
                         // Not while the ramp only pauses to explore toward the stiffness limit.
                         if self.opts.duration.is_none()
                             && self.stage == Stage::Hold
@@ -776,6 +831,7 @@ impl<'a> Engine<'a> {
         }
         live.stage = self.stage;
         self.last_why = live.limited_by;
+        live.eta = self.eta(t);
         if let Some(s) = store {
             s.push_state(StateRow {
                 t,
