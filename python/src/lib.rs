@@ -143,6 +143,25 @@ fn linear(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, chain: &s
     .map_err(err)
 }
 
+/// An impedance curve from the Python caller's `f` (Hz), `z_re` and `z_im` (ohm).
+fn curve_from(
+    f: Vec<f64>,
+    z_re: Vec<f64>,
+    z_im: Vec<f64>,
+    magnitude_only: bool,
+) -> PyResult<coilscope_io::impedance::ImpedanceCurve> {
+    if f.len() != z_re.len() || f.len() != z_im.len() {
+        return Err(err(format!(
+            "f, z_re and z_im have {}, {} and {} points: give one impedance per frequency",
+            f.len(),
+            z_re.len(),
+            z_im.len()
+        )));
+    }
+    let z = z_re.iter().zip(&z_im).map(|(&re, &im)| coilscope_core::Complex64::new(re, im)).collect();
+    Ok(coilscope_io::impedance::ImpedanceCurve { f, z, comments: vec![], magnitude_only })
+}
+
 /// The small-signal fit of a measured impedance curve (`coilscope linear --impedance`, Mms
 /// given): `f` (Hz), `z_re`, `z_im` (ohm). `band`: the fitted band (Hz); without it, the band
 /// where the lumped model holds (below break-up), as the command line finds it
@@ -162,16 +181,7 @@ fn linear_impedance(
     magnitude_only: bool,
 ) -> PyResult<String> {
     use coilscope_workflow::linear::{linear as fit, LinearInput, LinearRequest, Scale};
-    if f.len() != z_re.len() || f.len() != z_im.len() {
-        return Err(err(format!(
-            "f, z_re and z_im have {}, {} and {} points: give one impedance per frequency",
-            f.len(),
-            z_re.len(),
-            z_im.len()
-        )));
-    }
-    let z = z_re.iter().zip(&z_im).map(|(&re, &im)| coilscope_core::Complex64::new(re, im)).collect();
-    let curve = coilscope_io::impedance::ImpedanceCurve { f, z, comments: vec![], magnitude_only };
+    let curve = curve_from(f, z_re, z_im, magnitude_only)?;
     let req = LinearRequest { band: band.map(|(lo, hi)| [lo, hi]), ..LinearRequest::new("python") };
     py.allow_threads(|| {
         fit(LinearInput::Curve(curve), Scale::Mms(mms), &req, |_| {}).map(|l| l.result.to_json_value().to_string())
@@ -217,18 +227,9 @@ fn linear_enclosure(
 ) -> PyResult<String> {
     use coilscope_workflow::enclosure::{fit_enclosure, BoxRequest};
     use coilscope_workflow::linear::LinearInput;
-    if f.len() != z_re.len() || f.len() != z_im.len() {
-        return Err(err(format!(
-            "f, z_re and z_im have {}, {} and {} points: give one impedance per frequency",
-            f.len(),
-            z_re.len(),
-            z_im.len()
-        )));
-    }
     let p = params_from(driver)?;
     let choice = coilscope_ident::box_fit::BoxChoice::parse(enclosure).map_err(err)?;
-    let z = z_re.iter().zip(&z_im).map(|(&re, &im)| coilscope_core::Complex64::new(re, im)).collect();
-    let curve = coilscope_io::impedance::ImpedanceCurve { f, z, comments: vec![], magnitude_only };
+    let curve = curve_from(f, z_re, z_im, magnitude_only)?;
     let req = BoxRequest { origin: "python".into(), choice, sp, band: None };
     py.allow_threads(|| {
         fit_enclosure(&LinearInput::Curve(curve), &p, &req).map(|b| b.result.to_json_value().to_string())

@@ -171,6 +171,8 @@ pub(crate) fn cmd_report(
                 x_min: rows.iter().map(|r| r.x_min).collect(),
                 x_max: rows.iter().map(|r| r.x_max).collect(),
                 dtv: rows.iter().map(|r| r.dtv).collect(),
+                volts: rows.iter().map(|r| r.u_rms).collect(),
+                power: rows.iter().map(|r| r.re * r.i_rms * r.i_rms).collect(),
             });
         }
     }
@@ -190,10 +192,13 @@ pub(crate) fn cmd_report(
         eprintln!("warning: the report could not draw {w}");
     }
     println!(
-        "report: {} plots, distortion at {:.2} V RMS{}",
+        "report: {} plots, distortion predicted for a sine of {:.2} V RMS ({}){}",
         rep.charts.len(),
         rep.volts,
-        rep.volterra_divergence.map(|v| format!(", Volterra off by > 1 dB from {v:.2} V")).unwrap_or_default()
+        if opts.volts.is_some() { "--volts" } else { "the level that takes the cone to 70 % of the reached range" },
+        rep.volterra_divergence
+            .map(|v| format!(", the Volterra series off the full model by > 1 dB from {v:.2} V"))
+            .unwrap_or_default()
     );
     println!(
         "wrote {} and {} files in {}",

@@ -180,6 +180,8 @@ fn report_of_a_measurement_renders_in_chromium_with_every_plot_drawn() {
         "plot-volterra",
         "plot-x-time",
         "plot-temperature-time",
+        "plot-level-time",
+        "plot-power-time",
         "plot-multitone",
     ] {
         assert!(ids.contains(&want), "{want} missing from {ids:?}");
@@ -219,6 +221,8 @@ fn report_of_a_measurement_renders_in_chromium_with_every_plot_drawn() {
         x_min: rows.iter().map(|r| r.x_min).collect(),
         x_max: rows.iter().map(|r| r.x_max).collect(),
         dtv: rows.iter().map(|r| r.dtv).collect(),
+        volts: rows.iter().map(|r| r.u_rms).collect(),
+        power: rows.iter().map(|r| r.re * r.i_rms * r.i_rms).collect(),
     });
     let rep = coilscope_report::build(&input, &coilscope_report::ReportOptions::default()).unwrap();
     let with_legend: Vec<&coilscope_report::chart::Chart> = rep.charts.iter().filter(|c| c.series.len() > 1).collect();

@@ -70,7 +70,17 @@ fn report_tables_sds_and_what_the_result_supports() {
     // Engineering units: Mms in g, Le in mH.
     assert!(html.contains("<td>g</td>") && html.contains("<td>mH</td>"), "units");
     // Every small-signal figure with its sd (propagated from Kms, Rms, Bl, Re and Sd's).
-    for row in ["fs", "Qms", "Qes", "Qts", "Cms", "Vas", "Rms at fs (with creep's loss)", "Res (Bl²/Rms at fs)"] {
+    for row in [
+        "fs",
+        "Qms",
+        "Qes",
+        "Qts",
+        "Qtp (with the eddy-current losses at fs)",
+        "Cms",
+        "Vas",
+        "Rms at fs (with creep's loss)",
+        "Res (Bl²/Rms at fs)",
+    ] {
         let start = html.find(&format!("<td>{row}</td>")).unwrap_or_else(|| panic!("no row {row}"));
         let cells = &html[start..start + html[start..].find("</tr>").unwrap()];
         assert!(cells.contains("<td>± "), "the row {row} has no sd: {cells}");

@@ -420,6 +420,13 @@ pub struct MeasurementRecord {
     /// nonlinearity's contribution relative to the signal, from the live model.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub distortion: Vec<DistortionPoint>,
+    /// The excursion limit in force at the end (m): `--target-x`, or where the estimated
+    /// Kms(x)/Kms(0) reaches the stiffness limit; absent when none was set.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub x_limit: Option<f64>,
+    /// The voice-coil temperature limit of the run (K, `--max-dt`).
+    #[serde(rename = "max_dT", default, skip_serializing_if = "Option::is_none")]
+    pub max_dt: Option<f64>,
 }
 
 /// `measurement.distortion[]`: `[Bl, Kms, Le]` contributions (RMS over the second, relative

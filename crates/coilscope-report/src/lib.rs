@@ -35,6 +35,11 @@ pub struct TimeSeries {
     pub x_min: Vec<f64>,
     pub x_max: Vec<f64>,
     pub dtv: Vec<f64>,
+    /// The drive level: the terminal voltage's RMS over each block (V).
+    pub volts: Vec<f64>,
+    /// The power into the voice coil's resistance over each block, `Re(t) i_rms^2` (W; NaN
+    /// before the first estimate of Re).
+    pub power: Vec<f64>,
 }
 
 /// What a report is made from.
@@ -305,7 +310,7 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     let mut csv = Vec::new();
 
     // --- Parameters ---------------------------------------------------------------------
-    b.section("Parameters", "Values at rest (x = 0), in the units engineers read them in; ± one standard deviation where the result carries it. Small-signal figures from the linearised model at rest, their sds propagated from those of the values they come from (Re, Bl, Kms, Mms, Rms, creep's lambda, Sd), taken as independent.");
+    b.section("Parameters", "Values at rest (x = 0), in the units engineers read them in; ± one standard deviation where the result carries it. Small-signal figures from the linearised model at rest, their sds propagated from those of the values they come from (Re, Bl, Kms, Mms, Rms, creep's lambda, Sd, Le, R2), taken as independent.");
     // Every constant of the parameter schema the set has, and the functions of x at rest,
     // each in its display unit, with its sd: a number's own, a curve's band at rest.
     let sd_of = |key: &str| -> Option<f64> {
@@ -326,25 +331,14 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     // Thiele/Small and the derived figures (no sd of their own), at fs with creep's loss as
     // LPM and Speakerbench give them (`ThieleSmall`); the table's Rms above is the viscous one.
     let bl0 = p.bl.c[0];
-    let qtp = {
-        // Total Q with the electrical losses the para-inductance adds at the resonance:
-        // the real part of the blocked electrical impedance there in place of Re.
-        let w = 2.0 * std::f64::consts::PI * ts.fs;
-        let jw = realfft::num_complex::Complex64::new(0.0, w);
-        let mut ze = p.re + jw * p.le.c[0];
-        if let Some((l2, r2)) = &p.l2r2 {
-            ze += jw * l2.c[0] * r2.c[0] / (jw * l2.c[0] + r2.c[0]);
-        }
-        let qes_p = w * p.mms * ze.re / (bl0 * bl0);
-        ts.qms * qes_p / (ts.qms + qes_p)
-    };
+    let qtp = total_q_with_eddy_losses(p);
     let d = derived_sds(p, &sd_of);
     for (k, v, sd, u) in [
         ("fs", ts.fs, d.fs, "Hz"),
         ("Qms", ts.qms, d.qms, ""),
         ("Qes", ts.qes, d.qes, ""),
         ("Qts", ts.qts, d.qts, ""),
-        ("Qtp (with the eddy-current losses at fs)", qtp, None, ""),
+        ("Qtp (with the eddy-current losses at fs)", qtp, d.qtp, ""),
         ("Cms", 1e3 * ts.cms, d.cms.map(|s| 1e3 * s), "mm/N"),
         ("Rms at fs (with creep's loss)", ts.rms_fs, d.rms_fs, "kg/s"),
         ("Res (Bl²/Rms at fs)", bl0 * bl0 / ts.rms_fs, d.res, "ohm"),
@@ -875,19 +869,57 @@ pub fn build(input: &ReportInput, opts: &ReportOptions) -> Result<Report, String
     let dt_track: Option<Vec<(f64, f64)>> =
         result.and_then(|r| Some(r.thermal.as_ref()?.dt_track.clone())).filter(|t| !t.is_empty());
     if let Some(s) = &input.states {
-        let c = Chart::new("x-time", "Excursion during the measurement", "time (s)", "x (mm)")
+        let measured = result.and_then(|r| r.measurement.as_ref());
+        let span = |v: f64| vec![(s.t[0], v), (s.t[s.t.len() - 1], v)];
+        let mut c = Chart::new("x-time", "Excursion during the measurement", "time (s)", "x (mm)")
             .line("largest x per block", s.t.iter().zip(&s.x_max).map(|(t, x)| (*t, x * 1e3)).collect())
             .line("smallest x per block", s.t.iter().zip(&s.x_min).map(|(t, x)| (*t, x * 1e3)).collect());
-        b.chart(c, "Live displacement from the model (no sensor): extremes of each block.")?;
+        let x_limit = measured.and_then(|m| m.x_limit).filter(|x| x.is_finite() && *x > 0.0);
+        if let Some(xl) = x_limit {
+            c = c.dashed("excursion limit", span(xl * 1e3)).dashed("excursion limit (in)", span(-xl * 1e3));
+        }
+        b.chart(
+            c,
+            &match x_limit {
+                Some(xl) => format!("Live displacement from the model (no sensor): extremes of each block, and the excursion limit in force at the end (± {:.2} mm).", xl * 1e3),
+                None => "Live displacement from the model (no sensor): extremes of each block.".to_string(),
+            },
+        )?;
         let mut c = Chart::new("temperature-time", "Voice-coil temperature rise", "time (s)", "dT (K)")
             .line("from the tracked Re", s.t.iter().zip(&s.dtv).map(|(t, v)| (*t, *v)).collect());
         if let Some(track) = &dt_track {
             c = c.dashed("at the parameter updates", track.clone());
         }
-        b.chart(c, "Voice-coil temperature rise estimated from Re(t) = Re (1 + alpha dT).")?;
-        let mut c = String::from("t_s,x_min_mm,x_max_mm,dTv_K\n");
+        let max_dt = measured.and_then(|m| m.max_dt).filter(|d| d.is_finite() && *d > 0.0);
+        if let Some(d) = max_dt {
+            c = c.dashed("temperature limit (--max-dt)", span(d));
+        }
+        b.chart(c, "Voice-coil temperature rise estimated from Re(t) = Re (1 + alpha dT), and the run's limit.")?;
+        let finite = |v: &[f64]| -> Vec<(f64, f64)> {
+            s.t.iter().zip(v).filter(|(_, y)| y.is_finite()).map(|(t, y)| (*t, *y)).collect()
+        };
+        b.chart(
+            Chart::new("level-time", "Drive level during the measurement", "time (s)", "voltage (V rms)")
+                .line("terminal voltage per block", finite(&s.volts)),
+            "The RMS voltage at the terminals over each block: the quiet start, the ramp and the held level.",
+        )?;
+        b.chart(
+            Chart::new("power-time", "Power into the voice coil", "time (s)", "power (W)")
+                .line("Re(t) i_rms^2 per block", finite(&s.power)),
+            "The power dissipated in the voice coil's resistance over each block, from the tracked Re(t) and the current's RMS: what heats the coil.",
+        )?;
+        let mut c = String::from("t_s,x_min_mm,x_max_mm,dTv_K,u_rms_V,power_W\n");
         for k in 0..s.t.len() {
-            let _ = writeln!(c, "{:.3},{:.5},{:.5},{:.4}", s.t[k], s.x_min[k] * 1e3, s.x_max[k] * 1e3, s.dtv[k]);
+            let _ = writeln!(
+                c,
+                "{:.3},{:.5},{:.5},{:.4},{:.5},{:.5}",
+                s.t[k],
+                s.x_min[k] * 1e3,
+                s.x_max[k] * 1e3,
+                s.dtv[k],
+                s.volts[k],
+                s.power[k]
+            );
         }
         csv.push(("time_series.csv".to_string(), c));
     } else if let Some(track) = dt_track.filter(|t| t.len() >= 2) {
@@ -1091,9 +1123,10 @@ mod legend_overlap {
     }
 }
 
-/// The sds of the small-signal figures ([`coilscope_core::small_signal::ThieleSmall`]) and of `Res`, propagated from the sds
-/// `sd_of` gives for the values they are computed from: `Re`, `Bl(0)`, `Kms(0)`, `Mms`, `Rms`,
-/// creep's `lambda` and `Sd`. Each figure's derivative by a central difference, the inputs taken
+/// The sds of the small-signal figures ([`coilscope_core::small_signal::ThieleSmall`]), of
+/// `Res` and of [`total_q_with_eddy_losses`], propagated from the sds `sd_of` gives for the
+/// values they are computed from: `Re`, `Bl(0)`, `Kms(0)`, `Mms`, `Rms`, creep's `lambda`, `Sd`,
+/// `Le(0)` and `R2(0)`. Each figure's derivative by a central difference, the inputs taken
 /// as independent (the result files carry sds, not covariances); `None` for a figure none of
 /// whose inputs has an sd.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -1106,6 +1139,22 @@ pub struct DerivedSds {
     pub vas: Option<f64>,
     pub rms_fs: Option<f64>,
     pub res: Option<f64>,
+    pub qtp: Option<f64>,
+}
+
+/// Total Q with the electrical losses the para-inductance adds at the resonance: the real part
+/// of the blocked electrical impedance at fs in place of Re.
+pub fn total_q_with_eddy_losses(p: &Parameters) -> f64 {
+    let ts = thiele_small(p);
+    let bl0 = p.bl.c[0];
+    let w = 2.0 * std::f64::consts::PI * ts.fs;
+    let jw = realfft::num_complex::Complex64::new(0.0, w);
+    let mut ze = p.re + jw * p.le.c[0];
+    if let Some((l2, r2)) = &p.l2r2 {
+        ze += jw * l2.c[0] * r2.c[0] / (jw * l2.c[0] + r2.c[0]);
+    }
+    let qes_p = w * p.mms * ze.re / (bl0 * bl0);
+    ts.qms * qes_p / (ts.qms + qes_p)
 }
 
 /// See [`DerivedSds`].
@@ -1113,10 +1162,20 @@ pub fn derived_sds(p: &Parameters, sd_of: &dyn Fn(&str) -> Option<f64>) -> Deriv
     let figures = |q: &Parameters| {
         let t = thiele_small(q);
         let bl = q.bl.c[0];
-        [t.fs, t.qms, t.qes, t.qts, t.cms, t.vas.unwrap_or(f64::NAN), t.rms_fs, bl * bl / t.rms_fs]
+        [
+            t.fs,
+            t.qms,
+            t.qes,
+            t.qts,
+            t.cms,
+            t.vas.unwrap_or(f64::NAN),
+            t.rms_fs,
+            bl * bl / t.rms_fs,
+            total_q_with_eddy_losses(q),
+        ]
     };
     type Set = fn(&mut Parameters, f64);
-    let inputs: [(&str, Set, f64); 7] = [
+    let inputs: [(&str, Set, f64); 9] = [
         ("Re", |q, d| q.re += d, p.re),
         ("Bl", |q, d| q.bl.c[0] += d, p.bl.c[0]),
         ("Kms", |q, d| q.kms.c[0] += d, p.kms.c[0]),
@@ -1140,8 +1199,18 @@ pub fn derived_sds(p: &Parameters, sd_of: &dyn Fn(&str) -> Option<f64>) -> Deriv
             },
             p.sd.unwrap_or(0.0),
         ),
+        ("Le", |q, d| q.le.c[0] += d, p.le.c[0]),
+        (
+            "R2",
+            |q, d| {
+                if let Some((_, r2)) = q.l2r2.as_mut() {
+                    r2.c[0] += d
+                }
+            },
+            p.l2r2.as_ref().map_or(0.0, |(_, r2)| r2.c[0]),
+        ),
     ];
-    let mut var = [0.0f64; 8];
+    let mut var = [0.0f64; 9];
     let mut any = false;
     for (key, set, value) in inputs {
         let Some(sd) = sd_of(key).filter(|s| s.is_finite() && *s > 0.0) else { continue };
@@ -1150,7 +1219,7 @@ pub fn derived_sds(p: &Parameters, sd_of: &dyn Fn(&str) -> Option<f64>) -> Deriv
         set(&mut up, h);
         set(&mut down, -h);
         let (a, b) = (figures(&up), figures(&down));
-        for k in 0..8 {
+        for k in 0..9 {
             let slope = (a[k] - b[k]) / (2.0 * h);
             if slope.is_finite() {
                 var[k] += (slope * sd).powi(2);
@@ -1168,6 +1237,7 @@ pub fn derived_sds(p: &Parameters, sd_of: &dyn Fn(&str) -> Option<f64>) -> Deriv
         vas: p.sd.and(sd(5)),
         rms_fs: sd(6),
         res: sd(7),
+        qtp: sd(8),
     }
 }
 

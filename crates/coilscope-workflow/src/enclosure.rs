@@ -2,7 +2,7 @@
 //! impedance in the box ([`coilscope_ident::box_fit`]), with its warnings and verdict.
 
 use crate::linear::LinearInput;
-use coilscope_core::result::{Fit, ResultFile, Uncertainty, RESULT_FORMAT};
+use coilscope_core::result::{Fit, ResultFile, Uncertainty};
 use coilscope_core::small_signal::thiele_small;
 use coilscope_core::{Complex64, Parameters};
 use coilscope_ident::box_fit::{fit_box, BoxChoice, BoxFit};
@@ -129,32 +129,19 @@ pub fn fit_enclosure(input: &LinearInput, driver: &Parameters, req: &BoxRequest)
         uncertainty.set(k, *sd);
     }
     let band = [f[0], f[f.len() - 1]];
-    let mut result = ResultFile {
-        format: RESULT_FORMAT.into(),
-        kind: "linear".into(),
-        recording: req.origin.clone(),
-        parameters: params.clone(),
-        fit: Fit {
-            method: Some(format!("enclosure: {} box, the driver's set held", fit.enclosure.type_name())),
-            residual_rel: fit.residual,
-            band_hz: Some(band),
-            bins: Some(f.len()),
-            x_range: x_reached,
-            model: format!("enclosure {}", fit.enclosure.type_name()),
-            models_note: (!fit.why.is_empty()).then(|| format!("auto: {}; tried {:?}", fit.why, fit.trials)),
-            converged: Some(true),
-            phase_note: magnitude_only.then(|| "the file has no phase: the box fitted to |Z| alone".to_string()),
-            ..Default::default()
-        },
-        small_signal: Some(thiele_small(driver)),
-        limits: None,
-        uncertainty,
-        thermal: None,
-        measurement: None,
-        cross_check: None,
-        chain: None,
-        other: Default::default(),
+    let fit_record = Fit {
+        method: Some(format!("enclosure: {} box, the driver's set held", fit.enclosure.type_name())),
+        residual_rel: fit.residual,
+        band_hz: Some(band),
+        bins: Some(f.len()),
+        x_range: x_reached,
+        model: format!("enclosure {}", fit.enclosure.type_name()),
+        models_note: (!fit.why.is_empty()).then(|| format!("auto: {}; tried {:?}", fit.why, fit.trials)),
+        converged: Some(true),
+        phase_note: magnitude_only.then(|| "the file has no phase: the box fitted to |Z| alone".to_string()),
+        ..Default::default()
     };
+    let mut result = ResultFile::new("linear", &req.origin, params.clone(), fit_record, uncertainty, None);
     crate::attach_warnings(&mut result, None, &warnings);
     Ok(BoxOutcome { fit, params, result, warnings, points: f.len(), band })
 }

@@ -415,6 +415,9 @@ pub struct Measurement {
     pub thermal_track: coilscope_ident::thermal::ThermalTrack,
     /// Live distortion, one point per second ([`coilscope_analysis::live_distortion`]).
     pub distortion: Vec<coilscope_core::result::DistortionPoint>,
+    /// The excursion limit in force at the end (m), and the temperature limit (K).
+    pub x_limit: Option<f64>,
+    pub max_dt: f64,
     pub truth: Option<Truth>,
     pub excitation: String,
     pub device: String,
@@ -601,6 +604,8 @@ impl Measurement {
             protection_events: self.events.clone(),
             live_model_resets: self.online.resets,
             distortion: self.distortion.clone(),
+            x_limit: self.x_limit,
+            max_dt: Some(self.max_dt),
         });
         r
     }

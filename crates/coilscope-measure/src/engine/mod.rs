@@ -941,6 +941,11 @@ impl<'a> Engine<'a> {
             thermal_fit,
             thermal_track: self.thermal_track,
             distortion: self.distortion,
+            x_limit: match (self.opts.target_x, self.auto_limit) {
+                (Some(a), Some(b)) => Some(a.min(b)),
+                (a, b) => a.or(b),
+            },
+            max_dt: self.opts.max_dt,
             truth: self.device.truth(),
             excitation: self.source.name().to_string(),
             device: self.device.describe(),
