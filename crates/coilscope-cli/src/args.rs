@@ -69,7 +69,7 @@ impl From<OutputKind> for coilscope_analysis::distortion::Output {
 #[derive(clap::Args, Clone, Debug)]
 pub(crate) struct FitArgs {
     /// Effective radiating area (m^2), for Vas.
-    #[arg(long)]
+    #[arg(long, id = "sd_given")]
     pub(crate) sd: Option<f64>,
     /// Scale factors of integer-PCM recordings (V, A [, m] per count).
     #[arg(long, num_args = 2..=3, value_names = ["V", "A"])]
@@ -293,6 +293,23 @@ pub(crate) enum Command {
         /// or a parameter set; only the values at rest are used).
         #[arg(long, value_name = "FILE")]
         start: Option<String>,
+        /// The driver is in a box: `closed`, `vented`, `passive_radiator` or `auto` (the type
+        /// the record's impedance shows). The box's values are identified with the driver's
+        /// (result: `parameters.enclosure`); needs --sd.
+        #[arg(long, value_name = "TYPE", requires = "sd_given")]
+        enclosure: Option<String>,
+        /// A closed box's net volume (m^3): the box air and the suspension are springs on the
+        /// same cone, and the terminals see only their sum, so a closed box needs it.
+        #[arg(long, value_name = "M3", requires = "enclosure")]
+        vb: Option<f64>,
+        /// A vented box's port area (m^2): the port's quadratic loss is then given as
+        /// `port_loss`, else as `knl`.
+        #[arg(long, value_name = "M2", requires = "enclosure")]
+        port_area: Option<f64>,
+        /// A passive radiator's area (m^2); without it Sd is taken, and the radiator's mass,
+        /// stiffness and loss are over that area.
+        #[arg(long, value_name = "M2", requires = "enclosure")]
+        sp: Option<f64>,
         #[command(flatten)]
         fit: FitArgs,
     },

@@ -20,6 +20,7 @@ pub(crate) fn cmd_identify(
     chain: &ChainMode,
     wiring: SenseWiring,
     sd: Option<f64>,
+    enclosure: Option<coilscope_ident::large::InBox>,
     scale: Option<&[f64]>,
     out: &Path,
 ) -> Result<(), Failure> {
@@ -55,6 +56,7 @@ pub(crate) fn cmd_identify(
         wiring,
         sd,
         threads,
+        enclosure,
     };
     let done = identify_record(&mut rec, &req, progress);
     if live {

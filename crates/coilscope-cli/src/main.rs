@@ -131,9 +131,25 @@ fn main() -> ExitCode {
         Command::Linear { recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, enclosure, driver, sp, fit } => {
             cmd_linear(LinearArgs { enclosure, driver, sp, recording, impedance, mms, added_mass, with_mass, with_mass_impedance, band, volts, effects, fit })
         }
-        Command::Identify { recording, jobs, method, start, mms, order, effects, fit } => parse_chain(&fit.chain).and_then(|chain| {
+        Command::Identify { recording, jobs, method, start, mms, order, effects, enclosure, vb, port_area, sp, fit } => parse_chain(&fit.chain).and_then(|chain| {
+            let in_box = match &enclosure {
+                None => None,
+                Some(t) => Some(coilscope_ident::large::InBox {
+                    choice: coilscope_ident::box_fit::BoxChoice::parse(t).map_err(Failure::from)?,
+                    sd: fit.sd.ok_or_else(|| Failure::from("--enclosure needs the driver's radiating area --sd (m^2)"))?,
+                    vb,
+                    port_area,
+                    sp,
+                }),
+            };
             if recording.len() > 1 {
+                if in_box.is_some() {
+                    return Err(Failure::from("--enclosure identifies one recording; a batch is of drivers in free air"));
+                }
                 return cmd_identify_batch(&recording, jobs, &fit.out);
+            }
+            if in_box.is_some() && method == "volterra" {
+                return Err(Failure::from("--enclosure is for the full identification (--method full); the Volterra method knows no box"));
             }
             let recording = &recording[0];
             if jobs.is_some() {
@@ -143,7 +159,7 @@ fn main() -> ExitCode {
             } else if start.is_some() {
                 Err(Failure::from("--start is the Volterra method's small-signal set (--method volterra); the full identification finds its own start"))
             } else {
-                cmd_identify(recording, mms, order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, fit.scale.as_deref(), &fit.out)
+                cmd_identify(recording, mms, order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, in_box, fit.scale.as_deref(), &fit.out)
             }
         }),
         Command::Calibrate { recording, resistor, loopback, scale, out, sense_wiring, sense_ohm } => parse_wiring(&sense_wiring, sense_ohm).and_then(|w| cmd_calibrate(&recording, resistor, loopback, w, scale.as_deref(), &out)),

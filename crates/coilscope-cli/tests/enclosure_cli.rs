@@ -191,3 +191,55 @@ fn measurements_refuse_a_driver_in_a_box_they_cannot_model() {
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && e.contains("closed box") && e.contains("free air"), "{e}");
 }
+
+/// `identify --enclosure` on the command line: a closed box without its volume is refused
+/// with the reason, `--enclosure` without `--sd` is refused, and with `--vb` the result
+/// carries the box (its leak within 25 %) and the driver's own stiffness, not the sum of the
+/// suspension's and the box air's.
+#[test]
+fn identify_in_a_closed_box_needs_its_volume_and_gives_the_drivers_own_stiffness() {
+    let dir = tempfile::tempdir().unwrap();
+    let boxed = dir.path().join("box.json");
+    std::fs::write(&boxed, r#"{"type": "closed", "Vb": 0.012, "QL": 10.0}"#).unwrap();
+    let rec = dir.path().join("in-box.wav");
+    let o = coilscope(&[
+        "simulate",
+        "sb17cac35-4",
+        "--enclosure",
+        boxed.to_str().unwrap(),
+        "--excitation",
+        "pink",
+        "--volts",
+        "3",
+        "--seconds",
+        "4",
+        "--snr-db",
+        "70",
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.path().join("r.json");
+    let (r, o) = (rec.to_str().unwrap(), out.to_str().unwrap());
+    let run = |extra: &[&str]| {
+        let mut a = vec!["identify", r, "--mms", "0.015367", "--out", o];
+        a.extend_from_slice(extra);
+        coilscope(&a)
+    };
+    let no_vb = run(&["--sd", "0.0118", "--enclosure", "closed"]);
+    let e = String::from_utf8_lossy(&no_vb.stderr);
+    assert!(!no_vb.status.success() && e.contains("--vb") && e.contains("sum"), "{e}");
+    let no_sd = run(&["--enclosure", "vented"]);
+    let e = String::from_utf8_lossy(&no_sd.stderr);
+    assert!(!no_sd.status.success() && e.contains("--sd"), "{e}");
+    let ok = run(&["--sd", "0.0118", "--enclosure", "closed", "--vb", "0.012"]);
+    assert!(ok.status.success(), "{}", String::from_utf8_lossy(&ok.stderr));
+    let v = json(&out);
+    let p = &v["parameters"];
+    assert_eq!(p["enclosure"]["type"], "closed", "{p}");
+    let ql = p["enclosure"]["QL"].as_f64().unwrap();
+    assert!((ql / 10.0 - 1.0).abs() < 0.25, "QL {ql}");
+    let kms0 = p["Kms"].as_array().map_or_else(|| p["Kms"].as_f64().unwrap(), |a| a[0].as_f64().unwrap());
+    assert!((kms0 / 635.991 - 1.0).abs() < 0.01, "Kms(0) {kms0} N/m, the driver's own is 635.991");
+    assert!(v["uncertainty"]["enclosure.QL"].as_f64().is_some_and(|s| s > 0.0), "{}", v["uncertainty"]);
+}

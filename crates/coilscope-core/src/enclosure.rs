@@ -71,20 +71,20 @@ pub struct Enclosure {
 /// The box's acoustic elements (SI acoustic units), derived from an [`Enclosure`] and the
 /// driver it holds ([`Enclosure::elements`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Elements {
+pub struct Elements<D = f64> {
     /// The driver's radiating area (m^2).
-    pub sd: f64,
+    pub sd: D,
     /// Net volume (m^3).
-    pub vb: f64,
+    pub vb: D,
     /// Acoustic compliance of the box air `Vb / (gamma p0)` (m^5/N).
-    pub cab: f64,
-    /// The leak's resistance (Pa s/m^3); infinite without a leak.
-    pub ral: f64,
+    pub cab: D,
+    /// The leak's resistance (Pa s/m^3); `None` without a leak.
+    pub ral: Option<D>,
     /// The port's air mass (kg/m^4), linear loss (Pa s/m^3) and quadratic loss
     /// (Pa s^2/m^6); `None` without a port.
-    pub port: Option<(f64, f64, f64)>,
+    pub port: Option<(D, D, D)>,
     /// The box's tuning `f_t` (Hz) the leak's Q refers to.
-    pub tuning_hz: f64,
+    pub tuning_hz: D,
 }
 
 /// The type names a file may give, in the contract's spelling.
@@ -120,29 +120,51 @@ impl Enclosure {
     /// `sqrt((Kmp(0) + Sp^2 / Cab) / Mmp) / 2 pi`, or the closed box's system resonance
     /// `sqrt((Kms(0) + Sd^2 / Cab) / Mms) / 2 pi`.
     pub fn tuning_hz(&self, kms0: f64, mms: f64, sd: f64) -> f64 {
-        let cab = self.cab();
-        match &self.kind {
-            BoxKind::Closed => ((kms0 + sd * sd / cab) / mms).sqrt() / (2.0 * PI),
-            BoxKind::Vented { fb, .. } => *fb,
-            BoxKind::PassiveRadiator { sp, mmp, kmp, .. } => ((kmp.c[0] + sp * sp / cab) / mmp).sqrt() / (2.0 * PI),
-        }
+        self.elements(kms0, mms, sd).tuning_hz
     }
 
     /// The acoustic elements for the driver of stiffness `kms0` (N/m), mass `mms` (kg) and
     /// area `sd` (m^2).
     pub fn elements(&self, kms0: f64, mms: f64, sd: f64) -> Elements {
-        let cab = self.cab();
-        let tuning_hz = self.tuning_hz(kms0, mms, sd);
-        let ral = self.ql.map_or(f64::INFINITY, |ql| ql / (2.0 * PI * tuning_hz * cab));
+        self.elements_lifted(kms0, mms, sd, &|_, v| v)
+    }
+
+    /// [`Enclosure::elements`] in the scalar type `D`, each of the box's values taken through
+    /// `lift(key, value)` (schema keys: `enclosure.Vb`, `enclosure.QL`, `enclosure.fb`,
+    /// `enclosure.Qp`, `enclosure.knl`, `enclosure.Sp`, `enclosure.Mmp`, `enclosure.Kmp` for
+    /// Kmp(0), `enclosure.Rmp`): the one derivation of the elements, for the simulator
+    /// (`lift` the identity) and for a fit whose unknowns the box's values are (`lift` puts
+    /// them on dual numbers).
+    pub fn elements_lifted<D: DualNum<Primitive = f64> + Copy>(
+        &self,
+        kms0: D,
+        mms: D,
+        sd: D,
+        lift: &dyn Fn(&'static str, f64) -> D,
+    ) -> Elements<D> {
+        let vb = lift("enclosure.Vb", self.vb);
+        let cab = vb * (1.0 / (GAMMA * P0));
+        let two_pi = 2.0 * PI;
+        let tuning_hz = match &self.kind {
+            BoxKind::Closed => ((kms0 + sd * sd / cab) / mms).sqrt() * (1.0 / two_pi),
+            BoxKind::Vented { fb, .. } => lift("enclosure.fb", *fb),
+            BoxKind::PassiveRadiator { sp, mmp, kmp, .. } => {
+                let sp = lift("enclosure.Sp", *sp);
+                ((lift("enclosure.Kmp", kmp.c[0]) + sp * sp / cab) / lift("enclosure.Mmp", *mmp)).sqrt()
+                    * (1.0 / two_pi)
+            }
+        };
+        let ral = self.ql.map(|ql| lift("enclosure.QL", ql) / (tuning_hz * two_pi * cab));
         let port = match &self.kind {
-            BoxKind::Vented { fb, qp, .. } => {
-                let wb = 2.0 * PI * fb;
-                let map = 1.0 / (wb * wb * cab);
-                Some((map, qp.map_or(0.0, |q| wb * map / q), self.knl()))
+            BoxKind::Vented { qp, .. } => {
+                let wb = tuning_hz * two_pi;
+                let map = (wb * wb * cab).recip();
+                let rap = qp.map_or(D::zero(), |q| wb * map / lift("enclosure.Qp", q));
+                Some((map, rap, lift("enclosure.knl", self.knl())))
             }
             _ => None,
         };
-        Elements { sd, vb: self.vb, cab, ral, port, tuning_hz }
+        Elements { sd, vb, cab, ral, port, tuning_hz }
     }
 
     /// The acoustic impedance the box presents to the cone's volume velocity at rest,
@@ -150,7 +172,7 @@ impl Enclosure {
     /// loss or the radiator's moving system, in parallel (the textbook small-signal network).
     pub fn acoustic_impedance(&self, e: &Elements, w: f64) -> Complex64 {
         let jw = Complex64::new(0.0, w);
-        let mut y = jw * e.cab + 1.0 / e.ral;
+        let mut y = jw * e.cab + e.ral.map_or(0.0, |r| 1.0 / r);
         match &self.kind {
             BoxKind::Closed => {}
             BoxKind::Vented { .. } => {
@@ -188,7 +210,7 @@ impl Enclosure {
             }
             BoxKind::PassiveRadiator { sp, mmp, kmp, rmp } => p * sp * sp / (jw * mmp + rmp + kmp.c[0] / jw),
         };
-        1.0 + out + p / e.ral
+        1.0 + out + e.ral.map_or(Complex64::new(0.0, 0.0), |r| p / r)
     }
 
     /// Parse `enclosure` from a parameter file's JSON. `err(key, message)` builds the reader's
@@ -353,6 +375,35 @@ impl Enclosure {
         Ok(())
     }
 
+    /// The value of a key of the box (`Vb`, `fb`, ...: a schema key with `enclosure.` taken
+    /// off), as [`crate::params::Parameters::get`] gives it; `None` where this box has none.
+    pub fn value(&self, key: &str) -> Option<crate::params::SchemaValue<'_>> {
+        use crate::params::SchemaValue as V;
+        let num = |v: Option<f64>| v.map(V::Number);
+        match (key, &self.kind) {
+            ("type", _) => Some(V::Text(self.type_name())),
+            ("Vb", _) => Some(V::Number(self.vb)),
+            ("adiabatic", _) => Some(V::Flag(self.adiabatic)),
+            ("QL", _) => num(self.ql),
+            ("fb", BoxKind::Vented { fb, .. }) => Some(V::Number(*fb)),
+            ("Qp", BoxKind::Vented { qp, .. }) => num(*qp),
+            ("port_area", BoxKind::Vented { port_area, .. }) => num(*port_area),
+            ("port_loss", BoxKind::Vented { port_loss, .. }) => num(*port_loss),
+            ("knl", BoxKind::Vented { knl, .. }) => num(*knl),
+            ("Sp", BoxKind::PassiveRadiator { sp, .. }) => Some(V::Number(*sp)),
+            ("Mmp", BoxKind::PassiveRadiator { mmp, .. }) => Some(V::Number(*mmp)),
+            ("Kmp", BoxKind::PassiveRadiator { kmp, .. }) => Some(V::Series(kmp)),
+            ("Rmp", BoxKind::PassiveRadiator { rmp, .. }) => Some(V::Number(*rmp)),
+            _ => None,
+        }
+    }
+
+    /// The number under a schema key (`enclosure.Vb`, ...; `Kmp` at rest), `None` where this
+    /// box has none.
+    pub fn get(&self, key: &str) -> Option<f64> {
+        self.value(key.strip_prefix("enclosure.")?)?.at_rest()
+    }
+
     /// The box as the contract's JSON object.
     pub fn to_json(&self) -> Value {
         let mut m = Map::new();
@@ -389,6 +440,10 @@ impl Enclosure {
         Value::Object(m)
     }
 }
+
+/// The keys under which [`BoxModel::lifted`] lifts the radiator's `Kmp(xp)` coefficients
+/// (`c0`, `c1`, `c2`; `enclosure.Kmp` is the schema's, at rest); higher ones are held.
+pub const KMP_TERMS: [&str; 3] = ["enclosure.Kmp", "enclosure.Kmp.1", "enclosure.Kmp.2"];
 
 /// The box's states beside the driver's: the gauge pressure `p` (Pa), then the port's volume
 /// velocity `U` (m^3/s, out of the box) or the radiator's excursion `xp` (m) and velocity
@@ -439,23 +494,43 @@ pub struct BoxRates<D> {
 impl<D: DualNum<Primitive = f64> + Copy> BoxModel<D> {
     /// The box of `e` holding a driver of stiffness `kms0`, mass `mms` and area `sd`.
     pub fn new(e: &Enclosure, kms0: f64, mms: f64, sd: f64) -> Self {
-        let el = e.elements(kms0, mms, sd);
+        Self::lifted(e, D::from(kms0), D::from(mms), sd, &|_, v| D::from(v))
+    }
+
+    /// [`BoxModel::new`] with the driver's `kms0` and `mms` in `D` and each of the box's values
+    /// taken through `lift(key, value)` ([`Enclosure::elements_lifted`]): a fit's model, whose
+    /// unknowns the box's values are.
+    pub fn lifted(e: &Enclosure, kms0: D, mms: D, sd: f64, lift: &dyn Fn(&'static str, f64) -> D) -> Self {
+        let el = e.elements_lifted(kms0, mms, D::from(sd), lift);
         let outlet = match &e.kind {
             BoxKind::Closed => Outlet::Sealed,
             BoxKind::Vented { .. } => {
                 let (map, rap, knl) = el.port.expect("a vented box has a port");
-                Outlet::Port { map: D::from(map), rap: D::from(rap), knl: D::from(knl) }
+                Outlet::Port { map, rap, knl }
             }
             BoxKind::PassiveRadiator { sp, mmp, kmp, rmp } => {
-                Outlet::Radiator { sp: D::from(*sp), mmp: D::from(*mmp), kmp: kmp.lift(), rmp: D::from(*rmp) }
+                let kmp = Poly {
+                    c: kmp
+                        .c
+                        .iter()
+                        .enumerate()
+                        .map(|(j, &c)| lift(KMP_TERMS.get(j).copied().unwrap_or(""), c))
+                        .collect(),
+                };
+                Outlet::Radiator {
+                    sp: lift("enclosure.Sp", *sp),
+                    mmp: lift("enclosure.Mmp", *mmp),
+                    kmp,
+                    rmp: lift("enclosure.Rmp", *rmp),
+                }
             }
         };
         BoxModel {
             sd: D::from(sd),
-            vb: D::from(e.vb),
-            stiffness: D::from(1.0 / el.cab),
+            vb: el.vb,
+            stiffness: el.cab.recip(),
             adiabatic: e.adiabatic,
-            leak: D::from(if el.ral.is_finite() { 1.0 / el.ral } else { 0.0 }),
+            leak: el.ral.map_or(D::zero(), |r| r.recip()),
             outlet,
         }
     }

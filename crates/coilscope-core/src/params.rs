@@ -631,26 +631,7 @@ impl Parameters {
 
     /// A value of the box (`Vb`, `fb`, ...; [`Parameters::get`] with `enclosure.` taken off).
     fn enclosure_value(&self, key: &str) -> Option<SchemaValue<'_>> {
-        use crate::enclosure::BoxKind;
-        use SchemaValue as V;
-        let e = self.enclosure.as_ref()?;
-        let num = |v: Option<f64>| v.map(V::Number);
-        match (key, &e.kind) {
-            ("type", _) => Some(V::Text(e.type_name())),
-            ("Vb", _) => Some(V::Number(e.vb)),
-            ("adiabatic", _) => Some(V::Flag(e.adiabatic)),
-            ("QL", _) => num(e.ql),
-            ("fb", BoxKind::Vented { fb, .. }) => Some(V::Number(*fb)),
-            ("Qp", BoxKind::Vented { qp, .. }) => num(*qp),
-            ("port_area", BoxKind::Vented { port_area, .. }) => num(*port_area),
-            ("port_loss", BoxKind::Vented { port_loss, .. }) => num(*port_loss),
-            ("knl", BoxKind::Vented { knl, .. }) => num(*knl),
-            ("Sp", BoxKind::PassiveRadiator { sp, .. }) => Some(V::Number(*sp)),
-            ("Mmp", BoxKind::PassiveRadiator { mmp, .. }) => Some(V::Number(*mmp)),
-            ("Kmp", BoxKind::PassiveRadiator { kmp, .. }) => Some(V::Series(kmp)),
-            ("Rmp", BoxKind::PassiveRadiator { rmp, .. }) => Some(V::Number(*rmp)),
-            _ => None,
-        }
+        self.enclosure.as_ref()?.value(key)
     }
 
     /// The constants and the functions of x at rest (their `c0`) the set has, in the schema's

@@ -74,6 +74,11 @@ impl<D: DualNum<Primitive = f64> + Copy> Poly<D> {
 }
 
 impl Poly<f64> {
+    /// The series times `k`.
+    pub fn scaled(&self, k: f64) -> Poly {
+        Poly { c: self.c.iter().map(|c| c * k).collect() }
+    }
+
     /// The coefficients as a plain series (for files).
     pub fn coefficients(&self) -> &[f64] {
         &self.c

@@ -106,9 +106,7 @@ fn columns(layout: &Layout) -> Option<Vec<Column>> {
 /// per sample (a woofer's final fit) or one step of the midpoint rule (a woofer's search
 /// stages, [`crate::large::OutputError::searching`]).
 pub(crate) fn applies(layout: &Layout, stepper: &Stepper) -> bool {
-    !layout.effects.needs_ext_states()
-        && matches!(stepper.scheme, Scheme::Rk4 | Scheme::Midpoint)
-        && stepper.points() == 3
+    !layout.needs_ext_states() && matches!(stepper.scheme, Scheme::Rk4 | Scheme::Midpoint) && stepper.points() == 3
 }
 
 /// What a model run beside a Jacobian's passes (the residual's, with all its sub-steps)

@@ -28,6 +28,8 @@ pub struct IdentifyRequest {
     pub sd: Option<f64>,
     /// Worker threads (0: every core).
     pub threads: usize,
+    /// The driver is in this box; `None`: free air.
+    pub enclosure: Option<coilscope_ident::large::InBox>,
 }
 
 impl IdentifyRequest {
@@ -42,6 +44,7 @@ impl IdentifyRequest {
             wiring: SenseWiring::Terminals,
             sd: None,
             threads: 0,
+            enclosure: None,
         }
     }
 }
@@ -152,6 +155,7 @@ fn identify_body(
         chain,
         detect_chain: req.chain == ChainMode::Detect && !chain,
         threads: req.threads,
+        enclosure: req.enclosure.clone(),
         ..Default::default()
     };
     let (fit, failure) = match identify(&rec.u, &rec.i, fs, origin, &opts, &mut *progress) {

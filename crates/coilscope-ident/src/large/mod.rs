@@ -33,9 +33,10 @@ use crate::linear::{
     check_channels, fit_linear_record, scale_by_mms, Effects, EffectsChoice, LinearFit, LinearOptions,
 };
 use crate::lm::{lm_step_accelerated, AtLastTrial, LmState, Problem};
+use coilscope_core::enclosure::{BoxKind, BoxModel, Enclosure, KMP_TERMS};
 use coilscope_core::integrate::{Electrical, FlushTiny, Rates, Scheme, Stepper};
 use coilscope_core::jet::Jet;
-use coilscope_core::model::{idx, ExtModel, Model, Parts, NEXT, NLR3, NSTATE};
+use coilscope_core::model::{idx, ExtModel, Model, Parts, NBOX, NEXT, NLR3, NSTATE};
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
 use coilscope_core::result::{Fit, ModelTrial, ResultFile, Sd, Thermal, Uncertainty};
@@ -94,6 +95,28 @@ pub struct IdentifyOptions {
     /// stands out of its sd ([`crate::linear::CHAIN_SIGNIFICANCE`]) the fit takes the chain
     /// ([`LargeFit::chain_detected`] says what was seen); otherwise it is the plain fit.
     pub detect_chain: bool,
+    /// The driver is in a box ([`InBox`]): the box's values are identified with the
+    /// driver's. `None`: free air.
+    pub enclosure: Option<InBox>,
+}
+
+/// A driver identified in its box ([`IdentifyOptions::enclosure`]). The start is the joint
+/// small-signal fit of the driver and the box ([`crate::box_fit::fit_driver_in_box`]) on the
+/// record's first seconds, unless [`IdentifyOptions::init`] gives a set with its
+/// `enclosure`; the large-signal fit then has the box's values among its unknowns
+/// ([`BoxUnknowns`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct InBox {
+    pub choice: crate::box_fit::BoxChoice,
+    /// The driver's radiating area (m^2).
+    pub sd: f64,
+    /// A closed box's net volume (m^3), which the terminals cannot separate from the
+    /// suspension's stiffness; with a port or a radiator a start for the fit, or `None`.
+    pub vb: Option<f64>,
+    /// The port's area (m^2): the quadratic loss is then reported as `port_loss`.
+    pub port_area: Option<f64>,
+    /// The radiator's area (m^2); `None`: `Sd`.
+    pub sp: Option<f64>,
 }
 
 impl Default for IdentifyOptions {
@@ -110,6 +133,7 @@ impl Default for IdentifyOptions {
             effects: EffectsChoice::Auto,
             chain: false,
             detect_chain: false,
+            enclosure: None,
         }
     }
 }

@@ -175,7 +175,8 @@ pub(super) fn column_map(from: &Layout, to: &Layout, n_chain: usize) -> Option<V
         && to.effects.union(from.effects) == to.effects
         && from.heat_taus.is_empty()
         && to.heat_taus.is_empty()
-        && from.scales == to.scales;
+        && from.scales == to.scales
+        && from.enclosure == to.enclosure;
     if !same {
         return None;
     }
@@ -207,6 +208,7 @@ pub(super) fn column_map(from: &Layout, to: &Layout, n_chain: usize) -> Option<V
         range(&one(a.l3), &one(b.l3));
         range(&one(a.r3), &one(b.r3));
     }
+    range(&a.enclosure, &b.enclosure);
     for k in 0..n_chain {
         map[b.n + k] = Some(a.n + k);
     }

@@ -201,9 +201,15 @@ pub(super) fn identify_record(
     let settle_of = |st: &Parameters| ((5.0 * 2.0 * st.mms / st.rms.max(1e-9)).clamp(0.02, 0.25) * fs) as usize;
     // The start model's run over the record: its displacement, and the share of the current
     // it misses after settling; Err(sample) where it diverged.
+    // The box's unknowns, relative to the start's box.
+    let box_unknowns = |st: &Parameters, x_ref: f64| -> Option<BoxUnknowns> {
+        opts.enclosure.as_ref()?;
+        Some(BoxUnknowns::new(st.enclosure.as_ref()?, st.sd?, x_ref))
+    };
     let run_start = |st: &Parameters| -> Result<(Vec<f64>, f64), usize> {
         // Reach of the start model: the basis scale, and the runaway limit.
-        let probe = Layout::new(MIN_ORDER, n_re, knot_dt, 1e-3, Scales::of(st), st.l2r2.is_some(), opts.mms);
+        let probe = Layout::new(MIN_ORDER, n_re, knot_dt, 1e-3, Scales::of(st), st.l2r2.is_some(), opts.mms)
+            .with_box(box_unknowns(st, 1e-3));
         let th0 = join(probe.theta_from(st, None), &cth);
         let pr = OutputError::new(probe, u, i, fs, 0..u.len(), st.rates(), f64::INFINITY, threads).with_chain(setup);
         let (x0, i_start) = pr.trace(&th0, u.len())?;
@@ -225,20 +231,62 @@ pub(super) fn identify_record(
         Ok((x0, rel(&DVector::from_vec(e), &t)))
     };
     let mut start = Parameters { mms: opts.mms, thermal: None, ..start };
+    // In a box: the driver and the box from the start fit's impedance, jointly.
+    // The joint fit's other ends ([`crate::box_fit::BoxFit::alternatives`]), tried below.
+    let mut box_alternatives: Vec<Parameters> = Vec::new();
+    let mut in_box = |p: Parameters, lin: Option<&LinearFit>| -> Result<Parameters, IdentifyError> {
+        let (Some(b), Some(lin)) = (&opts.enclosure, lin) else {
+            return Ok(p);
+        };
+        if p.enclosure.is_some() {
+            return Ok(p);
+        }
+        let h1 = &lin.h1;
+        let keep: Vec<usize> = (1..h1.f.len())
+            .filter(|&k| h1.f[k] >= lin.band[0] && h1.f[k] <= lin.band[1] && h1.usable(k, BOX_START_COHERENCE))
+            .collect();
+        let f: Vec<f64> = keep.iter().map(|&k| h1.f[k]).collect();
+        let z: Vec<coilscope_core::Complex64> = keep.iter().map(|&k| h1.z[k]).collect();
+        let (f, z) = crate::box_fit::log_spaced(&f, &z, BOX_START_POINTS, f[0], f[f.len() - 1].min(BOX_START_TOP_HZ));
+        let p = Parameters { sd: Some(b.sd), ..p };
+        let (driver, fit) = crate::box_fit::fit_driver_in_box(&f, &z, false, &p, b.choice, b.sp, b.vb)
+            .map_err(|e| Input(format!("{origin}: {e}")))?;
+        let with_port = |mut d: Parameters| {
+            if let (Some(a), Some(e)) = (b.port_area, d.enclosure.as_mut()) {
+                if let BoxKind::Vented { port_area, .. } = &mut e.kind {
+                    *port_area = Some(a);
+                }
+            }
+            Parameters { mms: opts.mms, thermal: None, ..d }
+        };
+        box_alternatives.extend(fit.alternatives.into_iter().map(with_port));
+        Ok(with_port(driver))
+    };
+    start = in_box(start, linear.as_ref())?;
     // With the chain, the start from the linear fit without it can miss the driver (SB17 with
     // the voltage channel 0.28 sample late, 4.5 / 1.4 Hz coupling and 1 % offsets: the fit
     // without the chain missed 100 % of the current); the one with the chain can lose the
     // LR-2 branch (SB17 with AC coupling: R2 -> 1e-132 ohm). The one that misses less wins.
     // The two runs (one core each) side by side.
-    let alt = chain_start.map(|(alt, lin)| (Parameters { mms: opts.mms, thermal: None, ..alt }, lin));
+    let alt = match chain_start {
+        Some((alt, lin)) => Some((in_box(Parameters { mms: opts.mms, thermal: None, ..alt }, Some(&lin))?, lin)),
+        None => None,
+    };
     let (mut started, other) = std::thread::scope(|scope| {
         let other = alt.as_ref().map(|(a, _)| scope.spawn(|| run_start(a)));
         (run_start(&start), other.map(|h| h.join().expect("a model run does not panic")))
     });
+    let miss = |r: &Result<(Vec<f64>, f64), usize>| r.as_ref().map_or(f64::INFINITY, |(_, m)| *m);
     if let (Some((alt, lin)), Some(other)) = (alt, other) {
-        let miss = |r: &Result<(Vec<f64>, f64), usize>| r.as_ref().map_or(f64::INFINITY, |(_, m)| *m);
         if miss(&other) < miss(&started) {
             (start, started, linear) = (alt, other, Some(lin));
+        }
+    }
+    // In a box: the joint fit's other ends, where one misses less of the current.
+    for alt in box_alternatives {
+        let other = run_start(&alt);
+        if miss(&other) < miss(&started) {
+            (start, started) = (alt, other);
         }
     }
     // A start outside physics (a resistance or inductance at zero: with a faster-falling LM
@@ -302,7 +350,15 @@ pub(super) fn identify_record(
     let reach0 = x0.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-6);
     let x_ref = reach0;
     let x_limit = 8.0 * reach0;
-    let layout_for = |order: usize| Layout::new(order, n_re, knot_dt, x_ref, scales.clone(), has_l2r2, opts.mms);
+    if opts.enclosure.is_some() && start.enclosure.is_none() {
+        return Err(Input(format!(
+            "{origin}: a fit in a box needs the box's start: the set given as the start has no enclosure"
+        )));
+    }
+    let boxed = box_unknowns(&start, x_ref);
+    let layout_for = |order: usize| {
+        Layout::new(order, n_re, knot_dt, x_ref, scales.clone(), has_l2r2, opts.mms).with_box(boxed.clone())
+    };
 
     // Order selection: increasing orders on the estimation part, warm-started.
     let n = u.len();
@@ -1064,6 +1120,16 @@ pub(super) fn identify_record(
     }
     Ok(fit)
 }
+
+/// Coherence an impedance bin of the start fit needs for the joint small-signal fit of the
+/// driver and its box.
+pub const BOX_START_COHERENCE: f64 = 0.97;
+
+/// Points, log-spaced, of the joint small-signal fit of a driver and its box, and the
+/// highest frequency (Hz) they reach: a box and the driver's mechanics show below it, and
+/// the coil's inductance is the large-signal fit's to find.
+pub const BOX_START_POINTS: usize = 200;
+pub const BOX_START_TOP_HZ: f64 = 3000.0;
 
 /// Share of the start fit's error power that the linear fit with the chain must remove for
 /// `IdentifyOptions::detect_chain` to take the chain.
