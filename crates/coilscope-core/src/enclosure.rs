@@ -404,37 +404,13 @@ impl Enclosure {
         self.value(key.strip_prefix("enclosure.")?)?.at_rest()
     }
 
-    /// The box as the contract's JSON object.
+    /// The box as the contract's JSON object: every `enclosure.` entry of the schema it has.
     pub fn to_json(&self) -> Value {
         let mut m = Map::new();
-        m.insert("type".into(), self.type_name().into());
-        m.insert("Vb".into(), self.vb.into());
-        if let Some(ql) = self.ql {
-            m.insert("QL".into(), ql.into());
-        }
-        m.insert("adiabatic".into(), self.adiabatic.into());
-        let mut put = |k: &str, v: Option<f64>| {
-            if let Some(v) = v {
-                m.insert(k.into(), v.into());
-            }
-        };
-        match &self.kind {
-            BoxKind::Closed => {}
-            BoxKind::Vented { fb, qp, port_area, port_loss, knl } => {
-                put("fb", Some(*fb));
-                put("Qp", *qp);
-                put("port_area", *port_area);
-                put("port_loss", *port_loss);
-                put("knl", *knl);
-            }
-            BoxKind::PassiveRadiator { sp, mmp, kmp, rmp } => {
-                put("Sp", Some(*sp));
-                put("Mmp", Some(*mmp));
-                put("Rmp", Some(*rmp));
-                m.insert(
-                    "Kmp".into(),
-                    if kmp.c.len() == 1 { kmp.c[0].into() } else { kmp.c.iter().map(|&c| Value::from(c)).collect() },
-                );
+        for e in crate::schema::ENTRIES {
+            let Some(key) = e.key.strip_prefix("enclosure.") else { continue };
+            if let Some(v) = self.value(key) {
+                m.insert(key.into(), v.to_json(e.kind));
             }
         }
         Value::Object(m)

@@ -652,18 +652,7 @@ impl Parameters {
         m.insert("format".into(), PARAMETERS_FORMAT.into());
         for e in crate::schema::ENTRIES {
             let Some(v) = self.get(e.key) else { continue };
-            let json: Value = match v {
-                SchemaValue::Number(x) => x.into(),
-                SchemaValue::Series(p)
-                    if matches!(e.kind, crate::schema::Kind::SeriesX | crate::schema::Kind::SeriesXp) =>
-                {
-                    series_json(p)
-                }
-                SchemaValue::Series(p) => Value::Array(p.c.iter().map(|&c| c.into()).collect()),
-                SchemaValue::Range(r) => Value::Array(vec![r[0].into(), r[1].into()]),
-                SchemaValue::Text(t) => t.into(),
-                SchemaValue::Flag(b) => b.into(),
-            };
+            let json = v.to_json(e.kind);
             match e.key.split_once('.') {
                 Some((object, k)) => {
                     if let Value::Object(o) = m.entry(object).or_insert_with(|| Value::Object(Map::new())) {
@@ -747,14 +736,6 @@ impl Parameters {
     /// (The sum of [`Parameters::rates`]: one computation of the rates.)
     pub fn stiffness_rate(&self) -> f64 {
         self.rates().total()
-    }
-}
-
-fn series_json(p: &Poly) -> Value {
-    if p.c.len() == 1 {
-        p.c[0].into()
-    } else {
-        Value::Array(p.c.iter().map(|&c| c.into()).collect())
     }
 }
 

@@ -286,6 +286,21 @@ pub enum Value<'a> {
 }
 
 impl Value<'_> {
+    /// The value as the contract writes an entry of `kind`: a number; a series in x (or
+    /// xp) as a number when constant, else an array; other series and ranges as arrays.
+    pub fn to_json(&self, kind: Kind) -> serde_json::Value {
+        use serde_json::Value as J;
+        let array = |c: &[f64]| J::Array(c.iter().map(|&c| c.into()).collect());
+        match self {
+            Value::Number(x) => (*x).into(),
+            Value::Series(p) if matches!(kind, Kind::SeriesX | Kind::SeriesXp) && p.c.len() == 1 => p.c[0].into(),
+            Value::Series(p) => array(&p.c),
+            Value::Range(r) => array(r),
+            Value::Text(t) => (*t).into(),
+            Value::Flag(b) => (*b).into(),
+        }
+    }
+
     /// The number, or the series' value at 0 (its c0), or `None` for a range or text.
     pub fn at_rest(&self) -> Option<f64> {
         match self {

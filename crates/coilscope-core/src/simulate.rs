@@ -37,6 +37,23 @@ impl<S: crate::integrate::Dynamics<f64, N>, const N: usize> crate::integrate::Dy
     }
 }
 
+/// One sample of `sys` with `stepper`, pushed by the external acceleration `accel` (m/s^2)
+/// where it is not zero.
+fn pushed_sample<S: Electrical<f64, N>, const N: usize>(
+    stepper: &Stepper,
+    sys: &S,
+    accel: f64,
+    y: &[f64; N],
+    dt: f64,
+    u_points: &[f64],
+) -> [f64; N] {
+    if accel == 0.0 {
+        stepper.sample(sys, y, dt, u_points)
+    } else {
+        stepper.sample(&Pushed { sys, accel }, y, dt, u_points)
+    }
+}
+
 impl<S: Electrical<f64, N>, const N: usize> Electrical<f64, N> for Pushed<'_, S> {
     #[inline]
     fn electrical(&self, y: &[f64; N]) -> [[f64; 2]; 2] {
@@ -116,11 +133,6 @@ impl Plant {
         Some(std::array::from_fn(|k| s[ext_idx::BOX + k]))
     }
 
-    /// The extended model the plant integrates, where the set needs one.
-    pub fn ext_model(&self) -> Option<&ExtModel<f64>> {
-        self.ext.as_ref().map(|(m, _)| m)
-    }
-
     /// Put creep's damper positions on their periodic orbit after a window of `period`
     /// seconds that started at `start` (a state of [`Plant::ext_state`]). Each damper
     /// follows `dy/dt = (x - y) / tau`, linear in `y`: over a window,
@@ -143,25 +155,15 @@ impl Plant {
     pub fn step(&mut self, stepper: &Stepper, state: &mut State<f64>, dt: f64, u_points: &[f64]) {
         let accel = self.accel;
         match &mut self.ext {
-            None if accel == 0.0 => *state = stepper.sample(&self.model, state, dt, u_points),
-            None => *state = stepper.sample(&Pushed { sys: &self.model, accel }, state, dt, u_points),
+            None => *state = pushed_sample(stepper, &self.model, accel, state, dt, u_points),
             Some((model, s)) => {
                 s[..NSTATE].copy_from_slice(state);
                 if model.enclosure.is_some() {
-                    *s = if accel == 0.0 {
-                        stepper.sample(model, s, dt, u_points)
-                    } else {
-                        stepper.sample(&Pushed { sys: &*model, accel }, s, dt, u_points)
-                    };
+                    *s = pushed_sample(stepper, &*model, accel, s, dt, u_points);
                 } else {
                     // Without a box its states stay at zero: integrate the first NEXT.
-                    let mut e: ExtState<f64> = std::array::from_fn(|k| s[k]);
-                    e = if accel == 0.0 {
-                        stepper.sample(model, &e, dt, u_points)
-                    } else {
-                        stepper.sample(&Pushed { sys: &*model, accel }, &e, dt, u_points)
-                    };
-                    s[..NEXT].copy_from_slice(&e);
+                    let e: ExtState<f64> = std::array::from_fn(|k| s[k]);
+                    s[..NEXT].copy_from_slice(&pushed_sample(stepper, &*model, accel, &e, dt, u_points));
                 }
                 state.copy_from_slice(&s[..NSTATE]);
             }

@@ -102,12 +102,7 @@ pub fn fit_box(
     }
     let driver = Parameters { enclosure: None, ..driver.clone() };
     let data = Data { f: f.to_vec(), z: z.to_vec(), magnitude_only, driver, sp: sp.unwrap_or(sd), walls: false };
-    let kinds: Vec<Kind> = match choice {
-        BoxChoice::Closed => vec![Kind::Closed],
-        BoxChoice::Vented => vec![Kind::Vented],
-        BoxChoice::PassiveRadiator => vec![Kind::Radiator],
-        BoxChoice::Auto => vec![Kind::Closed, Kind::Vented, Kind::Radiator],
-    };
+    let kinds = Kind::of(choice);
     let fits: Vec<(Kind, Solved)> = kinds.iter().map(|&k| (k, solve(&data, k))).collect();
     let trials: Vec<(&'static str, f64)> = fits.iter().map(|(k, s)| (k.name(), s.residual)).collect();
     let (pick, why) = auto_pick(choice, &fits.iter().map(|(k, s)| (*k, s.residual)).collect::<Vec<_>>());
@@ -162,6 +157,16 @@ enum Kind {
 }
 
 impl Kind {
+    /// The kinds of box a choice tries, simplest first.
+    fn of(choice: BoxChoice) -> &'static [Kind] {
+        match choice {
+            BoxChoice::Closed => &[Kind::Closed],
+            BoxChoice::Vented => &[Kind::Vented],
+            BoxChoice::PassiveRadiator => &[Kind::Radiator],
+            BoxChoice::Auto => &[Kind::Closed, Kind::Vented, Kind::Radiator],
+        }
+    }
+
     fn name(self) -> &'static str {
         match self {
             Kind::Closed => "closed",
@@ -390,15 +395,29 @@ impl Problem for Held<'_> {
 }
 
 /// A driver and its box together, from the impedance `z` at `f` (Hz) in the box: the start of
-/// a large-signal identification in a box. `start` is the driver as a free-air fit of the same
-/// record reads it (its `Mms` and `Sd` given; its stiffness then holds the box air's, and
-/// with a port or a radiator it is a compromise between the two peaks): the driver's `Re`,
-/// `Le`, `Bl`, `Kms`, `Rms` (and `L2`, `R2`) are fitted as factors on it, `Mms` held, with
-/// the box's values. A closed box's volume `vb` (m^3) is held: its air and the suspension are
-/// springs in parallel, and an impedance sees only their sum; without it a closed box is an
-/// error. The start of the search is the best of a grid over the box (as [`fit_box`]'s) with
-/// the driver's stiffness at a quarter, a half and all of `start`'s (with a closed box: less
-/// the air's stiffness).
+/// a large-signal identification in a box.
+///
+/// `start` is the driver as a free-air fit of the same record reads it, its `Mms` and `Sd`
+/// given. Its stiffness then holds the box air's, and with a port or a radiator it is a
+/// compromise between the two peaks. The driver's [`DRIVER_KEYS`] are fitted as factors on a
+/// reference, `Mms` held, together with the box's values. A closed box's volume `vb` (m^3)
+/// is held: its air and the suspension are springs in parallel, and an impedance sees only
+/// their sum; without it a closed box is an error.
+///
+/// The search starts from:
+/// - two electrical starts, one made from the data (`Re` under the least `|Z|`, `Le` and an
+///   LR-2 branch from the highest point's reactance) and `start`'s own where physical;
+/// - for each, a grid of the driver's resonance over the data (its stiffness from `Mms`, `Rms`
+///   at `Qms = 4`, `Bl` from the highest peak), and `start`'s mechanical values where physical,
+///   each with the box as [`fit_box`] starts it; the best few of the grid are kept;
+/// - with a port or a radiator, Thiele's reading of the two peaks (the driver's resonance at
+///   `fL fH / fM`, the outlet's tuning at the dip `fM` between them, the compliance ratio from
+///   the three).
+///
+/// Each start is solved by Levenberg-Marquardt twice, with the physical ranges (Qms, `Re`
+/// under the least `|Z|`, the electrical values within a factor of the data's, the tuning
+/// within the data, a radiator's mass per area) as penalty rows and as walls. The least
+/// residual wins; the others are returned in [`BoxFit::alternatives`], best first.
 pub fn fit_driver_in_box(
     f: &[f64],
     z: &[Complex64],
@@ -414,12 +433,7 @@ pub fn fit_driver_in_box(
     }
     let driver = Parameters { enclosure: None, ..start.clone() };
     let data = Data { f: f.to_vec(), z: z.to_vec(), magnitude_only, driver, sp: sp.unwrap_or(sd), walls: false };
-    let kinds: Vec<Kind> = match choice {
-        BoxChoice::Closed => vec![Kind::Closed],
-        BoxChoice::Vented => vec![Kind::Vented],
-        BoxChoice::PassiveRadiator => vec![Kind::Radiator],
-        BoxChoice::Auto => vec![Kind::Closed, Kind::Vented, Kind::Radiator],
-    };
+    let kinds = Kind::of(choice);
     if choice == BoxChoice::Closed && vb.is_none() {
         return Err("a closed box's volume must be given (--vb M3): its air and the driver's suspension are two springs on the same cone, and the terminals see only their sum".into());
     }
@@ -463,19 +477,7 @@ pub fn fit_driver_in_box(
                     (Kind::Closed, Some(v)) => vec![v.ln(), 10f64.ln()],
                     _ => grid_start(&Data { driver: d.clone(), ..coarse.clone() }, kind),
                 };
-                // The candidate as factors on the start driver.
-                let r = &data.driver;
-                let branch = |p: &Parameters| p.l2r2.as_ref().map_or((1.0, 1.0), |(l, r)| (l.c[0], r.c[0]));
-                let ((l2, r2), (l2r, r2r)) = (branch(d), branch(r));
-                th.extend([
-                    (d.re / r.re).ln(),
-                    (d.le.c[0] / r.le.c[0]).ln(),
-                    (d.bl.c[0] / r.bl.c[0]).ln(),
-                    (d.kms.c[0] / r.kms.c[0]).ln(),
-                    (d.rms / r.rms).ln(),
-                    (l2 / l2r).ln(),
-                    (r2 / r2r).ln(),
-                ]);
+                th.extend(factors(d, &data.driver));
                 let c = coarse.residual(kind, &th).norm_squared();
                 if c.is_finite()
                     && data
@@ -500,22 +502,7 @@ pub fn fit_driver_in_box(
                         Kind::Vented => vec![vb.ln(), 10f64.ln(), fb.ln(), 20f64.ln()],
                         _ => grid_start(&Data { driver: d.clone(), ..coarse.clone() }, kind),
                     };
-                    let r = &data.driver;
-                    th.extend([
-                        0.0,
-                        0.0,
-                        (d.bl.c[0] / r.bl.c[0]).ln(),
-                        (d.kms.c[0] / r.kms.c[0]).ln(),
-                        (d.rms / r.rms).ln(),
-                        0.0,
-                        0.0,
-                    ]);
-                    th[nk] = (d.re / r.re).ln();
-                    th[nk + 1] = (d.le.c[0] / r.le.c[0]).ln();
-                    if let (Some((l2, r2)), Some((l2r, r2r))) = (&d.l2r2, &r.l2r2) {
-                        th[nk + 5] = (l2.c[0] / l2r.c[0]).ln();
-                        th[nk + 6] = (r2.c[0] / r2r.c[0]).ln();
-                    }
+                    th.extend(factors(&d, &data.driver));
                     if data.residual(kind, &th).iter().all(|v| v.is_finite()) {
                         best.push((0.0, th));
                     }
@@ -715,6 +702,24 @@ fn two_peak_driver(p: &Parameters, f: &[f64], z: &[Complex64]) -> Option<(Parame
     (alpha > 0.0).then(|| {
         (Parameters { kms: Poly::constant(p.mms * w * w), rms, bl: Poly::constant(bl), ..p.clone() }, fm, alpha)
     })
+}
+
+/// `d` as the factors of [`DRIVER_KEYS`] on `r`: the ln of each ratio (the branch's 0 when
+/// either lacks it).
+fn factors(d: &Parameters, r: &Parameters) -> [f64; 7] {
+    let (l2, r2) = match (&d.l2r2, &r.l2r2) {
+        (Some((l, rr)), Some((lr, rrr))) => ((l.c[0] / lr.c[0]).ln(), (rr.c[0] / rrr.c[0]).ln()),
+        _ => (0.0, 0.0),
+    };
+    [
+        (d.re / r.re).ln(),
+        (d.le.c[0] / r.le.c[0]).ln(),
+        (d.bl.c[0] / r.bl.c[0]).ln(),
+        (d.kms.c[0] / r.kms.c[0]).ln(),
+        (d.rms / r.rms).ln(),
+        l2,
+        r2,
+    ]
 }
 
 /// Points of [`driver_grid`].

@@ -1,6 +1,6 @@
 //! Large-signal identification of a driver in its box (`IdentifyOptions::enclosure`) against
 //! the truth, on fresh drivers and boxes of the population, simulated by our own model (the
-//! independent simulator's box records are in `crates/coilscope-cli/tests/reference_recordings.rs`).
+//! independent simulator's box records, with their own truth).
 //!
 //! Release sweeps (`--ignored`; `.ci/run` runs them). Recordings: 6 s at 48 kHz of pink noise (10 Hz - 8 kHz, crest factor 3) at the level that
 //! takes the cone to 70 % of its range, 70 dB sensor noise, the LR-2 world (no creep, LR-3,
@@ -11,10 +11,8 @@
 //! within 4.5 sd of each box value (its sd with [`coilscope_ident::large::BOX_SYSTEMATIC_REL`]).
 
 use coilscope_core::enclosure::{BoxKind, Enclosure};
-use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
 use coilscope_core::population::draw_box;
 use coilscope_core::result::Sd;
-use coilscope_core::simulate::{gain_for_peak, SimOptions};
 use coilscope_core::Parameters;
 use coilscope_ident::box_fit::BoxChoice;
 use coilscope_ident::large::{identify, IdentifyOptions, InBox, LargeFit};
@@ -22,29 +20,8 @@ use coilscope_ident::linear::{Effects, EffectsChoice};
 use coilscope_testkit::population::keep_failure;
 
 mod common;
+use common::world::pink_record;
 use common::Errors;
-
-struct Rec {
-    u: Vec<f64>,
-    i: Vec<f64>,
-    x_range: [f64; 2],
-}
-
-fn record(p: &Parameters, seconds: f64, share: f64, seed: u64) -> Rec {
-    let fs = 48_000.0;
-    let [lo, hi] = p.x_range.unwrap();
-    let unit = generate(
-        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
-        &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed },
-    )
-    .unwrap();
-    let (_, tr) = gain_for_peak(p, fs, &unit, share * hi.min(-lo), &SimOptions::default()).unwrap();
-    let s = tr.summary();
-    let (mut u, mut i) = (tr.u, tr.i);
-    add_sensor_noise(&mut u, 70.0, seed, "sensor-noise/voltage");
-    add_sensor_noise(&mut i, 70.0, seed, "sensor-noise/current");
-    Rec { u, i, x_range: [s.x_min, s.x_max] }
-}
 
 fn bound(key: &str) -> f64 {
     match key {
@@ -90,6 +67,37 @@ fn box_errors(fit: &LargeFit, truth: &Enclosure) -> Vec<(&'static str, f64, f64)
     out
 }
 
+/// The fit of `label` against its truth (`truth` in `b`, over the reached `x_range`): what is
+/// out of its bound, and the residual's ratio to its noise floor. Prints the errors.
+fn judge(label: &str, fit: &LargeFit, truth: &Parameters, b: &Enclosure, x_range: [f64; 2]) -> (Vec<String>, f64) {
+    let e = Errors::of(&fit.params, truth, x_range);
+    let mut bad = Vec::new();
+    for (what, v, lim) in [("Bl", e.bl, 0.01), ("Kms", e.kms, 0.01), ("Le", e.le, 0.03), ("Re", e.re, 0.003)] {
+        if !(v <= lim) {
+            bad.push(format!("{what} {:.3} % (bound {:.1} %)", 100.0 * v, 100.0 * lim));
+        }
+    }
+    let be = box_errors(fit, b);
+    for (k, err, z) in &be {
+        if !(err.abs() < bound(k)) {
+            bad.push(format!("{k} {:+.2} % (bound {:.0} %)", 100.0 * err, 100.0 * bound(k)));
+        }
+        if !(z.abs() <= 4.5) {
+            bad.push(format!("{k} {z:+.1} sd"));
+        }
+    }
+    let r: Vec<f64> = fit.i_model.iter().zip(&fit.i_phys).skip(fit.settle).map(|(a, b)| a - b).collect();
+    let ratio = coilscope_ident::checks::noise_floor(&r, fit.fs).ratio;
+    eprintln!(
+        "{label}: model {}, order {}, residual {:.2e} ({ratio:.1} x floor), {e}; box: {}",
+        fit.layout.effects.model_name(),
+        fit.order,
+        fit.residual_rel,
+        be.iter().map(|(k, e, z)| format!("{k} {:+.3} % ({z:+.1} sd)", 100.0 * e)).collect::<Vec<_>>().join(", ")
+    );
+    (bad, ratio)
+}
+
 /// What one fit of a drawn driver in a drawn box came to.
 enum Outcome {
     /// Within every bound.
@@ -107,7 +115,7 @@ fn one(seed: u64, ty: &str) -> (String, Outcome) {
     let mut truth = d.plain.clone();
     let b = draw_box(d.seed, &truth, Some(ty));
     truth.enclosure = Some(b.clone());
-    let rec = record(&truth, 6.0, 0.7, d.seed);
+    let (u, i, s) = pink_record(&truth, 48_000.0, 6.0, 0.7, d.seed);
     let sd = truth.sd.unwrap();
     let port_area = match &b.kind {
         BoxKind::Vented { port_area, .. } => *port_area,
@@ -130,34 +138,11 @@ fn one(seed: u64, ty: &str) -> (String, Outcome) {
         ..IdentifyOptions::default()
     };
     let name = format!("{} in a {ty} box", d.name());
-    let fit = match identify(&rec.u, &rec.i, 48_000.0, &name, &opts, |_| {}) {
+    let fit = match identify(&u, &i, 48_000.0, &name, &opts, |_| {}) {
         Ok(f) => f,
         Err(e) => return (name, Outcome::Loud(format!("refused: {e}"))),
     };
-    let e = Errors::of(&fit.params, &truth, rec.x_range);
-    let mut bad = Vec::new();
-    for (what, v, lim) in [("Bl", e.bl, 0.01), ("Kms", e.kms, 0.01), ("Le", e.le, 0.03), ("Re", e.re, 0.003)] {
-        if !(v <= lim) {
-            bad.push(format!("{what} {:.3} % (bound {:.1} %)", 100.0 * v, 100.0 * lim));
-        }
-    }
-    let be = box_errors(&fit, &b);
-    for (k, err, z) in &be {
-        if !(err.abs() < bound(k)) {
-            bad.push(format!("{k} {:+.2} % (bound {:.0} %)", 100.0 * err, 100.0 * bound(k)));
-        }
-        if !(z.abs() <= 4.5) {
-            bad.push(format!("{k} {z:+.1} sd"));
-        }
-    }
-    let r: Vec<f64> = fit.i_model.iter().zip(&fit.i_phys).skip(fit.settle).map(|(a, b)| a - b).collect();
-    let ratio = coilscope_ident::checks::noise_floor(&r, 48_000.0).ratio;
-    eprintln!(
-        "{name}: order {} residual {:.2e} ({ratio:.1} x floor), {e}; box: {}",
-        fit.order,
-        fit.residual_rel,
-        be.iter().map(|(k, e, z)| format!("{k} {:+.3} % ({z:+.1} sd)", 100.0 * e)).collect::<Vec<_>>().join(", ")
-    );
+    let (bad, ratio) = judge(&name, &fit, &truth, &b, [s.x_min, s.x_max]);
     let outcome = if bad.is_empty() {
         Outcome::Right
     } else if ratio > coilscope_ident::checks::RESIDUAL_RATIO_WARN {
@@ -288,24 +273,8 @@ fn the_independent_box_records_are_identified_with_their_boxes() {
         };
         let fit =
             identify(&rec.u, &rec.i, rec.fs as f64, file, &opts, |_| {}).unwrap_or_else(|e| panic!("{file}: {e}"));
-        let e = Errors::of(&fit.params, &truth, fit.x_range);
-        let mut wrong = Vec::new();
-        for (what, v, lim) in [("Bl", e.bl, 0.01), ("Kms", e.kms, 0.01), ("Le", e.le, 0.03), ("Re", e.re, 0.003)] {
-            if !(v <= lim) {
-                wrong.push(format!("{file}: {what} {:.3} % (bound {:.1} %)", 100.0 * v, 100.0 * lim));
-            }
-        }
-        let be = box_errors(&fit, &b);
-        for (k, err, z) in &be {
-            if !(err.abs() < bound(k)) {
-                wrong.push(format!("{file}: {k} {:+.2} % (bound {:.0} %)", 100.0 * err, 100.0 * bound(k)));
-            }
-            if !(z.abs() <= 4.5) {
-                wrong.push(format!("{file}: {k} {z:+.1} sd"));
-            }
-        }
-        let r: Vec<f64> = fit.i_model.iter().zip(&fit.i_phys).skip(fit.settle).map(|(a, b)| a - b).collect();
-        let ratio = coilscope_ident::checks::noise_floor(&r, fit.fs).ratio;
+        let (wrong, ratio) = judge(file, &fit, &truth, &b, fit.x_range);
+        let wrong: Vec<String> = wrong.into_iter().map(|w| format!("{file}: {w}")).collect();
         if open && !wrong.is_empty() {
             eprintln!("{file}: still open, at {ratio:.1} x its noise floor: {}", wrong.join("; "));
             if !(ratio > coilscope_ident::checks::RESIDUAL_RATIO_WARN) {
@@ -314,13 +283,6 @@ fn the_independent_box_records_are_identified_with_their_boxes() {
         } else {
             bad.extend(wrong);
         }
-        eprintln!(
-            "{file}: model {}, order {}, residual {:.2e}, {e}; box: {}",
-            fit.layout.effects.model_name(),
-            fit.order,
-            fit.residual_rel,
-            be.iter().map(|(k, e, z)| format!("{k} {:+.3} % ({z:+.1} sd)", 100.0 * e)).collect::<Vec<_>>().join(", ")
-        );
     }
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }

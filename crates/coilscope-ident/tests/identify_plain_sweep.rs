@@ -12,43 +12,16 @@
 //! Slow in a debug build: `cargo test --release -p coilscope-ident --test
 //! identify_plain_sweep -- --ignored` (`.ci/run` runs it).
 
-use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalSpec};
-use coilscope_core::simulate::{gain_for_peak, SimOptions, Summary};
-use coilscope_core::{embedded_driver, Parameters};
 use coilscope_ident::large::{identify, IdentifyOptions, Progress, Stage};
 // The LR-2 model: what this sweep tests is that the fit never fails; the choice of effects
 // (and that plain records keep LR-2) is tested in real_driver_recordings.rs.
 use coilscope_ident::linear::{Effects, EffectsChoice};
 
 mod common;
+use common::world::{driver, pink_record as record};
 use common::Errors;
 
-fn driver(name: &str) -> Parameters {
-    embedded_driver(name).unwrap_or_else(|| {
-        let path = format!("{}/../../testdata/drivers/{name}.json", env!("CARGO_MANIFEST_DIR"));
-        Parameters::from_json_str(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
-    })
-}
-
 const FS: f64 = 48000.0;
-
-/// A record of `p` as `coilscope simulate` makes it: `seconds` of pink noise (10 Hz - 8 kHz,
-/// crest 3) scaled so the true peak reaches `share` of the range, coil heating on, 70 dB sensor
-/// noise. Returns (u, i, the true trace's summary).
-fn record(p: &Parameters, fs: f64, seconds: f64, share: f64, seed: u64) -> (Vec<f64>, Vec<f64>, Summary) {
-    let [lo, hi] = p.x_range.unwrap();
-    let unit = generate(
-        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
-        &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed },
-    )
-    .unwrap();
-    let (_, tr) = gain_for_peak(p, fs, &unit, share * hi.min(-lo), &SimOptions::default()).unwrap();
-    let s = tr.summary();
-    let (mut u, mut i) = (tr.u, tr.i);
-    add_sensor_noise(&mut u, 70.0, seed, "sensor-noise/voltage");
-    add_sensor_noise(&mut i, 70.0, seed, "sensor-noise/current");
-    (u, i, s)
-}
 
 fn sweep(name: &str) {
     let p = driver(name);

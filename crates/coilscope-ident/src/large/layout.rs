@@ -1030,67 +1030,34 @@ pub(super) fn run_layout<D: DualNum<Primitive = f64> + Copy + FlushTiny>(
     stop: Option<&AtomicBool>,
     observe: impl FnMut(usize, &[D]),
 ) -> Result<(), usize> {
+    // One call of `run_model` for each model type and state count.
+    macro_rules! run {
+        ($model:expr, $n:expr) => {{
+            let (mut model, knots) = $model;
+            run_model::<D, { $n }>(
+                &mut model,
+                &knots,
+                layout.knot_dt,
+                (&layout.heat_sizes(th), heat),
+                u,
+                fs,
+                stepper,
+                len,
+                x_limit,
+                stop,
+                observe,
+            )
+        }};
+    }
     if layout.enclosure.is_some() {
         // A box: its three states after creep's (unused ones stay at zero).
-        let (mut model, knots) = layout.ext_model(th);
-        run_model::<D, NBOX>(
-            &mut model,
-            &knots,
-            layout.knot_dt,
-            (&layout.heat_sizes(th), heat),
-            u,
-            fs,
-            stepper,
-            len,
-            x_limit,
-            stop,
-            observe,
-        )
+        run!(layout.ext_model(th), NBOX)
     } else if !layout.effects.needs_ext_states() {
-        let (mut model, knots) = layout.model(th);
-        run_model(
-            &mut model,
-            &knots,
-            layout.knot_dt,
-            (&layout.heat_sizes(th), heat),
-            u,
-            fs,
-            stepper,
-            len,
-            x_limit,
-            stop,
-            observe,
-        )
+        run!(layout.model(th), NSTATE)
     } else if !layout.effects.creep {
         // LR-3 without creep: the seven states of `ExtModel::deriv_n`.
-        let (mut model, knots) = layout.ext_model(th);
-        run_model::<D, NLR3>(
-            &mut model,
-            &knots,
-            layout.knot_dt,
-            (&layout.heat_sizes(th), heat),
-            u,
-            fs,
-            stepper,
-            len,
-            x_limit,
-            stop,
-            observe,
-        )
+        run!(layout.ext_model(th), NLR3)
     } else {
-        let (mut model, knots) = layout.ext_model(th);
-        run_model::<D, NEXT>(
-            &mut model,
-            &knots,
-            layout.knot_dt,
-            (&layout.heat_sizes(th), heat),
-            u,
-            fs,
-            stepper,
-            len,
-            x_limit,
-            stop,
-            observe,
-        )
+        run!(layout.ext_model(th), NEXT)
     }
 }

@@ -21,6 +21,24 @@ pub fn driver(name: &str) -> Parameters {
     })
 }
 
+/// A record of `p` as `coilscope simulate` makes it: `seconds` of pink noise (10 Hz - 8 kHz,
+/// crest 3) at `fs`, scaled so the true peak reaches `share` of the range, coil heating on, 70 dB
+/// sensor noise. Returns (u, i, the true trace's summary).
+pub fn pink_record(p: &Parameters, fs: f64, seconds: f64, share: f64, seed: u64) -> (Vec<f64>, Vec<f64>, Summary) {
+    let [lo, hi] = p.x_range.unwrap();
+    let unit = generate(
+        &Excitation::Pink { f_lo: 10.0, f_hi: 8000.0, crest: Some(3.0) },
+        &SignalSpec { fs, seconds, rms: 1.0, fade: 0.05, seed },
+    )
+    .unwrap();
+    let (_, tr) = gain_for_peak(p, fs, &unit, share * hi.min(-lo), &SimOptions::default()).unwrap();
+    let s = tr.summary();
+    let (mut u, mut i) = (tr.u, tr.i);
+    add_sensor_noise(&mut u, 70.0, seed, "sensor-noise/voltage");
+    add_sensor_noise(&mut i, 70.0, seed, "sensor-noise/current");
+    (u, i, s)
+}
+
 pub fn peak(s: &[f64]) -> f64 {
     s.iter().fold(0.0f64, |a, v| a.max(v.abs()))
 }

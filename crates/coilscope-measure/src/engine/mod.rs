@@ -348,6 +348,15 @@ impl<'a> Engine<'a> {
         self.eta_at.map(|at| (at - t).max(0.0).min(left))
     }
 
+    /// The excursion limit in force: the user's `--target-x` or the limit the run found
+    /// itself (`auto_limit`), the smaller where both are.
+    fn x_limit(&self) -> Option<f64> {
+        match (self.opts.target_x, self.auto_limit) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
     /// Why the run stopped, once it has (`None` while it runs).
     pub fn stop_reason(&self) -> Option<&StopReason> {
         self.stop_reason.as_ref()
@@ -747,10 +756,7 @@ impl<'a> Engine<'a> {
                 }
                 // Controller.
                 if self.controllable {
-                    let x_limit = match (self.opts.target_x, self.auto_limit) {
-                        (Some(a), Some(b)) => Some(a.min(b)),
-                        (a, b) => a.or(b),
-                    };
+                    let x_limit = self.x_limit();
                     live.x_limit = x_limit;
                     // Peak excursion per volt over the last 8 s (the noise's period): noise
                     // peaks come rarely, so the level is set from the largest one seen.
@@ -860,6 +866,7 @@ impl<'a> Engine<'a> {
     /// run converged) and everything the run decided. An error if the small-signal stage was
     /// never complete.
     pub fn finish(self) -> Result<Measurement, String> {
+        let x_limit = self.x_limit();
         let seconds = self.samples as f64 / self.fs;
         let Some(on) = self.online else {
             return Err(format!(
@@ -941,10 +948,7 @@ impl<'a> Engine<'a> {
             thermal_fit,
             thermal_track: self.thermal_track,
             distortion: self.distortion,
-            x_limit: match (self.opts.target_x, self.auto_limit) {
-                (Some(a), Some(b)) => Some(a.min(b)),
-                (a, b) => a.or(b),
-            },
+            x_limit,
             max_dt: self.opts.max_dt,
             truth: self.device.truth(),
             excitation: self.source.name().to_string(),
