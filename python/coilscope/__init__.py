@@ -141,17 +141,31 @@ def linear_enclosure(f, z, driver, enclosure="auto", sp=None, magnitude_only=Fal
     return _checked(_c.linear_enclosure(_floats(f, "f"), _floats(z.real, "z"), _floats(z.imag, "z"), _spec(driver), str(enclosure), None if sp is None else float(sp), bool(magnitude_only)), "linear_enclosure")
 
 
-def identify(u, i, fs, mms, order=None, chain="detect"):
+def identify(u, i, fs, mms, order=None, chain="detect", enclosure=None, sd=None, vb=None, port_area=None, sp=None):
     """Large-signal identification of a record (Mms given, kg): the result dict.
 
-    ``chain`` as in :func:`linear`. Warns :class:`NotTrustworthy` where the command line
-    exits 3."""
-    return _checked(_c.identify(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), None if order is None else int(order), str(chain)), "identify")
+    ``chain`` as in :func:`linear`. ``enclosure``: the driver is in a box of this type
+    (``closed``, ``vented``, ``passive_radiator`` or ``auto``), identified with it as
+    ``coilscope identify --enclosure`` does; it needs ``sd`` (m^2), a closed box its net volume
+    ``vb`` (m^3); ``port_area`` and ``sp`` (m^2) where known. Warns :class:`NotTrustworthy`
+    where the command line exits 3."""
+    opt = lambda v: None if v is None else float(v)
+    return _checked(
+        _c.identify(
+            _floats(u, "u"), _floats(i, "i"), float(fs), float(mms), None if order is None else int(order), str(chain),
+            None if enclosure is None else str(enclosure), opt(sd), opt(vb), opt(port_area), opt(sp),
+        ),
+        "identify",
+    )
 
 
-def measure_virtual(driver, seed=1, fs=48000.0, max_seconds=60.0):
-    """A dynamic measurement of a virtual driver (IEC noise, ramp, protection): the result dict."""
-    return _checked(_c.measure_virtual(_spec(driver), int(seed), float(fs), float(max_seconds)), "measure_virtual")
+def measure_virtual(driver, seed=1, fs=48000.0, max_seconds=60.0, world="real"):
+    """A dynamic measurement of a virtual driver (IEC noise, ramp, protection): the result dict.
+
+    ``world``: ``real`` (as ``coilscope measure --virtual``: typical LOG creep added where the
+    set has none, as real suspensions creep) or ``published`` (the set as given). A set with a
+    box is refused, as the command line refuses it."""
+    return _checked(_c.measure_virtual(_spec(driver), int(seed), float(fs), float(max_seconds), str(world)), "measure_virtual")
 
 
 def measure_replay(u, i, fs, mms, max_seconds=600.0):

@@ -239,9 +239,12 @@ fn linear_enclosure(
 
 /// The large-signal identification of a record (`coilscope identify`): the result as JSON
 /// text, with its warnings and verdict (`fit.trustworthy`) as the command line gives them.
-/// `order`: the power series' order (default: chosen on held-out data).
+/// `order`: the power series' order (default: chosen on held-out data). `enclosure`: the
+/// driver is in a box of this type (`identify --enclosure`), with `sd`, `vb`, `port_area`
+/// and `sp` as the command line's options.
 #[pyfunction]
-#[pyo3(signature = (u, i, fs, mms, order=None, chain="detect"))]
+#[pyo3(signature = (u, i, fs, mms, order=None, chain="detect", enclosure=None, sd=None, vb=None, port_area=None, sp=None))]
+#[allow(clippy::too_many_arguments)]
 fn identify(
     py: Python<'_>,
     u: Vec<f64>,
@@ -250,11 +253,23 @@ fn identify(
     mms: f64,
     order: Option<usize>,
     chain: &str,
+    enclosure: Option<&str>,
+    sd: Option<f64>,
+    vb: Option<f64>,
+    port_area: Option<f64>,
+    sp: Option<f64>,
 ) -> PyResult<String> {
-    use coilscope_workflow::identify::{identify_record, IdentifyRequest};
+    use coilscope_workflow::identify::{identify_record, in_box, IdentifyRequest};
     check_fs(fs)?;
     check_pair(&u, &i)?;
-    let req = IdentifyRequest { order, chain: chain_mode(chain)?, ..IdentifyRequest::new("python", Some(mms)) };
+    let enclosure = enclosure.map(|t| in_box(t, sd, vb, port_area, sp)).transpose().map_err(err)?;
+    let req = IdentifyRequest {
+        order,
+        chain: chain_mode(chain)?,
+        sd,
+        enclosure,
+        ..IdentifyRequest::new("python", Some(mms))
+    };
     py.allow_threads(|| {
         let mut rec = record(u, i, fs);
         identify_record(&mut rec, &req, |_| {}).map(|d| {
@@ -270,29 +285,41 @@ fn identify(
 
 fn run_measure(
     py: Python<'_>,
-    dev: &mut (dyn coilscope_measure::device::Device + Send),
-    fs: f64,
-    mms: f64,
+    prepared: coilscope_workflow::measure::Prepared,
     seed: u64,
     max_seconds: f64,
 ) -> PyResult<String> {
     use coilscope_measure::signal::Source;
     use coilscope_measure::{measure, MeasureOptions};
-    let mut src = Source::noise(&Excitation::Iec, fs, seed).map_err(err)?;
+    use coilscope_workflow::measure::{result_of, Prepared};
+    let (mut dev, Prepared { mms, mms_source, sd, .. }) = prepared.split();
+    let mut src = Source::noise(&Excitation::Iec, dev.fs(), seed).map_err(err)?;
     let opts = MeasureOptions { mms, max_seconds, ..Default::default() };
     opts.validate().map_err(err)?;
-    let m = py.allow_threads(|| measure(dev, &mut src, &opts, None, |_| {})).map_err(err)?;
-    Ok(m.result().to_json_value().to_string())
+    let mut m = py.allow_threads(|| measure(dev.as_mut(), &mut src, &opts, None, |_| {})).map_err(err)?;
+    Ok(result_of(&mut m, &mms_source, sd, None).to_json_value().to_string())
 }
 
 /// A dynamic measurement of a virtual driver (`coilscope measure --virtual`, IEC noise,
-/// 0.1 mV / 0.1 mA sensor noise): the result as JSON text.
+/// 0.1 mV / 0.1 mA sensor noise): the result as JSON text. `world`: `real` (the command
+/// line's default: typical creep added where the set has none) or `published`.
 #[pyfunction]
-#[pyo3(signature = (driver, seed=1, fs=48000.0, max_seconds=60.0))]
-fn measure_virtual(py: Python<'_>, driver: &str, seed: u64, fs: f64, max_seconds: f64) -> PyResult<String> {
+#[pyo3(signature = (driver, seed=1, fs=48000.0, max_seconds=60.0, world="real"))]
+fn measure_virtual(
+    py: Python<'_>,
+    driver: &str,
+    seed: u64,
+    fs: f64,
+    max_seconds: f64,
+    world: &str,
+) -> PyResult<String> {
+    use coilscope_workflow::measure::{virtual_driver, World};
+    check_fs(fs)?;
     let p = params_from(driver)?;
-    let mut dev = coilscope_measure::device::VirtualDevice::new(&p, fs, (1e-4, 1e-4), seed).map_err(err)?;
-    run_measure(py, &mut dev, fs, p.mms, seed, max_seconds)
+    let world = World::parse(world).map_err(err)?;
+    let name = if driver.trim_start().starts_with('{') { "the parameter set" } else { driver };
+    let prepared = virtual_driver(&p, name, world, None, None, fs, (1e-4, 1e-4), seed).map_err(err)?;
+    run_measure(py, prepared, seed, max_seconds)
 }
 
 /// The online estimator on a recording (`coilscope measure --replay`): the result as JSON text.
@@ -301,8 +328,8 @@ fn measure_virtual(py: Python<'_>, driver: &str, seed: u64, fs: f64, max_seconds
 fn measure_replay(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, max_seconds: f64) -> PyResult<String> {
     check_fs(fs)?;
     check_pair(&u, &i)?;
-    let mut dev = coilscope_measure::device::ReplayDevice::from_samples("python", fs, u, i);
-    run_measure(py, &mut dev, fs, mms, 1, max_seconds)
+    let prepared = coilscope_workflow::measure::replay(record(u, i, fs), "python", Some(mms), None).map_err(err)?;
+    run_measure(py, prepared, 1, max_seconds)
 }
 
 /// Harmonic distortion of a sine on a parameter set, each nonlinearity's share and the

@@ -66,6 +66,12 @@ def test_measure_virtual_converges_and_replay_runs():
     xs = np.linspace(lo, hi, 41)
     err = np.max(np.abs(coilscope.poly(r["parameters"]["Bl"], xs) / coilscope.poly(p["Bl"], xs) - 1))
     assert err < 0.02, err
+    # The scale's source is said, as on the command line.
+    assert "virtual driver's own Mms" in r["fit"]["Mms_source"]
+    # A driver in a box is refused, as the command line refuses it: the box's air is no
+    # suspension.
+    with pytest.raises(ValueError, match="free air"):
+        coilscope.measure_virtual(dict(p, enclosure={"type": "closed", "Vb": 0.012}))
     u = coilscope.generate("noise", FS, 10.0, 2.0, seed=5)
     t = coilscope.simulate(p, u, FS)
     rr = coilscope.measure_replay(u, t["i"], FS, p["Mms"])
@@ -178,6 +184,38 @@ def test_linear_enclosure_finds_the_box_as_the_command_line():
         coilscope.linear_enclosure(f, z, "ptt4.0w04-01a")
     with pytest.raises(ValueError, match="passive_radiator"):
         coilscope.linear_enclosure(f, z, driver, enclosure="sealed")
+
+
+def test_identify_in_a_closed_box_finds_the_driver_and_its_box_as_the_command_line():
+    import warnings
+
+    driver = coilscope.parameters("sb17cac35-4")
+    boxed = dict(driver, enclosure={"type": "closed", "Vb": 0.012, "QL": 10.0})
+    lo, hi = driver["x_range"]
+    u = coilscope.generate("pink", FS, 6.0, 1.0, seed=4, band=(10, 8000))
+    # Scaled so that the cone reaches about 70 % of its range.
+    u = u * 0.7 * min(hi, -lo) / np.max(np.abs(coilscope.simulate(boxed, u, FS)["x"]))
+    t = coilscope.simulate(boxed, u, FS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", coilscope.NotTrustworthy)
+        r = coilscope.identify(u, t["i"], FS, driver["Mms"], chain="none", enclosure="closed", sd=driver["Sd"], vb=0.012)
+    q = r["parameters"]
+    assert q["enclosure"]["type"] == "closed"
+    assert abs(q["enclosure"]["QL"] / 10.0 - 1) < 0.25, q["enclosure"]
+    a, b = r["fit"]["x_range"]
+    xs = np.linspace(a, b, 41)
+    for key in ("Bl", "Kms"):
+        # Kms is the suspension's own, without the box air's stiffness.
+        err = np.max(np.abs(coilscope.poly(q[key], xs) / coilscope.poly(driver[key], xs) - 1))
+        assert err < 0.01, (key, err)
+    assert r["uncertainty"]["enclosure.QL"] > 0
+    # What the command line refuses, Python refuses with the same reason.
+    with pytest.raises(ValueError, match="--vb"):
+        coilscope.identify(u, t["i"], FS, driver["Mms"], chain="none", enclosure="closed", sd=driver["Sd"])
+    with pytest.raises(ValueError, match="Sd"):
+        coilscope.identify(u, t["i"], FS, driver["Mms"], enclosure="closed", vb=0.012)
+    with pytest.raises(ValueError, match="passive_radiator"):
+        coilscope.identify(u, t["i"], FS, driver["Mms"], enclosure="sealed", sd=driver["Sd"])
 
 
 def test_a_misspelt_key_is_a_python_warning():

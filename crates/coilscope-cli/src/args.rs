@@ -19,9 +19,14 @@ pub(crate) enum World {
 
 impl World {
     pub(crate) fn apply(self, p: Parameters) -> Parameters {
+        self.workflow().apply(p)
+    }
+
+    /// The same world in the workflow library.
+    pub(crate) fn workflow(self) -> coilscope_workflow::measure::World {
         match self {
-            World::Published => p,
-            World::Real => p.with_typical_creep(),
+            World::Published => coilscope_workflow::measure::World::Published,
+            World::Real => coilscope_workflow::measure::World::Real,
         }
     }
 }

@@ -134,13 +134,7 @@ fn main() -> ExitCode {
         Command::Identify { recording, jobs, method, start, mms, order, effects, enclosure, vb, port_area, sp, fit } => parse_chain(&fit.chain).and_then(|chain| {
             let in_box = match &enclosure {
                 None => None,
-                Some(t) => Some(coilscope_ident::large::InBox {
-                    choice: coilscope_ident::box_fit::BoxChoice::parse(t).map_err(Failure::from)?,
-                    sd: fit.sd.ok_or_else(|| Failure::from("--enclosure needs the driver's radiating area --sd (m^2)"))?,
-                    vb,
-                    port_area,
-                    sp,
-                }),
+                Some(t) => Some(coilscope_workflow::identify::in_box(t, fit.sd, vb, port_area, sp).map_err(Failure::from)?),
             };
             if recording.len() > 1 {
                 if in_box.is_some() {

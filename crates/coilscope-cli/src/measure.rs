@@ -5,24 +5,10 @@ use crate::args::{CardArgs, LimitArgs, MeasureArgs};
 use crate::report::cmd_report;
 use crate::{iec_noise, Failure, EXIT_INTERRUPTED};
 use coilscope_core::chain::SenseWiring;
-use coilscope_core::Parameters;
 use coilscope_io::{load_parameters, read_recording, write_json};
 use coilscope_workflow::chain::mark_wiring;
 use serde_json::json;
 use std::path::Path;
-
-/// The post-inverse (equation-error) estimate of a record with a displacement channel
-/// ([`coilscope_workflow::identify::post_inverse_of`]).
-fn post_inverse_of(
-    u: &[f64],
-    i: &[f64],
-    x: &[f64],
-    fs: f64,
-    order: usize,
-    origin: &str,
-) -> Result<Parameters, Failure> {
-    Ok(coilscope_workflow::identify::post_inverse_of(u, i, x, fs, order, origin)?)
-}
 
 /// `device` read through the card's calibration `c`, corrected block by block, and the
 /// calibration used: it knows the card (delay, corners, gain), not this run's offsets or hum
@@ -79,56 +65,33 @@ pub(crate) fn cmd_devices() -> Result<(), String> {
 }
 
 pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
-    use coilscope_measure::device::{Device, ReplayDevice, VirtualDevice};
+    use coilscope_measure::device::Device;
     use coilscope_measure::signal::Source;
     use coilscope_measure::store::Store;
+    use coilscope_workflow::measure::{replay, virtual_driver, Prepared};
     use std::io::IsTerminal;
-    if let Some(sd) = a.sd {
-        if !(sd.is_finite() && sd > 0.0 && sd < 10.0) {
-            return Err(
-                format!("--sd {sd}: give the effective radiating area in m^2 (e.g. 0.0133 for a 6.5\" cone)").into()
-            );
-        }
-    }
-    // Sd is the driver's geometry, not measured: given (--sd), or a virtual driver's own.
-    let mut sd = a.sd;
-    let (mut device, mms, mms_source): (Box<dyn Device>, f64, String) = match (&a.virtual_driver, &a.replay) {
+    // A sound card's device need not be `Send`; the workflow's are.
+    let take = |p: Prepared| -> (Box<dyn Device>, Prepared) {
+        let (d, p) = p.split();
+        (d, p)
+    };
+    let (mut device, Prepared { mms, mms_source, sd, notes, .. }): (Box<dyn Device>, Prepared) = match (
+        &a.virtual_driver,
+        &a.replay,
+    ) {
         (Some(d), None) => {
             let given = load_parameters(d).map_err(|e| e.to_string())?;
-            if let Some(e) = &given.enclosure {
-                return Err(Failure::from(format!("{d}: the set puts the driver in a {} box (`enclosure`); the dynamic measurement identifies a driver in free air and does not model a box yet, so it would read the box's air as the suspension. Remove `enclosure` to measure the driver in free air; `coilscope simulate --enclosure` and `coilscope linear --enclosure` handle the box", e.type_name())));
-            }
-            sd = sd.or(given.sd);
-            let p = a.world.apply(given.clone());
-            if p != given {
-                println!("virtual world: real (LOG creep lambda {} assumed, as real suspensions creep; --world published for the set as given)", coilscope_core::params::TYPICAL_CREEP_LAMBDA);
-            }
-            let dev = VirtualDevice::new(&p, a.rate as f64, (a.noise[0], a.noise[1]), a.seed)?;
-            let (mms, src) = match a.mms {
-                Some(m) => (m, "given (--mms)".to_string()),
-                None => (p.mms, format!("the virtual driver's own Mms ({d})")),
-            };
-            (Box::new(dev), mms, src)
+            let noise = (a.noise[0], a.noise[1]);
+            virtual_driver(&given, d, a.world.workflow(), a.mms, a.sd, a.rate as f64, noise, a.seed).map(take)?
         }
         (None, Some(r)) => {
-            // A displacement channel (a laser) gives the absolute scale, as for `identify`:
-            // Mms from the post-inverse (equation-error) fit of the whole record.
             let rec = read_recording(r, None).map_err(|e| e.to_string())?;
-            let name = r.display().to_string();
-            let (mms, src) = match (a.mms, &rec.x) {
-                (Some(m), _) => (m, "given (--mms)".to_string()),
-                (None, Some(x)) => {
-                    let pi = post_inverse_of(&rec.u, &rec.i, x, rec.fs as f64, 4, &name)?;
-                    eprintln!("Mms {:.3} g from the displacement channel (post-inverse equation error)", pi.mms * 1e3);
-                    (pi.mms, "displacement channel (post-inverse equation error)".to_string())
-                }
-                (None, None) => return Err(Failure::from(format!("{name}: --replay needs an absolute scale: give --mms KG (moving mass), or a recording with a displacement channel (3, m)"))),
-            };
-            (Box::new(ReplayDevice::from_samples(&name, rec.fs as f64, rec.u, rec.i)), mms, src)
+            replay(rec, &r.display().to_string(), a.mms, a.sd).map(take)?
         }
         (None, None) if a.card.card => {
+            coilscope_workflow::measure::check_sd(a.sd)?;
             let mms = a.mms.ok_or("--card needs --mms KG (the absolute scale: weigh the cone, or measure it by the added-mass method with `coilscope linear`)")?;
-            (open_card(&a.card, a.rate)?, mms, "given (--mms)".to_string())
+            (open_card(&a.card, a.rate)?, Prepared::given(mms, a.sd))
         }
         _ => {
             return Err(
@@ -137,6 +100,9 @@ pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
             )
         }
     };
+    for n in &notes {
+        println!("{n}");
+    }
     // The card's chain and wiring: corrected block by block (a virtual driver with a chain is
     // recorded through a simulated card first).
     let mut reported_chain = None;
@@ -296,20 +262,9 @@ pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
             return Err(Failure::from(format!("{e}; written to {}", a.out.join("result.json").display())));
         }
     };
-    m.mms_source = mms_source;
-    let mut j = m.result();
-    j.parameters.sd = sd;
-    if reported_chain.is_some() {
-        j.chain = reported_chain;
-    }
+    let j = coilscope_workflow::measure::result_of(&mut m, &mms_source, sd, reported_chain);
     write_json(&a.out.join("result.json"), &j).map_err(|e| e.to_string())?;
-    let status = match m.stop_reason {
-        _ if m.converged => "converged",
-        coilscope_measure::StopReason::Interrupted { .. } => "interrupted",
-        coilscope_measure::StopReason::Failed { .. } => "failed",
-        coilscope_measure::StopReason::DurationOver { .. } => "finished",
-        _ => "not converged",
-    };
+    let status = coilscope_workflow::measure::status(&m);
     store.finish(m.seconds, status, Some(&j))?;
     for w in m.warnings() {
         eprintln!("warning [{}]: {}", w.code, w.message);

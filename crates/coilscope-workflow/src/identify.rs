@@ -49,6 +49,29 @@ impl IdentifyRequest {
     }
 }
 
+/// The box of an identification in a box (`identify --enclosure TYPE`): the type (`closed`,
+/// `vented`, `passive_radiator` or `auto`), the driver's radiating area `sd` (m^2, needed),
+/// a closed box's net volume `vb` (m^3, needed for a closed box), the port's area and the
+/// radiator's area (m^2) where known.
+pub fn in_box(
+    enclosure: &str,
+    sd: Option<f64>,
+    vb: Option<f64>,
+    port_area: Option<f64>,
+    sp: Option<f64>,
+) -> Result<coilscope_ident::large::InBox, String> {
+    let choice = coilscope_ident::box_fit::BoxChoice::parse(enclosure)?;
+    let sd = sd.ok_or("a driver in a box needs its radiating area Sd (--sd, m^2): the box air pushes on it")?;
+    for (name, v) in [("Sd", Some(sd)), ("Vb", vb), ("port_area", port_area), ("Sp", sp)] {
+        if let Some(v) = v {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("{name} = {v}: it must be a positive number (SI units: m^2, or m^3 for Vb)"));
+            }
+        }
+    }
+    Ok(coilscope_ident::large::InBox { choice, sd, vb, port_area, sp })
+}
+
 /// The outcome of [`identify_record`].
 pub struct Identified {
     pub fit: LargeFit,

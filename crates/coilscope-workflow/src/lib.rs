@@ -19,6 +19,7 @@ pub mod chain;
 pub mod enclosure;
 pub mod identify;
 pub mod linear;
+pub mod measure;
 
 use coilscope_core::result::ResultFile;
 use coilscope_ident::checks::{NoiseFloor, Warning};
