@@ -431,13 +431,26 @@ pub(crate) enum Command {
         #[command(flatten)]
         serve: ServeArgs,
     },
-    /// Write a result for another tool: the thermal model as a speakersafetyd configuration,
-    /// the power series as a KLIPPEL-style table (CSV, millimetres), or the small-signal
-    /// impedance as .zma / .frd.
-    #[command(group(clap::ArgGroup::new("format").required(true).args(["speakersafetyd", "power_series", "zma", "frd"])))]
+    /// Write a result for another tool: a unit's protection model and calibration, the
+    /// thermal model as a speakersafetyd configuration, the power series as a KLIPPEL-style
+    /// table (CSV, millimetres), or the small-signal impedance as .zma / .frd.
+    #[command(group(clap::ArgGroup::new("format").required(true).args(["protection", "speakersafetyd", "power_series", "zma", "frd"])))]
     Export {
         /// Result file (coilscope.result/1), parameter file or embedded driver name.
         result: String,
+        /// The unit's protection model (JSON, coilscope.protection/1): its whole parameter set,
+        /// creep as a bank of springs, the excursion limit (IEC 62458: the smallest of XBl, XC,
+        /// XL), the temperature limit (--t-limit) and the calibration record (Re at
+        /// --measured-at, alpha, Re at 20 and 25 C, --unit-id).
+        #[arg(long)]
+        protection: bool,
+        /// --protection: the unit's id (serial number) in its calibration record; default the
+        /// set's name.
+        #[arg(long)]
+        unit_id: Option<String>,
+        /// --protection: the unit's temperature (degrees C) when its Re was measured.
+        #[arg(long, default_value_t = 25.0)]
+        measured_at: f64,
         /// speakersafetyd configuration (INI): tr_coil, tr_magnet, tau_coil, tau_magnet from
         /// the thermal parameters, t_limit and the machine's keys from the options below.
         #[arg(long)]
@@ -457,7 +470,7 @@ pub(crate) enum Command {
         /// speakersafetyd: the speaker's section name (`[Speaker/NAME]`).
         #[arg(long, default_value = "Speaker")]
         name: String,
-        /// speakersafetyd: the coil's absolute temperature limit (degrees C).
+        /// --protection and speakersafetyd: the coil's absolute temperature limit (degrees C).
         #[arg(long, default_value_t = 120.0)]
         t_limit: f64,
         /// speakersafetyd: the ambient temperature the daemon assumes (degrees C).

@@ -36,7 +36,7 @@ use identify::{cmd_identify, cmd_identify_batch, cmd_identify_volterra};
 use linear::cmd_linear;
 use measure::{cmd_devices, cmd_measure, cmd_runs};
 use quasistatic::cmd_quasistatic;
-use report::{cmd_compensate, cmd_diagnose, cmd_export, cmd_report};
+use report::{cmd_compensate, cmd_diagnose, cmd_export, cmd_report, ExportFormat};
 use simulate::cmd_simulate;
 use std::path::Path;
 use std::process::ExitCode;
@@ -197,9 +197,20 @@ fn main() -> ExitCode {
             cmd_quasistatic(QuasiArgs { driver, out, points, reach, hold, order, world, offset, mms, xmax, sd, ac_volts, rate, card })
         }
         Command::Drivers => cmd_drivers().map_err(Failure::from),
-        Command::Export { result, speakersafetyd, power_series, zma, frd, out, name, t_limit, t_ambient, channels, is_chan, vs_chan, is_scale, vs_scale, group } => {
+        Command::Export { result, protection, unit_id, measured_at, speakersafetyd, power_series, zma, frd: _, out, name, t_limit, t_ambient, channels, is_chan, vs_chan, is_scale, vs_scale, group } => {
             let o = coilscope_io::export::SafetydOptions { name, t_limit, t_ambient, channels, is_chan, vs_chan, is_scale, vs_scale, group, ..Default::default() };
-            cmd_export(&result, speakersafetyd, power_series, zma, frd, &out, &o).map_err(Failure::from)
+            let format = if protection {
+                ExportFormat::Protection { unit_id, measured_at }
+            } else if speakersafetyd {
+                ExportFormat::Speakersafetyd
+            } else if power_series {
+                ExportFormat::PowerSeries
+            } else if zma {
+                ExportFormat::Zma
+            } else {
+                ExportFormat::Frd
+            };
+            cmd_export(&result, format, &out, &o).map_err(Failure::from)
         }
         Command::Check { params, json } => load_parameters(&params).map_err(|e| Failure::Error(e.to_string())).map(|p| {
             if json {

@@ -7,13 +7,23 @@ use coilscope_core::simulate::{simulate, SimOptions};
 use coilscope_io::read_voltage;
 use std::path::Path;
 
+/// What `export` writes.
+pub(crate) enum ExportFormat {
+    /// The unit's protection model and calibration record.
+    Protection {
+        unit_id: Option<String>,
+        measured_at: f64,
+    },
+    Speakersafetyd,
+    PowerSeries,
+    Zma,
+    Frd,
+}
+
 /// `export`: one file for another tool, written atomically.
 pub(crate) fn cmd_export(
     spec: &str,
-    speakersafetyd: bool,
-    power_series: bool,
-    zma: bool,
-    frd: bool,
+    format: ExportFormat,
     out: &Path,
     o: &coilscope_io::export::SafetydOptions,
 ) -> Result<(), String> {
@@ -25,19 +35,25 @@ pub(crate) fn cmd_export(
     if p.name.is_none() {
         p.name = input.result.map(|r| r.recording).filter(|r| !r.is_empty());
     }
-    let (text, what) = if speakersafetyd {
-        (export::speakersafetyd(&p, o).map_err(|e| format!("{spec}: {e}"))?, "speakersafetyd configuration")
-    } else if power_series {
-        (export::power_series_csv(&p), "power series (mm)")
-    } else {
-        let curve = export::impedance_curve(&p, 5.0, 20_000.0, 400);
-        if zma {
-            (coilscope_io::impedance::zma_text(&curve), "impedance (.zma)")
-        } else if frd {
-            (export::frd_text(&curve), "impedance (.frd)")
-        } else {
-            return Err("give the format: --speakersafetyd, --power-series, --zma or --frd".into());
+    let curve = || export::impedance_curve(&p, 5.0, 20_000.0, 400);
+    let (text, what) = match format {
+        ExportFormat::Protection { unit_id, measured_at } => {
+            let po = coilscope_io::protection::ProtectionOptions {
+                unit_id: unit_id.or_else(|| p.name.clone()).unwrap_or_default(),
+                measured_at,
+                t_limit: o.t_limit,
+                thresholds: coilscope_core::limits::Thresholds::default(),
+            };
+            let v = coilscope_io::protection::protection(&p, &po).map_err(|e| format!("{spec}: {e}"))?;
+            let text = serde_json::to_string_pretty(&v).map_err(|e| e.to_string())? + "\n";
+            (text, "protection model and calibration")
         }
+        ExportFormat::Speakersafetyd => {
+            (export::speakersafetyd(&p, o).map_err(|e| format!("{spec}: {e}"))?, "speakersafetyd configuration")
+        }
+        ExportFormat::PowerSeries => (export::power_series_csv(&p), "power series (mm)"),
+        ExportFormat::Zma => (coilscope_io::impedance::zma_text(&curve()), "impedance (.zma)"),
+        ExportFormat::Frd => (export::frd_text(&curve()), "impedance (.frd)"),
     };
     coilscope_io::atomic_write(out, text.as_bytes()).map_err(|e| e.to_string())?;
     println!("wrote {} ({what})", out.display());

@@ -18,6 +18,7 @@
 
 pub mod export;
 pub mod impedance;
+pub mod protection;
 
 use coilscope_core::params::{embedded_driver, embedded_driver_names, Parameters};
 use std::fmt;
