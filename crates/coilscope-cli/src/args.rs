@@ -497,6 +497,12 @@ pub(crate) enum Command {
     },
     /// List the sound devices (inputs and outputs) for measure --card (build with --features soundcard).
     Devices,
+    /// End-of-line test of a production line: learn limits from golden units, test a unit
+    /// against them (exit 4 when it fails), or a lot's capability (Cpk).
+    Qc {
+        #[command(subcommand)]
+        action: QcAction,
+    },
     /// List the runs of a measurement database (DIR/run.sqlite), including interrupted ones.
     Runs {
         /// The database (or the measurement directory holding run.sqlite).
@@ -955,4 +961,49 @@ mod tests {
             assert!(e.contains("LO HI (or LO,HI)") && e.contains(&bad.join(" ")), "{bad:?}: {e}");
         }
     }
+}
+
+/// What `qc` does.
+#[derive(Subcommand)]
+pub(crate) enum QcAction {
+    /// Learn a line's limits from its golden units' results (or parameter sets): per figure
+    /// (Re, fs, Qts, Qms, Rms, Bl(0), Kms(0), Le(0), the Bl and Kms symmetry points, Xmax)
+    /// mean +- k sd. Edit the file to set limits by hand.
+    Learn {
+        /// The golden units' results (at least 5; 30 or more make limits that hold).
+        #[arg(required = true, num_args = 1..)]
+        results: Vec<String>,
+        /// The limits' width in the golden units' sds.
+        #[arg(long, default_value_t = 3.0)]
+        k: f64,
+        /// The limits file to write (JSON, coilscope.qc-limits/1).
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Test a unit's result against the limits: pass (exit 0), or fail (exit 4) naming each
+    /// figure outside, by how much and what it likely means, with the coil's offset where Bl's
+    /// symmetry point is off.
+    Test {
+        /// The unit's result (identify or measure) or parameter set.
+        result: String,
+        /// The line's limits (`qc learn`).
+        #[arg(long)]
+        limits: PathBuf,
+        /// Also write the verdict (JSON).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// A lot's capability against the limits: per figure its mean, sd, Cpk and the units
+    /// outside.
+    Stats {
+        /// The lot's results.
+        #[arg(required = true, num_args = 1..)]
+        results: Vec<String>,
+        /// The line's limits (`qc learn`).
+        #[arg(long)]
+        limits: PathBuf,
+        /// Also write the table (JSON).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
 }

@@ -18,6 +18,7 @@ mod drivers;
 mod identify;
 mod linear;
 mod measure;
+mod qc;
 mod quasistatic;
 mod report;
 mod simulate;
@@ -84,6 +85,8 @@ fn parse_chain(text: &str) -> Result<ChainMode, Failure> {
 const EXIT_ERROR: u8 = 2;
 /// Exit code of a result that was written but cannot be trusted.
 const EXIT_UNTRUSTED: u8 = 3;
+/// Exit code of a unit that failed its end-of-line limits (`qc test`).
+const EXIT_REJECTED: u8 = 4;
 /// Exit code of an interrupted run (128 + SIGINT, as shells report it).
 const EXIT_INTERRUPTED: u8 = 130;
 
@@ -96,6 +99,8 @@ enum Failure {
     Untrusted(String),
     /// Stopped by Ctrl-C after writing what it had.
     Interrupted(String),
+    /// The unit failed its end-of-line test (the message names the figures).
+    Rejected(String),
 }
 
 impl From<String> for Failure {
@@ -212,6 +217,7 @@ fn main() -> ExitCode {
             };
             cmd_export(&result, format, &out, &o).map_err(Failure::from)
         }
+        Command::Qc { action } => qc::cmd_qc(action),
         Command::Check { params, json } => load_parameters(&params).map_err(|e| Failure::Error(e.to_string())).map(|p| {
             if json {
                 println!("{}", serde_json::to_string_pretty(&p.to_json_value()).unwrap_or_default());
@@ -233,6 +239,10 @@ fn main() -> ExitCode {
         Err(Failure::Interrupted(e)) => {
             eprintln!("interrupted: {e}");
             ExitCode::from(EXIT_INTERRUPTED)
+        }
+        Err(Failure::Rejected(e)) => {
+            eprintln!("FAIL: {e}");
+            ExitCode::from(EXIT_REJECTED)
         }
     }
 }

@@ -46,6 +46,7 @@ pub mod normal_form;
 pub mod params;
 pub mod poly;
 pub mod population;
+pub mod production;
 pub mod recent;
 pub mod result;
 pub mod schema;

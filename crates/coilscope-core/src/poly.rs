@@ -79,6 +79,22 @@ impl Poly<f64> {
         Poly { c: self.c.iter().map(|c| c * k).collect() }
     }
 
+    /// The series of `g(x) = f(x + d)`: the same function seen from an origin moved by `d`
+    /// (`g_k = sum_{j >= k} c_j C(j, k) d^(j-k)`).
+    pub fn shifted(&self, d: f64) -> Poly {
+        let n = self.c.len();
+        let mut g = vec![0.0; n];
+        for (j, &c) in self.c.iter().enumerate() {
+            // C(j, k) d^(j-k) for k = j, j-1, ..., 0.
+            let mut binom_pow = 1.0;
+            for k in (0..=j).rev() {
+                g[k] += c * binom_pow;
+                binom_pow *= d * k as f64 / (j - k + 1) as f64;
+            }
+        }
+        Poly { c: g }
+    }
+
     /// The coefficients as a plain series (for files).
     pub fn coefficients(&self) -> &[f64] {
         &self.c
@@ -116,6 +132,18 @@ impl Poly<f64> {
 mod tests {
     use super::*;
     use num_dual::Dual64;
+
+    #[test]
+    fn a_shifted_series_is_the_function_seen_from_a_moved_origin() {
+        let f = Poly { c: vec![5.06, -44.4, -17036.0, 149409.0, -3.87e8] };
+        for d in [-5e-4, 0.0, 3e-4] {
+            let g = f.shifted(d);
+            for x in [-6e-3, -1e-3, 0.0, 2e-3, 5e-3] {
+                let (a, b) = (g.eval(x), f.eval(x + d));
+                assert!((a - b).abs() <= 1e-12 * b.abs().max(1.0), "d {d} x {x}: {a} against {b}");
+            }
+        }
+    }
 
     #[test]
     fn horner_matches_direct_sum() {

@@ -20,6 +20,7 @@ pub mod enclosure;
 pub mod identify;
 pub mod linear;
 pub mod measure;
+pub mod qc;
 
 use coilscope_core::result::ResultFile;
 use coilscope_ident::checks::{NoiseFloor, Warning};
