@@ -284,6 +284,22 @@ fn kept_regression_drivers_are_identified_right_or_loudly() {
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
 
+/// One kept driver, by its file's name (`COILSCOPE_KEPT=NAME`, without `.json`, fixed or
+/// open), at the seed it failed with (or `COILSCOPE_KEPT_SEED`): the line a sweep printed for
+/// it, to study a failure.
+#[test]
+#[ignore = "a tool: COILSCOPE_KEPT=NAME cargo test --release -p coilscope-workflow --test population_identify -- --ignored one_kept_driver --nocapture"]
+fn one_kept_driver_by_name() {
+    let name =
+        std::env::var("COILSCOPE_KEPT").expect("COILSCOPE_KEPT=NAME (a file of testdata/population/ or its open/)");
+    let all = population::regressions("identify").into_iter().chain(population::open_regressions("identify"));
+    let r = all.into_iter().find(|r| r.name == name).unwrap_or_else(|| panic!("no kept identify driver named {name}"));
+    println!("{}: {}", r.name, r.why);
+    let seed = std::env::var("COILSCOPE_KEPT_SEED").ok().and_then(|s| s.parse().ok()).unwrap_or(r.seed);
+    let o = identify_case(&format!("kept:{} seed {seed}", r.name), &r.params, seed, World::of(&r), r.params.mms);
+    println!("{}", o.line);
+}
+
 /// The offline sweep: `COILSCOPE_POPULATION_CASES` drivers per world (default 100).
 #[test]
 #[ignore = "release-profile sweep: COILSCOPE_POPULATION_CASES=100 cargo test --release -p coilscope-workflow --test population_identify -- --ignored"]
