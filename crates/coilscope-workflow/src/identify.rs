@@ -225,19 +225,18 @@ fn checks(fit: &LargeFit, fs: f64, delay_handled: bool) -> (NoiseFloor, Vec<Warn
     // another simulator, or none of noise, leaves) moves nothing the bands do not carry.
     let material = coilscope_ident::large::CURVE_SYSTEMATIC_REL;
     let (floor, mut warnings) = coilscope_ident::checks::residual_warnings(&r, fs, "large-signal fit", i_rms, material);
-    // An error that follows the drive is a misfit even when its spectrum looks like a floor.
-    if !warnings.iter().any(|w| w.code == "residual-above-noise") {
-        warnings.extend(coilscope_ident::checks::drive_warning(
-            &r,
-            &fit.u_phys[k..],
-            &fit.i_model[k..],
-            &fit.x_model[k..],
-            fs,
-            "large-signal fit",
-            i_rms,
-            material,
-        ));
-    }
+    // An error that follows the drive is a misfit even when its spectrum looks like a floor;
+    // beside a residual far above its floor it names the likelier cause (a recording chain).
+    warnings.extend(coilscope_ident::checks::drive_warning(
+        &r,
+        &fit.u_phys[k..],
+        &fit.i_model[k..],
+        &fit.x_model[k..],
+        fs,
+        "large-signal fit",
+        i_rms,
+        material,
+    ));
     let final_delay = if delay_handled { None } else { coilscope_ident::checks::residual_delay(&r, &fit.i_model[k..]) };
     if let Some((tau, share)) = final_delay {
         warnings.push(Warning::new(
