@@ -87,7 +87,9 @@ fn judge(label: &str, fit: &LargeFit, truth: &Parameters, b: &Enclosure, x_range
         }
     }
     let r: Vec<f64> = fit.i_model.iter().zip(&fit.i_phys).skip(fit.settle).map(|(a, b)| a - b).collect();
-    let ratio = coilscope_ident::checks::noise_floor(&r, fit.fs).ratio;
+    // The ratio the command line's verdict reads (the quiet quarter of the band as the floor
+    // where the model's error fills the rest).
+    let ratio = coilscope_ident::checks::residual_warnings(&r, fit.fs, "fit", 1.0, 0.0).0.ratio;
     eprintln!(
         "{label}: model {}, order {}, residual {:.2e} ({ratio:.1} x floor), {e}; box: {}",
         fit.layout.effects.model_name(),
@@ -206,6 +208,15 @@ const KEPT: [(&str, u64, &str, bool); 8] = [
     ("population:microspeaker:243204631", 243204631, "vented", false),
 ];
 
+/// Draws a sweep found silently wrong and that still are: run and printed with the kept ones,
+/// not asserted, until they are right or loud (then they move to [`KEPT`]).
+const OPEN_SILENT: [(&str, u64, &str); 1] = [
+    // The radiator vanishes (Kmp -99 %, Rmp -100 %, Vb +21 %, Kms 6 % off) with the residual
+    // 1.9 times its floor: the model's error sits at low frequencies, where a floor read from
+    // the spectrum cannot see it.
+    ("population:midwoofer:251209093", 251209093, "passive_radiator"),
+];
+
 #[test]
 #[ignore = "release sweep: .ci/run runs it, a slice per run"]
 fn kept_draws_in_boxes_stay_right_or_loud() {
@@ -217,6 +228,13 @@ fn kept_draws_in_boxes_stay_right_or_loud() {
             (Outcome::Loud(m), false) => eprintln!("{label} ({name}) still open: {m}"),
             (Outcome::Loud(m), true) => bad.push(format!("{label} ({name}) was right, now: {m}")),
             (Outcome::Silent(m), _) => bad.push(format!("{label} ({name}) silently wrong: {m}")),
+        }
+    }
+    for (label, seed, ty) in coilscope_testkit::slice::in_slice("open_silent_draws_in_boxes", OPEN_SILENT.to_vec()) {
+        match one(seed, ty) {
+            (name, Outcome::Right) => eprintln!("{label} ({name}) is now right: move it to KEPT"),
+            (name, Outcome::Loud(m)) => eprintln!("{label} ({name}) is now loud, move it to KEPT: {m}"),
+            (name, Outcome::Silent(m)) => eprintln!("{label} ({name}) still open, silently wrong: {m}"),
         }
     }
     assert!(bad.is_empty(), "{}", bad.join("\n"));
