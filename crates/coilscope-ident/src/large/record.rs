@@ -310,13 +310,22 @@ pub(super) fn identify_record(
             start_values(&start)
         )));
     }
+    // A start whose resonance left the record's band lost its motional branch (an impedance
+    // fit from a wrong resonance once ended at Cmes = 4.7e36 F, a resonance of 1e-66 Hz, and
+    // the length check below asked for a record of 1.7e66 s).
+    let f_res = start.resonance_hz();
+    if !(f_res >= 0.5 && f_res <= 0.5 * fs) {
+        return Err(Input(format!(
+            "{origin}: the small-signal start ({start_origin}) has its resonance at {f_res:.3e} Hz, outside the record's band ({}): its fit lost the driver's motional part: check that channel 2 is the current, that the driver moves, and that the excitation covers its resonance (`coilscope linear` on the record shows the impedance it sees)",
+            start_values(&start)
+        )));
+    }
     let rates = start.rates();
     let settle = settle_of(&start);
     // A record is refused for what it lacks, not for its length (a 0.5 s record at 96 kHz
     // reaching +-2 mm gives Bl and Kms within 0.1 %): after the start model has settled it
     // must hold MIN_RESONANCE_PERIODS of the resonance, where the mechanical parameters
     // show. Reach is checked by the order search (`TooSmall`), the uncertainty says the rest.
-    let f_res = start.resonance_hz();
     let periods = (u.len().saturating_sub(settle)) as f64 / fs * f_res;
     if !(periods >= MIN_RESONANCE_PERIODS) {
         return Err(Input(format!(

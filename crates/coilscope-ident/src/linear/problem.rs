@@ -491,6 +491,29 @@ impl Problem for CurrentError {
     }
 }
 
+/// `part` of the H1 estimate at the bins `at` (ascending), each averaged over the bins of `at`
+/// within a sixth of an octave around it (a twelfth on either side).
+pub(super) fn sixth_octave_mean(h1: &ImpedanceEstimate, at: &[usize], part: impl Fn(Complex64) -> f64) -> Vec<f64> {
+    let side = 2f64.powf(1.0 / 12.0);
+    let mut sum = vec![0.0; at.len() + 1];
+    for (j, &k) in at.iter().enumerate() {
+        sum[j + 1] = sum[j] + part(h1.z[k]);
+    }
+    let (mut lo, mut hi) = (0, 0);
+    at.iter()
+        .map(|&k| {
+            let f = h1.f[k];
+            while h1.f[at[lo]] < f / side {
+                lo += 1;
+            }
+            while hi < at.len() && h1.f[at[hi]] <= f * side {
+                hi += 1;
+            }
+            (sum[hi] - sum[lo]) / (hi - lo) as f64
+        })
+        .collect()
+}
+
 /// Start values from the H1 estimate (motional peak, half-power bandwidth, high-frequency
 /// inductance).
 pub(super) fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<[f64; 7], String> {
@@ -506,21 +529,28 @@ pub(super) fn initial_guess(h1: &ImpedanceEstimate, lo: f64, hi: f64) -> Result<
     // is not it on a semi-inductive coil at high level: its LR-2 branch lifts Re Z towards
     // 2 kHz above a resonance that the nonlinearity smears (a 2.9 mH / 6.7 mH coil at 85 %
     // of its range gave 1.9 kHz for 35 Hz).
+    // Both parts are smoothed over a sixth of an octave first: at high level the
+    // nonlinearity and the noise make Im Z jitter about zero for tens of hertz across the
+    // resonance (a 0.5 g microspeaker at 85 % of its range: no three bins of one sign between
+    // 330 and 350 Hz), and the search on raw bins took a jitter about zero at 1.1 kHz, where
+    // Re Z is hardly above Re, for the resonance; the linear fit from there lost the motional
+    // branch (Cmes -> 1e36 F).
+    let (re_s, im_s) = (sixth_octave_mean(h1, &low, |z| z.re), sixth_octave_mean(h1, &low, |z| z.im));
     let held = 3;
     let crossing = (held..low.len().saturating_sub(held))
-        .filter(|&j| (j - held..j).all(|a| h1.z[low[a]].im > 0.0) && (j..j + held).all(|a| h1.z[low[a]].im <= 0.0))
-        .map(|j| low[j])
-        .max_by(|&a, &b| h1.z[a].re.total_cmp(&h1.z[b].re));
-    let kpk = match crossing {
-        Some(k) => k,
-        None => *low.iter().max_by(|&&a, &&b| h1.z[a].re.total_cmp(&h1.z[b].re)).ok_or("no usable bins below 2 kHz")?,
+        .filter(|&j| (j - held..j).all(|a| im_s[a] > 0.0) && (j..j + held).all(|a| im_s[a] <= 0.0))
+        .max_by(|&a, &b| re_s[a].total_cmp(&re_s[b]));
+    let jpk = match crossing {
+        Some(j) => j,
+        None => (0..low.len()).max_by(|&a, &b| re_s[a].total_cmp(&re_s[b])).ok_or("no usable bins below 2 kHz")?,
     };
+    let kpk = low[jpk];
     let fs0 = h1.f[kpk];
-    let res = (h1.z[kpk].re - re).max(0.1 * re);
+    let res = (re_s[jpk] - re).max(0.1 * re);
     // Half-power points of the motional real part: bandwidth fs / Qms.
     let half = re + 0.5 * res;
-    let below = low.iter().rev().filter(|&&k| k < kpk).find(|&&k| h1.z[k].re < half).map(|&k| h1.f[k]);
-    let above = low.iter().filter(|&&k| k > kpk).find(|&&k| h1.z[k].re < half).map(|&k| h1.f[k]);
+    let below = (0..jpk).rev().find(|&j| re_s[j] < half).map(|j| h1.f[low[j]]);
+    let above = (jpk + 1..low.len()).find(|&j| re_s[j] < half).map(|j| h1.f[low[j]]);
     let q = match (below, above) {
         (Some(a), Some(b)) if b > a => (fs0 / (b - a)).clamp(0.3, 50.0),
         _ => 3.0,

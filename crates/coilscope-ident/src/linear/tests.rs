@@ -192,3 +192,25 @@ fn model_impedance_equals_the_core_small_signal_impedance() {
         assert!((a - b).norm() < 1e-12 * b.norm());
     }
 }
+
+/// The start's sixth-octave smoothing equals the plain mean over each bin's window.
+#[test]
+fn sixth_octave_mean_equals_the_mean_over_each_window() {
+    let n = 400;
+    let f: Vec<f64> = (0..n).map(|k| 2.0 + 3.0 * k as f64).collect();
+    let z: Vec<Complex64> = (0..n).map(|k| Complex64::new((k as f64 * 0.37).sin(), (k as f64 * 1.3).cos())).collect();
+    let h1 = ImpedanceEstimate { f, z, coherence: vec![1.0; n], suu: vec![1.0; n], suu_max: 1.0 };
+    // Every third bin, as where some are not usable.
+    let at: Vec<usize> = (0..n).filter(|k| k % 3 != 1).collect();
+    let fast = super::problem::sixth_octave_mean(&h1, &at, |z| z.im);
+    let side = 2f64.powf(1.0 / 12.0);
+    for (j, &k) in at.iter().enumerate() {
+        let inside: Vec<f64> = at
+            .iter()
+            .filter(|&&m| h1.f[m] >= h1.f[k] / side && h1.f[m] <= h1.f[k] * side)
+            .map(|&m| h1.z[m].im)
+            .collect();
+        let slow = inside.iter().sum::<f64>() / inside.len() as f64;
+        assert!((fast[j] - slow).abs() < 1e-12, "bin {k} at {} Hz: {} against {slow}", h1.f[k], fast[j]);
+    }
+}
