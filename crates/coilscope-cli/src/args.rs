@@ -369,6 +369,11 @@ pub(crate) enum Command {
         /// Output directory.
         #[arg(long)]
         out: PathBuf,
+        /// The run database: a SQLite file, or a PostgreSQL server
+        /// (`postgres://user@host/database`) that a fleet of stations writes to (default:
+        /// DIR/run.sqlite).
+        #[arg(long, value_name = "FILE|URL")]
+        db: Option<String>,
         /// Moving mass (kg); for a virtual driver its own Mms is the default.
         #[arg(long)]
         mms: Option<f64>,
@@ -503,10 +508,12 @@ pub(crate) enum Command {
         #[command(subcommand)]
         action: QcAction,
     },
-    /// List the runs of a measurement database (DIR/run.sqlite), including interrupted ones.
+    /// List the runs of a run database (DIR/run.sqlite, or a fleet's PostgreSQL server), with
+    /// their status: a run whose writer was killed is marked `killed`.
     Runs {
-        /// The database (or the measurement directory holding run.sqlite).
-        database: PathBuf,
+        /// The database: a measurement directory (its run.sqlite), a SQLite file, or a
+        /// `postgres://user@host/database` URL.
+        database: String,
     },
     /// Static and quasi-static point-by-point measurement (seed paper 3.2.1; IEC 62458 10.2,
     /// 10.3) on the virtual driver: a DC offset per working point, the static displacement
@@ -649,9 +656,10 @@ pub(crate) enum Command {
         /// The HTML file to write.
         #[arg(long)]
         out: PathBuf,
-        /// Run database with the measurement's time series (default: run.sqlite beside the result).
-        #[arg(long)]
-        db: Option<PathBuf>,
+        /// Run database with the measurement's time series (default: run.sqlite beside the
+        /// result): a SQLite file or a `postgres://` URL.
+        #[arg(long, value_name = "FILE|URL")]
+        db: Option<String>,
         /// Level of the distortion analysis (V RMS); default: 70 % of the reach.
         #[arg(long)]
         volts: Option<f64>,
@@ -828,6 +836,7 @@ impl CardArgs {
 
 pub(crate) struct MeasureArgs {
     pub(crate) no_report: bool,
+    pub(crate) db: Option<String>,
     pub(crate) virtual_driver: Option<String>,
     pub(crate) world: World,
     pub(crate) card: CardArgs,
@@ -984,25 +993,60 @@ pub(crate) enum QcAction {
     /// figure outside, by how much and what it likely means, with the coil's offset where Bl's
     /// symmetry point is off.
     Test {
-        /// The unit's result (identify or measure) or parameter set.
-        result: String,
-        /// The line's limits (`qc learn`).
-        #[arg(long)]
-        limits: PathBuf,
-        /// Also write the verdict (JSON).
-        #[arg(long)]
-        out: Option<PathBuf>,
-    },
-    /// A lot's capability against the limits: per figure its mean, sd, Cpk and the units
-    /// outside.
-    Stats {
-        /// The lot's results.
+        /// The units' results (identify or measure) or parameter sets: one, or a lot (a
+        /// station's), each judged and, with --db, written as it is judged.
         #[arg(required = true, num_args = 1..)]
         results: Vec<String>,
         /// The line's limits (`qc learn`).
         #[arg(long)]
         limits: PathBuf,
+        /// Also write the verdict (JSON; one unit only).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Write every unit's set and verdict to this run database, as the station's run: a
+        /// SQLite file, or a `postgres://user@host/database` URL that every station of a line
+        /// writes to.
+        #[arg(long, value_name = "FILE|URL")]
+        db: Option<String>,
+        /// The station's name in the database.
+        #[arg(long, default_value = "station", requires = "db")]
+        station: String,
+        /// The unit's id (one unit only; default: the result file's name without `.json`).
+        #[arg(long)]
+        unit_id: Option<String>,
+    },
+    /// A lot's capability against the limits: per figure its mean, sd, Cpk and the units
+    /// outside.
+    Stats {
+        /// The lot's results (or give --db).
+        #[arg(required_unless_present = "db", conflicts_with = "db", num_args = 1..)]
+        results: Vec<String>,
+        /// The line's limits (`qc learn`).
+        #[arg(long)]
+        limits: PathBuf,
         /// Also write the table (JSON).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// The lot from a run database (`qc test --db`): every unit tested, or one station
+        /// run's (--run).
+        #[arg(long, value_name = "FILE|URL")]
+        db: Option<String>,
+        /// With --db: the station run whose units are the lot (`coilscope runs` lists them).
+        #[arg(long, requires = "db")]
+        run: Option<i64>,
+    },
+    /// A unit's history from a run database: its figures at every test, and how far each
+    /// drifted from its first test, in the limits' sds.
+    History {
+        /// The unit's id.
+        unit: String,
+        /// The run database (`qc test --db`).
+        #[arg(long, value_name = "FILE|URL")]
+        db: String,
+        /// The line's limits (their amplitude and sds).
+        #[arg(long)]
+        limits: PathBuf,
+        /// Also write the history (JSON).
         #[arg(long)]
         out: Option<PathBuf>,
     },

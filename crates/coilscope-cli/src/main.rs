@@ -162,9 +162,10 @@ fn main() -> ExitCode {
             }
         }),
         Command::Calibrate { recording, resistor, loopback, scale, out, sense_wiring, sense_ohm } => parse_wiring(&sense_wiring, sense_ohm).and_then(|w| cmd_calibrate(&recording, resistor, loopback, w, scale.as_deref(), &out)),
-        Command::Measure { no_report, virtual_driver, world, card, replay, out, mms, sd, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, cool_after, cool_volts, max_seconds, order, noise, rate, seed, crest, serve } => {
+        Command::Measure { no_report, virtual_driver, world, card, replay, out, db, mms, sd, target_x, max_dt, kms_limit, max_volts, start_volts, music, duration, volts, cool_after, cool_volts, max_seconds, order, noise, rate, seed, crest, serve } => {
             cmd_measure(MeasureArgs {
                 no_report,
+                db,
                 virtual_driver,
                 world,
                 card,

@@ -8,7 +8,6 @@ use coilscope_core::chain::SenseWiring;
 use coilscope_io::{load_parameters, read_recording, write_json};
 use coilscope_workflow::chain::mark_wiring;
 use serde_json::json;
-use std::path::Path;
 
 /// `device` read through the card's calibration `c`, corrected block by block, and the
 /// calibration used: it knows the card (delay, corners, gain), not this run's offsets or hum
@@ -65,9 +64,9 @@ pub(crate) fn cmd_devices() -> Result<(), String> {
 }
 
 pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
+    use coilscope_db::{Store, Target};
     use coilscope_measure::device::Device;
     use coilscope_measure::signal::Source;
-    use coilscope_measure::store::Store;
     use coilscope_workflow::measure::{replay, virtual_driver, Prepared};
     use std::io::IsTerminal;
     // A sound card's device need not be `Send`; the workflow's are.
@@ -179,25 +178,15 @@ pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     std::fs::create_dir_all(&a.out)
         .map_err(|e| format!("{}: cannot create the output directory: {e}", a.out.display()))?;
     let options = json!({"target_x": opts.target_x, "max_dt": opts.max_dt, "kms_limit": opts.kms_limit, "max_volts": opts.max_volts, "duration": opts.duration, "volts": opts.hold_volts, "cool": opts.cool, "excitation": source.name(), "mms": mms});
-    let mut store = Store::create(&a.out.join("run.sqlite"), &device.describe(), &options)?;
+    let target = a.db.as_deref().map_or_else(|| Target::Sqlite(a.out.join("run.sqlite")), Target::parse);
+    let mut store = Store::create(&target, &device.describe(), &options)?;
     let tty = std::io::stderr().is_terminal();
     let mut last_print = -1.0;
     let controllable = device.controllable();
     if controllable {
-        eprintln!(
-            "measuring {} with {} (run {} in {})",
-            device.describe(),
-            source.name(),
-            store.run,
-            a.out.join("run.sqlite").display()
-        );
+        eprintln!("measuring {} with {} (run {} in {})", device.describe(), source.name(), store.run, target.name());
     } else {
-        eprintln!(
-            "identifying from the {} (run {} in {})",
-            device.describe(),
-            store.run,
-            a.out.join("run.sqlite").display()
-        );
+        eprintln!("identifying from the {} (run {} in {})", device.describe(), store.run, target.name());
     }
     let started = std::time::Instant::now();
     let result = coilscope_measure::measure(device.as_mut(), &mut source, &opts, Some(&mut store), |l| {
@@ -330,13 +319,15 @@ pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
     for (t, e) in &m.events {
         println!("  at {t:.1} s: {e}");
     }
-    println!("wrote {} and {}", a.out.join("result.json").display(), a.out.join("run.sqlite").display());
+    println!("wrote {} and run {} in {}", a.out.join("result.json").display(), store.run, target.name());
     if !a.no_report {
         let t = coilscope_core::limits::Thresholds::default();
         let defaults = LimitArgs { xbl: t.bl, xc: t.cms, xl: t.le, max_dt: a.max_dt };
         let result = a.out.join("result.json");
         // The measurement is stored whatever happens to its report.
-        if let Err(e) = cmd_report(&result.to_string_lossy(), &a.out.join("report.html"), None, None, None, &defaults) {
+        if let Err(e) =
+            cmd_report(&result.to_string_lossy(), &a.out.join("report.html"), a.db.as_deref(), None, None, &defaults)
+        {
             eprintln!("warning: the report was not written: {e}");
         }
     }
@@ -404,16 +395,16 @@ fn interrupt_flag() -> std::sync::Arc<std::sync::atomic::AtomicBool> {
     flag
 }
 
-pub(crate) fn cmd_runs(path: &Path) -> Result<(), String> {
-    let db = if path.is_dir() { path.join("run.sqlite") } else { path.to_path_buf() };
-    let runs = coilscope_measure::store::list_runs(&db)?;
+pub(crate) fn cmd_runs(spec: &str) -> Result<(), String> {
+    let target = coilscope_db::Target::parse(spec);
+    let runs = coilscope_db::list_runs(&target)?;
     if runs.is_empty() {
-        println!("{}: no runs", db.display());
+        println!("{}: no runs", target.name());
     }
     for r in runs {
         print!(
-            "run {:>3}  {:<12} {:8.1} s  {:>6} states  {:>4} estimates  {}",
-            r.id, r.status, r.seconds, r.states, r.estimates, r.device
+            "run {:>3}  {:<12} {:8.1} s  {:>6} states  {:>4} estimates  {:>4} units  {}",
+            r.id, r.status, r.seconds, r.states, r.estimates, r.units, r.device
         );
         if let Some(l) = r.last {
             print!(

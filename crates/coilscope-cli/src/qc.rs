@@ -4,7 +4,8 @@
 use crate::args::QcAction;
 use crate::Failure;
 use coilscope_core::Parameters;
-use coilscope_workflow::qc::{capability, learn, test_unit, Limits, FIGURES};
+use coilscope_db::Target;
+use coilscope_workflow::qc::{capability, history, learn, lot, test_unit, Limits, Station, Verdict, FIGURES};
 use std::path::Path;
 
 /// A unit's set from a result or a parameter set, with the range its record reached as its
@@ -13,6 +14,35 @@ fn unit(spec: &str) -> Result<(Parameters, bool), String> {
     let input = coilscope_report::input_from(spec)?;
     let trusted = input.result.as_ref().is_none_or(|r| r.fit.trustworthy != Some(false));
     Ok((Parameters { x_range: Some(input.range), ..input.params }, trusted))
+}
+
+/// A unit's id from its result's name: the file name without `.json`, or the embedded name.
+fn default_unit_id(spec: &str) -> String {
+    let p = Path::new(spec);
+    match p.extension() {
+        Some(e) if e == "json" => p.file_stem().map_or(spec.to_string(), |s| s.to_string_lossy().into_owned()),
+        _ => p.file_name().map_or(spec.to_string(), |s| s.to_string_lossy().into_owned()),
+    }
+}
+
+/// A verdict's checks, one line each, and its advice.
+fn print_checks(v: &Verdict) {
+    for c in &v.checks {
+        let value = if c.value.is_finite() { shown(&c.key, c.value) } else { "-".into() };
+        let hi = if c.hi.is_finite() { shown(&c.key, c.hi) } else { "-".into() };
+        let mark = if c.pass { "ok  " } else { "FAIL" };
+        let why = if c.pass {
+            String::new()
+        } else if c.by_sd.is_finite() {
+            format!("  {:+.1} sd past the limit: {}", c.by_sd, c.cause)
+        } else {
+            format!("  {}", c.cause)
+        };
+        println!("{mark} {:<9} {:>16}   limits {} .. {}{why}", c.key, value, shown(&c.key, c.lo), hi);
+    }
+    for a in &v.advice {
+        println!("advice: {a}");
+    }
 }
 
 fn load_limits(path: &Path) -> Result<Limits, String> {
@@ -72,49 +102,100 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
             println!("wrote {}", out.display());
             Ok(())
         }
-        QcAction::Test { result, limits, out } => {
+        QcAction::Test { results, limits, out, db, station, unit_id } => {
             if let Some(o) = &out {
+                if results.len() > 1 {
+                    return Err(Failure::from(format!("--out {}: one verdict file is for one unit; {} were given (with --db every verdict is in the database)", o.display(), results.len())));
+                }
                 coilscope_io::check_writable(o).map_err(|e| e.to_string())?;
             }
+            if unit_id.is_some() && results.len() > 1 {
+                return Err(Failure::from(format!(
+                    "--unit-id names one unit; {} were given (each is named by its file)",
+                    results.len()
+                )));
+            }
             let l = load_limits(&limits)?;
-            let (p, trusted) = unit(&result)?;
-            let v = test_unit(&p, &result, &l);
-            if let Some(o) = &out {
-                write(o, &v.to_json())?;
-            }
-            for c in &v.checks {
-                let value = if c.value.is_finite() { shown(&c.key, c.value) } else { "-".into() };
-                let hi = if c.hi.is_finite() { shown(&c.key, c.hi) } else { "-".into() };
-                let mark = if c.pass { "ok  " } else { "FAIL" };
-                let why = if c.pass {
-                    String::new()
-                } else if c.by_sd.is_finite() {
-                    format!("  {:+.1} sd past the limit: {}", c.by_sd, c.cause)
-                } else {
-                    format!("  {}", c.cause)
+            let mut station = match &db {
+                Some(spec) => {
+                    Some(Station::open(&Target::parse(spec), &station, l.clone(), &limits.display().to_string())?)
+                }
+                None => None,
+            };
+            let one = results.len() == 1;
+            let (mut failed, mut untrusted) = (Vec::new(), Vec::new());
+            for result in &results {
+                let (p, trusted) = unit(result)?;
+                let id = unit_id.clone().unwrap_or_else(|| default_unit_id(result));
+                let v = match station.as_mut() {
+                    Some(s) => s.test(&id, &p, trusted)?,
+                    None => test_unit(&p, result, &l),
                 };
-                println!("{mark} {:<9} {:>16}   limits {} .. {}{why}", c.key, value, shown(&c.key, c.lo), hi);
+                if let Some(o) = &out {
+                    write(o, &v.to_json())?;
+                }
+                if one {
+                    print_checks(&v);
+                } else {
+                    let names: Vec<String> = v.failed().map(|c| format!("{} ({})", c.key, c.cause)).collect();
+                    match (trusted, v.pass) {
+                        (false, _) => println!("UNTRUSTED {id}: its measurement is not trustworthy; measure it again"),
+                        (true, true) => println!("PASS {id}"),
+                        (true, false) => println!("FAIL {id}: {}", names.join("; ")),
+                    }
+                    for a in v.advice.iter().filter(|_| trusted) {
+                        println!("  advice: {a}");
+                    }
+                }
+                if !trusted {
+                    untrusted.push(result.clone());
+                } else if !v.pass {
+                    let names: Vec<String> = v.failed().map(|c| format!("{} ({})", c.key, c.cause)).collect();
+                    failed.push(format!("{result}: {}", names.join("; ")));
+                } else if one {
+                    println!("PASS: {result}");
+                }
             }
-            for a in &v.advice {
-                println!("advice: {a}");
+            if let Some(s) = station {
+                let (run, passed, n_failed) = (s.run(), s.passed, s.failed);
+                s.finish()?;
+                println!(
+                    "{} units: {passed} passed, {n_failed} failed; station run {run} in {}",
+                    results.len(),
+                    Target::parse(db.as_deref().unwrap_or_default()).name()
+                );
             }
-            if !trusted {
-                return Err(Failure::Untrusted(format!("{result}: the unit's measurement is not trustworthy (fit.trustworthy false): measure it again before judging it")));
+            if !failed.is_empty() {
+                return Err(Failure::Rejected(failed.join("\n")));
             }
-            if v.pass {
-                println!("PASS: {result}");
-                Ok(())
-            } else {
-                let names: Vec<String> = v.failed().map(|c| format!("{} ({})", c.key, c.cause)).collect();
-                Err(Failure::Rejected(format!("{result}: {}", names.join("; "))))
+            if !untrusted.is_empty() {
+                return Err(Failure::Untrusted(format!("{}: the unit's measurement is not trustworthy (fit.trustworthy false): measure it again before judging it", untrusted.join(", "))));
             }
+            Ok(())
         }
-        QcAction::Stats { results, limits, out } => {
+        QcAction::Stats { results, limits, out, db, run } => {
             if let Some(o) = &out {
                 coilscope_io::check_writable(o).map_err(|e| e.to_string())?;
             }
             let l = load_limits(&limits)?;
             let mut units = Vec::new();
+            let mut names = Vec::new();
+            if let Some(spec) = &db {
+                let target = Target::parse(spec);
+                for (id, p) in lot(&target, run)? {
+                    names.push(id);
+                    units.push(p);
+                }
+                if units.is_empty() {
+                    return Err(Failure::from(match run {
+                        Some(r) => format!(
+                            "{}: run {r} tested no units (`coilscope runs {spec}` lists the runs)",
+                            target.name()
+                        ),
+                        None => format!("{}: no units tested yet (qc test --db writes them)", target.name()),
+                    }));
+                }
+            }
             for r in &results {
                 let (p, trusted) = unit(r)?;
                 if !trusted {
@@ -122,6 +203,7 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
                         "warning: {r}: its measurement is not trustworthy (fit.trustworthy false); counted as it is"
                     );
                 }
+                names.push(r.clone());
                 units.push(p);
             }
             let caps = capability(&units, &l);
@@ -147,7 +229,65 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
                     .iter()
                     .map(|c| serde_json::json!({"key": c.key, "n": c.n, "mean": c.mean, "sd": c.sd, "Cpk": if c.cpk.is_finite() { serde_json::json!(c.cpk) } else { serde_json::Value::Null }, "outside": c.outside, "unknown": c.unknown}))
                     .collect();
-                write(o, &serde_json::json!({"format": "coilscope.qc-stats/1", "units": results, "figures": rows}))?;
+                write(o, &serde_json::json!({"format": "coilscope.qc-stats/1", "units": names, "figures": rows}))?;
+            }
+            Ok(())
+        }
+        QcAction::History { unit: id, db, limits, out } => {
+            if let Some(o) = &out {
+                coilscope_io::check_writable(o).map_err(|e| e.to_string())?;
+            }
+            let l = load_limits(&limits)?;
+            let target = Target::parse(&db);
+            let visits = history(&target, &id, l.amplitude)?;
+            if visits.is_empty() {
+                return Err(Failure::from(format!(
+                    "{}: no tests of unit {id:?} (qc test --db --unit-id writes them)",
+                    target.name()
+                )));
+            }
+            println!("unit {id}: {} tests in {}", visits.len(), target.name());
+            let limited: Vec<(usize, &coilscope_workflow::qc::Limit)> =
+                l.limits.iter().filter_map(|x| FIGURES.iter().position(|f| f.key == x.key).map(|j| (j, x))).collect();
+            for v in &visits {
+                print!("  run {:>4} {}", v.run, if v.pass { "pass" } else { "FAIL" });
+                for (j, x) in &limited {
+                    print!("  {} {}", x.key, v.figures[*j].map_or("-".into(), |f| shown(&x.key, f)));
+                }
+                println!();
+            }
+            // Drift: the last test against the first, in the limits' sds.
+            let (first, last) = (&visits[0], &visits[visits.len() - 1]);
+            let drift: Vec<serde_json::Value> = limited
+                .iter()
+                .map(|(j, x)| {
+                    let d = match (first.figures[*j], last.figures[*j]) {
+                        (Some(a), Some(b)) if x.sd > 0.0 => (b - a) / x.sd,
+                        _ => f64::NAN,
+                    };
+                    if d.is_finite() {
+                        println!("  drift {:<9} {:+.2} sd of the line since its first test", x.key, d);
+                    }
+                    serde_json::json!({"key": x.key, "sd": if d.is_finite() { serde_json::json!(d) } else { serde_json::Value::Null }})
+                })
+                .collect();
+            if let Some(o) = &out {
+                let tests: Vec<serde_json::Value> = visits
+                    .iter()
+                    .map(|v| {
+                        let f: serde_json::Map<String, serde_json::Value> = limited
+                            .iter()
+                            .map(|(j, x)| {
+                                (x.key.clone(), v.figures[*j].map_or(serde_json::Value::Null, |f| serde_json::json!(f)))
+                            })
+                            .collect();
+                        serde_json::json!({"tested": v.tested, "run": v.run, "pass": v.pass, "figures": f})
+                    })
+                    .collect();
+                write(
+                    o,
+                    &serde_json::json!({"format": "coilscope.qc-history/1", "unit": id, "tests": tests, "drift": drift}),
+                )?;
             }
             Ok(())
         }

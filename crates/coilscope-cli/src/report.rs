@@ -144,7 +144,7 @@ pub(crate) fn cmd_diagnose(spec: &str, l: &LimitArgs, json: bool) -> Result<(), 
 pub(crate) fn cmd_report(
     spec: &str,
     out: &Path,
-    db: Option<&Path>,
+    db: Option<&str>,
     volts: Option<f64>,
     compare: Option<&str>,
     l: &LimitArgs,
@@ -160,27 +160,29 @@ pub(crate) fn cmd_report(
     // A run database holds a measurement's states over time: it goes with a measurement's
     // result only (an identify result or a parameter set beside one is drawn without it).
     let measured = input.result.as_ref().is_some_and(|r| r.measurement.is_some());
-    if let (Some(path), false) = (db, measured) {
+    if let (Some(spec_db), false) = (db, measured) {
         return Err(format!(
-            "--db {}: {spec} is not the result of a measurement (it has no `measurement`), so no run's states belong with it; leave --db out",
-            path.display()
+            "--db {spec_db}: {spec} is not the result of a measurement (it has no `measurement`), so no run's states belong with it; leave --db out"
         ));
     }
-    let db_path = db
-        .map(Path::to_path_buf)
-        .or_else(|| Path::new(spec).parent().map(|d| d.join("run.sqlite")).filter(|p| p.exists()))
+    let target = db
+        .map(coilscope_db::Target::parse)
+        .or_else(|| {
+            Path::new(spec)
+                .parent()
+                .map(|d| d.join("run.sqlite"))
+                .filter(|p| p.exists())
+                .map(coilscope_db::Target::Sqlite)
+        })
         .filter(|_| measured);
-    if let Some(path) = db_path {
-        // The database must be this measurement's: its last run's device is the result's.
-        if let (Some(m), Some(run)) = (
-            input.result.as_ref().and_then(|r| r.measurement.as_ref()),
-            coilscope_measure::store::list_runs(&path)?.last(),
-        ) {
-            if run.device != m.device {
-                return Err(format!("{}: its last run (#{}) measured {:?}, but {spec} is of {:?}: give the run database of this measurement (--db), or none", path.display(), run.id, run.device, m.device));
-            }
-        }
-        let rows = coilscope_measure::store::read_states(&path, None)?;
+    if let (Some(target), Some(m)) = (target, input.result.as_ref().and_then(|r| r.measurement.as_ref())) {
+        // The database must hold this measurement: its states are those of the last run of
+        // the result's device (a fleet's database holds many stations' runs).
+        let runs = coilscope_db::list_runs(&target)?;
+        let Some(run) = runs.iter().rev().find(|r| r.device == m.device) else {
+            return Err(format!("{}: no run measured {:?}, the device of {spec}: give the run database of this measurement (--db), or none", target.name(), m.device));
+        };
+        let rows = coilscope_db::read_states(&target, Some(run.id))?;
         if !rows.is_empty() {
             input.states = Some(coilscope_report::TimeSeries {
                 t: rows.iter().map(|r| r.t).collect(),

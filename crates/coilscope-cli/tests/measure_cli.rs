@@ -57,7 +57,7 @@ fn a_killed_long_term_run_keeps_its_data() {
     let t0 = std::time::Instant::now();
     loop {
         std::thread::sleep(std::time::Duration::from_millis(200));
-        if let Ok(r) = coilscope_measure::store::list_runs(&db) {
+        if let Ok(r) = coilscope_db::list_runs(&coilscope_db::Target::Sqlite(db.clone())) {
             if r.first().is_some_and(|r| r.states >= 40) {
                 break;
             }
@@ -66,16 +66,17 @@ fn a_killed_long_term_run_keeps_its_data() {
     }
     child.kill().unwrap();
     child.wait().unwrap();
-    let runs = coilscope_measure::store::list_runs(&db).unwrap();
+    let runs = coilscope_db::list_runs(&coilscope_db::Target::Sqlite(db.clone())).unwrap();
     let r = &runs[0];
     assert!(r.states >= 40 && r.last.is_some(), "{r:?}");
     // The committed rows are whole: states arrive in whole seconds (10 blocks each).
     assert_eq!(r.states % 10, 0, "{r:?}");
     let o = coilscope(&["runs", db.to_str().unwrap()]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    // A run that never finished is listed as running (heartbeat fresh) or killed.
+    // A run whose process was killed is listed as killed at once (its process is gone).
+    assert_eq!(r.status, "killed", "{r:?}");
     let text = String::from_utf8_lossy(&o.stdout);
-    assert!(text.contains("running") || text.contains("killed"), "{text}");
+    assert!(text.contains("killed"), "{text}");
 }
 
 #[test]
@@ -101,7 +102,9 @@ fn ctrl_c_writes_the_result_marked_interrupted_and_exits_130() {
     let t0 = std::time::Instant::now();
     loop {
         std::thread::sleep(std::time::Duration::from_millis(200));
-        if coilscope_measure::store::list_runs(&db).is_ok_and(|r| r.first().is_some_and(|r| r.estimates >= 2)) {
+        if coilscope_db::list_runs(&coilscope_db::Target::Sqlite(db.clone()))
+            .is_ok_and(|r| r.first().is_some_and(|r| r.estimates >= 2))
+        {
             break;
         }
         assert!(t0.elapsed().as_secs() < 120, "no estimates were committed");

@@ -215,7 +215,7 @@ fn report_of_a_measurement_renders_in_chromium_with_every_plot_drawn() {
     // No legend box covers a data line, in any chart of this measured result's
     // report (the time charts and the live distortion among them), at both sizes.
     let mut input = coilscope_report::input_from(run.join("result.json").to_str().unwrap()).unwrap();
-    let rows = coilscope_measure::store::read_states(&run.join("run.sqlite"), None).unwrap();
+    let rows = coilscope_db::read_states(&coilscope_db::Target::Sqlite(run.join("run.sqlite")), None).unwrap();
     input.states = Some(coilscope_report::TimeSeries {
         t: rows.iter().map(|r| r.t).collect(),
         x_min: rows.iter().map(|r| r.x_min).collect(),

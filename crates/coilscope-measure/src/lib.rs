@@ -14,7 +14,8 @@
 //! * [`signal`]: excitation sources (IEC 60268-1 noise, pink noise, music files) and the
 //!   variable high-pass.
 //! * [`engine`]: the block loop, controller and protection; observers see every block.
-//! * [`store`]: the SQLite run database (crash-safe, one transaction per second).
+//! * The run database is [`coilscope_db`] (SQLite or PostgreSQL; one transaction per second
+//!   of measurement): the engine writes to its [`coilscope_db::Store`].
 
 pub mod card;
 pub mod device;
@@ -23,7 +24,6 @@ pub mod quasi_static_card;
 pub mod signal;
 #[cfg(feature = "soundcard")]
 pub mod soundcard;
-pub mod store;
 
 pub use engine::{
     control, measure, ControlDecision, ControlInput, Engine, LimitedBy, Live, MeasureOptions, Measurement, Stage,

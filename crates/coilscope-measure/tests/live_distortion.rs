@@ -10,9 +10,9 @@ use coilscope_analysis::live_distortion::DistortionMeter;
 use coilscope_core::embedded_driver;
 use coilscope_core::excitation::Excitation;
 use coilscope_core::simulate::{simulate, SimOptions};
+use coilscope_db::{read_distortion, Store, Target};
 use coilscope_measure::device::VirtualDevice;
 use coilscope_measure::signal::Source;
-use coilscope_measure::store::{read_distortion, Store};
 use coilscope_measure::{measure, MeasureOptions};
 
 #[test]
@@ -20,7 +20,7 @@ fn live_distortion_is_stored_and_names_the_dominant_nonlinearity() {
     let p = embedded_driver("sb17cac35-4").unwrap();
     let [lo, hi] = p.x_range.unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let db = dir.path().join("run.sqlite");
+    let db = Target::Sqlite(dir.path().join("run.sqlite"));
     let mut store = Store::create(&db, "virtual", &serde_json::json!({})).unwrap();
     let mut dev = VirtualDevice::new(&p, 48000.0, (1e-4, 1e-4), 1).unwrap();
     let mut src = Source::noise(&Excitation::Iec, 48000.0, 1).unwrap();

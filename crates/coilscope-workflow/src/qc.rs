@@ -11,6 +11,12 @@
 //! - **A lot's capability** ([`capability`]): per figure its mean, sd, `Cpk =
 //!   min(hi - mean, mean - lo) / 3 sd` and how many units fell outside.
 //!
+//! - **A station** ([`Station`]): a lot tested on one station, each unit's set and verdict
+//!   written to the run database ([`coilscope_db`]: a SQLite file, or a PostgreSQL server that
+//!   every station of a line writes to) as it is judged, in a transaction of its own.
+//! - **From the database**: a lot ([`lot`]) for its capability, and a unit's history
+//!   ([`history`]): its figures at every test, for drift over time.
+//!
 //! The limits file is `"format": "coilscope.qc-limits/1"` (docs/usage.md, "Production line").
 
 use coilscope_core::limits::{limits_with, symmetry_point, Thresholds};
@@ -421,6 +427,98 @@ pub fn test_unit(p: &Parameters, name: &str, limits: &Limits) -> Verdict {
     }
     let pass = checks.iter().all(|c| c.pass);
     Verdict { unit: name.to_string(), pass, checks, advice }
+}
+
+/// A production station's session: a run in the database whose rows are the units it tests.
+pub struct Station {
+    store: coilscope_db::Store,
+    limits: Limits,
+    started: std::time::Instant,
+    pub passed: usize,
+    pub failed: usize,
+}
+
+impl Station {
+    /// Start station `name`'s run in `target`, testing against `limits` (read from
+    /// `limits_origin`, which the run's options name).
+    pub fn open(
+        target: &coilscope_db::Target,
+        name: &str,
+        limits: Limits,
+        limits_origin: &str,
+    ) -> Result<Station, String> {
+        let options = json!({"limits": limits_origin, "amplitude": limits.amplitude, "k": limits.k});
+        let store = coilscope_db::Store::create(target, &format!("qc station {name}"), &options)?;
+        Ok(Station { store, limits, started: std::time::Instant::now(), passed: 0, failed: 0 })
+    }
+
+    /// The station's run in the database.
+    pub fn run(&self) -> i64 {
+        self.store.run
+    }
+
+    /// Judge unit `unit_id` (its set `p`, whose measurement is `trusted` or not) and write it
+    /// to the database. A unit whose measurement is not trustworthy fails: it must be
+    /// measured again.
+    pub fn test(&mut self, unit_id: &str, p: &Parameters, trusted: bool) -> Result<Verdict, String> {
+        let mut v = test_unit(p, unit_id, &self.limits);
+        if !trusted {
+            v.pass = false;
+            v.advice.push(
+                "its measurement is not trustworthy (fit.trustworthy false): measure it again before judging it".into(),
+            );
+        }
+        self.store.record_unit(unit_id, v.pass, &p.to_json_value(), &v.to_json())?;
+        if v.pass {
+            self.passed += 1;
+        } else {
+            self.failed += 1;
+        }
+        Ok(v)
+    }
+
+    /// Close the station's run.
+    pub fn finish(mut self) -> Result<(), String> {
+        let seconds = self.started.elapsed().as_secs_f64();
+        let summary = json!({"passed": self.passed, "failed": self.failed});
+        self.store.finish(seconds, "finished", Some(&summary))
+    }
+}
+
+/// The units tested into a database (of one station's run, or all), as `(unit id, set)` in
+/// the order they were tested.
+pub fn lot(target: &coilscope_db::Target, run: Option<i64>) -> Result<Vec<(String, Parameters)>, String> {
+    let rows = coilscope_db::read_units(target, &coilscope_db::UnitFilter { run, unit_id: None })?;
+    rows.into_iter().map(|r| unit_set(target, &r).map(|p| (r.unit_id, p))).collect()
+}
+
+fn unit_set(target: &coilscope_db::Target, r: &coilscope_db::UnitRow) -> Result<Parameters, String> {
+    Parameters::from_json_str(&r.parameters, &format!("{} run {} unit {} ({})", target.name(), r.run, r.seq, r.unit_id))
+        .map_err(|e| e.to_string())
+}
+
+/// One test of a unit in its history.
+#[derive(Clone, Debug)]
+pub struct Visit {
+    /// When (seconds since the Unix epoch), on which run.
+    pub tested: f64,
+    pub run: i64,
+    pub pass: bool,
+    /// Its figures ([`FIGURES`]) at the limits' amplitude.
+    pub figures: Vec<Option<f64>>,
+}
+
+/// Every test of unit `unit_id` in the database, in time order, with its figures at
+/// `amplitude` (the limits'): how the unit drifts over its life.
+pub fn history(target: &coilscope_db::Target, unit_id: &str, amplitude: f64) -> Result<Vec<Visit>, String> {
+    let rows =
+        coilscope_db::read_units(target, &coilscope_db::UnitFilter { run: None, unit_id: Some(unit_id.into()) })?;
+    rows.iter()
+        .map(|r| {
+            let p = unit_set(target, r)?;
+            Ok(Visit { tested: r.tested, run: r.run, pass: r.pass, figures: figures(&p, amplitude) })
+        })
+        .collect()
 }
 
 /// A figure's capability over a lot.

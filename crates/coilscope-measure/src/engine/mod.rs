@@ -38,11 +38,11 @@
 
 use crate::device::{Device, Truth};
 use crate::signal::{HighPass, Source};
-use crate::store::{StateRow, Store};
 use coilscope_core::excitation::Excitation;
 use coilscope_core::params::Parameters;
 use coilscope_core::poly::Poly;
 use coilscope_core::result::{Band, Fit, MeasurementRecord, ResultFile, SmallSignalStage, Thermal, Uncertainty};
+use coilscope_db::{StateRow, Store};
 use coilscope_ident::linear::{fit_linear_record, scale_by_mms, Effects, EffectsChoice, Ends, LinearOptions};
 
 /// The small stage's linear fit: ends free (a replay's first seconds are cut from the running

@@ -1,0 +1,6 @@
+-- Who writes a run (to tell a killed writer), and the units a production station tests.
+ALTER TABLE runs ADD COLUMN host TEXT;
+ALTER TABLE runs ADD COLUMN pid BIGINT;
+CREATE TABLE units(run BIGINT NOT NULL REFERENCES runs(id), seq BIGINT NOT NULL, unit_id TEXT NOT NULL, tested DOUBLE PRECISION NOT NULL,
+    pass BOOLEAN NOT NULL, parameters TEXT NOT NULL, verdict TEXT NOT NULL, PRIMARY KEY(run, seq));
+CREATE INDEX units_unit ON units(unit_id, tested);
