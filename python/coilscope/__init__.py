@@ -27,7 +27,7 @@ import numpy as np
 
 from . import _coilscope as _c
 
-__all__ = ["NotTrustworthy", "MisspeltKey", "drivers", "parameters", "generate", "simulate", "linear", "linear_impedance", "linear_enclosure", "impedance", "identify", "measure_virtual", "measure_replay", "distortion", "poly"]
+__all__ = ["NotTrustworthy", "MisspeltKey", "drivers", "parameters", "generate", "simulate", "linear", "linear_impedance", "linear_enclosure", "impedance", "identify", "identify_file", "identify_lot", "read_recording", "write_recording", "measure_virtual", "measure_replay", "distortion", "poly"]
 
 
 class NotTrustworthy(UserWarning):
@@ -157,6 +157,54 @@ def identify(u, i, fs, mms, order=None, chain="detect", enclosure=None, sd=None,
         ),
         "identify",
     )
+
+
+def read_recording(path):
+    """A recording (WAV of 2 or 3 channels, as the command line reads it, its sidecar's scales
+    applied): a dict ``{"fs", "u", "i", "x"}`` of numpy arrays (``x`` None without a laser)."""
+    fs, u, i, x = _c.read_recording(str(path))
+    return {"fs": fs, "u": np.asarray(u), "i": np.asarray(i), "x": None if x is None else np.asarray(x)}
+
+
+def write_recording(path, u, i, fs, x=None):
+    """Write a recording as the command line does (32-bit float WAV, written atomically)."""
+    _c.write_recording(str(path), int(fs), _floats(u, "u"), _floats(i, "i"), None if x is None else _floats(x, "x"))
+
+
+def identify_file(path, mms, **options):
+    """:func:`identify` on a recording file (``coilscope identify REC.wav --mms KG``): the result
+    dict, with the file's path under ``result["recording"]``. ``options`` as :func:`identify`'s.
+    A plain module-level function, so that a cluster's workers can run it (see
+    :func:`identify_lot`)."""
+    r = read_recording(path)
+    result = identify(r["u"], r["i"], r["fs"], mms, **options)
+    result["recording"] = str(path)
+    return result
+
+
+def identify_lot(paths, mms, client=None, **options):
+    """:func:`identify_file` on each of ``paths`` (one ``mms`` for all, or one per path): the
+    results in the order of ``paths``.
+
+    With ``client`` (a ``dask.distributed.Client``), the records are identified on its cluster,
+    one task per record, scheduled by Dask; without, one after the other here. Each result is
+    the one a single run gives: a record's identification depends on nothing but its record and
+    options. A result that is not trustworthy says so under ``result["fit"]["trustworthy"]``
+    (the warning a worker raises stays in the worker's log)::
+
+        from dask.distributed import Client, LocalCluster
+        with LocalCluster(n_workers=4, threads_per_worker=1) as cluster, Client(cluster) as client:
+            results = coilscope.identify_lot(sorted(glob.glob("lot/*.wav")), 0.0145, client)
+    """
+    paths = [str(p) for p in paths]
+    masses = list(mms) if np.ndim(mms) else [mms] * len(paths)
+    if len(masses) != len(paths):
+        raise ValueError(f"identify_lot: {len(masses)} moving masses for {len(paths)} records")
+    masses = [float(m) for m in masses]
+    if client is None:
+        return [identify_file(p, m, **options) for p, m in zip(paths, masses)]
+    futures = client.map(identify_file, paths, masses, **options)
+    return client.gather(futures)
 
 
 def measure_virtual(driver, seed=1, fs=48000.0, max_seconds=60.0, world="real"):

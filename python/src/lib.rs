@@ -283,6 +283,26 @@ fn identify(
     .map_err(err)
 }
 
+/// A recording's channels (`coilscope_io::read_recording`: 2 or 3 channels, the sidecar's
+/// scales applied): `(fs, u, i, x)`.
+#[pyfunction]
+fn read_recording(path: &str) -> PyResult<(f64, Vec<f64>, Vec<f64>, Option<Vec<f64>>)> {
+    let r = coilscope_io::read_recording(std::path::Path::new(path), None).map_err(err)?;
+    Ok((r.fs as f64, r.u, r.i, r.x))
+}
+
+/// Write a recording as the command line does (32-bit float WAV, atomically).
+#[pyfunction]
+#[pyo3(signature = (path, fs, u, i, x=None))]
+fn write_recording(path: &str, fs: u32, u: Vec<f64>, i: Vec<f64>, x: Option<Vec<f64>>) -> PyResult<()> {
+    check_fs(fs as f64)?;
+    check_pair(&u, &i)?;
+    if let Some(x) = &x {
+        check_pair(&u, x)?;
+    }
+    coilscope_io::write_recording(std::path::Path::new(path), &coilscope_io::Recording { fs, u, i, x }).map_err(err)
+}
+
 fn run_measure(
     py: Python<'_>,
     prepared: coilscope_workflow::measure::Prepared,
@@ -361,6 +381,8 @@ fn _coilscope(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(impedance, m)?)?;
     m.add_function(wrap_pyfunction!(near_miss_keys, m)?)?;
     m.add_function(wrap_pyfunction!(identify, m)?)?;
+    m.add_function(wrap_pyfunction!(read_recording, m)?)?;
+    m.add_function(wrap_pyfunction!(write_recording, m)?)?;
     m.add_function(wrap_pyfunction!(measure_virtual, m)?)?;
     m.add_function(wrap_pyfunction!(measure_replay, m)?)?;
     m.add_function(wrap_pyfunction!(distortion, m)?)?;
