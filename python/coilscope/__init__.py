@@ -221,6 +221,8 @@ def measure_replay(u, i, fs, mms, max_seconds=600.0):
     return _checked(_c.measure_replay(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), float(max_seconds)), "measure_replay")
 
 
-def distortion(params, freq, volts, output="pressure"):
-    """Harmonic distortion of a sine (HD2, HD3, THD, each nonlinearity, Volterra): a dict."""
-    return json.loads(_c.distortion(_spec(params), float(freq), float(volts), output))
+def distortion(params, freq, volts, output="pressure", temp_rise=0.0):
+    """Harmonic distortion of a sine (HD2, HD3, THD, each nonlinearity, and the third-order
+    Volterra series of the same set under ``volterra``), the coil ``temp_rise`` K above
+    ambient: the dict ``coilscope distortion --json`` prints."""
+    return json.loads(_c.distortion(_spec(params), float(freq), float(volts), output, float(temp_rise)))

@@ -353,11 +353,11 @@ fn measure_replay(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, m
 }
 
 /// Harmonic distortion of a sine on a parameter set, each nonlinearity's share and the
-/// Volterra prediction (`coilscope distortion --json`): JSON text.
+/// Volterra prediction (`coilscope distortion --json`, the same workflow): JSON text.
 #[pyfunction]
-#[pyo3(signature = (params, freq, volts, output="pressure"))]
-fn distortion(py: Python<'_>, params: &str, freq: f64, volts: f64, output: &str) -> PyResult<String> {
-    use coilscope_analysis::distortion::{analyse, Output, SteadyOptions};
+#[pyo3(signature = (params, freq, volts, output="pressure", temp_rise=0.0))]
+fn distortion(py: Python<'_>, params: &str, freq: f64, volts: f64, output: &str, temp_rise: f64) -> PyResult<String> {
+    use coilscope_analysis::distortion::Output;
     let p = params_from(params)?;
     let out = match output {
         "pressure" => Output::Pressure,
@@ -365,8 +365,9 @@ fn distortion(py: Python<'_>, params: &str, freq: f64, volts: f64, output: &str)
         "current" => Output::Current,
         o => return Err(err(format!("output {o:?}: give pressure, displacement or current"))),
     };
-    let a = py.allow_threads(|| analyse(&p, freq, volts, out, &SteadyOptions::default())).map_err(err)?;
-    Ok(a.to_json().to_string())
+    let s =
+        py.allow_threads(|| coilscope_workflow::distortion::sine(&p, &[freq], volts, out, temp_rise)).map_err(err)?;
+    Ok(s[0].to_json().to_string())
 }
 
 #[pymodule]

@@ -81,6 +81,11 @@ def test_measure_virtual_converges_and_replay_runs():
 def test_distortion_and_errors():
     d = coilscope.distortion("sb17cac35-4", 40.0, 2.0)
     assert 1e-4 < d["HD2"] < 0.3 and "contributions" in d
+    # The Volterra series of the same set beside it, as the command line prints it: at a
+    # small level it agrees with the full model.
+    low = coilscope.distortion("sb17cac35-4", 40.0, 0.3)
+    assert abs(low["volterra"]["HD2_dB"] - 20 * np.log10(low["HD2"])) < 1.0, low["volterra"]
+    assert low["volterra"]["kernels"]
     with pytest.raises(ValueError, match="sample rate"):
         coilscope.simulate("sb17cac35-4", np.zeros(100), 10.0)
     with pytest.raises(ValueError, match="differ in length"):

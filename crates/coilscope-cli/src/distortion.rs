@@ -93,27 +93,16 @@ pub(crate) fn cmd_distortion(a: DistortionArgs) -> Result<(), String> {
         Some(b) => d::log_frequencies(b[0], b[1], 3),
         None => vec![freq],
     };
-    let sweep = d::frequency_sweep(p, &freqs, volts, a.output, &opts).map_err(e)?;
-    let q = d::with_only(p, &d::Nonlinearity::ALL, a.temp_rise);
-    let probes: Vec<_> = sweep.iter().map(|an| coilscope_analysis::volterra::probe(&q, an.total.freq)).collect();
+    let sweep = coilscope_workflow::distortion::sine(p, &freqs, volts, a.output, a.temp_rise)?;
     if a.json {
-        let v: Vec<_> = sweep
-            .iter()
-            .zip(&probes)
-            .map(|(an, pr)| {
-                let (h2, h3) = pr.hd(a.output, volts);
-                let mut j = an.to_json();
-                j["volterra"] = serde_json::json!({"HD2": h2, "HD3": h3, "HD2_dB": db(h2), "HD3_dB": db(h3), "x_dc": pr.x_dc(volts), "kernels": pr.to_json()});
-                j
-            })
-            .collect();
+        let v: Vec<_> = sweep.iter().map(|s| s.to_json()).collect();
         print_json(&if v.len() == 1 { v[0].clone() } else { serde_json::Value::Array(v) });
         return Ok(());
     }
     println!("{name}: sine, {:.3} V RMS, {out}", volts);
-    for (an, pr) in sweep.iter().zip(&probes) {
-        let t = &an.total;
-        let (v2, v3) = pr.hd(a.output, volts);
+    for s in &sweep {
+        let (an, t) = (&s.analysis, &s.analysis.total);
+        let (v2, v3) = s.volterra_hd();
         println!(
             "  {:.2} Hz: x {:+.3} .. {:+.3} mm, DC displacement {:+.4} mm",
             t.freq,

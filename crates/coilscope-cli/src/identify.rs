@@ -4,11 +4,8 @@
 use crate::{parse_effects, print_values, print_warnings, untrusted_if_warned, Failure};
 use coilscope_core::chain::SenseWiring;
 use coilscope_core::result::ResultFile;
-use coilscope_core::simulate::{simulate, SimOptions};
-use coilscope_core::Parameters;
 use coilscope_io::{read_recording, write_json, Recording};
 use coilscope_workflow::chain::ChainMode;
-use serde_json::json;
 use std::path::{Path, PathBuf};
 
 #[allow(clippy::too_many_arguments)]
@@ -213,8 +210,7 @@ pub(crate) fn cmd_identify_volterra(
     scale: Option<&[f64]>,
     out: &Path,
 ) -> Result<(), Failure> {
-    use coilscope_ident::checks::Warning;
-    use coilscope_ident::volterra::{identify_volterra_weighted, record_lines, truncation_check};
+    use coilscope_workflow::volterra::{identify_volterra, linear_start};
     coilscope_io::check_writable(out).map_err(|e| e.to_string())?;
     let origin = path.display().to_string();
     if let Some(o) = order.filter(|&o| o != 2) {
@@ -229,105 +225,20 @@ pub(crate) fn cmd_identify_volterra(
         ));
     }
     let start_spec = start.ok_or("--method volterra needs --start FILE: the small-signal parameters (run `coilscope linear` on a noise record of the driver, or give a parameter set)")?;
-    let start = coilscope_report::input_from(start_spec)?.params;
-    let start = Parameters {
-        bl: coilscope_core::Poly::constant(start.bl.c[0]),
-        kms: coilscope_core::Poly::constant(start.kms.c[0]),
-        le: coilscope_core::Poly::constant(start.le.c[0]),
-        l2r2: start.l2r2.map(|(l, r)| (coilscope_core::Poly::constant(l.c[0]), coilscope_core::Poly::constant(r.c[0]))),
-        sd: sd.or(start.sd),
-        ..start
-    };
+    let start = linear_start(coilscope_report::input_from(start_spec)?.params, sd);
     let mut rec = read_recording(path, scale).map_err(|e| e.to_string())?;
-    if matches!(chain_choice, ChainMode::Estimate) {
-        return Err(Failure::from("--chain auto: the Volterra method does not estimate a chain (its lines carry no transient to tell it); calibrate the card (`coilscope calibrate`) and give --chain FILE, or --chain none"));
-    }
-    let calibrated = chain_choice.undo(&mut rec, &origin, wiring)?;
-    let fs = rec.fs as f64;
     let t0 = std::time::Instant::now();
-    let lines = record_lines(&rec.u, &rec.i, fs, &origin)?;
-    let (measured, noise) = lines.harmonics(&start);
-    let fit = identify_volterra_weighted(&start, &measured, Some(&noise))?;
-    let trunc = truncation_check(&fit, &lines, &measured, &noise)?;
-    let chi2 = fit.chi2_dof.unwrap_or(f64::NAN);
-    // The reach: the fitted model driven by the record.
-    let mut q = fit.params.clone();
-    q.x_range = None;
-    let trace = simulate(&q, fs, &rec.u, &SimOptions::default())
-        .map_err(|e| format!("{origin}: the fitted model under the record: {e}"))?;
-    let from = lines.starts[0];
-    let reach = trace.x[from..].iter().fold([0.0f64, 0.0f64], |a, &v| [a[0].min(v), a[1].max(v)]);
-    q.x_range = Some(reach);
-    q.source = Some(format!("coilscope identify --method volterra {origin}"));
-    let mut warnings = vec![];
-    if chi2 > 2.0 || trunc > 1.0 {
-        warnings.push(Warning::new(
-            "volterra-truncation",
-            format!(
-                "the level is too high for the third-order Volterra series: the kernels leave {chi2:.1} times the lines' noise variance unexplained, and the fitted model's own full response differs from its kernels by {trunc:.1} times it. The distortion feeds back into the nonlinearities (seed paper 3.2.2.1) and the fitted coefficients absorb it: lower the level, or use the full identification (`--method full`, on noise at high level)"
-            ),
-        ));
-    }
-    let mut unc = coilscope_core::result::Uncertainty::new(format!(
-        "Volterra method: sd of the second-order series from the kernel fit's covariance, the lines' noise from the scatter of {} periods (scaled up by the fit's chi^2 per degree of freedom where above 1); the values at rest are --start's (sd 0 at x = 0). The truncation of the series is not in the sd: see the warnings",
-        lines.starts.len()
-    ));
-    for which in ["Bl", "Kms", "Le"] {
-        let band = fit.band(which, reach, 21);
-        // A nonlinearity smaller than its sd over the reach is not resolved.
-        let f = match which {
-            "Bl" => &q.bl,
-            "Kms" => &q.kms,
-            _ => &q.le,
-        };
-        let size = band.x.iter().map(|&x| (f.eval(x) - f.c[0]).abs()).fold(0.0, f64::max);
-        let worst_sd = band.sd.iter().cloned().fold(0.0, f64::max);
-        if worst_sd > size {
-            warnings.push(Warning::new(
-                "volterra-unresolved",
-                format!(
-                    "{which}(x): its change over the reach ({:.3} % of its value at rest) is smaller than its sd ({:.3} %): the record does not resolve this nonlinearity (its lines are at the noise; record longer, or at a somewhat higher level)",
-                    100.0 * size / f.c[0].abs(),
-                    100.0 * worst_sd / f.c[0].abs()
-                ),
-            ));
-        }
-        unc.set_band(which, band);
-    }
-    let result_fit = coilscope_core::result::Fit {
-        method: Some(format!(
-            "Volterra (seed paper 3.2.2.1): H2, H3 of a readable multitone ({} tones, {}-{} Hz, {} steady periods averaged); Bl, Kms, Le to second order fitted to the current's 2nd and 3rd harmonic ratios; linear part from {start_spec}",
-            lines.bins.len(),
-            lines.bins[0],
-            lines.bins[lines.bins.len() - 1],
-            lines.starts.len()
-        )),
-        residual_rel: fit.misfit,
-        x_range: reach,
-        order: Some(2),
-        model: "LR-2, Bl/Kms/Le to second order".into(),
-        ..Default::default()
-    };
-    let lim = coilscope_core::limits::limits(&q, reach);
-    let mut result = ResultFile::new("large-signal", &origin, q.clone(), result_fit, unc, Some(&lim));
-    result.chain = calibrated;
-    result.other.insert(
-        "volterra".into(),
-        json!({
-            "tones_hz": lines.bins, "periods": lines.starts.len(), "chi2_dof": chi2, "truncation": trunc,
-            "lines": measured.iter().zip(&noise).map(|(h, n)| json!({"freq": h.freq, "volts_rms": h.volts, "ratio2": [h.ratio(2).re, h.ratio(2).im], "ratio3": [h.ratio(3).re, h.ratio(3).im], "sd2": n[0], "sd3": n[1]})).collect::<Vec<_>>(),
-        }),
-    );
-    coilscope_workflow::attach_warnings(&mut result, None, &warnings);
-    print_warnings(&warnings);
-    write_json(out, &result).map_err(|e| e.to_string())?;
+    let v = identify_volterra(&mut rec, &origin, &start, start_spec, chain_choice, wiring)?;
+    print_warnings(&v.warnings);
+    write_json(out, &v.result).map_err(|e| e.to_string())?;
+    let (q, reach, chi2, trunc) = (&v.params, v.reach, v.chi2_dof, v.truncation);
     let pct = |f: &coilscope_core::Poly, x: f64| 100.0 * (f.eval(x) / f.c[0] - 1.0);
     println!(
         "coilscope identify --method volterra: {origin}, {} tones {}-{} Hz, {} periods, {:.2} s",
-        lines.bins.len(),
-        lines.bins[0],
-        lines.bins[lines.bins.len() - 1],
-        lines.starts.len(),
+        v.tones_hz.len(),
+        v.tones_hz[0],
+        v.tones_hz[v.tones_hz.len() - 1],
+        v.periods,
         t0.elapsed().as_secs_f64()
     );
     println!("  reach {:+.3} .. {:+.3} mm; kernel chi^2/dof {chi2:.2}, truncation {trunc:.2} (both about 1 or less where the series holds)", 1e3 * reach[0], 1e3 * reach[1]);
@@ -339,7 +250,7 @@ pub(crate) fn cmd_identify_volterra(
         );
     }
     println!("  result: {}", out.display());
-    untrusted_if_warned(&warnings, out)
+    untrusted_if_warned(&v.warnings, out)
 }
 
 fn print_large_summary(

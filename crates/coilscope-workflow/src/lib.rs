@@ -16,11 +16,13 @@
 //! printing is the caller's.
 
 pub mod chain;
+pub mod distortion;
 pub mod enclosure;
 pub mod identify;
 pub mod linear;
 pub mod measure;
 pub mod qc;
+pub mod volterra;
 
 use coilscope_core::result::ResultFile;
 use coilscope_ident::checks::{NoiseFloor, Warning};
