@@ -46,8 +46,17 @@ pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
             Ok(LinearInput::Record(read_recording(p, scale).map_err(|e| e.to_string())?))
         }
     };
-    let input = read_input(&path)?;
+    let mut input = read_input(&path)?;
     if let Some(kind) = &a.enclosure {
+        // A record's chain: a calibrated one is undone before the box is fitted (and a
+        // shunt's drop); the box fit does not estimate one.
+        if let LinearInput::Record(r) = &mut input {
+            if matches!(chain, ChainMode::Estimate) {
+                return Err(Failure::from(format!("{origin}: --chain auto: the box fit does not estimate a measurement chain; calibrate the card (`coilscope calibrate`) and give --chain FILE, or --chain none")));
+            }
+            // A calibrated chain inverted, and the shunt's drop taken out with the wiring.
+            chain.undo(r, &origin, wiring)?;
+        }
         return linear_box(&a, kind, &input, &origin, band, out);
     }
     let has_x = matches!(&input, LinearInput::Record(r) if r.x.is_some());

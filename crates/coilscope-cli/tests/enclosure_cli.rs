@@ -138,6 +138,21 @@ fn box_mistakes_are_named() {
     ]);
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && e.contains("\"sealed\"") && e.contains("passive_radiator"), "{e}");
+    // The box fit does not estimate a card's chain: it says so, where it used to drop --chain.
+    let o = coilscope(&[
+        "linear",
+        wav.to_str().unwrap(),
+        "--enclosure",
+        "closed",
+        "--driver",
+        "sb17cac35-4",
+        "--chain",
+        "auto",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("--chain auto") && e.contains("calibrate"), "{e}");
     let not_a_box = dir.path().join("nobox.json");
     std::fs::write(&not_a_box, r#"{"Vb": 0.01}"#).unwrap();
     let o = coilscope(&[
