@@ -993,8 +993,9 @@ pub(crate) enum QcAction {
     /// figure outside, by how much and what it likely means, with the coil's offset where Bl's
     /// symmetry point is off.
     Test {
-        /// The units' results (identify or measure) or parameter sets: one, or a lot (a
-        /// station's), each judged and, with --db, written as it is judged.
+        /// The units' results (identify or measure), parameter sets or short records (`.wav`,
+        /// with --mms): one, or a lot (a station's), each judged and, with --db, written as
+        /// it is judged.
         #[arg(required = true, num_args = 1..)]
         results: Vec<String>,
         /// The line's limits (`qc learn`).
@@ -1011,9 +1012,24 @@ pub(crate) enum QcAction {
         /// The station's name in the database.
         #[arg(long, default_value = "station", requires = "db")]
         station: String,
-        /// The unit's id (one unit only; default: the result file's name without `.json`).
+        /// The unit's id (one unit only; default: the file's name without `.json` or `.wav`).
         #[arg(long)]
         unit_id: Option<String>,
+        /// For units given as records (`.wav`: voltage and current, as `identify` reads
+        /// them): the moving mass (kg), the scale of every mechanical figure; each record is
+        /// identified as `identify` does, then judged.
+        #[arg(long)]
+        mms: Option<f64>,
+        /// For records: the effects searched (as `identify --effects`; `none` is fastest on
+        /// a line whose golden units showed none).
+        #[arg(long, default_value = "auto")]
+        effects: String,
+        /// For records: the measurement chain (as `identify --chain`).
+        #[arg(long, default_value = "detect")]
+        chain: String,
+        /// For records: worker threads per record (0: every core).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
     },
     /// A lot's capability against the limits: per figure its mean, sd, Cpk and the units
     /// outside.
@@ -1034,6 +1050,10 @@ pub(crate) enum QcAction {
         /// With --db: the station run whose units are the lot (`coilscope runs` lists them).
         #[arg(long, requires = "db")]
         run: Option<i64>,
+        /// Also write the lot's page (HTML): per figure its histogram against the limits and
+        /// its control chart, with Cpk; PNG and CSV in `<stem>_files/`.
+        #[arg(long, value_name = "HTML")]
+        report: Option<PathBuf>,
     },
     /// A unit's history from a run database: its figures at every test, and how far each
     /// drifted from its first test, in the limits' sds.
@@ -1049,5 +1069,9 @@ pub(crate) enum QcAction {
         /// Also write the history (JSON).
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Also write the unit's page (HTML): each figure at every test over time, against
+        /// the limits; PNG and CSV in `<stem>_files/`.
+        #[arg(long, value_name = "HTML")]
+        report: Option<PathBuf>,
     },
 }

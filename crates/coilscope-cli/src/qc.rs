@@ -5,7 +5,12 @@ use crate::args::QcAction;
 use crate::Failure;
 use coilscope_core::Parameters;
 use coilscope_db::Target;
-use coilscope_workflow::qc::{capability, history, learn, lot, test_unit, Limits, Station, Verdict, FIGURES};
+use coilscope_report::lot::{lot_report, FigureSeries, LotInput, LotStats};
+use coilscope_workflow::identify::IdentifyRequest;
+use coilscope_workflow::qc::{
+    capability, drift, figures, history, learn, lot, test_unit, unit_from_record, Limit, Limits, Station, Verdict,
+    FIGURES,
+};
 use std::path::Path;
 
 /// A unit's set from a result or a parameter set, with the range its record reached as its
@@ -16,11 +21,18 @@ fn unit(spec: &str) -> Result<(Parameters, bool), String> {
     Ok((Parameters { x_range: Some(input.range), ..input.params }, trusted))
 }
 
-/// A unit's id from its result's name: the file name without `.json`, or the embedded name.
+/// Whether a unit is given as a record (a `.wav` file) rather than a result or a set.
+fn is_record(spec: &str) -> bool {
+    Path::new(spec).extension().is_some_and(|e| e.eq_ignore_ascii_case("wav"))
+}
+
+/// A unit's id from its file's name: the name without `.json` or `.wav`, or the embedded name.
 fn default_unit_id(spec: &str) -> String {
     let p = Path::new(spec);
     match p.extension() {
-        Some(e) if e == "json" => p.file_stem().map_or(spec.to_string(), |s| s.to_string_lossy().into_owned()),
+        Some(e) if e == "json" || e.eq_ignore_ascii_case("wav") => {
+            p.file_stem().map_or(spec.to_string(), |s| s.to_string_lossy().into_owned())
+        }
         _ => p.file_name().map_or(spec.to_string(), |s| s.to_string_lossy().into_owned()),
     }
 }
@@ -54,15 +66,59 @@ fn write(path: &Path, v: &serde_json::Value) -> Result<(), String> {
     coilscope_io::write_json(path, v).map_err(|e| e.to_string())
 }
 
+/// A figure's display unit and the factor from SI to it (mm for lengths, mH for Le).
+fn display_unit(key: &str) -> (String, f64) {
+    match key {
+        "Xsym_Bl" | "Xsym_Kms" | "Xmax" => ("mm".into(), 1e3),
+        "Le(0)" => ("mH".into(), 1e3),
+        _ => (FIGURES.iter().find(|f| f.key == key).map_or("", |f| f.unit).to_string(), 1.0),
+    }
+}
+
+/// A limited figure's series for a page, in its display unit (`k` from SI).
+fn series(
+    l: &Limit,
+    unit: String,
+    k: f64,
+    values: Vec<Option<f64>>,
+    capability: Option<LotStats>,
+    drift_sd: Option<f64>,
+) -> FigureSeries {
+    FigureSeries {
+        key: l.key.clone(),
+        unit,
+        values,
+        lo: l.lo * k,
+        hi: l.hi * k,
+        mean: l.mean * k,
+        sd: l.sd * k,
+        capability,
+        drift_sd,
+    }
+}
+
+/// Write a page and its files, and say where.
+fn write_page(rep: &coilscope_report::Report, out: &Path) -> Result<(), String> {
+    let written = coilscope_report::write(rep, out, coilscope_report::ReportOptions::default().png_size)?;
+    for w in &rep.warnings {
+        eprintln!("warning: the page could not draw {w}");
+    }
+    println!(
+        "wrote {} and {} files in {}",
+        out.display(),
+        written.len() - 1,
+        coilscope_report::files_dir(out).display()
+    );
+    Ok(())
+}
+
 /// A figure's value in its display unit (mm for lengths, mH for Le).
 fn shown(key: &str, v: f64) -> String {
-    match key {
-        "Xsym_Bl" | "Xsym_Kms" | "Xmax" => format!("{:+.3} mm", v * 1e3),
-        "Le(0)" => format!("{:.4} mH", v * 1e3),
-        _ => {
-            let unit = FIGURES.iter().find(|f| f.key == key).map_or("", |f| f.unit);
-            format!("{v:.4} {unit}")
-        }
+    let (unit, k) = display_unit(key);
+    if unit == "mm" {
+        format!("{:+.3} mm", v * k)
+    } else {
+        format!("{:.4} {unit}", v * k)
     }
 }
 
@@ -102,7 +158,18 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
             println!("wrote {}", out.display());
             Ok(())
         }
-        QcAction::Test { results, limits, out, db, station, unit_id } => {
+        QcAction::Test { results, limits, out, db, station, unit_id, mms, effects, chain, threads } => {
+            let request = |origin: &str| -> Result<IdentifyRequest, Failure> {
+                let Some(m) = mms else {
+                    return Err(Failure::from(format!("{origin}: a record is identified before it is judged: give the unit's moving mass with --mms KG")));
+                };
+                Ok(IdentifyRequest {
+                    effects: crate::parse_effects(&effects)?,
+                    chain: crate::parse_chain(&chain)?,
+                    threads,
+                    ..IdentifyRequest::new(origin, Some(m))
+                })
+            };
             if let Some(o) = &out {
                 if results.len() > 1 {
                     return Err(Failure::from(format!("--out {}: one verdict file is for one unit; {} were given (with --db every verdict is in the database)", o.display(), results.len())));
@@ -125,7 +192,12 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
             let one = results.len() == 1;
             let (mut failed, mut untrusted) = (Vec::new(), Vec::new());
             for result in &results {
-                let (p, trusted) = unit(result)?;
+                let (p, trusted) = if is_record(result) {
+                    let mut rec = coilscope_io::read_recording(Path::new(result), None).map_err(|e| e.to_string())?;
+                    unit_from_record(&mut rec, &request(result)?)?
+                } else {
+                    unit(result)?
+                };
                 let id = unit_id.clone().unwrap_or_else(|| default_unit_id(result));
                 let v = match station.as_mut() {
                     Some(s) => s.test(&id, &p, trusted)?,
@@ -173,8 +245,8 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
             }
             Ok(())
         }
-        QcAction::Stats { results, limits, out, db, run } => {
-            if let Some(o) = &out {
+        QcAction::Stats { results, limits, out, db, run, report } => {
+            for o in out.iter().chain(&report) {
                 coilscope_io::check_writable(o).map_err(|e| e.to_string())?;
             }
             let l = load_limits(&limits)?;
@@ -231,10 +303,42 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
                     .collect();
                 write(o, &serde_json::json!({"format": "coilscope.qc-stats/1", "units": names, "figures": rows}))?;
             }
+            if let Some(r) = &report {
+                let figures = l
+                    .limits
+                    .iter()
+                    .filter_map(|x| {
+                        let j = FIGURES.iter().position(|f| f.key == x.key)?;
+                        let c = caps.iter().find(|c| c.key == x.key)?;
+                        let (unit, k) = display_unit(&x.key);
+                        let values = units.iter().map(|p| figures(p, l.amplitude)[j].map(|v| v * k)).collect();
+                        let capability =
+                            LotStats { n: c.n, mean: c.mean * k, sd: c.sd * k, cpk: c.cpk, outside: c.outside };
+                        Some(series(x, unit, k, values, Some(capability), None))
+                    })
+                    .collect();
+                let source = match &db {
+                    Some(spec) => format!(
+                        "{} units from {}{}",
+                        units.len(),
+                        Target::parse(spec).name(),
+                        run.map_or(String::new(), |r| format!(", run {r}"))
+                    ),
+                    None => format!("{} units from their result files", units.len()),
+                };
+                let input = LotInput {
+                    title: format!("Lot of {} units against {}", units.len(), limits.display()),
+                    source,
+                    units: names.clone(),
+                    tested: None,
+                    figures,
+                };
+                write_page(&lot_report(&input)?, r)?;
+            }
             Ok(())
         }
-        QcAction::History { unit: id, db, limits, out } => {
-            if let Some(o) = &out {
+        QcAction::History { unit: id, db, limits, out, report } => {
+            for o in out.iter().chain(&report) {
                 coilscope_io::check_writable(o).map_err(|e| e.to_string())?;
             }
             let l = load_limits(&limits)?;
@@ -256,21 +360,35 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
                 }
                 println!();
             }
-            // Drift: the last test against the first, in the limits' sds.
-            let (first, last) = (&visits[0], &visits[visits.len() - 1]);
-            let drift: Vec<serde_json::Value> = limited
+            // Drift: the last known value against the first, in the limits' sds.
+            let drifts = drift(&visits, &l);
+            let drift_json: Vec<serde_json::Value> = drifts
                 .iter()
-                .map(|(j, x)| {
-                    let d = match (first.figures[*j], last.figures[*j]) {
-                        (Some(a), Some(b)) if x.sd > 0.0 => (b - a) / x.sd,
-                        _ => f64::NAN,
-                    };
+                .map(|(key, d)| {
                     if d.is_finite() {
-                        println!("  drift {:<9} {:+.2} sd of the line since its first test", x.key, d);
+                        println!("  drift {key:<9} {d:+.2} sd of the line since its first test");
                     }
-                    serde_json::json!({"key": x.key, "sd": if d.is_finite() { serde_json::json!(d) } else { serde_json::Value::Null }})
+                    serde_json::json!({"key": key, "sd": if d.is_finite() { serde_json::json!(d) } else { serde_json::Value::Null }})
                 })
                 .collect();
+            if let Some(r) = &report {
+                let figures = limited
+                    .iter()
+                    .map(|(j, x)| {
+                        let (unit, k) = display_unit(&x.key);
+                        let d = drifts.iter().find(|(key, _)| *key == x.key).map(|(_, d)| *d);
+                        series(x, unit, k, visits.iter().map(|v| v.figures[*j].map(|f| f * k)).collect(), None, d)
+                    })
+                    .collect();
+                let input = LotInput {
+                    title: format!("Unit {id}: {} tests", visits.len()),
+                    source: format!("unit {id} in {}, against {}", target.name(), limits.display()),
+                    units: visits.iter().map(|v| format!("run {}", v.run)).collect(),
+                    tested: Some(visits.iter().map(|v| v.tested).collect()),
+                    figures,
+                };
+                write_page(&lot_report(&input)?, r)?;
+            }
             if let Some(o) = &out {
                 let tests: Vec<serde_json::Value> = visits
                     .iter()
@@ -286,7 +404,7 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
                     .collect();
                 write(
                     o,
-                    &serde_json::json!({"format": "coilscope.qc-history/1", "unit": id, "tests": tests, "drift": drift}),
+                    &serde_json::json!({"format": "coilscope.qc-history/1", "unit": id, "tests": tests, "drift": drift_json}),
                 )?;
             }
             Ok(())

@@ -143,8 +143,22 @@ fn four_stations_at_once(dbs: &[String], tag: &str) {
         limits.to_str().unwrap(),
         "--out",
         stats.to_str().unwrap(),
+        "--report",
+        dir.path().join("lot.html").to_str().unwrap(),
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // The lot's page: a histogram and a control chart per limited figure, each drawn.
+    let html = std::fs::read_to_string(dir.path().join("lot.html")).unwrap();
+    let files = dir.path().join("lot_files");
+    for id in ["re", "fs", "rms", "bl-0", "kms-0", "xsym-bl"] {
+        for kind in ["hist", "control"] {
+            assert!(html.contains(&format!("id=\"plot-qc-{kind}-{id}\" data-series=")), "no {kind} chart of {id}");
+            assert!(files.join(format!("qc-{kind}-{id}.png")).exists(), "no {kind} PNG of {id}");
+        }
+    }
+    assert!(!html.contains("no finite value to draw"), "a chart was left empty");
+    let csv = std::fs::read_to_string(files.join("lot.csv")).unwrap();
+    assert_eq!(csv.lines().count(), UNITS + 1);
     let st: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
     assert_eq!(st["units"].as_array().unwrap().len(), UNITS);
     let rms = st["figures"].as_array().unwrap().iter().find(|f| f["key"] == "Rms").unwrap();
@@ -266,6 +280,7 @@ fn a_units_history_shows_its_drift_in_the_lines_sds() {
         assert!(matches!(o.status.code(), Some(0 | 4)), "{}", String::from_utf8_lossy(&o.stderr));
     }
     let out = dir.path().join("history.json");
+    let page = dir.path().join("sn42.html");
     let o = coilscope(&[
         "qc",
         "history",
@@ -276,8 +291,13 @@ fn a_units_history_shows_its_drift_in_the_lines_sds() {
         limits.to_str().unwrap(),
         "--out",
         out.to_str().unwrap(),
+        "--report",
+        page.to_str().unwrap(),
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // The unit's page: each figure over its tests, drawn.
+    assert!(dir.path().join("sn42_files/qc-history-kms-0.png").exists());
+    assert!(std::fs::read_to_string(&page).unwrap().contains("id=\"plot-qc-history-kms-0\" data-series="));
     let h: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
     assert_eq!(h["tests"].as_array().unwrap().len(), 3);
     let l: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&limits).unwrap()).unwrap();

@@ -7,11 +7,15 @@
 //! each nonlinearity's contribution and the Volterra comparison, and tables of parameters,
 //! power-series coefficients, limits and diagnosis.
 //!
+//! A production line's pages ([`lot`]): a lot's histograms and control charts per figure
+//! with Cpk, and a unit's history.
+//!
 //! Every plot is also written as PNG, and the curves as CSV, into `<stem>_files/` beside the
 //! HTML file. Every number comes from one function of `coilscope-core` or
 //! `coilscope-analysis`; this crate only lays them out.
 
 pub mod chart;
+pub mod lot;
 
 use chart::Chart;
 use coilscope_analysis::diagnosis::diagnose;
@@ -984,7 +988,11 @@ fn sweep_point(p: &Parameters, f: f64, volts: f64, o: &SteadyOptions) -> Result<
 }
 
 fn page(title: &str, p: &Parameters, body: &str) -> String {
-    let source = p.source.clone().unwrap_or_default();
+    page_with_source(title, p.source.as_deref().unwrap_or_default(), body)
+}
+
+/// The page around `body`, its header naming `source`.
+fn page_with_source(title: &str, source: &str, body: &str) -> String {
     format!(
         r#"<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{t}</title>
@@ -1017,7 +1025,7 @@ figcaption {{ font-size: 0.85em; color: #555; }} .note {{ font-size: 0.9em; colo
 </body></html>
 "#,
         t = esc(title),
-        s = esc(&source),
+        s = esc(source),
         v = env!("CARGO_PKG_VERSION"),
     )
 }

@@ -11,6 +11,8 @@
 //! - **A lot's capability** ([`capability`]): per figure its mean, sd, `Cpk =
 //!   min(hi - mean, mean - lo) / 3 sd` and how many units fell outside.
 //!
+//! - **A unit from its record** ([`unit_from_record`]): a station's short record identified as
+//!   `identify` does, the set a verdict is taken on.
 //! - **A station** ([`Station`]): a lot tested on one station, each unit's set and verdict
 //!   written to the run database ([`coilscope_db`]: a SQLite file, or a PostgreSQL server that
 //!   every station of a line writes to) as it is judged, in a transaction of its own.
@@ -485,6 +487,18 @@ impl Station {
     }
 }
 
+/// A unit's set from its short record, as a station takes it (`qc test UNIT.wav --mms KG`):
+/// identified as `identify` does with `req`, its reached range as the set's `x_range`; and
+/// whether the fit is trustworthy.
+pub fn unit_from_record(
+    rec: &mut coilscope_io::Recording,
+    req: &crate::identify::IdentifyRequest,
+) -> Result<(Parameters, bool), String> {
+    let done = crate::identify::identify_record(rec, req, |_| {})?;
+    let trusted = done.trustworthy();
+    Ok((Parameters { x_range: Some(done.fit.x_range), ..done.fit.params }, trusted))
+}
+
 /// The units tested into a database (of one station's run, or all), as `(unit id, set)` in
 /// the order they were tested.
 pub fn lot(target: &coilscope_db::Target, run: Option<i64>) -> Result<Vec<(String, Parameters)>, String> {
@@ -517,6 +531,24 @@ pub fn history(target: &coilscope_db::Target, unit_id: &str, amplitude: f64) -> 
         .map(|r| {
             let p = unit_set(target, r)?;
             Ok(Visit { tested: r.tested, run: r.run, pass: r.pass, figures: figures(&p, amplitude) })
+        })
+        .collect()
+}
+
+/// Each limited figure's drift over a unit's history: its last known value less its first,
+/// in the limits' sds (NaN where it is not known at two tests).
+pub fn drift(visits: &[Visit], limits: &Limits) -> Vec<(String, f64)> {
+    limits
+        .limits
+        .iter()
+        .filter_map(|l| {
+            let j = FIGURES.iter().position(|f| f.key == l.key)?;
+            let known: Vec<f64> = visits.iter().filter_map(|v| v.figures[j]).filter(|x| x.is_finite()).collect();
+            let d = match (known.first(), known.last()) {
+                (Some(a), Some(b)) if known.len() >= 2 && l.sd > 0.0 => (b - a) / l.sd,
+                _ => f64::NAN,
+            };
+            Some((l.key.clone(), d))
         })
         .collect()
 }

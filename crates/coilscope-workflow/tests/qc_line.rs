@@ -21,17 +21,6 @@ fn golden() -> Parameters {
     coilscope_core::embedded_driver("sb17cac35-4").unwrap()
 }
 
-fn phi_upper(k: f64) -> f64 {
-    // The normal tail 1 - Phi(k) from erfc (Abramowitz-Stegun 7.1.26 is too coarse here: a
-    // continued fraction converges fast for k >= 1).
-    let x = k / std::f64::consts::SQRT_2;
-    let mut f = 0.0;
-    for n in (1..200).rev() {
-        f = (n as f64 / 2.0) / (x + f);
-    }
-    0.5 * (-x * x).exp() / (std::f64::consts::PI.sqrt() * (x + f))
-}
-
 #[test]
 fn every_faulty_unit_fails_naming_its_fault() {
     let g = golden();
@@ -82,7 +71,11 @@ fn good_units_fail_at_the_rate_their_limits_imply_and_cpk_follows_the_known_spre
             // offset with a floor just above the learned limit.
             continue;
         }
-        let p = if f.lower_only { phi_upper(k) } else { 2.0 * phi_upper(k) };
+        let p = if f.lower_only {
+            coilscope_testkit::check::normal_upper_tail(k)
+        } else {
+            2.0 * coilscope_testkit::check::normal_upper_tail(k)
+        };
         let count = verdicts.iter().filter(|v| v.checks.iter().any(|c| c.key == l.key && !c.pass)).count() as f64;
         let expect = p * n as f64;
         // The limits' sd is estimated from n units: its relative sd 1/sqrt(2 (n-1)) moves the
