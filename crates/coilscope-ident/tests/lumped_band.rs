@@ -310,7 +310,7 @@ fn a_magnitude_only_curve_gives_the_drivers_figures() {
 /// Drivers a fresh draw failed on, kept: each with whether its curve is |Z| alone, the
 /// curve's seed, whether it is still open (run and printed, not asserted, until fixed), and
 /// whether the curve departs from the lumped model ([`departing_curve`]).
-const KEPT: [(&str, bool, u64, bool, bool); 13] = [
+const KEPT: [(&str, bool, u64, bool, bool); 14] = [
     // Open: |Z| alone, the whole curve lumped (10 Hz - 20 kHz): LR-2+LR-3 taken and creep left
     // out (LR-2+LR-3+creep gained nothing on |Z|), Re 4.0 % low and Qts 4.1 % low at a Re sd
     // of 0.33 % (12 sd), without a warning.
@@ -323,6 +323,10 @@ const KEPT: [(&str, bool, u64, bool, bool); 13] = [
     // (2.22e-3 to 2.18e-3, under the 5 %), its LR-3 corner at 13 Hz: Re 34 % low and Qts 34 %
     // low at a Re sd of 1.2 %, no warning.
     ("population:woofer:3406531035", true, 3406531035, true, false),
+    // Open, the same kind: |Z| alone, LR-2+LR-3 taken and creep left out (2.14e-3 to
+    // 2.08e-3, under the 5 %; noise floor 2.0e-3), its LR-3 corner at 11 Hz for the truth's 40
+    // Hz: Re 4.8 % low and Qts 5.0 % low at a Re sd of 0.63 %, no warning.
+    ("population:midwoofer:1956822810", true, 1956822810, true, false),
     // |Z| alone: Re 1.3 % high (LR-2+LR-3+creep, 0.3 % noise), 1.65 of its sd (0.8 %).
     ("population:woofer:3042703063", true, 3042703063, false, false),
     // |Z| alone: the LR-2 corner on its bound, Re 1.03 % high: loud (on-bound), so right or
