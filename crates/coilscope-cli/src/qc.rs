@@ -91,7 +91,6 @@ fn series(
         lo: l.lo * k,
         hi: l.hi * k,
         mean: l.mean * k,
-        sd: l.sd * k,
         capability,
         drift_sd,
     }
@@ -206,10 +205,10 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
                 if let Some(o) = &out {
                     write(o, &v.to_json())?;
                 }
+                let names: Vec<String> = v.failed().map(|c| format!("{} ({})", c.key, c.cause)).collect();
                 if one {
                     print_checks(&v);
                 } else {
-                    let names: Vec<String> = v.failed().map(|c| format!("{} ({})", c.key, c.cause)).collect();
                     match (trusted, v.pass) {
                         (false, _) => println!("UNTRUSTED {id}: its measurement is not trustworthy; measure it again"),
                         (true, true) => println!("PASS {id}"),
@@ -222,7 +221,6 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
                 if !trusted {
                     untrusted.push(result.clone());
                 } else if !v.pass {
-                    let names: Vec<String> = v.failed().map(|c| format!("{} ({})", c.key, c.cause)).collect();
                     failed.push(format!("{result}: {}", names.join("; ")));
                 } else if one {
                     println!("PASS: {result}");
@@ -304,6 +302,8 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
                 write(o, &serde_json::json!({"format": "coilscope.qc-stats/1", "units": names, "figures": rows}))?;
             }
             if let Some(r) = &report {
+                // Each unit's figures once (their symmetry points and limits are searched).
+                let rows: Vec<Vec<Option<f64>>> = units.iter().map(|p| figures(p, l.amplitude)).collect();
                 let figures = l
                     .limits
                     .iter()
@@ -311,7 +311,7 @@ pub(crate) fn cmd_qc(action: QcAction) -> Result<(), Failure> {
                         let j = FIGURES.iter().position(|f| f.key == x.key)?;
                         let c = caps.iter().find(|c| c.key == x.key)?;
                         let (unit, k) = display_unit(&x.key);
-                        let values = units.iter().map(|p| figures(p, l.amplitude)[j].map(|v| v * k)).collect();
+                        let values = rows.iter().map(|r| r[j].map(|v| v * k)).collect();
                         let capability =
                             LotStats { n: c.n, mean: c.mean * k, sd: c.sd * k, cpk: c.cpk, outside: c.outside };
                         Some(series(x, unit, k, values, Some(capability), None))

@@ -17,11 +17,10 @@ pub struct FigureSeries {
     pub unit: String,
     /// One value per unit (or test), in test order; `None` where the set cannot give it.
     pub values: Vec<Option<f64>>,
-    /// The limits (`hi` infinite: a lower limit only) and the golden units' mean and sd.
+    /// The limits (`hi` infinite: a lower limit only) and the golden units' mean.
     pub lo: f64,
     pub hi: f64,
     pub mean: f64,
-    pub sd: f64,
     /// A lot's capability (`coilscope_workflow::qc::capability`), in the display unit.
     pub capability: Option<LotStats>,
     /// A unit's drift from its first test to its last, in the line's sds.
