@@ -3,6 +3,17 @@
 
 use super::*;
 
+/// The noise floor of the bins of `prob` at `theta`, relative as its residual: a record's
+/// from the spectrum of its error ([`CurrentError::residual_and_floor`]), an impedance
+/// curve's (`fs` none) from the roughness of its residual ([`CurrentError::roughness_floor`]).
+fn noise_floor(prob: &CurrentError, theta: &[f64], fs: Option<f64>) -> f64 {
+    if fs.is_some() {
+        prob.residual_and_floor(theta).1
+    } else {
+        prob.roughness_floor(theta)
+    }
+}
+
 /// The fit proper, on the bins of `prob` (their `u`, `i` and weights set, `norm` too), from
 /// the start `p0` found on `h1` in `band`; `fs` is the record's rate (none for an impedance
 /// curve: no chain, no skew check); `lr2`: the LR-2 model's fit on these bins, taken instead
@@ -223,13 +234,7 @@ pub(super) fn fit_bins(
             // noise gives) and creep's lambda is physical. The floor of a record is the
             // lowest any fitted model shows (a model's misfit can only raise it); an averaged
             // curve has none.
-            let floor_of = |f: &(CurrentError, LmState, f64)| {
-                if fs.is_some() {
-                    f.0.residual_and_floor(&f.1.theta).1
-                } else {
-                    0.0
-                }
-            };
+            let floor_of = |f: &(CurrentError, LmState, f64)| noise_floor(&f.0, &f.1.theta, fs);
             let mut floor = floor_of(&fitted[0]);
             let bins = prob.f.len();
             let mut at = 0;
@@ -284,7 +289,7 @@ pub(super) fn fit_bins(
     let le_model_rel = {
         let (ce, lc) = (fitted[chosen].0.effects, fitted[chosen].1.theta[1]);
         let scout_bins = SCOUT_BINS.min(prob.f.len());
-        let floor = if fs.is_some() { fitted[chosen].0.residual_and_floor(&fitted[chosen].1.theta).1 } else { 0.0 };
+        let floor = noise_floor(&fitted[chosen].0, &fitted[chosen].1.theta, fs);
         let d = (0..fitted.len())
             .filter(|&k| k != chosen && fitted[k].0.effects.union(ce) == fitted[k].0.effects)
             .filter(|&k| {

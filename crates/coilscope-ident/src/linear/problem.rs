@@ -343,25 +343,66 @@ impl CurrentError {
     /// median is ln 2 times its mean. A misfit over most of the bins raises the floor, so
     /// that fewer effects pay: the safe side.
     pub(super) fn residual_and_floor(&self, theta: &[f64]) -> (f64, f64) {
-        let p = self.map.params(theta);
-        let ext = self.ext(theta);
-        let chain = self.chain_factor(theta);
-        let mut t = 0.0;
-        let mut e: Vec<f64> = Vec::with_capacity(self.f.len());
-        for k in 0..self.f.len() {
-            let imp = impedance_ext(&p, &ext, self.f[k]);
-            let (z, tr) = (imp.0, transient_term(&p, &imp, self.transient(theta), self.omega0, self.f[k]).0);
-            // The recorded current is the driver's through the chain (when one is fitted).
-            let shift = self.shift_d(chain.as_ref(), k, false).0;
-            e.push(((self.i[k] - self.u_at(k, z) * shift / z) / self.w[k] - tr).norm_sqr());
-            t += (self.i[k] / self.w[k]).norm_sqr();
-        }
+        let (e, t) = self.bin_errors(theta);
+        let e: Vec<f64> = e.iter().map(|e| e.norm_sqr()).collect();
         let total: f64 = e.iter().sum();
         let m = e.len();
         let floor = if m == 0 { 0.0 } else { crate::checks::median(e) / std::f64::consts::LN_2 * m as f64 };
         ((total / t).sqrt(), (floor / t).sqrt())
     }
+
+    /// Each bin's current error in the terms of [`CurrentError::residual_rel`], and the
+    /// power of the current it is relative to.
+    fn bin_errors(&self, theta: &[f64]) -> (Vec<Complex64>, f64) {
+        let p = self.map.params(theta);
+        let ext = self.ext(theta);
+        let chain = self.chain_factor(theta);
+        let mut t = 0.0;
+        let mut e = Vec::with_capacity(self.f.len());
+        for k in 0..self.f.len() {
+            let imp = impedance_ext(&p, &ext, self.f[k]);
+            let (z, tr) = (imp.0, transient_term(&p, &imp, self.transient(theta), self.omega0, self.f[k]).0);
+            // The recorded current is the driver's through the chain (when one is fitted).
+            let shift = self.shift_d(chain.as_ref(), k, false).0;
+            e.push((self.i[k] - self.u_at(k, z) * shift / z) / self.w[k] - tr);
+            t += (self.i[k] / self.w[k]).norm_sqr();
+        }
+        (e, t)
+    }
+
+    /// The noise floor of an impedance curve (no record behind it, so no spectrum of the
+    /// noise), in the terms of [`CurrentError::residual_rel`], from how rough the error is
+    /// from point to point: the model's misfit is smooth over a dense curve (the resonance
+    /// and the branches' corners span tens of points), the noise of each point independent.
+    /// The second difference `d_k = e_k - (e_(k-1) + e_(k+1)) / 2` of the points' errors keeps
+    /// 1.5 times the noise's power and little of the misfit; its median over the curve is
+    /// robust to the few points where the misfit bends sharply. The median of a real
+    /// Gaussian's power (|Z| alone: the error is real) is 0.455 times its mean, of a complex
+    /// one ln 2. A smoothed curve (an averaged export) shows almost none: its floor is about
+    /// zero, and an effect pays on its share of the whole residual ([`super::effect_pays`]).
+    pub(super) fn roughness_floor(&self, theta: &[f64]) -> f64 {
+        let (e, t) = self.bin_errors(theta);
+        let m = e.len();
+        if m < 8 || !(t > 0.0) {
+            return 0.0;
+        }
+        let d2: Vec<f64> = (1..m - 1).map(|k| (e[k] - 0.5 * (e[k - 1] + e[k + 1])).norm_sqr()).collect();
+        let median_share = if self.magnitude_only { CHI2_1_MEDIAN } else { std::f64::consts::LN_2 };
+        let per_point = crate::checks::median(d2) / median_share / 1.5;
+        let total: f64 = e.iter().map(|e| e.norm_sqr()).sum();
+        // Never above the residual itself.
+        let floor = (per_point * m as f64).min(total);
+        if floor.is_finite() {
+            (floor / t).sqrt()
+        } else {
+            0.0
+        }
+    }
 }
+
+/// The median of a chi-square variable of one degree of freedom: a real Gaussian's power
+/// over its mean.
+const CHI2_1_MEDIAN: f64 = 0.454_936_423_119_572_8;
 
 /// The transient term `T = Q(s) / P(s)` at `f` (current, in the DFT's units), with
 /// `Q(s) = sum_j c_j (s / omega0)^j` and `P = Z D_Z / (R2 Res)`, `D_Z = (s L2 + R2)(Res + s
