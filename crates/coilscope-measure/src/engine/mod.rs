@@ -169,6 +169,8 @@ pub struct Engine<'a> {
     /// Block peaks per volt over the last PEAK_MEMORY_S (and the small stage's).
     recent_peaks: Vec<f64>,
     prev_est: Option<Parameters>,
+    /// The estimate before `prev_est` (the result's bands carry the last step).
+    before_last: Option<Parameters>,
     /// A replay's last RESTART_S seconds (for a restart from a batch fit) and the restarts.
     recent_u: Vec<f64>,
     recent_i: Vec<f64>,
@@ -259,6 +261,7 @@ impl<'a> Engine<'a> {
             samples: 0,
             recent_peaks: Vec::new(),
             prev_est: None,
+            before_last: None,
             recent_u: Vec::new(),
             recent_i: Vec::new(),
             restarts: 0,
@@ -639,6 +642,7 @@ impl<'a> Engine<'a> {
                                     self.restarts += 1;
                                     self.events.push((t, format!("the estimate missed {:.0} % of the current (the level jumped past what it knew): restarted from a batch large-signal fit of the last {RESTART_S} s", 100.0 * up.before)));
                                     self.prev_est = None;
+                                    self.before_last = None;
                                     self.changes.clear();
                                     self.hold_peaks.clear();
                                     self.hold_range = [0.0, 0.0];
@@ -715,7 +719,7 @@ impl<'a> Engine<'a> {
                         let xs: Vec<f64> = (0..LIVE_BAND_POINTS)
                             .map(|k| reach * (2.0 * k as f64 / (LIVE_BAND_POINTS - 1) as f64 - 1.0))
                             .collect();
-                        let bands = curve_bands(&est, on, &xs, self.le_model_rel);
+                        let bands = curve_bands(&est, self.prev_est.as_ref(), on, &xs, self.le_model_rel);
                         // The widest band over the reach, relative to the curve at rest (NaN
                         // when the covariance gave none: not precise).
                         let widest = |which: &str| {
@@ -731,7 +735,7 @@ impl<'a> Engine<'a> {
                         if let Some(m) = self.meter.as_mut() {
                             m.set_params(&est);
                         }
-                        self.prev_est = Some(est);
+                        self.before_last = self.prev_est.replace(est);
                         // Convergence: at level for 2 s, small window error, stable curves.
                         // The stable updates must span CONVERGED_SPAN_S (2 updates at the
                         // real-time cadence of 1 s, more when a replay updates every window).
@@ -937,6 +941,7 @@ impl<'a> Engine<'a> {
             re_cold,
             re_cold_sd,
             le_model_rel: self.le_model_rel,
+            before_last: self.before_last.clone(),
             re_end,
             alpha: self.opts.alpha,
             limited_by: self.last_why,
