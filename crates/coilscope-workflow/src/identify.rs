@@ -203,16 +203,7 @@ fn identify_body(
         result.chain = calibrated;
     }
     mark_wiring(&mut result.chain, req.wiring);
-    let (floor, mut warnings) = checks(&fit, fs, delay_handled);
-    let u = &result.uncertainty;
-    warnings.extend(coilscope_ident::checks::band_warning(
-        &[("Bl", u.band("Bl")), ("Kms", u.band("Kms")), ("Le", u.band("Le"))],
-        |name| match name {
-            "Bl" => fit.params.bl.eval(0.0),
-            "Kms" => fit.params.kms.eval(0.0),
-            _ => fit.params.le.eval(0.0),
-        },
-    ));
+    let (floor, warnings) = checks(&fit, fs, delay_handled);
     if failure.is_some() {
         result.fit.trustworthy = Some(false);
     }
