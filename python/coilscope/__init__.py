@@ -27,7 +27,7 @@ import numpy as np
 
 from . import _coilscope as _c
 
-__all__ = ["NotTrustworthy", "MisspeltKey", "drivers", "parameters", "generate", "simulate", "linear", "linear_impedance", "linear_enclosure", "impedance", "identify", "identify_file", "identify_lot", "read_recording", "write_recording", "measure_virtual", "measure_replay", "distortion", "poly"]
+__all__ = ["NotTrustworthy", "MisspeltKey", "drivers", "parameters", "generate", "simulate", "linear", "linear_impedance", "linear_enclosure", "impedance", "identify", "identify_file", "identify_lot", "read_recording", "write_recording", "measure_virtual", "measure_replay", "distortion", "quasistatic", "poly"]
 
 
 class NotTrustworthy(UserWarning):
@@ -226,3 +226,12 @@ def distortion(params, freq, volts, output="pressure", temp_rise=0.0):
     Volterra series of the same set under ``volterra``), the coil ``temp_rise`` K above
     ambient: the dict ``coilscope distortion --json`` prints."""
     return json.loads(_c.distortion(_spec(params), float(freq), float(volts), output, float(temp_rise)))
+
+
+def quasistatic(driver, points=9, reach=0.8, hold=5.0, order=4, offset="current"):
+    """The static and quasi-static point-by-point measurement of a virtual driver (IEC 62458
+    10.2/10.3; ``coilscope quasistatic``): the result dict, with a :class:`NotTrustworthy`
+    warning when its checks do not trust it. ``offset``: ``current`` (a DC current),
+    ``mass`` (an added mass under gravity) or ``pressure`` (needs the set's Sd). The working
+    points are under ``quasi_static``."""
+    return _checked(_c.quasistatic(_spec(driver), int(points), float(reach), float(hold), int(order), str(offset)), "quasistatic")

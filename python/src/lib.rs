@@ -286,6 +286,7 @@ fn identify(
 /// A recording's channels (`coilscope_io::read_recording`: 2 or 3 channels, the sidecar's
 /// scales applied): `(fs, u, i, x)`.
 #[pyfunction]
+#[allow(clippy::type_complexity)]
 fn read_recording(path: &str) -> PyResult<(f64, Vec<f64>, Vec<f64>, Option<Vec<f64>>)> {
     let r = coilscope_io::read_recording(std::path::Path::new(path), None).map_err(err)?;
     Ok((r.fs as f64, r.u, r.i, r.x))
@@ -370,6 +371,30 @@ fn distortion(py: Python<'_>, params: &str, freq: f64, volts: f64, output: &str,
     Ok(s[0].to_json().to_string())
 }
 
+/// The static and quasi-static point-by-point measurement of a virtual driver (`coilscope
+/// quasistatic`, the same workflow): the result as JSON text, its warnings and verdict as the
+/// command line gives them. `offset`: `current`, `mass` or `pressure`.
+#[pyfunction]
+#[pyo3(signature = (driver, points=9, reach=0.8, hold=5.0, order=4, offset="current"))]
+fn quasistatic(
+    py: Python<'_>,
+    driver: &str,
+    points: usize,
+    reach: f64,
+    hold: f64,
+    order: usize,
+    offset: &str,
+) -> PyResult<String> {
+    use coilscope_workflow::quasistatic::{result_file, virtual_options, virtual_quasistatic, QuasiRequest};
+    let p = params_from(driver)?;
+    let name = if driver.trim_start().starts_with('{') { "the parameter set" } else { driver };
+    let req = QuasiRequest { points, reach, hold_s: hold, order };
+    let opts = virtual_options(&p, &req, offset, name).map_err(err)?;
+    let q = py.allow_threads(|| virtual_quasistatic(&p, &opts)).map_err(err)?;
+    let device = format!("virtual {}", p.name.as_deref().unwrap_or(name));
+    Ok(result_file(&q, &opts, p.name.clone(), &device).to_json_value().to_string())
+}
+
 #[pymodule]
 fn _coilscope(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(drivers, m)?)?;
@@ -387,5 +412,6 @@ fn _coilscope(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(measure_virtual, m)?)?;
     m.add_function(wrap_pyfunction!(measure_replay, m)?)?;
     m.add_function(wrap_pyfunction!(distortion, m)?)?;
+    m.add_function(wrap_pyfunction!(quasistatic, m)?)?;
     Ok(())
 }

@@ -78,6 +78,21 @@ def test_measure_virtual_converges_and_replay_runs():
     assert rr["parameters"]["Re"] > 0
 
 
+def test_quasistatic_gives_the_command_lines_result():
+    # The same workflow as `coilscope quasistatic`: the points, the fitted curves, the verdict.
+    r = coilscope.quasistatic("sb17cac35-4", points=9, hold=1.0)
+    p = coilscope.parameters("sb17cac35-4")
+    assert len(r["quasi_static"]["points"]) >= 8
+    lo, hi = r["fit"]["x_range"]
+    xs = np.linspace(0.5 * lo, 0.5 * hi, 11)
+    err = np.max(np.abs(coilscope.poly(r["parameters"]["Bl"], xs) / coilscope.poly(p["Bl"], xs) - 1))
+    assert err < 0.03, err
+    with pytest.raises(ValueError, match="--reach"):
+        coilscope.quasistatic("sb17cac35-4", reach=1.5)
+    with pytest.raises(ValueError, match="free air"):
+        coilscope.quasistatic(dict(p, enclosure={"type": "closed", "Vb": 0.012}))
+
+
 def test_distortion_and_errors():
     d = coilscope.distortion("sb17cac35-4", 40.0, 2.0)
     assert 1e-4 < d["HD2"] < 0.3 and "contributions" in d

@@ -84,33 +84,10 @@ const JOB_THREADS: &str = "COILSCOPE_THREADS";
 /// fit leaves a second core partly idle. A worker's failure is its recording's, not the
 /// batch's; the exit code is the worst of the workers'.
 pub(crate) fn cmd_identify_batch(recordings: &[PathBuf], jobs: Option<usize>, out: &Path) -> Result<(), Failure> {
+    use coilscope_workflow::batch::{plan, run, verdict};
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let jobs = jobs.unwrap_or(cores);
-    if jobs == 0 {
-        return Err(Failure::from("--jobs 0: give at least 1"));
-    }
-    if out.is_file() || out.extension().is_some_and(|e| e == "json") {
-        return Err(Failure::from(format!(
-            "{}: with {} recordings --out is a directory (each result is OUT/NAME.json)",
-            out.display(),
-            recordings.len()
-        )));
-    }
-    let mut names = std::collections::BTreeMap::new();
-    for r in recordings {
-        let stem = r
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .ok_or_else(|| format!("{}: not a file name", r.display()))?;
-        if let Some(other) = names.insert(stem.clone(), r) {
-            return Err(Failure::from(format!(
-                "{} and {} would both write {}.json: give recordings with different names",
-                other.display(),
-                r.display(),
-                stem
-            )));
-        }
-    }
+    let planned = plan(recordings, out, jobs)?;
     std::fs::create_dir_all(out).map_err(|e| format!("{}: cannot create the output directory: {e}", out.display()))?;
     let exe = std::env::current_exe().map_err(|e| format!("cannot find this program to start the workers: {e}"))?;
     // The worker's arguments: this invocation's, less the recordings, --out and --jobs.
@@ -119,8 +96,7 @@ pub(crate) fn cmd_identify_batch(recordings: &[PathBuf], jobs: Option<usize>, ou
     let mut k = 0;
     while k < given.len() {
         let a = given[k].to_string_lossy();
-        let takes_value = |flag: &str| a == flag;
-        if takes_value("--out") || takes_value("--jobs") {
+        if a == "--out" || a == "--jobs" {
             k += 2;
             continue;
         }
@@ -132,65 +108,39 @@ pub(crate) fn cmd_identify_batch(recordings: &[PathBuf], jobs: Option<usize>, ou
         k += 1;
     }
     let t0 = std::time::Instant::now();
-    let queue = std::sync::Mutex::new(recordings.iter().collect::<std::collections::VecDeque<_>>());
-    let done = std::sync::Mutex::new(vec![]);
-    std::thread::scope(|scope| {
-        for _ in 0..jobs.min(recordings.len()) {
-            scope.spawn(|| loop {
-                let Some(r) = queue.lock().unwrap_or_else(|e| e.into_inner()).pop_front() else { break };
-                let stem = r.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-                let result = out.join(format!("{stem}.json"));
-                let t = std::time::Instant::now();
-                let o = std::process::Command::new(&exe)
-                    .args(&options)
-                    .arg(r)
-                    .arg("--out")
-                    .arg(&result)
-                    .env(JOB_THREADS, "1")
-                    .stdin(std::process::Stdio::null())
-                    .output();
-                let (code, text) = match o {
-                    Ok(o) => (
-                        o.status.code().unwrap_or(2),
-                        format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr)),
-                    ),
-                    Err(e) => (2, format!("cannot start a worker: {e}")),
-                };
-                // Each recording's report whole, as it finishes.
-                let mut stdout = std::io::stdout().lock();
-                use std::io::Write as _;
-                let _ = writeln!(
-                    stdout,
-                    "== {} ({:.1} s, exit {code})
-{}",
-                    r.display(),
-                    t.elapsed().as_secs_f64(),
-                    text.trim_end()
-                );
-                done.lock().unwrap_or_else(|e| e.into_inner()).push((r.clone(), code, result));
-            });
+    // Each record in a process of its own: a record that crashes takes no other with it.
+    let work = |job: &coilscope_workflow::batch::Job| {
+        let o = std::process::Command::new(&exe)
+            .args(&options)
+            .arg(&job.record)
+            .arg("--out")
+            .arg(&job.result)
+            .env(JOB_THREADS, "1")
+            .stdin(std::process::Stdio::null())
+            .output();
+        match o {
+            Ok(o) => (
+                o.status.code().unwrap_or(2),
+                format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr)),
+            ),
+            Err(e) => (2, format!("cannot start a worker: {e}")),
         }
-    });
-    let mut done = done.into_inner().unwrap_or_else(|e| e.into_inner());
-    done.sort();
+    };
+    // Each recording's report whole, as it finishes.
+    let finished = |d: &coilscope_workflow::batch::Done| {
+        println!("== {} ({:.1} s, exit {})\n{}", d.job.record.display(), d.seconds, d.exit, d.text.trim_end());
+    };
+    let done = run(planned, jobs, work, finished);
     println!("batch: {} recordings in {:.1} s, {jobs} at a time", done.len(), t0.elapsed().as_secs_f64());
-    for (r, code, result) in &done {
-        let what = match code {
-            0 => format!("ok: {}", result.display()),
-            3 => format!("written but not trustworthy (see its warnings): {}", result.display()),
+    for d in &done {
+        let what = match d.exit {
+            0 => format!("ok: {}", d.job.result.display()),
+            3 => format!("written but not trustworthy (see its warnings): {}", d.job.result.display()),
             _ => "failed (see its report above)".to_string(),
         };
-        println!("  {:<40} {what}", r.display().to_string());
+        println!("  {:<40} {what}", d.job.record.display().to_string());
     }
-    let worst = done.iter().map(|d| d.1).max().unwrap_or(0);
-    let bad = done.iter().filter(|d| d.1 != 0).count();
-    match worst {
-        0 => Ok(()),
-        3 => {
-            Err(Failure::Untrusted(format!("{bad} of {} recordings gave results that are not trustworthy", done.len())))
-        }
-        _ => Err(Failure::Error(format!("{bad} of {} recordings failed or are not trustworthy", done.len()))),
-    }
+    verdict(&done).map_err(|(code, why)| if code == 3 { Failure::Untrusted(why) } else { Failure::Error(why) })
 }
 
 /// `identify --method volterra`: the seed paper's Volterra identification (3.2.2.1) on a

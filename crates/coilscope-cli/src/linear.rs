@@ -31,17 +31,8 @@ pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
     // A curve measured across driver and shunt: the shunt is a plain series resistance.
     let read_input = |p: &Path| -> Result<LinearInput, Failure> {
         if is_curve {
-            let mut c = coilscope_io::impedance::read_impedance(p).map_err(|e| e.to_string())?;
-            if c.magnitude_only && wiring.series_ohm() != 0.0 {
-                // |Z| - R is not |Z - R|: the shunt cannot be taken out of a magnitude alone.
-                return Err(Failure::from(format!(
-                    "{}: the file has no phase, so the shunt's {} ohm cannot be taken out of it (|Z| - R is not |Z - R|): export the phase too, or measure with the voltage across the driver's terminals",
-                    p.display(),
-                    wiring.series_ohm()
-                )));
-            }
-            c.z.iter_mut().for_each(|z| *z -= wiring.series_ohm());
-            Ok(LinearInput::Curve(c))
+            let c = coilscope_io::impedance::read_impedance(p).map_err(|e| e.to_string())?;
+            Ok(LinearInput::curve_across_driver(c, wiring, &p.display().to_string())?)
         } else {
             Ok(LinearInput::Record(read_recording(p, scale).map_err(|e| e.to_string())?))
         }

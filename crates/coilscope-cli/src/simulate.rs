@@ -2,10 +2,10 @@
 
 use crate::args::{ExcitationKind, SimulateArgs};
 use crate::iec_noise;
-use coilscope_core::excitation::{add_sensor_noise, crest_factor, generate, Excitation, SignalSpec};
-use coilscope_core::simulate::{simulate, SimOptions};
-use coilscope_io::{load_parameters, read_voltage, write_json, write_recording, Recording};
-use coilscope_workflow::chain::{load_chain, mark_wiring};
+use coilscope_core::excitation::{crest_factor, generate, Excitation, SignalSpec};
+use coilscope_io::{load_parameters, read_voltage, write_json, write_recording};
+use coilscope_workflow::chain::load_chain;
+use coilscope_workflow::simulate::{record, RecordRequest};
 use serde_json::json;
 use std::path::{Path, PathBuf};
 
@@ -23,11 +23,6 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
     if let Some(path) = &a.enclosure {
         params.enclosure = Some(coilscope_io::load_enclosure(path).map_err(|e| e.to_string())?);
         params.validate(&format!("{} in the box of {}", a.driver, path.display())).map_err(|e| e.to_string())?;
-    }
-    if let Some(db) = a.snr_db {
-        if !(db.is_finite() && db > 0.0) {
-            return Err(format!("--snr-db {db}: give a positive number of dB (e.g. 70)"));
-        }
     }
     let (fs, u, what) = match &a.input {
         Some(path) => {
@@ -72,47 +67,19 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
             )
         }
     };
-    let trace = simulate(&params, fs, &u, &SimOptions::default()).map_err(|e| e.to_string())?;
-    let s = trace.summary();
     // The channels: the wiring, then the chain (the sensor noise after both).
-    let mut chain = a
-        .chain
-        .as_deref()
-        .map(load_chain)
-        .transpose()?
-        .map(|c| coilscope_core::chain::Chain { source: Some("simulated".into()), ..c });
-    let u_channel = a.wiring.channel_voltage(&trace.u, &trace.i);
-    let (u_rec, i_rec) = match &chain {
-        Some(c) => c.apply(&u_channel, &trace.i, fs),
-        None => (u_channel, trace.i.clone()),
+    let req = RecordRequest {
+        wiring: a.wiring,
+        chain: a.chain.as_deref().map(load_chain).transpose()?,
+        snr_db: a.snr_db,
+        laser: a.laser,
+        seed: a.seed,
     };
-    let mut rec = Recording { fs: fs as u32, u: u_rec, i: i_rec, x: a.laser.then(|| trace.x.clone()) };
-    mark_wiring(&mut chain, a.wiring);
-    if let Some(db) = a.snr_db {
-        add_sensor_noise(&mut rec.u, db, a.seed, "sensor-noise/voltage");
-        add_sensor_noise(&mut rec.i, db, a.seed, "sensor-noise/current");
-        if let Some(x) = &mut rec.x {
-            add_sensor_noise(x, db, a.seed, "sensor-noise/displacement");
-        }
-    }
-    write_recording(&a.out, &rec).map_err(|e| e.to_string())?;
-    let info = json!({
-        "x_min": s.x_min, "x_max": s.x_max, "x_p01": s.x_p01, "x_p99": s.x_p99,
-        "u_rms": s.u_rms, "i_rms": s.i_rms, "dT_end": s.dt_end, "dT_max": s.dt_max,
-        "dTm_end": s.dtm_end, "p_mean": s.p_mean,
-        "driver": params.name.clone().unwrap_or_else(|| a.driver.clone()),
-        "fs": fs, "samples": u.len(), "substeps": trace.substeps, "scheme": trace.scheme.name(), "snr_db": a.snr_db, "laser": a.laser,
-        "signal": what,
-        "chain": chain,
-    });
-    let mut info = info;
-    let box_peaks = box_peaks(&params, &trace);
-    if let (Some(e), Some(peaks)) = (&params.enclosure, &box_peaks) {
-        info["world"] = json!({"enclosure": e.to_json()});
-        for (k, v) in peaks {
-            info[*k] = json!(v);
-        }
-    }
+    let sim = record(&params, fs, &u, &req)?;
+    write_recording(&a.out, &sim.recording).map_err(|e| e.to_string())?;
+    let info = sim.info(&params, &a.driver, what, &req);
+    let (trace, box_peaks) = (&sim.trace, &sim.box_peaks);
+    let s = trace.summary();
     let info_file = info_path(&a.out);
     if info_beside {
         write_json(&info_file, &info).map_err(|e| e.to_string())?;
@@ -135,7 +102,7 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
     println!("  voltage, current {:.3} V RMS, {:.3} A RMS", s.u_rms, s.i_rms);
     println!("  electrical power {:.3} W (mean u i)", s.p_mean);
     println!("  voice coil       +{:.3} K at the end (max +{:.3} K), magnet +{:.4} K", s.dt_end, s.dt_max, s.dtm_end);
-    if let (Some(e), Some(peaks)) = (&params.enclosure, &box_peaks) {
+    if let (Some(e), Some(peaks)) = (&params.enclosure, box_peaks) {
         let shown: Vec<String> = peaks
             .iter()
             .map(|(k, v)| match *k {
@@ -155,21 +122,4 @@ pub(crate) fn cmd_simulate(a: SimulateArgs) -> Result<(), String> {
         println!("  wrote {} (a device: no description beside it)", a.out.display());
     }
     Ok(())
-}
-
-/// The box's peaks over a run, under the keys the independent simulator's descriptions use:
-/// the box pressure (Pa), and the port's air velocity (m/s, the port's flow over its area)
-/// or the radiator's excursion (m). `None` in free air.
-fn box_peaks(params: &coilscope_core::Parameters, trace: &coilscope_core::Trace) -> Option<Vec<(&'static str, f64)>> {
-    use coilscope_core::enclosure::BoxKind;
-    let e = params.enclosure.as_ref()?;
-    let peak = |k: usize| trace.boxed.iter().fold(0.0f64, |a, b| a.max(b[k].abs()));
-    let mut out = vec![("p_box_peak_Pa", peak(0))];
-    match &e.kind {
-        BoxKind::Closed => {}
-        BoxKind::Vented { port_area: Some(a), .. } => out.push(("port_air_velocity_peak_m_s", peak(1) / a)),
-        BoxKind::Vented { .. } => {}
-        BoxKind::PassiveRadiator { .. } => out.push(("radiator_x_peak_m", peak(1))),
-    }
-    Some(out)
 }

@@ -386,8 +386,9 @@ impl Chain {
 ///   have recorded it ([`Chain::remove_shunt_drop`]). An error `dRs` in the given resistance
 ///   goes one to one into Re (and `dRs / (alpha Re)` into the temperature rise), so measure
 ///   the shunt four-wire and keep it small against Re.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub enum SenseWiring {
+    #[default]
     Terminals,
     DriverPlusShunt {
         /// The sense resistor (ohm).

@@ -68,6 +68,8 @@ pub(crate) enum Cell {
     F(f64),
     I(i64),
     T(String),
+    /// A boolean column as PostgreSQL returns it (SQLite returns integers).
+    #[cfg_attr(not(feature = "postgres"), allow(dead_code))]
     B(bool),
 }
 
@@ -122,7 +124,7 @@ pub struct Db {
     name: String,
 }
 
-/// The key of the session lock every PostgreSQL process takes while it migrates, so that
+/// The key of the advisory lock every PostgreSQL process takes while it migrates, so that
 /// stations starting at once apply each migration once.
 #[cfg(feature = "postgres")]
 const MIGRATION_LOCK: i64 = 0x636f_696c_0000_0000;

@@ -16,7 +16,7 @@
 //! is and brought up to date.
 //!
 //! A run whose writer died (killed, power lost) never closes its row. [`list_runs`] reports it
-//! as `killed`: on PostgreSQL when the run's session lock (a `pg_advisory_lock` its writer
+//! as `killed`: on PostgreSQL when the run's advisory lock (a `pg_advisory_lock` its writer
 //! holds while it lives) is free; on SQLite when the writer's process is gone (same host) or,
 //! from another host, when its heartbeat is older than 10 s. A run stopped by Ctrl-C is closed
 //! as `interrupted`.

@@ -1,4 +1,4 @@
-//! Runs: one writer's session (a measurement, or a production station's lot), its live
+//! Runs: one writer's work (a measurement, or a production station's lot), its live
 //! states, estimates and distortion, and how it ended.
 
 use crate::conn::{Arg, Cell, Db, Target};
@@ -20,7 +20,7 @@ pub struct StateRow {
     pub residual: f64,
 }
 
-/// The key of the PostgreSQL session lock a run's writer holds while it lives.
+/// The key of the PostgreSQL advisory lock (held per connection) a run's writer holds while it lives.
 const RUN_LOCK: i64 = 0x636f_696c_0100_0000;
 
 /// Seconds without a heartbeat after which a run whose writer cannot be asked is taken for
@@ -75,7 +75,7 @@ impl Store {
             .map(Cell::i)
             .ok_or_else(|| format!("{}: cannot start a run: no id returned", db.name()))?;
         if db.is_postgres() {
-            // Held by this session until it ends: a reader that can take it knows the writer
+            // Held by this connection until it closes: a reader that can take it knows the writer
             // is gone.
             db.exec("SELECT pg_advisory_lock($1)", &[Arg::I(RUN_LOCK + run)])
                 .map_err(|e| format!("{}: cannot start a run: {e}", db.name()))?;

@@ -4,6 +4,7 @@
 //! `coilscope identify`) and the Python package call the same ones, so that both give the
 //! same numbers, the same warnings and the same verdict (`fit.trustworthy`).
 //!
+//! * [`batch`]: many records identified a few at a time, with one verdict over all.
 //! * [`chain`]: the measurement chain of a record: detected and estimated by default,
 //!   ideal, or a calibrated card's inverted ([`chain::ChainMode`]).
 //! * [`identify`]: the large-signal identification of a record, with every check the result
@@ -11,10 +12,13 @@
 //! * [`enclosure`]: the box a known driver works into, from its impedance in the box.
 //! * [`linear`]: the small-signal fit of a record or an impedance curve, scaled by a known
 //!   moving mass, an added mass or a displacement channel.
+//! * [`quasistatic`]: the point-by-point static and quasi-static measurement and its result.
+//! * [`simulate`]: a virtual driver's record through the wiring, a chain and sensor noise.
 //!
 //! A workflow never prints: it returns the result file (warnings attached) and its parts;
 //! printing is the caller's.
 
+pub mod batch;
 pub mod chain;
 pub mod distortion;
 pub mod enclosure;
@@ -22,6 +26,8 @@ pub mod identify;
 pub mod linear;
 pub mod measure;
 pub mod qc;
+pub mod quasistatic;
+pub mod simulate;
 pub mod volterra;
 
 use coilscope_core::result::ResultFile;

@@ -28,6 +28,20 @@ pub enum LinearInput {
 }
 
 impl LinearInput {
+    /// A measured curve as the fit takes it: across the driver alone. A curve measured across
+    /// driver and shunt (`wiring`) has the shunt's plain series resistance taken out, which
+    /// needs the phase (|Z| - R is not |Z - R|); `origin` names the file in the error.
+    pub fn curve_across_driver(mut c: ImpedanceCurve, wiring: SenseWiring, origin: &str) -> Result<Self, String> {
+        let r = wiring.series_ohm();
+        if c.magnitude_only && r != 0.0 {
+            return Err(format!(
+                "{origin}: the file has no phase, so the shunt's {r} ohm cannot be taken out of it (|Z| - R is not |Z - R|): export the phase too, or measure with the voltage across the driver's terminals"
+            ));
+        }
+        c.z.iter_mut().for_each(|z| *z -= r);
+        Ok(LinearInput::Curve(c))
+    }
+
     fn is_curve(&self) -> bool {
         matches!(self, LinearInput::Curve(_))
     }
@@ -311,7 +325,32 @@ fn scale_mms(
 
 #[cfg(test)]
 mod tests {
-    use super::curve_peak_displacement;
+    use super::{curve_peak_displacement, LinearInput};
+    use coilscope_core::chain::SenseWiring;
+    use coilscope_core::Complex64;
+    use coilscope_io::impedance::ImpedanceCurve;
+
+    /// A curve measured across driver and shunt loses the shunt's resistance, and one
+    /// without phase is refused, by name, rather than fitted with Re off by the shunt.
+    #[test]
+    fn a_shunts_resistance_is_taken_out_of_a_curve_with_phase_only() {
+        let curve = |magnitude_only| ImpedanceCurve {
+            f: vec![10.0, 100.0],
+            z: vec![Complex64::new(6.5, 1.0), Complex64::new(7.0, -2.0)],
+            comments: vec![],
+            magnitude_only,
+        };
+        let wiring = SenseWiring::DriverPlusShunt { ohm: 0.5 };
+        match LinearInput::curve_across_driver(curve(false), wiring, "z.zma") {
+            Ok(LinearInput::Curve(c)) => {
+                assert_eq!(c.z, vec![Complex64::new(6.0, 1.0), Complex64::new(6.5, -2.0)]);
+            }
+            _ => panic!("a curve with phase takes the shunt out"),
+        }
+        let e = LinearInput::curve_across_driver(curve(true), wiring, "z.zma").unwrap_err();
+        assert!(e.contains("z.zma") && e.contains("0.5 ohm") && e.contains("no phase"), "{e}");
+        assert!(LinearInput::curve_across_driver(curve(true), SenseWiring::Terminals, "z.zma").is_ok());
+    }
     use coilscope_core::excitation::{generate, Excitation, SignalSpec};
     use coilscope_core::simulate::{simulate, SimOptions};
     use coilscope_core::small_signal::impedance;

@@ -431,7 +431,7 @@ pub fn test_unit(p: &Parameters, name: &str, limits: &Limits) -> Verdict {
     Verdict { unit: name.to_string(), pass, checks, advice }
 }
 
-/// A production station's session: a run in the database whose rows are the units it tests.
+/// A production station at work: a run in the database whose rows are the units it tests.
 pub struct Station {
     store: coilscope_db::Store,
     limits: Limits,
