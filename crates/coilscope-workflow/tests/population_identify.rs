@@ -139,6 +139,17 @@ fn identify_case(label: &str, truth: &Parameters, seed: u64, world: World, mms: 
     if std::env::var("COILSCOPE_BAND_TRACE").is_ok() {
         let k = z.iter().enumerate().max_by(|a, b| a.1.abs().total_cmp(&b.1.abs())).map_or(0, |(k, _)| k);
         println!("  worst z {:.2} at index {k} of {} (Bl, Kms, Le bands of 41 points each, then Re)", z[k], z.len());
+        let branches = |p: &Parameters| {
+            let two = p.l2r2.as_ref().map(|(l, r)| (l.eval(0.0), r.eval(0.0)));
+            format!("Le(0) {:.4e} H, LR-2 {two:?}, LR-3 {:?}", p.le.eval(0.0), p.l3r3)
+        };
+        println!("  fitted {}\n  truth  {}", branches(q), branches(truth));
+        for t in done.fit.models_tried() {
+            println!(
+                "  tried {}: held-out {:?}, screen gain {:?}, outscored by {:?}",
+                t.model, t.validation_rel, t.screen_gain, t.outscored_by
+            );
+        }
     }
     let accurate = within(e_bl, 0.01) && within(e_k, 0.02) && within(e_le, 0.03) && within(e_re, 0.003);
     let right = accurate && within(zmax, 3.0);

@@ -285,20 +285,22 @@ pub(super) fn fit_bins(
     let tried: Vec<(String, f64)> = fitted.iter().map(|(pr, _, r)| (pr.effects.model_name(), *r)).collect();
     // Models with more effects than the chosen one that the data do not tell from it (on
     // the scout's bins, where every candidate has a residual; the relative floor is the
-    // same there): the spread of their Le is Le's model uncertainty.
-    let le_model_rel = {
-        let (ce, lc) = (fitted[chosen].0.effects, fitted[chosen].1.theta[1]);
+    // same there): the spread of their parameters is the model choice's uncertainty.
+    let model_rel = {
+        let ce = fitted[chosen].0.effects;
+        let qc = map.q(&fitted[chosen].1.theta[..7]);
         let scout_bins = SCOUT_BINS.min(prob.f.len());
         let floor = noise_floor(&fitted[chosen].0, &fitted[chosen].1.theta, fs);
-        let d = (0..fitted.len())
+        let alike: Vec<[f64; 7]> = (0..fitted.len())
             .filter(|&k| k != chosen && fitted[k].0.effects.union(ce) == fitted[k].0.effects)
             .filter(|&k| {
                 !effect_pays(scout_r[k], scout_r[chosen], floor, scout_bins, n_extra(fitted[k].0.effects) - n_extra(ce))
             })
-            .map(|k| (fitted[k].1.theta[1] - lc).abs())
-            .fold(0.0, f64::max);
-        (d.exp() - 1.0).min(1.0)
+            .map(|k| map.q(&fitted[k].1.theta[..7]))
+            .collect();
+        model_spread(&qc, &alike)
     };
+    let le_model_rel = model_rel[1];
     let (mut prob, mut s, _) = fitted.swap_remove(chosen);
     // Name the branches by their corners: LR-2 is the lower one.
     if let Some(k3) = prob.idx_lr3() {
@@ -382,7 +384,9 @@ pub(super) fn fit_bins(
         });
         ([l3, r3], sd)
     });
-    sigma_rel[1] = sigma_rel[1].hypot(le_model_rel);
+    for (sd, m) in sigma_rel.iter_mut().zip(model_rel) {
+        *sd = sd.hypot(m);
+    }
     let residual_rel = prob.residual_rel(&s.theta);
     if !s.converged {
         return Err(format!(
@@ -458,9 +462,25 @@ pub(super) fn fit_bins(
         lr3,
         tried,
         le_model_rel,
+        model_rel,
         chain,
         lr2,
         magnitude_only: prob.magnitude_only,
+    })
+}
+
+/// The relative spread of the impedance model's parameters `[Re, Le, L2, R2, Res, Cmes,
+/// Lces]` from the chosen model (natural coordinates `chosen`, [`ParamMap::q`]) to the
+/// models that fit the data as well (`alike`): the largest `|p_alike / p_chosen - 1|` of
+/// each, at most 1. The branch (L2, R2) gets none: a model with a second branch shares the
+/// para-inductance between two branches by definition, and names them by their corners.
+pub(super) fn model_spread(chosen: &[f64; 7], alike: &[[f64; 7]]) -> [f64; 7] {
+    std::array::from_fn(|k| {
+        if k == 2 || k == 3 {
+            return 0.0;
+        }
+        let d = alike.iter().map(|q| (q[k] - chosen[k]).abs()).fold(0.0, f64::max);
+        (d.exp() - 1.0).min(1.0)
     })
 }
 

@@ -397,7 +397,9 @@ fn lr3_named_first(p: &mut [f64; 7], sigma_rel: &mut [f64; 7], lr3: &mut Option<
 pub struct LinearFit {
     /// [Re, Le, L2, R2, Res, Cmes, Lces] in SI (ohm, H, H, ohm, ohm, F, H).
     pub p: [f64; 7],
-    /// Relative standard deviations of `p` (from the final Jacobian and residual).
+    /// Relative standard deviations of `p`: from the final Jacobian and residual, and the
+    /// model choice's share where a model with more effects fits the data as well
+    /// ([`LinearFit::model_rel`]).
     pub sigma_rel: [f64; 7],
     /// `|I - U/Z| / |I|` over the fitted bins (the current residual in the fitted band).
     pub residual_rel: f64,
@@ -430,6 +432,12 @@ pub struct LinearFit {
     /// Le band (a microspeaker whose LR-3 hid under the small stage's noise: Le 28 % off in
     /// a model without it, with an LR-3 model fitting as well).
     pub le_model_rel: f64,
+    /// How far each of `p` moves (relative) to a model with more effects that fits the data
+    /// as well as the chosen one (`le_model_rel` is Le's): the model choice's share of
+    /// `sigma_rel` (`uncertainty.model_rel` of a result). The data cannot make that choice,
+    /// so the parameters are no better known than this. None for the branch L2/R2, which a
+    /// second branch shares by definition.
+    pub model_rel: [f64; 7],
     /// The measurement chain, when estimated ([`LinearOptions::chain`]).
     pub chain: Option<ChainEstimate>,
     /// The LR-2 model's fit on the same bins, from which every model with effects grows:
@@ -740,7 +748,7 @@ pub fn result(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f
         },
         ScaleMethod::Displacement => Scale { method: "displacement".into(), ..Default::default() },
     };
-    let mut unc = Uncertainty::new("standard deviations: cluster-robust sandwich covariance over groups of 16 neighbouring bins (holds when the residual is not white: distortion, model error); the scale input, e.g. Mms, is taken as exact");
+    let mut unc = Uncertainty::new("standard deviations: cluster-robust sandwich covariance over groups of 16 neighbouring bins (holds when the residual is not white: distortion, model error), and the model choice's share where a model with more effects fits the data as well (its spread, under model.KEY, already in KEY's sd); the scale input, e.g. Mms, is taken as exact");
     for (key, v) in [
         ("Re", sd(0)),
         ("Le", sd(1)),
@@ -759,6 +767,22 @@ pub fn result(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f
     }
     if m > 0.0 {
         unc.set("Mms", m * p.mms);
+    }
+    // The model choice's share of the sds above (in their units), where it has one.
+    let mr = fit.model_rel;
+    for (key, v) in [
+        ("Re", mr[0] * fit.p[0]),
+        ("Le", mr[1] * fit.p[1]),
+        ("Res", mr[4] * fit.p[4]),
+        ("Cmes", mr[5] * fit.p[5]),
+        ("Lces", mr[6] * fit.p[6]),
+        ("Bl", 0.5 * mr[5] * p.bl.c[0]),
+        ("Kms", mr[5].hypot(mr[6]) * p.kms.c[0]),
+        ("Rms", mr[5].hypot(mr[4]) * p.rms),
+    ] {
+        if v > 0.0 {
+            unc.set(&format!("model.{key}"), v);
+        }
     }
     if let Some((_, sd)) = fit.creep {
         unc.set("creep.lambda", sd);

@@ -16,6 +16,29 @@ fn the_larger_branch_is_named_lr2() {
     assert!(!lr3_named_first(&mut p, &mut sd, &mut None));
 }
 
+/// The model choice's share of each sd is the largest move to a model that fits as well,
+/// in either direction; the branch's partition is not one; with no such model there is none.
+#[test]
+fn the_model_choices_spread_is_the_largest_move_to_an_equal_model() {
+    let chosen = [1.0f64, -9.0, -8.0, 0.5, 3.0, -7.0, -2.0];
+    let mut up = chosen;
+    up[0] += 0.05f64.ln_1p();
+    up[1] -= 0.3;
+    up[2] += 1.0;
+    let mut down = chosen;
+    down[0] -= 0.02f64.ln_1p();
+    down[5] += 0.04f64.ln_1p();
+    let m = fit::model_spread(&chosen, &[up, down]);
+    assert!((m[0] - 0.05).abs() < 1e-12, "Re's spread {}", m[0]);
+    assert!((m[1] - (0.3f64.exp() - 1.0)).abs() < 1e-12, "Le's spread {}", m[1]);
+    assert!((m[5] - 0.04).abs() < 1e-12, "Cmes's spread {}", m[5]);
+    assert_eq!((m[2], m[3], m[4], m[6]), (0.0, 0.0, 0.0, 0.0));
+    let mut far = chosen;
+    far[4] += 5.0;
+    assert_eq!(fit::model_spread(&chosen, &[far])[4], 1.0);
+    assert_eq!(fit::model_spread(&chosen, &[]), [0.0; 7]);
+}
+
 /// `ChainFactor::at` (the corners' filter coefficients once per theta) gives what the
 /// chain factor was per bin, each corner through `hp_response`, to the last bit: its
 /// value and its derivatives, every combination of terms on, over random delays, corners
