@@ -96,28 +96,31 @@ def simulate(params, u, fs):
     return {"u": np.asarray(u, dtype=float), "x": np.asarray(x), "v": np.asarray(v), "i": np.asarray(i), "tv": np.asarray(tv), "tm": np.asarray(tm)}
 
 
-def linear(u, i, fs, mms, chain="detect"):
+def linear(u, i, fs, mms, chain="detect", mms_sd=0.0):
     """Small-signal (Thiele/Small) fit of a record, Mms given (kg): the result dict.
 
     ``chain``: ``detect`` (estimate the recording chain where the record shows one), ``auto``
-    or ``none``, as ``coilscope linear --chain``. Warns :class:`NotTrustworthy` where the
-    command line exits 3."""
-    return _checked(_c.linear(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), str(chain)), "linear")
+    or ``none``, as ``coilscope linear --chain``. ``mms_sd``: the mass's sd (kg), carried
+    into Bl, Kms, Rms and Mms as ``--mms 15.3g±0.3g`` is (``uncertainty["scale.Bl"]`` its
+    share); 0 takes the mass as exact. Warns :class:`NotTrustworthy` where the command line
+    exits 3."""
+    return _checked(_c.linear(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), str(chain), float(mms_sd)), "linear")
 
 
-def linear_impedance(f, z, mms, band=None, magnitude_only=False):
+def linear_impedance(f, z, mms, band=None, magnitude_only=False, mms_sd=0.0):
     """Small-signal fit of a measured impedance curve (``coilscope linear --impedance``):
     ``f`` in Hz, ``z`` complex in ohm, Mms given (kg). Without ``band`` (Hz, ``(lo, hi)``) the
     fit keeps to where the lumped model holds, below the cone's break-up, and
     ``result["fit"]["band_note"]`` says where that is. Qms and Qts in ``small_signal`` are at
     fs with creep's loss (``Rms_fs``). ``magnitude_only``: only ``abs(z)`` is data (a file
-    without phase), fitted to the magnitude alone (``result["fit"]["phase_note"]``). Warns
-    :class:`NotTrustworthy` where the command line exits 3."""
+    without phase), fitted to the magnitude alone (``result["fit"]["phase_note"]``).
+    ``mms_sd`` as in :func:`linear`. Warns :class:`NotTrustworthy` where the command line
+    exits 3."""
     z = np.asarray(z, dtype=complex)
     if magnitude_only:
         z = np.abs(z).astype(complex)
     b = None if band is None else (float(band[0]), float(band[1]))
-    return _checked(_c.linear_impedance(_floats(f, "f"), _floats(z.real, "z"), _floats(z.imag, "z"), float(mms), b, bool(magnitude_only)), "linear_impedance")
+    return _checked(_c.linear_impedance(_floats(f, "f"), _floats(z.real, "z"), _floats(z.imag, "z"), float(mms), b, bool(magnitude_only), float(mms_sd)), "linear_impedance")
 
 
 def impedance(params, f):
@@ -141,19 +144,21 @@ def linear_enclosure(f, z, driver, enclosure="auto", sp=None, magnitude_only=Fal
     return _checked(_c.linear_enclosure(_floats(f, "f"), _floats(z.real, "z"), _floats(z.imag, "z"), _spec(driver), str(enclosure), None if sp is None else float(sp), bool(magnitude_only)), "linear_enclosure")
 
 
-def identify(u, i, fs, mms, order=None, chain="detect", enclosure=None, sd=None, vb=None, port_area=None, sp=None):
+def identify(u, i, fs, mms, order=None, chain="detect", enclosure=None, sd=None, vb=None, port_area=None, sp=None, mms_sd=0.0):
     """Large-signal identification of a record (Mms given, kg): the result dict.
 
     ``chain`` as in :func:`linear`. ``enclosure``: the driver is in a box of this type
     (``closed``, ``vented``, ``passive_radiator`` or ``auto``), identified with it as
     ``coilscope identify --enclosure`` does; it needs ``sd`` (m^2), a closed box its net volume
-    ``vb`` (m^3); ``port_area`` and ``sp`` (m^2) where known. Warns :class:`NotTrustworthy`
-    where the command line exits 3."""
+    ``vb`` (m^3); ``port_area`` and ``sp`` (m^2) where known. ``mms_sd`` as in
+    :func:`linear` (into the Bl and Kms bands too). Warns :class:`NotTrustworthy` where the
+    command line exits 3."""
     opt = lambda v: None if v is None else float(v)
     return _checked(
         _c.identify(
             _floats(u, "u"), _floats(i, "i"), float(fs), float(mms), None if order is None else int(order), str(chain),
             None if enclosure is None else str(enclosure), opt(sd), opt(vb), opt(port_area), opt(sp),
+            float(mms_sd),
         ),
         "identify",
     )
@@ -216,9 +221,9 @@ def measure_virtual(driver, seed=1, fs=48000.0, max_seconds=60.0, world="real"):
     return _checked(_c.measure_virtual(_spec(driver), int(seed), float(fs), float(max_seconds), str(world)), "measure_virtual")
 
 
-def measure_replay(u, i, fs, mms, max_seconds=600.0):
-    """The online estimator on a recording: the result dict."""
-    return _checked(_c.measure_replay(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), float(max_seconds)), "measure_replay")
+def measure_replay(u, i, fs, mms, max_seconds=600.0, mms_sd=0.0):
+    """The online estimator on a recording: the result dict. ``mms_sd`` as in :func:`linear`."""
+    return _checked(_c.measure_replay(_floats(u, "u"), _floats(i, "i"), float(fs), float(mms), float(max_seconds), float(mms_sd)), "measure_replay")
 
 
 def distortion(params, freq, volts, output="pressure", temp_rise=0.0):

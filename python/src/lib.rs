@@ -111,6 +111,12 @@ fn simulate(
     Ok((t.x, t.v, t.i, t.tv, t.tm))
 }
 
+/// The moving mass `kg` with its sd `sd` (kg, 0: exact), checked as the command line's
+/// `--mms 15.3g±0.3g` is.
+fn mass(kg: f64, sd: f64) -> PyResult<coilscope_core::mass::Mass> {
+    coilscope_core::mass::Mass::parse(&format!("{kg}±{sd}")).map_err(err)
+}
+
 /// A record of the Python caller's samples.
 fn record(u: Vec<f64>, i: Vec<f64>, fs: f64) -> coilscope_io::Recording {
     coilscope_io::Recording { fs: fs.round() as u32, u, i, x: None }
@@ -130,14 +136,15 @@ fn chain_mode(chain: &str) -> PyResult<coilscope_workflow::chain::ChainMode> {
 /// The small-signal fit of a record (`coilscope linear`, Mms given): the result as JSON text,
 /// with its warnings and verdict (`fit.trustworthy`) as the command line gives them.
 #[pyfunction]
-#[pyo3(signature = (u, i, fs, mms, chain="detect"))]
-fn linear(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, chain: &str) -> PyResult<String> {
+#[pyo3(signature = (u, i, fs, mms, chain="detect", mms_sd=0.0))]
+fn linear(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, chain: &str, mms_sd: f64) -> PyResult<String> {
     use coilscope_workflow::linear::{linear as fit, LinearInput, LinearRequest, Scale};
+    let m = mass(mms, mms_sd)?;
     check_fs(fs)?;
     check_pair(&u, &i)?;
     let req = LinearRequest { chain: chain_mode(chain)?, ..LinearRequest::new("python") };
     py.allow_threads(|| {
-        fit(LinearInput::Record(record(u, i, fs)), Scale::Mms(mms), &req, |_| {})
+        fit(LinearInput::Record(record(u, i, fs)), Scale::Mms(m), &req, |_| {})
             .map(|l| l.result.to_json_value().to_string())
     })
     .map_err(err)
@@ -169,7 +176,7 @@ fn curve_from(
 /// phase): fitted to the magnitude alone. The result as JSON text, with its warnings and
 /// verdict.
 #[pyfunction]
-#[pyo3(signature = (f, z_re, z_im, mms, band=None, magnitude_only=false))]
+#[pyo3(signature = (f, z_re, z_im, mms, band=None, magnitude_only=false, mms_sd=0.0))]
 #[allow(clippy::too_many_arguments)]
 fn linear_impedance(
     py: Python<'_>,
@@ -179,12 +186,14 @@ fn linear_impedance(
     mms: f64,
     band: Option<(f64, f64)>,
     magnitude_only: bool,
+    mms_sd: f64,
 ) -> PyResult<String> {
     use coilscope_workflow::linear::{linear as fit, LinearInput, LinearRequest, Scale};
+    let m = mass(mms, mms_sd)?;
     let curve = curve_from(f, z_re, z_im, magnitude_only)?;
     let req = LinearRequest { band: band.map(|(lo, hi)| [lo, hi]), ..LinearRequest::new("python") };
     py.allow_threads(|| {
-        fit(LinearInput::Curve(curve), Scale::Mms(mms), &req, |_| {}).map(|l| l.result.to_json_value().to_string())
+        fit(LinearInput::Curve(curve), Scale::Mms(m), &req, |_| {}).map(|l| l.result.to_json_value().to_string())
     })
     .map_err(err)
 }
@@ -243,7 +252,7 @@ fn linear_enclosure(
 /// driver is in a box of this type (`identify --enclosure`), with `sd`, `vb`, `port_area`
 /// and `sp` as the command line's options.
 #[pyfunction]
-#[pyo3(signature = (u, i, fs, mms, order=None, chain="detect", enclosure=None, sd=None, vb=None, port_area=None, sp=None))]
+#[pyo3(signature = (u, i, fs, mms, order=None, chain="detect", enclosure=None, sd=None, vb=None, port_area=None, sp=None, mms_sd=0.0))]
 #[allow(clippy::too_many_arguments)]
 fn identify(
     py: Python<'_>,
@@ -258,8 +267,10 @@ fn identify(
     vb: Option<f64>,
     port_area: Option<f64>,
     sp: Option<f64>,
+    mms_sd: f64,
 ) -> PyResult<String> {
     use coilscope_workflow::identify::{identify_record, in_box, IdentifyRequest};
+    let m = mass(mms, mms_sd)?;
     check_fs(fs)?;
     check_pair(&u, &i)?;
     let enclosure = enclosure.map(|t| in_box(t, sd, vb, port_area, sp)).transpose().map_err(err)?;
@@ -268,7 +279,8 @@ fn identify(
         chain: chain_mode(chain)?,
         sd,
         enclosure,
-        ..IdentifyRequest::new("python", Some(mms))
+        mms_sd_rel: m.sd_rel(),
+        ..IdentifyRequest::new("python", Some(m.kg))
     };
     py.allow_threads(|| {
         let mut rec = record(u, i, fs);
@@ -313,12 +325,12 @@ fn run_measure(
     use coilscope_measure::signal::Source;
     use coilscope_measure::{measure, MeasureOptions};
     use coilscope_workflow::measure::{result_of, Prepared};
-    let (mut dev, Prepared { mms, mms_source, sd, .. }) = prepared.split();
+    let (mut dev, Prepared { mms, mms_source, mms_sd_rel, sd, .. }) = prepared.split();
     let mut src = Source::noise(&Excitation::Iec, dev.fs(), seed).map_err(err)?;
     let opts = MeasureOptions { mms, max_seconds, ..Default::default() };
     opts.validate().map_err(err)?;
     let mut m = py.allow_threads(|| measure(dev.as_mut(), &mut src, &opts, None, |_| {})).map_err(err)?;
-    Ok(result_of(&mut m, &mms_source, sd, None).to_json_value().to_string())
+    Ok(result_of(&mut m, &mms_source, mms_sd_rel, sd, None).to_json_value().to_string())
 }
 
 /// A dynamic measurement of a virtual driver (`coilscope measure --virtual`, IEC noise,
@@ -345,11 +357,20 @@ fn measure_virtual(
 
 /// The online estimator on a recording (`coilscope measure --replay`): the result as JSON text.
 #[pyfunction]
-#[pyo3(signature = (u, i, fs, mms, max_seconds=600.0))]
-fn measure_replay(py: Python<'_>, u: Vec<f64>, i: Vec<f64>, fs: f64, mms: f64, max_seconds: f64) -> PyResult<String> {
+#[pyo3(signature = (u, i, fs, mms, max_seconds=600.0, mms_sd=0.0))]
+fn measure_replay(
+    py: Python<'_>,
+    u: Vec<f64>,
+    i: Vec<f64>,
+    fs: f64,
+    mms: f64,
+    max_seconds: f64,
+    mms_sd: f64,
+) -> PyResult<String> {
     check_fs(fs)?;
     check_pair(&u, &i)?;
-    let prepared = coilscope_workflow::measure::replay(record(u, i, fs), "python", Some(mms), None).map_err(err)?;
+    let prepared =
+        coilscope_workflow::measure::replay(record(u, i, fs), "python", Some(mass(mms, mms_sd)?), None).map_err(err)?;
     run_measure(py, prepared, 1, max_seconds)
 }
 

@@ -183,6 +183,14 @@ def test_linear_impedance_keeps_below_the_break_up_as_the_command_line():
     # Frequencies out of order are refused with the reason, not fitted.
     with pytest.raises(ValueError, match="increasing"):
         coilscope.linear_impedance(f[::-1], z[::-1], mms=0.0149)
+    # A weighed mass with its sd: its share in what the scale moves, as `--mms 14.9g±0.3g`.
+    w = coilscope.linear_impedance(f, z, mms=0.0149, mms_sd=0.0003)
+    share = w["uncertainty"]["scale.Bl"]
+    assert abs(share / (0.5 * 0.0003 / 0.0149 * w["parameters"]["Bl"]) - 1.0) < 1e-9
+    assert abs(w["uncertainty"]["Bl"] - np.hypot(r["uncertainty"]["Bl"], share)) < 1e-9
+    assert w["uncertainty"]["Re"] == r["uncertainty"]["Re"]
+    with pytest.raises(ValueError, match="less than half the mass"):
+        coilscope.linear_impedance(f, z, mms=0.0149, mms_sd=0.01)
 
 
 def test_linear_enclosure_finds_the_box_as_the_command_line():

@@ -3,6 +3,7 @@
 
 use clap::{Subcommand, ValueEnum};
 use coilscope_core::chain::SenseWiring;
+use coilscope_core::mass::Mass;
 use coilscope_core::Parameters;
 use coilscope_workflow::chain::load_chain;
 use std::path::PathBuf;
@@ -218,13 +219,15 @@ pub(crate) enum Command {
         /// deg; `*` comment lines), .frd/.txt alike, or CSV with named columns.
         #[arg(long, value_name = "Z.zma")]
         impedance: Option<PathBuf>,
-        /// Known moving mass (kg) for the absolute scale.
-        #[arg(long)]
-        mms: Option<f64>,
-        /// Added mass (kg) of the added-mass method; needs --with-mass (records) or
-        /// --with-mass-impedance (impedance files).
-        #[arg(long)]
-        added_mass: Option<f64>,
+        /// Known moving mass for the absolute scale, with its unit and, where known, its sd:
+        /// 15.3g±0.3g (or 15.3g+-0.3g; a bare number is kg). The sd goes into Bl, Kms, Rms
+        /// and Mms (`uncertainty.scale.KEY`); without one the mass is taken as exact.
+        #[arg(long, value_name = "MASS")]
+        mms: Option<Mass>,
+        /// Added mass of the added-mass method, as --mms (8g±0.05g); needs --with-mass
+        /// (records) or --with-mass-impedance (impedance files).
+        #[arg(long, value_name = "MASS")]
+        added_mass: Option<Mass>,
         /// Recording of the same driver with the added mass.
         #[arg(long, conflicts_with = "impedance")]
         with_mass: Option<PathBuf>,
@@ -274,9 +277,11 @@ pub(crate) enum Command {
         /// each on one core).
         #[arg(long)]
         jobs: Option<usize>,
-        /// Moving mass (kg), the absolute scale. Without it, a displacement channel (3) gives it.
-        #[arg(long)]
-        mms: Option<f64>,
+        /// Moving mass, the absolute scale, with its unit and, where known, its sd: 15.3g±0.3g
+        /// (a bare number is kg); the sd goes into Bl, Kms, Rms and Mms and their bands.
+        /// Without it, a displacement channel (3) gives the scale.
+        #[arg(long, value_name = "MASS")]
+        mms: Option<Mass>,
         /// Power-series order of Bl, Kms and Le (2 ..= 8); default: chosen on held-out data.
         #[arg(long)]
         order: Option<usize>,
@@ -374,9 +379,10 @@ pub(crate) enum Command {
         /// DIR/run.sqlite).
         #[arg(long, value_name = "FILE|URL")]
         db: Option<String>,
-        /// Moving mass (kg); for a virtual driver its own Mms is the default.
-        #[arg(long)]
-        mms: Option<f64>,
+        /// Moving mass, with its unit and, where known, its sd: 15.3g±0.3g (a bare number is
+        /// kg); for a virtual driver its own Mms is the default.
+        #[arg(long, value_name = "MASS")]
+        mms: Option<Mass>,
         /// Effective radiating area (m^2), for Vas; for a virtual driver its own Sd is the
         /// default.
         #[arg(long, value_name = "M2")]
@@ -745,8 +751,8 @@ pub(crate) struct LinearArgs {
     pub(crate) sp: Option<f64>,
     pub(crate) recording: Option<PathBuf>,
     pub(crate) impedance: Option<PathBuf>,
-    pub(crate) mms: Option<f64>,
-    pub(crate) added_mass: Option<f64>,
+    pub(crate) mms: Option<Mass>,
+    pub(crate) added_mass: Option<Mass>,
     pub(crate) with_mass: Option<PathBuf>,
     pub(crate) with_mass_impedance: Option<PathBuf>,
     pub(crate) band: Option<Vec<String>>,
@@ -842,7 +848,7 @@ pub(crate) struct MeasureArgs {
     pub(crate) card: CardArgs,
     pub(crate) replay: Option<PathBuf>,
     pub(crate) out: PathBuf,
-    pub(crate) mms: Option<f64>,
+    pub(crate) mms: Option<Mass>,
     pub(crate) sd: Option<f64>,
     pub(crate) target_x: Option<f64>,
     pub(crate) max_dt: f64,

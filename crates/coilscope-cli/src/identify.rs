@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn cmd_identify(
     path: &Path,
-    mms: Option<f64>,
+    mms: Option<coilscope_core::mass::Mass>,
     order: Option<usize>,
     effects: &str,
     chain: &ChainMode,
@@ -46,7 +46,8 @@ pub(crate) fn cmd_identify(
     let threads = std::env::var(JOB_THREADS).ok().and_then(|v| v.parse().ok()).unwrap_or(0);
     let req = IdentifyRequest {
         origin: origin.clone(),
-        mms,
+        mms: mms.map(|m| m.kg),
+        mms_sd_rel: mms.map_or(0.0, |m| m.sd_rel()),
         order,
         effects: parse_effects(effects)?,
         chain: chain.clone(),

@@ -61,13 +61,13 @@ pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
         }
         (None, None, None, true) => Scale::Displacement,
         (None, Some(_), None, _) | (None, None, Some(_), _) => {
-            return Err(format!("--added-mass KG and {with_name} go together").into())
+            return Err(format!("--added-mass MASS and {with_name} go together").into())
         }
         (Some(_), _, _, _) => return Err(format!("give one scale: --mms, or --added-mass with {with_name}").into()),
         (None, None, None, false) => {
             let x = if is_curve { "" } else { ", or record a displacement channel (3)" };
             return Err(Failure::from(format!(
-                "{origin}: no absolute scale: give --mms KG, or --added-mass KG {with_name}{x}"
+                "{origin}: no absolute scale: give --mms MASS (15.3g, or 15.3g±0.3g with its sd), or --added-mass MASS {with_name}{x}"
             )));
         }
     };
@@ -144,7 +144,8 @@ pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
         }
     }
     let scale_text = match &done.method {
-        ScaleMethod::Mms => "Mms given".to_string(),
+        ScaleMethod::Mms { sd_rel } if *sd_rel > 0.0 => format!("Mms given, +- {:.2} %", 100.0 * sd_rel),
+        ScaleMethod::Mms { .. } => "Mms given".to_string(),
         ScaleMethod::AddedMass { added, fs_with, .. } => {
             format!("added mass {:.3} g, fs with mass {:.3} Hz", added * 1e3, fs_with)
         }

@@ -129,7 +129,17 @@ fn restore_sigpipe() {
 fn main() -> ExitCode {
     #[cfg(unix)]
     restore_sigpipe();
-    let cli = Cli::parse();
+    // A value an option's parser refused (`--mms 15 lb`, `--xmax 4 cm`) is one line that
+    // names the option, the value and what would be valid, as every other bad input is.
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) if e.kind() == clap::error::ErrorKind::ValueValidation => {
+            let text = e.render().to_string();
+            eprintln!("{}", text.lines().next().unwrap_or("error: an option's value is not valid"));
+            return ExitCode::from(2);
+        }
+        Err(e) => e.exit(),
+    };
     let result: Result<(), Failure> = match cli.command {
         Command::Simulate { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world, chain, sense_wiring, sense_ohm, enclosure } => parse_wiring(&sense_wiring, sense_ohm)
             .and_then(|wiring| cmd_simulate(SimulateArgs { driver, excitation, volts, seconds, out, laser, snr_db, seed, rate, input, freq, band, crest, tones, fade, scale, world, chain, wiring, enclosure }).map_err(Failure::from)),
@@ -154,7 +164,7 @@ fn main() -> ExitCode {
             if jobs.is_some() {
                 Err(Failure::from("--jobs applies to several recordings (a batch); one recording uses every core by itself"))
             } else if method == "volterra" {
-                cmd_identify_volterra(recording, start.as_deref(), mms, order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, fit.scale.as_deref(), &fit.out)
+                cmd_identify_volterra(recording, start.as_deref(), mms.map(|m| m.kg), order, &effects, &chain, fit_wiring(&fit, &chain)?, fit.sd, fit.scale.as_deref(), &fit.out)
             } else if start.is_some() {
                 Err(Failure::from("--start is the Volterra method's small-signal set (--method volterra); the full identification finds its own start"))
             } else {

@@ -74,7 +74,7 @@ pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         let (d, p) = p.split();
         (d, p)
     };
-    let (mut device, Prepared { mms, mms_source, sd, notes, .. }): (Box<dyn Device>, Prepared) = match (
+    let (mut device, Prepared { mms, mms_source, mms_sd_rel, sd, notes, .. }): (Box<dyn Device>, Prepared) = match (
         &a.virtual_driver,
         &a.replay,
     ) {
@@ -89,7 +89,7 @@ pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
         }
         (None, None) if a.card.card => {
             coilscope_workflow::measure::check_sd(a.sd)?;
-            let mms = a.mms.ok_or("--card needs --mms KG (the absolute scale: weigh the cone, or measure it by the added-mass method with `coilscope linear`)")?;
+            let mms = a.mms.ok_or("--card needs --mms MASS (the absolute scale: weigh the cone, or measure it by the added-mass method with `coilscope linear`)")?;
             (open_card(&a.card, a.rate)?, Prepared::given(mms, a.sd))
         }
         _ => {
@@ -251,7 +251,7 @@ pub(crate) fn cmd_measure(a: MeasureArgs) -> Result<(), Failure> {
             return Err(Failure::from(format!("{e}; written to {}", a.out.join("result.json").display())));
         }
     };
-    let j = coilscope_workflow::measure::result_of(&mut m, &mms_source, sd, reported_chain);
+    let j = coilscope_workflow::measure::result_of(&mut m, &mms_source, mms_sd_rel, sd, reported_chain);
     write_json(&a.out.join("result.json"), &j).map_err(|e| e.to_string())?;
     let status = coilscope_workflow::measure::status(&m);
     store.finish(m.seconds, status, Some(&j))?;

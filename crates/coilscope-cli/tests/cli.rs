@@ -245,7 +245,7 @@ fn linear_writes_a_result_zma_and_csv() {
     .status
     .success());
     let e = one_error_line(&coilscope(&["linear", plain.to_str().unwrap(), "--out", out.to_str().unwrap()]));
-    assert!(e.contains("no absolute scale: give --mms KG"), "{e}");
+    assert!(e.contains("no absolute scale: give --mms MASS"), "{e}");
 }
 
 #[test]

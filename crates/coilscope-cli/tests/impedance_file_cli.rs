@@ -431,3 +431,44 @@ fn measure_replay_of_the_real_chain_record_without_its_calibration_is_loud_and_r
     // A cold Re without an sd is printed "no sd", never "+- NaN" (nor "Re NaN" in the live lines).
     assert!(!text.contains("NaN") && text.contains("no sd"), "{text}");
 }
+
+/// A weighed mass with its sd (`--mms 14.9g±0.3g`): the scale's share is in Bl, Kms, Rms and
+/// Mms and said on its own (`uncertainty.scale.KEY`, `fit.scale.mass_sd`); the added mass's
+/// sd joins the resonances' in Mms; a mass in an unknown unit is refused by name.
+#[test]
+fn linear_carries_a_given_masss_sd_into_what_the_scale_moves() {
+    let d = tempfile::tempdir().unwrap();
+    let run = |mms: &[&str], name: &str| {
+        let out = d.path().join(name);
+        let mut args = vec!["linear", "--impedance"];
+        let z = seas("L16RNX_0g_242_27mV.zma");
+        let z2 = seas("L16RNX_16_048g_242_27mV.zma");
+        args.push(&z);
+        args.extend_from_slice(mms);
+        if mms[0] == "--added-mass" {
+            args.extend_from_slice(&["--with-mass-impedance", &z2]);
+        }
+        args.extend_from_slice(&["--band", "10,2000", "--out", out.to_str().unwrap()]);
+        let o = coilscope(&args);
+        assert!(o.status.success(), "{}", text(&o));
+        let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+        r
+    };
+    let exact = run(&["--mms", "14.9g"], "exact.json");
+    let given = run(&["--mms", "14.9g±0.3g"], "given.json");
+    let sd = |r: &serde_json::Value, k: &str| r["uncertainty"][k].as_f64().unwrap_or(f64::NAN);
+    assert_eq!(given["fit"]["scale"]["mass_sd"].as_f64(), Some(0.3e-3));
+    assert!(exact["uncertainty"]["scale.Bl"].is_null());
+    let bl = given["parameters"]["Bl"].as_f64().unwrap();
+    assert!((sd(&given, "scale.Bl") - 0.5 * 0.3 / 14.9 * bl).abs() < 1e-9, "{}", given["uncertainty"]);
+    assert!((sd(&given, "Bl") - sd(&exact, "Bl").hypot(sd(&given, "scale.Bl"))).abs() < 1e-9);
+    assert!((sd(&given, "Mms") - 0.3e-3).abs() < 1e-12);
+    assert_eq!(sd(&given, "Re"), sd(&exact, "Re"));
+    let a = run(&["--added-mass", "16.048g"], "added.json");
+    let b = run(&["--added-mass", "16.048g±0.5g"], "added-sd.json");
+    let rel = |r: &serde_json::Value| sd(r, "Mms") / r["parameters"]["Mms"].as_f64().unwrap();
+    assert!((rel(&b) - rel(&a).hypot(0.5 / 16.048)).abs() < 1e-6, "Mms sd {} and {}", rel(&a), rel(&b));
+    let o = coilscope(&["linear", "--impedance", &seas("L16RNX_0g_242_27mV.zma"), "--mms", "15 lb", "--out", "x.json"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(text(&o).contains("unknown mass unit 'lb' in '15 lb'"), "{}", text(&o));
+}

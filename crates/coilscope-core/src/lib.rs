@@ -41,6 +41,7 @@ pub mod integrate;
 pub mod inverse;
 pub mod jet;
 pub mod limits;
+pub mod mass;
 pub mod model;
 pub mod normal_form;
 pub mod params;

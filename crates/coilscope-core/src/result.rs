@@ -187,6 +187,10 @@ pub struct Scale {
     pub method: String,
     #[serde(rename = "Mms", default, skip_serializing_if = "Option::is_none")]
     pub mms: Option<f64>,
+    /// The standard deviation (kg) of the given mass (`Mms` given, or the added mass), where
+    /// the user gave one (`--mms 15.3g±0.3g`): it is in the sds of what the scale moves.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mass_sd: Option<f64>,
     /// kg.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub added_mass: Option<f64>,
@@ -287,7 +291,7 @@ impl From<&Limits> for LimitsRecord {
 
 /// `uncertainty`: standard deviations under the parameter schema's keys, and bands of the
 /// curves on a grid over `fit.x_range`.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Uncertainty {
     /// How the numbers were found.
     #[serde(default)]
@@ -334,6 +338,39 @@ impl Uncertainty {
             Some(Sd::Value(v)) => Some(*v),
             _ => None,
         }
+    }
+
+    /// Carry a moving mass known to `sd_rel` (relative sd) into the sds of what it scales,
+    /// each in quadrature with what it had, the scale's share alone under `scale.KEY`: Bl,
+    /// Kms, Rms and Mms at rest ([`crate::mass::mass_power`]), and the Bl, Kms and Le bands
+    /// at every point, each as the scale moves it ([`crate::mass::curve_mass_sensitivity`]).
+    /// For a fit that took the mass as exact; nothing changes at `sd_rel` 0.
+    pub fn carry_mass_sd(&mut self, p: &crate::Parameters, sd_rel: f64) {
+        if !(sd_rel > 0.0) {
+            return;
+        }
+        for (key, share) in crate::mass::scale_share(p, sd_rel) {
+            let had = self.value(key).unwrap_or(0.0);
+            self.set(key, had.hypot(share));
+            self.set(&format!("scale.{key}"), share);
+        }
+        for (which, curve) in [("Bl", &p.bl), ("Kms", &p.kms), ("Le", &p.le)] {
+            let band = match which {
+                "Bl" => self.bl_band.as_mut(),
+                "Kms" => self.kms_band.as_mut(),
+                _ => self.le_band.as_mut(),
+            };
+            if let Some(b) = band {
+                for ((sd, v), &x) in b.sd.iter_mut().zip(&b.value).zip(&b.x) {
+                    let rel = crate::mass::curve_mass_sensitivity(which, curve, x);
+                    *sd = sd.hypot(rel * sd_rel * v.abs());
+                }
+            }
+        }
+        self.note.push_str(&format!(
+            "; the moving mass's sd ({:.2} % of it) carried into Bl, Kms, Rms and Mms and the Bl, Kms and Le bands as the scale moves them (scale.KEY: its share at rest)",
+            100.0 * sd_rel
+        ));
     }
 
     /// The band of the curve `which` (`Bl`, `Kms`, `Le`).
@@ -644,6 +681,40 @@ fn nans_if_null<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<f64>, D::Error> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A mass's sd joins each sd it scales in quadrature, its share alone under `scale.KEY`,
+    /// the bands point by point with the curve's slope; an exact mass changes nothing.
+    #[test]
+    fn a_masss_sd_joins_what_the_scale_moves() {
+        let p = crate::embedded_driver("sb17cac35-4").unwrap();
+        let xs = vec![-4e-3, 0.0, 4e-3];
+        let band =
+            |f: &crate::Poly| Band { x: xs.clone(), value: xs.iter().map(|&x| f.eval(x)).collect(), sd: vec![0.0; 3] };
+        let mut u = Uncertainty::new("test");
+        u.set("Bl", 0.01);
+        u.set("Re", 1e-3);
+        for (w, f) in [("Bl", &p.bl), ("Kms", &p.kms), ("Le", &p.le)] {
+            u.set_band(w, band(f));
+        }
+        let before = u.clone();
+        u.carry_mass_sd(&p, 0.0);
+        assert_eq!(u, before);
+        u.carry_mass_sd(&p, 0.02);
+        let share = 0.5 * 0.02 * p.bl.c[0];
+        assert!((u.value("scale.Bl").unwrap() - share).abs() < 1e-12);
+        assert!((u.value("Bl").unwrap() - 0.01f64.hypot(share)).abs() < 1e-12);
+        assert!((u.value("Kms").unwrap() - 0.02 * p.kms.c[0]).abs() < 1e-9);
+        assert!((u.value("Mms").unwrap() - 0.02 * p.mms).abs() < 1e-15);
+        assert_eq!(u.value("Re"), Some(1e-3));
+        assert!(u.value("scale.Re").is_none());
+        // At rest the bands move by the curve's power; off rest the slope adds its part.
+        let kb = u.band("Kms").unwrap();
+        assert!((kb.sd[1] - 0.02 * p.kms.c[0]).abs() < 1e-9);
+        let (f, df) = p.kms.eval_d(4e-3);
+        assert!((kb.sd[2] - (1.0 + 0.5 * 4e-3 * df / f).abs() * 0.02 * f).abs() < 1e-9);
+        assert_eq!(u.band("Le").unwrap().sd[1], 0.0);
+        assert!(u.band("Le").unwrap().sd[2] > 0.0);
+    }
 
     fn example() -> ResultFile {
         let p = crate::embedded_driver("sb17cac35-4").unwrap();

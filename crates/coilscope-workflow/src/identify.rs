@@ -4,6 +4,7 @@
 use crate::attach_warnings;
 use crate::chain::{detect, mark_wiring, ChainMode};
 use coilscope_core::chain::{Chain, SenseWiring};
+use coilscope_core::mass::Mass;
 use coilscope_core::result::ResultFile;
 use coilscope_core::Parameters;
 use coilscope_ident::checks::{NoiseFloor, Warning};
@@ -19,6 +20,9 @@ pub struct IdentifyRequest {
     /// Moving mass (kg); `None`: from the displacement channel (a record without one is
     /// refused).
     pub mms: Option<f64>,
+    /// The relative sd of `mms` as given (0: taken as exact), carried into Bl, Kms, Rms, Mms
+    /// and their bands.
+    pub mms_sd_rel: f64,
     /// Power-series order; `None`: chosen on held-out data.
     pub order: Option<usize>,
     pub effects: EffectsChoice,
@@ -38,6 +42,7 @@ impl IdentifyRequest {
         IdentifyRequest {
             origin: origin.into(),
             mms,
+            mms_sd_rel: 0.0,
             order: None,
             effects: EffectsChoice::Auto,
             chain: ChainMode::Detect,
@@ -148,15 +153,16 @@ fn identify_body(
     let calibrated = req.chain.prepare(rec, origin, req.wiring)?;
     // With a displacement channel: the equation-error (post-inverse) estimate gives Mms (when
     // not given), the start values, and a cross-check of the output-error result.
+    let given = |m: f64| Mass { kg: m, sd_kg: req.mms_sd_rel * m };
     let (mms, mms_source, post) = match (req.mms, &rec.x) {
         (m, Some(x)) => {
             let pi = post_inverse_of(&rec.u, &rec.i, x, fs, req.order.unwrap_or(4), origin)?;
             match m {
-                Some(m) => (m, "given (--mms)".to_string(), Some(pi)),
+                Some(m) => (m, format!("given (--mms {})", given(m)), Some(pi)),
                 None => (pi.mms, "displacement channel (post-inverse equation error)".to_string(), Some(pi)),
             }
         }
-        (Some(m), None) => (m, "given (--mms)".to_string(), None),
+        (Some(m), None) => (m, format!("given (--mms {})", given(m)), None),
         (None, None) => {
             return Err(format!(
                 "{origin}: no absolute scale: give --mms KG (moving mass), or record a displacement channel (3)"
@@ -195,6 +201,9 @@ fn identify_body(
     fit.params.sd = req.sd;
     fit.params.source = Some(format!("coilscope identify {origin}"));
     let mut result = fit.result(origin, &mms_source);
+    if req.mms.is_some() {
+        result.uncertainty.carry_mass_sd(&result.parameters, req.mms_sd_rel);
+    }
     // The skew check looks at the record without a chain: with the chain estimated or
     // calibrated the delay is taken out (and reported in `chain`), so it would warn of what
     // is already corrected.

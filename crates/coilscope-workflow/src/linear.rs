@@ -4,6 +4,7 @@
 use crate::attach_warnings;
 use crate::chain::{detect, mark_wiring, ChainMode};
 use coilscope_core::chain::{Chain, SenseWiring};
+use coilscope_core::mass::Mass;
 use coilscope_core::result::ResultFile;
 use coilscope_core::{Complex64, Parameters};
 use coilscope_ident::checks::{NoiseFloor, Warning};
@@ -50,11 +51,11 @@ impl LinearInput {
 /// The absolute scale.
 #[derive(Clone, Debug)]
 pub enum Scale {
-    /// The moving mass (kg), weighed or known.
-    Mms(f64),
-    /// An added mass (kg) and the same driver measured with it (a record or a curve, as the
-    /// first input).
-    AddedMass { mass: f64, with: Box<LinearInput>, origin: String },
+    /// The moving mass, weighed or known (with its sd where known).
+    Mms(Mass),
+    /// An added mass (with its sd where known) and the same driver measured with it (a
+    /// record or a curve, as the first input).
+    AddedMass { mass: Mass, with: Box<LinearInput>, origin: String },
     /// The record's displacement channel.
     Displacement,
 }
@@ -300,10 +301,10 @@ fn scale_mms(
     chain: bool,
 ) -> Result<(f64, ScaleMethod), String> {
     match scale {
-        Scale::Mms(m) => Ok((*m, ScaleMethod::Mms)),
+        Scale::Mms(m) => Ok((m.kg, ScaleMethod::Mms { sd_rel: m.sd_rel() })),
         Scale::AddedMass { mass, with, origin: o2 } => {
-            if !(mass.is_finite() && *mass > 0.0 && *mass < 2.0) {
-                return Err(format!("--added-mass {mass}: give the added mass in kg (0 .. 2 kg)"));
+            if !(mass.kg.is_finite() && mass.kg > 0.0 && mass.kg < 2.0) {
+                return Err(format!("--added-mass {} kg: give the added mass (0 .. 2 kg)", mass.kg));
             }
             if with.is_curve() != input.is_curve() {
                 return Err(format!("{o2}: the measurement with the added mass must be of the same kind as {origin} (both records or both impedance curves)"));
@@ -312,7 +313,19 @@ fn scale_mms(
             prepare(&mut second, req, o2)?;
             let same = LinearOptions { effects: EffectsChoice::Fixed(fit.effects), chain, ..Default::default() };
             let fit2 = fit_input(&second, o2, &same, req.band, &mut |_| {})?;
-            added_mass_scale(fit, &fit2, *mass)
+            // The added mass's own sd goes one to one into Mms (Mms = added / (ratio - 1)).
+            added_mass_scale(fit, &fit2, mass.kg).map(|(m, method)| match method {
+                ScaleMethod::AddedMass { added, fs_with, mms_sd_rel, .. } => (
+                    m,
+                    ScaleMethod::AddedMass {
+                        added,
+                        added_sd: mass.sd_kg,
+                        fs_with,
+                        mms_sd_rel: mms_sd_rel.hypot(mass.sd_rel()),
+                    },
+                ),
+                other => (m, other),
+            })
         }
         Scale::Displacement => match input {
             LinearInput::Record(Recording { i, x: Some(x), fs, .. }) => {

@@ -3,6 +3,7 @@
 //! absolute scale (`Mms`) comes from, and the result file the run gives.
 
 use coilscope_core::chain::Chain;
+use coilscope_core::mass::Mass;
 use coilscope_core::result::ResultFile;
 use coilscope_core::Parameters;
 use coilscope_io::Recording;
@@ -47,6 +48,8 @@ pub struct Prepared {
     pub mms: f64,
     /// Where `mms` came from, as the result's `fit.mms_source` says.
     pub mms_source: String,
+    /// The relative sd of `mms` as given (0: taken as exact), carried into the result.
+    pub mms_sd_rel: f64,
     /// The driver's radiating area (m^2): given, or a virtual driver's own.
     pub sd: Option<f64>,
     /// What the user should be told of the setup (the world assumed).
@@ -55,8 +58,15 @@ pub struct Prepared {
 
 impl Prepared {
     /// The setup of a device opened elsewhere (a sound card), `mms` given.
-    pub fn given(mms: f64, sd: Option<f64>) -> Prepared {
-        Prepared { device: None, mms, mms_source: "given (--mms)".to_string(), sd, notes: Vec::new() }
+    pub fn given(mms: Mass, sd: Option<f64>) -> Prepared {
+        Prepared {
+            device: None,
+            mms: mms.kg,
+            mms_source: format!("given (--mms {mms})"),
+            mms_sd_rel: mms.sd_rel(),
+            sd,
+            notes: Vec::new(),
+        }
     }
 
     /// The device taken out, and the rest of the setup.
@@ -84,7 +94,7 @@ pub fn virtual_driver(
     given: &Parameters,
     name: &str,
     world: World,
-    mms: Option<f64>,
+    mms: Option<Mass>,
     sd: Option<f64>,
     fs: f64,
     noise: (f64, f64),
@@ -100,21 +110,22 @@ pub fn virtual_driver(
         notes.push(format!("virtual world: real (LOG creep lambda {} assumed, as real suspensions creep; --world published for the set as given)", coilscope_core::params::TYPICAL_CREEP_LAMBDA));
     }
     let device = VirtualDevice::new(&p, fs, noise, seed)?;
-    let (mms, mms_source) = match mms {
-        Some(m) => (m, "given (--mms)".to_string()),
-        None => (p.mms, format!("the virtual driver's own Mms ({name})")),
+    let (mms, mms_source, mms_sd_rel) = match mms {
+        Some(m) => (m.kg, format!("given (--mms {m})"), m.sd_rel()),
+        None => (p.mms, format!("the virtual driver's own Mms ({name})"), 0.0),
     };
-    Ok(Prepared { device: Some(Box::new(device)), mms, mms_source, sd: sd.or(given.sd), notes })
+    Ok(Prepared { device: Some(Box::new(device)), mms, mms_source, mms_sd_rel, sd: sd.or(given.sd), notes })
 }
 
 /// A replay of the record `rec` (named `name`). `mms` given, or from the record's
 /// displacement channel (a laser) by the post-inverse equation-error fit of the whole record;
 /// a record without either is refused.
-pub fn replay(rec: Recording, name: &str, mms: Option<f64>, sd: Option<f64>) -> Result<Prepared, String> {
+pub fn replay(rec: Recording, name: &str, mms: Option<Mass>, sd: Option<f64>) -> Result<Prepared, String> {
     check_sd(sd)?;
     let mut notes = Vec::new();
+    let mms_sd_rel = mms.map_or(0.0, |m| m.sd_rel());
     let (mms, mms_source) = match (mms, &rec.x) {
-        (Some(m), _) => (m, "given (--mms)".to_string()),
+        (Some(m), _) => (m.kg, format!("given (--mms {m})")),
         (None, Some(x)) => {
             let pi = crate::identify::post_inverse_of(&rec.u, &rec.i, x, rec.fs as f64, 4, name)?;
             notes.push(format!("Mms {:.3} g from the displacement channel (post-inverse equation error)", pi.mms * 1e3));
@@ -123,14 +134,22 @@ pub fn replay(rec: Recording, name: &str, mms: Option<f64>, sd: Option<f64>) -> 
         (None, None) => return Err(format!("{name}: --replay needs an absolute scale: give --mms KG (moving mass), or a recording with a displacement channel (3, m)")),
     };
     let device = ReplayDevice::from_samples(name, rec.fs as f64, rec.u, rec.i);
-    Ok(Prepared { device: Some(Box::new(device)), mms, mms_source, sd, notes })
+    Ok(Prepared { device: Some(Box::new(device)), mms, mms_source, mms_sd_rel, sd, notes })
 }
 
-/// The result file of a finished run `m`: with the scale's source and `sd` of its setup,
-/// and the chain it was corrected for (`None`: none).
-pub fn result_of(m: &mut Measurement, mms_source: &str, sd: Option<f64>, chain: Option<Chain>) -> ResultFile {
+/// The result file of a finished run `m`: with the scale's source, the relative sd of the
+/// mass given (carried into what it scales, [`coilscope_core::result::Uncertainty::carry_mass_sd`])
+/// and `sd` of its setup, and the chain it was corrected for (`None`: none).
+pub fn result_of(
+    m: &mut Measurement,
+    mms_source: &str,
+    mms_sd_rel: f64,
+    sd: Option<f64>,
+    chain: Option<Chain>,
+) -> ResultFile {
     m.mms_source = mms_source.to_string();
     let mut j = m.result();
+    j.uncertainty.carry_mass_sd(&j.parameters, mms_sd_rel);
     j.parameters.sd = sd;
     if chain.is_some() {
         j.chain = chain;

@@ -246,7 +246,7 @@ fn a_moving_mass_off_by_two_percent_scales_the_result_as_the_physics_says() {
         let label = d.name();
         let base = identify_case(&label, &truth, d.seed, World::Plain, truth.mms);
         println!("{}", base.line);
-        let Some((p, _)) = base.params else { panic!("{label}: {}", base.line) };
+        let Some((p, [lo, hi])) = base.params else { panic!("{label}: {}", base.line) };
         for s in [0.98, 1.02] {
             let o = identify_case(&format!("{label} Mms x{s}"), &truth, d.seed, World::Plain, truth.mms * s);
             let Some((q, _)) = o.params else { panic!("{label}: {}", o.line) };
@@ -272,6 +272,20 @@ fn a_moving_mass_off_by_two_percent_scales_the_result_as_the_physics_says() {
                 within(ratio / k - 1.0, 3e-3),
                 "{label}, Mms x{s}: Bl(x/sqrt(s)) / Bl(x) = {ratio:.5}, the scale says {k:.5}"
             );
+            // At a fixed displacement each curve moves as `curve_mass_sensitivity` says: what
+            // a mass's sd (`--mms 15.3g±0.3g`) puts into the bands.
+            for j in 0..=8 {
+                let x = 0.8 * (lo + (hi - lo) * j as f64 / 8.0);
+                for (which, a, b) in [("Bl", &p.bl, &q.bl), ("Kms", &p.kms, &q.kms), ("Le", &p.le, &q.le)] {
+                    let moved = (b.eval(x) / a.eval(x)).ln() / s.ln();
+                    let said = coilscope_core::mass::curve_mass_sensitivity(which, a, x);
+                    assert!(
+                        within(moved - said, 0.06 + 0.03 * said.abs()),
+                        "{label}, Mms x{s}: {which} at {:.2} mm moved {moved:.3} of the mass's log, the scale says {said:.3}",
+                        x * 1e3
+                    );
+                }
+            }
         }
     }
 }

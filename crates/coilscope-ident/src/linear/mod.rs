@@ -716,10 +716,15 @@ fn linear_record_from(
 /// How the absolute scale (Bl) was found.
 #[derive(Clone, Debug, PartialEq)]
 pub enum ScaleMethod {
-    Mms,
-    /// `mms_sd_rel`: the relative sd of the Mms it gave, from the two resonances' sds.
+    /// The moving mass given, with its relative sd (0: taken as exact).
+    Mms {
+        sd_rel: f64,
+    },
+    /// `mms_sd_rel`: the relative sd of the Mms it gave, from the two resonances' sds and the
+    /// added mass's own (`added_sd`, kg).
     AddedMass {
         added: f64,
+        added_sd: f64,
         fs_with: f64,
         mms_sd_rel: f64,
     },
@@ -733,22 +738,30 @@ pub fn result(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f
     // Relative uncertainties of the derived quantities, first order, independent terms.
     let s = fit.sigma_rel;
     let fs_rel = fs_rel_sd(fit);
-    // The scale's own relative sd (added mass: from the resonances; a given Mms is exact).
+    // The scale's own relative sd (added mass: from the resonances and the mass; a given
+    // Mms: as the user gave it).
     let m = match method {
         ScaleMethod::AddedMass { mms_sd_rel, .. } => *mms_sd_rel,
-        _ => 0.0,
+        ScaleMethod::Mms { sd_rel } => *sd_rel,
+        ScaleMethod::Displacement => 0.0,
     };
     let scale = match method {
-        ScaleMethod::Mms => Scale { method: "mms".into(), mms: Some(p.mms), ..Default::default() },
-        ScaleMethod::AddedMass { added, fs_with, .. } => Scale {
+        ScaleMethod::Mms { sd_rel } => Scale {
+            method: "mms".into(),
+            mms: Some(p.mms),
+            mass_sd: (*sd_rel > 0.0).then_some(sd_rel * p.mms),
+            ..Default::default()
+        },
+        ScaleMethod::AddedMass { added, added_sd, fs_with, .. } => Scale {
             method: "added-mass".into(),
             added_mass: Some(*added),
+            mass_sd: (*added_sd > 0.0).then_some(*added_sd),
             fs_with_mass: Some(*fs_with),
             ..Default::default()
         },
         ScaleMethod::Displacement => Scale { method: "displacement".into(), ..Default::default() },
     };
-    let mut unc = Uncertainty::new("standard deviations: cluster-robust sandwich covariance over groups of 16 neighbouring bins (holds when the residual is not white: distortion, model error), and the model choice's share where a model with more effects fits the data as well (its spread, under model.KEY, already in KEY's sd); the scale input, e.g. Mms, is taken as exact");
+    let mut unc = Uncertainty::new("standard deviations: cluster-robust sandwich covariance over groups of 16 neighbouring bins (holds when the residual is not white: distortion, model error), and the model choice's share where a model with more effects fits the data as well (its spread, under model.KEY, already in KEY's sd); the scale's share (a given mass's sd, the added-mass method's resonances) under scale.KEY, already in KEY's sd; a mass given without an sd is taken as exact");
     for (key, v) in [
         ("Re", sd(0)),
         ("Le", sd(1)),
@@ -767,6 +780,10 @@ pub fn result(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f
     }
     if m > 0.0 {
         unc.set("Mms", m * p.mms);
+        // The scale's share of the sds above, in their units: what the mass moves.
+        for (key, v) in coilscope_core::mass::scale_share(p, m) {
+            unc.set(&format!("scale.{key}"), v);
+        }
     }
     // The model choice's share of the sds above (in their units), where it has one.
     let mr = fit.model_rel;

@@ -67,7 +67,7 @@ pub fn added_mass_scale(fit: &LinearFit, with_mass: &LinearFit, added: f64) -> R
     }
     let r_rel = (fs_rel_sd(fit).powi(2) + fs_rel_sd(with_mass).powi(2)).sqrt();
     let mms_sd_rel = 2.0 * ratio / (ratio - 1.0) * r_rel;
-    Ok((added / (ratio - 1.0), ScaleMethod::AddedMass { added, fs_with: with_mass.fs(), mms_sd_rel }))
+    Ok((added / (ratio - 1.0), ScaleMethod::AddedMass { added, added_sd: 0.0, fs_with: with_mass.fs(), mms_sd_rel }))
 }
 
 /// Moving mass from a displacement channel `x` (m): fit `X = (Bl/Kms) G(f) I` with the known
