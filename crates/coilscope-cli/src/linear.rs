@@ -149,7 +149,15 @@ pub(crate) fn cmd_linear(a: LinearArgs) -> Result<(), Failure> {
         ScaleMethod::AddedMass { added, fs_with, .. } => {
             format!("added mass {:.3} g, fs with mass {:.3} Hz", added * 1e3, fs_with)
         }
-        ScaleMethod::Displacement => "displacement channel".to_string(),
+        ScaleMethod::Displacement { delay_samples, mms_sd_rel } if delay_samples.abs() >= 0.125 => format!(
+            "displacement channel (Mms +- {:.2} %; the channel {} the current by {:.2} samples, the sensor's delay, taken out)",
+            100.0 * mms_sd_rel,
+            if *delay_samples > 0.0 { "lags" } else { "leads" },
+            delay_samples.abs()
+        ),
+        ScaleMethod::Displacement { mms_sd_rel, .. } => {
+            format!("displacement channel (Mms +- {:.2} %; no delay against the current)", 100.0 * mms_sd_rel)
+        }
     };
     println!("  scale: {scale_text}");
     if let (Some(c), LinearInput::Record(r)) = (&fit.chain, &input) {

@@ -197,6 +197,10 @@ pub struct Scale {
     /// Hz.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fs_with_mass: Option<f64>,
+    /// The displacement channel's delay against the current (samples, positive when it
+    /// lags: a sensor's own), estimated with the displacement scale and taken out.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sensor_delay_samples: Option<f64>,
 }
 
 /// A finding that makes a result doubtful.

@@ -7,7 +7,9 @@ use coilscope_core::excitation::{add_sensor_noise, generate, Excitation, SignalS
 use coilscope_core::simulate::{simulate, SimOptions};
 use coilscope_core::small_signal::thiele_small;
 use coilscope_core::{embedded_driver, embedded_driver_names, Parameters};
-use coilscope_ident::linear::{added_mass_mms, fit_linear, scale_by_displacement, scale_by_mms, LinearFit};
+use coilscope_ident::linear::{
+    added_mass_mms, displacement_scale, fit_linear, scale_by_displacement, scale_by_mms, LinearFit, ScaleMethod,
+};
 use std::path::Path;
 
 struct Rec {
@@ -138,6 +140,22 @@ fn displacement_channel_gives_the_scale() {
         // An inverted laser is refused, not silently accepted.
         let flipped: Vec<f64> = r.x.iter().map(|v| -v).collect();
         assert!(scale_by_displacement(&f, &r.i, &flipped, r.fs, name).unwrap_err().contains("inverted polarity"));
+        // A sensor that lags by 20 samples (a vibrometer's own delay): found and taken out,
+        // Mms as without it; the Mms sd covers the truth and is not inflated past a few %.
+        for lag in [0usize, 20] {
+            let mut late = vec![0.0; lag];
+            late.extend_from_slice(&r.x[..r.x.len() - lag]);
+            let (m, method) = displacement_scale(&f, &r.i, &late, r.fs, name).unwrap();
+            let ScaleMethod::Displacement { delay_samples, mms_sd_rel } = method else { panic!("{name}: {method:?}") };
+            assert!((delay_samples - lag as f64).abs() <= 0.25, "{name}: lag {lag} read as {delay_samples}");
+            let z = (m / p.mms - 1.0).abs() / mms_sd_rel;
+            assert!(
+                z < 3.0 && (1e-4..0.03).contains(&mms_sd_rel),
+                "{name}, lag {lag}: Mms {m:.6} for {:.6}, sd {mms_sd_rel:.2e} ({z:.2} sd)",
+                p.mms
+            );
+            assert!((m / mms - 1.0).abs() < 2e-3, "{name}, lag {lag}: Mms {m:.6} against {mms:.6} without the lag");
+        }
     }
 }
 

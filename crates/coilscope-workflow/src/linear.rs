@@ -9,9 +9,9 @@ use coilscope_core::result::ResultFile;
 use coilscope_core::{Complex64, Parameters};
 use coilscope_ident::checks::{NoiseFloor, Warning};
 use coilscope_ident::linear::{
-    added_mass_scale, curve_warnings, fit_impedance_curve, fit_impedance_magnitude, fit_linear_record, linear_warnings,
-    lumped_band, predicted_displacement, result, scale_by_displacement, scale_by_mms, EffectsChoice, LinearFit,
-    LinearOptions, ScaleMethod,
+    added_mass_scale, curve_warnings, displacement_scale, fit_impedance_curve, fit_impedance_magnitude,
+    fit_linear_record, linear_warnings, lumped_band, predicted_displacement, result, scale_by_mms, EffectsChoice,
+    LinearFit, LinearOptions, ScaleMethod,
 };
 use coilscope_ident::lm::LmState;
 use coilscope_io::impedance::ImpedanceCurve;
@@ -329,7 +329,7 @@ fn scale_mms(
         }
         Scale::Displacement => match input {
             LinearInput::Record(Recording { i, x: Some(x), fs, .. }) => {
-                Ok((scale_by_displacement(fit, i, x, *fs as f64, origin)?, ScaleMethod::Displacement))
+                displacement_scale(fit, i, x, *fs as f64, origin)
             }
             _ => Err(format!("{origin}: the displacement scale needs a record with a displacement channel (3)")),
         },

@@ -717,18 +717,13 @@ fn linear_record_from(
 #[derive(Clone, Debug, PartialEq)]
 pub enum ScaleMethod {
     /// The moving mass given, with its relative sd (0: taken as exact).
-    Mms {
-        sd_rel: f64,
-    },
+    Mms { sd_rel: f64 },
     /// `mms_sd_rel`: the relative sd of the Mms it gave, from the two resonances' sds and the
     /// added mass's own (`added_sd`, kg).
-    AddedMass {
-        added: f64,
-        added_sd: f64,
-        fs_with: f64,
-        mms_sd_rel: f64,
-    },
-    Displacement,
+    AddedMass { added: f64, added_sd: f64, fs_with: f64, mms_sd_rel: f64 },
+    /// The displacement channel: its delay against the current (samples, estimated and
+    /// taken out) and the relative sd of the Mms it gave.
+    Displacement { delay_samples: f64, mms_sd_rel: f64 },
 }
 
 /// The identification result (`"format": "coilscope.result/1"`) of a linear fit.
@@ -743,7 +738,7 @@ pub fn result(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f
     let m = match method {
         ScaleMethod::AddedMass { mms_sd_rel, .. } => *mms_sd_rel,
         ScaleMethod::Mms { sd_rel } => *sd_rel,
-        ScaleMethod::Displacement => 0.0,
+        ScaleMethod::Displacement { mms_sd_rel, .. } => *mms_sd_rel,
     };
     let scale = match method {
         ScaleMethod::Mms { sd_rel } => Scale {
@@ -759,7 +754,9 @@ pub fn result(p: &Parameters, fit: &LinearFit, method: &ScaleMethod, x_range: [f
             fs_with_mass: Some(*fs_with),
             ..Default::default()
         },
-        ScaleMethod::Displacement => Scale { method: "displacement".into(), ..Default::default() },
+        ScaleMethod::Displacement { delay_samples, .. } => {
+            Scale { method: "displacement".into(), sensor_delay_samples: Some(*delay_samples), ..Default::default() }
+        }
     };
     let mut unc = Uncertainty::new("standard deviations: cluster-robust sandwich covariance over groups of 16 neighbouring bins (holds when the residual is not white: distortion, model error), and the model choice's share where a model with more effects fits the data as well (its spread, under model.KEY, already in KEY's sd); the scale's share (a given mass's sd, the added-mass method's resonances) under scale.KEY, already in KEY's sd; a mass given without an sd is taken as exact");
     for (key, v) in [
