@@ -491,7 +491,11 @@ impl<'a> Engine<'a> {
                     // linear fit of large-signal data is a biased start (Kms 20-45 % off), from
                     // which the online estimator does not recover. Start from a batch
                     // large-signal fit of the same seconds, with the basis at their reach.
-                    self.re_cold_sd = lin.sigma_rel[0] * p.re;
+                    // The statistical part of the cold Re's sd: it is also the offset the
+                    // thermal fit weighs the tracked rise by, and a model choice's share
+                    // (which moves Re and the rise's reference alike) weakened that fit
+                    // until it left out the convection (Rtv 29 % off).
+                    self.re_cold_sd = (lin.sigma_rel[0].powi(2) - lin.model_rel[0].powi(2)).max(0.0).sqrt() * p.re;
                     self.le_model_rel = lin.le_model_rel;
                     let p = match (self.controllable, loud_start(&lin, &p, &self.u_small, &self.i_small, self.fs)) {
                         (false, Some(reach)) => {
