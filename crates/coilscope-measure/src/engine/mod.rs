@@ -495,7 +495,10 @@ impl<'a> Engine<'a> {
                     // thermal fit weighs the tracked rise by, and a model choice's share
                     // (which moves Re and the rise's reference alike) weakened that fit
                     // until it left out the convection (Rtv 29 % off).
-                    self.re_cold_sd = (lin.sigma_rel[0].powi(2) - lin.model_rel[0].powi(2)).max(0.0).sqrt() * p.re;
+                    // (A fit without an sd keeps NaN: `max` would make it 0.)
+                    let (sd, model) = (lin.sigma_rel[0], lin.model_rel[0]);
+                    let stat = if sd.is_nan() { sd } else { (sd * sd - model * model).max(0.0).sqrt() };
+                    self.re_cold_sd = stat * p.re;
                     self.le_model_rel = lin.le_model_rel;
                     let p = match (self.controllable, loud_start(&lin, &p, &self.u_small, &self.i_small, self.fs)) {
                         (false, Some(reach)) => {
