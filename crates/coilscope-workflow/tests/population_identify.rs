@@ -144,6 +144,26 @@ fn identify_case(label: &str, truth: &Parameters, seed: u64, world: World, mms: 
             format!("Le(0) {:.4e} H, LR-2 {two:?}, LR-3 {:?}", p.le.eval(0.0), p.l3r3)
         };
         println!("  fitted {}\n  truth  {}", branches(q), branches(truth));
+        let f = &done.fit;
+        println!(
+            "  order {}, current error {:.3e} of its rms, converged {} ({}), orders tried {:?}",
+            f.order,
+            f.residual_rel,
+            f.converged,
+            f.stop_reason,
+            f.trials.iter().map(|t| (t.order, t.validation_rel)).collect::<Vec<_>>()
+        );
+        let k = f.settle;
+        let r: Vec<f64> = f.i_phys[k..].iter().zip(&f.i_model[k..]).map(|(a, b)| a - b).collect();
+        let drive =
+            coilscope_ident::checks::drive_explained_ratio(&r, &f.u_phys[k..], &f.i_model[k..], &f.x_model[k..], fs);
+        println!(
+            "  residual {:.3e} A rms, floor {:.3e} A rms (ratio {:.2}), quiet floor {:?}, follows the drive by {drive:.3}",
+            done.floor.rms,
+            done.floor.floor_rms,
+            done.floor.ratio,
+            coilscope_ident::checks::quiet_floor_rms(&r)
+        );
         for t in done.fit.models_tried() {
             println!(
                 "  tried {}: held-out {:?}, screen gain {:?}, outscored by {:?}",

@@ -460,8 +460,23 @@ pub(super) fn identify_record(
         };
         let full =
             OutputError::new(lay.clone(), u, i, fs, split..search_end, rates, x_limit, threads).with_chain(setup);
-        let validate =
-            |th_val: &[f64]| full.residual_vec(th_val).map(|r| rel(&r, &i[split..search_end])).unwrap_or(f64::INFINITY);
+        // The held-out score fits the coil's temperature there (the Re(t) knots whose
+        // intervals reach into the held-out part; the model held): what is scored is the
+        // model, not how well the estimation part's track extrapolates
+        // ([`OutputError::residual_with_re_fitted`]).
+        let (t_end, t_from) = (search_end as f64 / fs, t_split - knot_dt);
+        let held_knots: Vec<usize> = (0..n_re)
+            .filter(|&k| {
+                let tk = k as f64 * knot_dt;
+                tk > t_from && tk < t_end + knot_dt
+            })
+            .map(|k| sl.re.start + k)
+            .collect();
+        let validate = |th_val: &[f64]| {
+            full.residual_with_re_fitted(th_val, &held_knots, HELD_OUT_RE_STEPS)
+                .map(|r| rel(&r, &i[split..search_end]))
+                .unwrap_or(f64::INFINITY)
+        };
         // The validation run of a trial likely to end the stage runs beside the trial's own
         // residual run (on the core that run leaves idle): (trial theta, validation error).
         let early = std::sync::Mutex::new(None::<(Vec<f64>, f64)>);
